@@ -1,0 +1,1 @@
+"""Scoring predictions against a dataset: metrics, baselines, reports, benchmark, CI thresholds."""

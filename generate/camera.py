@@ -1,0 +1,105 @@
+"""The project's one camera: pinhole, OpenGL/NeRF axes, rays through pixel centres.
+
+Every file nerfgauge writes stores camera-to-world 4x4 matrices in the OpenGL/NeRF
+convention: +X right, +Y up, the camera looks along -Z. Mitsuba's camera has +X left and
+looks along +Z; `to_mitsuba` converts (the flip is its own inverse). Pixel (row i, col j)
+has its ray through (j + 0.5, i + 0.5), row 0 at the top. Pure numpy; no renderer here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+GL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels. Square pixels: fx == fy unless read from a file."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, fov_x_degrees: float) -> "Intrinsics":
+        """Horizontal field of view (NeRF-synthetic's camera_angle_x, Mitsuba's fov_axis='x')."""
+        if not 0 < fov_x_degrees < 180:
+            raise ValueError(f"fov must be in (0, 180) degrees, got {fov_x_degrees}")
+        focal = 0.5 * width / math.tan(math.radians(fov_x_degrees) / 2)
+        return cls(int(width), int(height), focal, focal, width / 2, height / 2)
+
+    @property
+    def camera_angle_x(self) -> float:
+        """Horizontal field of view in radians."""
+        return 2 * math.atan(0.5 * self.width / self.fx)
+
+    @property
+    def fov_x_degrees(self) -> float:
+        return math.degrees(self.camera_angle_x)
+
+
+def camera_directions(intrinsics: Intrinsics) -> np.ndarray:
+    """Unnormalised camera-space ray directions with z = -1. Returns [H, W, 3] float64."""
+    cols = np.arange(intrinsics.width) + 0.5
+    rows = np.arange(intrinsics.height) + 0.5
+    u, v = np.meshgrid(cols, rows)  # [H, W] each
+    x = (u - intrinsics.cx) / intrinsics.fx
+    y = -(v - intrinsics.cy) / intrinsics.fy  # row 0 is the top: +Y up
+    return np.stack([x, y, -np.ones_like(x)], axis=-1)
+
+
+def pixel_rays(c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays through every pixel centre.
+
+    c2w: [4, 4] camera-to-world (OpenGL axes).
+    Returns origins [H, W, 3] and unit directions [H, W, 3] (float64).
+    """
+    c2w = np.asarray(c2w, np.float64)
+    if c2w.shape != (4, 4):
+        raise ValueError(f"c2w must be 4x4, got shape {c2w.shape}")
+    d = camera_directions(intrinsics) @ c2w[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.broadcast_to(c2w[:3, 3], d.shape).copy(), d
+
+
+def z_depth_from_distance(distance: np.ndarray, directions: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Depth along the optical axis from distance along unit rays: z = t * cos(angle).
+
+    distance: [...], directions: [..., 3] unit, c2w: [4, 4]. Returns [...] (0 stays 0).
+    """
+    forward = -np.asarray(c2w, np.float64)[:3, 2]
+    return distance * (directions @ forward)
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world (OpenGL axes) at `eye` looking at `target`. Returns [4, 4].
+
+    When the view direction is parallel to `up` (looking straight down or up), the
+    world +Y axis is used as up instead, so the pose stays defined.
+    """
+    eye, target, up = (np.asarray(x, np.float64) for x in (eye, target, up))
+    back = eye - target
+    norm = np.linalg.norm(back)
+    if norm == 0:
+        raise ValueError("camera eye and target coincide")
+    back /= norm
+    right = np.cross(up, back)
+    if np.linalg.norm(right) < 1e-9:
+        right = np.cross(np.array([0.0, 1.0, 0.0]), back)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(back, right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, true_up, back, eye
+    return c2w
+
+
+def to_mitsuba(c2w: np.ndarray) -> np.ndarray:
+    """OpenGL camera-to-world -> Mitsuba sensor to_world (and back: the same flip)."""
+    return np.asarray(c2w, np.float64) @ GL_TO_MITSUBA

@@ -1,0 +1,1 @@
+"""Radiance fields in PyTorch: volume rendering (pure functions), fields, training, rendering."""

@@ -1,0 +1,1 @@
+"""The `nerfgauge` command: a thin dispatcher over the stage packages."""

@@ -1,0 +1,57 @@
+"""`nerfgauge`: one command, subcommands registered by the stage packages.
+
+Each stage package has a `commands.py` with `register(subparsers)`, which adds its
+subcommands and sets `func` (called with the parsed arguments, returns an exit code).
+Heavy imports (mitsuba, torch) happen inside those functions, so `nerfgauge --help` and
+argument errors are instant. Bad input (`InputError`) prints one line and exits 2;
+set NERFGAUGE_DEBUG=1 to see its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from nerfgauge.errors import InputError
+
+STAGES = ("scenes", "generate", "nerf", "eval")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="nerfgauge",
+        description="Ground-truth NeRF datasets with Mitsuba 3, a compact NeRF, and an evaluation harness.",
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for stage in STAGES:
+        try:
+            module = importlib.import_module(f"{stage}.commands")
+        except ModuleNotFoundError as error:
+            if error.name != f"{stage}.commands":
+                raise
+            continue  # a stage without commands yet
+        module.register(subparsers)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code = args.func(args)
+    except InputError as error:
+        if os.environ.get("NERFGAUGE_DEBUG"):
+            raise
+        message = str(error).splitlines()[0] if str(error) else type(error).__name__
+        print(f"nerfgauge {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"nerfgauge {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,327 @@
+"""A scene as plain data: shapes, materials, lights, bounds and what it needs modelled.
+
+Nothing here knows a renderer. `generate/` turns a `Scene` into Mitsuba objects; `nerf/`
+reads `needs` (through the dataset's scene.json) to decide what to model.
+
+World convention: right-handed, +Z up, scene units. Angles in degrees.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Optional, Union
+
+import numpy as np
+
+from scenes import meshes
+
+Vec3 = tuple[float, float, float]
+
+BACKGROUNDS = ("transparent", "environment")
+
+
+# --- materials ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Diffuse:
+    """Lambertian, constant albedo (linear RGB)."""
+
+    color: Vec3
+    view_dependent = False
+
+
+@dataclass(frozen=True)
+class Textured:
+    """Lambertian whose albedo is a repeating tile, `period` scene units across.
+
+    pattern: "checker" (2x2 tile), "stripes" (1x2 tile) or "noise" (8x8 tile of a seeded
+    blend of the two colours). Looked up with nearest filtering, so edges stay sharp.
+    """
+
+    pattern: str
+    color0: Vec3
+    color1: Vec3
+    period: float
+    seed: int = 0
+    view_dependent = False
+
+    def tile(self) -> np.ndarray:
+        """The repeating tile as linear RGB. Returns [rows, cols, 3] float32."""
+        c0, c1 = np.asarray(self.color0, np.float32), np.asarray(self.color1, np.float32)
+        if self.pattern == "checker":
+            mask = np.array([[0, 1], [1, 0]], np.float32)
+        elif self.pattern == "stripes":
+            mask = np.array([[0, 1]], np.float32)
+        elif self.pattern == "noise":
+            mask = np.random.default_rng(self.seed).random((8, 8)).astype(np.float32)
+        else:
+            raise ValueError(f"unknown texture pattern {self.pattern!r}")
+        return c0 * (1 - mask[..., None]) + c1 * mask[..., None]
+
+    @property
+    def finest_period(self) -> float:
+        """Smallest repeating detail in scene units (one tile cell)."""
+        rows, cols, _ = self.tile().shape
+        return self.period / max(rows, cols)
+
+
+@dataclass(frozen=True)
+class RoughPlastic:
+    """Diffuse base under a GGX-rough dielectric coat: highlights move with the view."""
+
+    color: Vec3
+    roughness: float = 0.1
+    view_dependent = True
+
+
+@dataclass(frozen=True)
+class Conductor:
+    """Metal (Mitsuba's named conductors: "Au", "Cu", "Al", ...). roughness 0 is a mirror."""
+
+    metal: str = "Au"
+    roughness: float = 0.15
+    view_dependent = True
+
+
+@dataclass(frozen=True)
+class Dielectric:
+    """Smooth glass: depth is ambiguous (the surface or what is seen through it)."""
+
+    ior: float = 1.5
+    view_dependent = True
+
+
+Material = Union[Diffuse, Textured, RoughPlastic, Conductor, Dielectric]
+
+
+# --- shapes ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """Analytic sphere (rendered exactly; its ground-truth mesh is an icosphere)."""
+
+    name: str
+    center: Vec3
+    radius: float
+    material: Material
+    emission: Optional[Vec3] = None
+
+    def mesh(self) -> meshes.MeshData:
+        return meshes.icosphere(self.center, self.radius)
+
+    def uv_extent(self) -> tuple[float, float]:
+        """Scene units spanned by one unit of u and of v (Mitsuba's sphere uv)."""
+        return (2 * math.pi * self.radius, math.pi * self.radius)
+
+
+@dataclass(frozen=True)
+class Box:
+    name: str
+    center: Vec3
+    size: Vec3
+    material: Material
+    rotation: Vec3 = (0.0, 0.0, 0.0)
+    emission: Optional[Vec3] = None
+
+    def mesh(self) -> meshes.MeshData:
+        return meshes.box(self.size).transformed(meshes.pose(self.center, self.rotation))
+
+    def uv_extent(self) -> tuple[float, float]:
+        return (1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """Capped cylinder of `height` along its local +Z, centred on `center`."""
+
+    name: str
+    center: Vec3
+    radius: float
+    height: float
+    material: Material
+    rotation: Vec3 = (0.0, 0.0, 0.0)
+    emission: Optional[Vec3] = None
+
+    def mesh(self) -> meshes.MeshData:
+        local = meshes.capped_cylinder(self.radius, self.height)
+        return local.transformed(meshes.pose(self.center, self.rotation))
+
+    def uv_extent(self) -> tuple[float, float]:
+        return (1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Torus:
+    """Torus around its local +Z axis: ring radius `major`, tube radius `minor`."""
+
+    name: str
+    center: Vec3
+    major: float
+    minor: float
+    material: Material
+    rotation: Vec3 = (0.0, 0.0, 0.0)
+    emission: Optional[Vec3] = None
+
+    def mesh(self) -> meshes.MeshData:
+        local = meshes.torus(self.major, self.minor)
+        return local.transformed(meshes.pose(self.center, self.rotation))
+
+    def uv_extent(self) -> tuple[float, float]:
+        return (1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class TriangleMesh:
+    """A triangle mesh already in world coordinates (e.g. a user's file, scaled)."""
+
+    name: str
+    data: meshes.MeshData = field(repr=False)
+    material: Material = Diffuse((0.6, 0.6, 0.6))
+    source: str = ""
+    emission: Optional[Vec3] = None
+
+    def mesh(self) -> meshes.MeshData:
+        return self.data
+
+    def uv_extent(self) -> tuple[float, float]:
+        return (1.0, 1.0)
+
+
+Shape = Union[Sphere, Box, Cylinder, Torus, TriangleMesh]
+
+
+# --- lights ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ConstantEnvironment:
+    radiance: Vec3
+
+
+@dataclass(frozen=True)
+class GradientEnvironment:
+    """Sky that blends zenith -> horizon -> nadir with elevation (smooth, low noise)."""
+
+    zenith: Vec3
+    horizon: Vec3
+    nadir: Vec3
+
+    def latlong(self, width: int = 64) -> np.ndarray:
+        """Equirectangular map, row 0 at the zenith. Returns [width // 2, width, 3]."""
+        rows = width // 2
+        elevation = math.pi / 2 - (np.arange(rows) + 0.5) / rows * math.pi  # [rows]
+        up = np.clip(np.sin(elevation), 0, 1)[:, None]
+        down = np.clip(-np.sin(elevation), 0, 1)[:, None]
+        z, h, n = (np.asarray(c, np.float32) for c in (self.zenith, self.horizon, self.nadir))
+        row_colors = h * (1 - up - down) + z * up + n * down  # [rows, 3]
+        return np.repeat(row_colors[:, None, :], width, axis=1).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class PointLight:
+    position: Vec3
+    intensity: Vec3
+
+
+@dataclass(frozen=True)
+class RectangleLight:
+    """One-sided emitting rectangle at `center`, facing along `normal`."""
+
+    center: Vec3
+    size: tuple[float, float]
+    normal: Vec3
+    radiance: Vec3
+
+
+Light = Union[ConstantEnvironment, GradientEnvironment, PointLight, RectangleLight]
+
+
+# --- the scene ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Needs:
+    """What a radiance field must model for this scene.
+
+    view_dependent: some material's appearance changes with the view direction.
+    background: "transparent" (alpha = coverage) or "environment" (visible sky).
+    finest_texture_period: smallest texture detail in scene units, None if untextured.
+    """
+
+    view_dependent: bool
+    background: str
+    finest_texture_period: Optional[float]
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    seed: int
+    shapes: tuple
+    lights: tuple
+    aabb_min: Vec3
+    aabb_max: Vec3
+    needs: Needs
+    params: dict = field(default_factory=dict)
+
+    @property
+    def aabb(self) -> np.ndarray:
+        """[2, 3]: min and max corner."""
+        return np.array([self.aabb_min, self.aabb_max], dtype=np.float64)
+
+    def to_json(self) -> dict:
+        """A JSON-able description (meshes summarised, not inlined)."""
+        return {
+            "name": self.name,
+            "seed": self.seed,
+            "params": self.params,
+            "aabb": [list(self.aabb_min), list(self.aabb_max)],
+            "needs": asdict(self.needs),
+            "shapes": [_shape_json(s) for s in self.shapes],
+            "lights": [{"type": type(l).__name__, **asdict(l)} for l in self.lights],
+        }
+
+
+def _shape_json(shape) -> dict:
+    out = {"type": type(shape).__name__}
+    for f in fields(shape):
+        value = getattr(shape, f.name)
+        if f.name == "data":
+            out["vertices"], out["faces"] = len(value.vertices), len(value.faces)
+        elif f.name == "material":
+            out["material"] = {"type": type(value).__name__, **asdict(value)}
+        else:
+            out[f.name] = value
+    return out
+
+
+def build_scene(name, seed, shapes, lights, *, background="transparent", aabb=None,
+                params=None, padding=0.05) -> Scene:
+    """Assemble a Scene, deriving `needs` from the materials and the AABB from the shapes.
+
+    aabb: optional ((xmin, ymin, zmin), (xmax, ymax, zmax)); by default the shapes'
+    bounds grown by `padding` times the largest extent on every side.
+    """
+    if background not in BACKGROUNDS:
+        raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+    names = [s.name for s in shapes]
+    if len(set(names)) != len(names):
+        raise ValueError(f"shape names must be unique, got {names}")
+    if aabb is None:
+        if not shapes:
+            raise ValueError("a scene without shapes needs an explicit aabb")
+        corners = np.concatenate([s.mesh().bounds() for s in shapes])
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        pad = padding * float((hi - lo).max())
+        aabb = (lo - pad, hi + pad)
+    lo, hi = (tuple(float(x) for x in corner) for corner in aabb)
+    periods = [s.material.finest_period for s in shapes if isinstance(s.material, Textured)]
+    needs = Needs(
+        view_dependent=any(s.material.view_dependent for s in shapes),
+        background=background,
+        finest_texture_period=min(periods) if periods else None,
+    )
+    return Scene(name, int(seed), tuple(shapes), tuple(lights), lo, hi, needs, dict(params or {}))
