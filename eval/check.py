@@ -1,0 +1,343 @@
+"""The CI gate: compare a metrics.json against per-scene bounds from a thresholds.toml.
+
+    nerfgauge check METRICS.json --thresholds thresholds.toml [--junit FILE] [--scene NAME]
+
+Exit codes: 0 every check passes, 1 at least one fails, 2 malformed input (`InputError`:
+unreadable or malformed files, unknown scene / metric / key, wrong schema).
+
+thresholds.toml
+---------------
+One table per scene, one entry per metric, each an inline table with `min` and/or `max`::
+
+    ["*"]                            # applies to every scene
+    ssim = { min = 0.90 }
+
+    [primitives]
+    psnr = { min = 30.0 }
+    depth_absrel = { max = 0.02 }
+    ssim = { min = 0.95 }            # replaces the "*" entry for ssim
+    depth_delta1 = { min = 0.97, max = 1.0 }
+
+    ["mesh:assets/bunny.obj"]        # user meshes by their full scene name
+    psnr = { min = 25.0 }
+
+- Table names: a scene from `scenes.registry.RECIPES`, a `mesh:PATH` scene, or `"*"`.
+  Anything else is an error naming it.
+- Metric names: `eval.metrics.METRIC_NAMES` (psnr, ssim, depth_absrel, depth_rmse,
+  depth_mae, depth_delta1, opacity_iou), compared with metrics.json's `mean` table.
+- Entry keys: only `min` and `max`, finite numbers, at least one, min <= max. Bounds are
+  inclusive: a value equal to its bound passes.
+- The bounds for a scene are the `"*"` table overlaid by the scene's own table (per
+  metric, the scene's entry replaces the `"*"` one). The metrics' scene (or `--scene`)
+  must end up with at least one bound, otherwise nothing would be checked: an error.
+
+Each bound is one check. Its margin is `value - min` or `max - value`: positive or zero
+passes. A metric that is null or missing in metrics.json while it has a bound fails, with
+the reason; so does NaN. `--scene NAME` checks the metrics against NAME's bounds instead of
+those of the scene the metrics file names (e.g. a `random` run with another seed).
+
+metrics.json (written by `nerfgauge evaluate`), schema 1::
+
+    {"schema": 1, "scene": "primitives", "split": "test",
+     "mean": {"psnr": 31.2, "ssim": 0.95, "depth_absrel": 0.01, ...},
+     "std": {...}, "frames": [...], "timing": {...}}
+
+Only `schema`, `scene` and `mean` are read here.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import tempfile
+import tomllib
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+from eval.metrics import METRIC_NAMES
+from nerfgauge.errors import InputError
+
+METRICS_SCHEMA = 1
+DEFAULT_TABLE = "*"
+BOUND_KEYS = ("min", "max")
+MESH_PREFIX = "mesh:"
+
+
+@dataclass(frozen=True)
+class Bound:
+    """Inclusive bounds on one metric; at least one of min / max is set."""
+
+    metric: str
+    min: Optional[float] = None
+    max: Optional[float] = None
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    """One bound tested against one value.
+
+    kind is "min" (value >= bound) or "max" (value <= bound). margin is value - bound for
+    "min" and bound - value for "max" (>= 0 passes); None when the value is null or
+    missing. reason explains a failure and is "" for a pass.
+    """
+
+    scene: str
+    metric: str
+    kind: str
+    bound: float
+    value: Optional[float]
+    margin: Optional[float]
+    passed: bool
+    reason: str
+
+    @property
+    def relation(self) -> str:
+        return ">=" if self.kind == "min" else "<="
+
+    @property
+    def name(self) -> str:
+        return f"{self.metric} {self.relation} {self.bound:.6g}"
+
+
+# --- reading the inputs -------------------------------------------------------------
+
+
+def known_scene(name: str) -> bool:
+    """A recipe from `scenes.registry.RECIPES` or a `mesh:PATH` scene."""
+    from scenes.registry import RECIPES
+
+    return name in RECIPES or (name.startswith(MESH_PREFIX) and len(name) > len(MESH_PREFIX))
+
+
+def _known_scenes_text() -> str:
+    from scenes.registry import RECIPES
+
+    return ", ".join(list(RECIPES) + [MESH_PREFIX + "PATH", repr(DEFAULT_TABLE)])
+
+
+def _read_text(path: Path, what: str) -> str:
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{what} not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(f"cannot read {what} {path}: {error}") from None
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def parse_thresholds(data: dict, source: str = "thresholds") -> dict[str, dict[str, Bound]]:
+    """Validate parsed TOML: {table name: {metric: Bound}}, in file order.
+
+    Raises InputError naming the offending table, metric or key.
+    """
+    tables: dict[str, dict[str, Bound]] = {}
+    for scene, table in data.items():
+        if scene in METRIC_NAMES:
+            raise InputError(f"{source}: metric {scene!r} is outside a scene table; "
+                             f"put it under [scene] or [\"{DEFAULT_TABLE}\"]")
+        if scene != DEFAULT_TABLE and not known_scene(scene):
+            raise InputError(f"{source}: unknown scene {scene!r}; known: {_known_scenes_text()}")
+        if not isinstance(table, dict):
+            raise InputError(f"{source}: [{scene}] must be a table of metrics, got {table!r}")
+        bounds: dict[str, Bound] = {}
+        for metric, entry in table.items():
+            where = f"{source}: [{scene}] {metric}"
+            if metric not in METRIC_NAMES:
+                raise InputError(f"{source}: [{scene}] unknown metric {metric!r}; known: {', '.join(METRIC_NAMES)}")
+            if not isinstance(entry, dict):
+                raise InputError(f"{where} must be a table like {{ min = ... }} or {{ max = ... }}, got {entry!r}")
+            unknown = [key for key in entry if key not in BOUND_KEYS]
+            if unknown:
+                raise InputError(f"{where}: unknown key {unknown[0]!r}; only 'min' and 'max' are allowed")
+            if not entry:
+                raise InputError(f"{where} has no bound; give min and/or max")
+            for key, value in entry.items():
+                if not _is_number(value) or not math.isfinite(value):
+                    raise InputError(f"{where}.{key} must be a finite number, got {value!r}")
+            low, high = entry.get("min"), entry.get("max")
+            if low is not None and high is not None and low > high:
+                raise InputError(f"{where}: min {low} is greater than max {high}")
+            bounds[metric] = Bound(metric,
+                                   None if low is None else float(low),
+                                   None if high is None else float(high))
+        tables[scene] = bounds
+    return tables
+
+
+def load_thresholds(path) -> dict[str, dict[str, Bound]]:
+    """Read and validate a thresholds.toml (format in the module docstring)."""
+    text = _read_text(Path(path), "thresholds file")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise InputError(f"malformed TOML in {path}: {error}") from None
+    return parse_thresholds(data, str(path))
+
+
+def validate_metrics(data, source: str = "metrics") -> dict:
+    """Check the parts of a metrics.json that the gate reads; returns it unchanged."""
+    if not isinstance(data, dict):
+        raise InputError(f"{source}: expected a JSON object, got {type(data).__name__}")
+    if "schema" not in data:
+        raise InputError(f"{source}: no 'schema' field; expected schema {METRICS_SCHEMA}")
+    if data["schema"] != METRICS_SCHEMA or isinstance(data["schema"], bool):
+        raise InputError(f"{source}: schema {data['schema']!r} is not supported; expected schema {METRICS_SCHEMA}")
+    if not isinstance(data.get("scene"), str) or not data["scene"]:
+        raise InputError(f"{source}: 'scene' must be a non-empty string, got {data.get('scene')!r}")
+    mean = data.get("mean")
+    if not isinstance(mean, dict):
+        raise InputError(f"{source}: 'mean' must be an object of metric values, got {mean!r}")
+    for metric, value in mean.items():
+        if value is not None and not _is_number(value):
+            raise InputError(f"{source}: mean.{metric} must be a number or null, got {value!r}")
+    return data
+
+
+def load_metrics(path) -> dict:
+    """Read and validate a metrics.json."""
+    text = _read_text(Path(path), "metrics file")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise InputError(f"malformed JSON in {path}: {error}") from None
+    return validate_metrics(data, str(path))
+
+
+def bounds_for_scene(tables: dict[str, dict[str, Bound]], scene: str, source: str = "thresholds") -> list[Bound]:
+    """The "*" bounds overlaid by the scene's own, per metric. Raises if there are none."""
+    merged = dict(tables.get(DEFAULT_TABLE, {}))
+    merged.update(tables.get(scene, {}))
+    if not merged:
+        raise InputError(f"{source} has no bounds for scene {scene!r} (and no [\"{DEFAULT_TABLE}\"] table): "
+                         "nothing would be checked")
+    return list(merged.values())
+
+
+# --- checking -----------------------------------------------------------------------
+
+
+def evaluate_bounds(scene: str, mean: dict, bounds: list[Bound]) -> list[CheckResult]:
+    """One CheckResult per (metric, min/max) bound, in the order of `bounds`."""
+    results = []
+    for bound in bounds:
+        for kind in BOUND_KEYS:
+            limit = getattr(bound, kind)
+            if limit is None:
+                continue
+            results.append(_check_one(scene, bound.metric, kind, limit, mean))
+    return results
+
+
+def _check_one(scene: str, metric: str, kind: str, limit: float, mean: dict) -> CheckResult:
+    def fail(value, reason):
+        return CheckResult(scene, metric, kind, limit, value, None, False, reason)
+
+    if metric not in mean:
+        return fail(None, f"{metric} is missing from the metrics file")
+    value = mean[metric]
+    if value is None:
+        return fail(None, f"{metric} is null in the metrics file (not measured) but has a bound")
+    value = float(value)
+    if math.isnan(value):
+        return fail(value, f"{metric} is NaN")
+    margin = value - limit if kind == "min" else limit - value
+    passed = margin >= 0
+    reason = "" if passed else (
+        f"{metric} = {value:.6g} is {'below the minimum' if kind == 'min' else 'above the maximum'} "
+        f"{limit:.6g} by {-margin:.6g}")
+    return CheckResult(scene, metric, kind, limit, value, margin, passed, reason)
+
+
+# --- reporting ----------------------------------------------------------------------
+
+
+def format_table(results: list[CheckResult]) -> str:
+    """A plain-text table: scene, metric, value, bound, margin, result, reason."""
+    header = ("scene", "metric", "value", "bound", "margin", "result", "reason")
+    rows = [header]
+    for r in results:
+        rows.append((
+            r.scene,
+            r.metric,
+            "null" if r.value is None else f"{r.value:.6g}",
+            f"{r.relation} {r.bound:.6g}",
+            "-" if r.margin is None else f"{r.margin:+.6g}",
+            "PASS" if r.passed else "FAIL",
+            r.reason,
+        ))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+    lines = ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in rows]
+    return "\n".join(lines)
+
+
+def junit_xml(results: list[CheckResult], properties: Optional[dict[str, str]] = None) -> bytes:
+    """JUnit XML: one <testsuite>, one <testcase> per check, <failure> for failing ones."""
+    failures = sum(not r.passed for r in results)
+    suite = ET.Element("testsuite", {
+        "name": "nerfgauge check",
+        "tests": str(len(results)),
+        "failures": str(failures),
+        "errors": "0",
+        "skipped": "0",
+    })
+    if properties:
+        props = ET.SubElement(suite, "properties")
+        for key, value in properties.items():
+            ET.SubElement(props, "property", {"name": key, "value": str(value)})
+    for r in results:
+        case = ET.SubElement(suite, "testcase", {"classname": f"nerfgauge.check.{r.scene}", "name": r.name})
+        if not r.passed:
+            failure = ET.SubElement(case, "failure", {"message": r.reason, "type": "ThresholdFailure"})
+            failure.text = (f"scene {r.scene}: {r.metric} = {'null' if r.value is None else f'{r.value:.6g}'}, "
+                            f"required {r.relation} {r.bound:.6g}")
+    ET.indent(suite)
+    return ET.tostring(suite, encoding="utf-8", xml_declaration=True)
+
+
+def write_junit(results: list[CheckResult], path, properties: Optional[dict[str, str]] = None) -> None:
+    """Write JUnit XML to a temporary file beside `path`, then rename it into place."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError(f"cannot write JUnit file {path}: directory {path.parent} does not exist")
+    payload = junit_xml(results, properties)
+    handle, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as stream:
+            stream.write(payload)
+        os.replace(temp_name, path)
+    except BaseException:
+        if os.path.exists(temp_name):
+            os.unlink(temp_name)
+        raise
+
+
+def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[str] = None, out=None) -> int:
+    """Load, check, print the table (and write JUnit). Returns 0 all pass, 1 any fails."""
+    out = sys.stdout if out is None else out
+    if junit_path is not None and not Path(junit_path).parent.is_dir():
+        raise InputError(f"cannot write JUnit file {junit_path}: directory {Path(junit_path).parent} does not exist")
+    metrics = load_metrics(metrics_path)
+    tables = load_thresholds(thresholds_path)
+    table_scene = metrics["scene"] if scene is None else scene
+    if scene is not None and not known_scene(scene):
+        raise InputError(f"unknown scene {scene!r} for --scene; known: {_known_scenes_text()}")
+    bounds = bounds_for_scene(tables, table_scene, str(thresholds_path))
+    results = evaluate_bounds(metrics["scene"], metrics["mean"], bounds)
+
+    via = "" if table_scene == metrics["scene"] else f" (bounds of scene {table_scene})"
+    print(f"checking {metrics_path} (scene {metrics['scene']}, split {metrics.get('split', '?')}) "
+          f"against {thresholds_path}{via}", file=out)
+    print(format_table(results), file=out)
+    failed = sum(not r.passed for r in results)
+    print(f"{len(results)} checks: {len(results) - failed} passed, {failed} failed", file=out)
+    if junit_path is not None:
+        write_junit(results, junit_path, {"metrics": str(metrics_path), "thresholds": str(thresholds_path),
+                                          "scene": metrics["scene"], "bounds_scene": table_scene})
+    return 1 if failed else 0

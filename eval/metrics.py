@@ -1,0 +1,303 @@
+"""Image and depth metrics: pure numpy functions, one definition each.
+
+Conventions (DESIGN.md, "Metrics"):
+
+- Images are float RGB on [0, 1], shape [H, W, 3]. RGBA predictions and ground truth are
+  composited onto a background first (`composite`, white by default in the callers).
+- PSNR per image, `10 log10(1 / MSE)`, averaged over images by the caller (`summarize`).
+  Identical images have MSE 0 and PSNR +inf; the MSE is floored at `MSE_FLOOR` = 1e-10, so
+  PSNR is capped at `PSNR_CAP_DB` = 100 dB and every value stays valid JSON.
+- SSIM is exactly scikit-image's `structural_similarity(gaussian_weights=True, sigma=1.5,
+  use_sample_covariance=False, data_range=1.0, channel_axis=-1)`, the convention of
+  mip-NeRF's reference (Wang et al. 2004: 11-tap Gaussian window, sigma 1.5, truncate 3.5,
+  population covariance, C1 = 0.01^2, C2 = 0.03^2, mean over channels of the mean SSIM map
+  with a 5-pixel border cropped). See `ssim` for images smaller than the window.
+- Depth metrics on the pixels that hit geometry (the ground-truth mask), on ray distance.
+
+Inputs are checked where they enter, with messages that print what was received. Shape and
+range problems raise `InputError` (the predictions may be another method's renders);
+NaN or inf raise `NonFiniteError`, whose message names the array and the count but not the
+frame: the caller adds the frame name.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+
+from nerfgauge.errors import InputError
+
+# Metric names as they appear in metrics.json's "mean"/"std" tables and in thresholds files.
+METRIC_NAMES = (
+    "psnr",
+    "ssim",
+    "depth_absrel",
+    "depth_rmse",
+    "depth_mae",
+    "depth_delta1",
+    "opacity_iou",
+)
+
+MSE_FLOOR = 1e-10
+PSNR_CAP_DB = 10.0 * math.log10(1.0 / MSE_FLOOR)  # 100 dB: the PSNR of identical images
+
+# Images may exceed [0, 1] by this much: float32 compositing rounds 1 up to 1 + 6e-8.
+RANGE_TOLERANCE = 1e-6
+
+SSIM_SIGMA = 1.5
+SSIM_WINDOW = 11  # skimage's window for sigma 1.5: 2 * int(3.5 * 1.5 + 0.5) + 1
+DELTA1_THRESHOLD = 1.25
+
+
+class NonFiniteError(InputError):
+    """An array holds NaN or inf where a metric needs finite numbers."""
+
+
+# --- input checks ---------------------------------------------------------------------
+
+
+def _describe(array) -> str:
+    array = np.asarray(array)
+    return f"shape {tuple(array.shape)} dtype {array.dtype}"
+
+
+def _check_finite(values: np.ndarray, name: str) -> None:
+    finite = np.isfinite(values)
+    if not finite.all():
+        n_nan = int(np.isnan(values).sum())
+        n_inf = int((~finite).sum()) - n_nan
+        raise NonFiniteError(f"{name} has {n_nan} NaN and {n_inf} inf values out of {values.size}")
+
+
+def _check_range(values: np.ndarray, name: str) -> None:
+    if values.size == 0:
+        return
+    low, high = float(values.min()), float(values.max())
+    if low < -RANGE_TOLERANCE or high > 1.0 + RANGE_TOLERANCE:
+        raise InputError(f"{name} must lie in [0, 1], got values in [{low:.6g}, {high:.6g}]")
+
+
+def _image(array, name: str, channels: int) -> np.ndarray:
+    """A finite float64 [H, W, channels] image on [0, 1], or an error saying what came in."""
+    image = np.asarray(array)
+    if image.ndim != 3 or image.shape[2] != channels or image.shape[0] < 1 or image.shape[1] < 1:
+        raise InputError(f"{name} must be [H, W, {channels}] with H, W >= 1, got {_describe(image)}")
+    if not (np.issubdtype(image.dtype, np.floating) or np.issubdtype(image.dtype, np.integer)
+            or image.dtype == np.bool_):
+        raise InputError(f"{name} must hold numbers, got {_describe(image)}")
+    image = image.astype(np.float64)
+    _check_finite(image, name)
+    _check_range(image, name)
+    return image
+
+
+def _image_pair(pred, gt) -> tuple[np.ndarray, np.ndarray]:
+    pred = _image(pred, "prediction", 3)
+    gt = _image(gt, "ground truth", 3)
+    if pred.shape != gt.shape:
+        raise InputError(f"prediction {tuple(pred.shape)} and ground truth {tuple(gt.shape)} differ in shape")
+    return pred, gt
+
+
+def _plane(array, name: str) -> np.ndarray:
+    """A float64 [H, W] array (not yet checked for finiteness)."""
+    plane = np.asarray(array)
+    if plane.ndim != 2 or not (np.issubdtype(plane.dtype, np.floating) or np.issubdtype(plane.dtype, np.integer)):
+        raise InputError(f"{name} must be a numeric [H, W] array, got {_describe(plane)}")
+    return plane.astype(np.float64)
+
+
+def _mask(array, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    mask = np.asarray(array)
+    if mask.dtype != np.bool_ or mask.shape != shape:
+        raise InputError(f"{name} must be a bool [H, W] array of shape {shape}, got {_describe(mask)}")
+    return mask
+
+
+# --- images ---------------------------------------------------------------------------
+
+
+def composite(rgba, background) -> np.ndarray:
+    """Composite straight-alpha RGBA onto a constant background.
+
+        rgb = c * a + b * (1 - a)
+
+    Args:
+        rgba: [H, W, 4] straight (not premultiplied) alpha, every channel in [0, 1].
+        background: [3] RGB in [0, 1], e.g. (1, 1, 1) for white.
+    Returns:
+        [H, W, 3] float64 in [0, 1] (clipped only against rounding).
+    """
+    image = _image(rgba, "rgba", 4)
+    bg = np.asarray(background)
+    if bg.shape != (3,) or not np.issubdtype(bg.dtype, np.number):
+        raise InputError(f"background must be 3 numbers (RGB), got {_describe(bg)}")
+    bg = bg.astype(np.float64)
+    _check_finite(bg, "background")
+    _check_range(bg, "background")
+    alpha = image[..., 3:4]  # [H, W, 1]
+    rgb = image[..., :3] * alpha + bg * (1.0 - alpha)  # [H, W, 3]
+    return np.clip(rgb, 0.0, 1.0)
+
+
+def psnr(pred, gt) -> float:
+    """Peak signal-to-noise ratio in dB on [0, 1] images: 10 log10(1 / max(MSE, MSE_FLOOR)).
+
+    MSE is the mean over all H * W * 3 values. Identical images give `PSNR_CAP_DB`
+    (100 dB) instead of +inf.
+
+    Args:
+        pred: [H, W, 3] prediction in [0, 1]; NaN or inf raise `NonFiniteError`.
+        gt: [H, W, 3] ground truth in [0, 1].
+    """
+    pred, gt = _image_pair(pred, gt)
+    mse = float(np.mean((pred - gt) ** 2))
+    return 10.0 * math.log10(1.0 / max(mse, MSE_FLOOR))
+
+
+def ssim_window(height: int, width: int) -> int:
+    """The window side used for an image's border crop: 11, or less for small images.
+
+    scikit-image refuses images smaller than its window (11 for sigma 1.5). For those we
+    pass the largest odd `win_size` <= min(H, W). With gaussian_weights skimage still
+    filters with the same 11-tap Gaussian (mirror-reflected at the borders); `win_size`
+    only sets the border crop, (win_size - 1) // 2 pixels. So a 1x1 image gives
+    (2xy + C1) / (x^2 + y^2 + C1) per channel, never an error or NaN.
+    """
+    side = min(int(height), int(width))
+    if side >= SSIM_WINDOW:
+        return SSIM_WINDOW
+    return side if side % 2 == 1 else side - 1
+
+
+def ssim(pred, gt) -> float:
+    """Mean structural similarity (Wang et al. 2004), the mip-NeRF / scikit-image convention.
+
+        SSIM = (2 mu_x mu_y + C1)(2 s_xy + C2) / ((mu_x^2 + mu_y^2 + C1)(s_x^2 + s_y^2 + C2))
+
+    with Gaussian-weighted local statistics (sigma 1.5, 11 taps), population covariance,
+    C1 = (0.01 * 1)^2, C2 = (0.03 * 1)^2, averaged over the map with a (win - 1) // 2
+    border cropped and then over channels. Computed in float64. Constant images are
+    well defined (C1, C2 > 0): equal constants give 1. Images smaller than 11x11: see
+    `ssim_window`.
+
+    Args:
+        pred: [H, W, 3] prediction in [0, 1]; NaN or inf raise `NonFiniteError`.
+        gt: [H, W, 3] ground truth in [0, 1].
+    """
+    from skimage.metrics import structural_similarity
+
+    pred, gt = _image_pair(pred, gt)
+    window = ssim_window(pred.shape[0], pred.shape[1])
+    value = structural_similarity(
+        pred, gt,
+        gaussian_weights=True, sigma=SSIM_SIGMA, use_sample_covariance=False,
+        data_range=1.0, channel_axis=-1,
+        win_size=None if window == SSIM_WINDOW else window,
+    )
+    return float(value)
+
+
+# --- depth and opacity ------------------------------------------------------------------
+
+
+def depth_metrics(pred, gt, mask) -> dict[str, Optional[float]]:
+    """Depth errors on the pixels that hit geometry (mask from the ground truth).
+
+    Over the N masked pixels, with p the predicted and g the true depth (ray distance by
+    default; both arrays must hold the same kind):
+
+        absrel = mean(|p - g| / g)
+        rmse   = sqrt(mean((p - g)^2))
+        mae    = mean(|p - g|)
+        delta1 = fraction of pixels with p > 0 and max(p / g, g / p) < 1.25
+
+    A prediction <= 0 counts as a delta1 failure (the ratio is undefined) and enters the
+    other three as it is. Pixels outside the mask are ignored (they may hold anything,
+    even NaN). An empty mask gives all four as None, never NaN.
+
+    Args:
+        pred: [H, W] predicted depth; NaN or inf on a masked pixel raise `NonFiniteError`.
+        gt: [H, W] true depth, finite and > 0 on every masked pixel (misses are stored as 0).
+        mask: [H, W] bool, True where the ground-truth ray hit geometry.
+    Returns:
+        {"absrel", "rmse", "mae", "delta1"}: floats, or all None for an empty mask.
+    """
+    pred = _plane(pred, "predicted depth")
+    gt = _plane(gt, "ground-truth depth")
+    if pred.shape != gt.shape:
+        raise InputError(f"predicted depth {tuple(pred.shape)} and ground-truth depth {tuple(gt.shape)} differ in shape")
+    mask = _mask(mask, "depth mask", gt.shape)
+    p, g = pred[mask], gt[mask]  # [N] each
+    if p.size == 0:
+        return {"absrel": None, "rmse": None, "mae": None, "delta1": None}
+    _check_finite(p, "predicted depth (masked pixels)")
+    _check_finite(g, "ground-truth depth (masked pixels)")
+    if g.min() <= 0:
+        raise InputError(f"ground-truth depth must be > 0 on masked pixels, got minimum {g.min():.6g} "
+                         f"on {int((g <= 0).sum())} of {g.size} pixels")
+    error = p - g  # [N]
+    positive = p > 0  # [N]
+    ratio = np.full(p.shape, np.inf)  # [N]; inf marks p <= 0 as a failure
+    ratio[positive] = np.maximum(p[positive] / g[positive], g[positive] / p[positive])
+    return {
+        "absrel": float(np.mean(np.abs(error) / g)),
+        "rmse": float(np.sqrt(np.mean(error ** 2))),
+        "mae": float(np.mean(np.abs(error))),
+        "delta1": float(np.mean(ratio < DELTA1_THRESHOLD)),
+    }
+
+
+def opacity_iou(pred_alpha, gt_mask, threshold: float = 0.5) -> Optional[float]:
+    """Intersection over union of the predicted silhouette (alpha > threshold) and the mask.
+
+    Args:
+        pred_alpha: [H, W] predicted opacity in [0, 1]; NaN or inf raise `NonFiniteError`.
+        gt_mask: [H, W] bool, True where the ground-truth ray hit geometry.
+        threshold: in [0, 1); a pixel is predicted opaque when alpha > threshold.
+    Returns:
+        |P & G| / |P | G|, or None when both silhouettes are empty (nothing to compare).
+    """
+    alpha = _plane(pred_alpha, "predicted alpha")
+    _check_finite(alpha, "predicted alpha")
+    _check_range(alpha, "predicted alpha")
+    gt_mask = _mask(gt_mask, "ground-truth mask", alpha.shape)
+    if not (isinstance(threshold, (int, float)) and 0.0 <= threshold < 1.0):
+        raise InputError(f"opacity threshold must be in [0, 1), got {threshold!r}")
+    predicted = alpha > threshold  # [H, W]
+    union = int(np.sum(predicted | gt_mask))
+    if union == 0:
+        return None
+    return int(np.sum(predicted & gt_mask)) / union
+
+
+# --- aggregation ----------------------------------------------------------------------
+
+
+def summarize(values) -> tuple[Optional[float], Optional[float]]:
+    """Mean and population standard deviation (ddof=0) of per-frame values.
+
+    Frames whose value is None (e.g. depth metrics of a view that hits no geometry) are
+    left out: the mean and std are over the defined frames only, and the caller reports
+    how many those were (`sum(v is not None for v in values)`). When no frame is defined
+    (or the list is empty) both are None. A single defined frame has std 0.0.
+    NaN or inf raise `NonFiniteError`: they would make the mean meaningless.
+
+    Args:
+        values: [n_frames] floats or None.
+    Returns:
+        (mean, std) as floats, or (None, None).
+    """
+    defined = [v for v in values if v is not None]
+    if not defined:
+        return None, None
+    try:
+        array = np.asarray(defined, dtype=np.float64)  # [n_defined]
+    except (TypeError, ValueError):
+        raise InputError(f"summarize needs a list of numbers or None, got {defined[:3]!r}...") from None
+    if array.ndim != 1:
+        raise InputError(f"summarize needs a list of numbers or None, got {_describe(array)}")
+    _check_finite(array, "per-frame metric values")
+    return float(array.mean()), float(array.std(ddof=0))

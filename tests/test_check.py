@@ -1,0 +1,211 @@
+"""`nerfgauge check`: exit codes, the table, margins, JUnit output, malformed input."""
+
+import json
+import re
+import xml.etree.ElementTree as ET
+
+import pytest
+
+from eval.check import Bound, evaluate_bounds, parse_thresholds
+from nerfgauge.cli import main
+from nerfgauge.errors import InputError
+
+THRESHOLDS = """
+["*"]
+ssim = { min = 0.9 }
+
+[primitives]
+psnr = { min = 30.0 }
+depth_absrel = { max = 0.02 }
+depth_delta1 = { min = 0.97, max = 1.0 }
+"""
+
+
+def metrics_doc(**mean):
+    values = {"psnr": 32.5, "ssim": 0.95, "depth_absrel": 0.015, "depth_rmse": 0.01,
+              "depth_mae": 0.005, "depth_delta1": 0.99}
+    values.update(mean)
+    return {"schema": 1, "scene": "primitives", "split": "test", "mean": values,
+            "std": {key: 0.0 for key in values}, "frames": [], "timing": {}}
+
+
+@pytest.fixture
+def files(tmp_path):
+    """Write a metrics.json and a thresholds.toml; returns their paths as strings."""
+
+    def write(metrics=None, thresholds=THRESHOLDS):
+        metrics_path, thresholds_path = tmp_path / "metrics.json", tmp_path / "thresholds.toml"
+        metrics_path.write_text(metrics if isinstance(metrics, str) else json.dumps(metrics or metrics_doc()))
+        thresholds_path.write_text(thresholds)
+        return str(metrics_path), str(thresholds_path)
+
+    return write
+
+
+def run(capsys, *argv):
+    code = main(["check", *argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def rows(out):
+    """Table rows keyed by (metric, bound) -> the row's cells."""
+    table = {}
+    for line in out.splitlines()[2:-1]:
+        cells = line.split()
+        table[(cells[1], f"{cells[3]} {cells[4]}")] = cells
+    return table
+
+
+# --- pass / fail ------------------------------------------------------------------------
+
+
+def test_all_pass_exits_0_with_margins(files, capsys):
+    metrics, thresholds = files()
+    code, out, err = run(capsys, metrics, "--thresholds", thresholds)
+    assert code == 0, err
+    table = rows(out)
+    # "*" ssim plus psnr, depth_absrel and two bounds of depth_delta1.
+    assert len(table) == 5
+    assert table[("psnr", ">= 30")][2:] == ["32.5", ">=", "30", "+2.5", "PASS"]
+    assert table[("depth_absrel", "<= 0.02")][5] == "+0.005"
+    assert table[("depth_delta1", "<= 1")][5] == "+0.01"
+    assert "5 checks: 5 passed, 0 failed" in out
+
+
+def test_a_failing_bound_exits_1_and_says_why(files, capsys):
+    metrics, thresholds = files(metrics_doc(psnr=28.0))
+    code, out, _ = run(capsys, metrics, "--thresholds", thresholds)
+    assert code == 1
+    psnr_row = rows(out)[("psnr", ">= 30")]
+    assert psnr_row[5:7] == ["-2", "FAIL"]
+    assert "psnr = 28 is below the minimum 30 by 2" in out
+    assert "5 checks: 4 passed, 1 failed" in out
+
+
+def test_value_equal_to_its_bound_passes(files, capsys):
+    metrics, thresholds = files(metrics_doc(psnr=30.0, depth_absrel=0.02))
+    code, out, _ = run(capsys, metrics, "--thresholds", thresholds)
+    assert code == 0, out
+
+
+def test_null_or_missing_metric_with_a_bound_fails(files, capsys):
+    doc = metrics_doc(depth_absrel=None)
+    del doc["mean"]["depth_delta1"]
+    metrics, thresholds = files(doc)
+    code, out, _ = run(capsys, metrics, "--thresholds", thresholds)
+    assert code == 1
+    assert "depth_absrel is null in the metrics file" in out
+    assert "depth_delta1 is missing from the metrics file" in out
+    assert rows(out)[("depth_absrel", "<= 0.02")][2] == "null"
+
+
+def test_scene_table_overrides_the_default_table(files, capsys):
+    metrics, thresholds = files(metrics_doc(ssim=0.93), THRESHOLDS + "ssim = { min = 0.95 }\n")
+    code, out, _ = run(capsys, metrics, "--thresholds", thresholds)
+    assert code == 1
+    assert ("ssim", ">= 0.95") in rows(out) and ("ssim", ">= 0.9") not in rows(out)
+
+
+def test_scene_option_selects_another_table(files, capsys):
+    metrics, thresholds = files(thresholds=THRESHOLDS + "\n[glossy]\npsnr = { min = 40.0 }\n")
+    code, out, _ = run(capsys, metrics, "--thresholds", thresholds, "--scene", "glossy")
+    assert code == 1  # 32.5 < 40
+    assert "bounds of scene glossy" in out
+    assert ("psnr", ">= 40") in rows(out) and ("depth_absrel", "<= 0.02") not in rows(out)
+
+
+def test_margins_and_kinds_from_the_api():
+    results = evaluate_bounds("primitives", {"psnr": 31.25, "depth_rmse": 0.5},
+                              [Bound("psnr", 30.0, 35.0), Bound("depth_rmse", max=0.25)])
+    assert [(r.kind, r.margin, r.passed) for r in results] == [
+        ("min", 1.25, True), ("max", 3.75, True), ("max", -0.25, False)]  # exact in binary
+
+
+# --- JUnit ------------------------------------------------------------------------------
+
+
+def test_junit_lists_every_check_and_its_failures(files, capsys, tmp_path):
+    metrics, thresholds = files(metrics_doc(psnr=28.0, depth_absrel=None))
+    junit = tmp_path / "reports" / "check.xml"
+    junit.parent.mkdir()
+    code, _, _ = run(capsys, metrics, "--thresholds", thresholds, "--junit", str(junit))
+    assert code == 1
+    suite = ET.parse(junit).getroot()
+    assert suite.tag == "testsuite"
+    assert (suite.get("tests"), suite.get("failures")) == ("5", "2")
+    cases = suite.findall("testcase")
+    assert [case.get("name") for case in cases] == [
+        "ssim >= 0.9", "psnr >= 30", "depth_absrel <= 0.02", "depth_delta1 >= 0.97", "depth_delta1 <= 1"]
+    failed = {case.get("name"): case.find("failure").get("message") for case in cases if case.find("failure") is not None}
+    assert failed == {"psnr >= 30": "psnr = 28 is below the minimum 30 by 2",
+                      "depth_absrel <= 0.02": "depth_absrel is null in the metrics file (not measured) but has a bound"}
+    assert all(case.get("classname") == "nerfgauge.check.primitives" for case in cases)
+    assert sorted(p.name for p in junit.parent.iterdir()) == ["check.xml"]  # no temp file left
+
+
+def test_junit_written_when_all_pass(files, capsys, tmp_path):
+    metrics, thresholds = files()
+    junit = tmp_path / "ok.xml"
+    assert run(capsys, metrics, "--thresholds", thresholds, "--junit", str(junit))[0] == 0
+    suite = ET.parse(junit).getroot()
+    assert suite.get("failures") == "0" and len(suite.findall("testcase")) == 5
+    assert all(case.find("failure") is None for case in suite.findall("testcase"))
+
+
+# --- malformed input: exit 2, one line naming the problem -----------------------------
+
+
+@pytest.mark.parametrize("thresholds, message", [
+    ("[primitives]\npnsr = { min = 30 }\n", "unknown metric 'pnsr'"),
+    ("[primitives]\npsnr = { min = 30, minimum = 31 }\n", "unknown key 'minimum'"),
+    ("[primitivs]\npsnr = { min = 30 }\n", "unknown scene 'primitivs'"),
+    ("[primitives]\npsnr = 30\n", r"\[primitives\] psnr must be a table"),
+    ("[primitives]\npsnr = { min = \"30\" }\n", r"psnr.min must be a finite number"),
+    ("[primitives]\npsnr = { min = nan }\n", r"psnr.min must be a finite number"),
+    ("[primitives]\npsnr = { min = 40, max = 30 }\n", "min 40 is greater than max 30"),
+    ("[primitives]\npsnr = {}\n", "psnr has no bound"),
+    ("psnr = { min = 30 }\n", "metric 'psnr' is outside a scene table"),
+    ("[primitives\npsnr = { min = 30 }\n", "malformed TOML"),
+    ("[glossy]\npsnr = { min = 30 }\n", "no bounds for scene 'primitives'.*nothing would be checked"),
+])
+def test_bad_thresholds_exit_2(files, capsys, thresholds, message):
+    metrics, path = files(thresholds=thresholds)
+    code, out, err = run(capsys, metrics, "--thresholds", path)
+    assert code == 2
+    assert out == ""
+    assert len(err.strip().splitlines()) == 1
+    assert err.startswith("nerfgauge check: error: ")
+    assert re.search(message, err), err
+
+
+@pytest.mark.parametrize("metrics, message", [
+    (json.dumps({**metrics_doc(), "schema": 2}), "schema 2 is not supported"),
+    (json.dumps({k: v for k, v in metrics_doc().items() if k != "schema"}), "no 'schema' field"),
+    (json.dumps({**metrics_doc(), "mean": {"psnr": "high"}}), "mean.psnr must be a number or null"),
+    (json.dumps([1, 2]), "expected a JSON object"),
+    ("{not json", "malformed JSON"),
+])
+def test_bad_metrics_exit_2(files, capsys, metrics, message):
+    metrics_path, thresholds = files(metrics)
+    code, _, err = run(capsys, metrics_path, "--thresholds", thresholds)
+    assert code == 2
+    assert message in err
+
+
+def test_missing_files_unknown_scene_option_and_junit_directory_exit_2(files, capsys, tmp_path):
+    metrics, thresholds = files()
+    assert run(capsys, str(tmp_path / "nope.json"), "--thresholds", thresholds)[0] == 2
+    code, _, err = run(capsys, metrics, "--thresholds", str(tmp_path / "nope.toml"))
+    assert code == 2 and "thresholds file not found" in err
+    code, _, err = run(capsys, metrics, "--thresholds", thresholds, "--scene", "nowhere")
+    assert code == 2 and "unknown scene 'nowhere'" in err
+    code, _, err = run(capsys, metrics, "--thresholds", thresholds, "--junit", str(tmp_path / "no" / "j.xml"))
+    assert code == 2 and "does not exist" in err
+
+
+def test_mesh_scenes_and_default_table_are_accepted():
+    tables = parse_thresholds({"*": {"ssim": {"min": 0.5}}, "mesh:assets/bunny.obj": {"psnr": {"max": 60}}})
+    assert tables["mesh:assets/bunny.obj"]["psnr"] == Bound("psnr", None, 60.0)
+    with pytest.raises(InputError, match="unknown scene 'mesh:'"):
+        parse_thresholds({"mesh:": {"psnr": {"min": 1}}})
