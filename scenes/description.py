@@ -203,21 +203,30 @@ class ConstantEnvironment:
 
 @dataclass(frozen=True)
 class GradientEnvironment:
-    """Sky that blends zenith -> horizon -> nadir with elevation (smooth, low noise)."""
+    """Sky that blends zenith -> horizon -> nadir with elevation (smooth, low noise),
+    with an optional sun: a disc of `sun_radiance` within `sun_angle` degrees of
+    `sun_direction`, which gives glossy materials a sharp highlight."""
 
     zenith: Vec3
     horizon: Vec3
     nadir: Vec3
+    sun_direction: Optional[Vec3] = None
+    sun_radiance: Vec3 = (0.0, 0.0, 0.0)
+    sun_angle: float = 3.0
 
-    def latlong(self, width: int = 64) -> np.ndarray:
-        """Equirectangular map, row 0 at the zenith. Returns [width // 2, width, 3]."""
-        rows = width // 2
-        elevation = math.pi / 2 - (np.arange(rows) + 0.5) / rows * math.pi  # [rows]
-        up = np.clip(np.sin(elevation), 0, 1)[:, None]
-        down = np.clip(-np.sin(elevation), 0, 1)[:, None]
-        z, h, n = (np.asarray(c, np.float32) for c in (self.zenith, self.horizon, self.nadir))
-        row_colors = h * (1 - up - down) + z * up + n * down  # [rows, 3]
-        return np.repeat(row_colors[:, None, :], width, axis=1).astype(np.float32)
+    def radiance(self, directions: np.ndarray) -> np.ndarray:
+        """Radiance arriving from unit world `directions` [..., 3]. Returns [..., 3] float32."""
+        d = np.asarray(directions, np.float64)
+        up = np.clip(d[..., 2:3], 0, 1)
+        down = np.clip(-d[..., 2:3], 0, 1)
+        z, h, n = (np.asarray(c, np.float64) for c in (self.zenith, self.horizon, self.nadir))
+        out = h * (1 - up - down) + z * up + n * down
+        if self.sun_direction is not None:
+            sun = np.asarray(self.sun_direction, np.float64)
+            sun = sun / np.linalg.norm(sun)
+            in_disc = (d @ sun) >= math.cos(math.radians(self.sun_angle))
+            out = np.where(in_disc[..., None], np.asarray(self.sun_radiance, np.float64), out)
+        return out.astype(np.float32)
 
 
 @dataclass(frozen=True)

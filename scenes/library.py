@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from scenes.description import (Box, Conductor, Cylinder, Diffuse, GradientEnvironment,
-                                RectangleLight, RoughPlastic, Sphere, Textured, Torus,
+                                PointLight, RoughPlastic, Sphere, Textured, Torus,
                                 build_scene)
 
 # A soft sky: bright zenith, neutral horizon, dark ground bounce. Smooth light keeps Monte
@@ -30,7 +30,8 @@ def primitives(seed: int):
 
 
 def glossy(seed: int):
-    """View-dependent materials: rough plastic, rough gold, a near-mirror, and one diffuse."""
+    """View-dependent materials: rough plastic sphere and box, rough gold torus, a
+    near-mirror aluminium sphere, under a sky with a sun and a point light."""
     shapes = [
         Sphere("plastic_sphere", (-0.55, 0.5, 0.4), 0.4, RoughPlastic((0.7, 0.1, 0.1), roughness=0.08)),
         Torus("gold_torus", (0.55, 0.5, 0.25), 0.3, 0.12, Conductor("Au", roughness=0.15), rotation=(60, 0, 0)),
@@ -38,7 +39,9 @@ def glossy(seed: int):
             rotation=(0, 0, -20)),
         Sphere("steel_sphere", (-0.55, -0.5, 0.4), 0.4, Conductor("Al", roughness=0.05)),
     ]
-    lights = [SOFT_SKY, RectangleLight((0.0, 0.0, 3.0), (1.0, 1.0), (0, 0, -1), (6.0, 6.0, 6.0))]
+    sky_with_sun = GradientEnvironment(SOFT_SKY.zenith, SOFT_SKY.horizon, SOFT_SKY.nadir,
+                                       sun_direction=(0.4, -0.3, 1.0), sun_radiance=(100.0, 100.0, 95.0))
+    lights = [sky_with_sun, PointLight((2.0, -2.0, 3.0), (4.0, 4.0, 4.0))]
     return build_scene("glossy", seed, shapes, lights)
 
 

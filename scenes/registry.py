@@ -16,7 +16,7 @@ from scenes.meshes import MeshData
 # name -> (recipe(seed) -> Scene, one-line description)
 RECIPES = {
     "primitives": (library.primitives, "default: red sphere, blue box, green capped cylinder, checker sphere (diffuse)"),
-    "glossy": (library.glossy, "rough plastic, rough gold, near-mirror aluminium under a sky and an area light"),
+    "glossy": (library.glossy, "view-dependent: rough plastic, rough gold, near-mirror aluminium under a sky with a sun"),
     "random": (library.random_objects, "3-6 objects whose shapes, materials and poses come from the seed"),
     **hard.RECIPES,
 }

@@ -1,0 +1,72 @@
+"""`nerfgauge generate`: argument parsing only; the work is in generate.pipeline."""
+
+from __future__ import annotations
+
+import re
+
+from nerfgauge.errors import InputError
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    """"128" -> (128, 128); "160x120" -> (160, 120) as (width, height)."""
+    match = re.fullmatch(r"\s*(-?\d+)\s*(?:[xX]\s*(-?\d+)\s*)?", text)
+    if not match:
+        raise InputError(f"--res must be N or WxH (e.g. 128 or 160x120), got {text!r}")
+    width = int(match.group(1))
+    height = int(match.group(2)) if match.group(2) is not None else width
+    if width <= 0 or height <= 0:
+        raise InputError(f"--res must be positive, got {text!r}")
+    return width, height
+
+
+def parse_band(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        raise InputError(f"--elevation must be MIN,MAX in degrees (e.g. 10,75), got {text!r}") from None
+    return lo, hi
+
+
+def register(subparsers) -> None:
+    from generate.layouts import LAYOUTS
+    from generate.variant import CHOICES
+
+    parser = subparsers.add_parser("generate", help="render a scene into a NeRF dataset",
+                                   description="Render posed views of a procedural scene with Mitsuba 3, with "
+                                               "exact depth, normals and masks, into a NeRF-synthetic + nerfstudio dataset.")
+    parser.add_argument("scene", help="scene name (see `nerfgauge scenes`) or mesh:PATH")
+    parser.add_argument("--out", required=True, help="dataset folder (created; resumed if it holds the same recipe)")
+    parser.add_argument("--views", type=int, default=100, help="training views (default 100)")
+    parser.add_argument("--val-views", type=int, default=10)
+    parser.add_argument("--test-views", type=int, default=20)
+    parser.add_argument("--res", default="128", help="N or WxH (default 128)")
+    parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    parser.add_argument("--max-depth", type=int, default=8, help="path tracer's maximum depth (default 8)")
+    parser.add_argument("--fov", type=float, default=40.0, help="horizontal field of view, degrees (default 40)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--layout", choices=LAYOUTS, default="hemisphere")
+    parser.add_argument("--sampling", choices=("fibonacci", "random"), default="fibonacci",
+                        help="camera directions on the (hemi)sphere: even or seeded random")
+    parser.add_argument("--elevation", default="10,75", help="MIN,MAX camera elevation in degrees (default 10,75)")
+    parser.add_argument("--radius", type=float, default=None, help="camera distance from the AABB centre (default: fit)")
+    parser.add_argument("--variant", choices=CHOICES, default="auto")
+    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--overwrite", action="store_true", help="replace a dataset of another recipe in --out")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from generate.pipeline import GenerateConfig, generate
+
+    width, height = parse_resolution(args.res)
+    config = GenerateConfig(scene=args.scene, seed=args.seed, views=args.views, val_views=args.val_views,
+                            test_views=args.test_views, width=width, height=height, spp=args.spp,
+                            max_depth=args.max_depth, fov=args.fov, layout=args.layout, sampling=args.sampling,
+                            elevation=parse_band(args.elevation), radius=args.radius, variant=args.variant)
+    result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet)
+    rendered = result["views_rendered"]
+    print(f"{args.out}: {rendered} views rendered in {result['seconds']:.1f} s "
+          f"({result['variant']}; Mitsuba render {result['render_seconds']:.1f} s)"
+          if rendered else f"{args.out}: complete, nothing to render")
+    return 0

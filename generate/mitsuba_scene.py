@@ -1,0 +1,135 @@
+"""A `scenes.Scene` as a Mitsuba scene. Meshes are loaded from the dataset's own
+`meshes/*.ply`, so what is rendered is exactly the ground-truth geometry on disk.
+
+`mi` is the mitsuba module with its variant already set (see generate.variant).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from generate.ply import write_ply
+from scenes.description import (ConstantEnvironment, Conductor, Dielectric, Diffuse,
+                                GradientEnvironment, PointLight, RectangleLight, RoughPlastic,
+                                Sphere, Textured)
+from scenes.meshes import MeshData, pose
+
+ENVMAP_WIDTH = 512  # 0.7 degrees per texel: enough for a 3-degree sun disc
+# Mitsuba's envmap is +Y up; ours is +Z up. Rotating 90 degrees about X maps +Y to +Z.
+ENVMAP_TO_WORLD = pose((0, 0, 0), (90, 0, 0))
+
+
+def rectangle_mesh(light: RectangleLight) -> MeshData:
+    """A rectangle light as two triangles facing along `light.normal`."""
+    normal = np.asarray(light.normal, np.float64)
+    normal /= np.linalg.norm(normal)
+    helper = np.array([1.0, 0, 0]) if abs(normal[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(helper, normal)
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    hu, hv = light.size[0] / 2 * u, light.size[1] / 2 * v
+    c = np.asarray(light.center, np.float64)
+    vertices = np.stack([c - hu - hv, c + hu - hv, c + hu + hv, c - hu + hv])
+    return MeshData(vertices, np.array([[0, 1, 2], [0, 2, 3]]), np.tile(normal, (4, 1)), np.zeros((4, 2)))
+
+
+def ground_truth_meshes(scene) -> dict:
+    """{file stem: MeshData} of everything a camera ray can hit (shapes and area lights)."""
+    meshes = {shape.name: shape.mesh() for shape in scene.shapes}
+    for index, light in enumerate(scene.lights):
+        if isinstance(light, RectangleLight):
+            meshes[f"light_{index}"] = rectangle_mesh(light)
+    return meshes
+
+
+def write_meshes(scene, folder: Path) -> dict:
+    """Write every ground-truth mesh as `folder/<name>.ply`. Returns {name: path}."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for name, mesh in ground_truth_meshes(scene).items():
+        paths[name] = folder / f"{name}.ply"
+        write_ply(paths[name], mesh)
+    return paths
+
+
+def _rgb(mi, value):
+    return {"type": "rgb", "value": [float(x) for x in value]}
+
+
+def bsdf_dict(mi, material, uv_extent) -> dict:
+    """Mitsuba BSDF for a material. Opaque BSDFs are two-sided so thin plates shade on both."""
+    if isinstance(material, Diffuse):
+        bsdf = {"type": "diffuse", "reflectance": _rgb(mi, material.color)}
+    elif isinstance(material, Textured):
+        tile = material.tile()
+        su, sv = (extent / material.period for extent in uv_extent)
+        bsdf = {"type": "diffuse", "reflectance": {
+            "type": "bitmap", "bitmap": mi.Bitmap(tile), "raw": True, "filter_type": "nearest",
+            "wrap_mode": "repeat", "to_uv": mi.ScalarTransform4f().scale([su, sv, 1.0])}}
+    elif isinstance(material, RoughPlastic):
+        bsdf = {"type": "roughplastic", "distribution": "ggx", "alpha": float(material.roughness),
+                "diffuse_reflectance": _rgb(mi, material.color)}
+    elif isinstance(material, Conductor):
+        if material.roughness == 0:
+            bsdf = {"type": "conductor", "material": material.metal}
+        else:
+            bsdf = {"type": "roughconductor", "material": material.metal, "distribution": "ggx",
+                    "alpha": float(material.roughness)}
+    elif isinstance(material, Dielectric):
+        return {"type": "dielectric", "int_ior": float(material.ior)}
+    else:
+        raise TypeError(f"no Mitsuba BSDF for material {type(material).__name__}")
+    return {"type": "twosided", "bsdf": bsdf}
+
+
+def envmap_bitmap(light: GradientEnvironment, width: int = ENVMAP_WIDTH) -> np.ndarray:
+    """Sample the sky at the directions of Mitsuba's lat-long texels. Returns [w/2, w, 3].
+
+    Mitsuba maps a local direction v to (u, v) = (atan2(v.x, -v.z) / 2pi, acos(v.y) / pi);
+    with ENVMAP_TO_WORLD, local (x, y, z) is world (x, -z, y).
+    """
+    rows = width // 2
+    theta = (np.arange(rows) + 0.5) / rows * math.pi  # [rows] angle from world +Z
+    phi = (np.arange(width) + 0.5) / width * 2 * math.pi  # [width]
+    sin_t = np.sin(theta)[:, None]
+    local = np.stack(np.broadcast_arrays(sin_t * np.sin(phi), np.cos(theta)[:, None], -sin_t * np.cos(phi)), -1)
+    world = np.stack([local[..., 0], -local[..., 2], local[..., 1]], -1)  # [rows, width, 3]
+    return light.radiance(world)
+
+
+def scene_dict(mi, scene, mesh_paths: dict, max_depth: int) -> dict:
+    """The whole Mitsuba scene (without sensor: each view brings its own)."""
+    out = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth),
+                                           "hide_emitters": scene.needs.background == "transparent"}}
+    for shape in scene.shapes:
+        if isinstance(shape, Sphere):
+            entry = {"type": "sphere", "center": [float(x) for x in shape.center], "radius": float(shape.radius)}
+        else:
+            entry = {"type": "ply", "filename": str(mesh_paths[shape.name]),
+                     "face_normals": shape.mesh().normals is None}
+        entry["bsdf"] = bsdf_dict(mi, shape.material, shape.uv_extent())
+        if shape.emission is not None:
+            entry["emitter"] = {"type": "area", "radiance": _rgb(mi, shape.emission)}
+        out[shape.name] = entry
+    for index, light in enumerate(scene.lights):
+        out[f"light_{index}"] = light_dict(mi, light, mesh_paths.get(f"light_{index}"))
+    return out
+
+
+def light_dict(mi, light, mesh_path=None) -> dict:
+    if isinstance(light, ConstantEnvironment):
+        return {"type": "constant", "radiance": _rgb(mi, light.radiance)}
+    if isinstance(light, GradientEnvironment):
+        return {"type": "envmap", "bitmap": mi.Bitmap(envmap_bitmap(light)),
+                "to_world": mi.ScalarTransform4f(ENVMAP_TO_WORLD.tolist())}
+    if isinstance(light, PointLight):
+        return {"type": "point", "position": [float(x) for x in light.position],
+                "intensity": _rgb(mi, light.intensity)}
+    if isinstance(light, RectangleLight):
+        return {"type": "ply", "filename": str(mesh_path), "face_normals": True,
+                "bsdf": {"type": "diffuse", "reflectance": _rgb(mi, (0, 0, 0))},
+                "emitter": {"type": "area", "radiance": _rgb(mi, light.radiance)}}
+    raise TypeError(f"no Mitsuba emitter for light {type(light).__name__}")

@@ -1,0 +1,217 @@
+"""`nerfgauge generate`: render a scene into a complete, resumable, deterministic dataset.
+
+Order of work: validate everything (nothing is written on bad input) -> config.json ->
+meshes -> views (each file written under a temporary name and renamed, a view is done
+when all its files exist) -> transforms, scene.json -> manifest.json last. A run that is
+interrupted resumes and renders only the missing views.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import platform
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from generate import dataset, layouts
+from generate.camera import Intrinsics
+from generate.image_files import premultiplied_to_png_rgba, write_exr, write_png
+from generate.mitsuba_scene import write_meshes
+from generate.variant import CHOICES as VARIANT_CHOICES
+from generate.variant import resolve_variant
+from nerfgauge.errors import InputError
+from scenes import make_scene
+
+CONFIG = "config.json"
+SPLIT_SEED_OFFSET = {"train": 0, "val": 1_000_000, "test": 2_000_000}
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """Everything that defines a dataset's content. Saved as config.json beside it."""
+
+    scene: str = "primitives"
+    seed: int = 0
+    views: int = 100
+    val_views: int = 10
+    test_views: int = 20
+    width: int = 128
+    height: int = 128
+    spp: int = 64
+    max_depth: int = 8
+    fov: float = 40.0
+    layout: str = "hemisphere"
+    sampling: str = "fibonacci"
+    elevation: tuple = (10.0, 75.0)
+    radius: Optional[float] = None  # None: fit the AABB's bounding sphere in view
+    variant: str = "auto"
+
+    def validate(self) -> None:
+        positive = {"views": self.views, "width": self.width, "height": self.height, "spp": self.spp,
+                    "max-depth": self.max_depth}
+        for name, value in positive.items():
+            if not isinstance(value, (int, np.integer)) or value <= 0:
+                raise InputError(f"--{name} must be a positive integer, got {value!r}")
+        for name, value in {"val-views": self.val_views, "test-views": self.test_views}.items():
+            if not isinstance(value, (int, np.integer)) or value < 0:
+                raise InputError(f"--{name} must be a non-negative integer, got {value!r}")
+        if max(self.width, self.height) > 8192:
+            raise InputError(f"--res {self.width}x{self.height} is larger than 8192 pixels on a side")
+        if not (0 < self.fov < 180) or not math.isfinite(self.fov):
+            raise InputError(f"--fov must be in (0, 180) degrees, got {self.fov}")
+        if self.radius is not None and not (self.radius > 0 and math.isfinite(self.radius)):
+            raise InputError(f"--radius must be positive, got {self.radius}")
+        if self.layout not in layouts.LAYOUTS:
+            raise InputError(f"unknown layout {self.layout!r}; choose one of {', '.join(layouts.LAYOUTS)}")
+        if self.variant not in VARIANT_CHOICES:
+            raise InputError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANT_CHOICES)}")
+        if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self) | {"elevation": list(self.elevation)}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a run will produce: the resolved scene, cameras and frame names."""
+
+    config: GenerateConfig
+    scene: object
+    intrinsics: Intrinsics
+    radius: float
+    poses: dict  # split -> [n, 4, 4]
+    stems: dict  # split -> [n] frame stems
+    variant: str
+    lightfield: Optional[dict]
+
+    def recipe(self) -> dict:
+        """What config.json holds: the config plus the resolved radius and variant."""
+        return {"schema": 1, "config": self.config.to_json(), "radius": self.radius, "variant": self.variant}
+
+
+def plan(config: GenerateConfig) -> Plan:
+    """Validate and resolve everything without writing anything."""
+    config.validate()
+    scene = make_scene(config.scene, config.seed)
+    intrinsics = Intrinsics.from_fov(config.width, config.height, config.fov)
+    radius = config.radius or layouts.default_radius(scene.aabb, config.fov, config.width, config.height)
+    spec = layouts.LayoutSpec(config.layout, (config.views, config.val_views, config.test_views), radius,
+                              tuple(config.elevation), config.sampling)
+    rng = np.random.default_rng(config.seed)
+    poses = layouts.camera_poses(spec, scene.aabb, rng)
+    lightfield = layouts.lightfield_plane(spec, scene.aabb) if config.layout == "lightfield" else None
+    stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
+             for split in dataset.SPLITS}
+    return Plan(config, scene, intrinsics, float(radius), poses, stems, resolve_variant(config.variant), lightfield)
+
+
+def view_seed(config_seed: int, split: str, index: int) -> int:
+    """The renderer's seed for one view: a function of (seed, split, index) only, so the
+    same view gets the same noise however views are ordered or spread over workers."""
+    return (config_seed * 7_919_993 + SPLIT_SEED_OFFSET[split] + index) % (2**32)
+
+
+def prepare_output(out: Path, recipe: dict, overwrite: bool) -> None:
+    """Create `out`, or check that it continues the same recipe (InputError otherwise)."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output path {out} is a file, not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        config_path = out / CONFIG
+        if not config_path.is_file():
+            raise InputError(f"output folder {out} is not empty and is not a nerfgauge dataset; choose another --out")
+        if dataset.read_json(config_path) != recipe:
+            if not overwrite:
+                raise InputError(f"output folder {out} holds a dataset of another recipe; use --overwrite to replace it")
+            shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in out.rglob(".*.tmp*"):  # left by a killed run; never renamed into place
+        stale.unlink()
+    if not (out / CONFIG).is_file():
+        dataset.write_json(out / CONFIG, recipe)
+
+
+def view_complete(out: Path, stem: str) -> bool:
+    return all((out / rel).is_file() for rel in dataset.frame_files(stem).values())
+
+
+def write_view(out: Path, stem: str, images) -> None:
+    """Write one view's six files; the PNG last is no marker: completeness is all six."""
+    files = {kind: out / rel for kind, rel in dataset.frame_files(stem).items()}
+    files["png"].parent.mkdir(parents=True, exist_ok=True)
+    write_exr(files["exr"], {"RGBA": images.rgba}, {"nerfgauge": "linear RGBA, premultiplied alpha = coverage"})
+    write_exr(files["distance"], {"Z": images.distance}, {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
+    write_exr(files["z_depth"], {"Z": images.z_depth}, {"nerfgauge_depth": "z_depth", "nerfgauge_miss": "0"})
+    write_exr(files["normals"], {"X": images.normals[..., 0], "Y": images.normals[..., 1], "Z": images.normals[..., 2]},
+              {"nerfgauge": "world-space shading normals, 0 on misses"})
+    write_png(files["mask"], (images.hit * 255).astype(np.uint8))
+    write_png(files["png"], premultiplied_to_png_rgba(images.rgba))
+
+
+def pending_views(out: Path, the_plan: Plan) -> list:
+    """(split, index) of every view whose files are not all on disk."""
+    return [(split, i) for split in dataset.SPLITS for i, stem in enumerate(the_plan.stems[split])
+            if not view_complete(out, stem)]
+
+
+def finish(out: Path, the_plan: Plan) -> None:
+    """Transforms, scene.json, then manifest.json (last: its presence means complete)."""
+    import drjit
+    import mitsuba
+    import trimesh
+
+    intrinsics, stems, poses = the_plan.intrinsics, the_plan.stems, the_plan.poses
+    for split in dataset.SPLITS:
+        dataset.write_json(out / f"transforms_{split}.json",
+                           dataset.synthetic_transforms(intrinsics, stems[split], poses[split]))
+    dataset.write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses))
+    scene = the_plan.scene
+    scene_json = {
+        "schema": 1,
+        "recipe": scene.name, "seed": scene.seed, "scene": scene.to_json(),
+        "bounds": [list(scene.aabb_min), list(scene.aabb_max)],
+        "needs": dataclasses.asdict(scene.needs),
+        "camera": {"convention": "OpenGL camera-to-world: +X right, +Y up, looks along -Z",
+                   "pixel_centres": "(col + 0.5, row + 0.5), row 0 at the top",
+                   "layout": the_plan.config.layout, "radius": the_plan.radius, "lightfield": the_plan.lightfield},
+        "depth": {"distance": "*_distance.exr: Euclidean distance from the camera centre along the pixel-centre ray",
+                  "z": "*_zdepth.exr: depth along the optical axis", "miss": 0,
+                  "source": "scene.ray_intersect of pixel-centre rays, not the filtered depth AOV"},
+        "images": {"png": "8-bit sRGB, straight alpha = coverage", "exr": "linear float32, premultiplied alpha",
+                   "spp": the_plan.config.spp, "max_depth": the_plan.config.max_depth, "filter": "box"},
+        "variant": the_plan.variant,
+        "versions": {"mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "trimesh": trimesh.__version__,
+                     "numpy": np.__version__, "python": platform.python_version()},
+    }
+    dataset.write_json(out / "scene.json", scene_json)
+    files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
+             if p.is_file() and p.name != dataset.MANIFEST and not p.name.startswith(".")]
+    dataset.write_manifest(out, files)
+
+
+def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool = False,
+             progress: bool = True) -> dict:
+    """Render the dataset into `out`. Returns timing: views rendered, seconds, render seconds."""
+    if not isinstance(workers, int) or workers < 1:
+        raise InputError(f"--workers must be a positive integer, got {workers!r}")
+    out = Path(out)
+    the_plan = plan(config)
+    prepare_output(out, the_plan.recipe(), overwrite)
+    start = time.perf_counter()
+    write_meshes(the_plan.scene, out / "meshes")  # before any worker loads them
+    todo = pending_views(out, the_plan)
+    if todo and (out / dataset.MANIFEST).is_file():
+        (out / dataset.MANIFEST).unlink()  # views are missing: the dataset is not complete
+    from generate.workers import render_views  # imports mitsuba
+
+    render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress)
+    if todo or not (out / dataset.MANIFEST).is_file():
+        finish(out, the_plan)
+    return {"views_rendered": len(todo), "seconds": time.perf_counter() - start, "render_seconds": render_seconds,
+            "variant": the_plan.variant}

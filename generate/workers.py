@@ -1,0 +1,98 @@
+"""Rendering the pending views: in this process, or spread over worker processes.
+
+The Mitsuba scene is loaded once per process. In-process, file writing runs on a
+background thread while the next view renders (Dr.Jit releases the GIL while its kernels
+run), so the generator's time stays close to Mitsuba's own render time.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+
+from tqdm import tqdm
+
+from generate.mitsuba_scene import scene_dict
+from generate.render import render_view
+from generate.variant import use_variant
+
+_WORKER = {}  # per worker process: the loaded scene (set once by the pool initializer)
+
+
+def load_mitsuba_scene(out, the_plan):
+    """Set the variant and load the scene from the meshes already on disk. Returns (mi, scene)."""
+    mi = use_variant(the_plan.variant)
+    mesh_paths = {path.stem: path for path in (out / "meshes").glob("*.ply")}
+    return mi, mi.load_dict(scene_dict(mi, the_plan.scene, mesh_paths, the_plan.config.max_depth))
+
+
+def _render_one(mi, scene, out, the_plan, split, index):
+    from generate.pipeline import view_seed
+
+    config = the_plan.config
+    start = time.perf_counter()
+    images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
+                         view_seed(config.seed, split, index))
+    return images, time.perf_counter() - start
+
+
+def render_views(out, the_plan, todo, *, workers: int = 1, progress: bool = True) -> float:
+    """Render and write every (split, index) in `todo`. Returns seconds spent rendering."""
+    total = sum(len(s) for s in the_plan.stems.values())
+    bar = tqdm(total=total, initial=total - len(todo), unit="view", desc="generate", disable=not progress,
+               dynamic_ncols=True)
+    try:
+        if workers == 1 or len(todo) < 2:
+            return _render_here(out, the_plan, todo, bar)
+        return _render_pool(out, the_plan, todo, workers, bar)
+    finally:
+        bar.close()
+
+
+def _render_here(out, the_plan, todo, bar) -> float:
+    mi, scene = load_mitsuba_scene(out, the_plan)
+    render_seconds = 0.0
+    with ThreadPoolExecutor(max_workers=1) as writer:
+        pending = None
+        for split, index in todo:
+            images, seconds = _render_one(mi, scene, out, the_plan, split, index)
+            render_seconds += seconds
+            if pending is not None:
+                pending.result()  # at most one view waits for the disk
+                bar.update(1)
+            pending = writer.submit(dataset_write, out, the_plan.stems[split][index], images)
+        if pending is not None:
+            pending.result()
+            bar.update(1)
+    return render_seconds
+
+
+def dataset_write(out, stem, images):
+    from generate.pipeline import write_view
+
+    write_view(out, stem, images)
+
+
+def _init_worker(out, the_plan):
+    _WORKER["mi"], _WORKER["scene"] = load_mitsuba_scene(out, the_plan)
+    _WORKER["out"], _WORKER["plan"] = out, the_plan
+
+
+def _work(split, index) -> float:
+    images, seconds = _render_one(_WORKER["mi"], _WORKER["scene"], _WORKER["out"], _WORKER["plan"], split, index)
+    dataset_write(_WORKER["out"], _WORKER["plan"].stems[split][index], images)
+    return seconds
+
+
+def _render_pool(out, the_plan, todo, workers, bar) -> float:
+    # spawn, not fork: Dr.Jit's thread pool does not survive a fork.
+    context = multiprocessing.get_context("spawn")
+    render_seconds = 0.0
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
+                             initargs=(out, the_plan)) as pool:
+        futures = [pool.submit(_work, split, index) for split, index in todo]
+        for future in as_completed(futures):
+            render_seconds += future.result()
+            bar.update(1)
+    return render_seconds
