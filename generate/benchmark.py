@@ -1,0 +1,32 @@
+"""Mitsuba's own render time for a dataset's views: the yardstick for the generator's
+overhead (`nerfgauge bench generate`). Renders the same views, keeps nothing."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+from generate.mitsuba_scene import scene_dict, write_meshes
+from generate.pipeline import GenerateConfig, SPLIT_SEED_OFFSET, plan, view_seed
+from generate.render import render_rgba
+from generate.variant import use_variant
+
+
+def mitsuba_render_seconds(config: GenerateConfig) -> dict:
+    """Seconds spent in mi.render alone for every view of `config` (scene loaded once,
+    one warm-up render first so kernel compilation is not counted)."""
+    the_plan = plan(config)
+    mi = use_variant(the_plan.variant)
+    with tempfile.TemporaryDirectory() as folder:
+        paths = write_meshes(the_plan.scene, Path(folder))
+        scene = mi.load_dict(scene_dict(mi, the_plan.scene, paths, config.max_depth))
+        views = [(split, i) for split in SPLIT_SEED_OFFSET for i in range(len(the_plan.poses[split]))]
+        first = views[0]
+        render_rgba(mi, scene, the_plan.poses[first[0]][first[1]], the_plan.intrinsics, config.spp, 0)
+        start = time.perf_counter()
+        for split, index in views:
+            render_rgba(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
+                        view_seed(config.seed, split, index))
+        seconds = time.perf_counter() - start
+    return {"views": len(views), "seconds": seconds, "variant": the_plan.variant}
