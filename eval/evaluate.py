@@ -1,0 +1,273 @@
+"""Score a folder of renders against a dataset split: `nerfgauge evaluate`.
+
+    nerfgauge evaluate DATASET --pred DIR [--split test] [--out FILE]
+                       [--background white|black] [--depth-kind distance|z]
+
+Accepted prediction files, for the dataset frame "test/r_007" (r_007 below):
+
+- colour: DIR/test/r_007.png or DIR/r_007.png (flat); or the same names with .exr. In one
+  folder PNG wins over EXR. A frame found both in DIR/test/ and flat in DIR is an error.
+  PNG: 8-bit or 16-bit sRGB; gray, gray+alpha, RGB or RGBA with straight alpha.
+  EXR: linear RGB, or RGBA with premultiplied alpha (un-premultiplied, then converted with
+  `linear_to_srgb`); channels "RGB(A)" or "R", "G", "B"(, "A").
+- depth (optional), in the folder where the colour was found, first match wins:
+  `r_007_depth.exr|.npy` (holds the --depth-kind), then `r_007_distance.exr|.npy` for ray
+  distance or `r_007_zdepth.exr|.npy` for z-depth. EXR: one channel; .npy: [H, W].
+  An EXR whose `nerfgauge_depth` header names the other kind is an error.
+- opacity (optional): `r_007_opacity.png|.npy` ([H, W] in [0, 1]), else the colour's alpha.
+
+Everything in DIR/test/ and in DIR whose name looks like a frame (`r_<digits>` with an
+optional `_suffix` and .png/.exr/.npy) must belong to a frame of the split: anything else
+is reported as an extra frame. DIR/timing.json (a JSON object, e.g. ms per frame from the
+renderer), if present, is copied into metrics.json's `timing`.
+
+Metrics (eval.metrics): PSNR and SSIM on colour composited onto the background (prediction
+and the straight-alpha ground-truth PNG alike; RGB predictions are taken as composited);
+depth on ground-truth hit pixels (read_mask); opacity IoU when the prediction has alpha.
+NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
+evaluation naming the frame: no mean is computed over the other frames, nothing is written.
+Outputs: FILE (default DIR/metrics.json, schema 1, written atomically) and error maps in
+`error_maps/` beside it (eval.error_maps).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from eval.error_maps import colour_error, depth_relative_error, write_error_maps
+from eval.metrics import METRIC_NAMES, composite, depth_metrics, opacity_iou, psnr, ssim, summarize
+from generate import dataset
+from generate.image_files import linear_to_srgb, read_exr, read_png
+from nerfgauge.errors import InputError
+
+SCHEMA = 1
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+DEPTH_SUFFIXES = {"distance": ("_depth", "_distance"), "z": ("_depth", "_zdepth")}
+DEPTH_HEADER = {"distance": "ray_distance", "z": "z_depth"}
+FRAME_FILE = re.compile(r"^(r_\d+)(?:_[A-Za-z]+)?\.(?:png|exr|npy)$")
+
+
+@dataclass(frozen=True)
+class PredictionFiles:
+    """Where one frame's prediction lives; depth and opacity may be absent."""
+
+    colour: Path
+    depth: Optional[Path]
+    opacity: Optional[Path]
+
+
+# --- finding and reading predictions ----------------------------------------------------
+
+
+def find_prediction(pred_dir: Path, stem: str, depth_kind: str) -> Optional[PredictionFiles]:
+    """The files predicting frame `stem` (e.g. "test/r_007"), or None when there are none."""
+    split, name = stem.split("/")[0], Path(stem).name
+    found = {}
+    for folder in (pred_dir / split, pred_dir):
+        colour = next((folder / (name + ext) for ext in (".png", ".exr") if (folder / (name + ext)).is_file()), None)
+        if colour is not None:
+            found[folder] = colour
+    if len(found) > 1:
+        first, second = found.values()
+        raise InputError(f"frame {stem}: predicted twice, as {first} and {second}; keep one")
+    if not found:
+        return None
+    (folder, colour), = found.items()
+    depth_names = [name + suffix + ext for suffix in DEPTH_SUFFIXES[depth_kind] for ext in (".exr", ".npy")]
+    depth = next((folder / n for n in depth_names if (folder / n).is_file()), None)
+    opacity = next((folder / (name + "_opacity" + ext) for ext in (".png", ".npy")
+                    if (folder / (name + "_opacity" + ext)).is_file()), None)
+    return PredictionFiles(colour, depth, opacity)
+
+
+def extra_frames(pred_dir: Path, split: str, names: set) -> list[Path]:
+    """Files in DIR/<split>/ or DIR that look like frames but belong to none of `names`."""
+    extras = []
+    for folder in (pred_dir / split, pred_dir):
+        if folder.is_dir():
+            for path in sorted(folder.iterdir()):
+                match = FRAME_FILE.match(path.name)
+                if path.is_file() and match and match.group(1) not in names:
+                    extras.append(path)
+    return extras
+
+
+def _finite(values: np.ndarray, path: Path) -> np.ndarray:
+    finite = np.isfinite(values)
+    if not finite.all():
+        n_nan = int(np.isnan(values).sum())
+        raise InputError(f"{path} holds {n_nan} NaN and {int((~finite).sum()) - n_nan} inf values "
+                         f"out of {values.size}; no metrics computed")
+    return values
+
+
+def _sized(values: np.ndarray, path: Path, intrinsics) -> np.ndarray:
+    if values.shape[:2] != (intrinsics.height, intrinsics.width):
+        raise InputError(f"prediction {path} is {values.shape[1] if values.ndim > 1 else '?'}x{values.shape[0]}, "
+                         f"the ground truth is {intrinsics.width}x{intrinsics.height}")
+    return values
+
+
+def read_colour(path: Path, intrinsics) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """(sRGB [H, W, 3] in [0, 1], straight alpha [H, W] or None) from a PNG or EXR."""
+    if path.suffix == ".exr":
+        channels, _ = read_exr(path)
+        if "RGBA" in channels or "RGB" in channels:
+            image = channels.get("RGBA", channels.get("RGB"))
+        elif {"R", "G", "B"} <= set(channels):
+            image = np.stack([channels[c] for c in "RGBA" if c in channels], axis=-1)
+        else:
+            raise InputError(f"{path} has no R, G, B channels (has {sorted(channels)})")
+        image = _finite(_sized(np.asarray(image, np.float64), path, intrinsics), path)
+        if image.shape[-1] == 3:
+            return linear_to_srgb(image), None
+        alpha = np.clip(image[..., 3], 0.0, 1.0)  # [H, W]
+        straight = np.divide(image[..., :3], image[..., 3:4], out=np.zeros_like(image[..., :3]),
+                             where=image[..., 3:4] > 0)  # [H, W, 3]
+        return linear_to_srgb(straight), alpha
+    image = _sized(read_png(path).astype(np.float64), path, intrinsics)
+    if image.ndim == 2:
+        image = image[..., None]
+    if image.shape[-1] in (1, 2):  # gray (+ alpha)
+        image = np.concatenate([np.repeat(image[..., :1], 3, -1), image[..., 1:]], axis=-1)
+    return image[..., :3], (image[..., 3] if image.shape[-1] == 4 else None)
+
+
+def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.ndarray:
+    """A one-channel EXR, .npy or (opacity) PNG as [H, W] float64."""
+    if path.suffix == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as error:
+            raise InputError(f"cannot read {path}: {error}") from None
+    elif path.suffix == ".exr":
+        channels, header = read_exr(path)
+        if len(channels) != 1:
+            raise InputError(f"{path} should hold one channel, has {sorted(channels)}")
+        (values,) = channels.values()
+        stored = header.get("nerfgauge_depth")
+        if depth_kind and stored is not None and stored != DEPTH_HEADER[depth_kind]:
+            raise InputError(f"{path} holds {stored} but --depth-kind {depth_kind} compares {DEPTH_HEADER[depth_kind]}")
+    else:
+        values = read_png(path)
+    values = np.asarray(values)
+    if values.ndim == 3 and values.shape[-1] == 1:
+        values = values[..., 0]
+    if values.ndim != 2 or not np.issubdtype(values.dtype, np.number):
+        raise InputError(f"{path} must be a numeric [H, W] array, got shape {values.shape} dtype {values.dtype}")
+    return _sized(values.astype(np.float64), path, intrinsics)
+
+
+# --- scoring ----------------------------------------------------------------------------
+
+
+def score_frame(root: Path, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str):
+    """Metrics of one frame ({metric: float or None}) and its error images."""
+    rgb, alpha = read_colour(files.colour, intrinsics)
+    if files.opacity is not None:
+        alpha = _finite(read_plane(files.opacity, intrinsics), files.opacity)
+    pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
+    gt = composite(dataset.read_rgba(root, stem, intrinsics), background)  # [H, W, 3]
+    mask = dataset.read_mask(root, stem, intrinsics)  # [H, W] bool
+    values = dict.fromkeys(METRIC_NAMES)
+    values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
+    depth_err = None
+    if files.depth is not None:
+        depth = read_plane(files.depth, intrinsics, depth_kind)
+        gt_depth = dataset.read_depth(root, stem, intrinsics, depth_kind)
+        try:
+            scores = depth_metrics(depth, gt_depth, mask)
+        except InputError as error:
+            raise InputError(f"{files.depth}: {error}") from None
+        values.update({f"depth_{key}": value for key, value in scores.items()})
+        depth_err = depth_relative_error(depth, gt_depth, mask)
+    if alpha is not None:
+        values["opacity_iou"] = opacity_iou(alpha, mask)
+    return values, colour_error(pred, gt).astype(np.float32), depth_err
+
+
+def read_timing(pred_dir: Path) -> dict:
+    path = pred_dir / "timing.json"
+    if not path.is_file():
+        return {}
+
+    def refuse(constant):
+        raise InputError(f"{path} holds {constant}, which is not valid JSON")
+
+    try:
+        timing = json.loads(path.read_text(), parse_constant=refuse)
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise InputError(f"{path} is not valid JSON: {error}") from None
+    if not isinstance(timing, dict):
+        raise InputError(f"{path} should hold a JSON object, got {type(timing).__name__}")
+    return timing
+
+
+def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
+             depth_kind: str = "distance") -> dict:
+    """Score every frame of `split`; write metrics.json and error maps. Returns the document."""
+    start = time.perf_counter()
+    if background not in BACKGROUNDS:
+        raise InputError(f"unknown background {background!r}; choose white or black")
+    if depth_kind not in DEPTH_SUFFIXES:
+        raise InputError(f"unknown depth kind {depth_kind!r}; choose distance or z")
+    root, pred_dir = dataset.require_complete(root), Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise InputError(f"prediction folder not found: {pred_dir}")
+    cameras = dataset.read_split(root, split)
+    scene = dataset.read_scene_json(root).get("recipe")
+    if not isinstance(scene, str) or not scene:
+        raise InputError(f"{root / 'scene.json'}: 'recipe' must name the scene, got {scene!r}")
+    extras = extra_frames(pred_dir, split, {Path(stem).name for stem in cameras.stems})
+    if extras:
+        raise InputError(f"{len(extras)} extra prediction file(s) not among the {len(cameras.stems)} frames of split "
+                         f"{split}: {', '.join(str(p) for p in extras[:4])}{' ...' if len(extras) > 4 else ''}")
+    found = {stem: find_prediction(pred_dir, stem, depth_kind) for stem in cameras.stems}
+    missing = [stem for stem, files in found.items() if files is None]
+    if missing:
+        raise InputError(f"no prediction for {len(missing)} of {len(found)} frames of split {split}: "
+                         f"{', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} (looked for "
+                         f"{pred_dir}/{missing[0]}.png|.exr and {pred_dir}/{Path(missing[0]).name}.png|.exr)")
+    timing = read_timing(pred_dir)
+    frames, maps = [], []
+    for stem, files in found.items():
+        try:
+            values, colour_err, depth_err = score_frame(root, stem, cameras.intrinsics, files,
+                                                        BACKGROUNDS[background], depth_kind)
+        except InputError as error:
+            raise InputError(f"frame {stem}: {error}") from None
+        frames.append({"name": stem, **values})
+        maps.append((stem, colour_err, depth_err))
+    means, stds, counts = {}, {}, {}
+    for metric in METRIC_NAMES:
+        column = [frame[metric] for frame in frames]
+        means[metric], stds[metric] = summarize(column)
+        counts[metric] = sum(value is not None for value in column)
+    out = pred_dir / "metrics.json" if out is None else Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for stem, colour_err, depth_err in maps:
+        write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
+    document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
+                "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts, "frames": frames,
+                "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}
+    dataset.write_json(out, document)
+    return document
+
+
+def format_means(document: dict) -> str:
+    """A plain-text table of mean, std and frame count per metric."""
+    total = len(document["frames"])
+    rows = [("metric", "mean", "std", "frames")]
+    for metric in METRIC_NAMES:
+        mean, std = document["mean"][metric], document["std"][metric]
+        rows.append((metric, "-" if mean is None else f"{mean:.4f}", "-" if std is None else f"{std:.4f}",
+                     f"{document['count'][metric]}/{total}"))
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows)
