@@ -1,0 +1,75 @@
+"""Rays and targets from a nerfgauge dataset (or any folder in the same format).
+
+Colours stay in the PNGs' sRGB space, as NeRF-synthetic training does; alpha is kept so
+the background can be composited per ray.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+
+from generate.camera import pixel_rays
+from generate.dataset import SplitCameras, read_json, read_rgba, read_split, require_complete
+
+
+@dataclass(frozen=True)
+class RayBatch:
+    """origins, directions (unit): [n, 3]; rgba: [n, 4] straight alpha or None;
+    n_views whole views, row-major, one after another."""
+
+    origins: torch.Tensor
+    directions: torch.Tensor
+    rgba: Optional[torch.Tensor]
+    n_views: int = 1
+
+
+def split_rays(cameras: SplitCameras, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays of one view, row-major. Returns origins, directions [H*W, 3] float32."""
+    origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)
+    return (torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)),
+            torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)))
+
+
+def load_split_rays(root, split: str, limit: Optional[int] = None) -> tuple[SplitCameras, RayBatch]:
+    """All rays and RGBA targets of a split (the first `limit` views if given)."""
+    cameras = read_split(root, split)
+    count = len(cameras.stems) if limit is None else min(limit, len(cameras.stems))
+    origins, directions, colours = [], [], []
+    for index in range(count):
+        o, d = split_rays(cameras, index)
+        origins.append(o), directions.append(d)
+        colours.append(torch.from_numpy(read_rgba(root, cameras.stems[index], cameras.intrinsics).reshape(-1, 4)))
+    if not origins:
+        empty = torch.zeros((0, 3))
+        return cameras, RayBatch(empty, empty, torch.zeros((0, 4)), 0)
+    return cameras, RayBatch(torch.cat(origins), torch.cat(directions), torch.cat(colours), count)
+
+
+def scene_info(root) -> tuple[Optional[dict], Optional[np.ndarray]]:
+    """(needs, aabb [2, 3]) from scene.json, or (None, None) for datasets without one."""
+    root = require_complete(root)
+    path = root / "scene.json"
+    if not path.is_file():
+        return None, None
+    scene = read_json(path)
+    bounds = scene.get("bounds")
+    aabb = np.asarray(bounds, np.float64) if bounds is not None else None
+    return scene.get("needs"), aabb
+
+
+def aabb_from_cameras(c2w: np.ndarray) -> np.ndarray:
+    """Fallback bounds without scene.json: a cube around the point the cameras look at,
+    half as wide as their mean distance to it."""
+    forward = -c2w[:, :3, 2]
+    origins = c2w[:, :3, 3]
+    # least-squares point closest to every optical axis
+    eye = np.eye(3)
+    a = sum(eye - np.outer(f, f) for f in forward)
+    b = sum((eye - np.outer(f, f)) @ o for f, o in zip(forward, origins))
+    centre = np.linalg.lstsq(a, b, rcond=None)[0]
+    half = 0.5 * float(np.linalg.norm(origins - centre, axis=1).mean())
+    return np.stack([centre - half, centre + half])

@@ -1,0 +1,118 @@
+"""The compact field: a dense voxel grid (DVGO-style) with an occupancy grid.
+
+Chosen by measurement on 2 CPU cores (DESIGN.md): a dense grid with occupancy skipping
+beat a plain-PyTorch hash grid and a positional-encoding MLP in PSNR per second.
+
+Density: raw values are trilinearly interpolated, then activated,
+    sigma = softplus(raw + shift) / voxel_final,
+so surfaces can be sharper than a voxel; `shift` makes a fresh grid nearly transparent
+(alpha = ALPHA_INIT per marching step). Colour: diffuse scenes store sRGB logits (3
+channels, no view direction); view-dependent scenes store `feature_channels` features
+that a small MLP turns into colour with the view direction (degree-3 spherical harmonics).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+ALPHA_INIT = 1e-2
+OCCUPANCY_ALPHA = 1e-3  # a cell is empty when no node reaches this opacity per step
+
+
+def sh_basis_deg3(directions: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics up to degree 3 of unit directions [M, 3]. Returns [M, 16]."""
+    x, y, z = directions.unbind(-1)
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+    return torch.stack([
+        torch.full_like(x, 0.28209479177387814),
+        -0.4886025119029199 * y, 0.4886025119029199 * z, -0.4886025119029199 * x,
+        1.0925484305920792 * xy, -1.0925484305920792 * yz, 0.31539156525252005 * (2 * zz - xx - yy),
+        -1.0925484305920792 * xz, 0.5462742152960396 * (xx - yy),
+        -0.5900435899266435 * y * (3 * xx - yy), 2.890611442640554 * xy * z,
+        -0.4570457994644658 * y * (4 * zz - xx - yy), 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy),
+        -0.4570457994644658 * x * (4 * zz - xx - yy), 1.445305721320277 * z * (xx - yy),
+        -0.5900435899266435 * x * (xx - 3 * yy),
+    ], dim=-1)
+
+
+def grid_shape(aabb: torch.Tensor, resolution: int) -> tuple[int, int, int]:
+    """(nz, ny, nx) nodes so the longest AABB side has `resolution` voxels, cubic voxels."""
+    extent = (aabb[1] - aabb[0]).tolist()
+    voxel = max(extent) / resolution
+    nx, ny, nz = (max(2, math.ceil(e / voxel) + 1) for e in extent)
+    return nz, ny, nx
+
+
+class VoxelGridField(nn.Module):
+    def __init__(self, aabb: torch.Tensor, resolution: int, final_resolution: int, view_dependent: bool,
+                 feature_channels: int = 12, step_ratio: float = 0.5):
+        super().__init__()
+        self.register_buffer("aabb", aabb.clone().float())
+        self.view_dependent = view_dependent
+        self.step_ratio = step_ratio
+        longest = float((aabb[1] - aabb[0]).max())
+        self.voxel_final = longest / final_resolution
+        # alpha = 1 - exp(-softplus(shift) * step / voxel_final) = ALPHA_INIT at step = step_ratio voxels
+        self.shift = math.log(math.expm1(-math.log(1 - ALPHA_INIT) / step_ratio))
+        channels = feature_channels if view_dependent else 3
+        self.grid = nn.Parameter(torch.zeros((1, 1 + channels) + grid_shape(self.aabb, resolution)))
+        self.head = None
+        if view_dependent:
+            self.head = nn.Sequential(nn.Linear(channels + 16, 64), nn.ReLU(), nn.Linear(64, 3))
+        self.resolution = resolution
+
+    @property
+    def voxel(self) -> float:
+        return float((self.aabb[1] - self.aabb[0]).max()) / self.resolution
+
+    @property
+    def marching_step(self) -> float:
+        return self.step_ratio * self.voxel
+
+    def density_from_raw(self, raw: torch.Tensor) -> torch.Tensor:
+        return F.softplus(raw + self.shift) / self.voxel_final
+
+    def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """positions, directions: [M, 3] (world, unit). Returns sigma [M], rgb [M, 3] in [0, 1]."""
+        normalised = (positions - self.aabb[0]) / (self.aabb[1] - self.aabb[0]) * 2 - 1  # [M, 3] (x, y, z)
+        values = F.grid_sample(self.grid, normalised.view(1, 1, 1, -1, 3), mode="bilinear",
+                               align_corners=True, padding_mode="border")  # [1, C, 1, 1, M]
+        values = values.view(self.grid.shape[1], -1).t()  # [M, C]
+        sigma = self.density_from_raw(values[:, 0])
+        if self.head is None:
+            return sigma, torch.sigmoid(values[:, 1:])
+        features = torch.cat([values[:, 1:], sh_basis_deg3(directions)], dim=-1)
+        return sigma, torch.sigmoid(self.head(features))
+
+    @torch.no_grad()
+    def upsample(self, resolution: int) -> None:
+        """Coarse to fine: trilinear resampling of the grid (the AABB stays)."""
+        shape = grid_shape(self.aabb, resolution)
+        self.grid = nn.Parameter(F.interpolate(self.grid.data, size=shape, mode="trilinear", align_corners=True))
+        self.resolution = resolution
+
+    @torch.no_grad()
+    def occupancy(self, dilate: int = 1) -> torch.Tensor:
+        """Cells (between grid nodes) whose corner nodes reach OCCUPANCY_ALPHA, grown by
+        `dilate` cells so density can still spread into neighbours. Not differentiable.
+        Trilinear interpolation never exceeds its corners and softplus is monotone, so a
+        cell whose corners are all below the threshold is below it everywhere.
+        Returns [nz-1, ny-1, nx-1] bool."""
+        sigma = self.density_from_raw(self.grid[0, 0])
+        alpha = -torch.expm1(-sigma * self.marching_step)  # [nz, ny, nx]
+        corner_max = F.max_pool3d(alpha[None, None], kernel_size=2, stride=1)[0, 0]  # [nz-1, ny-1, nx-1]
+        occupied = corner_max > OCCUPANCY_ALPHA
+        if dilate:
+            size = 2 * dilate + 1
+            occupied = F.max_pool3d(occupied[None, None].float(), size, stride=1, padding=dilate)[0, 0] > 0
+        return occupied
+
+    def total_variation(self) -> torch.Tensor:
+        """Mean squared difference of neighbouring raw densities (smoothness prior)."""
+        d = self.grid[0, 0]
+        return ((d[1:] - d[:-1]) ** 2).mean() + ((d[:, 1:] - d[:, :-1]) ** 2).mean() + \
+            ((d[:, :, 1:] - d[:, :, :-1]) ** 2).mean()

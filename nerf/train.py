@@ -1,0 +1,199 @@
+"""`nerfgauge train`: the one training loop, for both models.
+
+RUN/ holds config.json (resolved, with the reasons for each automatic choice), log.jsonl
+(val PSNR against training seconds: the speed-vs-error curve of this run), checkpoint.pt
+(full state, for --resume) and model.pt (the saved, pruned model). Training seconds
+exclude validation and checkpointing, so curves from different runs compare.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from generate.dataset import read_split, require_complete, write_json
+from generate.image_files import write_bytes_atomic
+from nerf import checkpoint
+from nerf.config import TrainConfig, resolve
+from nerf.data import aabb_from_cameras, load_split_rays, scene_info
+from nerf.rendering import composite
+from nerfgauge.errors import InputError
+
+OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
+UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows
+LR_FINAL_FRACTION = 0.1  # learning rate decays exponentially to this fraction
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        return torch.device(name)
+    except RuntimeError:
+        raise InputError(f"unknown device {name!r}") from None
+
+
+@torch.no_grad()
+def render_rays_chunked(model, origins, directions, chunk: int = 16384):
+    """Render many rays in chunks. Returns premultiplied rgb [n, 3], opacity [n], depth [n]."""
+    rgb, opacity, depth = [], [], []
+    for start in range(0, origins.shape[0], chunk):
+        out = model.render(origins[start:start + chunk], directions[start:start + chunk])
+        rgb.append(out.rgb), opacity.append(out.opacity), depth.append(out.depth)
+    return torch.cat(rgb), torch.cat(opacity), torch.cat(depth)
+
+
+def psnr_on_white(model, rays, device) -> float:
+    """Mean PSNR over the views in `rays` (all pixels, composited on white)."""
+    rgb, opacity, _ = render_rays_chunked(model, rays.origins.to(device), rays.directions.to(device))
+    pred = composite(rgb, opacity, torch.ones(3, device=device)).clamp(0, 1).cpu()
+    target = rays.rgba[:, :3] * rays.rgba[:, 3:] + (1 - rays.rgba[:, 3:])
+    per_view = ((pred - target) ** 2).view(rays.n_views, -1).mean(dim=1).clamp_min(1e-10)
+    return float((-10 * torch.log10(per_view)).mean())
+
+
+def resolution_at(config: TrainConfig, progress: float) -> int:
+    """Coarse to fine: geometric steps from start to final resolution at UPSAMPLE_AT."""
+    stage = sum(progress >= p for p in UPSAMPLE_AT)
+    ratio = config.final_resolution / config.start_resolution
+    return int(round(config.start_resolution * ratio ** (stage / len(UPSAMPLE_AT))))
+
+
+def make_optimizer(model, config: TrainConfig):
+    from nerf.models import CompactNeRF
+
+    if isinstance(model, CompactNeRF):
+        groups = [{"params": [model.field.grid], "lr": config.lr, "base_lr": config.lr}]
+        if model.field.head is not None:
+            groups.append({"params": model.field.head.parameters(), "lr": config.lr_mlp, "base_lr": config.lr_mlp})
+        return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+    return torch.optim.Adam([{"params": model.parameters(), "lr": 5e-4, "base_lr": 5e-4}])
+
+
+def prepare_run(config: TrainConfig, run_dir: Path, resume: bool):
+    """Validate input, load data, resolve the config. Nothing is written before this ends."""
+    config.validate()
+    root = require_complete(config.dataset)
+    train_cams = read_split(root, "train")
+    if not train_cams.stems:
+        raise InputError(f"dataset {root} has no training views")
+    needs, aabb = scene_info(root)
+    if aabb is None:
+        aabb = aabb_from_cameras(train_cams.c2w)
+    config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise InputError(f"run path {run_dir} is a file, not a folder")
+    if (run_dir / "config.json").exists() and not resume:
+        raise InputError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
+    if resume and not (run_dir / "checkpoint.pt").is_file():
+        raise InputError(f"nothing to resume in {run_dir} (no checkpoint.pt)")
+    _, train_rays = load_split_rays(root, "train")
+    val_split = "val" if read_split(root, "val").stems else "test"
+    _, val_rays = load_split_rays(root, val_split, limit=config.eval_views)
+    return config, reasons, torch.tensor(aabb, dtype=torch.float32), train_rays, val_rays
+
+
+def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool = True) -> dict:
+    run_dir = Path(run_dir)
+    config, reasons, aabb, train_rays, val_rays = prepare_run(config, run_dir, resume)
+    torch.set_num_threads(config.threads)
+    device = pick_device(config.device)
+    generator = torch.Generator(device="cpu").manual_seed(config.seed)
+    torch_init = torch.Generator().manual_seed(config.seed + 1)
+    state = {"step": 0, "seconds": 0.0, "next_eval": 0.0}
+    if resume:
+        saved = checkpoint.load_checked(run_dir / "checkpoint.pt", "checkpoint")
+        config = TrainConfig(**saved["config"]) if saved.get("config") else config
+        model = checkpoint.model_from_payload(saved["model_payload"]).to(device)
+        optimizer = make_optimizer(model, config)
+        optimizer.load_state_dict(saved["optimizer"])
+        generator.set_state(saved["generator"])
+        state.update(step=saved["step"], seconds=saved["seconds"], next_eval=saved["next_eval"])
+    else:
+        with torch.random.fork_rng(devices=[]):
+            torch.random.manual_seed(int(torch.randint(2**31, (1,), generator=torch_init)))  # init only
+            model = checkpoint.build_model(config, aabb).to(device)
+        optimizer = make_optimizer(model, config)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        write_json(run_dir / "config.json", {**config.to_json(), "auto_reasons": reasons})
+        write_bytes_atomic(run_dir / "log.jsonl", b"")
+    log = (run_dir / "log.jsonl").open("a")
+    n_rays = config.batch_rays if config.model == "compact" else config.vanilla_batch_rays
+    total = config.steps if config.steps is not None else config.budget_seconds
+    bar = tqdm(total=total, unit="step" if config.steps else "s", desc=f"train {config.model}",
+               disable=not progress, dynamic_ncols=True, initial=state["step"] if config.steps else 0)
+    last_psnr = float("nan")
+    try:
+        while True:
+            done = state["step"] / config.steps if config.steps else state["seconds"] / config.budget_seconds
+            if state["seconds"] >= state["next_eval"] or done >= 1:
+                last_psnr = psnr_on_white(model, val_rays, device)
+                entry = {"step": state["step"], "seconds": round(state["seconds"], 3), "val_psnr": last_psnr,
+                         "steps_per_second": state["step"] / max(state["seconds"], 1e-9)}
+                if hasattr(model, "occupancy"):
+                    entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean())}
+                log.write(json.dumps(entry) + "\n"), log.flush()
+                state["next_eval"] = state["seconds"] + config.eval_every_seconds
+                _save_checkpoint(run_dir, model, optimizer, config, generator, state)
+                bar.set_postfix(psnr=f"{last_psnr:.2f}", refresh=False)
+                if done >= 1:
+                    break
+            start = time.perf_counter()
+            _train_step(model, optimizer, config, train_rays, n_rays, generator, device, done, state["step"])
+            elapsed = time.perf_counter() - start
+            state["step"] += 1
+            state["seconds"] += elapsed
+            bar.update(1 if config.steps else min(elapsed, total - bar.n))
+    finally:
+        bar.close()
+        log.close()
+    size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / "model.pt")
+    return {"steps": state["step"], "seconds": state["seconds"], "val_psnr": last_psnr, "model_bytes": size}
+
+
+def _train_step(model, optimizer, config, rays, n_rays, generator, device, progress, step):
+    from nerf.models import CompactNeRF
+
+    compact = isinstance(model, CompactNeRF)
+    if compact:
+        wanted = resolution_at(config, progress)
+        if wanted != model.field.resolution:
+            model.upsample(wanted)
+            lrs = [group["lr"] for group in optimizer.param_groups]
+            optimizer.__init__(make_optimizer(model, config).param_groups, **optimizer.defaults)
+            for group, lr in zip(optimizer.param_groups, lrs):
+                group["lr"] = lr
+        if step % OCCUPANCY_EVERY == 0 and progress >= 0.02:
+            model.update_occupancy()
+    for group in optimizer.param_groups:
+        group["lr"] = group["base_lr"] * LR_FINAL_FRACTION ** progress
+    index = torch.randint(rays.origins.shape[0], (n_rays,), generator=generator)
+    origins, directions, rgba = (t[index].to(device) for t in (rays.origins, rays.directions, rays.rgba))
+    if config.background == "random":
+        background = torch.rand((n_rays, 3), generator=generator).to(device)
+    else:
+        background = torch.full((3,), 1.0 if config.background == "white" else 0.0, device=device)
+    target = rgba[:, :3] * rgba[:, 3:] + background * (1 - rgba[:, 3:])
+    out = model.render(origins, directions, generator=generator, training=True)
+    loss = ((composite(out.rgb, out.opacity, background) - target) ** 2).mean()
+    if out.coarse is not None:
+        loss = loss + ((composite(out.coarse.rgb, out.coarse.opacity, background) - target) ** 2).mean()
+    loss = loss + model.regularisation(config.tv_weight)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return float(loss.detach())
+
+
+def _save_checkpoint(run_dir, model, optimizer, config, generator, state):
+    checkpoint.save_atomic({"format": checkpoint.FORMAT, "version": checkpoint.VERSION, "config": config.to_json(),
+                            "model_payload": checkpoint.model_payload(model, config, prune=False),
+                            "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
+                            "step": state["step"], "seconds": state["seconds"], "next_eval": state["next_eval"]},
+                           run_dir / "checkpoint.pt")
