@@ -2,87 +2,109 @@
 
 Two levels keep it cheap: rays are first walked in coarse segments of `fine_per_segment`
 steps, each segment is tested against the occupancy grid at its midpoint, and only the
-occupied segments are cut into fine steps. The kept samples are packed to the front of
-each row, so the result is a dense [n_rays, K] layout (K = most kept samples on any ray)
-that the volume-rendering functions of `nerf.rendering` take as they are: padding has
-delta = 0 and so weight 0, and skipped empty space has transmittance 1, as it should.
+occupied segments are cut into fine steps. The result is packed (a flat list of samples with their ray index) for `nerf.packed`:
+skipped empty space has transmittance 1, as it should.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from nerf.rendering import ray_aabb
 
 
 @dataclass(frozen=True)
 class MarchedSamples:
-    """t_mid, delta: [n_rays, K]; valid: [n_rays, K] bool; near, far: [n_rays]."""
+    """Packed samples, sorted by ray then distance: t_mid, ray_index [n_samples];
+    step: every sample's length; near, far: [n_rays] (0 for rays missing the box)."""
 
     t_mid: torch.Tensor
-    delta: torch.Tensor
-    valid: torch.Tensor
+    ray_index: torch.Tensor
+    step: float
     near: torch.Tensor
     far: torch.Tensor
 
 
-def cell_lookup(positions: torch.Tensor, occupancy: torch.Tensor, aabb: torch.Tensor) -> torch.Tensor:
-    """Occupancy at world positions. positions [..., 3]; occupancy [nz, ny, nx] bool over
-    the AABB [2, 3]. Positions outside the box are unoccupied. Returns [...] bool."""
+def cell_lookup(positions: torch.Tensor, occupancy: torch.Tensor, origin: torch.Tensor,
+                cell: torch.Tensor) -> torch.Tensor:
+    """Occupancy at world positions. positions [..., 3]; occupancy [nz, ny, nx] bool whose
+    cell (i, j, k) spans origin + [i, j, k] * cell (cell: [3] world size, x y z order).
+    Positions outside the grid are unoccupied. Returns [...] bool."""
     nz, ny, nx = occupancy.shape
-    size = torch.tensor([nx, ny, nz], dtype=positions.dtype, device=positions.device)
-    cell = ((positions - aabb[0]) / (aabb[1] - aabb[0]) * size).floor().long()  # [..., 3]
-    inside = ((cell >= 0) & (cell < size.long())).all(dim=-1)
-    cell = torch.minimum(cell.clamp_min(0), size.long() - 1)
-    flat = (cell[..., 2] * ny + cell[..., 1]) * nx + cell[..., 0]
+    index = ((positions - origin) / cell).floor().long()  # [..., 3]
+    size = torch.tensor([nx, ny, nz], device=positions.device)
+    inside = ((index >= 0) & (index < size)).all(dim=-1)
+    index = torch.minimum(index.clamp_min(0), size - 1)
+    flat = (index[..., 2] * ny + index[..., 1]) * nx + index[..., 0]
     return occupancy.reshape(-1)[flat] & inside
 
 
-def _pack_columns(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """Where each True of mask [n, S] lands when packed to the front of its row.
-    Returns rows [m], cols [m] and K (the longest packed row)."""
-    counts = mask.sum(dim=1)
-    width = int(counts.max()) if mask.numel() else 0
-    rows, source_cols = mask.nonzero(as_tuple=True)
-    cols = (mask.cumsum(dim=1) - 1)[rows, source_cols]
-    return rows, cols, width
+def occupancy_pyramid(occupancy: torch.Tensor, block: int = 16) -> list:
+    """[(grid, cell size in voxels)] from `block`-voxel blocks down to the voxel grid, each
+    level's blocks 4x smaller. Pooled levels are grown by one block, so a segment one block
+    long, tested at its midpoint, never misses an occupied block it passes through."""
+    levels = [(occupancy, 1)]
+    size = 4
+    while size <= block:
+        pooled = F.max_pool3d(occupancy[None, None].float(), size, stride=size, ceil_mode=True)
+        grown = F.max_pool3d(pooled, 3, stride=1, padding=1)[0, 0] > 0
+        levels.insert(0, (grown, size))
+        size *= 4
+    return levels
 
 
 @torch.no_grad()
 def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, occupancy: torch.Tensor,
-          step: float, fine_per_segment: int = 4, jitter: torch.Tensor | None = None) -> MarchedSamples:
-    """Fine samples of length `step` inside occupied coarse segments. Not differentiable.
+          step: float, jitter: torch.Tensor | None = None, levels: list | None = None) -> MarchedSamples:
+    """Packed samples of length `step` (e.g. half a voxel) where the occupancy grid is set.
+    Not differentiable.
 
-    origins, directions (unit): [n_rays, 3]; aabb [2, 3]; occupancy [nz, ny, nx] bool;
-    jitter: optional [n_rays] in [0, 1), shifts every sample of a ray by jitter * step
-    (stratified training samples); None puts samples at step centres (deterministic).
+    Coarse to fine: rays are cut into segments one coarse block long, segments whose
+    midpoint lies in an occupied block are cut into the next level's shorter segments,
+    and so on down to 1-voxel segments tested against the voxel grid (grown by a voxel:
+    a 1-voxel segment touches at most the neighbours of its midpoint's voxel), which are
+    cut into voxel / step samples. Work grows with occupied space, not with ray length.
+
+    origins, directions (unit): [n_rays, 3]; aabb [2, 3]; occupancy [nz, ny, nx] bool
+    (one cell per voxel, already grown by one voxel); jitter: optional [n_rays] in [0, 1),
+    shifts every sample of a ray by jitter * step (training); None: step centres.
+    levels: `occupancy_pyramid(occupancy)`, passed in to reuse it across calls.
     """
+    levels = occupancy_pyramid(occupancy) if levels is None else levels
     n_rays = origins.shape[0]
+    nz, ny, nx = occupancy.shape
+    voxel = (aabb[1] - aabb[0]) / torch.tensor([nx, ny, nz], dtype=aabb.dtype, device=aabb.device)  # [3]
     near, far, hit = ray_aabb(origins, directions, aabb)  # [n_rays] each
-    segment = step * fine_per_segment
-    longest = float((far - near).max()) if n_rays else 0.0
-    n_segments = max(int(torch.ceil(torch.tensor(longest / segment)).item()), 1)
-    k = torch.arange(n_segments, dtype=origins.dtype, device=origins.device)  # [S]
-    seg_start = near[:, None] + k * segment  # [n_rays, S]
-    seg_mid = seg_start + 0.5 * segment
-    in_ray = (seg_start < far[:, None]) & hit[:, None]  # [n_rays, S]
-    positions = origins[:, None, :] + seg_mid[..., None] * directions[:, None, :]  # [n_rays, S, 3]
-    occupied = in_ray & cell_lookup(positions, occupancy, aabb)  # [n_rays, S]
-
-    rows, cols, width = _pack_columns(occupied)
-    packed_start = seg_start.new_zeros((n_rays, max(width, 1)))  # [n_rays, Kc]
-    packed_valid = torch.zeros((n_rays, max(width, 1)), dtype=torch.bool, device=origins.device)
-    packed_start[rows, cols] = seg_start[occupied]
-    packed_valid[rows, cols] = True
-
-    offset = 0.5 if jitter is None else jitter[:, None, None]  # [n_rays, 1, 1] or scalar
-    j = torch.arange(fine_per_segment, dtype=origins.dtype, device=origins.device)  # [m]
-    t_mid = packed_start[..., None] + (j + offset) * step  # [n_rays, Kc, m]
-    valid = packed_valid[..., None] & (t_mid < far[:, None, None]) & (t_mid > near[:, None, None])
-    t_mid = t_mid.reshape(n_rays, -1)  # [n_rays, Kc * m]
-    valid = valid.reshape(n_rays, -1)
-    delta = torch.where(valid, torch.full_like(t_mid, step), torch.zeros_like(t_mid))
-    t_mid = torch.where(valid, t_mid, near[:, None].expand_as(t_mid))
-    return MarchedSamples(t_mid, delta, valid, near, far)
+    voxel_steps = max(1, round(float(voxel.max()) / step))  # samples per voxel segment
+    # level 0: every ray cut into coarse segments
+    grid, size = levels[0]
+    length = size * voxel_steps * step
+    n_segments = max(math.ceil(float((far - near).max()) / length), 1) if n_rays else 1
+    k = torch.arange(n_segments, dtype=origins.dtype, device=origins.device)
+    seg_start = near[:, None] + k * length  # [n_rays, S]
+    candidate = (seg_start < far[:, None]) & hit[:, None]
+    rays, cols = candidate.nonzero(as_tuple=True)  # row-major: sorted by ray, then t
+    starts = seg_start[rays, cols]  # [n_segments_total]
+    for index, (grid, size) in enumerate(levels):
+        length = size * voxel_steps * step
+        if index > 0:  # split the previous level's segments into this level's
+            parts = levels[index - 1][1] // size
+            offsets = torch.arange(parts, dtype=origins.dtype, device=origins.device) * length
+            starts = (starts[:, None] + offsets).reshape(-1)
+            rays = rays[:, None].expand(-1, parts).reshape(-1)
+            inside = starts < far[rays]
+            starts, rays = starts[inside], rays[inside]
+        mid = starts + 0.5 * length
+        keep = cell_lookup(origins[rays] + mid[:, None] * directions[rays], grid, aabb[0], voxel * size)
+        starts, rays = starts[keep], rays[keep]
+    # the voxel level's 1-voxel segments hold `voxel_steps` samples each
+    offset = 0.5 if jitter is None else jitter[rays][:, None]
+    j = torch.arange(voxel_steps, dtype=origins.dtype, device=origins.device)
+    t_mid = starts[:, None] + (j + offset) * step  # [n_kept, voxel_steps]
+    ray_index = rays[:, None].expand(-1, voxel_steps)
+    keep = t_mid < far[rays][:, None]
+    return MarchedSamples(t_mid[keep], ray_index[keep], step, near, far)

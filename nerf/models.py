@@ -13,12 +13,14 @@ from dataclasses import dataclass
 from typing import Optional
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from nerf.encoding import PositionalEncoding
 from nerf.grid_field import VoxelGridField
-from nerf.marching import march
-from nerf.rendering import accumulate_along_rays, expected_depth, ray_aabb, render_rays, weights_from_density
+from nerf.marching import march, occupancy_pyramid
+from nerf.packed import packed_render, packed_transmittance
+from nerf.rendering import ray_aabb, render_rays
 
 
 @dataclass
@@ -39,12 +41,16 @@ class CompactNeRF(nn.Module):
         self.field = field
         self.use_occupancy = use_occupancy
         self.register_buffer("occupancy", torch.ones(tuple(s - 1 for s in field.grid.shape[2:]), dtype=torch.bool))
+        self._pyramid = None  # coarse-to-fine occupancy for marching, rebuilt when occupancy changes
+        # Cells some training ray can see (transmittance reaches them); the rest (object
+        # interiors, hidden corners) need not be sampled or stored. All, until measured.
+        self.register_buffer("visible", torch.ones_like(self.occupancy))
 
     @torch.no_grad()
     def update_occupancy(self) -> float:
         """Recompute which cells can hold density. Returns the occupied fraction."""
         if self.use_occupancy:
-            self.occupancy = self.field.occupancy()
+            self.occupancy = self.field.occupancy() & self.visible
         else:
             self.occupancy = torch.ones(tuple(s - 1 for s in self.field.grid.shape[2:]), dtype=torch.bool,
                                         device=self.field.grid.device)
@@ -52,31 +58,56 @@ class CompactNeRF(nn.Module):
 
     def upsample(self, resolution: int) -> None:
         self.field.upsample(resolution)
+        self.visible = torch.ones(tuple(s - 1 for s in self.field.grid.shape[2:]), dtype=torch.bool,
+                                  device=self.field.grid.device)
         self.update_occupancy()
+
+    @torch.no_grad()
+    def measure_visibility(self, origins: torch.Tensor, directions: torch.Tensor, chunk: int = 65536,
+                           threshold: float = 1e-3) -> float:
+        """Mark cells whose largest transmittance over these rays stays below `threshold`
+        as hidden (grown by one cell for safety). Not differentiable. Returns the visible
+        fraction. Hidden cells are then skipped and pruned from the saved model."""
+        if not self.use_occupancy:
+            return 1.0
+        shape = self.occupancy.shape
+        nz, ny, nx = shape
+        best = torch.zeros(self.occupancy.numel(), device=origins.device)
+        cell = (self.field.aabb[1] - self.field.aabb[0]) / torch.tensor([nx, ny, nz], device=origins.device)
+        for start in range(0, origins.shape[0], chunk):
+            o, d = origins[start:start + chunk], directions[start:start + chunk]
+            samples = march(o, d, self.field.aabb, self.occupancy, self.field.marching_step, levels=self._levels())
+            positions = o[samples.ray_index] + samples.t_mid[:, None] * d[samples.ray_index]
+            sigma = self.field.density(positions)
+            transmittance, _ = packed_transmittance(sigma, torch.full_like(sigma, samples.step), samples.ray_index, o.shape[0])
+            index = ((positions - self.field.aabb[0]) / cell).floor().long()
+            index = torch.minimum(index.clamp_min(0), torch.tensor([nx - 1, ny - 1, nz - 1], device=index.device))
+            flat = (index[:, 2] * ny + index[:, 1]) * nx + index[:, 0]
+            best.scatter_reduce_(0, flat, transmittance, reduce="amax")
+        seen = best.view(shape) > threshold
+        self.visible = F.max_pool3d(seen[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+        self.update_occupancy()
+        return float(self.visible.float().mean())
+
+    def _levels(self):
+        if self._pyramid is None or self._pyramid[-1][0] is not self.occupancy:
+            self._pyramid = occupancy_pyramid(self.occupancy)
+        return self._pyramid
 
     def render(self, origins: torch.Tensor, directions: torch.Tensor, generator: torch.Generator | None = None,
                training: bool = False) -> RayOutput:
         """origins, directions (unit): [n, 3]. Training jitters samples within each step."""
         jitter = None
         if training:
-            jitter = torch.rand(origins.shape[0], generator=generator, device=origins.device)
-        samples = march(origins, directions, self.field.aabb, self.occupancy, self.field.marching_step, jitter=jitter)
-        n_rays, width = samples.t_mid.shape
-        sigma = samples.t_mid.new_zeros((n_rays, width))  # [n_rays, K]
-        rgb = samples.t_mid.new_zeros((n_rays, width, 3))  # [n_rays, K, 3]
-        kept = samples.valid
-        n_kept = int(kept.sum())
-        if n_kept:
-            positions = origins[:, None, :] + samples.t_mid[..., None] * directions[:, None, :]  # [n_rays, K, 3]
-            view = directions[:, None, :].expand(-1, width, -1)
-            sigma_kept, rgb_kept = self.field(positions[kept], view[kept])
-            sigma = sigma.index_put((kept,), sigma_kept)
-            rgb = rgb.index_put((kept,), rgb_kept)
-        weights, _, _ = weights_from_density(sigma, samples.delta)  # [n_rays, K]
-        opacity = accumulate_along_rays(weights)
-        colour = accumulate_along_rays(weights, rgb)
-        depth = expected_depth(weights, samples.t_mid, opacity, samples.near, samples.far)
-        return RayOutput(colour, opacity, depth, n_kept)
+            jitter = torch.rand(origins.shape[0], generator=generator).to(origins.device)
+        samples = march(origins, directions, self.field.aabb, self.occupancy, self.field.marching_step,
+                        jitter=jitter, levels=self._levels())
+        rays = samples.ray_index  # [n_samples]
+        positions = origins[rays] + samples.t_mid[:, None] * directions[rays]  # [n_samples, 3]
+        sigma, rgb = self.field(positions, directions[rays])
+        deltas = torch.full_like(samples.t_mid, samples.step)
+        colour, opacity, depth, _ = packed_render(sigma, rgb, deltas, samples.t_mid, rays, samples.near, samples.far)
+        return RayOutput(colour, opacity, depth, int(rays.numel()))
 
     def regularisation(self, tv_weight: float) -> torch.Tensor:
         return tv_weight * self.field.total_variation() if tv_weight > 0 else self.field.grid.new_zeros(())

@@ -27,6 +27,8 @@ from nerfgauge.errors import InputError
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows
+VISIBILITY_AT = (0.4, 0.7, 1.0)  # fractions where hidden cells are measured and skipped
+VISIBILITY_RAY_STRIDE = 4  # every 4th training ray is enough to see every visible cell
 LR_FINAL_FRACTION = 0.1  # learning rate decays exponentially to this fraction
 
 
@@ -106,7 +108,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
     device = pick_device(config.device)
     generator = torch.Generator(device="cpu").manual_seed(config.seed)
     torch_init = torch.Generator().manual_seed(config.seed + 1)
-    state = {"step": 0, "seconds": 0.0, "next_eval": 0.0}
+    state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0}
     if resume:
         saved = checkpoint.load_checked(run_dir / "checkpoint.pt", "checkpoint")
         config = TrainConfig(**saved["config"]) if saved.get("config") else config
@@ -114,7 +116,8 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
         optimizer = make_optimizer(model, config)
         optimizer.load_state_dict(saved["optimizer"])
         generator.set_state(saved["generator"])
-        state.update(step=saved["step"], seconds=saved["seconds"], next_eval=saved["next_eval"])
+        state.update(step=saved["step"], seconds=saved["seconds"], next_eval=saved["next_eval"],
+                     visibility_done=saved.get("visibility_done", 0))
     else:
         with torch.random.fork_rng(devices=[]):
             torch.random.manual_seed(int(torch.randint(2**31, (1,), generator=torch_init)))  # init only
@@ -132,6 +135,13 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
     try:
         while True:
             done = state["step"] / config.steps if config.steps else state["seconds"] / config.budget_seconds
+            if hasattr(model, "measure_visibility") and state["visibility_done"] < len(VISIBILITY_AT) \
+                    and done >= VISIBILITY_AT[state["visibility_done"]]:
+                start = time.perf_counter()
+                model.measure_visibility(train_rays.origins[::VISIBILITY_RAY_STRIDE].to(device),
+                                         train_rays.directions[::VISIBILITY_RAY_STRIDE].to(device))
+                state["visibility_done"] += 1
+                state["seconds"] += time.perf_counter() - start  # part of training: it speeds it up
             if state["seconds"] >= state["next_eval"] or done >= 1:
                 last_psnr = psnr_on_white(model, val_rays, device)
                 entry = {"step": state["step"], "seconds": round(state["seconds"], 3), "val_psnr": last_psnr,
@@ -195,5 +205,6 @@ def _save_checkpoint(run_dir, model, optimizer, config, generator, state):
     checkpoint.save_atomic({"format": checkpoint.FORMAT, "version": checkpoint.VERSION, "config": config.to_json(),
                             "model_payload": checkpoint.model_payload(model, config, prune=False),
                             "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
-                            "step": state["step"], "seconds": state["seconds"], "next_eval": state["next_eval"]},
+                            "step": state["step"], "seconds": state["seconds"], "next_eval": state["next_eval"],
+                            "visibility_done": state["visibility_done"]},
                            run_dir / "checkpoint.pt")

@@ -1,0 +1,71 @@
+"""Volume rendering on packed samples: the same maths as `nerf.rendering`, for rays that
+keep different numbers of samples (empty-space skipping leaves most rays with a few).
+
+Samples are a flat list [n_samples] sorted by ray, then by distance along the ray;
+`ray_index` [n_samples] says which ray each belongs to. With tau_i = sigma_i delta_i,
+
+    T_i = exp(-sum_{j<i, same ray} tau_j),   w_i = T_i (1 - exp(-tau_i)),
+
+and the per-ray exclusive sum is a global cumulative sum minus its value where the ray
+starts. The cumulative sum runs in float64 with tau clamped to TAU_MAX_PACKED, so the
+subtraction loses at most ~1e-9 (exp(-TAU_MAX_PACKED) ~ 1e-13 is already opaque).
+Skipped empty space contributes nothing, exactly as sigma = 0 would.
+"""
+
+from __future__ import annotations
+
+import torch
+
+TAU_MAX_PACKED = 30.0
+DEPTH_EPS = 1e-10
+
+
+def packed_weights(sigmas: torch.Tensor, deltas: torch.Tensor, ray_index: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """Weights w_i = T_i alpha_i of packed samples.
+
+    sigmas, deltas: [n_samples] >= 0; ray_index: [n_samples] long, non-decreasing.
+    Returns weights [n_samples] in [0, 1], summing to at most 1 per ray.
+    """
+    transmittance, tau = packed_transmittance(sigmas, deltas, ray_index, n_rays)
+    return transmittance * -torch.expm1(-tau)
+
+
+def packed_transmittance(sigmas: torch.Tensor, deltas: torch.Tensor, ray_index: torch.Tensor,
+                         n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """T_i = exp(-sum_{j<i, same ray} tau_j) and tau_i (clamped) of packed samples, [n_samples] each."""
+    if not (sigmas.shape == deltas.shape == ray_index.shape and sigmas.ndim == 1):
+        raise ValueError(f"sigmas, deltas and ray_index must all be [n_samples], got "
+                         f"{tuple(sigmas.shape)}, {tuple(deltas.shape)}, {tuple(ray_index.shape)}")
+    tau = (sigmas * deltas).clamp(0.0, TAU_MAX_PACKED)  # [n_samples]
+    inclusive = torch.cumsum(tau.double(), dim=0)  # [n_samples]
+    exclusive = inclusive - tau.double()
+    # exclusive sum where each ray starts (its first sample), subtracted from its samples
+    first = torch.ones_like(ray_index, dtype=torch.bool)
+    first[1:] = ray_index[1:] != ray_index[:-1]
+    # Not detached: the other rays' taus inside `exclusive` must cancel in the gradient too.
+    start_value = torch.zeros(n_rays, dtype=torch.float64, device=tau.device).index_put(
+        (ray_index[first],), exclusive[first])  # [n_rays]
+    optical_depth = (exclusive - start_value[ray_index]).clamp_min(0.0).to(tau.dtype)  # [n_samples]
+    return torch.exp(-optical_depth), tau
+
+
+def packed_sum(values: torch.Tensor, ray_index: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """Per-ray sums of packed values [n_samples, ...] -> [n_rays, ...]."""
+    out = values.new_zeros((n_rays,) + tuple(values.shape[1:]))
+    return out.index_add(0, ray_index, values)
+
+
+def packed_render(sigmas, rgbs, deltas, t_mid, ray_index, near, far):
+    """Colour (premultiplied), opacity and expected depth of every ray.
+
+    sigmas, deltas, t_mid: [n_samples]; rgbs: [n_samples, 3]; ray_index: [n_samples];
+    near, far: [n_rays]. Depth is sum w t / max(A, eps), clamped to [near, far], 0 where
+    A = 0. Returns rgb [n_rays, 3], opacity [n_rays], depth [n_rays], weights [n_samples].
+    """
+    n_rays = near.shape[0]
+    weights = packed_weights(sigmas, deltas, ray_index, n_rays)  # [n_samples]
+    opacity = packed_sum(weights, ray_index, n_rays)  # [n_rays]
+    rgb = packed_sum(weights[:, None] * rgbs, ray_index, n_rays)  # [n_rays, 3]
+    depth = packed_sum(weights * t_mid, ray_index, n_rays) / opacity.clamp_min(DEPTH_EPS)
+    depth = torch.minimum(torch.maximum(depth, near), far)
+    return rgb, opacity, torch.where(opacity > 0, depth, torch.zeros_like(depth)), weights
