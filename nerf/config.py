@@ -38,6 +38,7 @@ class TrainConfig:
     prune: bool = True
     occupancy: bool = True  # empty-space skipping
     tv_weight: float = 0.0
+    distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
     step_ratio: float = 0.5  # ray-marching step in voxels
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
     # vanilla (the lecture's NeRF)
@@ -73,8 +74,9 @@ class TrainConfig:
                 raise InputError(f"{name} must be an integer in [4, 1024], got {value!r}")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
-        if not self.step_ratio > 0 or self.tv_weight < 0 or self.lr <= 0 or self.lr_mlp <= 0:
-            raise InputError("step_ratio, lr and lr_mlp must be positive and tv_weight >= 0")
+        if not self.step_ratio > 0 or self.tv_weight < 0 or self.distortion_weight < 0 or self.lr <= 0 \
+                or self.lr_mlp <= 0:
+            raise InputError("step_ratio, lr and lr_mlp must be positive; tv_weight and distortion_weight >= 0")
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)

@@ -19,7 +19,7 @@ from torch import nn
 from nerf.encoding import PositionalEncoding
 from nerf.grid_field import VoxelGridField
 from nerf.marching import march, occupancy_pyramid
-from nerf.packed import packed_render, packed_transmittance
+from nerf.packed import packed_distortion, packed_render, packed_transmittance
 from nerf.rendering import ray_aabb, render_rays
 
 
@@ -33,6 +33,7 @@ class RayOutput:
     depth: torch.Tensor
     n_samples: int = 0
     coarse: Optional["RayOutput"] = None
+    distortion: Optional[torch.Tensor] = None  # [n] (compact, training only)
 
 
 class CompactNeRF(nn.Module):
@@ -106,8 +107,12 @@ class CompactNeRF(nn.Module):
         positions = origins[rays] + samples.t_mid[:, None] * directions[rays]  # [n_samples, 3]
         sigma, rgb = self.field(positions, directions[rays])
         deltas = torch.full_like(samples.t_mid, samples.step)
-        colour, opacity, depth, _ = packed_render(sigma, rgb, deltas, samples.t_mid, rays, samples.near, samples.far)
-        return RayOutput(colour, opacity, depth, int(rays.numel()))
+        colour, opacity, depth, weights = packed_render(sigma, rgb, deltas, samples.t_mid, rays, samples.near,
+                                                        samples.far)
+        distortion = None
+        if training:
+            distortion = packed_distortion(weights, samples.t_mid, deltas, rays, origins.shape[0])
+        return RayOutput(colour, opacity, depth, int(rays.numel()), distortion=distortion)
 
     def regularisation(self, tv_weight: float) -> torch.Tensor:
         return tv_weight * self.field.total_variation() if tv_weight > 0 else self.field.grid.new_zeros(())

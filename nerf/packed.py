@@ -37,16 +37,39 @@ def packed_transmittance(sigmas: torch.Tensor, deltas: torch.Tensor, ray_index: 
         raise ValueError(f"sigmas, deltas and ray_index must all be [n_samples], got "
                          f"{tuple(sigmas.shape)}, {tuple(deltas.shape)}, {tuple(ray_index.shape)}")
     tau = (sigmas * deltas).clamp(0.0, TAU_MAX_PACKED)  # [n_samples]
-    inclusive = torch.cumsum(tau.double(), dim=0)  # [n_samples]
-    exclusive = inclusive - tau.double()
-    # exclusive sum where each ray starts (its first sample), subtracted from its samples
+    optical_depth = packed_exclusive_cumsum(tau, ray_index, n_rays).clamp_min(0.0)  # [n_samples]
+    return torch.exp(-optical_depth), tau
+
+
+def packed_exclusive_cumsum(values: torch.Tensor, ray_index: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """sum_{j < i, same ray} values_j for packed values [n_samples] (float64 inside).
+
+    A global cumulative sum minus its value where each ray starts; that start value is not
+    detached, so the other rays' terms cancel in the gradient as they do in the value."""
+    inclusive = torch.cumsum(values.double(), dim=0)  # [n_samples]
+    exclusive = inclusive - values.double()
     first = torch.ones_like(ray_index, dtype=torch.bool)
     first[1:] = ray_index[1:] != ray_index[:-1]
-    # Not detached: the other rays' taus inside `exclusive` must cancel in the gradient too.
-    start_value = torch.zeros(n_rays, dtype=torch.float64, device=tau.device).index_put(
+    start_value = torch.zeros(n_rays, dtype=torch.float64, device=values.device).index_put(
         (ray_index[first],), exclusive[first])  # [n_rays]
-    optical_depth = (exclusive - start_value[ray_index]).clamp_min(0.0).to(tau.dtype)  # [n_samples]
-    return torch.exp(-optical_depth), tau
+    return (exclusive - start_value[ray_index]).to(values.dtype)
+
+
+def packed_distortion(weights: torch.Tensor, t_mid: torch.Tensor, deltas: torch.Tensor, ray_index: torch.Tensor,
+                      n_rays: int) -> torch.Tensor:
+    """mip-NeRF 360's distortion loss per ray, in O(n_samples):
+
+        L = sum_{i,j} w_i w_j |t_i - t_j| + 1/3 sum_i w_i^2 delta_i
+          = 2 sum_i w_i (t_i W_<i - S_<i) + 1/3 sum_i w_i^2 delta_i,
+
+    with W_<i = sum_{j<i} w_j and S_<i = sum_{j<i} w_j t_j along the ray (samples sorted).
+    It is small when each ray's weight sits in one thin interval: sharp, solid surfaces.
+    weights, t_mid, deltas, ray_index: [n_samples]. Returns [n_rays].
+    """
+    weight_before = packed_exclusive_cumsum(weights, ray_index, n_rays)
+    moment_before = packed_exclusive_cumsum(weights * t_mid, ray_index, n_rays)
+    per_sample = 2 * weights * (t_mid * weight_before - moment_before) + weights ** 2 * deltas / 3
+    return packed_sum(per_sample, ray_index, n_rays)
 
 
 def packed_sum(values: torch.Tensor, ray_index: torch.Tensor, n_rays: int) -> torch.Tensor:

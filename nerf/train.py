@@ -195,6 +195,8 @@ def _train_step(model, optimizer, config, rays, n_rays, generator, device, progr
     if out.coarse is not None:
         loss = loss + ((composite(out.coarse.rgb, out.coarse.opacity, background) - target) ** 2).mean()
     loss = loss + model.regularisation(config.tv_weight)
+    if out.distortion is not None and config.distortion_weight > 0:
+        loss = loss + config.distortion_weight * out.distortion.mean()
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
