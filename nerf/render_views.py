@@ -1,7 +1,7 @@
 """`nerfgauge render`: a trained run's views, named after the dataset's frames.
 
 For frame "test/r_007" it writes OUT/test/r_007.png (RGBA, sRGB, straight alpha =
-opacity) and OUT/test/r_007_depth.exr (expected ray distance, 0 where nothing is hit),
+opacity) and OUT/test/r_007_depth.exr (expected ray distance, 0 where opacity is 0),
 plus OUT/timing.json with milliseconds per frame (model time only, after one warm-up
 frame), which `nerfgauge evaluate` copies into its metrics.
 """
@@ -22,8 +22,6 @@ from nerf.checkpoint import load_model
 from nerf.data import split_rays
 from nerf.train import pick_device, render_rays_chunked
 from nerfgauge.errors import InputError
-
-OPAQUE_ENOUGH = 0.5  # below this opacity a pixel's depth is written as a miss (0)
 
 
 def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -60,7 +58,9 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
         rgb, opacity, depth = (t.cpu().numpy() for t in (rgb, opacity, depth))
         target = out / stem
         target.parent.mkdir(parents=True, exist_ok=True)
-        depth = np.where(opacity >= OPAQUE_ENOUGH, depth, 0.0).astype(np.float32).reshape(height, width)
+        # Expected depth wherever anything was hit (it is normalised by opacity); silhouette
+        # pixels with little opacity still carry the depth of what they partly see.
+        depth = depth.astype(np.float32).reshape(height, width)
         write_exr(target.with_name(target.name + "_depth.exr"), {"Z": depth},
                   {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
         write_png(target.with_name(target.name + ".png"), rgba_png(rgb, opacity, height, width))
