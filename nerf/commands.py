@@ -12,7 +12,7 @@ from nerfgauge.errors import InputError
 
 
 def register(subparsers) -> None:
-    for add in (_add_toy_pe,):
+    for add in (_add_train, _add_render, _add_toy_pe):
         add(subparsers)
 
 
@@ -54,4 +54,82 @@ def _run_toy_pe(args) -> int:
           f"{config.steps} steps, seed {config.seed})")
     if out_path is not None:
         print(f"wrote {out_path} and {out_path.with_suffix('.json')}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# train
+
+
+def _add_train(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "train", help="train a radiance field on a dataset",
+        description="Train `compact` (voxel grid, empty-space skipping, only what scene.json says the scene "
+                    "needs) or `vanilla` (the lecture's NeRF) for a time budget or a number of steps. Writes "
+                    "RUN/config.json, RUN/log.jsonl (val PSNR against training seconds), RUN/checkpoint.pt and "
+                    "RUN/model.pt.")
+    parser.add_argument("dataset", type=Path, help="a complete dataset folder (with manifest.json)")
+    parser.add_argument("--out", type=Path, required=True, metavar="RUN", help="run folder")
+    parser.add_argument("--model", choices=("compact", "vanilla"), default="compact")
+    budget = parser.add_mutually_exclusive_group()
+    budget.add_argument("--budget-seconds", type=float, default=None, metavar="T", help="training time (default 120)")
+    budget.add_argument("--steps", type=int, default=None, metavar="N", help="training steps instead of a time budget")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resume", action="store_true", help="continue RUN from its checkpoint")
+    parser.add_argument("--view-dependent", choices=("auto", "on", "off"), default="auto",
+                        help="view-dependent colour (auto: from scene.json)")
+    parser.add_argument("--resolution", type=int, default=None, help="final grid resolution (auto: pixel footprint)")
+    parser.add_argument("--no-prune", action="store_true", help="save the full grid, not only occupied cells")
+    parser.add_argument("--no-occupancy", action="store_true", help="disable empty-space skipping")
+    parser.add_argument("--tv-weight", type=float, default=0.0, help="total-variation weight on density")
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    parser.add_argument("--device", default="auto", help="auto (cuda when present), cpu or cuda")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=_run_train)
+
+
+def _run_train(args) -> int:
+    from nerf.config import TrainConfig
+    from nerf.train import train
+
+    budget = args.budget_seconds
+    if budget is None and args.steps is None:
+        budget = 120.0
+    view_dependent = {"auto": None, "on": True, "off": False}[args.view_dependent]
+    config = TrainConfig(dataset=str(args.dataset), model=args.model, seed=args.seed, steps=args.steps,
+                         budget_seconds=budget, view_dependent=view_dependent, final_resolution=args.resolution,
+                         prune=not args.no_prune, occupancy=not args.no_occupancy, tv_weight=args.tv_weight,
+                         threads=args.threads, device=args.device)
+    summary = train(config, args.out, resume=args.resume, progress=not args.quiet)
+    print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
+          f"model {summary['model_bytes'] / 1e6:.2f} MB")
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# render
+
+
+def _add_render(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "render", help="render a trained run's views (PNG, depth EXR, timing)",
+        description="Render every view of a split with RUN/model.pt, named after the dataset's frames: "
+                    "<frame>.png (RGBA, alpha = opacity), <frame>_depth.exr (ray distance) and timing.json "
+                    "(milliseconds per frame).")
+    parser.add_argument("run", type=Path, metavar="RUN", help="a run folder made by nerfgauge train")
+    parser.add_argument("--split", choices=("train", "val", "test"), default="test")
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default RUN/renders)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: the run's)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=_run_render)
+
+
+def _run_render(args) -> int:
+    if args.threads is not None and args.threads < 1:
+        raise InputError(f"--threads must be a positive integer, got {args.threads}")
+    from nerf.render_views import render_split
+
+    timing = render_split(args.run, args.split, args.out, threads=args.threads, progress=not args.quiet)
+    print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame "
+          f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
     return 0

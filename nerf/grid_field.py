@@ -19,11 +19,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-ALPHA_INIT = 1e-2
+ALPHA_INIT = 1e-3
 # raw = 1 above the shift makes a half-voxel step opaque (tau ~ 5): surfaces become solid
 # within the few hundred Adam steps a CPU affords, instead of soft shells with hazy insides.
 DENSITY_SCALE = 10.0
-OCCUPANCY_ALPHA = 1e-2  # a cell is empty when no node reaches this opacity per step
+OCCUPANCY_ALPHA = 5e-3  # a cell is empty when no node reaches this opacity per step (init: 1e-3)
 
 
 def sh_basis_deg3(directions: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,8 @@ from nerf.rendering import composite
 from nerfgauge.errors import InputError
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
-UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows
+UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows ...
+MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
 VISIBILITY_AT = (0.4, 0.7, 1.0)  # fractions where hidden cells are measured and skipped
 VISIBILITY_RAY_STRIDE = 4  # every 4th training ray is enough to see every visible cell
 LR_FINAL_FRACTION = 0.1  # learning rate decays exponentially to this fraction
@@ -60,9 +61,8 @@ def psnr_on_white(model, rays, device) -> float:
     return float((-10 * torch.log10(per_view)).mean())
 
 
-def resolution_at(config: TrainConfig, progress: float) -> int:
-    """Coarse to fine: geometric steps from start to final resolution at UPSAMPLE_AT."""
-    stage = sum(progress >= p for p in UPSAMPLE_AT)
+def resolution_at(config: TrainConfig, stage: int) -> int:
+    """Coarse to fine: geometric steps from start (stage 0) to final resolution."""
     ratio = config.final_resolution / config.start_resolution
     return int(round(config.start_resolution * ratio ** (stage / len(UPSAMPLE_AT))))
 
@@ -108,7 +108,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
     device = pick_device(config.device)
     generator = torch.Generator(device="cpu").manual_seed(config.seed)
     torch_init = torch.Generator().manual_seed(config.seed + 1)
-    state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0}
+    state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0, "stage": 0, "stage_steps": 0}
     if resume:
         saved = checkpoint.load_checked(run_dir / "checkpoint.pt", "checkpoint")
         config = TrainConfig(**saved["config"]) if saved.get("config") else config
@@ -117,7 +117,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
         optimizer.load_state_dict(saved["optimizer"])
         generator.set_state(saved["generator"])
         state.update(step=saved["step"], seconds=saved["seconds"], next_eval=saved["next_eval"],
-                     visibility_done=saved.get("visibility_done", 0))
+                     visibility_done=saved["visibility_done"], stage=saved["stage"], stage_steps=saved["stage_steps"])
     else:
         with torch.random.fork_rng(devices=[]):
             torch.random.manual_seed(int(torch.randint(2**31, (1,), generator=torch_init)))  # init only
@@ -155,9 +155,14 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
                 if done >= 1:
                     break
             start = time.perf_counter()
-            _train_step(model, optimizer, config, train_rays, n_rays, generator, device, done, state["step"])
+            if state["stage"] < len(UPSAMPLE_AT) and done >= UPSAMPLE_AT[state["stage"]] \
+                    and state["stage_steps"] >= MIN_STAGE_STEPS:
+                state["stage"] += 1
+                state["stage_steps"] = 0
+            _train_step(model, optimizer, config, train_rays, n_rays, generator, device, done, state)
             elapsed = time.perf_counter() - start
             state["step"] += 1
+            state["stage_steps"] += 1
             state["seconds"] += elapsed
             bar.update(1 if config.steps else min(elapsed, total - bar.n))
     finally:
@@ -167,19 +172,19 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
     return {"steps": state["step"], "seconds": state["seconds"], "val_psnr": last_psnr, "model_bytes": size}
 
 
-def _train_step(model, optimizer, config, rays, n_rays, generator, device, progress, step):
+def _train_step(model, optimizer, config, rays, n_rays, generator, device, progress, state):
     from nerf.models import CompactNeRF
 
     compact = isinstance(model, CompactNeRF)
     if compact:
-        wanted = resolution_at(config, progress)
+        wanted = resolution_at(config, state["stage"])
         if wanted != model.field.resolution:
             model.upsample(wanted)
             lrs = [group["lr"] for group in optimizer.param_groups]
             optimizer.__init__(make_optimizer(model, config).param_groups, **optimizer.defaults)
             for group, lr in zip(optimizer.param_groups, lrs):
                 group["lr"] = lr
-        if step % OCCUPANCY_EVERY == 0 and progress >= 0.02:
+        if state["step"] % OCCUPANCY_EVERY == 0 and state["stage"] >= 1:  # all cells live while coarse
             model.update_occupancy()
     for group in optimizer.param_groups:
         group["lr"] = group["base_lr"] * LR_FINAL_FRACTION ** progress
@@ -208,5 +213,6 @@ def _save_checkpoint(run_dir, model, optimizer, config, generator, state):
                             "model_payload": checkpoint.model_payload(model, config, prune=False),
                             "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
                             "step": state["step"], "seconds": state["seconds"], "next_eval": state["next_eval"],
-                            "visibility_done": state["visibility_done"]},
+                            "visibility_done": state["visibility_done"], "stage": state["stage"],
+                            "stage_steps": state["stage_steps"]},
                            run_dir / "checkpoint.pt")

@@ -33,6 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue  # a stage without commands yet
         module.register(subparsers)
+    from nerfgauge import run
+
+    run.register(subparsers)
     return parser
 
 
