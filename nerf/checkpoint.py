@@ -65,6 +65,7 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
         payload["resolution"] = field.resolution
         payload["aabb"] = field.aabb.cpu().tolist()
         payload["occupancy"] = model.occupancy.cpu()
+        payload["visible"] = model.visible.cpu()
         payload["head"] = {k: v.cpu() for k, v in field.head.state_dict().items()} if field.head is not None else {}
         if prune:
             keep = node_mask(model.occupancy.cpu())
@@ -123,4 +124,5 @@ def model_from_payload(payload: dict):
     if field.head is not None:
         field.head.load_state_dict(payload["head"])
     model.occupancy = payload["occupancy"].bool()
+    model.visible = payload["visible"].bool()
     return model

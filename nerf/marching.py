@@ -98,7 +98,9 @@ def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, o
             rays = rays[:, None].expand(-1, parts).reshape(-1)
             inside = starts < far[rays]
             starts, rays = starts[inside], rays[inside]
-        mid = starts + 0.5 * length
+        # the midpoint of the part inside the box: a segment hanging out of the box must
+        # not be tested (and dropped) at a point outside it
+        mid = 0.5 * (starts + torch.minimum(starts + length, far[rays]))
         keep = cell_lookup(origins[rays] + mid[:, None] * directions[rays], grid, aabb[0], voxel * size)
         starts, rays = starts[keep], rays[keep]
     # the voxel level's 1-voxel segments hold `voxel_steps` samples each

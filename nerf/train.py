@@ -8,8 +8,8 @@ exclude validation and checkpointing, so curves from different runs compare.
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import math
 import time
 from pathlib import Path
 
@@ -111,7 +111,9 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
     state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0, "stage": 0, "stage_steps": 0}
     if resume:
         saved = checkpoint.load_checked(run_dir / "checkpoint.pt", "checkpoint")
-        config = TrainConfig(**saved["config"]) if saved.get("config") else config
+        # the saved run's settings, with the stopping rule given now (train further)
+        config = dataclasses.replace(TrainConfig(**saved["config"]), steps=config.steps,
+                                     budget_seconds=config.budget_seconds)
         model = checkpoint.model_from_payload(saved["model_payload"]).to(device)
         optimizer = make_optimizer(model, config)
         optimizer.load_state_dict(saved["optimizer"])

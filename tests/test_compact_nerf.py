@@ -1,0 +1,138 @@
+"""The compact NeRF's own maths: packed rendering against the per-ray oracle, the
+distortion loss against its O(n^2) definition, and marching that never skips occupied space."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from nerf.marching import march, occupancy_pyramid
+from nerf.packed import packed_distortion, packed_render, packed_weights
+from nerf.reference import render_reference
+
+
+def ragged_case(seed=0, n_rays=5, max_samples=12, dtype=torch.float64):
+    """Rays with different sample counts, as dense padded tensors and as packed ones."""
+    g = torch.Generator().manual_seed(seed)
+    counts = torch.randint(1, max_samples + 1, (n_rays,), generator=g)
+    dense_sigma = torch.rand((n_rays, max_samples), generator=g, dtype=dtype) * 4
+    dense_rgb = torch.rand((n_rays, max_samples, 3), generator=g, dtype=dtype)
+    steps = torch.rand((n_rays, max_samples), generator=g, dtype=dtype) * 0.3 + 0.05
+    edges = torch.cat([torch.rand((n_rays, 1), generator=g, dtype=dtype), steps], 1).cumsum(1)
+    keep = torch.arange(max_samples)[None, :] < counts[:, None]
+    return counts, dense_sigma, dense_rgb, edges, keep
+
+
+def test_packed_render_matches_the_reference_loop_on_values_and_gradients():
+    counts, sigma, rgb, edges, keep = ragged_case()
+    sigma.requires_grad_(True), rgb.requires_grad_(True)
+    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
+    t_mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
+    delta = edges[:, 1:] - edges[:, :-1]
+    near = edges[:, 0]
+    far = torch.stack([edges[r, c] for r, c in enumerate(counts)])
+    colour, opacity, depth, _ = packed_render(sigma[keep], rgb[keep], delta[keep], t_mid[keep], rays, near, far)
+    loss = colour.sum() + opacity.sum() + 0.1 * depth.sum()
+    grads = torch.autograd.grad(loss, (sigma, rgb))
+    # The oracle renders each ray's own samples only (padding is not part of the ray).
+    ref_loss = 0
+    ref_colour, ref_opacity, ref_depth = [], [], []
+    for r, c in enumerate(counts.tolist()):
+        out = render_reference(sigma[r:r + 1, :c], rgb[r:r + 1, :c], edges[r:r + 1, :c + 1])
+        ref_colour.append(out["rgb"]), ref_opacity.append(out["opacity"]), ref_depth.append(out["depth"])
+        ref_loss = ref_loss + out["rgb"].sum() + out["opacity"].sum() + 0.1 * out["depth"].sum()
+    ref_grads = torch.autograd.grad(ref_loss, (sigma, rgb))
+    # float64, at most 12 factors per ray: agreement to ~1e-14; 1e-10 leaves room for the
+    # float64 cumulative sum, while any slip in the maths shows at 1e-3.
+    torch.testing.assert_close(colour, torch.cat(ref_colour), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(opacity, torch.cat(ref_opacity), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(depth, torch.cat(ref_depth), rtol=1e-10, atol=1e-10)
+    for mine, theirs in zip(grads, ref_grads):
+        torch.testing.assert_close(mine, theirs, rtol=1e-9, atol=1e-10)
+
+
+def test_packed_weights_gradcheck():
+    counts, sigma, _, edges, keep = ragged_case(seed=3, n_rays=3, max_samples=5)
+    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
+    delta = (edges[:, 1:] - edges[:, :-1])[keep]
+    s = sigma[keep].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: packed_weights(x, delta, rays, len(counts)), (s,))
+
+
+def test_distortion_equals_its_quadratic_definition():
+    counts, sigma, _, edges, keep = ragged_case(seed=1)
+    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
+    t_mid = (0.5 * (edges[:, 1:] + edges[:, :-1]))[keep]
+    delta = (edges[:, 1:] - edges[:, :-1])[keep]
+    w = packed_weights(sigma[keep], delta, rays, len(counts))
+    fast = packed_distortion(w, t_mid, delta, rays, len(counts))
+    for r in range(len(counts)):
+        wr, tr, dr = w[rays == r], t_mid[rays == r], delta[rays == r]
+        slow = (wr[:, None] * wr[None, :] * (tr[:, None] - tr[None, :]).abs()).sum() + (wr ** 2 * dr).sum() / 3
+        torch.testing.assert_close(fast[r], slow, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("sigma_value", [0.0, 1e6, 1e8])
+def test_packed_rendering_stays_finite_on_hard_inputs(dtype, sigma_value):
+    rays = torch.tensor([0, 0, 0, 1, 1, 2])
+    sigma = torch.full((6,), sigma_value, dtype=dtype, requires_grad=True)
+    delta = torch.tensor([0.0, 0.1, 1e3, 0.0, 0.2, 0.1], dtype=dtype)
+    t_mid = torch.tensor([1.0, 1.1, 1.2, 2.0, 2.1, 3.0], dtype=dtype)
+    rgb = torch.rand((6, 3), dtype=dtype)
+    near, far = torch.tensor([1.0, 2.0, 3.0, 0.0], dtype=dtype), torch.tensor([2.0, 3.0, 3.5, 0.0], dtype=dtype)
+    colour, opacity, depth, w = packed_render(sigma, rgb, delta, t_mid, rays, near, far)
+    (colour.sum() + depth.sum()).backward()
+    for value in (colour, opacity, depth, w, sigma.grad):
+        assert torch.isfinite(value).all()
+    eps = torch.finfo(dtype).eps
+    assert (w >= 0).all() and (opacity <= 1 + 8 * eps).all()
+    assert opacity[3] == 0 and depth[3] == 0  # a ray with no samples renders nothing
+    hit = opacity > 0
+    assert ((depth[hit] >= near[hit] - eps * 10) & (depth[hit] <= far[hit] + eps * 10)).all()
+
+
+def dilate(grid):
+    return torch.nn.functional.max_pool3d(grid[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+
+
+def test_marching_never_skips_an_occupied_voxel():
+    """Dense marching at the same step, kept where the (undilated) voxel is occupied, must
+    be a subset of what the hierarchical march returns from the dilated grid."""
+    g = torch.Generator().manual_seed(0)
+    occupied = torch.rand((20, 24, 28), generator=g) > 0.985  # sparse specks: the hard case
+    aabb = torch.tensor([[-1.0, -1.2, -0.8], [1.8, 1.2, 1.2]])
+    cell = (aabb[1] - aabb[0]) / torch.tensor([28, 24, 20])
+    step = float(cell.max()) / 2
+    n = 400
+    origins = torch.rand((n, 3), generator=g) * 6 - 3
+    targets = aabb[0] + torch.rand((n, 3), generator=g) * (aabb[1] - aabb[0])
+    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
+    samples = march(origins, directions, aabb, dilate(occupied), step, levels=occupancy_pyramid(dilate(occupied)))
+    from nerf.rendering import ray_aabb
+    near, far, hit = ray_aabb(origins, directions, aabb)
+    missed = 0
+    for r in torch.nonzero(hit).flatten().tolist():
+        t = near[r] + (torch.arange(int((far[r] - near[r]) / step) + 1) + 0.5) * step
+        t = t[t < far[r]]
+        index = ((origins[r] + t[:, None] * directions[r] - aabb[0]) / cell).floor().long()
+        index = torch.minimum(index.clamp_min(0), torch.tensor([27, 23, 19]))
+        inside = occupied[index[:, 2], index[:, 1], index[:, 0]]
+        mine = samples.t_mid[samples.ray_index == r]
+        if inside.any():
+            # the same lattice of t, up to float32 rounding of the sums that build it
+            gap = (t[inside][:, None] - mine[None, :]).abs().min(dim=1).values if mine.numel() else torch.full((1,), 1.0)
+            missed += int((gap > 1e-4).sum())
+    assert missed == 0
+    assert samples.t_mid.numel() < 0.5 * sum(int((far[r] - near[r]) / step) for r in range(n))  # and it does skip
+
+
+def test_marching_an_empty_grid_and_rays_that_miss():
+    aabb = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    origins = torch.tensor([[0.5, 0.5, -1.0], [5.0, 5.0, 5.0]])
+    directions = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    empty = march(origins, directions, aabb, torch.zeros((8, 8, 8), dtype=torch.bool), 1 / 16)
+    assert empty.t_mid.numel() == 0
+    full = march(origins, directions, aabb, torch.ones((8, 8, 8), dtype=torch.bool), 1 / 16)
+    assert (full.ray_index == 0).all() and full.t_mid.numel() == 16  # 1 unit at 1/16 steps
+    torch.testing.assert_close(full.t_mid, 1.0 + (torch.arange(16) + 0.5) / 16)
