@@ -1,5 +1,5 @@
-"""eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`)
-and `baseline` (`eval.baselines`)."""
+"""eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`),
+`baseline` (`eval.baselines`) and `bench` (`eval.bench`)."""
 
 from pathlib import Path
 
@@ -8,6 +8,7 @@ def register(subparsers) -> None:
     register_check(subparsers)
     register_evaluate(subparsers)
     register_baseline(subparsers)
+    register_bench(subparsers)
 
 
 def register_check(subparsers) -> None:
@@ -92,4 +93,78 @@ def run_baseline(args) -> int:
     if args.evaluate:
         args.pred, args.out, args.background, args.depth_kind = args.out, None, "white", "distance"
         return run_evaluate(args)
+    return 0
+
+
+def register_bench(subparsers) -> None:
+    parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants",
+                                   description="Benchmarks measured in one run on this machine (see BENCHMARKS.md).")
+    kinds = parser.add_subparsers(dest="bench_kind", metavar="KIND", required=True)
+    gen = kinds.add_parser("generate", help="generator time against Mitsuba's own render time")
+    gen.add_argument("--scene", default="primitives")
+    gen.add_argument("--views", type=int, default=100)
+    gen.add_argument("--res", default="128")
+    gen.add_argument("--spp", type=int, default=64)
+    gen.add_argument("--repeats", type=int, default=1, help="repeat and report each run (the machine is noisy)")
+    gen.set_defaults(func=run_bench_generate)
+    train = kinds.add_parser("train", help="scenes x variants x budgets: PSNR, SSIM, depth, time, size, memory")
+    train.add_argument("--scenes", default="primitives", help="comma-separated scene names")
+    train.add_argument("--variants", default="compact,vanilla",
+                       help="comma-separated, from: " + "; ".join(_variant_names()))
+    train.add_argument("--budgets", default="30,120", help="comma-separated training seconds")
+    train.add_argument("--res", default="128")
+    train.add_argument("--views", type=int, default=100)
+    train.add_argument("--out", type=Path, default=Path("bench-out"))
+    train.set_defaults(func=run_bench_train)
+
+
+def _variant_names():
+    from eval.bench import VARIANTS
+
+    return list(VARIANTS)
+
+
+def run_bench_generate(args) -> int:
+    from eval.bench import bench_generate
+    from generate.commands import parse_resolution
+    from nerfgauge.errors import InputError
+
+    if args.repeats < 1:
+        raise InputError(f"--repeats must be a positive integer, got {args.repeats}")
+    width, height = parse_resolution(args.res)
+    print("| run | views | res | spp | variant | s/view (generator) | s/view (Mitsuba render) | overhead ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    for repeat in range(args.repeats):
+        r = bench_generate(args.scene, args.views, width, height, args.spp)
+        print(f"| {repeat + 1} | {r['views']} | {width}x{height} | {r['spp']} | {r['variant']} | "
+              f"{r['seconds_per_view']:.4f} | {r['mitsuba_seconds_per_view']:.4f} | {r['overhead_ratio']:.3f} |")
+    return 0
+
+
+def run_bench_train(args) -> int:
+    from eval.bench import VARIANTS, bench_train, pareto_plots, speedups, table_markdown
+    from generate.commands import parse_resolution
+    from nerfgauge.errors import InputError
+
+    width, height = parse_resolution(args.res)
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise InputError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    try:
+        budgets = [float(b) for b in args.budgets.split(",")]
+    except ValueError:
+        raise InputError(f"--budgets must be comma-separated seconds, got {args.budgets!r}") from None
+    if not budgets or min(budgets) <= 0:
+        raise InputError(f"--budgets must be positive, got {args.budgets!r}")
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = bench_train(args.out, scenes, variants, budgets, width, height, args.views)
+    table = table_markdown(rows)
+    notes = speedups(rows)
+    (args.out / "train.md").write_text(table + "\n\n" + "\n".join(notes) + "\n")
+    pareto_plots(rows, args.out)
+    print(table)
+    print("\n".join(notes))
+    print(f"plots: {args.out / 'pareto.png'}")
     return 0

@@ -31,6 +31,7 @@ class RunConfig:
     layout: str = "hemisphere"
     model: str = "compact"
     budget_seconds: float = 90.0
+    steps: int | None = None  # instead of the time budget: reproducible across machines (CI gates)
     seed: int = 0
     variant: str = "auto"
 
@@ -51,7 +52,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                                      val_views=config.val_views, test_views=config.test_views, width=config.width,
                                      height=config.height, spp=config.spp, layout=config.layout, variant=config.variant)
     train_config = TrainConfig(dataset=str(out / "dataset"), model=config.model, seed=config.seed,
-                               budget_seconds=config.budget_seconds)
+                               budget_seconds=None if config.steps else config.budget_seconds, steps=config.steps)
     generate_config.validate()
     train_config.validate()
     run_dir = out / "run"
@@ -63,7 +64,8 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
 
     print(f"[1/5] generate {config.scene} -> {out / 'dataset'}")
     generate(generate_config, out / "dataset", overwrite=overwrite, progress=progress)
-    print(f"[2/5] train {config.model} for {config.budget_seconds:g} s -> {run_dir}")
+    length = f"{config.steps} steps" if config.steps else f"{config.budget_seconds:g} s"
+    print(f"[2/5] train {config.model} for {length} -> {run_dir}")
     summary = train(train_config, run_dir, progress=progress)
     print(f"[3/5] render test views")
     render_split(run_dir, "test", progress=progress)
@@ -107,7 +109,9 @@ def register(subparsers) -> None:
     parser.add_argument("--test-views", type=int, default=defaults.test_views)
     parser.add_argument("--spp", type=int, default=defaults.spp)
     parser.add_argument("--layout", default=defaults.layout)
-    parser.add_argument("--budget-seconds", type=float, default=defaults.budget_seconds)
+    length = parser.add_mutually_exclusive_group()
+    length.add_argument("--budget-seconds", type=float, default=defaults.budget_seconds, help="training time (default 90)")
+    length.add_argument("--steps", type=int, default=None, help="training steps instead of time (reproducible)")
     parser.add_argument("--model", default=defaults.model, choices=("compact", "vanilla"))
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--variant", default=defaults.variant)
@@ -122,7 +126,7 @@ def _run(args) -> int:
     width, height = parse_resolution(args.res)
     config = dataclasses.replace(RunConfig(), scene=args.scene, out=args.out, width=width, height=height,
                                  views=args.views, test_views=args.test_views, spp=args.spp, layout=args.layout,
-                                 budget_seconds=args.budget_seconds, model=args.model, seed=args.seed,
+                                 budget_seconds=args.budget_seconds, steps=args.steps, model=args.model, seed=args.seed,
                                  variant=args.variant)
     run_pipeline(config, overwrite=args.overwrite, progress=not args.quiet)
     return 0

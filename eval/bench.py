@@ -1,0 +1,164 @@
+"""`nerfgauge bench`: speed against error, measured in one run on this machine.
+
+- `bench generate`: the generator's whole time against Mitsuba's own render time for the
+  same views (the overhead ratio), seconds per view.
+- `bench train`: scenes x variants x budgets. Each training runs in its own process (so
+  its peak memory is its own), then renders the test views and is evaluated. Writes
+  OUT/train.json, OUT/train.md (the table) and Pareto plots (PSNR against training
+  seconds, PSNR against model MB), and prints the table.
+
+Figures are ratios and orderings within one run; absolute seconds depend on the machine.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from generate.dataset import write_json
+from nerfgauge.errors import InputError
+
+# variant name -> (model, extra `nerfgauge train` arguments)
+VARIANTS = {
+    "compact": ("compact", []),
+    "vanilla": ("vanilla", []),
+    "compact, view dependence on": ("compact", ["--view-dependent", "on"]),
+    "compact, view dependence off": ("compact", ["--view-dependent", "off"]),
+    "compact, no pruning": ("compact", ["--no-prune"]),
+    "compact, no empty-space skipping": ("compact", ["--no-occupancy"]),
+    "compact, resolution 256": ("compact", ["--resolution", "256"]),
+}
+
+
+def bench_generate(scene: str, views: int, width: int, height: int, spp: int) -> dict:
+    from generate.benchmark import mitsuba_render_seconds
+    from generate.pipeline import GenerateConfig, generate
+
+    config = GenerateConfig(scene=scene, views=views, val_views=0, test_views=0, width=width, height=height, spp=spp)
+    mitsuba = mitsuba_render_seconds(config)
+    with tempfile.TemporaryDirectory() as folder:
+        start = time.perf_counter()
+        generate(config, Path(folder) / "dataset", progress=False)
+        total = time.perf_counter() - start
+    return {"scene": scene, "views": views, "resolution": [width, height], "spp": spp, "variant": mitsuba["variant"],
+            "generator_seconds": total, "mitsuba_seconds": mitsuba["seconds"],
+            "seconds_per_view": total / views, "mitsuba_seconds_per_view": mitsuba["seconds"] / views,
+            "overhead_ratio": total / mitsuba["seconds"]}
+
+
+def _run_child(argv: list) -> tuple[int, float, float]:
+    """Run `python -m nerfgauge.cli ARGV`; returns (exit code, wall seconds, peak RSS MB)."""
+    start = time.perf_counter()
+    process = subprocess.Popen([sys.executable, "-m", "nerfgauge.cli", *argv])
+    _, status, usage = os.wait4(process.pid, 0)
+    process.returncode = os.waitstatus_to_exitcode(status)
+    return process.returncode, time.perf_counter() - start, usage.ru_maxrss / 1024.0
+
+
+def _first_time_reaching(log: list, psnr: float):
+    for entry in log:
+        if entry["val_psnr"] >= psnr:
+            return entry["seconds"]
+    return None
+
+
+def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: int, height: int, views: int) -> list:
+    from eval.evaluate import evaluate
+    from eval.report import read_log
+
+    rows = []
+    for scene in scenes:
+        data = out / "datasets" / f"{scene}-{width}x{height}-{views}"
+        code, _, _ = _run_child(["generate", scene, "--out", str(data), "--views", str(views), "--res",
+                                 f"{width}x{height}", "--quiet"])
+        if code != 0:
+            raise InputError(f"generating {scene} failed (exit {code})")
+        for variant in variants:
+            model, extra = VARIANTS[variant]
+            for budget in budgets:
+                run = out / "runs" / f"{scene}-{variant.replace(', ', '-').replace(' ', '_')}-{budget:g}s"
+                code, _, peak_mb = _run_child(["train", str(data), "--out", str(run), "--model", model,
+                                               "--budget-seconds", str(budget), "--quiet", *extra])
+                if code != 0:
+                    rows.append({"scene": scene, "variant": variant, "budget": budget, "error": f"exit {code}"})
+                    continue
+                _run_child(["render", str(run), "--quiet"])
+                metrics = evaluate(data, run / "renders", "test", run / "metrics.json")
+                log = read_log(run / "log.jsonl")
+                rows.append({"scene": scene, "variant": variant, "budget": budget,
+                             "psnr": metrics["mean"]["psnr"], "ssim": metrics["mean"]["ssim"],
+                             "depth_absrel": metrics["mean"]["depth_absrel"],
+                             "train_seconds": log[-1]["seconds"], "steps": log[-1]["step"],
+                             "steps_per_second": log[-1]["steps_per_second"],
+                             "render_ms_per_frame": metrics["timing"].get("ms_per_frame"),
+                             "model_mb": (run / "model.pt").stat().st_size / 1e6, "peak_memory_mb": peak_mb,
+                             "log": str(run / "log.jsonl")})
+                write_json(out / "train.json", {"rows": rows})
+    return rows
+
+
+def speedups(rows: list) -> list[str]:
+    """For each scene and budget: how much sooner compact reaches vanilla's final val PSNR."""
+    from eval.report import read_log
+
+    lines = []
+    for row in rows:
+        if row.get("variant") != "vanilla" or "error" in row:
+            continue
+        compact = next((r for r in rows if r["scene"] == row["scene"] and r["variant"] == "compact"
+                        and r["budget"] == row["budget"] and "error" not in r), None)
+        if compact is None:
+            continue
+        target = read_log(row["log"])[-1]["val_psnr"]
+        reached = _first_time_reaching(read_log(compact["log"]), target)
+        ratio = None if not reached else row["train_seconds"] / max(reached, 1e-9)
+        lines.append(f"{row['scene']}, {row['budget']:g} s: vanilla ends at {target:.2f} dB val PSNR; compact reaches "
+                     f"it at {reached if reached is None else f'{reached:.1f}'} s "
+                     f"({'n/a' if ratio is None else f'{ratio:.0f}x sooner'})")
+    return lines
+
+
+def table_markdown(rows: list) -> str:
+    head = ("scene", "variant", "budget s", "PSNR", "SSIM", "depth AbsRel", "train s", "steps/s", "render ms",
+            "model MB", "peak MB")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['scene']} | {r['variant']} | {r['budget']:g} | {r['error']} |" + " |" * 7)
+            continue
+        cells = [r["scene"], r["variant"], f"{r['budget']:g}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}",
+                 "–" if r["depth_absrel"] is None else f"{r['depth_absrel']:.4f}", f"{r['train_seconds']:.0f}",
+                 f"{r['steps_per_second']:.1f}", "–" if r["render_ms_per_frame"] is None else f"{r['render_ms_per_frame']:.0f}",
+                 f"{r['model_mb']:.2f}", f"{r['peak_memory_mb']:.0f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def pareto_plots(rows: list, out: Path) -> None:
+    """PSNR against training seconds (every run's val curve) and against model MB."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from eval.report import read_log
+
+    figure = Figure(figsize=(11, 4), dpi=110)
+    by_time, by_size = figure.add_subplot(1, 2, 1), figure.add_subplot(1, 2, 2)
+    for r in rows:
+        if "error" in r:
+            continue
+        label = f"{r['scene']}: {r['variant']} ({r['budget']:g} s)"
+        log = read_log(r["log"])
+        by_time.plot([e["seconds"] for e in log], [e["val_psnr"] for e in log], marker=".", label=label)
+        by_size.scatter([r["model_mb"]], [r["psnr"]], label=label)
+    by_time.set(xlabel="training seconds", ylabel="val PSNR (dB)", title="PSNR against training time")
+    by_size.set(xlabel="saved model (MB)", ylabel="test PSNR (dB)", title="PSNR against model size", xscale="log")
+    for axes in (by_time, by_size):
+        axes.grid(alpha=0.3)
+    by_size.legend(fontsize=6, loc="lower right")
+    figure.tight_layout()
+    FigureCanvasAgg(figure).print_png(str(out / "pareto.png"))
