@@ -82,6 +82,8 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--no-prune", action="store_true", help="save the full grid, not only occupied cells")
     parser.add_argument("--no-occupancy", action="store_true", help="disable empty-space skipping")
     parser.add_argument("--tv-weight", type=float, default=0.0, help="total-variation weight on density")
+    parser.add_argument("--eval-every", type=float, default=10.0, metavar="SECONDS",
+                        help="training seconds between val PSNR points in log.jsonl (default 10)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     parser.add_argument("--device", default="auto", help="auto (cuda when present), cpu or cuda")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -99,7 +101,7 @@ def _run_train(args) -> int:
     config = TrainConfig(dataset=str(args.dataset), model=args.model, seed=args.seed, steps=args.steps,
                          budget_seconds=budget, view_dependent=view_dependent, final_resolution=args.resolution,
                          prune=not args.no_prune, occupancy=not args.no_occupancy, tv_weight=args.tv_weight,
-                         threads=args.threads, device=args.device)
+                         threads=args.threads, device=args.device, eval_every_seconds=args.eval_every)
     summary = train(config, args.out, resume=args.resume, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
           f"model {summary['model_bytes'] / 1e6:.2f} MB")

@@ -50,6 +50,7 @@ class TrainConfig:
     # logging
     eval_every_seconds: float = 10.0  # val PSNR points along the way (training clock)
     eval_views: int = 4
+    eval_rays: int = 8192  # val pixels per PSNR point (a fixed strided subset of eval_views)
     threads: int = 2
     device: str = "auto"
 
@@ -64,7 +65,8 @@ class TrainConfig:
             raise InputError(f"--budget-seconds must be positive, got {self.budget_seconds!r}")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
-        for name in ("batch_rays", "n_coarse", "width", "depth", "vanilla_batch_rays", "threads", "feature_channels"):
+        for name in ("batch_rays", "n_coarse", "width", "depth", "vanilla_batch_rays", "threads", "feature_channels",
+                     "eval_views", "eval_rays"):
             value = getattr(self, name)
             if not isinstance(value, int) or value <= 0:
                 raise InputError(f"{name} must be a positive integer, got {value!r}")
@@ -74,6 +76,8 @@ class TrainConfig:
                 raise InputError(f"{name} must be an integer in [4, 1024], got {value!r}")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
+        if not self.eval_every_seconds > 0:
+            raise InputError(f"--eval-every must be positive seconds, got {self.eval_every_seconds!r}")
         if not self.step_ratio > 0 or self.tv_weight < 0 or self.distortion_weight < 0 or self.lr <= 0 \
                 or self.lr_mlp <= 0:
             raise InputError("step_ratio, lr and lr_mlp must be positive; tv_weight and distortion_weight >= 0")
