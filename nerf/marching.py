@@ -89,24 +89,25 @@ def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, o
     candidate = (seg_start < far[:, None]) & hit[:, None]
     rays, cols = candidate.nonzero(as_tuple=True)  # row-major: sorted by ray, then t
     starts = seg_start[rays, cols]  # [n_segments_total]
+    per_ray = torch.cat([origins, directions, far[:, None]], dim=1)  # [n_rays, 7]: one gather per level
     for index, (grid, size) in enumerate(levels):
         length = size * voxel_steps * step
         if index > 0:  # split the previous level's segments into this level's
             parts = levels[index - 1][1] // size
             offsets = torch.arange(parts, dtype=origins.dtype, device=origins.device) * length
             starts = (starts[:, None] + offsets).reshape(-1)
-            rays = rays[:, None].expand(-1, parts).reshape(-1)
-            inside = starts < far[rays]
-            starts, rays = starts[inside], rays[inside]
+            rays = rays.repeat_interleave(parts)
+        ray = per_ray.index_select(0, rays)  # [n_segments, 7]
         # the midpoint of the part inside the box: a segment hanging out of the box must
         # not be tested (and dropped) at a point outside it
-        mid = 0.5 * (starts + torch.minimum(starts + length, far[rays]))
-        keep = cell_lookup(origins[rays] + mid[:, None] * directions[rays], grid, aabb[0], voxel * size)
-        starts, rays = starts[keep], rays[keep]
+        mid = 0.5 * (starts + torch.minimum(starts + length, ray[:, 6]))
+        keep = (starts < ray[:, 6]) & cell_lookup(ray[:, :3] + mid[:, None] * ray[:, 3:6], grid, aabb[0], voxel * size)
+        kept = keep.nonzero(as_tuple=True)[0]
+        starts, rays = starts.index_select(0, kept), rays.index_select(0, kept)
     # the voxel level's 1-voxel segments hold `voxel_steps` samples each
     offset = 0.5 if jitter is None else jitter[rays][:, None]
     j = torch.arange(voxel_steps, dtype=origins.dtype, device=origins.device)
     t_mid = starts[:, None] + (j + offset) * step  # [n_kept, voxel_steps]
     ray_index = rays[:, None].expand(-1, voxel_steps)
-    keep = t_mid < far[rays][:, None]
+    keep = t_mid < far.index_select(0, rays)[:, None]
     return MarchedSamples(t_mid[keep], ray_index[keep], step, near, far)

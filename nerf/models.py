@@ -19,8 +19,11 @@ from torch import nn
 from nerf.encoding import PositionalEncoding
 from nerf.grid_field import VoxelGridField
 from nerf.marching import march, occupancy_pyramid
-from nerf.packed import packed_distortion, packed_render, packed_transmittance
+from nerf.packed import packed_distortion, packed_render, packed_render_early_stop, packed_transmittance
 from nerf.rendering import ray_aabb, render_rays
+
+
+EARLY_STOP_WINDOW = 16  # samples per ray between early-termination checks (measured: 8-32 similar)
 
 
 @dataclass
@@ -104,8 +107,18 @@ class CompactNeRF(nn.Module):
         samples = march(origins, directions, self.field.aabb, self.occupancy, self.field.marching_step,
                         jitter=jitter, levels=self._levels())
         rays = samples.ray_index  # [n_samples]
-        positions = origins[rays] + samples.t_mid[:, None] * directions[rays]  # [n_samples, 3]
-        sigma, rgb = self.field(positions, directions[rays])
+
+        def field_at(index):  # the field at the samples `index` [m] (a subset or all)
+            ray = rays if index is None else rays.index_select(0, index)
+            t = samples.t_mid if index is None else samples.t_mid.index_select(0, index)
+            o, d = origins.index_select(0, ray), directions.index_select(0, ray)
+            return self.field(o + t[:, None] * d, d)
+
+        if not training and not torch.is_grad_enabled():  # inference: stop rays behind surfaces
+            colour, opacity, depth, evaluated = packed_render_early_stop(
+                field_at, samples.t_mid, rays, samples.step, samples.near, samples.far, window=EARLY_STOP_WINDOW)
+            return RayOutput(colour, opacity, depth, evaluated)
+        sigma, rgb = field_at(None)
         deltas = torch.full_like(samples.t_mid, samples.step)
         colour, opacity, depth, weights = packed_render(sigma, rgb, deltas, samples.t_mid, rays, samples.near,
                                                         samples.far)

@@ -92,3 +92,44 @@ def packed_render(sigmas, rgbs, deltas, t_mid, ray_index, near, far):
     depth = packed_sum(weights * t_mid, ray_index, n_rays) / opacity.clamp_min(DEPTH_EPS)
     depth = torch.minimum(torch.maximum(depth, near), far)
     return rgb, opacity, torch.where(opacity > 0, depth, torch.zeros_like(depth)), weights
+
+
+@torch.no_grad()
+def packed_render_early_stop(field_fn, t_mid, ray_index, step: float, near, far, window: int = 8,
+                             min_transmittance: float = 1e-3):
+    """`packed_render` for inference with early ray termination. Not differentiable.
+
+    Samples are taken in windows of `window` per ray, nearest first; after each window a
+    ray whose transmittance fell below `min_transmittance` stops, so the samples behind a
+    surface (inside objects, occluded objects) are never evaluated. The colour it leaves
+    out is at most min_transmittance per ray.
+
+    field_fn(sample_index [m]) -> (sigma [m], rgb [m, 3]) evaluates the chosen samples.
+    t_mid, ray_index: [n_samples] sorted by ray then t; near, far: [n_rays].
+    Returns rgb [n_rays, 3], opacity [n_rays], depth [n_rays], samples evaluated (int).
+    """
+    n_rays = near.shape[0]
+    counts = torch.bincount(ray_index, minlength=n_rays)  # samples per ray
+    rank = torch.arange(ray_index.numel(), device=ray_index.device) - (torch.cumsum(counts, 0) - counts)[ray_index]
+    transmittance = torch.ones(n_rays, dtype=t_mid.dtype, device=t_mid.device)
+    rgb = torch.zeros((n_rays, 3), dtype=t_mid.dtype, device=t_mid.device)
+    weighted_t = torch.zeros(n_rays, dtype=t_mid.dtype, device=t_mid.device)
+    evaluated = 0
+    remaining = torch.arange(ray_index.numel(), device=ray_index.device)  # samples not yet taken
+    start = 0
+    while remaining.numel():
+        in_window = rank[remaining] < start + window
+        chosen, remaining = remaining[in_window], remaining[~in_window]
+        rays = ray_index[chosen]
+        sigma, colour = field_fn(chosen)
+        local = packed_weights(sigma, torch.full_like(sigma, step), rays, n_rays)  # as if T = 1 at the window
+        weights = transmittance[rays] * local
+        rgb += packed_sum(weights[:, None] * colour, rays, n_rays)
+        weighted_t += packed_sum(weights * t_mid[chosen], rays, n_rays)
+        transmittance = transmittance * (1 - packed_sum(local, rays, n_rays)).clamp_min(0)
+        evaluated += chosen.numel()
+        remaining = remaining[transmittance[ray_index[remaining]] >= min_transmittance]  # rays that stopped
+        start += window
+    opacity = 1 - transmittance
+    depth = torch.minimum(torch.maximum(weighted_t / opacity.clamp_min(DEPTH_EPS), near), far)
+    return rgb, opacity, torch.where(opacity > 0, depth, torch.zeros_like(depth)), evaluated
