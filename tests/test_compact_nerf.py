@@ -136,3 +136,27 @@ def test_marching_an_empty_grid_and_rays_that_miss():
     full = march(origins, directions, aabb, torch.ones((8, 8, 8), dtype=torch.bool), 1 / 16)
     assert (full.ray_index == 0).all() and full.t_mid.numel() == 16  # 1 unit at 1/16 steps
     torch.testing.assert_close(full.t_mid, 1.0 + (torch.arange(16) + 0.5) / 16)
+
+
+def test_early_termination_leaves_out_at_most_the_remaining_transmittance():
+    """Stopping a ray once T < 1e-3 drops only what lies behind: colour and opacity change
+    by at most T_stop (colours are in [0, 1]); rays that never get opaque are untouched."""
+    from nerf.packed import packed_render_early_stop
+
+    counts, sigma, rgb, edges, keep = ragged_case(seed=4, n_rays=40, max_samples=60, dtype=torch.float64)
+    sigma = sigma * 10  # opaque within a few samples on most rays
+    sigma[::5] = 0.01  # and some rays that stay nearly transparent
+    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
+    step = 0.1
+    t_mid = (torch.arange(keep.shape[1], dtype=torch.float64) * step + 0.05)[None, :].expand_as(keep)[keep]
+    near = torch.zeros(len(counts), dtype=torch.float64)
+    far = torch.full((len(counts),), keep.shape[1] * step, dtype=torch.float64)
+    s, c = sigma[keep], rgb[keep]
+    full = packed_render(s, c, torch.full_like(s, step), t_mid, rays, near, far)
+    early = packed_render_early_stop(lambda i: (s[i], c[i]), t_mid, rays, step, near, far, window=4,
+                                     min_transmittance=1e-3)
+    assert early[3] < len(s)  # it did skip samples
+    assert (early[0] - full[0]).abs().max() <= 1e-3 + 1e-12
+    assert (early[1] - full[1]).abs().max() <= 1e-3 + 1e-12
+    transparent = full[1] < 0.5
+    torch.testing.assert_close(early[0][transparent], full[0][transparent], rtol=1e-12, atol=1e-12)
