@@ -140,3 +140,13 @@ def test_foreign_checkpoint(tmp_path, capsys):
     one_line_exit_2(capsys, ["render", str(run)], "not a nerfgauge model")
     torch.save(torch.nn.Linear(2, 2), run / "model.pt")  # a pickled module: weights_only refuses it
     one_line_exit_2(capsys, ["render", str(run)], "model.pt")
+
+
+def test_view_dependent_colour_when_asked(small_dataset, tmp_path):
+    run = tmp_path / "vd"
+    assert main(["train", str(small_dataset), "--out", str(run), "--steps", "30", "--view-dependent", "on",
+                 "--quiet"]) == 0
+    payload = torch.load(run / "model.pt", weights_only=True)
+    assert payload["config"]["view_dependent"] is True and payload["head"]  # a colour MLP was trained
+    assert json.loads((run / "config.json").read_text())["auto_reasons"]["view_dependent"] == "set on the command line"
+    assert main(["render", str(run), "--out", str(tmp_path / "r"), "--quiet"]) == 0
