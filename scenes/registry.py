@@ -9,7 +9,7 @@ import numpy as np
 import trimesh
 
 from nerfgauge.errors import InputError
-from scenes import hard, library
+from scenes import library
 from scenes.description import Diffuse, Scene, TriangleMesh, build_scene
 from scenes.meshes import MeshData
 
@@ -18,7 +18,6 @@ RECIPES = {
     "primitives": (library.primitives, "default: red sphere, blue box, green capped cylinder, checker sphere (diffuse)"),
     "glossy": (library.glossy, "view-dependent: rough plastic, rough gold, near-mirror aluminium under a sky with a sun"),
     "random": (library.random_objects, "3-6 objects whose shapes, materials and poses come from the seed"),
-    **hard.RECIPES,
 }
 MESH_PREFIX = "mesh:"
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")

@@ -1,3 +1,0 @@
-"""Hard cases that break NeRFs and harnesses (filled in by the hard-cases work)."""
-
-RECIPES: dict = {}
