@@ -138,8 +138,11 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
     log = (run_dir / "log.jsonl").open("a")
     n_rays = config.batch_rays if config.model == "compact" else config.vanilla_batch_rays
     total = config.steps if config.steps is not None else config.budget_seconds
+    # A time budget advances the bar in training seconds; steps/s and PSNR ride in the postfix.
+    time_format = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
     bar = tqdm(total=total, unit="step" if config.steps else "s", desc=f"train {config.model}",
-               disable=not progress, dynamic_ncols=True, initial=state["step"] if config.steps else 0)
+               disable=not progress, dynamic_ncols=True, initial=state["step"] if config.steps else 0,
+               bar_format=None if config.steps else time_format)
     last_psnr = float("nan")
     try:
         while True:
@@ -160,7 +163,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
                 log.write(json.dumps(entry) + "\n"), log.flush()
                 state["next_eval"] = state["seconds"] + config.eval_every_seconds
                 _save_checkpoint(run_dir, model, optimizer, config, generator, state)
-                bar.set_postfix(psnr=f"{last_psnr:.2f}", refresh=False)
+                bar.set_postfix(psnr=f"{last_psnr:.2f}", steps_per_s=f"{entry['steps_per_second']:.1f}", refresh=False)
                 if done >= 1:
                     break
             start = time.perf_counter()
