@@ -117,8 +117,18 @@ class Sphere:
         return (2 * math.pi * self.radius, math.pi * self.radius)
 
 
+class _PosedMesh:
+    """Shapes built as a local mesh, rotated then moved to `center`; uv in scene units."""
+
+    def mesh(self) -> meshes.MeshData:
+        return self.local_mesh().transformed(meshes.pose(self.center, self.rotation))
+
+    def uv_extent(self) -> tuple[float, float]:
+        return (1.0, 1.0)
+
+
 @dataclass(frozen=True)
-class Box:
+class Box(_PosedMesh):
     name: str
     center: Vec3
     size: Vec3
@@ -126,15 +136,12 @@ class Box:
     rotation: Vec3 = (0.0, 0.0, 0.0)
     emission: Optional[Vec3] = None
 
-    def mesh(self) -> meshes.MeshData:
-        return meshes.box(self.size).transformed(meshes.pose(self.center, self.rotation))
-
-    def uv_extent(self) -> tuple[float, float]:
-        return (1.0, 1.0)
+    def local_mesh(self) -> meshes.MeshData:
+        return meshes.box(self.size)
 
 
 @dataclass(frozen=True)
-class Cylinder:
+class Cylinder(_PosedMesh):
     """Capped cylinder of `height` along its local +Z, centred on `center`."""
 
     name: str
@@ -145,16 +152,12 @@ class Cylinder:
     rotation: Vec3 = (0.0, 0.0, 0.0)
     emission: Optional[Vec3] = None
 
-    def mesh(self) -> meshes.MeshData:
-        local = meshes.capped_cylinder(self.radius, self.height)
-        return local.transformed(meshes.pose(self.center, self.rotation))
-
-    def uv_extent(self) -> tuple[float, float]:
-        return (1.0, 1.0)
+    def local_mesh(self) -> meshes.MeshData:
+        return meshes.capped_cylinder(self.radius, self.height)
 
 
 @dataclass(frozen=True)
-class Torus:
+class Torus(_PosedMesh):
     """Torus around its local +Z axis: ring radius `major`, tube radius `minor`."""
 
     name: str
@@ -165,12 +168,8 @@ class Torus:
     rotation: Vec3 = (0.0, 0.0, 0.0)
     emission: Optional[Vec3] = None
 
-    def mesh(self) -> meshes.MeshData:
-        local = meshes.torus(self.major, self.minor)
-        return local.transformed(meshes.pose(self.center, self.rotation))
-
-    def uv_extent(self) -> tuple[float, float]:
-        return (1.0, 1.0)
+    def local_mesh(self) -> meshes.MeshData:
+        return meshes.torus(self.major, self.minor)
 
 
 @dataclass(frozen=True)
