@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import torch
 
+from nerf.rendering import DEPTH_EPS
+
 TAU_MAX_PACKED = 30.0
-DEPTH_EPS = 1e-10
 
 
 def packed_weights(sigmas: torch.Tensor, deltas: torch.Tensor, ray_index: torch.Tensor, n_rays: int) -> torch.Tensor:
@@ -89,9 +90,13 @@ def packed_render(sigmas, rgbs, deltas, t_mid, ray_index, near, far):
     weights = packed_weights(sigmas, deltas, ray_index, n_rays)  # [n_samples]
     opacity = packed_sum(weights, ray_index, n_rays)  # [n_rays]
     rgb = packed_sum(weights[:, None] * rgbs, ray_index, n_rays)  # [n_rays, 3]
-    depth = packed_sum(weights * t_mid, ray_index, n_rays) / opacity.clamp_min(DEPTH_EPS)
-    depth = torch.minimum(torch.maximum(depth, near), far)
-    return rgb, opacity, torch.where(opacity > 0, depth, torch.zeros_like(depth)), weights
+    return rgb, opacity, _depth(packed_sum(weights * t_mid, ray_index, n_rays), opacity, near, far), weights
+
+
+def _depth(weighted_t, opacity, near, far):
+    """sum w t / max(A, eps), clamped to [near, far], 0 where A = 0. All [n_rays]."""
+    depth = torch.minimum(torch.maximum(weighted_t / opacity.clamp_min(DEPTH_EPS), near), far)
+    return torch.where(opacity > 0, depth, torch.zeros_like(depth))
 
 
 @torch.no_grad()
@@ -131,5 +136,4 @@ def packed_render_early_stop(field_fn, t_mid, ray_index, step: float, near, far,
         remaining = remaining[transmittance[ray_index[remaining]] >= min_transmittance]  # rays that stopped
         start += window
     opacity = 1 - transmittance
-    depth = torch.minimum(torch.maximum(weighted_t / opacity.clamp_min(DEPTH_EPS), near), far)
-    return rgb, opacity, torch.where(opacity > 0, depth, torch.zeros_like(depth)), evaluated
+    return rgb, opacity, _depth(weighted_t, opacity, near, far), evaluated
