@@ -121,7 +121,9 @@ def _add_render(subparsers) -> None:
     parser.add_argument("run", type=Path, metavar="RUN", help="a run folder made by nerfgauge train")
     parser.add_argument("--split", choices=("train", "val", "test"), default="test")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default RUN/renders)")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: the run's)")
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: the run's)")
+    parser.add_argument("--step-ratio", type=float, default=1.0, metavar="VOXELS",
+                        help="compact model's marching step in voxels (default 1; 0.5 renders as trained, slower)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_render)
 
@@ -131,7 +133,8 @@ def _run_render(args) -> int:
         raise InputError(f"--threads must be a positive integer, got {args.threads}")
     from nerf.render_views import render_split
 
-    timing = render_split(args.run, args.split, args.out, threads=args.threads, progress=not args.quiet)
+    timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
+                          progress=not args.quiet)
     print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
     return 0

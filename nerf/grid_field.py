@@ -81,7 +81,8 @@ class VoxelGridField(nn.Module):
 
     def _normalised(self, positions: torch.Tensor) -> torch.Tensor:
         """World [M, 3] -> grid_sample coordinates [1, 1, 1, M, 3] in [-1, 1]."""
-        return ((positions - self.aabb[0]) / (self.aabb[1] - self.aabb[0]) * 2 - 1).view(1, 1, 1, -1, 3)
+        scale = 2.0 / (self.aabb[1] - self.aabb[0])  # [3]
+        return torch.addcmul(-1.0 - self.aabb[0] * scale, positions, scale).view(1, 1, 1, -1, 3)
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
         """sigma at world positions [M, 3]. Returns [M]."""

@@ -29,30 +29,36 @@ class MarchedSamples:
     far: torch.Tensor
 
 
-def cell_lookup(positions: torch.Tensor, occupancy: torch.Tensor, origin: torch.Tensor,
+def cell_lookup(positions: torch.Tensor, padded: torch.Tensor, origin: torch.Tensor,
                 cell: torch.Tensor) -> torch.Tensor:
-    """Occupancy at world positions. positions [..., 3]; occupancy [nz, ny, nx] bool whose
-    cell (i, j, k) spans origin + [i, j, k] * cell (cell: [3] world size, x y z order).
-    Positions outside the grid are unoccupied. Returns [...] bool."""
-    nz, ny, nx = occupancy.shape
-    index = ((positions - origin) / cell).floor().long()  # [..., 3]
-    size = torch.tensor([nx, ny, nz], device=positions.device)
-    inside = ((index >= 0) & (index < size)).all(dim=-1)
-    index = torch.minimum(index.clamp_min(0), size - 1)
-    flat = (index[..., 2] * ny + index[..., 1]) * nx + index[..., 0]
-    return occupancy.reshape(-1)[flat] & inside
+    """Occupancy at world positions. positions [..., 3]; padded [nz + 2, ny + 2, nx + 2]
+    bool: an occupancy grid whose cell (i, j, k) spans origin + [i, j, k] * cell (cell: [3]
+    world size, x y z order), framed by one empty cell on every side (`pad_grid`).
+    Positions must lie within one cell of the grid (march only asks about points inside
+    the box, up to rounding): those just outside land in the empty frame, with no clamp
+    on this hot path. Returns [...] bool."""
+    depth, height, width = padded.shape
+    scale = 1.0 / cell  # [3]
+    index = torch.addcmul(1.0 - origin * scale, positions, scale).floor_().long()  # [..., 3], +1 for the frame
+    strides = torch.tensor([1, width, width * height], device=positions.device)
+    return padded.reshape(-1)[(index * strides).sum(-1)]
+
+
+def pad_grid(occupancy: torch.Tensor) -> torch.Tensor:
+    """Frame an occupancy grid [nz, ny, nx] with empty cells: [nz + 2, ny + 2, nx + 2]."""
+    return F.pad(occupancy, (1, 1, 1, 1, 1, 1), value=False)
 
 
 def occupancy_pyramid(occupancy: torch.Tensor, block: int = 16) -> list:
-    """[(grid, cell size in voxels)] from `block`-voxel blocks down to the voxel grid, each
+    """[(framed grid, cell size in voxels)] from `block`-voxel blocks down to the voxel grid, each
     level's blocks 4x smaller. Pooled levels are grown by one block, so a segment one block
     long, tested at its midpoint, never misses an occupied block it passes through."""
-    levels = [(occupancy, 1)]
+    levels = [(pad_grid(occupancy), 1)]
     size = 4
     while size <= block:
         pooled = F.max_pool3d(occupancy[None, None].float(), size, stride=size, ceil_mode=True)
         grown = F.max_pool3d(pooled, 3, stride=1, padding=1)[0, 0] > 0
-        levels.insert(0, (grown, size))
+        levels.insert(0, (pad_grid(grown), size))
         size *= 4
     return levels
 
@@ -100,7 +106,8 @@ def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, o
         ray = per_ray.index_select(0, rays)  # [n_segments, 7]
         # the midpoint of the part inside the box: a segment hanging out of the box must
         # not be tested (and dropped) at a point outside it
-        mid = 0.5 * (starts + torch.minimum(starts + length, ray[:, 6]))
+        # (segments starting past `far` are dropped below; their midpoint is pinned at far)
+        mid = 0.5 * (torch.minimum(starts, ray[:, 6]) + torch.minimum(starts + length, ray[:, 6]))
         keep = (starts < ray[:, 6]) & cell_lookup(ray[:, :3] + mid[:, None] * ray[:, 3:6], grid, aabb[0], voxel * size)
         kept = keep.nonzero(as_tuple=True)[0]
         starts, rays = starts.index_select(0, kept), rays.index_select(0, kept)

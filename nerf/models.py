@@ -46,6 +46,7 @@ class CompactNeRF(nn.Module):
         self.use_occupancy = use_occupancy
         self.register_buffer("occupancy", torch.ones(tuple(s - 1 for s in field.grid.shape[2:]), dtype=torch.bool))
         self._pyramid = None  # coarse-to-fine occupancy for marching, rebuilt when occupancy changes
+        self._pyramid_of = None
         # Cells some training ray can see (transmittance reaches them); the rest (object
         # interiors, hidden corners) need not be sampled or stored. All, until measured.
         self.register_buffer("visible", torch.ones_like(self.occupancy))
@@ -94,8 +95,8 @@ class CompactNeRF(nn.Module):
         return float(self.visible.float().mean())
 
     def _levels(self):
-        if self._pyramid is None or self._pyramid[-1][0] is not self.occupancy:
-            self._pyramid = occupancy_pyramid(self.occupancy)
+        if self._pyramid is None or self._pyramid_of is not self.occupancy:
+            self._pyramid, self._pyramid_of = occupancy_pyramid(self.occupancy), self.occupancy
         return self._pyramid
 
     def render(self, origins: torch.Tensor, directions: torch.Tensor, generator: torch.Generator | None = None,
@@ -111,8 +112,8 @@ class CompactNeRF(nn.Module):
         def field_at(index):  # the field at the samples `index` [m] (a subset or all)
             ray = rays if index is None else rays.index_select(0, index)
             t = samples.t_mid if index is None else samples.t_mid.index_select(0, index)
-            o, d = origins.index_select(0, ray), directions.index_select(0, ray)
-            return self.field(o + t[:, None] * d, d)
+            d = directions.index_select(0, ray)
+            return self.field(torch.addcmul(origins.index_select(0, ray), t[:, None], d), d)
 
         if not training and not torch.is_grad_enabled():  # inference: stop rays behind surfaces
             colour, opacity, depth, evaluated = packed_render_early_stop(
