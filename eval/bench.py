@@ -29,11 +29,11 @@ from nerfgauge.errors import InputError
 VARIANTS = {
     "compact": ("compact", []),
     "vanilla": ("vanilla", ["--eval-every", "30"]),
-    "compact, view dependence on": ("compact", ["--view-dependent", "on"]),
-    "compact, view dependence off": ("compact", ["--view-dependent", "off"]),
-    "compact, no pruning": ("compact", ["--no-prune"]),
-    "compact, no empty-space skipping": ("compact", ["--no-occupancy"]),
-    "compact, resolution 256": ("compact", ["--resolution", "256"]),
+    "compact-view-on": ("compact", ["--view-dependent", "on"]),  # view dependence forced on
+    "compact-view-off": ("compact", ["--view-dependent", "off"]),  # ... forced off
+    "compact-no-prune": ("compact", ["--no-prune"]),  # save the whole grid
+    "compact-no-skip": ("compact", ["--no-occupancy"]),  # no empty-space skipping
+    "compact-res256": ("compact", ["--resolution", "256"]),  # resolution fixed high
 }
 
 
@@ -83,7 +83,7 @@ def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: i
         for variant in variants:
             model, extra = VARIANTS[variant]
             for budget in budgets:
-                run = out / "runs" / f"{scene}-{variant.replace(', ', '-').replace(' ', '_')}-{budget:g}s"
+                run = out / "runs" / f"{scene}-{variant}-{budget:g}s"
                 code, _, peak_mb = _run_child(["train", str(data), "--out", str(run), "--model", model,
                                                "--budget-seconds", str(budget), "--quiet", *extra])
                 if code != 0:

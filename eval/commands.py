@@ -110,7 +110,7 @@ def register_bench(subparsers) -> None:
     train = kinds.add_parser("train", help="scenes x variants x budgets: PSNR, SSIM, depth, time, size, memory")
     train.add_argument("--scenes", default="primitives", help="comma-separated scene names")
     train.add_argument("--variants", default="compact,vanilla",
-                       help="comma-separated, from: " + "; ".join(_variant_names()))
+                       help="comma-separated, from: " + ", ".join(_variant_names()))
     train.add_argument("--budgets", default="30,120", help="comma-separated training seconds")
     train.add_argument("--res", default="128")
     train.add_argument("--views", type=int, default=100)
