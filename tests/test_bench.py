@@ -1,0 +1,45 @@
+"""`nerfgauge bench`: argument checks, and the table and speed-up arithmetic on known rows."""
+
+import json
+
+import pytest
+
+from eval.bench import speedups, table_markdown
+from nerfgauge.cli import main
+
+
+@pytest.mark.parametrize("argv,expected", [
+    (["bench", "train", "--variants", "compact,bogus"], "unknown variant"),
+    (["bench", "train", "--budgets", "30,0"], "--budgets"),
+    (["bench", "train", "--budgets", "soon"], "--budgets"),
+    (["bench", "generate", "--repeats", "0"], "--repeats"),
+])
+def test_bad_bench_arguments_exit_2_before_any_work(tmp_path, capsys, argv, expected):
+    assert main(argv + (["--out", str(tmp_path / "b")] if argv[1] == "train" else [])) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expected in err
+    assert not (tmp_path / "b").exists()
+
+
+def write_log(path, points):
+    path.write_text("".join(json.dumps({"step": i, "seconds": s, "val_psnr": p}) + "\n"
+                            for i, (s, p) in enumerate(points)))
+    return str(path)
+
+
+def test_speedup_is_vanilla_time_over_the_time_compact_first_reaches_its_psnr(tmp_path):
+    vanilla = write_log(tmp_path / "v.jsonl", [(0, 12.0), (60, 14.0), (120, 15.0)])
+    compact = write_log(tmp_path / "c.jsonl", [(0, 12.5), (5, 14.9), (10, 15.2), (20, 30.0)])
+    rows = [{"scene": "s", "variant": "vanilla", "budget": 120, "train_seconds": 120.0, "log": vanilla},
+            {"scene": "s", "variant": "compact", "budget": 120, "train_seconds": 121.0, "log": compact}]
+    (line,) = speedups(rows)
+    assert "15.00 dB" in line and "at 10.0 s" in line and "12x sooner" in line
+
+
+def test_table_has_a_row_per_run_and_marks_missing_metrics():
+    rows = [{"scene": "s", "variant": "vanilla", "budget": 30, "val_psnr": 14.0, "psnr": None, "ssim": None,
+             "depth_absrel": None, "train_seconds": 31, "steps_per_second": 0.1, "render_ms_per_frame": None,
+             "model_mb": 4.8, "peak_memory_mb": 6000},
+            {"scene": "s", "variant": "compact", "budget": 30, "error": "exit 2"}]
+    lines = table_markdown(rows).splitlines()
+    assert len(lines) == 4 and "| s | vanilla | 30 | 14.00 | – | – | – |" in lines[2] and "exit 2" in lines[3]
