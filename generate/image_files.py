@@ -42,11 +42,6 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
-    x = np.clip(srgb, 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
-
-
 def premultiplied_to_png_rgba(rgba_linear: np.ndarray) -> np.ndarray:
     """Linear premultiplied RGBA [H, W, 4] -> 8-bit sRGB straight-alpha RGBA [H, W, 4] uint8."""
     alpha = np.clip(rgba_linear[..., 3:4], 0.0, 1.0)
