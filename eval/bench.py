@@ -53,7 +53,7 @@ def bench_generate(scene: str, views: int, width: int, height: int, spp: int) ->
             "overhead_ratio": total / mitsuba["seconds"]}
 
 
-def _run_child(argv: list) -> tuple[int, float, float]:
+def run_child(argv: list) -> tuple[int, float, float]:
     """Run `python -m nerfgauge.cli ARGV`; returns (exit code, wall seconds, peak RSS MB)."""
     start = time.perf_counter()
     process = subprocess.Popen([sys.executable, "-m", "nerfgauge.cli", *argv])
@@ -62,7 +62,8 @@ def _run_child(argv: list) -> tuple[int, float, float]:
     return process.returncode, time.perf_counter() - start, usage.ru_maxrss / 1024.0
 
 
-def _first_time_reaching(log: list, psnr: float):
+def first_time_reaching(log: list, psnr: float):
+    """Training seconds of the first log entry whose val PSNR is at least `psnr`; None if none is."""
     for entry in log:
         if entry["val_psnr"] >= psnr:
             return entry["seconds"]
@@ -76,16 +77,16 @@ def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: i
     rows = []
     for scene in scenes:
         data = out / "datasets" / f"{scene}-{width}x{height}-{views}"
-        code, _, _ = _run_child(["generate", scene, "--out", str(data), "--views", str(views), "--res",
-                                 f"{width}x{height}", "--quiet"])
+        code, _, _ = run_child(["generate", scene, "--out", str(data), "--views", str(views), "--res",
+                                f"{width}x{height}", "--quiet"])
         if code != 0:
             raise InputError(f"generating {scene} failed (exit {code})")
         for variant in variants:
             model, extra = VARIANTS[variant]
             for budget in budgets:
                 run = out / "runs" / f"{scene}-{variant}-{budget:g}s"
-                code, _, peak_mb = _run_child(["train", str(data), "--out", str(run), "--model", model,
-                                               "--budget-seconds", str(budget), "--quiet", *extra])
+                code, _, peak_mb = run_child(["train", str(data), "--out", str(run), "--model", model,
+                                              "--budget-seconds", str(budget), "--quiet", *extra])
                 if code != 0:
                     rows.append({"scene": scene, "variant": variant, "budget": budget, "error": f"exit {code}"})
                     continue
@@ -93,7 +94,7 @@ def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: i
                 if model == "vanilla":
                     metrics = {"mean": {"psnr": None, "ssim": None, "depth_absrel": None}, "timing": {}}
                 else:
-                    _run_child(["render", str(run), "--quiet"])
+                    run_child(["render", str(run), "--quiet"])
                     metrics = evaluate(data, run / "renders", "test", run / "metrics.json")
                 rows.append({"scene": scene, "variant": variant, "budget": budget, "val_psnr": log[-1]["val_psnr"],
                              "psnr": metrics["mean"]["psnr"], "ssim": metrics["mean"]["ssim"],
@@ -120,7 +121,7 @@ def speedups(rows: list) -> list[str]:
         if compact is None:
             continue
         target = read_log(row["log"])[-1]["val_psnr"]
-        reached = _first_time_reaching(read_log(compact["log"]), target)
+        reached = first_time_reaching(read_log(compact["log"]), target)
         ratio = None if not reached else row["train_seconds"] / max(reached, 1e-9)
         lines.append(f"{row['scene']}, {row['budget']:g} s: vanilla ends at {target:.2f} dB val PSNR; compact reaches "
                      f"it at {reached if reached is None else f'{reached:.1f}'} s "

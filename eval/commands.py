@@ -97,7 +97,7 @@ def run_baseline(args) -> int:
 
 
 def register_bench(subparsers) -> None:
-    parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants",
+    parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants, scaling",
                                    description="Benchmarks measured in one run on this machine (see BENCHMARKS.md).")
     kinds = parser.add_subparsers(dest="bench_kind", metavar="KIND", required=True)
     gen = kinds.add_parser("generate", help="generator time against Mitsuba's own render time")
@@ -116,6 +116,26 @@ def register_bench(subparsers) -> None:
     train.add_argument("--views", type=int, default=100)
     train.add_argument("--out", type=Path, default=Path("bench-out"))
     train.set_defaults(func=run_bench_train)
+    scaling = kinds.add_parser("scaling", help="NeRF time-to-PSNR and render time against resolution and views; "
+                                               "generation time against views and spp")
+    scaling.add_argument("--scene", default="primitives")
+    scaling.add_argument("--resolutions", default="64,128,256",
+                         help="comma-separated square resolutions, each at --views views (default 64,128,256)")
+    scaling.add_argument("--views", default="100", help="train views of the --resolutions cases (default 100)")
+    scaling.add_argument("--view-counts", default="25,50,100", help="comma-separated train-view counts, each at "
+                                                                    "--view-counts-res (default 25,50,100)")
+    scaling.add_argument("--view-counts-res", default="128", help="resolution of the --view-counts cases (default 128)")
+    scaling.add_argument("--budget-seconds", default="120", metavar="T", help="training seconds per case (default 120)")
+    scaling.add_argument("--target-psnr", default="30", metavar="DB",
+                         help="report the time to this val PSNR (default 30)")
+    scaling.add_argument("--gen-views", default="25,50,100", help="generation: train-view counts at --gen-views-spp")
+    scaling.add_argument("--gen-views-spp", default="64", help="spp of the --gen-views cases (default 64)")
+    scaling.add_argument("--gen-spp", default="16,64,256", help="generation: spp values at --gen-spp-views views")
+    scaling.add_argument("--gen-spp-views", default="50", help="views of the --gen-spp cases (default 50)")
+    scaling.add_argument("--gen-res", default="128", help="resolution of the generation cases (default 128)")
+    scaling.add_argument("--out", type=Path, default=Path("bench-out/scaling"),
+                         help="writes scaling.json/.md/.png; reruns replace the cases' datasets and runs")
+    scaling.set_defaults(func=run_bench_scaling)
 
 
 def _variant_names():
@@ -167,4 +187,28 @@ def run_bench_train(args) -> int:
     print(table)
     print("\n".join(notes))
     print(f"plots: {args.out / 'pareto.png'}")
+    return 0
+
+
+def run_bench_scaling(args) -> int:
+    from eval.bench_scaling import (ScalingConfig, bench_scaling, parse_count, parse_counts, parse_positive,
+                                    report_markdown, scaling_plots)
+
+    config = ScalingConfig(
+        scene=args.scene, resolutions=parse_counts(args.resolutions, "resolutions"),
+        views=parse_count(args.views, "views"), view_counts=parse_counts(args.view_counts, "view-counts"),
+        view_counts_res=parse_count(args.view_counts_res, "view-counts-res"),
+        budget_seconds=parse_positive(args.budget_seconds, "budget-seconds"),
+        target_psnr=parse_positive(args.target_psnr, "target-psnr"),
+        gen_views=parse_counts(args.gen_views, "gen-views"),
+        gen_views_spp=parse_count(args.gen_views_spp, "gen-views-spp"),
+        gen_spp=parse_counts(args.gen_spp, "gen-spp"), gen_spp_views=parse_count(args.gen_spp_views, "gen-spp-views"),
+        gen_res=parse_count(args.gen_res, "gen-res"))
+    config.validate()
+    document = bench_scaling(config, args.out)
+    report = report_markdown(document)
+    (args.out / "scaling.md").write_text(report)
+    scaling_plots(document, args.out / "scaling.png")
+    print(report)
+    print(f"data: {args.out / 'scaling.json'}; plots: {args.out / 'scaling.png'}")
     return 0

@@ -44,10 +44,12 @@ def register(subparsers) -> None:
     parser.add_argument("--max-depth", type=int, default=8, help="path tracer's maximum depth (default 8)")
     parser.add_argument("--fov", type=float, default=40.0, help="horizontal field of view, degrees (default 40)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--layout", choices=LAYOUTS, default="hemisphere")
+    parser.add_argument("--layout", choices=("auto",) + LAYOUTS, default="auto",
+                        help="camera layout (default auto: the scene's suggestion, else hemisphere)")
     parser.add_argument("--sampling", choices=("fibonacci", "random"), default="fibonacci",
                         help="camera directions on the (hemi)sphere: even or seeded random")
-    parser.add_argument("--elevation", default="10,75", help="MIN,MAX camera elevation in degrees (default 10,75)")
+    parser.add_argument("--elevation", default=None,
+                        help="MIN,MAX camera elevation in degrees (default: the scene's suggestion, else 10,75)")
     parser.add_argument("--radius", type=float, default=None, help="camera distance from the AABB centre (default: fit)")
     parser.add_argument("--variant", choices=CHOICES, default="auto")
     parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
@@ -63,7 +65,7 @@ def run(args) -> int:
     config = GenerateConfig(scene=args.scene, seed=args.seed, views=args.views, val_views=args.val_views,
                             test_views=args.test_views, width=width, height=height, spp=args.spp,
                             max_depth=args.max_depth, fov=args.fov, layout=args.layout, sampling=args.sampling,
-                            elevation=parse_band(args.elevation), radius=args.radius, variant=args.variant)
+                            elevation=args.elevation and parse_band(args.elevation), radius=args.radius, variant=args.variant)
     result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet)
     rendered = result["views_rendered"]
     print(f"{args.out}: {rendered} views rendered in {result['seconds']:.1f} s "

@@ -2,20 +2,26 @@
 
 Every layout draws all views of all splits as one set and then deals them out to the
 splits, so no two views coincide. Cameras look at the AABB centre unless the layout says
-otherwise (the light field looks straight ahead).
+otherwise (the light field looks straight ahead, "forward" faces one target, "inside"
+looks outwards).
+
+Orbiting layouts refuse cameras inside the AABB (a mistake there); "forward" and
+"inside" are for scenes whose cameras belong among the content (LLFF-style captures,
+rooms) and allow it.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
 from generate.camera import look_at
 from nerfgauge.errors import InputError
 
-LAYOUTS = ("hemisphere", "sphere", "orbit", "spiral", "lightfield")
+LAYOUTS = ("hemisphere", "sphere", "orbit", "spiral", "lightfield", "forward", "inside")
 SPLITS = ("train", "val", "test")
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
@@ -24,13 +30,19 @@ GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 class LayoutSpec:
     """layout: one of LAYOUTS. sampling: "fibonacci" (even) or "random" (seeded).
     elevation: (min, max) degrees above the horizon through the AABB centre.
-    radius: camera distance from the AABB centre (scene units)."""
+    radius: camera distance from the AABB centre (scene units).
+    eye, target, spread: "forward" (cluster centre, the point faced, cluster radius) and
+    "inside" (spread = half-size of the box around the AABB centre the cameras stand in);
+    None picks a default from the AABB."""
 
     layout: str
     counts: tuple  # (train, val, test)
     radius: float
     elevation: tuple = (10.0, 75.0)
     sampling: str = "fibonacci"
+    eye: Optional[tuple] = None
+    target: Optional[tuple] = None
+    spread: Optional[float] = None
 
 
 def default_radius(aabb: np.ndarray, fov_x_degrees: float, width: int, height: int, margin: float = 1.1) -> float:
@@ -52,10 +64,16 @@ def camera_poses(spec: LayoutSpec, aabb: np.ndarray, rng: np.random.Generator) -
         raise InputError(f"elevation band must satisfy -90 <= min <= max <= 90, got {spec.elevation}")
     if spec.radius <= 0 or not math.isfinite(spec.radius):
         raise InputError(f"camera radius must be positive, got {spec.radius}")
+    if spec.spread is not None and not (spec.spread > 0 and math.isfinite(spec.spread)):
+        raise InputError(f"camera spread must be positive, got {spec.spread}")
     centre = (aabb[0] + aabb[1]) / 2
     total = sum(spec.counts)
     if spec.layout == "lightfield":
         poses = lightfield_poses(spec, aabb, rng)
+    elif spec.layout == "forward":
+        poses = forward_poses(spec, aabb, rng)
+    elif spec.layout == "inside":
+        poses = inside_poses(spec, aabb, rng)
     else:
         if spec.layout == "sphere":
             lo, hi = -89.0, 89.0
@@ -165,3 +183,52 @@ def lightfield_poses(spec: LayoutSpec, aabb: np.ndarray, rng: np.random.Generato
         c2w[:3, 3] = origin + s_index * spacing[0] * np.array([1.0, 0, 0]) + t_index * spacing[1] * np.array([0, 0, 1.0])
         poses.append(c2w)
     return _deal(np.stack(poses), spec.counts)
+
+
+def _disc(n: int, sampling: str, rng: np.random.Generator) -> np.ndarray:
+    """n points in the unit disc: a sunflower (even) or seeded uniform. Returns [n, 2]."""
+    if sampling == "fibonacci":
+        radius = np.sqrt((np.arange(n) + 0.5) / n)
+        angle = GOLDEN_ANGLE * np.arange(n)
+    else:
+        radius, angle = np.sqrt(rng.uniform(0, 1, n)), rng.uniform(0, 2 * math.pi, n)
+    return np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=1)
+
+
+def forward_poses(spec: LayoutSpec, aabb: np.ndarray, rng: np.random.Generator) -> dict:
+    """LLFF-style forward-facing capture: every camera has the same orientation (facing
+    `target` from `eye`) and stands on a disc of radius `spread` around `eye`, across the
+    view direction. Defaults: eye `radius` from the AABB centre on its -Y side at the
+    middle of the elevation band, facing the centre; spread a tenth of the radius."""
+    centre = (aabb[0] + aabb[1]) / 2
+    if spec.eye is None:
+        elevation = math.radians(sum(spec.elevation) / 2)
+        eye = centre + spec.radius * np.array([0.0, -math.cos(elevation), math.sin(elevation)])
+    else:
+        eye = np.asarray(spec.eye, np.float64)
+    target = centre if spec.target is None else np.asarray(spec.target, np.float64)
+    if np.linalg.norm(target - eye) == 0:
+        raise InputError("the forward layout's eye and target coincide")
+    spread = 0.1 * spec.radius if spec.spread is None else spec.spread
+    orientation = look_at(eye, target)
+    offsets = _disc(sum(spec.counts), spec.sampling, rng) * spread  # [n, 2] along camera right, up
+    poses = np.repeat(orientation[None], len(offsets), axis=0)
+    poses[:, :3, 3] = eye + offsets[:, :1] * orientation[:3, 0] + offsets[:, 1:] * orientation[:3, 1]
+    return _deal(poses[rng.permutation(len(poses))], spec.counts)
+
+
+def inside_poses(spec: LayoutSpec, aabb: np.ndarray, rng: np.random.Generator) -> dict:
+    """Cameras inside the scene looking outwards (a room, a ring of objects around the
+    viewer): positions seeded-uniform in a box of half-size `spread` around the AABB
+    centre (default a fifth of the AABB's smallest half-extent), view directions evenly
+    spread in azimuth (golden angle) within the elevation band."""
+    centre = (aabb[0] + aabb[1]) / 2
+    spread = 0.2 * float((aabb[1] - aabb[0]).min()) / 2 if spec.spread is None else spec.spread
+    total = sum(spec.counts)
+    eyes = centre + rng.uniform(-spread, spread, size=(total, 3))
+    lo, hi = (math.radians(a) for a in spec.elevation)
+    elevation = lo + (hi - lo) * (np.arange(total) + 0.5) / total
+    azimuth = GOLDEN_ANGLE * np.arange(total)
+    directions = _from_angles(elevation, azimuth)
+    poses = np.stack([look_at(eye, eye + d) for eye, d in zip(eyes, directions)])
+    return _deal(poses[rng.permutation(total)], spec.counts)

@@ -102,8 +102,12 @@ def envmap_bitmap(light: GradientEnvironment, width: int = ENVMAP_WIDTH) -> np.n
 
 def scene_dict(mi, scene, mesh_paths: dict, max_depth: int) -> dict:
     """The whole Mitsuba scene (without sensor: each view brings its own)."""
+    # A transparent background hides the sky from camera rays; Mitsuba's switch hides every
+    # directly seen emitter, so it is only set when there is a sky to hide (a scene without
+    # one keeps its lamps visible, and its misses are transparent anyway).
+    has_sky = any(isinstance(light, (ConstantEnvironment, GradientEnvironment)) for light in scene.lights)
     out = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth),
-                                           "hide_emitters": scene.needs.background == "transparent"}}
+                                           "hide_emitters": scene.needs.background == "transparent" and has_sky}}
     for shape in scene.shapes:
         if isinstance(shape, Sphere):
             entry = {"type": "sphere", "center": [float(x) for x in shape.center], "radius": float(shape.radius)}

@@ -29,6 +29,8 @@ from nerfgauge.errors import InputError
 from scenes import make_scene
 
 CONFIG = "config.json"
+DEFAULT_LAYOUT = "hemisphere"
+DEFAULT_ELEVATION = (10.0, 75.0)
 SPLIT_SEED_OFFSET = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 
 
@@ -46,10 +48,10 @@ class GenerateConfig:
     spp: int = 64
     max_depth: int = 8
     fov: float = 40.0
-    layout: str = "hemisphere"
+    layout: str = "auto"  # "auto": the scene's suggested cameras, else the hemisphere
     sampling: str = "fibonacci"
-    elevation: tuple = (10.0, 75.0)
-    radius: Optional[float] = None  # None: fit the AABB's bounding sphere in view
+    elevation: Optional[tuple] = None  # None: the scene's suggestion, else DEFAULT_ELEVATION
+    radius: Optional[float] = None  # None: the scene's suggestion, else fit the AABB's bounding sphere in view
     variant: str = "auto"
 
     def validate(self) -> None:
@@ -67,15 +69,18 @@ class GenerateConfig:
             raise InputError(f"--fov must be in (0, 180) degrees, got {self.fov}")
         if self.radius is not None and not (self.radius > 0 and math.isfinite(self.radius)):
             raise InputError(f"--radius must be positive, got {self.radius}")
-        if self.layout not in layouts.LAYOUTS:
-            raise InputError(f"unknown layout {self.layout!r}; choose one of {', '.join(layouts.LAYOUTS)}")
+        if self.layout != "auto" and self.layout not in layouts.LAYOUTS:
+            raise InputError(f"unknown layout {self.layout!r}; choose auto or one of {', '.join(layouts.LAYOUTS)}")
+        if self.elevation is not None and not (len(self.elevation) == 2
+                                               and -90 <= self.elevation[0] <= self.elevation[1] <= 90):
+            raise InputError(f"--elevation must be MIN,MAX with -90 <= MIN <= MAX <= 90, got {self.elevation}")
         if self.variant not in VARIANT_CHOICES:
             raise InputError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANT_CHOICES)}")
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self) | {"elevation": list(self.elevation)}
+        return dataclasses.asdict(self) | {"elevation": None if self.elevation is None else list(self.elevation)}
 
 
 @dataclass(frozen=True)
@@ -86,6 +91,7 @@ class Plan:
     scene: object
     intrinsics: Intrinsics
     radius: float
+    layout: layouts.LayoutSpec  # as resolved: "auto" replaced by the scene's suggestion
     poses: dict  # split -> [n, 4, 4]
     stems: dict  # split -> [n] frame stems
     variant: str
@@ -93,7 +99,8 @@ class Plan:
 
     def recipe(self) -> dict:
         """What config.json holds: the config plus the resolved radius and variant."""
-        return {"schema": 1, "config": self.config.to_json(), "radius": self.radius, "variant": self.variant}
+        return {"schema": 1, "config": self.config.to_json(), "layout": self.layout.layout, "radius": self.radius,
+                "variant": self.variant}
 
 
 def plan(config: GenerateConfig) -> Plan:
@@ -101,15 +108,28 @@ def plan(config: GenerateConfig) -> Plan:
     config.validate()
     scene = make_scene(config.scene, config.seed)
     intrinsics = Intrinsics.from_fov(config.width, config.height, config.fov)
-    radius = config.radius or layouts.default_radius(scene.aabb, config.fov, config.width, config.height)
-    spec = layouts.LayoutSpec(config.layout, (config.views, config.val_views, config.test_views), radius,
-                              tuple(config.elevation), config.sampling)
+    spec = layout_spec(config, scene)
     rng = np.random.default_rng(config.seed)
     poses = layouts.camera_poses(spec, scene.aabb, rng)
-    lightfield = layouts.lightfield_plane(spec, scene.aabb) if config.layout == "lightfield" else None
+    lightfield = layouts.lightfield_plane(spec, scene.aabb) if spec.layout == "lightfield" else None
     stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
              for split in dataset.SPLITS}
-    return Plan(config, scene, intrinsics, float(radius), poses, stems, resolve_variant(config.variant), lightfield)
+    return Plan(config, scene, intrinsics, float(spec.radius), spec, poses, stems, resolve_variant(config.variant),
+                lightfield)
+
+
+def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
+    """The cameras asked for: the command line first, then (with --layout auto) the
+    scene's suggestion, then the defaults (hemisphere, elevation 10-75, radius that fits)."""
+    hint = scene.cameras if config.layout == "auto" else None
+    layout = config.layout if hint is None else hint.layout
+    layout = DEFAULT_LAYOUT if layout == "auto" else layout
+    radius = config.radius or (hint and hint.radius) or layouts.default_radius(scene.aabb, config.fov, config.width,
+                                                                                config.height)
+    elevation = config.elevation or (hint and hint.elevation) or DEFAULT_ELEVATION
+    return layouts.LayoutSpec(layout, (config.views, config.val_views, config.test_views), float(radius),
+                              tuple(float(a) for a in elevation), config.sampling,
+                              eye=hint and hint.eye, target=hint and hint.target, spread=hint and hint.spread)
 
 
 def view_seed(config_seed: int, split: str, index: int) -> int:
@@ -179,7 +199,7 @@ def finish(out: Path, the_plan: Plan) -> None:
         "needs": dataclasses.asdict(scene.needs),
         "camera": {"convention": "OpenGL camera-to-world: +X right, +Y up, looks along -Z",
                    "pixel_centres": "(col + 0.5, row + 0.5), row 0 at the top",
-                   "layout": the_plan.config.layout, "radius": the_plan.radius, "lightfield": the_plan.lightfield},
+                   "layout": the_plan.layout.layout, "radius": the_plan.radius, "lightfield": the_plan.lightfield},
         "depth": {"distance": "*_distance.exr: Euclidean distance from the camera centre along the pixel-centre ray",
                   "z": "*_zdepth.exr: depth along the optical axis", "miss": 0,
                   "source": "scene.ray_intersect of pixel-centre rays, not the filtered depth AOV"},

@@ -18,6 +18,10 @@ from nerfgauge.errors import InputError
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
+# A dense 256^3 grid with Adam state is ~1 GB for a diffuse scene, ~3.5 GB with view-dependent
+# features; 512^3 would be 8x that. Cameras inside the scene's bounding sphere (rooms,
+# forward-facing captures) ask for more than any CPU can hold: they get this cap.
+MAX_AUTO_RESOLUTION = 256
 
 
 @dataclass(frozen=True)
@@ -101,7 +105,10 @@ def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquis
     if nyquist_period is not None and nyquist_period / 2 < voxel:
         voxel = nyquist_period / 2
         reason = f"half the finest texture period {nyquist_period:.4g}"
-    resolution = int(min(max(math.ceil(longest / voxel), 16), 512))
+    wanted = math.ceil(longest / voxel)
+    resolution = int(min(max(wanted, 16), MAX_AUTO_RESOLUTION))
+    if wanted > MAX_AUTO_RESOLUTION:
+        reason += f" asks for {wanted} voxels; capped at {MAX_AUTO_RESOLUTION} (dense-grid memory)"
     return resolution, reason
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from nerf import checkpoint
 from nerf.config import TrainConfig, resolve
 from nerf.data import aabb_from_cameras, load_split_rays, scene_info
 from nerf.rendering import composite
-from nerfgauge.errors import InputError
+from nerfgauge.errors import InputError, NumericalError
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows ...
@@ -144,6 +145,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
                disable=not progress, dynamic_ncols=True, initial=state["step"] if config.steps else 0,
                bar_format=None if config.steps else time_format)
     last_psnr = float("nan")
+    losses = []  # since the last log entry
     try:
         while True:
             done = state["step"] / config.steps if config.steps else state["seconds"] / config.budget_seconds
@@ -157,7 +159,9 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
             if state["seconds"] >= state["next_eval"] or done >= 1:
                 last_psnr = psnr_on_white(model, val_rays, device, config.eval_rays)
                 entry = {"step": state["step"], "seconds": round(state["seconds"], 3), "val_psnr": last_psnr,
-                         "steps_per_second": state["step"] / max(state["seconds"], 1e-9)}
+                         "steps_per_second": state["step"] / max(state["seconds"], 1e-9),
+                         "loss": sum(losses) / len(losses) if losses else None}
+                losses.clear()
                 if hasattr(model, "occupancy"):
                     entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean())}
                 log.write(json.dumps(entry) + "\n"), log.flush()
@@ -171,7 +175,14 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
                     and state["stage_steps"] >= MIN_STAGE_STEPS:
                 state["stage"] += 1
                 state["stage_steps"] = 0
-            _train_step(model, optimizer, config, train_rays, n_rays, generator, device, done, state)
+            loss, gradients_finite = _train_step(model, optimizer, config, train_rays, n_rays, generator, device,
+                                                 done, state)
+            if not (math.isfinite(loss) and gradients_finite):
+                raise NumericalError(
+                    f"training diverged at step {state['step']}: loss {loss}, gradients "
+                    f"{'finite' if gradients_finite else 'not finite'}; the parameters were not updated and "
+                    f"{run_dir / 'checkpoint.pt'} holds the last logged state")
+            losses.append(loss)
             elapsed = time.perf_counter() - start
             state["step"] += 1
             state["stage_steps"] += 1
@@ -216,8 +227,13 @@ def _train_step(model, optimizer, config, rays, n_rays, generator, device, progr
         loss = loss + config.distortion_weight * out.distortion.mean()
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    optimizer.step()
-    return float(loss.detach())
+    # One reduction per parameter: NaN or inf anywhere makes the total non-finite. Checked
+    # before the step so a bad gradient never reaches the parameters or Adam's moments.
+    total = sum(p.grad.sum() for group in optimizer.param_groups for p in group["params"] if p.grad is not None)
+    gradients_finite = bool(torch.isfinite(torch.as_tensor(total)))
+    if gradients_finite:
+        optimizer.step()
+    return float(loss.detach()), gradients_finite
 
 
 def _save_checkpoint(run_dir, model, optimizer, config, generator, state):

@@ -3,8 +3,9 @@
 Each stage package has a `commands.py` with `register(subparsers)`, which adds its
 subcommands and sets `func` (called with the parsed arguments, returns an exit code).
 Heavy imports (mitsuba, torch) happen inside those functions, so `nerfgauge --help` and
-argument errors are instant. Bad input (`InputError`) prints one line and exits 2;
-set NERFGAUGE_DEBUG=1 to see its traceback.
+argument errors are instant. Bad input (`InputError`) prints one line and exits 2, NaN or
+inf where finite numbers are required (`NumericalError`) one line and exits 3; set
+NERFGAUGE_DEBUG=1 to see the traceback.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import importlib
 import os
 import sys
 
-from nerfgauge.errors import InputError
+from nerfgauge.errors import InputError, NumericalError
 
 STAGES = ("scenes", "generate", "nerf", "eval")
 
@@ -50,6 +51,11 @@ def main(argv=None) -> int:
         message = str(error).splitlines()[0] if str(error) else type(error).__name__
         print(f"nerfgauge {args.command}: error: {message}", file=sys.stderr)
         return 2
+    except NumericalError as error:
+        if os.environ.get("NERFGAUGE_DEBUG"):
+            raise
+        print(f"nerfgauge {args.command}: numerical error: {str(error).splitlines()[0]}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print(f"nerfgauge {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -28,7 +28,7 @@ class RunConfig:
     val_views: int = 10
     test_views: int = 20
     spp: int = 64
-    layout: str = "hemisphere"
+    layout: str = "auto"  # the scene's suggested cameras, else the hemisphere
     model: str = "compact"
     budget_seconds: float = 90.0
     steps: int | None = None  # instead of the time budget: reproducible across machines (CI gates)
@@ -40,6 +40,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     from eval.baselines import write_baseline
     from eval.evaluate import evaluate, format_means
     from eval.report import image_grid, metrics_table, plot_curves, read_log, write_html
+    from generate.dataset import read_json
     from generate.pipeline import GenerateConfig, generate
     from nerf.config import TrainConfig
     from nerf.render_views import render_split
@@ -72,7 +73,8 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     print(f"[4/5] evaluate and baselines")
     documents = {f"{config.model} NeRF": evaluate(out / "dataset", run_dir / "renders", "test",
                                                   out / "eval" / config.model / "metrics.json")}
-    baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if config.layout == "lightfield" else [])
+    layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
+    baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if layout == "lightfield" else [])
     for method in baselines:
         write_baseline(out / "dataset", method, out / "baselines" / method, "test")
         documents[f"baseline: {method}"] = evaluate(out / "dataset", out / "baselines" / method, "test",

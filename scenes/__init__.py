@@ -1,6 +1,9 @@
 """Procedural scene descriptions (renderer-free): `make_scene(name, seed)`."""
 
 from scenes.description import Needs, Scene
+from scenes.hard import HARD_RECIPES
 from scenes.registry import list_scenes, make_scene
 
-__all__ = ["Needs", "Scene", "list_scenes", "make_scene"]
+HARD_SCENES = tuple(HARD_RECIPES)  # the hard cases, for `nerfgauge bench hard`
+
+__all__ = ["HARD_SCENES", "Needs", "Scene", "list_scenes", "make_scene"]

@@ -251,6 +251,26 @@ Light = Union[ConstantEnvironment, GradientEnvironment, PointLight, RectangleLig
 
 
 @dataclass(frozen=True)
+class CameraHint:
+    """Where a scene wants its cameras when the user leaves `--layout auto`.
+
+    A plain suggestion in scene units; `generate/` owns the layouts and reads it.
+    layout: a layout name ("hemisphere", "forward", "inside", ...). radius: camera distance
+    from the AABB centre (None: fit the AABB in view). elevation: (min, max) degrees.
+    eye, target: for "forward", the centre of the camera cluster and the point every
+    camera faces. spread: for "forward", the cluster's radius; for "inside", the half-size
+    of the box around the AABB centre the cameras stand in.
+    """
+
+    layout: str
+    radius: Optional[float] = None
+    elevation: Optional[tuple] = None
+    eye: Optional[Vec3] = None
+    target: Optional[Vec3] = None
+    spread: Optional[float] = None
+
+
+@dataclass(frozen=True)
 class Needs:
     """What a radiance field must model for this scene.
 
@@ -274,6 +294,7 @@ class Scene:
     aabb_max: Vec3
     needs: Needs
     params: dict = field(default_factory=dict)
+    cameras: Optional[CameraHint] = None
 
     @property
     def aabb(self) -> np.ndarray:
@@ -290,6 +311,7 @@ class Scene:
             "needs": asdict(self.needs),
             "shapes": [_shape_json(s) for s in self.shapes],
             "lights": [{"type": type(l).__name__, **asdict(l)} for l in self.lights],
+            "cameras": None if self.cameras is None else asdict(self.cameras),
         }
 
 
@@ -307,7 +329,7 @@ def _shape_json(shape) -> dict:
 
 
 def build_scene(name, seed, shapes, lights, *, background="transparent", aabb=None,
-                params=None, padding=0.05) -> Scene:
+                params=None, padding=0.05, cameras: Optional[CameraHint] = None) -> Scene:
     """Assemble a Scene, deriving `needs` from the materials and the AABB from the shapes.
 
     aabb: optional ((xmin, ymin, zmin), (xmax, ymax, zmax)); by default the shapes'
@@ -332,4 +354,4 @@ def build_scene(name, seed, shapes, lights, *, background="transparent", aabb=No
         background=background,
         finest_texture_period=min(periods) if periods else None,
     )
-    return Scene(name, int(seed), tuple(shapes), tuple(lights), lo, hi, needs, dict(params or {}))
+    return Scene(name, int(seed), tuple(shapes), tuple(lights), lo, hi, needs, dict(params or {}), cameras)

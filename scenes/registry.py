@@ -10,6 +10,7 @@ import trimesh
 
 from nerfgauge.errors import InputError
 from scenes import library
+from scenes.hard import HARD_RECIPES
 from scenes.description import Diffuse, Scene, TriangleMesh, build_scene
 from scenes.meshes import MeshData
 
@@ -18,6 +19,7 @@ RECIPES = {
     "primitives": (library.primitives, "default: red sphere, blue box, green capped cylinder, checker sphere (diffuse)"),
     "glossy": (library.glossy, "view-dependent: rough plastic, rough gold, near-mirror aluminium under a sky with a sun"),
     "random": (library.random_objects, "3-6 objects whose shapes, materials and poses come from the seed"),
+    **HARD_RECIPES,
 }
 MESH_PREFIX = "mesh:"
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
@@ -52,27 +54,55 @@ def mesh_scene(path: Path, seed: int) -> Scene:
 
 
 def load_user_mesh(path: Path) -> MeshData:
-    """Read a mesh with trimesh, drop degenerate triangles, scale into [-1, 1]^3."""
+    """Read a mesh with trimesh, drop degenerate triangles, scale into [-1, 1]^3.
+
+    The file is read unprocessed: trimesh's processing would silently drop the faces of a
+    vertex with NaN coordinates. Faces must index existing vertices with finite
+    coordinates (an InputError otherwise). Zero-area triangles (collinear or repeated
+    corners: twice the area below 1e-12 of the squared largest extent) are dropped, then
+    every vertex no remaining face uses, so neither counts towards the bounds. What is left
+    is centred and uniformly scaled so its largest extent spans [-1, 1]. A flat (planar)
+    mesh keeps zero extent across its plane; the scene's AABB padding gives it thickness.
+    """
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}")
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise InputError(f"mesh {path} has unsupported extension {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
     try:
-        loaded = trimesh.load(path, force="mesh")
+        loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as error:  # trimesh raises many types for unreadable files
         raise InputError(f"cannot read mesh {path}: {str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
-    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64)
-    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), np.int64)
-    if len(faces) == 0 or len(vertices) == 0:
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64)  # [V, 3]
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), np.int64)  # [F, 3]
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or vertices.ndim != 2 or len(vertices) == 0:
         raise InputError(f"mesh {path} has no triangles")
-    if not np.isfinite(vertices).all():
-        raise InputError(f"mesh {path} has non-finite vertex coordinates")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"mesh {path} has faces indexing vertices {faces.min()}..{faces.max()}, "
+                         f"but only {len(vertices)} vertices")
+    non_finite = ~np.isfinite(vertices[np.unique(faces)]).all(axis=1)  # [used V]
+    if non_finite.any():
+        raise InputError(f"mesh {path} has {int(non_finite.sum())} vertices with NaN or inf coordinates "
+                         f"used by its triangles")
+
+    def bounds(points):  # [N, 3] -> centre [3], largest extent (inf if float64 overflows)
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        with np.errstate(over="ignore"):
+            return (lo + hi) / 2, float((hi - lo).max())
+
     tri = vertices[faces]  # [F, 3, 3]
-    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    lo, hi = vertices[faces].reshape(-1, 3).min(0), vertices[faces].reshape(-1, 3).max(0)
-    extent = float((hi - lo).max())
-    faces = faces[area2 > 1e-12 * max(extent, 1e-300) ** 2]
-    if len(faces) == 0 or extent <= 0:
+    centre, extent = bounds(tri.reshape(-1, 3))
+    if not np.isfinite(centre).all() or not np.isfinite(extent):
+        raise InputError(f"mesh {path} has coordinates too large for float64 arithmetic "
+                         f"(up to {np.abs(tri).max():.3g})")
+    if extent > 0:
+        unit = (tri - centre) / extent  # [F, 3, 3], largest extent 1: areas neither underflow nor overflow
+        area2 = np.linalg.norm(np.cross(unit[:, 1] - unit[:, 0], unit[:, 2] - unit[:, 0]), axis=1)  # [F]
+        faces = faces[area2 > 1e-12]
+    if extent <= 0 or len(faces) == 0:
         raise InputError(f"mesh {path} has only degenerate (zero-area) triangles")
-    scaled = (vertices - (lo + hi) / 2) * (2.0 / extent)
+    used, faces = np.unique(faces, return_inverse=True)  # drop vertices no kept triangle uses
+    faces = faces.reshape(-1, 3)
+    vertices = vertices[used]  # [V', 3]
+    centre, extent = bounds(vertices)
+    scaled = (vertices - centre) * (2.0 / extent)
     return MeshData(scaled, faces, None, np.zeros((len(scaled), 2)))

@@ -1,0 +1,154 @@
+"""`nerfgauge bench scaling`: argument checks, time-to-target, growth ratios, fits and tables on
+known rows, and one tiny end-to-end run (slow)."""
+
+import json
+import math
+import shlex
+from dataclasses import asdict
+
+import pytest
+
+from eval.bench import first_time_reaching
+from eval.bench_scaling import (ScalingConfig, generation_fits, growth, growth_line, nerf_table, parse_counts,
+                                report_markdown)
+from nerfgauge.cli import build_parser, main
+
+
+@pytest.mark.parametrize("argv,expected", [
+    (["--resolutions", "64,0"], "--resolutions must be positive"),
+    (["--resolutions", "64,-128"], "--resolutions must be positive"),
+    (["--resolutions", "64,1.5"], "--resolutions must be comma-separated positive integers"),
+    (["--resolutions", "64,128,64"], "--resolutions lists 64 more than once"),
+    (["--resolutions", "64,9000"], "larger than 8192"),
+    (["--view-counts", "25,,50"], "--view-counts must be comma-separated"),
+    (["--view-counts", "25,25"], "--view-counts lists 25 more than once"),
+    (["--views", "0"], "--views must be a positive integer"),
+    (["--views", "ten"], "--views must be a positive integer"),
+    (["--view-counts-res", "12.5"], "--view-counts-res must be a positive integer"),
+    (["--gen-views", "25,0"], "--gen-views must be positive"),
+    (["--gen-spp", "16,16"], "--gen-spp lists 16 more than once"),
+    (["--gen-spp", ""], "--gen-spp must be comma-separated"),
+    (["--gen-views-spp", "-1"], "--gen-views-spp must be a positive integer"),
+    (["--gen-spp-views", "0"], "--gen-spp-views must be a positive integer"),
+    (["--gen-res", "x"], "--gen-res must be a positive integer"),
+    (["--budget-seconds", "0"], "--budget-seconds must be a positive number"),
+    (["--budget-seconds", "inf"], "--budget-seconds must be a positive number"),
+    (["--target-psnr", "nan"], "--target-psnr must be a positive number"),
+    (["--target-psnr", "high"], "--target-psnr must be a positive number"),
+    (["--scene", "no-such-scene"], "unknown scene 'no-such-scene'"),
+])
+def test_bad_scaling_arguments_exit_2_with_one_line_before_any_work(tmp_path, capsys, argv, expected):
+    out = tmp_path / "b"
+    assert main(["bench", "scaling", *argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expected in err, err
+    assert not out.exists()
+
+
+def test_parse_counts_keeps_order():
+    assert parse_counts(" 64, 128,256 ", "resolutions") == (64, 128, 256)
+
+
+def test_the_shared_case_runs_once_and_belongs_to_both_axes():
+    cases = ScalingConfig().nerf_cases()
+    assert [(r, v) for r, v, _ in cases] == [(64, 100), (128, 100), (256, 100), (128, 25), (128, 50)]
+    assert dict(((r, v), axes) for r, v, axes in cases)[(128, 100)] == ("resolution", "views")
+
+
+def test_the_printed_command_parses_back_to_the_same_settings(tmp_path):
+    config = ScalingConfig(resolutions=(16, 24), views=6, view_counts=(6, 8), view_counts_res=16, budget_seconds=2.5,
+                           target_psnr=28.5, gen_views=(2, 3), gen_views_spp=2, gen_spp=(1, 2), gen_spp_views=3,
+                           gen_res=16)
+    argv = shlex.split(config.command(tmp_path / "my out"))
+    assert argv[:3] == ["nerfgauge", "bench", "scaling"]
+    args = build_parser().parse_args(argv[1:])
+    assert (args.resolutions, args.views, args.view_counts, args.view_counts_res) == ("16,24", "6", "6,8", "16")
+    assert (float(args.budget_seconds), float(args.target_psnr)) == (2.5, 28.5)
+    assert (args.gen_views, args.gen_views_spp, args.gen_spp, args.gen_spp_views, args.gen_res) == \
+        ("2,3", "2", "1,2", "3", "16")
+    assert args.out == tmp_path / "my out"
+
+
+def test_time_to_target_is_the_first_logged_training_second_at_or_above_it():
+    log = [{"seconds": s, "val_psnr": p} for s, p in [(0.0, 14.1), (2.01, 29.99), (4.02, 30.0), (6.0, 29.5),
+                                                      (8.0, 31.0)]]
+    assert first_time_reaching(log, 30.0) == 4.02  # exactly the target counts; the later dip does not matter
+    assert first_time_reaching(log, 14.0) == 0.0
+    assert first_time_reaching(log, 31.5) is None
+    assert first_time_reaching([{"seconds": 0.0, "val_psnr": math.nan}], 30.0) is None
+
+
+def nerf_row(resolution, views, axes, **values):
+    row = {"resolution": resolution, "views": views, "axes": axes, "train_pixels": views * resolution ** 2,
+           "time_to_target_s": 10.0, "val_psnr": 33.0, "psnr": 32.5, "ssim": 0.98, "steps_per_second": 10.0,
+           "render_ms_per_frame": 50.0, "model_mb": 3.0, "peak_memory_mb": 800.0, "generation_seconds": 20.0}
+    return row | values
+
+
+def test_growth_is_largest_over_smallest_and_its_ratio_to_the_size_ratio():
+    rows = [nerf_row(256, 100, ["resolution"], render_ms_per_frame=160.0, time_to_target_s=None),
+            nerf_row(64, 100, ["resolution"], render_ms_per_frame=10.0, time_to_target_s=4.0),
+            nerf_row(128, 100, ["resolution", "views"], render_ms_per_frame=40.0),
+            nerf_row(128, 25, ["views"], steps_per_second=12.0),
+            nerf_row(128, 50, ["views"], error="train exit 1")]
+    ratio, size, relative = growth(rows, "resolution", "train_pixels", "render_ms_per_frame")
+    assert (ratio, size, relative) == pytest.approx((16.0, 16.0, 1.0))
+    assert growth(rows, "resolution", "train_pixels", "time_to_target_s") is None  # not reached at 256
+    ratio, size, relative = growth(rows, "views", "train_pixels", "steps_per_second")  # 25 -> 100, error row skipped
+    assert (ratio, size, relative) == pytest.approx((10.0 / 12.0, 4.0, 10.0 / 48.0))
+    line = growth_line(rows, "resolution", (("render_ms_per_frame", "render ms/frame"),
+                                            ("time_to_target_s", "time to {target:g} dB")), "train_pixels", 30)
+    assert line.startswith("- resolution 64 → 256 (pixel ratio ×16.00)")
+    assert "render ms/frame ×16.00 (1.00 of the pixel ratio)" in line and "time to 30 dB n/a (not reached at 256)" in line
+    assert "fewer than two" in growth_line(rows[:1], "resolution", (), "train_pixels")
+
+
+def test_generation_fits_recover_a_known_line():
+    rows = [{"views": v, "spp": 64, "axes": ["views"], "seconds": 1.5 + 0.2 * v} for v in (25, 100)]
+    rows.insert(1, {"views": 50, "spp": 64, "axes": ["views", "spp"], "seconds": 1.5 + 0.2 * 50})
+    rows += [{"views": 50, "spp": s, "axes": ["spp"], "seconds": 1.5 + 0.2 * 50 + 0.002 * 50 * (s - 64)}
+             for s in (16, 256)]
+    fits = generation_fits(rows)
+    assert fits["views"]["slope"] == pytest.approx(0.2) and fits["views"]["intercept"] == pytest.approx(1.5)
+    assert fits["spp"]["seconds_per_spp_per_view"] == pytest.approx(0.002)
+    assert fits["spp"]["intercept"] == pytest.approx(1.5 + 0.2 * 50 - 0.002 * 50 * 64)
+    assert generation_fits(rows[:1]) == {"views": None, "spp": None}
+
+
+def test_tables_say_when_the_target_was_not_reached_and_show_errors():
+    rows = [nerf_row(64, 100, ["resolution"], time_to_target_s=None, psnr=None),
+            nerf_row(128, 100, ["resolution"], time_to_target_s=12.34),
+            {"resolution": 256, "views": 100, "axes": ["resolution"], "error": "train exit 1"}]
+    lines = nerf_table(rows, 30, 120).splitlines()
+    assert len(lines) == 5 and "time to 30 dB (s)" in lines[0]
+    assert lines[2].startswith("| 64x64 | 100 | not reached in 120 s | 33.00 | – |")
+    assert lines[3].startswith("| 128x128 | 100 | 12.3 |")
+    assert "train exit 1" in lines[4] and lines[4].count("|") == lines[0].count("|")
+    document = {"command": "nerfgauge bench scaling ...", "config": asdict(ScalingConfig()), "eval_every_seconds": 2.0,
+                "nerf": rows, "generation": [], "fits": {"views": None, "spp": None}}
+    report = report_markdown(document)
+    assert report.startswith("```bash\nnerfgauge bench scaling ...\n```") and "not reached in 120 s" in report
+
+
+@pytest.mark.slow
+def test_tiny_scaling_run_writes_json_markdown_and_plot(tmp_path):
+    out = tmp_path / "scaling"
+    # Two NeRF cases, (16, 6) on both axes: each is three child processes, mostly imports.
+    argv = ["bench", "scaling", "--resolutions", "16,24", "--views", "6", "--view-counts", "6",
+            "--view-counts-res", "16", "--budget-seconds", "2", "--target-psnr", "10", "--gen-views", "2,3",
+            "--gen-views-spp", "2", "--gen-spp", "1,2", "--gen-spp-views", "3", "--gen-res", "16", "--out", str(out)]
+    assert main(argv) == 0
+    document = json.loads((out / "scaling.json").read_text())
+    assert (out / "scaling.png").stat().st_size > 10_000
+    assert (out / "scaling.md").read_text().startswith("```bash\nnerfgauge bench scaling --scene primitives")
+    nerf_keys = {"resolution", "views", "time_to_target_s", "val_psnr", "psnr", "ssim", "steps_per_second",
+                 "render_ms_per_frame", "model_mb", "peak_memory_mb", "generation_seconds"}
+    assert [(r["resolution"], r["views"], r["axes"]) for r in document["nerf"]] == \
+        [(16, 6, ["resolution", "views"]), (24, 6, ["resolution"])]
+    for row in document["nerf"]:
+        assert "error" not in row and nerf_keys <= set(row)
+        assert all(math.isfinite(row[key]) for key in nerf_keys), row  # 10 dB: reached by the first log point
+    assert [(r["views"], r["spp"]) for r in document["generation"]] == [(2, 2), (3, 2), (3, 1)]
+    for row in document["generation"]:
+        assert all(math.isfinite(row[key]) and row[key] > 0 for key in ("seconds", "seconds_per_view", "render_seconds"))
+    assert all(math.isfinite(value) for fit in document["fits"].values() for value in fit.values())
