@@ -36,7 +36,7 @@ class HardConfig:
     views: int = 40
     test_views: int = 8
     spp: int = 32
-    steps: int = 500
+    steps: int = 400
     seed: int = 0
 
     def validate(self) -> None:

@@ -136,6 +136,16 @@ def register_bench(subparsers) -> None:
     scaling.add_argument("--out", type=Path, default=Path("bench-out/scaling"),
                          help="writes scaling.json/.md/.png; reruns replace the cases' datasets and runs")
     scaling.set_defaults(func=run_bench_scaling)
+    hard = kinds.add_parser("hard", help="the hard scenes through generate, brief training and evaluate, "
+                                         "audited for NaN/inf")
+    hard.add_argument("--scenes", default=None, help="comma-separated scene names (default: every hard scene)")
+    hard.add_argument("--res", default="64")
+    hard.add_argument("--views", type=int, default=40)
+    hard.add_argument("--test-views", type=int, default=8)
+    hard.add_argument("--spp", type=int, default=32)
+    hard.add_argument("--steps", type=int, default=400, help="training steps per scene (default 400)")
+    hard.add_argument("--out", type=Path, default=Path("bench-out/hard"))
+    hard.set_defaults(func=run_bench_hard)
 
 
 def _variant_names():
@@ -212,3 +222,16 @@ def run_bench_scaling(args) -> int:
     print(report)
     print(f"data: {args.out / 'scaling.json'}; plots: {args.out / 'scaling.png'}")
     return 0
+
+
+def run_bench_hard(args) -> int:
+    from eval.bench_hard import HardConfig, bench_hard, table_markdown
+    from generate.commands import parse_resolution
+    from scenes import HARD_SCENES
+
+    width, height = parse_resolution(args.res)
+    scenes = tuple(HARD_SCENES) if args.scenes is None else tuple(s.strip() for s in args.scenes.split(",") if s.strip())
+    config = HardConfig(scenes, width, height, args.views, args.test_views, args.spp, args.steps)
+    rows = bench_hard(config, args.out)
+    print(table_markdown(rows, config.command(args.out)))
+    return 0 if all(row["finite"] for row in rows) else 1
