@@ -7,6 +7,7 @@ with the scene, giving the Euclidean ray distance from the camera centre.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,8 +44,19 @@ def sensor_dict(mi, c2w: np.ndarray, intrinsics: Intrinsics, spp: int) -> dict:
         "to_world": mi.ScalarTransform4f(to_mitsuba(c2w).tolist()),
         "film": {"type": "hdrfilm", "width": intrinsics.width, "height": intrinsics.height,
                  "rfilter": {"type": "box"}, "pixel_format": "rgba", "component_format": "float32"},
-        "sampler": {"type": "multijitter", "sample_count": int(spp)},
+        "sampler": sampler_dict(spp),
     }
+
+
+def sampler_dict(spp: int) -> dict:
+    """Multi-jittered samples when Mitsuba can lay `spp` out as a grid exactly; otherwise
+    independent samples, so a view never gets a different count than scene.json states.
+
+    Mitsuba's multijitter uses a = floor(sqrt(spp)) columns and ceil(spp / a) rows and
+    rounds the count up to their product (32 -> 35)."""
+    columns = math.isqrt(int(spp))
+    exact = columns * -(-int(spp) // columns) == int(spp)
+    return {"type": "multijitter" if exact else "independent", "sample_count": int(spp)}
 
 
 def render_rgba(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:

@@ -196,3 +196,12 @@ def test_worker_processes_give_the_same_bytes(tmp_path):
     assert run_cli("primitives", "--out", tmp_path / "one", *SMALL) == 0
     assert run_cli("primitives", "--out", tmp_path / "two", "--workers", "2", *SMALL) == 0
     assert all_file_bytes(tmp_path / "one") == all_file_bytes(tmp_path / "two")
+
+
+@pytest.mark.parametrize("spp", [1, 2, 4, 8, 12, 16, 32, 35, 50, 64, 100, 128, 1000])
+def test_the_sampler_draws_exactly_the_stated_sample_count(mi, spp):
+    """scene.json states `spp`; Mitsuba's multijitter would round 32 up to 35."""
+    from generate.render import sampler_dict
+
+    sampler = mi.load_dict(sampler_dict(spp))
+    assert sampler.sample_count() == spp
