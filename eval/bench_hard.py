@@ -35,7 +35,7 @@ class HardConfig:
     height: int = 64
     views: int = 40
     test_views: int = 8
-    spp: int = 32
+    spp: int = 64
     steps: int = 400
     seed: int = 0
 

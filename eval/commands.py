@@ -142,7 +142,7 @@ def register_bench(subparsers) -> None:
     hard.add_argument("--res", default="64")
     hard.add_argument("--views", type=int, default=40)
     hard.add_argument("--test-views", type=int, default=8)
-    hard.add_argument("--spp", type=int, default=32)
+    hard.add_argument("--spp", type=int, default=64)
     hard.add_argument("--steps", type=int, default=400, help="training steps per scene (default 400)")
     hard.add_argument("--out", type=Path, default=Path("bench-out/hard"))
     hard.set_defaults(func=run_bench_hard)
