@@ -184,8 +184,9 @@ def score_frame(root: Path, stem: str, intrinsics, files: PredictionFiles, backg
         gt_depth = dataset.read_depth(root, stem, intrinsics, depth_kind)
         try:
             scores = depth_metrics(depth, gt_depth, mask)
-        except InputError as error:
-            raise InputError(f"{files.depth}: {error}") from None
+        except InputError as error:  # the prediction's fault or (a corrupt dataset) the ground truth's
+            gt_file = root / (stem + dataset.FRAME_SUFFIXES["distance" if depth_kind == "distance" else "z_depth"])
+            raise InputError(f"{files.depth} against {gt_file}: {error}") from None
         values.update({f"depth_{key}": value for key, value in scores.items()})
         depth_err = depth_relative_error(depth, gt_depth, mask)
     if alpha is not None:

@@ -104,8 +104,9 @@ def _image_pair(pred, gt) -> tuple[np.ndarray, np.ndarray]:
 def _plane(array, name: str) -> np.ndarray:
     """A float64 [H, W] array (not yet checked for finiteness)."""
     plane = np.asarray(array)
-    if plane.ndim != 2 or not (np.issubdtype(plane.dtype, np.floating) or np.issubdtype(plane.dtype, np.integer)):
-        raise InputError(f"{name} must be a numeric [H, W] array, got {_describe(plane)}")
+    if plane.ndim != 2 or not (np.issubdtype(plane.dtype, np.floating) or np.issubdtype(plane.dtype, np.integer)) \
+            or plane.shape[0] < 1 or plane.shape[1] < 1:
+        raise InputError(f"{name} must be a numeric [H, W] array with H, W >= 1, got {_describe(plane)}")
     return plane.astype(np.float64)
 
 
@@ -216,7 +217,8 @@ def depth_metrics(pred, gt, mask) -> dict[str, Optional[float]]:
 
     A prediction <= 0 counts as a delta1 failure (the ratio is undefined) and enters the
     other three as it is. Pixels outside the mask are ignored (they may hold anything,
-    even NaN). An empty mask gives all four as None, never NaN.
+    even NaN). An empty mask gives all four as None, never NaN. Errors too large for
+    float64 (|p - g| beyond ~1e154 overflows the RMSE) raise `InputError`, never inf.
 
     Args:
         pred: [H, W] predicted depth; NaN or inf on a masked pixel raise `NonFiniteError`.
@@ -238,16 +240,22 @@ def depth_metrics(pred, gt, mask) -> dict[str, Optional[float]]:
     if g.min() <= 0:
         raise InputError(f"ground-truth depth must be > 0 on masked pixels, got minimum {g.min():.6g} "
                          f"on {int((g <= 0).sum())} of {g.size} pixels")
-    error = p - g  # [N]
-    positive = p > 0  # [N]
-    ratio = np.full(p.shape, np.inf)  # [N]; inf marks p <= 0 as a failure
-    ratio[positive] = np.maximum(p[positive] / g[positive], g[positive] / p[positive])
-    return {
-        "absrel": float(np.mean(np.abs(error) / g)),
-        "rmse": float(np.sqrt(np.mean(error ** 2))),
-        "mae": float(np.mean(np.abs(error))),
-        "delta1": float(np.mean(ratio < DELTA1_THRESHOLD)),
-    }
+    with np.errstate(over="ignore"):  # absurd predictions (|p| ~ 1e154 and up) overflow: refused below
+        error = p - g  # [N]
+        positive = p > 0  # [N]
+        ratio = np.full(p.shape, np.inf)  # [N]; inf marks p <= 0 as a failure
+        ratio[positive] = np.maximum(p[positive] / g[positive], g[positive] / p[positive])
+        scores = {
+            "absrel": float(np.mean(np.abs(error) / g)),
+            "rmse": float(np.sqrt(np.mean(error ** 2))),
+            "mae": float(np.mean(np.abs(error))),
+            "delta1": float(np.mean(ratio < DELTA1_THRESHOLD)),
+        }
+    overflowed = sorted(key for key, value in scores.items() if not math.isfinite(value))
+    if overflowed:
+        raise InputError(f"depth errors overflow float64 ({', '.join(overflowed)}): predicted depth on masked "
+                         f"pixels spans [{p.min():.6g}, {p.max():.6g}], true depth [{g.min():.6g}, {g.max():.6g}]")
+    return scores
 
 
 def opacity_iou(pred_alpha, gt_mask, threshold: float = 0.5) -> Optional[float]:
@@ -283,7 +291,8 @@ def summarize(values) -> tuple[Optional[float], Optional[float]]:
     left out: the mean and std are over the defined frames only, and the caller reports
     how many those were (`sum(v is not None for v in values)`). When no frame is defined
     (or the list is empty) both are None. A single defined frame has std 0.0.
-    NaN or inf raise `NonFiniteError`: they would make the mean meaningless.
+    NaN or inf raise `NonFiniteError`: they would make the mean meaningless. Values near
+    the float64 limit, whose plain sum would overflow, are summed scaled by a power of two.
 
     Args:
         values: [n_frames] floats or None.
@@ -300,4 +309,12 @@ def summarize(values) -> tuple[Optional[float], Optional[float]]:
     if array.ndim != 1:
         raise InputError(f"summarize needs a list of numbers or None, got {_describe(array)}")
     _check_finite(array, "per-frame metric values")
-    return float(array.mean()), float(array.std(ddof=0))
+    with np.errstate(over="ignore"):
+        mean, std = float(array.mean()), float(array.std(ddof=0))
+    if not (math.isfinite(mean) and math.isfinite(std)):
+        # The sum overflowed (values near 1e308): the same sums on values scaled by a power
+        # of two, which is exact, then scaled back.
+        exponent = math.frexp(float(np.abs(array).max()))[1]
+        scaled = array * math.ldexp(1.0, -exponent)  # [n_defined], all in (-1, 1)
+        mean, std = math.ldexp(float(scaled.mean()), exponent), math.ldexp(float(scaled.std(ddof=0)), exponent)
+    return mean, std

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nerfgauge.errors import InputError
+
 GL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
 
 
@@ -64,6 +66,10 @@ def pixel_rays(c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.
     c2w = np.asarray(c2w, np.float64)
     if c2w.shape != (4, 4):
         raise ValueError(f"c2w must be 4x4, got shape {c2w.shape}")
+    if not np.isfinite(c2w).all():
+        raise InputError(f"camera-to-world matrix has non-finite entries: {c2w[:3].round(6).tolist()}")
+    if abs(np.linalg.det(c2w[:3, :3])) < 1e-12:
+        raise InputError(f"camera-to-world rotation is singular: {c2w[:3, :3].round(6).tolist()}")
     d = camera_directions(intrinsics) @ c2w[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return np.broadcast_to(c2w[:3, 3], d.shape).copy(), d
@@ -81,18 +87,36 @@ def z_depth_from_distance(distance: np.ndarray, directions: np.ndarray, c2w: np.
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-to-world (OpenGL axes) at `eye` looking at `target`. Returns [4, 4].
 
-    When the view direction is parallel to `up` (looking straight down or up), the
-    world +Y axis is used as up instead, so the pose stays defined.
+        back = (eye - target) / |eye - target|,  right = up x back / |up x back|,
+        true_up = back x right
+
+    a right-handed orthonormal frame (det +1) whose -Z column points at the target. When
+    the view direction is parallel to `up` (|up x back| < 1e-9 |up|: looking straight down
+    or up), the world +Y axis stands in for up (+X if the view is along Y), so the pose
+    stays defined; the roll then jumps, which is unavoidable at the pole.
+
+    Raises InputError for non-finite input, a zero `up`, or `eye` equal to `target`.
     """
     eye, target, up = (np.asarray(x, np.float64) for x in (eye, target, up))
+    for name, value in (("eye", eye), ("target", target), ("up", up)):
+        if value.shape != (3,) or not np.isfinite(value).all():
+            raise InputError(f"camera {name} must be 3 finite numbers, got {value.tolist()}")
     back = eye - target
     norm = np.linalg.norm(back)
     if norm == 0:
-        raise ValueError("camera eye and target coincide")
+        raise InputError(f"camera eye and target coincide at {eye.tolist()}")
+    up_norm = np.linalg.norm(up)
+    if up_norm == 0:
+        raise InputError("camera up vector is zero")
     back /= norm
-    right = np.cross(up, back)
-    if np.linalg.norm(right) < 1e-9:
-        right = np.cross(np.array([0.0, 1.0, 0.0]), back)
+    right = np.cross(up / up_norm, back)
+    for fallback in ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0)):
+        if np.linalg.norm(right) >= 1e-9:
+            break
+        right = np.cross(np.array(fallback), back)
+    overlap = right @ back  # 0 up to rounding; not negligible once |up x back| is tiny
+    if overlap:
+        right -= overlap * back  # Gram-Schmidt, so the frame stays orthonormal near the pole
     right /= np.linalg.norm(right)
     true_up = np.cross(back, right)
     c2w = np.eye(4)
