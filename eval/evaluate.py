@@ -23,7 +23,9 @@ renderer), if present, is copied into metrics.json's `timing`.
 
 Metrics (eval.metrics): PSNR and SSIM on colour composited onto the background (prediction
 and the straight-alpha ground-truth PNG alike; RGB predictions are taken as composited);
-depth on ground-truth hit pixels (read_mask); opacity IoU when the prediction has alpha.
+PSNR on the foreground (pixels with ground-truth coverage or visible predicted opacity;
+null when a view has none); depth on ground-truth hit pixels (read_mask), null when a view
+hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty).
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 Outputs: FILE (default DIR/metrics.json, schema 1, written atomically) and error maps in
@@ -42,7 +44,8 @@ from typing import Optional
 import numpy as np
 
 from eval.error_maps import colour_error, depth_relative_error, write_error_maps
-from eval.metrics import METRIC_NAMES, composite, depth_metrics, opacity_iou, psnr, ssim, summarize
+from eval.metrics import (METRIC_NAMES, composite, depth_metrics, opacity_iou, psnr, psnr_foreground, ssim,
+                          summarize)
 from generate import dataset
 from generate.image_files import linear_to_srgb, read_exr, read_png
 from nerfgauge.errors import InputError
@@ -178,6 +181,7 @@ def score_frame(root: Path, stem: str, intrinsics, files: PredictionFiles, backg
     mask = dataset.read_mask(root, stem, intrinsics)  # [H, W] bool
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
+    values["psnr_foreground"] = psnr_foreground(pred, gt, foreground_pixels(root, stem, intrinsics, alpha))
     depth_err = None
     if files.depth is not None:
         depth = read_plane(files.depth, intrinsics, depth_kind)
@@ -192,6 +196,16 @@ def score_frame(root: Path, stem: str, intrinsics, files: PredictionFiles, backg
     if alpha is not None:
         values["opacity_iou"] = opacity_iou(alpha, mask)
     return values, colour_error(pred, gt).astype(np.float32), depth_err
+
+
+def foreground_pixels(root: Path, stem: str, intrinsics, pred_alpha) -> np.ndarray:
+    """Where either image is not pure background: ground-truth coverage (PNG alpha) above
+    zero, or predicted opacity that shows in 8 bits (> 0.5 / 255). Coverage rather than the
+    centre-ray mask, so wires thinner than a pixel count. Returns [H, W] bool."""
+    foreground = dataset.read_rgba(root, stem, intrinsics)[..., 3] > 0
+    if pred_alpha is not None:
+        foreground |= pred_alpha > 0.5 / 255
+    return foreground
 
 
 def read_timing(pred_dir: Path) -> dict:

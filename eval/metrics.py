@@ -33,6 +33,7 @@ from nerfgauge.errors import InputError
 METRIC_NAMES = (
     "psnr",
     "ssim",
+    "psnr_foreground",
     "depth_absrel",
     "depth_rmse",
     "depth_mae",
@@ -158,6 +159,27 @@ def psnr(pred, gt) -> float:
     return 10.0 * math.log10(1.0 / max(mse, MSE_FLOOR))
 
 
+def psnr_foreground(pred, gt, foreground) -> Optional[float]:
+    """PSNR over the foreground pixels only: 10 log10(1 / max(MSE_fg, MSE_FLOOR)).
+
+    An object covering a few pixels barely moves the whole-image PSNR (a view that is 99%
+    background scores 40 dB with the object missing); restricted to the pixels where
+    either image shows something, the miss is plain.
+
+    Args:
+        pred, gt: [H, W, 3] in [0, 1], as for `psnr`.
+        foreground: [H, W] bool, the pixels to score.
+    Returns:
+        dB, or None when no pixel is foreground (nothing to score).
+    """
+    pred, gt = _image_pair(pred, gt)
+    foreground = _mask(foreground, "foreground", pred.shape[:2])
+    if not foreground.any():
+        return None
+    mse = float(np.mean((pred[foreground] - gt[foreground]) ** 2))
+    return 10.0 * math.log10(1.0 / max(mse, MSE_FLOOR))
+
+
 def ssim_window(height: int, width: int) -> int:
     """The window side used for an image's border crop: 11, or less for small images.
 
@@ -266,7 +288,8 @@ def opacity_iou(pred_alpha, gt_mask, threshold: float = 0.5) -> Optional[float]:
         gt_mask: [H, W] bool, True where the ground-truth ray hit geometry.
         threshold: in [0, 1); a pixel is predicted opaque when alpha > threshold.
     Returns:
-        |P & G| / |P | G|, or None when both silhouettes are empty (nothing to compare).
+        |P & G| / |P | G|; 1.0 when both silhouettes are empty (they agree: a field that
+        predicts nothing where nothing is scores perfectly, so an empty scene is scored).
     """
     alpha = _plane(pred_alpha, "predicted alpha")
     _check_finite(alpha, "predicted alpha")
@@ -277,7 +300,7 @@ def opacity_iou(pred_alpha, gt_mask, threshold: float = 0.5) -> Optional[float]:
     predicted = alpha > threshold  # [H, W]
     union = int(np.sum(predicted | gt_mask))
     if union == 0:
-        return None
+        return 1.0
     return int(np.sum(predicted & gt_mask)) / union
 
 

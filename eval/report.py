@@ -19,7 +19,8 @@ from generate.dataset import read_depth, read_mask, read_rgba, read_split
 from generate.image_files import atomic_path, read_exr_single, read_png, write_bytes_atomic
 from eval.error_maps import colour_error, colourize, depth_relative_error
 
-TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("depth_absrel", "depth AbsRel", "{:.4f}"),
+TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_foreground", "foreground PSNR dB", "{:.2f}"),
+                 ("depth_absrel", "depth AbsRel", "{:.4f}"),
                  ("depth_rmse", "depth RMSE", "{:.4f}"), ("depth_delta1", "depth δ<1.25", "{:.4f}"),
                  ("opacity_iou", "opacity IoU", "{:.4f}"))
 

@@ -263,7 +263,7 @@ def test_opacity_iou():
     # alpha > 0.5 selects the top row (0.5 itself is not above): 1 shared of 3 in the union.
     assert opacity_iou(alpha, mask) == pytest.approx(1 / 3, rel=1e-15)
     assert opacity_iou(alpha, mask, threshold=0.1) == pytest.approx(0.5, rel=1e-15)
-    assert opacity_iou(np.zeros((2, 2)), np.zeros((2, 2), bool)) is None
+    assert opacity_iou(np.zeros((2, 2)), np.zeros((2, 2), bool)) == 1.0  # both empty: they agree
     assert opacity_iou(np.ones((2, 2)), np.ones((2, 2), bool)) == 1.0
     with pytest.raises(NonFiniteError):
         opacity_iou(np.full((2, 2), np.nan), mask)
@@ -287,3 +287,20 @@ def test_summarize_skips_undefined_frames():
     assert summarize([]) == (None, None)
     with pytest.raises(NonFiniteError):
         summarize([1.0, float("nan")])
+
+
+def test_foreground_psnr_sees_what_the_whole_image_averages_away():
+    """A 2x2 object missing from a 100x100 white view: the whole-image MSE is 4/10000 of
+    the object's, so whole-image PSNR is 10 log10(10000/4) = 33.98 dB above the
+    foreground's; over the 4 foreground pixels the miss (black vs white, MSE 1) is 0 dB."""
+    from eval.metrics import psnr_foreground
+
+    gt = np.ones((100, 100, 3))
+    gt[10:12, 20:22] = 0.0
+    pred = np.ones((100, 100, 3))
+    foreground = np.zeros((100, 100), bool)
+    foreground[10:12, 20:22] = True
+    assert psnr_foreground(pred, gt, foreground) == pytest.approx(0.0, abs=1e-12)
+    assert psnr(pred, gt) == pytest.approx(10 * np.log10(10000 / 4), rel=1e-12)
+    assert psnr_foreground(pred, gt, np.zeros((100, 100), bool)) is None
+    assert psnr_foreground(gt, gt, foreground) == pytest.approx(100.0)

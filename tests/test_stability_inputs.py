@@ -112,7 +112,7 @@ def test_one_pixel_depth_and_opacity():
     assert depth_metrics(np.array([[3.0]]), np.array([[2.0]]), hit) == {
         "absrel": 0.5, "rmse": 1.0, "mae": 1.0, "delta1": 0.0}  # 1.5 >= 1.25; exact in binary
     assert depth_metrics(np.array([[np.inf]]), np.array([[0.0]]), miss)["rmse"] is None
-    assert opacity_iou(np.array([[0.0]]), miss) is None
+    assert opacity_iou(np.array([[0.0]]), miss) == 1.0  # both silhouettes empty: they agree
     assert opacity_iou(np.array([[1.0]]), miss) == 0.0  # something predicted where nothing is
 
 
@@ -144,8 +144,9 @@ def test_summarize_near_the_float64_limit_is_finite():
 
 
 def test_evaluate_ground_truth_with_no_hit_pixels(tmp_path, capsys):
-    """Empty views (nothing in front of the camera): depth and opacity metrics are null
-    with count 0, colour is perfect, metrics.json holds no NaN or inf."""
+    """Empty views (nothing in front of the camera): depth metrics and foreground PSNR are
+    null with count 0, the (empty) silhouettes agree (IoU 1), colour is perfect,
+    metrics.json holds no NaN or inf."""
     empty = (constant_rgba(6, 8, (0, 0, 0), alpha=0), np.zeros((6, 8), np.float32))
     root = hand_dataset(tmp_path / "ds", [empty, empty])
     out = tmp_path / "m.json"
@@ -153,9 +154,10 @@ def test_evaluate_ground_truth_with_no_hit_pixels(tmp_path, capsys):
     printed = capsys.readouterr().out
     doc = strict_json(out)
     assert doc["mean"]["psnr"] == PSNR_CAP_DB and doc["mean"]["ssim"] == 1.0
-    for metric in ("depth_absrel", "depth_rmse", "depth_mae", "depth_delta1", "opacity_iou"):
+    for metric in ("depth_absrel", "depth_rmse", "depth_mae", "depth_delta1", "psnr_foreground"):
         assert doc["mean"][metric] is None and doc["std"][metric] is None and doc["count"][metric] == 0, metric
         assert all(frame[metric] is None for frame in doc["frames"])
+    assert doc["mean"]["opacity_iou"] == 1.0 and doc["count"]["opacity_iou"] == 2
     assert doc["count"]["psnr"] == 2
     assert "0/2" in printed and "100.0000" in printed
     # The depth error map of an all-miss view is black (no pixel to colour).
