@@ -23,8 +23,8 @@ One table per scene, one entry per metric, each an inline table with `min` and/o
 
 - Table names: a scene from `scenes.registry.RECIPES`, a `mesh:PATH` scene, or `"*"`.
   Anything else is an error naming it.
-- Metric names: `eval.metrics.METRIC_NAMES` (psnr, ssim, depth_absrel, depth_rmse,
-  depth_mae, depth_delta1, opacity_iou), compared with metrics.json's `mean` table.
+- Metric names: `eval.metrics.METRIC_NAMES` (psnr, ssim, psnr_foreground, depth_absrel,
+  depth_rmse, depth_mae, depth_delta1, opacity_iou), compared with metrics.json's `mean` table.
 - Entry keys: only `min` and `max`, finite numbers, at least one, min <= max. Bounds are
   inclusive: a value equal to its bound passes.
 - The bounds for a scene are the `"*"` table overlaid by the scene's own table (per

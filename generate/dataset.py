@@ -166,6 +166,9 @@ def read_split(root, split: str) -> SplitCameras:
         raise InputError(f"{root / f'transforms_{split}.json'} is malformed: {error!r}") from None
     if len(frames) and poses.shape[1:] != (4, 4):
         raise InputError(f"transforms_{split}.json: transform_matrix must be 4x4, got {poses.shape[1:]}")
+    if not np.isfinite(poses).all():
+        bad = sorted({stems[i] for i in np.flatnonzero(~np.isfinite(poses.reshape(len(poses), -1)).all(axis=1))})
+        raise InputError(f"{root / f'transforms_{split}.json'}: transform_matrix holds NaN or inf for {', '.join(bad[:3])}")
     return SplitCameras(split, stems, poses.reshape(-1, 4, 4), intrinsics)
 
 

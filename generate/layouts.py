@@ -86,7 +86,18 @@ def camera_poses(spec: LayoutSpec, aabb: np.ndarray, rng: np.random.Generator) -
         stacked = np.stack([look_at(eye, centre) for eye in eyes])
         order = rng.permutation(total) if spec.layout in ("hemisphere", "sphere") else _interleave(spec.counts)
         poses = _deal(stacked[order], spec.counts)
+    _refuse_coinciding(poses)
     return poses
+
+
+def _refuse_coinciding(poses: dict) -> None:
+    """Two identical cameras (e.g. an elevation band of zero width at a pole, where every
+    azimuth is the same point) would put a test view in the training set."""
+    stacked = np.concatenate([p for p in poses.values() if len(p)])  # [n, 4, 4]
+    distinct = len(np.unique(stacked[:, :3, :].reshape(len(stacked), -1).round(9), axis=0))
+    if distinct < len(stacked):
+        raise InputError(f"this layout puts {len(stacked) - distinct + 1} cameras on the same pose; "
+                         f"widen --elevation or choose another layout")
 
 
 def _directions(layout, sampling, n, lo_deg, hi_deg, rng) -> np.ndarray:

@@ -56,6 +56,8 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                                budget_seconds=None if config.steps else config.budget_seconds, steps=config.steps)
     generate_config.validate()
     train_config.validate()
+    if config.test_views < 1:
+        raise InputError(f"--test-views must be at least 1: the pipeline evaluates on them, got {config.test_views}")
     run_dir = out / "run"
     if run_dir.exists():
         if not overwrite:
