@@ -194,7 +194,8 @@ def nerf_case(config: ScalingConfig, out: Path, resolution: int, views: int, axe
     metrics = evaluate(data, run / "renders", "test", run / "metrics.json")
     return row | {"time_to_target_s": first_time_reaching(log, config.target_psnr),
                   "val_psnr": _finite(log[-1]["val_psnr"]), "psnr": _finite(metrics["mean"]["psnr"]),
-                  "ssim": _finite(metrics["mean"]["ssim"]), "train_seconds": log[-1]["seconds"],
+                  "ssim": _finite(metrics["mean"]["ssim"]), "depth_absrel": _finite(metrics["mean"]["depth_absrel"]),
+                  "train_seconds": log[-1]["seconds"],
                   "steps": log[-1]["step"], "steps_per_second": log[-1]["steps_per_second"],
                   "render_ms_per_frame": _finite(metrics["timing"].get("ms_per_frame")),
                   "model_mb": (run / "model.pt").stat().st_size / 1e6, "peak_memory_mb": peak_mb,
@@ -313,8 +314,8 @@ def growth_line(rows: list, axis: str, metrics: tuple, size_key: str, target: fl
 
 
 def nerf_table(rows: list, target: float, budget: float) -> str:
-    head = ("res", "views", f"time to {target:g} dB (s)", "val PSNR", "test PSNR", "SSIM", "steps/s", "render ms/frame",
-            "model MB", "peak MB", "generation s (child wall)")
+    head = ("res", "views", f"time to {target:g} dB (s)", "val PSNR", "test PSNR", "SSIM", "depth AbsRel", "steps/s",
+            "render ms/frame", "model MB", "peak MB", "generation s (child wall)")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         size = f"{r['resolution']}x{r['resolution']}"
@@ -327,7 +328,7 @@ def nerf_table(rows: list, target: float, budget: float) -> str:
 
         reached = f"not reached in {budget:g} s" if r["time_to_target_s"] is None else f"{r['time_to_target_s']:.1f}"
         cells = [size, str(r["views"]), reached, cell("val_psnr", "{:.2f}"), cell("psnr", "{:.2f}"),
-                 cell("ssim", "{:.4f}"), cell("steps_per_second", "{:.1f}"), cell("render_ms_per_frame", "{:.1f}"),
+                 cell("ssim", "{:.4f}"), cell("depth_absrel", "{:.4f}"), cell("steps_per_second", "{:.1f}"), cell("render_ms_per_frame", "{:.1f}"),
                  cell("model_mb", "{:.2f}"), cell("peak_memory_mb", "{:.0f}"), cell("generation_seconds", "{:.1f}")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
