@@ -172,3 +172,64 @@ def test_hard_scene_survives_generate_train_render_evaluate(tmp_path, scene):
     if scene == "empty":
         assert found["no_pixels"], "an empty scene has no hit pixel to score depth on"
         assert metrics["count"]["depth_absrel"] == 0
+
+
+def test_bench_hard_refuses_bad_settings_before_running(tmp_path):
+    from eval.bench_hard import HardConfig, bench_hard
+
+    for config, message in [(HardConfig(("thin", "no-such-scene")), "unknown scene 'no-such-scene'"),
+                            (HardConfig(("thin",), steps=0), "--steps must be a positive integer"),
+                            (HardConfig(("thin",), test_views=-1), "--test-views must be a positive integer"),
+                            (HardConfig(()), "--scenes is empty")]:
+        with pytest.raises(InputError, match=message):
+            bench_hard(config, tmp_path / "out")
+        assert not (tmp_path / "out").exists()
+
+
+def _found(**overrides):
+    found = {"exit": 0, "dataset_non_finite": 0, "dataset_exr_files": 10, "log_entries": 3, "log_non_finite": 0,
+             "render_depth_non_finite": 0, "render_depth_files": 2, "mean": {"psnr": 30.0}, "undefined": [],
+             "no_pixels": []}
+    return found | overrides
+
+
+@pytest.mark.parametrize("overrides", [{"exit": 3}, {"dataset_non_finite": 1}, {"log_non_finite": 2},
+                                       {"render_depth_non_finite": 5}, {"log_entries": 0},
+                                       {"undefined": ["ssim"]}, {"metrics_error": "holds NaN"}])
+def test_any_single_failure_makes_a_run_not_finite(overrides):
+    from eval.bench_hard import all_finite
+
+    assert all_finite(_found())
+    assert not all_finite(_found(**overrides))
+
+
+def test_audit_finds_nan_in_a_dataset_exr_and_a_log(tmp_path):
+    from eval.bench_hard import audit
+    from generate.image_files import write_exr
+
+    (tmp_path / "dataset" / "test").mkdir(parents=True)
+    (tmp_path / "run" / "renders" / "test").mkdir(parents=True)
+    depth = np.ones((4, 4), np.float32)
+    depth[1, 2] = np.nan
+    depth[3, 3] = np.inf
+    write_exr(tmp_path / "dataset" / "test" / "r_000_distance.exr", {"Z": depth}, {})
+    write_exr(tmp_path / "run" / "renders" / "test" / "r_000_depth.exr", {"Z": np.ones((4, 4), np.float32)}, {})
+    (tmp_path / "run" / "log.jsonl").write_text('{"loss": 0.1, "val_psnr": 20.0}\n{"loss": NaN, "val_psnr": 21.0}\n')
+    found = audit(tmp_path)
+    assert found["dataset_non_finite"] == 2 and found["dataset_exr_files"] == 1
+    assert found["log_non_finite"] == 1 and found["log_entries"] == 2
+    assert found["render_depth_non_finite"] == 0 and found["render_depth_files"] == 1
+    assert "metrics_error" in found  # no metrics.json: reported, not a crash
+
+
+def test_bench_hard_table_marks_failures_and_unscored_metrics():
+    from eval.bench_hard import table_markdown
+
+    rows = [_found(scene="empty", finite=True, mean={"psnr": 100.0, "opacity_iou": 1.0},
+                   no_pixels=["depth_absrel", "psnr_foreground"], steps_per_second=60.0, resolution=53),
+            _found(scene="inside", exit=3, finite=False, mean={})]
+    table = table_markdown(rows, "nerfgauge bench hard").splitlines()
+    assert table[0] == "`nerfgauge bench hard`"
+    empty, inside = table[-2].split(" | "), table[-1].split(" | ")
+    assert empty[2] == "yes" and empty[3] == "100.00" and empty[-1].startswith("depth_absrel, psnr_foreground")
+    assert inside[1] == "3" and inside[2] == "**no**" and inside[3] == "–"
