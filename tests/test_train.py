@@ -85,6 +85,20 @@ def test_resume_trains_further(small_dataset, tmp_path):
     assert steps[-1] == 30 and steps == sorted(steps)
 
 
+def test_resume_drops_log_entries_past_the_checkpoint(small_dataset, tmp_path):
+    """Checkpoints are rarer than log points: after a crash the log may run ahead of the
+    checkpoint. Resuming continues from the checkpoint's step without repeating steps."""
+    run = tmp_path / "run"
+    assert main(["train", str(small_dataset), "--out", str(run), "--steps", "20", "--quiet"]) == 0
+    with (run / "log.jsonl").open("a") as log:  # what a run killed after its last checkpoint leaves
+        log.write(json.dumps({"step": 25, "seconds": 99.0, "val_psnr": 1.0, "steps_per_second": 1.0}) + "\n")
+    assert main(["train", str(small_dataset), "--out", str(run), "--steps", "30", "--resume", "--quiet"]) == 0
+    entries = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    steps = [e["step"] for e in entries]
+    assert steps[-1] == 30 and len(set(steps)) == len(steps) and steps == sorted(steps)
+    assert all(e["val_psnr"] != 1.0 for e in entries)
+
+
 @pytest.mark.slow
 def test_vanilla_nerf_trains_a_few_steps(small_dataset, tmp_path):
     run = tmp_path / "vanilla"
