@@ -15,14 +15,15 @@ Writes OUT/hard.json (rows, rewritten after each scene) and OUT/hard.md (the tab
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from eval.bench import run_child
-from generate.dataset import write_json
+from eval.report import read_log
+from generate.dataset import read_json, write_json
+from generate.image_files import write_bytes_atomic
 from nerfgauge.errors import InputError
 
 COLUMNS = ("psnr", "ssim", "psnr_foreground", "depth_absrel", "depth_delta1", "opacity_iou")
@@ -56,12 +57,6 @@ class HardConfig:
                 f"--views {self.views} --test-views {self.test_views} --spp {self.spp} --steps {self.steps} --out {out}")
 
 
-def _strict_json(path: Path):
-    def refuse(constant):
-        raise ValueError(f"{path} holds {constant}")
-    return json.loads(path.read_text(), parse_constant=refuse)
-
-
 def non_finite_exr_values(folder: Path, pattern: str) -> tuple[int, int]:
     """(files, non-finite values) over the EXRs matching `pattern` under `folder`."""
     from generate.image_files import read_exr
@@ -77,19 +72,20 @@ def non_finite_exr_values(folder: Path, pattern: str) -> tuple[int, int]:
 def audit(out: Path) -> dict:
     """The finiteness checks of one `nerfgauge run` output folder (see the module doc)."""
     found = {}
-    dataset_files, found["dataset_non_finite"] = non_finite_exr_values(out / "dataset", "*.exr")
-    found["dataset_exr_files"] = dataset_files
+    found["dataset_exr_files"], found["dataset_non_finite"] = non_finite_exr_values(out / "dataset", "*.exr")
     log_path = out / "run" / "log.jsonl"
-    entries = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()] if log_path.is_file() else []
+    entries = read_log(log_path) if log_path.is_file() else []
     numbers = [e[key] for e in entries for key in ("loss", "val_psnr") if e.get(key) is not None]
     found["log_entries"] = len(entries)
     found["log_non_finite"] = sum(not np.isfinite(x) for x in numbers)
-    depth_files, found["render_depth_non_finite"] = non_finite_exr_values(out / "run" / "renders", "*_depth.exr")
-    found["render_depth_files"] = depth_files
+    if entries:
+        found["steps_per_second"], found["resolution"] = entries[-1].get("steps_per_second"), entries[-1].get("resolution")
+    found["render_depth_files"], found["render_depth_non_finite"] = non_finite_exr_values(out / "run" / "renders",
+                                                                                          "*_depth.exr")
     metrics_path = out / "eval" / "compact" / "metrics.json"
     try:
-        metrics = _strict_json(metrics_path)
-    except (OSError, ValueError) as error:
+        metrics = read_json(metrics_path, finite=True)
+    except InputError as error:
         found["metrics_error"] = str(error).splitlines()[0]
         return found
     found["mean"] = metrics["mean"]
@@ -118,14 +114,10 @@ def bench_hard(config: HardConfig, out: Path, progress_print=print) -> list:
              "--test-views", str(config.test_views), "--spp", str(config.spp), "--steps", str(config.steps),
              "--seed", str(config.seed), "--overwrite", "--quiet"])
         row = {"scene": scene, "exit": code, "seconds": seconds, "peak_memory_mb": peak_mb} | audit(folder)
-        log_path = folder / "run" / "log.jsonl"
-        if log_path.is_file() and row["log_entries"]:
-            last = json.loads(log_path.read_text().splitlines()[-1])
-            row["steps_per_second"], row["resolution"] = last["steps_per_second"], last.get("resolution")
         row["finite"] = all_finite(row)
         rows.append(row)
         write_json(out / "hard.json", {"config": asdict(config), "command": config.command(out), "rows": rows})
-    (out / "hard.md").write_text(table_markdown(rows, config.command(out)) + "\n")
+    write_bytes_atomic(out / "hard.md", (table_markdown(rows, config.command(out)) + "\n").encode())
     return rows
 
 

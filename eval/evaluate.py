@@ -34,7 +34,6 @@ Outputs: FILE (default DIR/metrics.json, schema 1, written atomically) and error
 
 from __future__ import annotations
 
-import json
 import re
 import time
 from dataclasses import dataclass
@@ -210,19 +209,7 @@ def foreground_pixels(root: Path, stem: str, intrinsics, pred_alpha) -> np.ndarr
 
 def read_timing(pred_dir: Path) -> dict:
     path = pred_dir / "timing.json"
-    if not path.is_file():
-        return {}
-
-    def refuse(constant):
-        raise InputError(f"{path} holds {constant}, which is not valid JSON")
-
-    try:
-        timing = json.loads(path.read_text(), parse_constant=refuse)
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise InputError(f"{path} is not valid JSON: {error}") from None
-    if not isinstance(timing, dict):
-        raise InputError(f"{path} should hold a JSON object, got {type(timing).__name__}")
-    return timing
+    return dataset.read_json(path, finite=True) if path.is_file() else {}
 
 
 def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",

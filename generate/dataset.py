@@ -64,10 +64,16 @@ def write_json(path, obj) -> None:
     write_bytes_atomic(path, json_bytes(obj))
 
 
-def read_json(path) -> dict:
+def read_json(path, *, finite: bool = False) -> dict:
+    """A JSON object from `path` (InputError otherwise). finite=True also refuses the NaN
+    and Infinity literals Python's parser accepts (files that promise numbers)."""
     path = Path(path)
+
+    def refuse(constant):
+        raise InputError(f"{path} holds {constant}, which is not valid JSON")
+
     try:
-        value = json.loads(path.read_text())
+        value = json.loads(path.read_text(), parse_constant=refuse if finite else None)
     except FileNotFoundError:
         raise InputError(f"missing file: {path}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:

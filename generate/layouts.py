@@ -218,8 +218,6 @@ def forward_poses(spec: LayoutSpec, aabb: np.ndarray, rng: np.random.Generator) 
     else:
         eye = np.asarray(spec.eye, np.float64)
     target = centre if spec.target is None else np.asarray(spec.target, np.float64)
-    if np.linalg.norm(target - eye) == 0:
-        raise InputError("the forward layout's eye and target coincide")
     spread = 0.1 * spec.radius if spec.spread is None else spec.spread
     orientation = look_at(eye, target)
     offsets = _disc(sum(spec.counts), spec.sampling, rng) * spread  # [n, 2] along camera right, up

@@ -71,9 +71,6 @@ class GenerateConfig:
             raise InputError(f"--radius must be positive, got {self.radius}")
         if self.layout != "auto" and self.layout not in layouts.LAYOUTS:
             raise InputError(f"unknown layout {self.layout!r}; choose auto or one of {', '.join(layouts.LAYOUTS)}")
-        if self.elevation is not None and not (len(self.elevation) == 2
-                                               and -90 <= self.elevation[0] <= self.elevation[1] <= 90):
-            raise InputError(f"--elevation must be MIN,MAX with -90 <= MIN <= MAX <= 90, got {self.elevation}")
         if self.variant not in VARIANT_CHOICES:
             raise InputError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANT_CHOICES)}")
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
@@ -90,12 +87,15 @@ class Plan:
     config: GenerateConfig
     scene: object
     intrinsics: Intrinsics
-    radius: float
     layout: layouts.LayoutSpec  # as resolved: "auto" replaced by the scene's suggestion
     poses: dict  # split -> [n, 4, 4]
     stems: dict  # split -> [n] frame stems
     variant: str
     lightfield: Optional[dict]
+
+    @property
+    def radius(self) -> float:
+        return self.layout.radius
 
     def recipe(self) -> dict:
         """What config.json holds: the config plus the resolved radius and variant."""
@@ -114,8 +114,7 @@ def plan(config: GenerateConfig) -> Plan:
     lightfield = layouts.lightfield_plane(spec, scene.aabb) if spec.layout == "lightfield" else None
     stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
              for split in dataset.SPLITS}
-    return Plan(config, scene, intrinsics, float(spec.radius), spec, poses, stems, resolve_variant(config.variant),
-                lightfield)
+    return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield)
 
 
 def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
