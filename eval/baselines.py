@@ -35,10 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
-from generate import dataset
-from generate.camera import pixel_rays
-from generate.image_files import write_png
-from nerfgauge.errors import InputError
+from nerfgauge.core import dataset
+from nerfgauge.core.camera import pixel_rays
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_json
+from nerfgauge.core.images import write_png
 
 METHODS = ("nearest", "lightfield-nearest", "lightfield-quadrilinear")
 GRID_TOLERANCE = 1e-6  # training cameras must sit on grid nodes to this fraction of a cell
@@ -226,5 +227,5 @@ def write_baseline(root, method: str, out, split: str = "test") -> dict:
         write_png(out / (stem + ".png"), image)
     timing = {"method": method, "split": split, "frames": len(frames), "seconds": seconds,
               "ms_per_frame": 1000.0 * seconds / max(len(frames), 1)}
-    dataset.write_json(out / "timing.json", timing)
+    write_json(out / "timing.json", timing)
     return timing

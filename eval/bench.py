@@ -12,7 +12,6 @@ Figures are ratios and orderings within one run; absolute seconds depend on the 
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -20,8 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from generate.dataset import write_json
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_json
 
 # variant name -> (model, extra `nerfgauge train` arguments). The vanilla NeRF logs its
 # curve every 30 s and is not rendered on the test views: at ~0.5 s per ray batch on two
@@ -38,8 +37,8 @@ VARIANTS = {
 
 
 def bench_generate(scene: str, views: int, width: int, height: int, spp: int) -> dict:
-    from generate.benchmark import mitsuba_render_seconds
-    from generate.pipeline import GenerateConfig, generate
+    from nerfgauge.generate.benchmark import mitsuba_render_seconds
+    from nerfgauge.generate.pipeline import GenerateConfig, generate
 
     config = GenerateConfig(scene=scene, views=views, val_views=0, test_views=0, width=width, height=height, spp=spp)
     mitsuba = mitsuba_render_seconds(config)
@@ -71,8 +70,8 @@ def first_time_reaching(log: list, psnr: float):
 
 
 def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: int, height: int, views: int) -> list:
-    from eval.evaluate import evaluate
-    from eval.report import read_log
+    from nerfgauge.eval.evaluate import evaluate
+    from nerfgauge.eval.report import read_log
 
     rows = []
     for scene in scenes:
@@ -110,7 +109,7 @@ def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: i
 
 def speedups(rows: list) -> list[str]:
     """For each scene and budget: how much sooner compact reaches vanilla's final val PSNR."""
-    from eval.report import read_log
+    from nerfgauge.eval.report import read_log
 
     lines = []
     for row in rows:
@@ -150,8 +149,7 @@ def pareto_plots(rows: list, out: Path) -> None:
     """PSNR against training seconds (every run's val curve) and against model MB."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-
-    from eval.report import read_log
+    from nerfgauge.eval.report import read_log
 
     figure = Figure(figsize=(11, 4), dpi=110)
     by_time, by_size = figure.add_subplot(1, 2, 1), figure.add_subplot(1, 2, 2)

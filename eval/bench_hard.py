@@ -19,12 +19,11 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from nerfgauge.eval.bench import run_child
+from nerfgauge.eval.report import read_log
 
-from eval.bench import run_child
-from eval.report import read_log
-from generate.dataset import read_json, write_json
-from generate.image_files import write_bytes_atomic
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 
 COLUMNS = ("psnr", "ssim", "psnr_foreground", "depth_absrel", "depth_delta1", "opacity_iou")
 
@@ -41,7 +40,7 @@ class HardConfig:
     seed: int = 0
 
     def validate(self) -> None:
-        from scenes import make_scene
+        from nerfgauge.scenes import make_scene
 
         for name in ("width", "height", "views", "test_views", "spp", "steps"):
             value = getattr(self, name)
@@ -59,7 +58,7 @@ class HardConfig:
 
 def non_finite_exr_values(folder: Path, pattern: str) -> tuple[int, int]:
     """(files, non-finite values) over the EXRs matching `pattern` under `folder`."""
-    from generate.image_files import read_exr
+    from nerfgauge.core.images import read_exr
 
     files = bad = 0
     for path in sorted(folder.rglob(pattern)):

@@ -32,10 +32,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from nerfgauge.eval.bench import first_time_reaching, run_child
 
-from eval.bench import first_time_reaching, run_child
-from generate.dataset import write_json
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_json
 
 EVAL_EVERY_SECONDS = 2.0  # val PSNR log spacing (training seconds): the resolution of time-to-target
 MODEL = "compact"
@@ -78,8 +78,8 @@ class ScalingConfig:
         for flag, value in {"budget-seconds": self.budget_seconds, "target-psnr": self.target_psnr}.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise InputError(f"--{flag} must be a positive number, got {value!r}")
-        from generate.pipeline import GenerateConfig
-        from scenes import make_scene
+        from nerfgauge.generate.pipeline import GenerateConfig
+        from nerfgauge.scenes import make_scene
 
         make_scene(self.scene, 0)  # unknown names and unreadable meshes raise InputError
         try:  # the generator's own limits (e.g. image size)
@@ -168,8 +168,8 @@ def _finite(value):
 
 def nerf_case(config: ScalingConfig, out: Path, resolution: int, views: int, axes: tuple) -> dict:
     """Generate, train, render and score one (resolution, views) case; a row (with "error" on failure)."""
-    from eval.evaluate import evaluate
-    from eval.report import read_log
+    from nerfgauge.eval.evaluate import evaluate
+    from nerfgauge.eval.report import read_log
 
     name = f"{config.scene.replace('/', '_').replace(':', '_')}-{resolution}x{resolution}-{views}v"
     data, run = out / "datasets" / name, out / "runs" / f"{name}-{config.budget_seconds:g}s"
@@ -204,7 +204,7 @@ def nerf_case(config: ScalingConfig, out: Path, resolution: int, views: int, axe
 
 def generation_case(scene: str, views: int, spp: int, resolution: int, axes: tuple, scratch: Path) -> dict:
     """Time `generate.pipeline.generate` of `views` train views (no val/test) into a fresh folder."""
-    from generate.pipeline import GenerateConfig, generate
+    from nerfgauge.generate.pipeline import GenerateConfig, generate
 
     config = GenerateConfig(scene=scene, views=views, val_views=0, test_views=0, width=resolution, height=resolution,
                             spp=spp)

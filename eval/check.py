@@ -52,14 +52,15 @@ import math
 import os
 import sys
 import tempfile
-import tomllib
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from eval.metrics import METRIC_NAMES
-from nerfgauge.errors import InputError
+import tomllib
+from nerfgauge.eval.metrics import METRIC_NAMES
+
+from nerfgauge.core.errors import InputError
 
 METRICS_SCHEMA = 1
 DEFAULT_TABLE = "*"
@@ -108,13 +109,13 @@ class CheckResult:
 
 def known_scene(name: str) -> bool:
     """A recipe from `scenes.registry.RECIPES` or a `mesh:PATH` scene."""
-    from scenes.registry import RECIPES
+    from nerfgauge.scenes.registry import RECIPES
 
     return name in RECIPES or (name.startswith(MESH_PREFIX) and len(name) > len(MESH_PREFIX))
 
 
 def _known_scenes_text() -> str:
-    from scenes.registry import RECIPES
+    from nerfgauge.scenes.registry import RECIPES
 
     return ", ".join(list(RECIPES) + [MESH_PREFIX + "PATH", repr(DEFAULT_TABLE)])
 

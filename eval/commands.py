@@ -29,7 +29,7 @@ def register_check(subparsers) -> None:
 
 
 def run_check(args) -> int:
-    from eval.check import run_check as check
+    from nerfgauge.eval.check import run_check as check
 
     return check(args.metrics, args.thresholds, junit_path=args.junit, scene=args.scene)
 
@@ -55,7 +55,7 @@ def register_evaluate(subparsers) -> None:
 
 
 def run_evaluate(args) -> int:
-    from eval.evaluate import evaluate, format_means
+    from nerfgauge.eval.evaluate import evaluate, format_means
 
     document = evaluate(args.dataset, args.pred, split=args.split, out=args.out,
                         background=args.background, depth_kind=args.depth_kind)
@@ -67,7 +67,7 @@ def run_evaluate(args) -> int:
 
 
 def register_baseline(subparsers) -> None:
-    from eval.baselines import METHODS
+    from nerfgauge.eval.baselines import METHODS
 
     parser = subparsers.add_parser(
         "baseline",
@@ -86,7 +86,7 @@ def register_baseline(subparsers) -> None:
 
 
 def run_baseline(args) -> int:
-    from eval.baselines import write_baseline
+    from nerfgauge.eval.baselines import write_baseline
 
     timing = write_baseline(args.dataset, args.method, args.out, split=args.split)
     print(f"{args.out}: {timing['frames']} frames by {args.method} ({timing['ms_per_frame']:.1f} ms per frame)")
@@ -149,15 +149,16 @@ def register_bench(subparsers) -> None:
 
 
 def _variant_names():
-    from eval.bench import VARIANTS
+    from nerfgauge.eval.bench import VARIANTS
 
     return list(VARIANTS)
 
 
 def run_bench_generate(args) -> int:
-    from eval.bench import bench_generate
-    from generate.commands import parse_resolution
-    from nerfgauge.errors import InputError
+    from nerfgauge.eval.bench import bench_generate
+    from nerfgauge.generate.commands import parse_resolution
+
+    from nerfgauge.core.errors import InputError
 
     if args.repeats < 1:
         raise InputError(f"--repeats must be a positive integer, got {args.repeats}")
@@ -172,9 +173,16 @@ def run_bench_generate(args) -> int:
 
 
 def run_bench_train(args) -> int:
-    from eval.bench import VARIANTS, bench_train, pareto_plots, speedups, table_markdown
-    from generate.commands import parse_resolution
-    from nerfgauge.errors import InputError
+    from nerfgauge.eval.bench import (
+        VARIANTS,
+        bench_train,
+        pareto_plots,
+        speedups,
+        table_markdown,
+    )
+    from nerfgauge.generate.commands import parse_resolution
+
+    from nerfgauge.core.errors import InputError
 
     width, height = parse_resolution(args.res)
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -201,8 +209,15 @@ def run_bench_train(args) -> int:
 
 
 def run_bench_scaling(args) -> int:
-    from eval.bench_scaling import (ScalingConfig, bench_scaling, parse_count, parse_counts, parse_positive,
-                                    report_markdown, scaling_plots)
+    from nerfgauge.eval.bench_scaling import (
+        ScalingConfig,
+        bench_scaling,
+        parse_count,
+        parse_counts,
+        parse_positive,
+        report_markdown,
+        scaling_plots,
+    )
 
     config = ScalingConfig(
         scene=args.scene, resolutions=parse_counts(args.resolutions, "resolutions"),
@@ -225,9 +240,9 @@ def run_bench_scaling(args) -> int:
 
 
 def run_bench_hard(args) -> int:
-    from eval.bench_hard import HardConfig, bench_hard, table_markdown
-    from generate.commands import parse_resolution
-    from scenes import HARD_SCENES
+    from nerfgauge.eval.bench_hard import HardConfig, bench_hard, table_markdown
+    from nerfgauge.generate.commands import parse_resolution
+    from nerfgauge.scenes import HARD_SCENES
 
     width, height = parse_resolution(args.res)
     scenes = tuple(HARD_SCENES) if args.scenes is None else tuple(s.strip() for s in args.scenes.split(",") if s.strip())

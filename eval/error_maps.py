@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from generate.image_files import write_png
+from nerfgauge.core.images import write_png
 
 COLOUR_ERROR_MAX = 0.2
 DEPTH_ERROR_MAX = 0.1

@@ -41,13 +41,26 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from nerfgauge.eval.error_maps import (
+    colour_error,
+    depth_relative_error,
+    write_error_maps,
+)
+from nerfgauge.eval.metrics import (
+    METRIC_NAMES,
+    composite,
+    depth_metrics,
+    opacity_iou,
+    psnr,
+    psnr_foreground,
+    ssim,
+    summarize,
+)
 
-from eval.error_maps import colour_error, depth_relative_error, write_error_maps
-from eval.metrics import (METRIC_NAMES, composite, depth_metrics, opacity_iou, psnr, psnr_foreground, ssim,
-                          summarize)
-from generate import dataset
-from generate.image_files import linear_to_srgb, read_exr, read_png
-from nerfgauge.errors import InputError
+from nerfgauge.core import dataset
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json, write_json
+from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
 
 SCHEMA = 1
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
@@ -209,7 +222,7 @@ def foreground_pixels(root: Path, stem: str, intrinsics, pred_alpha) -> np.ndarr
 
 def read_timing(pred_dir: Path) -> dict:
     path = pred_dir / "timing.json"
-    return dataset.read_json(path, finite=True) if path.is_file() else {}
+    return read_json(path, finite=True) if path.is_file() else {}
 
 
 def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
@@ -259,7 +272,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts, "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}
-    dataset.write_json(out, document)
+    write_json(out, document)
     return document
 
 

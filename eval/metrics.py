@@ -27,7 +27,7 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 # Metric names as they appear in metrics.json's "mean"/"std" tables and in thresholds files.
 METRIC_NAMES = (

@@ -14,10 +14,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+from nerfgauge.eval.error_maps import colour_error, colourize, depth_relative_error
 
-from generate.dataset import read_depth, read_mask, read_rgba, read_split
-from generate.image_files import atomic_path, read_exr_single, read_png, write_bytes_atomic
-from eval.error_maps import colour_error, colourize, depth_relative_error
+from nerfgauge.core.dataset import read_depth, read_mask, read_rgba, read_split
+from nerfgauge.core.files import atomic_path, write_bytes_atomic
+from nerfgauge.core.images import read_exr_single, read_png
 
 TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_foreground", "foreground PSNR dB", "{:.2f}"),
                  ("depth_absrel", "depth AbsRel", "{:.4f}"),
@@ -67,7 +68,7 @@ def plot_curves(curves: dict, out) -> None:
 
 def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3, background=(1.0, 1.0, 1.0)) -> None:
     """Rows of (ground truth, prediction, colour error, predicted depth, depth error) PNG."""
-    from generate.image_files import write_png
+    from nerfgauge.core.images import write_png
 
     cameras = read_split(dataset_root, split)
     bg = np.asarray(background, np.float32)

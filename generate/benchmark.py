@@ -7,10 +7,15 @@ import tempfile
 import time
 from pathlib import Path
 
-from generate.mitsuba_scene import scene_dict, write_meshes
-from generate.pipeline import GenerateConfig, SPLIT_SEED_OFFSET, plan, view_seed
-from generate.render import render_rgba
-from generate.variant import use_variant
+from nerfgauge.generate.mitsuba_scene import scene_dict, write_meshes
+from nerfgauge.generate.pipeline import (
+    SPLIT_SEED_OFFSET,
+    GenerateConfig,
+    plan,
+    view_seed,
+)
+from nerfgauge.generate.render import render_rgba
+from nerfgauge.generate.variant import use_variant
 
 
 def mitsuba_render_seconds(config: GenerateConfig) -> dict:

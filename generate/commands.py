@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -28,8 +28,8 @@ def parse_band(text: str) -> tuple[float, float]:
 
 
 def register(subparsers) -> None:
-    from generate.layouts import LAYOUTS
-    from generate.variant import CHOICES
+    from nerfgauge.generate.layouts import LAYOUTS
+    from nerfgauge.generate.variant import CHOICES
 
     parser = subparsers.add_parser("generate", help="render a scene into a NeRF dataset",
                                    description="Render posed views of a procedural scene with Mitsuba 3, with "
@@ -59,7 +59,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from generate.pipeline import GenerateConfig, generate
+    from nerfgauge.generate.pipeline import GenerateConfig, generate
 
     width, height = parse_resolution(args.res)
     config = GenerateConfig(scene=args.scene, seed=args.seed, views=args.views, val_views=args.val_views,

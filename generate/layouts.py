@@ -18,8 +18,8 @@ from typing import Optional
 
 import numpy as np
 
-from generate.camera import look_at
-from nerfgauge.errors import InputError
+from nerfgauge.core.camera import look_at
+from nerfgauge.core.errors import InputError
 
 LAYOUTS = ("hemisphere", "sphere", "orbit", "spiral", "lightfield", "forward", "inside")
 SPLITS = ("train", "val", "test")

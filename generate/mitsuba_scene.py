@@ -10,12 +10,20 @@ import math
 from pathlib import Path
 
 import numpy as np
-
-from generate.ply import write_ply
-from scenes.description import (ConstantEnvironment, Conductor, Dielectric, Diffuse,
-                                GradientEnvironment, PointLight, RectangleLight, RoughPlastic,
-                                Sphere, Textured)
-from scenes.meshes import MeshData, pose
+from nerfgauge.generate.ply import write_ply
+from nerfgauge.scenes.description import (
+    Conductor,
+    ConstantEnvironment,
+    Dielectric,
+    Diffuse,
+    GradientEnvironment,
+    PointLight,
+    RectangleLight,
+    RoughPlastic,
+    Sphere,
+    Textured,
+)
+from nerfgauge.scenes.meshes import MeshData, pose
 
 ENVMAP_WIDTH = 512  # 0.7 degrees per texel: enough for a 3-degree sun disc
 # Mitsuba's envmap is +Y up; ours is +Z up. Rotating 90 degrees about X maps +Y to +Z.

@@ -18,15 +18,17 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from nerfgauge.generate import layouts
+from nerfgauge.generate.mitsuba_scene import write_meshes
+from nerfgauge.generate.variant import CHOICES as VARIANT_CHOICES
+from nerfgauge.generate.variant import resolve_variant
+from nerfgauge.scenes import make_scene
 
-from generate import dataset, layouts
-from generate.camera import Intrinsics
-from generate.image_files import premultiplied_to_png_rgba, write_exr, write_png
-from generate.mitsuba_scene import write_meshes
-from generate.variant import CHOICES as VARIANT_CHOICES
-from generate.variant import resolve_variant
-from nerfgauge.errors import InputError
-from scenes import make_scene
+from nerfgauge.core import dataset
+from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json, write_json
+from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
 
 CONFIG = "config.json"
 DEFAULT_LAYOUT = "hemisphere"
@@ -145,7 +147,7 @@ def prepare_output(out: Path, recipe: dict, overwrite: bool) -> None:
         config_path = out / CONFIG
         if not config_path.is_file():
             raise InputError(f"output folder {out} is not empty and is not a nerfgauge dataset; choose another --out")
-        if dataset.read_json(config_path) != recipe:
+        if read_json(config_path) != recipe:
             if not overwrite:
                 raise InputError(f"output folder {out} holds a dataset of another recipe; use --overwrite to replace it")
             shutil.rmtree(out)
@@ -153,7 +155,7 @@ def prepare_output(out: Path, recipe: dict, overwrite: bool) -> None:
     for stale in out.rglob(".*.tmp*"):  # left by a killed run; never renamed into place
         stale.unlink()
     if not (out / CONFIG).is_file():
-        dataset.write_json(out / CONFIG, recipe)
+        write_json(out / CONFIG, recipe)
 
 
 def view_complete(out: Path, stem: str) -> bool:
@@ -187,9 +189,9 @@ def finish(out: Path, the_plan: Plan) -> None:
 
     intrinsics, stems, poses = the_plan.intrinsics, the_plan.stems, the_plan.poses
     for split in dataset.SPLITS:
-        dataset.write_json(out / f"transforms_{split}.json",
+        write_json(out / f"transforms_{split}.json",
                            dataset.synthetic_transforms(intrinsics, stems[split], poses[split]))
-    dataset.write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses))
+    write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses))
     scene = the_plan.scene
     scene_json = {
         "schema": 1,
@@ -208,7 +210,7 @@ def finish(out: Path, the_plan: Plan) -> None:
         "versions": {"mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "trimesh": trimesh.__version__,
                      "numpy": np.__version__, "python": platform.python_version()},
     }
-    dataset.write_json(out / "scene.json", scene_json)
+    write_json(out / "scene.json", scene_json)
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
              if p.is_file() and p.name != dataset.MANIFEST and not p.name.startswith(".")]
     dataset.write_manifest(out, files)
@@ -227,7 +229,7 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
     todo = pending_views(out, the_plan)
     if todo and (out / dataset.MANIFEST).is_file():
         (out / dataset.MANIFEST).unlink()  # views are missing: the dataset is not complete
-    from generate.workers import render_views  # imports mitsuba
+    from nerfgauge.generate.workers import render_views  # imports mitsuba
 
     render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress)
     if todo or not (out / dataset.MANIFEST).is_file():

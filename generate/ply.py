@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from generate.image_files import write_bytes_atomic
+from nerfgauge.core.files import write_bytes_atomic
 
 
 def ply_bytes(mesh) -> bytes:

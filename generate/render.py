@@ -1,7 +1,7 @@
 """Render one view: RGBA with the path tracer, exact depth and normals from pixel-centre rays.
 
 Depth is not the filtered depth AOV (averaged across edges, measured from a near-clip
-shifted origin): every pixel's centre ray from `generate.camera.pixel_rays` is intersected
+shifted origin): every pixel's centre ray from `nerfgauge.core.camera.pixel_rays` is intersected
 with the scene, giving the Euclidean ray distance from the camera centre.
 """
 
@@ -12,7 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from generate.camera import Intrinsics, pixel_rays, to_mitsuba, z_depth_from_distance
+from nerfgauge.core.camera import (
+    Intrinsics,
+    pixel_rays,
+    to_mitsuba,
+    z_depth_from_distance,
+)
 
 NEAR_CLIP = 1e-3  # scene units; only clips what is closer than this to the camera
 

@@ -16,7 +16,7 @@ import os
 import re
 import sys
 
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 VARIANTS = {"cuda": "cuda_ad_rgb", "llvm": "llvm_ad_rgb", "scalar": "scalar_rgb"}
 CHOICES = ("auto",) + tuple(VARIANTS)

@@ -11,11 +11,10 @@ import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 
+from nerfgauge.generate.mitsuba_scene import scene_dict
+from nerfgauge.generate.render import render_view
+from nerfgauge.generate.variant import use_variant
 from tqdm import tqdm
-
-from generate.mitsuba_scene import scene_dict
-from generate.render import render_view
-from generate.variant import use_variant
 
 _WORKER = {}  # per worker process: the loaded scene (set once by the pool initializer)
 
@@ -28,7 +27,7 @@ def load_mitsuba_scene(out, the_plan):
 
 
 def _render_one(mi, scene, out, the_plan, split, index):
-    from generate.pipeline import view_seed
+    from nerfgauge.generate.pipeline import view_seed
 
     config = the_plan.config
     start = time.perf_counter()
@@ -69,7 +68,7 @@ def _render_here(out, the_plan, todo, bar) -> float:
 
 
 def dataset_write(out, stem, images):
-    from generate.pipeline import write_view
+    from nerfgauge.generate.pipeline import write_view
 
     write_view(out, stem, images)
 

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from nerfgauge.nerf.config import TrainConfig
 
-from generate.image_files import write_bytes_atomic
-from nerf.config import TrainConfig
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_bytes_atomic
 
 FORMAT = "nerfgauge-model"
 VERSION = 1
@@ -56,7 +56,7 @@ def node_mask(occupancy: torch.Tensor) -> torch.Tensor:
 
 def model_payload(model, config: TrainConfig, prune: bool) -> dict:
     """Everything needed to rebuild `model` for rendering, pruned if asked."""
-    from nerf.models import CompactNeRF
+    from nerfgauge.nerf.models import CompactNeRF
 
     payload = {"format": FORMAT, "version": VERSION, "model": config.model, "config": config.to_json()}
     if isinstance(model, CompactNeRF):
@@ -81,8 +81,8 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
 
 def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None = None):
     """A fresh model for `config` (resolved), at `resolution` (compact) or its start."""
-    from nerf.grid_field import VoxelGridField
-    from nerf.models import CompactNeRF, VanillaNeRF
+    from nerfgauge.nerf.grid_field import VoxelGridField
+    from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF
 
     if config.model == "vanilla":
         return VanillaNeRF(aabb, config.n_coarse, config.n_fine, config.width, config.depth)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 
 def register(subparsers) -> None:
@@ -42,7 +42,7 @@ def _run_toy_pe(args) -> int:
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise InputError(f"--out must be a directory, but {args.out} is a file")
 
-    from nerf.toy_pe import ToyPEConfig, run_toy_pe
+    from nerfgauge.nerf.toy_pe import ToyPEConfig, run_toy_pe
 
     overrides = {"seed": args.seed} | ({} if args.steps is None else {"steps": args.steps})
     config = ToyPEConfig(**overrides)
@@ -91,8 +91,8 @@ def _add_train(subparsers) -> None:
 
 
 def _run_train(args) -> int:
-    from nerf.config import TrainConfig
-    from nerf.train import train
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.train import train
 
     budget = args.budget_seconds
     if budget is None and args.steps is None:
@@ -131,7 +131,7 @@ def _add_render(subparsers) -> None:
 def _run_render(args) -> int:
     if args.threads is not None and args.threads < 1:
         raise InputError(f"--threads must be a positive integer, got {args.threads}")
-    from nerf.render_views import render_split
+    from nerfgauge.nerf.render_views import render_split
 
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
                           progress=not args.quiet)

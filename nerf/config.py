@@ -14,7 +14,7 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")

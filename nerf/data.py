@@ -12,8 +12,9 @@ from typing import Optional
 import numpy as np
 import torch
 
-from generate.camera import pixel_rays
-from generate.dataset import SplitCameras, read_json, read_rgba, read_split, require_complete
+from nerfgauge.core.camera import pixel_rays
+from nerfgauge.core.dataset import SplitCameras, read_rgba, read_split, require_complete
+from nerfgauge.core.files import read_json
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-
-from nerf.rendering import ray_aabb
+from nerfgauge.nerf.rendering import ray_aabb
 
 
 @dataclass(frozen=True)

@@ -14,14 +14,17 @@ from typing import Optional
 
 import torch
 import torch.nn.functional as F
+from nerfgauge.nerf.encoding import PositionalEncoding
+from nerfgauge.nerf.grid_field import VoxelGridField
+from nerfgauge.nerf.marching import march, occupancy_pyramid
+from nerfgauge.nerf.packed import (
+    packed_distortion,
+    packed_render,
+    packed_render_early_stop,
+    packed_transmittance,
+)
+from nerfgauge.nerf.rendering import ray_aabb, render_rays
 from torch import nn
-
-from nerf.encoding import PositionalEncoding
-from nerf.grid_field import VoxelGridField
-from nerf.marching import march, occupancy_pyramid
-from nerf.packed import packed_distortion, packed_render, packed_render_early_stop, packed_transmittance
-from nerf.rendering import ray_aabb, render_rays
-
 
 EARLY_STOP_WINDOW = 16  # samples per ray between early-termination checks (measured: 8-32 similar)
 

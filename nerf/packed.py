@@ -15,8 +15,7 @@ Skipped empty space contributes nothing, exactly as sigma = 0 would.
 from __future__ import annotations
 
 import torch
-
-from nerf.rendering import DEPTH_EPS
+from nerfgauge.nerf.rendering import DEPTH_EPS
 
 TAU_MAX_PACKED = 30.0
 

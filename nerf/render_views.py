@@ -8,21 +8,21 @@ frame) and the render settings, which `nerfgauge evaluate` copies into its metri
 
 from __future__ import annotations
 
-import json
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
+from nerfgauge.nerf.checkpoint import load_model
+from nerfgauge.nerf.data import split_rays
+from nerfgauge.nerf.train import pick_device, render_rays_chunked
 from tqdm import tqdm
 
-from generate.dataset import read_split, write_json
-from generate.image_files import write_exr, write_png
-from nerf.checkpoint import load_model
-from nerf.data import split_rays
-from nerf.train import pick_device, render_rays_chunked
-from nerfgauge.errors import InputError
+from nerfgauge.core.dataset import read_split
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_json
+from nerfgauge.core.images import write_exr, write_png
 
 # Marching step at render time, in voxels. Training marches half a voxel with jitter; a
 # whole voxel renders ~1.6x faster for -0.2 dB on primitives (38.29 vs 38.50 dB, measured

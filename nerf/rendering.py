@@ -15,7 +15,7 @@ and importance sampling, ray/box clipping) are not differentiable and run under
 `torch.no_grad()`; weights, accumulation, depth and compositing are differentiable.
 
 Shapes: N rays, S intervals (samples) per ray. Every t is a distance along the ray in
-units of |d| (ray distance when directions are unit length, as `generate.camera` makes
+units of |d| (ray distance when directions are unit length, as `nerfgauge.core.camera` makes
 them). Opacity and depth are [N], colours [N, 3].
 `nerf/reference.py` holds a per-ray loop of the same maths, the tests' oracle.
 """

@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from nerfgauge.nerf.encoding import encoded_size, positional_encoding
 from torch import nn
-
-from nerf.encoding import encoded_size, positional_encoding
 
 
 @dataclass(frozen=True)

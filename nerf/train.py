@@ -14,17 +14,16 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
+from nerfgauge.nerf import checkpoint
+from nerfgauge.nerf.config import TrainConfig, resolve
+from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
+from nerfgauge.nerf.rendering import composite
 from tqdm import tqdm
 
-from generate.dataset import read_split, require_complete, write_json
-from generate.image_files import write_bytes_atomic
-from nerf import checkpoint
-from nerf.config import TrainConfig, resolve
-from nerf.data import aabb_from_cameras, load_split_rays, scene_info
-from nerf.rendering import composite
-from nerfgauge.errors import InputError, NumericalError
+from nerfgauge.core.dataset import read_split, require_complete
+from nerfgauge.core.errors import InputError, NumericalError
+from nerfgauge.core.files import write_bytes_atomic, write_json
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows ...
@@ -80,7 +79,7 @@ def resolution_at(config: TrainConfig, stage: int) -> int:
 
 
 def make_optimizer(model, config: TrainConfig):
-    from nerf.models import CompactNeRF
+    from nerfgauge.nerf.models import CompactNeRF
 
     if isinstance(model, CompactNeRF):
         groups = [{"params": [model.field.grid], "lr": config.lr, "base_lr": config.lr}]
@@ -204,7 +203,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
 
 
 def _train_step(model, optimizer, config, rays, n_rays, generator, device, progress, state):
-    from nerf.models import CompactNeRF
+    from nerfgauge.nerf.models import CompactNeRF
 
     compact = isinstance(model, CompactNeRF)
     if compact:

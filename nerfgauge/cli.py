@@ -15,7 +15,7 @@ import importlib
 import os
 import sys
 
-from nerfgauge.errors import InputError, NumericalError
+from nerfgauge.core.errors import InputError, NumericalError
 
 STAGES = ("scenes", "generate", "nerf", "eval")
 
@@ -28,9 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for stage in STAGES:
         try:
-            module = importlib.import_module(f"{stage}.commands")
+            module = importlib.import_module(f"nerfgauge.{stage}.commands")
         except ModuleNotFoundError as error:
-            if error.name != f"{stage}.commands":
+            if error.name != f"nerfgauge.{stage}.commands":
                 raise
             continue  # a stage without commands yet
         module.register(subparsers)

@@ -15,7 +15,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -37,14 +37,20 @@ class RunConfig:
 
 
 def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool = True) -> dict:
-    from eval.baselines import write_baseline
-    from eval.evaluate import evaluate, format_means
-    from eval.report import image_grid, metrics_table, plot_curves, read_log, write_html
-    from generate.dataset import read_json
-    from generate.pipeline import GenerateConfig, generate
-    from nerf.config import TrainConfig
-    from nerf.render_views import render_split
-    from nerf.train import train
+    from nerfgauge.core.files import read_json
+    from nerfgauge.eval.baselines import write_baseline
+    from nerfgauge.eval.evaluate import evaluate, format_means
+    from nerfgauge.eval.report import (
+        image_grid,
+        metrics_table,
+        plot_curves,
+        read_log,
+        write_html,
+    )
+    from nerfgauge.generate.pipeline import GenerateConfig, generate
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.render_views import render_split
+    from nerfgauge.nerf.train import train
 
     out = Path(config.out)
     if out.exists() and not out.is_dir():
@@ -70,9 +76,9 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     length = f"{config.steps} steps" if config.steps else f"{config.budget_seconds:g} s"
     print(f"[2/5] train {config.model} for {length} -> {run_dir}")
     summary = train(train_config, run_dir, progress=progress)
-    print(f"[3/5] render test views")
+    print("[3/5] render test views")
     render_split(run_dir, "test", progress=progress)
-    print(f"[4/5] evaluate and baselines")
+    print("[4/5] evaluate and baselines")
     documents = {f"{config.model} NeRF": evaluate(out / "dataset", run_dir / "renders", "test",
                                                   out / "eval" / config.model / "metrics.json")}
     layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
@@ -125,7 +131,7 @@ def register(subparsers) -> None:
 
 
 def _run(args) -> int:
-    from generate.commands import parse_resolution
+    from nerfgauge.generate.commands import parse_resolution
 
     width, height = parse_resolution(args.res)
     config = dataclasses.replace(RunConfig(), scene=args.scene, out=args.out, width=width, height=height,

@@ -1,8 +1,8 @@
 """Procedural scene descriptions (renderer-free): `make_scene(name, seed)`."""
 
-from scenes.description import Needs, Scene
-from scenes.hard import HARD_RECIPES
-from scenes.registry import list_scenes, make_scene
+from nerfgauge.scenes.description import Needs, Scene
+from nerfgauge.scenes.hard import HARD_RECIPES
+from nerfgauge.scenes.registry import list_scenes, make_scene
 
 HARD_SCENES = tuple(HARD_RECIPES)  # the hard cases, for `nerfgauge bench hard`
 

@@ -7,7 +7,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from scenes.registry import list_scenes
+    from nerfgauge.scenes.registry import list_scenes
 
     rows = list_scenes()
     width = max(len(name) for name, _ in rows)

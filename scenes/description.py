@@ -13,8 +13,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Optional, Union
 
 import numpy as np
-
-from scenes import meshes
+from nerfgauge.scenes import meshes
 
 Vec3 = tuple[float, float, float]
 

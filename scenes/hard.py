@@ -10,11 +10,23 @@ from __future__ import annotations
 
 import math
 
-from scenes.description import (Box, CameraHint, Conductor, Cylinder,
-                                Dielectric, Diffuse, GradientEnvironment, PointLight,
-                                RectangleLight, RoughPlastic, Sphere, Textured, Torus,
-                                build_scene)
-from scenes.library import SOFT_SKY
+from nerfgauge.scenes.description import (
+    Box,
+    CameraHint,
+    Conductor,
+    Cylinder,
+    Dielectric,
+    Diffuse,
+    GradientEnvironment,
+    PointLight,
+    RectangleLight,
+    RoughPlastic,
+    Sphere,
+    Textured,
+    Torus,
+    build_scene,
+)
+from nerfgauge.scenes.library import SOFT_SKY
 
 SUNNY_SKY = GradientEnvironment(SOFT_SKY.zenith, SOFT_SKY.horizon, SOFT_SKY.nadir,
                                 sun_direction=(0.4, -0.3, 1.0), sun_radiance=(100.0, 100.0, 95.0))

@@ -3,10 +3,19 @@
 from __future__ import annotations
 
 import numpy as np
-
-from scenes.description import (Box, Conductor, Cylinder, Diffuse, GradientEnvironment,
-                                PointLight, RoughPlastic, Sphere, Textured, Torus,
-                                build_scene)
+from nerfgauge.scenes.description import (
+    Box,
+    Conductor,
+    Cylinder,
+    Diffuse,
+    GradientEnvironment,
+    PointLight,
+    RoughPlastic,
+    Sphere,
+    Textured,
+    Torus,
+    build_scene,
+)
 
 # A soft sky: bright zenith, neutral horizon, dark ground bounce. Smooth light keeps Monte
 # Carlo noise low, so the ground truth is not limited by render noise.

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from nerfgauge.scenes import library
+from nerfgauge.scenes.description import Diffuse, Scene, TriangleMesh, build_scene
+from nerfgauge.scenes.hard import HARD_RECIPES
+from nerfgauge.scenes.meshes import MeshData
 
-from nerfgauge.errors import InputError
-from scenes import library
-from scenes.hard import HARD_RECIPES
-from scenes.description import Diffuse, Scene, TriangleMesh, build_scene
-from scenes.meshes import MeshData
+from nerfgauge.core.errors import InputError
 
 # name -> (recipe(seed) -> Scene, one-line description)
 RECIPES = {

@@ -9,14 +9,14 @@ import pytest
 @pytest.fixture(scope="session")
 def mi():
     """Mitsuba with the variant `auto` resolves to on this machine (llvm_ad_rgb here)."""
-    from generate.variant import resolve_variant, use_variant
+    from nerfgauge.generate.variant import resolve_variant, use_variant
 
     return use_variant(resolve_variant("auto"))
 
 
 def generate_small(out, scene="primitives", **overrides):
     """Generate a tiny dataset in-process; returns its folder."""
-    from generate.pipeline import GenerateConfig, generate
+    from nerfgauge.generate.pipeline import GenerateConfig, generate
 
     settings = dict(scene=scene, views=4, val_views=1, test_views=2, width=32, height=32, spp=4)
     settings.update(overrides)

@@ -6,13 +6,18 @@ import math
 
 import numpy as np
 import pytest
+from nerfgauge.eval.baselines import (
+    LightField,
+    pose_distance,
+    render_lightfield,
+    render_nearest,
+)
+from nerfgauge.eval.metrics import METRIC_NAMES
 
-from eval.baselines import LightField, pose_distance, render_lightfield, render_nearest
-from eval.metrics import METRIC_NAMES
-from generate import dataset
-from generate.camera import look_at, pixel_rays
-from generate.image_files import read_png
 from nerfgauge.cli import main
+from nerfgauge.core import dataset
+from nerfgauge.core.camera import look_at, pixel_rays
+from nerfgauge.core.images import read_png
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,8 @@
 import json
 
 import pytest
+from nerfgauge.eval.bench import speedups, table_markdown
 
-from eval.bench import speedups, table_markdown
 from nerfgauge.cli import main
 
 

@@ -7,10 +7,17 @@ import shlex
 from dataclasses import asdict
 
 import pytest
+from nerfgauge.eval.bench import first_time_reaching
+from nerfgauge.eval.bench_scaling import (
+    ScalingConfig,
+    generation_fits,
+    growth,
+    growth_line,
+    nerf_table,
+    parse_counts,
+    report_markdown,
+)
 
-from eval.bench import first_time_reaching
-from eval.bench_scaling import (ScalingConfig, generation_fits, growth, growth_line, nerf_table, parse_counts,
-                                report_markdown)
 from nerfgauge.cli import build_parser, main
 
 

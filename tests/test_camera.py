@@ -5,12 +5,18 @@ import math
 import numpy as np
 import pytest
 
-from generate.camera import Intrinsics, look_at, pixel_rays, to_mitsuba, z_depth_from_distance
+from nerfgauge.core.camera import (
+    Intrinsics,
+    look_at,
+    pixel_rays,
+    to_mitsuba,
+    z_depth_from_distance,
+)
 
 
 @pytest.mark.parametrize("width,height", [(32, 32), (40, 24), (17, 29)])
 def test_pixel_rays_equal_mitsuba_sensor_rays(mi, width, height):
-    from generate.render import sensor_dict
+    from nerfgauge.generate.render import sensor_dict
 
     c2w = look_at((3.0, -2.0, 1.5), (0.1, 0.2, 0.3))
     intrinsics = Intrinsics.from_fov(width, height, 50.0)

@@ -5,10 +5,10 @@ import re
 import xml.etree.ElementTree as ET
 
 import pytest
+from nerfgauge.eval.check import Bound, evaluate_bounds, parse_thresholds
 
-from eval.check import Bound, evaluate_bounds, parse_thresholds
 from nerfgauge.cli import main
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 THRESHOLDS = """
 ["*"]

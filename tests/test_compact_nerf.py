@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-
-from nerf.marching import march, occupancy_pyramid
-from nerf.packed import packed_distortion, packed_render, packed_weights
-from nerf.reference import render_reference
+from nerfgauge.nerf.marching import march, occupancy_pyramid
+from nerfgauge.nerf.packed import packed_distortion, packed_render, packed_weights
+from nerfgauge.nerf.reference import render_reference
 
 
 def ragged_case(seed=0, n_rays=5, max_samples=12, dtype=torch.float64):
@@ -109,7 +108,7 @@ def test_marching_never_skips_an_occupied_voxel():
     targets = aabb[0] + torch.rand((n, 3), generator=g) * (aabb[1] - aabb[0])
     directions = torch.nn.functional.normalize(targets - origins, dim=-1)
     samples = march(origins, directions, aabb, dilate(occupied), step, levels=occupancy_pyramid(dilate(occupied)))
-    from nerf.rendering import ray_aabb
+    from nerfgauge.nerf.rendering import ray_aabb
     near, far, hit = ray_aabb(origins, directions, aabb)
     missed = 0
     for r in torch.nonzero(hit).flatten().tolist():
@@ -141,7 +140,7 @@ def test_marching_an_empty_grid_and_rays_that_miss():
 def test_early_termination_leaves_out_at_most_the_remaining_transmittance():
     """Stopping a ray once T < 1e-3 drops only what lies behind: colour and opacity change
     by at most T_stop (colours are in [0, 1]); rays that never get opaque are untouched."""
-    from nerf.packed import packed_render_early_stop
+    from nerfgauge.nerf.packed import packed_render_early_stop
 
     counts, sigma, rgb, edges, keep = ragged_case(seed=4, n_rays=40, max_samples=60, dtype=torch.float64)
     sigma = sigma * 10  # opaque within a few samples on most rays

@@ -7,13 +7,13 @@ import shutil
 
 import numpy as np
 import pytest
+from nerfgauge.eval.error_maps import COLOUR_CMAP
+from nerfgauge.eval.metrics import METRIC_NAMES, PSNR_CAP_DB, opacity_iou
 from PIL import Image
 
-from eval.error_maps import COLOUR_CMAP
-from eval.metrics import METRIC_NAMES, PSNR_CAP_DB, opacity_iou
-from generate import dataset
-from generate.image_files import read_exr, read_png, write_exr, write_png
 from nerfgauge.cli import main
+from nerfgauge.core import dataset
+from nerfgauge.core.images import read_exr, read_png, write_exr, write_png
 
 TOP_KEYS = {"schema", "scene", "split", "background", "depth_kind", "mean", "std", "count", "frames", "timing"}
 
@@ -213,7 +213,7 @@ def test_unknown_split_exits_2(ds, tmp_path, capsys):
 
 def test_exr_colour_conversion_matches_png_path(ds, test_split, tmp_path):
     # RGB (no alpha) EXR: linear values become sRGB; the reader must give what the PNG holds.
-    from eval.evaluate import read_colour
+    from nerfgauge.eval.evaluate import read_colour
 
     channels, _ = read_exr(ds / "test/r_000.exr")
     rgba = channels["RGBA"]

@@ -9,10 +9,15 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from nerfgauge.scenes.description import (
+    ConstantEnvironment,
+    Diffuse,
+    Sphere,
+    build_scene,
+)
 
-from generate.camera import Intrinsics, look_at, pixel_rays
-from generate.image_files import read_exr_single, read_png
-from scenes.description import ConstantEnvironment, Diffuse, Sphere, build_scene
+from nerfgauge.core.camera import Intrinsics, look_at, pixel_rays
+from nerfgauge.core.images import read_exr_single, read_png
 
 
 def analytic_sphere_distance(origins, directions, center, radius):
@@ -28,8 +33,8 @@ def analytic_sphere_distance(origins, directions, center, radius):
 
 @pytest.mark.parametrize("width,height", [(48, 48), (64, 40)])
 def test_depth_of_an_analytic_sphere(mi, tmp_path, width, height):
-    from generate.mitsuba_scene import scene_dict
-    from generate.render import render_geometry
+    from nerfgauge.generate.mitsuba_scene import scene_dict
+    from nerfgauge.generate.render import render_geometry
 
     center, radius = np.array([0.2, -0.1, 0.3]), 0.7
     scene = build_scene("sphere", 0, [Sphere("ball", tuple(center), radius, Diffuse((0.5, 0.5, 0.5)))],
@@ -121,7 +126,7 @@ def test_primitives_dataset_depth_matches_meshes_within_tessellation(tiny_datase
 
 
 def read_exr_exact(path, channel):
-    from generate.image_files import read_exr
+    from nerfgauge.core.images import read_exr
 
     channels, _ = read_exr(path)
     return channels[channel]

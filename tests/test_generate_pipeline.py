@@ -12,9 +12,9 @@ import time
 import numpy as np
 import pytest
 
-from generate import dataset
-from generate.image_files import read_exr, read_png
 from nerfgauge.cli import main
+from nerfgauge.core import dataset
+from nerfgauge.core.images import read_exr, read_png
 
 SMALL = ["--views", "4", "--val-views", "1", "--test-views", "2", "--res", "24", "--spp", "4", "--quiet"]
 
@@ -201,7 +201,7 @@ def test_worker_processes_give_the_same_bytes(tmp_path):
 @pytest.mark.parametrize("spp", [1, 2, 4, 8, 12, 16, 32, 35, 50, 64, 100, 128, 1000])
 def test_the_sampler_draws_exactly_the_stated_sample_count(mi, spp):
     """scene.json states `spp`; Mitsuba's multijitter would round 32 up to 35."""
-    from generate.render import sampler_dict
+    from nerfgauge.generate.render import sampler_dict
 
     sampler = mi.load_dict(sampler_dict(spp))
     assert sampler.sample_count() == spp

@@ -9,13 +9,13 @@ import math
 
 import numpy as np
 import pytest
+from nerfgauge.generate import layouts
+from nerfgauge.generate.pipeline import GenerateConfig, plan
+from nerfgauge.scenes import HARD_SCENES, list_scenes, make_scene
+from nerfgauge.scenes.description import Cylinder, Sphere
 
-from generate import layouts
-from generate.camera import Intrinsics
-from generate.pipeline import GenerateConfig, plan
-from nerfgauge.errors import InputError
-from scenes import HARD_SCENES, list_scenes, make_scene
-from scenes.description import Cylinder, Sphere, Textured
+from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.errors import InputError
 
 DEFAULT = GenerateConfig()  # 128x128, 40-degree field of view
 
@@ -142,7 +142,7 @@ def test_command_line_layout_overrides_the_scene_suggestion():
 
 
 def test_hdr_keeps_its_emitters_visible_and_other_scenes_hide_the_sky(mi):
-    from generate.mitsuba_scene import scene_dict
+    from nerfgauge.generate.mitsuba_scene import scene_dict
 
     hdr = scene_dict(mi, make_scene("hdr", 0), {"light_0": "unused.ply", "floor": "f.ply", "matte_box": "b.ply"}, 8)
     assert hdr["integrator"]["hide_emitters"] is False
@@ -158,7 +158,8 @@ def test_hdr_keeps_its_emitters_visible_and_other_scenes_hide_the_sky(mi):
 def test_hard_scene_survives_generate_train_render_evaluate(tmp_path, scene):
     """A tiny pipeline per hard scene: it must finish, every number it writes must be
     finite, and every metric must be defined or have no pixel to score."""
-    from eval.bench_hard import all_finite, audit
+    from nerfgauge.eval.bench_hard import all_finite, audit
+
     from nerfgauge.run import RunConfig, run_pipeline
 
     out = tmp_path / scene
@@ -175,7 +176,7 @@ def test_hard_scene_survives_generate_train_render_evaluate(tmp_path, scene):
 
 
 def test_bench_hard_refuses_bad_settings_before_running(tmp_path):
-    from eval.bench_hard import HardConfig, bench_hard
+    from nerfgauge.eval.bench_hard import HardConfig, bench_hard
 
     for config, message in [(HardConfig(("thin", "no-such-scene")), "unknown scene 'no-such-scene'"),
                             (HardConfig(("thin",), steps=0), "--steps must be a positive integer"),
@@ -197,15 +198,16 @@ def _found(**overrides):
                                        {"render_depth_non_finite": 5}, {"log_entries": 0},
                                        {"undefined": ["ssim"]}, {"metrics_error": "holds NaN"}])
 def test_any_single_failure_makes_a_run_not_finite(overrides):
-    from eval.bench_hard import all_finite
+    from nerfgauge.eval.bench_hard import all_finite
 
     assert all_finite(_found())
     assert not all_finite(_found(**overrides))
 
 
 def test_audit_finds_nan_in_a_dataset_exr_and_a_log(tmp_path):
-    from eval.bench_hard import audit
-    from generate.image_files import write_exr
+    from nerfgauge.eval.bench_hard import audit
+
+    from nerfgauge.core.images import write_exr
 
     (tmp_path / "dataset" / "test").mkdir(parents=True)
     (tmp_path / "run" / "renders" / "test").mkdir(parents=True)
@@ -223,7 +225,7 @@ def test_audit_finds_nan_in_a_dataset_exr_and_a_log(tmp_path):
 
 
 def test_bench_hard_table_marks_failures_and_unscored_metrics():
-    from eval.bench_hard import table_markdown
+    from nerfgauge.eval.bench_hard import table_markdown
 
     rows = [_found(scene="empty", finite=True, mean={"psnr": 100.0, "opacity_iou": 1.0},
                    no_pixels=["depth_absrel", "psnr_foreground"], steps_per_second=60.0, resolution=53),

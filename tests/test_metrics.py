@@ -4,9 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from numpy.lib.stride_tricks import sliding_window_view
-
-from eval.metrics import (
+from nerfgauge.eval.metrics import (
     PSNR_CAP_DB,
     NonFiniteError,
     composite,
@@ -17,7 +15,9 @@ from eval.metrics import (
     ssim_window,
     summarize,
 )
-from nerfgauge.errors import InputError
+from numpy.lib.stride_tricks import sliding_window_view
+
+from nerfgauge.core.errors import InputError
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2  # K1 = 0.01, K2 = 0.03, data range 1
 
@@ -293,7 +293,7 @@ def test_foreground_psnr_sees_what_the_whole_image_averages_away():
     """A 2x2 object missing from a 100x100 white view: the whole-image MSE is 4/10000 of
     the object's, so whole-image PSNR is 10 log10(10000/4) = 33.98 dB above the
     foreground's; over the 4 foreground pixels the miss (black vs white, MSE 1) is 0 dB."""
-    from eval.metrics import psnr_foreground
+    from nerfgauge.eval.metrics import psnr_foreground
 
     gt = np.ones((100, 100, 3))
     gt[10:12, 20:22] = 0.0

@@ -15,9 +15,8 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from nerf import rendering as R
-from nerf.reference import render_reference
+from nerfgauge.nerf import rendering as R
+from nerfgauge.nerf.reference import render_reference
 
 RTOL64, ATOL64 = 1e-10, 1e-12
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)

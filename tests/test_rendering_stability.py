@@ -39,11 +39,17 @@ import math
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from nerf import rendering as R
-from nerf.marching import march, occupancy_pyramid
-from nerf.packed import (TAU_MAX_PACKED, packed_distortion, packed_exclusive_cumsum, packed_render,
-                         packed_render_early_stop, packed_transmittance, packed_weights)
+from nerfgauge.nerf import rendering as R
+from nerfgauge.nerf.marching import march, occupancy_pyramid
+from nerfgauge.nerf.packed import (
+    TAU_MAX_PACKED,
+    packed_distortion,
+    packed_exclusive_cumsum,
+    packed_render,
+    packed_render_early_stop,
+    packed_transmittance,
+    packed_weights,
+)
 
 DTYPES = st.sampled_from([torch.float32, torch.float64])
 # The ranges, endpoints included exactly, plus a moderate band where alphas are

@@ -4,11 +4,10 @@ import math
 
 import numpy as np
 import pytest
+from nerfgauge.scenes import list_scenes, make_scene, meshes
+from nerfgauge.scenes.description import Textured
 
-from nerfgauge.errors import InputError
-from scenes import list_scenes, make_scene
-from scenes import meshes
-from scenes.description import Textured
+from nerfgauge.core.errors import InputError
 
 
 @pytest.mark.parametrize("name", ["primitives", "glossy", "random"])

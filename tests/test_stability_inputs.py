@@ -18,16 +18,25 @@ import math
 
 import numpy as np
 import pytest
+from nerfgauge.eval.evaluate import evaluate, format_means
+from nerfgauge.eval.metrics import (
+    METRIC_NAMES,
+    PSNR_CAP_DB,
+    depth_metrics,
+    opacity_iou,
+    ssim,
+    summarize,
+)
+from nerfgauge.generate import layouts
+from nerfgauge.scenes import make_scene
+from nerfgauge.scenes.registry import load_user_mesh
 
-from eval.evaluate import evaluate, format_means
-from eval.metrics import METRIC_NAMES, PSNR_CAP_DB, depth_metrics, opacity_iou, ssim, summarize
-from generate import dataset, layouts
-from generate.camera import Intrinsics, look_at, pixel_rays
-from generate.image_files import read_exr_single, read_png, write_exr, write_png
 from nerfgauge.cli import main
-from nerfgauge.errors import InputError
-from scenes import make_scene
-from scenes.registry import load_user_mesh
+from nerfgauge.core import dataset
+from nerfgauge.core.camera import Intrinsics, look_at, pixel_rays
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_json
+from nerfgauge.core.images import read_exr_single, read_png, write_exr, write_png
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2  # SSIM constants for data range 1 (K1 = 0.01, K2 = 0.03)
 
@@ -63,9 +72,9 @@ def hand_dataset(root, frames, split="test", recipe="hand"):
         write_exr(root / (stem + "_zdepth.exr"), {"Z": distance}, {"nerfgauge_depth": "z_depth"})
         written += [stem + suffix for suffix in (".png", "_mask.png", "_distance.exr", "_zdepth.exr")]
     for s in dataset.SPLITS:
-        dataset.write_json(root / f"transforms_{s}.json", dataset.synthetic_transforms(intrinsics, stems[s], poses[s]))
+        write_json(root / f"transforms_{s}.json", dataset.synthetic_transforms(intrinsics, stems[s], poses[s]))
         written.append(f"transforms_{s}.json")
-    dataset.write_json(root / "scene.json", {"schema": 1, "recipe": recipe})
+    write_json(root / "scene.json", {"schema": 1, "recipe": recipe})
     dataset.write_manifest(root, written + ["scene.json"])
     return root
 
@@ -510,9 +519,14 @@ def test_layouts_near_the_poles_give_valid_poses(band, layout, sampling):
 def test_render_along_the_up_axis_gives_exact_depth(mi, height):
     """A camera straight above (below) a sphere renders it, centred: the centre ray meets the
     sphere at |height| - r, and the hit pixels are symmetric about the image centre."""
-    from generate.mitsuba_scene import scene_dict
-    from generate.render import render_geometry
-    from scenes.description import ConstantEnvironment, Diffuse, Sphere, build_scene
+    from nerfgauge.generate.mitsuba_scene import scene_dict
+    from nerfgauge.generate.render import render_geometry
+    from nerfgauge.scenes.description import (
+        ConstantEnvironment,
+        Diffuse,
+        Sphere,
+        build_scene,
+    )
 
     radius = 0.5
     scene = build_scene("pole", 0, [Sphere("ball", (0.0, 0.0, 0.0), radius, Diffuse((0.5, 0.5, 0.5)))],

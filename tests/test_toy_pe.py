@@ -8,9 +8,13 @@ import math
 import numpy as np
 import pytest
 import torch
+from nerfgauge.nerf.encoding import (
+    PositionalEncoding,
+    encoded_size,
+    positional_encoding,
+)
+from nerfgauge.nerf.toy_pe import ToyPEConfig, make_image, run_toy_pe
 
-from nerf.encoding import PositionalEncoding, encoded_size, positional_encoding
-from nerf.toy_pe import ToyPEConfig, make_image, run_toy_pe
 from nerfgauge.cli import main
 
 

@@ -62,9 +62,9 @@ def test_model_loads_with_weights_only_and_renders_every_frame(trained_run, smal
 def test_pruned_model_renders_like_the_full_one(trained_run):
     """Pruning drops only grid nodes no occupied cell touches, and stores values as float16:
     renders agree to float16's resolution of the colour logits (~1e-3), not exactly."""
-    from nerf.checkpoint import load_checked, model_from_payload
-    from nerf.data import load_split_rays
-    from nerf.train import render_rays_chunked
+    from nerfgauge.nerf.checkpoint import load_checked, model_from_payload
+    from nerfgauge.nerf.data import load_split_rays
+    from nerfgauge.nerf.train import render_rays_chunked
 
     full = model_from_payload(load_checked(trained_run / "checkpoint.pt", "checkpoint")["model_payload"])
     pruned = model_from_payload(load_checked(trained_run / "model.pt"))

@@ -1,9 +1,9 @@
 """Mitsuba variant choice: one place, explicit overrides, a clear fallback note."""
 
 import pytest
+from nerfgauge.generate import variant
 
-from generate import variant
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 
 def test_auto_prefers_cuda_then_llvm_then_scalar(monkeypatch, capsys):

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nerfgauge.errors import InputError
+from nerfgauge.core.errors import InputError
 
 GL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
 

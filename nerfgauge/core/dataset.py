@@ -20,16 +20,15 @@ Layout of a dataset folder:
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from generate.camera import Intrinsics
-from generate.image_files import read_exr_single, read_png, write_bytes_atomic
-from nerfgauge.errors import InputError
+from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json, sha256_file, write_json
+from nerfgauge.core.images import read_exr_single, read_png
 
 SPLITS = ("train", "val", "test")
 MANIFEST = "manifest.json"
@@ -53,34 +52,6 @@ def frame_stem(split: str, index: int, count: int) -> str:
 def frame_files(stem: str) -> dict:
     """{kind: relative path} of every file one frame owns."""
     return {kind: stem + suffix for kind, suffix in FRAME_SUFFIXES.items()}
-
-
-def json_bytes(obj) -> bytes:
-    """Canonical JSON: sorted keys, two-space indent, newline at the end (deterministic)."""
-    return (json.dumps(obj, indent=2, sort_keys=True, allow_nan=False) + "\n").encode()
-
-
-def write_json(path, obj) -> None:
-    write_bytes_atomic(path, json_bytes(obj))
-
-
-def read_json(path, *, finite: bool = False) -> dict:
-    """A JSON object from `path` (InputError otherwise). finite=True also refuses the NaN
-    and Infinity literals Python's parser accepts (files that promise numbers)."""
-    path = Path(path)
-
-    def refuse(constant):
-        raise InputError(f"{path} holds {constant}, which is not valid JSON")
-
-    try:
-        value = json.loads(path.read_text(), parse_constant=refuse if finite else None)
-    except FileNotFoundError:
-        raise InputError(f"missing file: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise InputError(f"{path} is not valid JSON: {error}") from None
-    if not isinstance(value, dict):
-        raise InputError(f"{path} should hold a JSON object, got {type(value).__name__}")
-    return value
 
 
 def synthetic_transforms(intrinsics: Intrinsics, stems, poses) -> dict:
@@ -109,14 +80,6 @@ def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses
     return {"camera_model": "OPENCV", "fl_x": intrinsics.fx, "fl_y": intrinsics.fy,
             "cx": intrinsics.cx, "cy": intrinsics.cy, "w": intrinsics.width, "h": intrinsics.height,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames, **filenames}
-
-
-def sha256_file(path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def write_manifest(root: Path, relative_paths) -> None:

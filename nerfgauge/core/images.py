@@ -1,39 +1,17 @@
 """Image files as the project writes and reads them: 8-bit sRGB PNG, float32 EXR.
 
-Every write goes to a temporary name in the same folder and is renamed into place, so a
-file that exists is complete. PNG colour is straight (not premultiplied) alpha, as in
+Every write is atomic (nerfgauge.core.files.atomic_path). PNG colour is straight (not premultiplied) alpha, as in
 NeRF-synthetic; EXR colour is linear and premultiplied, as EXR expects.
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
-from pathlib import Path
-
 import numpy as np
 import OpenEXR
 from PIL import Image
 
-from nerfgauge.errors import InputError
-
-
-@contextlib.contextmanager
-def atomic_path(path):
-    """Yield a temporary sibling of `path`; rename it to `path` if the block succeeds."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def write_bytes_atomic(path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import atomic_path
 
 
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
