@@ -15,13 +15,31 @@ from pathlib import Path
 from nerfgauge.core.errors import InputError
 
 
+def check_writable_target(path) -> Path:
+    """`path` if a write may replace it: absent, or a regular file that is not a symlink.
+
+    Renaming onto a device, FIFO, socket, folder or symlink would replace it (as root,
+    `--out /dev/full` became a JSON file), so those are refused with one line."""
+    path = Path(path)
+    if path.is_symlink():
+        raise InputError(f"refusing to write {path}: it is a symbolic link")
+    if path.exists() and not path.is_file():
+        what = "a folder" if path.is_dir() else "not a regular file (a device, FIFO or socket)"
+        raise InputError(f"refusing to write {path}: it is {what}")
+    return path
+
+
 @contextlib.contextmanager
 def atomic_path(path):
-    """Yield a temporary sibling of `path`; rename it to `path` if the block succeeds."""
-    path = Path(path)
+    """Yield a temporary sibling of `path`; when the block succeeds, flush it to disk
+    (fsync) and rename it to `path`, so a file that exists is complete even after a
+    power cut. The temporary is removed if the block fails."""
+    path = check_writable_target(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         yield tmp
+        with open(tmp, "rb") as handle:
+            os.fsync(handle.fileno())
         os.replace(tmp, path)
     finally:
         if tmp.exists():
