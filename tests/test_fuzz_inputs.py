@@ -22,6 +22,7 @@ import os
 import re
 import shutil
 import signal
+import stat
 import struct
 import subprocess
 import sys
@@ -300,7 +301,7 @@ def _flip_hex(text: str) -> str:
 def _alter_entry(entry, what: str):
     """A manifest entry with its hash (or size) changed, whatever the entry's format."""
     if isinstance(entry, str):
-        return _flip_hex(entry)
+        return _flip_hex(entry) if what == "hash" else entry
     if isinstance(entry, dict):
         entry = dict(entry)
         for key, value in entry.items():
@@ -539,7 +540,8 @@ def mutate_checkpoint(kind: str, path: Path, data, canary: Path):
     if kind == "key-deleted":
         key = data.draw(st.sampled_from(sorted(payload)), label="key")
         del payload[key]
-        what, expect = f"key {key} deleted", REFUSE
+        # a key the loader can do without may go; without these nothing is known
+        what, expect = f"key {key} deleted", REFUSE if key in ("format", "version", "config") else ANY
     elif kind == "config-value":
         config = payload["config"]
         key = data.draw(st.sampled_from(["dataset", "model", "final_resolution", "start_resolution", "threads",
@@ -677,28 +679,31 @@ OUTPUT_FAULTS = ("dev-full", "dev-null", "fifo", "symlink-file", "symlink-folder
 
 
 def _output_target(fault: str, folder: Path, file_target: bool) -> Path:
-    """A path for --out that is hostile in the way `fault` says."""
+    """A path for --out that is hostile in the way `fault` says. Devices are made with
+    mknod inside the case folder (same numbers as /dev/full and /dev/null), so a command
+    that writes beside its target writes into the test's tree, never into /dev.
+    For evaluate (file_target) the hostile path is eval/metrics.json: error maps beside it
+    stay in eval/, its output folder."""
     victim = folder / "victim"
     victim.mkdir()
     (victim / "keep.json").write_text("{}")
-    if fault == "dev-full":
-        return Path("/dev/full")
-    if fault == "dev-null":
-        return Path("/dev/null")
+    parent = folder / "eval" if file_target else folder
+    parent.mkdir(exist_ok=True)
+    target = parent / ("metrics.json" if file_target else "out")
+    if fault in ("dev-full", "dev-null"):
+        os.mknod(target, 0o666 | stat.S_IFCHR, os.makedev(1, 7 if fault == "dev-full" else 3))
+        return target
     if fault == "fifo":
-        return _fifo(folder / ("out.json" if file_target else "out"))
+        return _fifo(target)
     if fault == "symlink-file":
-        link = folder / ("metrics.json" if file_target else "out")
-        link.symlink_to(victim / "keep.json")
-        return link
+        target.symlink_to(victim / "keep.json")
+        return target
     if fault == "symlink-folder":
         if file_target:  # evaluate: its error_maps/ folder is a link out of its output folder
-            (folder / "eval").mkdir()
-            (folder / "eval" / "error_maps").symlink_to(victim, target_is_directory=True)
-            return folder / "eval" / "metrics.json"
-        link = folder / "out"
-        link.symlink_to(victim, target_is_directory=True)
-        return link
+            (parent / "error_maps").symlink_to(victim, target_is_directory=True)
+            return target
+        target.symlink_to(victim, target_is_directory=True)
+        return target
     if fault == "read-only-folder":
         ro = folder / "ro"
         ro.mkdir()
@@ -721,10 +726,11 @@ def test_hostile_output_targets(base, command, fault):
             "render": ["render", base["run"], "--out", target, "--quiet"],
             "generate": ["generate", "primitives", "--out", target, "--res", "16", "--views", "1",
                          "--val-views", "0", "--test-views", "1", "--spp", "1", "--quiet"]}[command]
-    # nothing may change anywhere (the command must refuse), except that evaluate may write
-    # its metrics beside a linked error_maps/ as long as nothing lands behind the link
+    # nothing may change anywhere (the command must refuse), except inside evaluate's own
+    # eval/ folder; evaluate may even succeed past a linked error_maps/, as long as nothing
+    # lands behind the link
     lenient = command == "evaluate" and fault == "symlink-folder"
-    out = folder / ("eval" if lenient else "nowhere")
+    out = folder / ("eval" if command == "evaluate" and fault != "read-only-folder" else "nowhere")
     try:
         with _Alarm():
             assert_judged(Case(command, argv, folder, out, f"--out {fault}", ANY if lenient else REFUSE,
