@@ -205,15 +205,16 @@ def test_generate_kill_matrix(tmp_path, reference_dataset, workers):
     assert landed.count("killed") >= len(moments) - 1, dict(zip(moments, landed))
 
 
-def test_second_writer_is_refused_and_the_first_finishes(tmp_path):
+def test_second_writer_is_refused_and_the_first_finishes(tmp_path, mi):
     """Concurrent writers: while one generate holds the folder, the same command in this
     process exits 2 with one line naming the holder; the first then finishes, complete.
-    (A longer run than the matrix's, so the second writer surely meets the first.)"""
+    (A longer run than the matrix's, and Mitsuba already loaded here (fixture `mi`), so
+    the second writer surely meets the first.)"""
     from nerfgauge.core.dataset import verify_manifest
 
     folder = tmp_path / "ds"
-    argv = ["generate", "primitives", "--res", "24", "--views", "40", "--val-views", "0", "--test-views", "1",
-            "--spp", "16", "--quiet", "--out", folder]
+    argv = ["generate", "primitives", "--res", "48", "--views", "60", "--val-views", "0", "--test-views", "1",
+            "--spp", "32", "--quiet", "--out", folder]
     first = subprocess.Popen(command(argv), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                              text=True)
     try:
