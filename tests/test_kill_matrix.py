@@ -213,8 +213,8 @@ def test_second_writer_is_refused_and_the_first_finishes(tmp_path, mi):
     from nerfgauge.core.dataset import verify_manifest
 
     folder = tmp_path / "ds"
-    argv = ["generate", "primitives", "--res", "48", "--views", "60", "--val-views", "0", "--test-views", "1",
-            "--spp", "32", "--quiet", "--out", folder]
+    argv = ["generate", "primitives", "--res", "32", "--views", "40", "--val-views", "0", "--test-views", "1",
+            "--spp", "16", "--quiet", "--out", folder]
     first = subprocess.Popen(command(argv), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                              text=True)
     try:
