@@ -205,21 +205,24 @@ def test_generate_kill_matrix(tmp_path, reference_dataset, workers):
     assert landed.count("killed") >= len(moments) - 1, dict(zip(moments, landed))
 
 
-def test_second_writer_is_refused_and_the_first_finishes(tmp_path, mi):
+def test_second_writer_is_refused_and_the_first_finishes(tmp_path):
     """Concurrent writers: while one generate holds the folder, the same command in this
     process exits 2 with one line naming the holder; the first then finishes, complete.
-    (A longer run than the matrix's, and Mitsuba already loaded here (fixture `mi`), so
-    the second writer surely meets the first.)"""
+    The first is paused (SIGSTOP) while the second tries, so they surely meet."""
     from nerfgauge.core.dataset import verify_manifest
 
     folder = tmp_path / "ds"
-    argv = ["generate", "primitives", "--res", "32", "--views", "40", "--val-views", "0", "--test-views", "1",
-            "--spp", "16", "--quiet", "--out", folder]
+    argv = ["generate", "primitives", "--res", "16", "--views", "12", "--val-views", "0", "--test-views", "1",
+            "--spp", "4", "--quiet", "--out", folder]
     first = subprocess.Popen(command(argv), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                              text=True)
     try:
         assert wait_for(lambda: views_on_disk(folder) >= 1, first), "the first writer ended before the test"
-        second = run_cli(argv, tmp_path)
+        first.send_signal(signal.SIGSTOP)  # paused mid-run, holding the folder: no race with its end
+        try:
+            second = run_cli(argv, tmp_path)
+        finally:
+            first.send_signal(signal.SIGCONT)
         lines = [line for line in second.stderr.splitlines() if line.strip()]
         assert second.escaped is None and second.code == 2 and len(lines) == 1 \
             and lines[0].startswith("nerfgauge generate: error: ") and str(first.pid) in lines[0], \
