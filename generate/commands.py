@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import re
 
+from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 
 
@@ -20,10 +22,13 @@ def parse_resolution(text: str) -> tuple[int, int]:
 
 
 def parse_band(text: str) -> tuple[float, float]:
+    """"10,75" -> (10.0, 75.0): two finite numbers (float() alone would take "nan")."""
     try:
         lo, hi = (float(x) for x in text.split(","))
     except ValueError:
         raise InputError(f"--elevation must be MIN,MAX in degrees (e.g. 10,75), got {text!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise InputError(f"--elevation must be two finite numbers of degrees, got {text!r}")
     return lo, hi
 
 
@@ -35,25 +40,26 @@ def register(subparsers) -> None:
                                    description="Render posed views of a procedural scene with Mitsuba 3, with "
                                                "exact depth, normals and masks, into a NeRF-synthetic + nerfstudio dataset.")
     parser.add_argument("scene", help="scene name (see `nerfgauge scenes`) or mesh:PATH")
-    parser.add_argument("--out", required=True, help="dataset folder (created; resumed if it holds the same recipe)")
-    parser.add_argument("--views", type=int, default=100, help="training views (default 100)")
-    parser.add_argument("--val-views", type=int, default=10)
-    parser.add_argument("--test-views", type=int, default=20)
+    parser.add_argument("--out", required=True, type=arguments.path, help="dataset folder (created; resumed if it holds the same recipe)")
+    parser.add_argument("--views", type=arguments.positive_int, default=100, help="training views (default 100)")
+    parser.add_argument("--val-views", type=arguments.nonnegative_int, default=10)
+    parser.add_argument("--test-views", type=arguments.nonnegative_int, default=20)
     parser.add_argument("--res", default="128", help="N or WxH (default 128)")
-    parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
-    parser.add_argument("--max-depth", type=int, default=8, help="path tracer's maximum depth (default 8)")
-    parser.add_argument("--fov", type=float, default=40.0, help="horizontal field of view, degrees (default 40)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--spp", type=arguments.positive_int, default=64, help="samples per pixel (default 64)")
+    parser.add_argument("--max-depth", type=arguments.positive_int, default=8, help="path tracer's maximum depth (default 8)")
+    parser.add_argument("--fov", type=arguments.finite_float, default=40.0, help="horizontal field of view, degrees (default 40)")
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument("--layout", choices=("auto",) + LAYOUTS, default="auto",
                         help="camera layout (default auto: the scene's suggestion, else hemisphere)")
     parser.add_argument("--sampling", choices=("fibonacci", "random"), default="fibonacci",
                         help="camera directions on the (hemi)sphere: even or seeded random")
     parser.add_argument("--elevation", default=None,
                         help="MIN,MAX camera elevation in degrees (default: the scene's suggestion, else 10,75)")
-    parser.add_argument("--radius", type=float, default=None, help="camera distance from the AABB centre (default: fit)")
+    parser.add_argument("--radius", type=arguments.positive_float, default=None, help="camera distance from the AABB centre (default: fit)")
     parser.add_argument("--variant", choices=CHOICES, default="auto")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    parser.add_argument("--overwrite", action="store_true", help="replace a dataset of another recipe in --out")
+    parser.add_argument("--workers", type=arguments.positive_int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--overwrite", action="store_true", help="replace a dataset nerfgauge made in --out from another recipe or other inputs "
+                             "(never a folder nerfgauge did not make)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 

@@ -1,17 +1,22 @@
 """`nerfgauge generate`: render a scene into a complete, resumable, deterministic dataset.
 
-Order of work: validate everything (nothing is written on bad input) -> config.json ->
-meshes -> views (each file written under a temporary name and renamed, a view is done
-when all its files exist) -> transforms, scene.json -> manifest.json last. A run that is
-interrupted resumes and renders only the missing views.
+Order of work: validate everything (nothing is written on bad input) -> claim the folder
+(core.folders: refuses folders nerfgauge did not make, holds the write lock for the whole
+run) -> config.json -> meshes -> views (each file written under a temporary name and
+renamed, a view is done when all its files exist) -> transforms, scene.json ->
+manifest.json last. A run that is interrupted resumes and renders only the missing views.
+
+A dataset is identified by the hash of its recipe, which includes the sha256 of every
+input file (user meshes) and the versions of the renderer, so a rerun after any of them
+changed is refused (or, with --overwrite, re-rendered) instead of resumed as "complete".
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib.metadata
 import math
 import platform
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,17 +28,31 @@ from nerfgauge.generate.mitsuba_scene import write_meshes
 from nerfgauge.generate.variant import CHOICES as VARIANT_CHOICES
 from nerfgauge.generate.variant import resolve_variant
 from nerfgauge.scenes import make_scene
+from nerfgauge.scenes.registry import scene_inputs
 
 from nerfgauge.core import dataset
 from nerfgauge.core.camera import Intrinsics
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
+from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash
 from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
 
 CONFIG = "config.json"
 DEFAULT_LAYOUT = "hemisphere"
 DEFAULT_ELEVATION = (10.0, 75.0)
 SPLIT_SEED_OFFSET = {"train": 0, "val": 1_000_000, "test": 2_000_000}
+RENDERER_PACKAGES = ("mitsuba", "drjit", "nerfgauge")  # their versions are part of a dataset's recipe
+
+
+def renderer_versions() -> dict:
+    """{package: installed version} of what renders a dataset (read without importing it)."""
+    versions = {}
+    for package in RENDERER_PACKAGES:
+        try:
+            versions[package] = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            versions[package] = "not installed"
+    return versions
 
 
 @dataclass(frozen=True)
@@ -94,15 +113,18 @@ class Plan:
     stems: dict  # split -> [n] frame stems
     variant: str
     lightfield: Optional[dict]
+    inputs: dict  # {path: sha256} of every file the scene was read from (user meshes)
+    versions: dict  # renderer_versions()
 
     @property
     def radius(self) -> float:
         return self.layout.radius
 
     def recipe(self) -> dict:
-        """What config.json holds: the config plus the resolved radius and variant."""
-        return {"schema": 1, "config": self.config.to_json(), "layout": self.layout.layout, "radius": self.radius,
-                "variant": self.variant}
+        """What config.json holds: the config plus the resolved radius and variant, the
+        sha256 of every input file and the renderer's versions. Its hash names the dataset."""
+        return {"schema": 2, "config": self.config.to_json(), "layout": self.layout.layout, "radius": self.radius,
+                "variant": self.variant, "inputs": self.inputs, "versions": self.versions}
 
 
 def plan(config: GenerateConfig) -> Plan:
@@ -116,7 +138,8 @@ def plan(config: GenerateConfig) -> Plan:
     lightfield = layouts.lightfield_plane(spec, scene.aabb) if spec.layout == "lightfield" else None
     stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
              for split in dataset.SPLITS}
-    return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield)
+    return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield,
+                scene_inputs(scene), renderer_versions())
 
 
 def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
@@ -139,23 +162,37 @@ def view_seed(config_seed: int, split: str, index: int) -> int:
     return (config_seed * 7_919_993 + SPLIT_SEED_OFFSET[split] + index) % (2**32)
 
 
-def prepare_output(out: Path, recipe: dict, overwrite: bool) -> None:
-    """Create `out`, or check that it continues the same recipe (InputError otherwise)."""
-    if out.exists() and not out.is_dir():
-        raise InputError(f"output path {out} is a file, not a folder")
-    if out.is_dir() and any(out.iterdir()):
-        config_path = out / CONFIG
-        if not config_path.is_file():
-            raise InputError(f"output folder {out} is not empty and is not a nerfgauge dataset; choose another --out")
-        if read_json(config_path) != recipe:
-            if not overwrite:
-                raise InputError(f"output folder {out} holds a dataset of another recipe; use --overwrite to replace it")
-            shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in out.rglob(".*.tmp*"):  # left by a killed run; never renamed into place
-        stale.unlink()
-    if not (out / CONFIG).is_file():
-        write_json(out / CONFIG, recipe)
+def stale_inputs(old: dict, new: dict) -> str | None:
+    """What changed between two recipes' inputs or renderer versions, as "another version
+    of bunny.obj (sha256 ...)"; None when those agree (the rest of the recipe may not)."""
+    old_inputs, old_versions = old.get("inputs"), old.get("versions")
+    if not isinstance(old_inputs, dict) or not isinstance(old_versions, dict):
+        return None
+    for path, digest in new["inputs"].items():
+        if path in old_inputs and old_inputs[path] != digest:
+            return f"another version of {Path(path).name} (sha256 {str(old_inputs[path])[:16]}..., now {digest[:16]}...)"
+    for package, version in new["versions"].items():
+        if package in old_versions and old_versions[package] != version:
+            return f"{package} {old_versions[package]} (this is {package} {version})"
+    return None
+
+
+def refuse_stale(out: Path, recipe: dict) -> None:
+    """Refuse, with what changed, to resume a dataset of ours whose input files or
+    renderer versions are not the ones it was made from. Other differences are left to
+    claim_folder's "another recipe" refusal; this only gives the reason a name."""
+    if out.is_symlink() or not out.is_dir():
+        return
+    marker = read_marker(out)
+    if marker is None or marker["kind"] != "dataset" or marker.get("recipe") == recipe_hash(recipe):
+        return
+    try:
+        old = read_json(out / CONFIG)
+    except InputError:
+        return
+    change = stale_inputs(old, recipe)
+    if change:
+        raise InputError(f"{out} was made from {change}; pass --overwrite to re-render it")
 
 
 def view_complete(out: Path, stem: str) -> bool:
@@ -207,8 +244,11 @@ def finish(out: Path, the_plan: Plan) -> None:
         "images": {"png": "8-bit sRGB, straight alpha = coverage", "exr": "linear float32, premultiplied alpha",
                    "spp": the_plan.config.spp, "max_depth": the_plan.config.max_depth, "filter": "box"},
         "variant": the_plan.variant,
+        "inputs": the_plan.inputs,
+        "recipe_sha256": recipe_hash(the_plan.recipe()),
         "versions": {"mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "trimesh": trimesh.__version__,
-                     "numpy": np.__version__, "python": platform.python_version()},
+                     "numpy": np.__version__, "python": platform.python_version(),
+                     "nerfgauge": the_plan.versions["nerfgauge"]},
     }
     write_json(out / "scene.json", scene_json)
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
@@ -223,8 +263,17 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
         raise InputError(f"--workers must be a positive integer, got {workers!r}")
     out = Path(out)
     the_plan = plan(config)
-    prepare_output(out, the_plan.recipe(), overwrite)
+    recipe = the_plan.recipe()
+    if not overwrite:
+        refuse_stale(out, recipe)
+    with claim_folder(out, "dataset", recipe_hash(recipe), overwrite=overwrite):
+        return _generate_claimed(out, the_plan, recipe, workers, progress)
+
+
+def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, progress: bool) -> dict:
+    """The run, while this process holds `out`'s write lock."""
     start = time.perf_counter()
+    write_json(out / CONFIG, recipe)  # what the folder is made from (the same bytes when resuming)
     write_meshes(the_plan.scene, out / "meshes")  # before any worker loads them
     todo = pending_views(out, the_plan)
     if todo and (out / dataset.MANIFEST).is_file():

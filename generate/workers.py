@@ -3,11 +3,19 @@
 The Mitsuba scene is loaded once per process. In-process, file writing runs on a
 background thread while the next view renders (Dr.Jit releases the GIL while its kernels
 run), so the generator's time stays close to Mitsuba's own render time.
+
+Worker processes die with their parent: a `generate` killed with SIGKILL leaves no
+workers rendering on (they would write into a folder whose lock is already released).
 """
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
+import os
+import signal
+import sys
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 
@@ -73,7 +81,37 @@ def dataset_write(out, stem, images):
     write_view(out, stem, images)
 
 
-def _init_worker(out, the_plan):
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+PARENT_POLL_SECONDS = 0.5
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """End this process when `parent_pid` (its parent) ends, however the parent ends.
+
+    On Linux the kernel sends SIGKILL at the parent's death (prctl PR_SET_PDEATHSIG). It
+    fires when the parent *thread* that started this process exits; ProcessPoolExecutor
+    with the spawn context starts workers from the thread that calls submit() (Python
+    3.9+, without max_tasks_per_child), which for render_views is the thread that runs
+    the whole pool, so it lives as long as the parent needs the workers. Everywhere (and
+    in case the parent died before prctl took effect) a daemon thread also exits the
+    process once its parent PID changes (the orphan was re-parented)."""
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent_pid:
+        os._exit(1)  # the parent is already gone
+
+    def watch():
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_POLL_SECONDS)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+
+
+def _init_worker(out, the_plan, parent_pid):
+    die_with_parent(parent_pid)
     _WORKER["mi"], _WORKER["scene"] = load_mitsuba_scene(out, the_plan)
     _WORKER["out"], _WORKER["plan"] = out, the_plan
 
@@ -89,7 +127,7 @@ def _render_pool(out, the_plan, todo, workers, bar) -> float:
     context = multiprocessing.get_context("spawn")
     render_seconds = 0.0
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
-                             initargs=(out, the_plan)) as pool:
+                             initargs=(out, the_plan, os.getpid())) as pool:
         futures = [pool.submit(_work, split, index) for split, index in todo]
         for future in as_completed(futures):
             render_seconds += future.result()

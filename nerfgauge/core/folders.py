@@ -86,7 +86,7 @@ def _check_claimable(folder: Path, kind: str, recipe: str | None, overwrite: boo
         raise InputError(f"output folder {folder} is a symbolic link; give the real path")
     if folder.exists() and not folder.is_dir():
         raise InputError(f"output path {folder} exists and is not a folder")
-    if not folder.is_dir() or not any(p.name != LOCK for p in folder.iterdir()):
+    if not folder.is_dir() or not any(not _ours_in_flight(p.name) for p in folder.iterdir()):
         return "new"
     marker = read_marker(folder)
     if marker is None:
@@ -100,6 +100,12 @@ def _check_claimable(folder: Path, kind: str, recipe: str | None, overwrite: boo
     if not overwrite:
         raise InputError(f"output folder {folder} holds a {kind} of another recipe; pass --overwrite to replace it")
     return "replace"
+
+
+def _ours_in_flight(name: str) -> bool:
+    """The lock, or a marker being written: what a concurrent claimer leaves in a folder
+    before it is recognisably ours (seen unlocked, it must not read as the user's)."""
+    return name == LOCK or name.startswith(f".{MARKER}.tmp")
 
 
 def _empty_owned(folder: Path) -> None:
