@@ -70,7 +70,10 @@ def base(tmp_path_factory, tiny_dataset):
     shared = root / "shared"
     shared.mkdir()
     run = shared / "run"
+    # run-full: the same, saved unpruned (after 3 steps nothing is occupied, so the pruned
+    # model.pt holds no float values for the NaN and reshaping cases to reach)
     for argv in (["train", tiny_dataset, "--out", run, "--steps", "3", "--quiet"],
+                 ["train", tiny_dataset, "--out", shared / "run-full", "--steps", "3", "--no-prune", "--quiet"],
                  ["render", run, "--out", shared / "pred", "--quiet"]):
         outcome = run_cli(argv, shared)
         assert outcome.code == 0, outcome
@@ -78,7 +81,8 @@ def base(tmp_path_factory, tiny_dataset):
     shutil.copyfile(tiny_dataset / "test" / "r_000.png", outside)
     cases = root / "cases"
     cases.mkdir()
-    return {"dataset": Path(tiny_dataset), "run": run, "pred": shared / "pred", "outside": outside,
+    return {"dataset": Path(tiny_dataset), "run": run, "run-full": shared / "run-full", "pred": shared / "pred",
+            "outside": outside,
             "shared": (Path(tiny_dataset), shared), "cases": cases}
 
 
@@ -491,9 +495,9 @@ def test_image_mutations_train(base, kind, data):
 # checkpoints: model.pt (render) and checkpoint.pt (train --resume)
 
 
-def checkpoint_case(base, command: str):
+def checkpoint_case(base, command: str, pruned: bool):
     folder = new_case_folder(base, "checkpoint")
-    run = copy_tree(base["run"], folder / "run")
+    run = copy_tree(base["run" if pruned else "run-full"], folder / "run")
     if command == "render":
         out = folder / "renders"
         return folder, run, run / "model.pt", ["render", run, "--out", out, "--quiet"], out
@@ -606,7 +610,8 @@ CHECKPOINT_KINDS = ("raw-bytes", "code-payload", "key-deleted", "config-value", 
 @given(data=st.data())
 @settings(max_examples=N_TRAIN + 1, **FAST)
 def test_checkpoint_mutations(base, command, kind, data):
-    folder, run, path, argv, out = checkpoint_case(base, command)
+    pruned = command == "train" or data.draw(st.booleans(), label="pruned model.pt")
+    folder, run, path, argv, out = checkpoint_case(base, command, pruned)
     canary = folder / "ran-code"
     what, expect = mutate_checkpoint(kind, path, data, canary)
     assert_judged(Case(command, argv, folder, out, f"{path.name}: {what}", expect, base["shared"], canary))
