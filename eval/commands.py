@@ -27,7 +27,7 @@ def comma_separated(item_type, *, distinct: bool = False):
             try:
                 values.append(item_type(part))
             except argparse.ArgumentTypeError as error:
-                raise argparse.ArgumentTypeError(f"{error} (in {text!r})") from None
+                raise argparse.ArgumentTypeError(f"{error} (in {text!r})" if len(parts) > 1 else str(error)) from None
         if distinct and len(set(values)) < len(values):
             repeated = next(v for v in values if values.count(v) > 1)
             raise argparse.ArgumentTypeError(f"{repeated} appears more than once in {text!r}")
