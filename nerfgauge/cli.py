@@ -8,7 +8,8 @@ argument errors are instant.
 Exit codes: 0 done; 2 bad input, one line on stderr: an argument error, an `InputError`,
 an OS error on the user's paths (no space, permission, read-only, not a folder ...,
 naming the path and the reason), or an allocation too large for this machine; 3 NaN or inf
-where finite numbers are required (`NumericalError`), one line; 130 interrupted.
+where finite numbers are required (`NumericalError`), one line; 130 interrupted; 141
+(silently) when stdout's reader has gone, as `| head` does.
 Commands may return 1 for "ran, and the result failed" (`check`, `bench hard`).
 Set NERFGAUGE_DEBUG=1 to see the traceback instead of the one line.
 """
@@ -63,6 +64,15 @@ def _fail(command: str, kind: str, message: str, code: int) -> int:
     return code
 
 
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush does not fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout is not a file (captured in tests)
+        pass
+
+
 def main(argv=None) -> int:
     """Run `nerfgauge ARGV`; returns the exit code (argument errors and --help included)."""
     parser = build_parser()
@@ -77,6 +87,11 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"nerfgauge {command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        if debug:
+            raise
+        _silence_stdout()  # the reader left (`nerfgauge scenes | head -1`): nothing to report, as for SIGPIPE
+        return 141
     except Exception as error:
         if debug:
             raise

@@ -442,3 +442,17 @@ def test_one_bench_does_not_write_into_another_bench_folder(tmp_path, capsys):
     assert main(["bench", "hard", "--scenes", "thin", "--out", str(tmp_path / "s")]) == 2
     assert "another recipe" in one_error_line(capsys, "bench hard")
     assert snapshot(tmp_path) == before
+
+
+def test_a_closed_stdout_is_not_reported(tmp_path):
+    """`nerfgauge scenes | head -1`: the reader left; exit 141 like SIGPIPE, nothing on stderr."""
+    import sys
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # every write to stdout now fails with EPIPE
+    try:
+        result = subprocess.run([sys.executable, "-m", "nerfgauge.cli", "scenes"], stdout=write_end,
+                                stderr=subprocess.PIPE, timeout=120)
+    finally:
+        os.close(write_end)
+    assert (result.returncode, result.stderr) == (141, b"")
