@@ -116,8 +116,8 @@ def verify_manifest(root) -> list[str]:
 def read_manifest(root) -> dict:
     """manifest.json -> {relative path: validate.ManifestEntry}; InputError if garbled."""
     root = Path(root)
-    path = validate.confine(root.resolve(), MANIFEST)
-    return validate.manifest(read_json(path, finite=True), root / MANIFEST)
+    validate.confine(root.resolve(), MANIFEST)
+    return validate.manifest(read_json(root / MANIFEST, finite=True), root / MANIFEST)
 
 
 # --- reading, for nerf/ and eval/ ---------------------------------------------------
@@ -228,9 +228,15 @@ class Dataset:
         c2w = np.stack(poses) if poses else np.zeros((0, 4, 4))
         return SplitCameras(split, tuple(stems), c2w, intrinsics)
 
-    def _frame_file(self, stem: str, kind: str) -> tuple[Path, bytes]:
+    def frame_file(self, stem: str, kind: str, decode):
+        """decode(path, verified bytes) of the frame's file of `kind` (a FRAME_SUFFIXES
+        key); errors name the frame."""
         rel = stem + FRAME_SUFFIXES[kind]
-        return self.root / rel, self.read_bytes(rel, f"frame {stem}")
+        data = self.read_bytes(rel, f"frame {stem}")
+        try:
+            return decode(self.root / rel, data)
+        except InputError as error:
+            raise InputError(f"frame {stem}: {error}") from None
 
     # --- cameras ------------------------------------------------------------------------
 
@@ -273,14 +279,15 @@ class Dataset:
 
     def image_linear(self, split: str, index: int) -> np.ndarray:
         """[H, W, 4] float32 linear premultiplied RGBA (the EXR)."""
-        stem = self._stem(split, index)
-        path, data = self._frame_file(stem, "exr")
-        channels, _ = read_exr(path, data, self.intrinsics(split))
-        if "RGBA" in channels:
-            return channels["RGBA"]
-        if set("RGBA") <= set(channels):
-            return np.stack([channels[c] for c in "RGBA"], axis=-1)
-        raise InputError(f"frame {stem}: {path} has no RGBA channels (has {sorted(channels)})")
+        def decode(path, data):
+            channels, _ = read_exr(path, data, self.intrinsics(split))
+            if "RGBA" in channels:
+                return channels["RGBA"]
+            if set("RGBA") <= set(channels):
+                return np.stack([channels[c] for c in "RGBA"], axis=-1)
+            raise InputError(f"{path} has no RGBA channels (has {sorted(channels)})")
+
+        return self.frame_file(self._stem(split, index), "exr", decode)
 
     def depth(self, split: str, index: int, kind: str = "distance") -> np.ndarray:
         """[H, W] float32, 0 = miss; kind "distance" (along the ray) or "z" (optical axis)."""
@@ -288,12 +295,13 @@ class Dataset:
 
     def normals(self, split: str, index: int) -> np.ndarray:
         """[H, W, 3] float32 world-space normals, 0 on misses."""
-        stem = self._stem(split, index)
-        path, data = self._frame_file(stem, "normals")
-        channels, _ = read_exr(path, data, self.intrinsics(split))
-        if not set("XYZ") <= set(channels):
-            raise InputError(f"frame {stem}: {path} has no X, Y, Z channels (has {sorted(channels)})")
-        return np.stack([channels[c] for c in "XYZ"], axis=-1)
+        def decode(path, data):
+            channels, _ = read_exr(path, data, self.intrinsics(split))
+            if not set("XYZ") <= set(channels):
+                raise InputError(f"{path} has no X, Y, Z channels (has {sorted(channels)})")
+            return np.stack([channels[c] for c in "XYZ"], axis=-1)
+
+        return self.frame_file(self._stem(split, index), "normals", decode)
 
     def mask(self, split: str, index: int) -> np.ndarray:
         """[H, W] bool: the pixel-centre ray hits geometry."""
@@ -321,8 +329,7 @@ def read_split(root, split: str) -> SplitCameras:
 
 def read_rgba(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
     """The frame's PNG as straight-alpha sRGB in [0, 1]. Returns [H, W, 4] float32."""
-    path, data = open_dataset(root)._frame_file(stem, "png")
-    image = read_png(path, data, intrinsics)
+    image = open_dataset(root).frame_file(stem, "png", lambda path, data: read_png(path, data, intrinsics))
     if image.ndim == 2:
         image = image[..., None]
     if image.shape[-1] in (1, 2):  # gray (+ alpha)
@@ -336,14 +343,13 @@ def read_depth(root, stem: str, intrinsics: Intrinsics, kind: str = "distance") 
     """Ground-truth depth: "distance" (along the ray) or "z" (along the optical axis). [H, W]."""
     if kind not in DEPTH_KINDS:
         raise InputError(f"unknown depth kind {kind!r}; choose distance or z")
-    path, data = open_dataset(root)._frame_file(stem, "distance" if kind == "distance" else "z_depth")
-    return read_exr_single(path, data, intrinsics)
+    return open_dataset(root).frame_file(stem, "distance" if kind == "distance" else "z_depth",
+                                         lambda path, data: read_exr_single(path, data, intrinsics))
 
 
 def read_mask(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
     """Pixels whose centre ray hits geometry. Returns [H, W] bool."""
-    path, data = open_dataset(root)._frame_file(stem, "mask")
-    mask = read_png(path, data, intrinsics)
+    mask = open_dataset(root).frame_file(stem, "mask", lambda path, data: read_png(path, data, intrinsics))
     return (mask if mask.ndim == 2 else mask[..., 0]) > 0.5
 
 
