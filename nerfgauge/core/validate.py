@@ -28,9 +28,11 @@ from __future__ import annotations
 import hashlib
 import math
 import numbers
+import os
+import posixpath
 import re
 from dataclasses import dataclass
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -58,13 +60,12 @@ def relative_path(value, what: str) -> str:
         raise InputError(f"{what}: expected a relative path, got {value!r}")
     if "\\" in value or "\x00" in value:
         raise InputError(f"{what}: path {value!r} holds a backslash or NUL; use / separated relative paths")
-    path = PurePosixPath(value)
-    if path.is_absolute():
+    if value.startswith("/"):
         raise InputError(f"{what}: absolute path {value!r} refused; paths must stay inside the dataset")
-    if ".." in path.parts:
+    if ".." in value.split("/"):
         raise InputError(f"{what}: path {value!r} climbs out with '..'; paths must stay inside the dataset")
-    normal = path.as_posix()
-    if normal in ("", "."):
+    normal = posixpath.normpath(value)
+    if normal == ".":
         raise InputError(f"{what}: expected a relative path, got {value!r}")
     return normal
 
@@ -74,10 +75,11 @@ def confine(real_root: Path, rel: str, what: str = "") -> Path:
     InputError if it leads outside the root. what: who asked (e.g. "frame test/r_000")."""
     label = f"{what}: " if what else ""
     rel = relative_path(rel, label + repr(rel))
-    real = (real_root / rel).resolve()
-    if real != real_root and real_root not in real.parents:
+    root = str(real_root)
+    real = os.path.realpath(os.path.join(root, rel))  # what Path.resolve() does, without the objects
+    if not real.startswith(root.rstrip(os.sep) + os.sep):
         raise InputError(f"{label}{rel} resolves to {real}, outside the dataset {real_root}")
-    return real
+    return Path(real)
 
 
 # --- numbers from transforms and scene.json ----------------------------------------------
@@ -152,7 +154,7 @@ def pose(matrix, frame: str, where: str) -> np.ndarray:
 
 def image_magic(data: bytes, path) -> None:
     """The leading bytes of `data` match the extension of `path` (.png or .exr)."""
-    suffix = Path(path).suffix.lower()
+    suffix = os.path.splitext(str(path))[1].lower()
     magic = MAGIC.get(suffix)
     if magic is None or data.startswith(magic):
         return
