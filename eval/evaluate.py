@@ -28,6 +28,8 @@ null when a view has none); depth on ground-truth hit pixels (read_mask), null w
 hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty).
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
+The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
+file confined to it and checked against its manifest as it is read (one read per file).
 Outputs: FILE (default DIR/metrics.json, schema 1, written atomically) and error maps in
 `error_maps/` beside it (eval.error_maps).
 """

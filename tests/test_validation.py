@@ -87,10 +87,11 @@ def test_frame_paths_that_leave_the_dataset_are_refused(ds_root, capsys, file_pa
     assert file_path in err
 
 
-def test_a_symlink_out_of_the_dataset_is_refused(ds_root, capsys):
-    outside = ds_root.parent / "outside.png"
-    shutil.move(ds_root / "test/r_000.png", outside)  # same bytes: the manifest alone would pass it
-    (ds_root / "test/r_000.png").symlink_to(outside)
+@pytest.mark.parametrize("linked", ["test/r_000.png", "test"])
+def test_a_symlink_out_of_the_dataset_is_refused(ds_root, capsys, linked):
+    outside = ds_root.parent / "outside"
+    shutil.move(ds_root / linked, outside)  # same bytes: the manifest alone would pass them
+    (ds_root / linked).symlink_to(outside)
     evaluate_fails(capsys, ds_root, "frame test/r_000", "test/r_000.png", "outside the dataset")
 
 
@@ -203,6 +204,15 @@ def test_bad_bounds_are_refused(ds_root, capsys, bounds, expected):
     train_fails(capsys, ds_root, "scene.json", expected)
 
 
+@pytest.mark.parametrize("needs, expected", [
+    ("fast", "needs must be an object"), ({"finest_texture_period": "x"}, "finite number"),
+    ({"finest_texture_period": -0.1}, "must be > 0"), ({"view_dependent": "yes"}, "true or false")])
+def test_bad_needs_are_refused(ds_root, capsys, needs, expected):
+    edit_json(ds_root / "scene.json", lambda m: m.update(needs=needs))
+    vouch(ds_root)
+    train_fails(capsys, ds_root, "scene.json", "needs", expected)
+
+
 # --- image signatures and sizes ----------------------------------------------------------
 
 
@@ -240,6 +250,7 @@ def no_decoding(monkeypatch):
     monkeypatch.setattr(PngImagePlugin.PngImageFile, "load", refuse)
 
 
+@pytest.mark.filterwarnings("error")  # Pillow's DecompressionBombWarning included
 @pytest.mark.parametrize("side", [20000, 12000, 8193])
 def test_oversized_png_is_refused_from_its_header(tmp_path, no_decoding, side):
     path = tmp_path / "bomb.png"

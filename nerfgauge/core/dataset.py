@@ -125,7 +125,8 @@ def read_manifest(root) -> dict:
 
 @dataclass(frozen=True)
 class SplitCameras:
-    """One split: frame stems (relative, extension-less), poses [n, 4, 4], intrinsics."""
+    """One split: frame stems (relative, extension-less), poses [n, 4, 4] (read-only),
+    intrinsics."""
 
     split: str
     stems: tuple
@@ -179,10 +180,11 @@ class Dataset:
                 self._cameras[split] = self._read_transforms(split, name)
         if not self._cameras:
             raise InputError(f"dataset {self.root} has no transforms_<split>.json for any of {', '.join(SPLITS)}")
-        self.scene = self._read_json("scene.json", finite=True) if ("scene.json" in self._manifest
-                                                        or (self.root / "scene.json").exists()) else {}
+        has_scene = "scene.json" in self._manifest or (self.root / "scene.json").exists()
+        self.scene = self._read_json("scene.json", finite=True) if has_scene else {}
         bounds = self.scene.get("bounds")
         self.bounds = None if bounds is None else validate.bounds(bounds, str(self.root / "scene.json"))
+        validate.needs(self.scene.get("needs"), str(self.root / "scene.json"))
 
     # --- files --------------------------------------------------------------------------
 
@@ -226,6 +228,7 @@ class Dataset:
             stems.append(stem)
             poses.append(validate.pose(frame["transform_matrix"], stem, where))
         c2w = np.stack(poses) if poses else np.zeros((0, 4, 4))
+        c2w.flags.writeable = False  # shared by every caller of cameras(split)
         return SplitCameras(split, tuple(stems), c2w, intrinsics)
 
     def frame_file(self, stem: str, kind: str, decode):

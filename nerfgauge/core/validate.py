@@ -7,7 +7,8 @@ asks the file system where a path really leads.
 - Paths: a path read from a dataset file is relative, has no `..`, and resolves (symlinks
   followed, `Path.resolve`) inside the dataset root.
 - Intrinsics: fl_x, fl_y finite and > 0; cx, cy finite; w, h integers in [1, MAX_IMAGE_SIDE].
-- Bounds: [[x, y, z], [x, y, z]], finite, min < max on every axis.
+- scene.json: bounds [[x, y, z], [x, y, z]], finite, min < max on every axis; needs an
+  object (finest_texture_period finite > 0 or null, view_dependent a boolean).
 - Poses: 4x4 finite; rotation orthonormal (max |R^T R - I| <= POSE_TOLERANCE) with
   |det R - 1| <= POSE_TOLERANCE (no scale, shear or mirror); bottom row exactly 0 0 0 1.
 - Images: the magic bytes match the extension (PNG 89 50 4E 47 0D 0A 1A 0A, EXR 76 2F 31 01),
@@ -125,6 +126,22 @@ def bounds(value, where: str) -> np.ndarray:
         axes = ", ".join("xyz"[k] for k in np.flatnonzero(~(array[0] < array[1])))
         raise InputError(f"{where}: bounds need min < max on every axis, not on {axes}: {array.tolist()}")
     return array
+
+
+def needs(value, where: str) -> Optional[dict]:
+    """scene.json's `needs` (what the scene asks of a model): None, or an object whose
+    finest_texture_period, if given and not null, is a finite number > 0 and whose
+    view_dependent, if given, is true or false."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise InputError(f"{where}: needs must be an object, got {value!r}")
+    period = value.get("finest_texture_period")
+    if period is not None and (_real(period, "needs.finest_texture_period", where) <= 0):
+        raise InputError(f"{where}: needs.finest_texture_period must be > 0, got {period!r}")
+    if "view_dependent" in value and not isinstance(value["view_dependent"], bool):
+        raise InputError(f"{where}: needs.view_dependent must be true or false, got {value['view_dependent']!r}")
+    return value
 
 
 def pose(matrix, frame: str, where: str) -> np.ndarray:
