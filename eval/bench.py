@@ -7,6 +7,11 @@
   OUT/train.json, OUT/train.md (the table) and Pareto plots (PSNR against training
   seconds, PSNR against model MB), and prints the table.
 
+Every bench writes into its own OUT, claimed as a nerfgauge "bench" folder of its kind
+(`claim_bench_folder`: marker and lock), so reruns of the same bench continue in it and
+a folder that is not a bench's is refused untouched. A case's dataset and run from an
+earlier run are deleted only through their own markers (`core.folders.remove_owned`).
+
 Figures are ratios and orderings within one run; absolute seconds depend on the machine.
 """
 
@@ -20,7 +25,8 @@ import time
 from pathlib import Path
 
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import write_json
+from nerfgauge.core.files import atomic_path, write_bytes_atomic, write_json
+from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
 
 # variant name -> (model, extra `nerfgauge train` arguments). The vanilla NeRF logs its
 # curve every 30 s and is not rendered on the test views: at ~0.5 s per ray batch on two
@@ -34,6 +40,21 @@ VARIANTS = {
     "compact-no-skip": ("compact", ["--no-occupancy"]),  # no empty-space skipping
     "compact-res256": ("compact", ["--resolution", "256"]),  # resolution fixed high
 }
+
+
+def claim_bench_folder(out, bench: str):
+    """claim_folder(out) as a "bench" folder of `bench` ("train", "scaling", "hard"): a rerun
+    of the same bench continues in it (each case replaces its own outputs), another bench's
+    folder or anyone else's is refused."""
+    return claim_folder(out, "bench", recipe_hash({"bench": bench}))
+
+
+def write_png_figure(figure, path) -> None:
+    """Save a matplotlib Figure as PNG through the atomic writer."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    with atomic_path(path) as tmp:
+        FigureCanvasAgg(figure).print_png(str(tmp))
 
 
 def bench_generate(scene: str, views: int, width: int, height: int, spp: int) -> dict:
@@ -70,40 +91,57 @@ def first_time_reaching(log: list, psnr: float):
 
 
 def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: int, height: int, views: int) -> list:
+    """Run every scene x variant x budget into the bench folder `out`; writes train.json
+    (after each case), train.md and pareto.png. Returns the rows."""
     from nerfgauge.eval.evaluate import evaluate
     from nerfgauge.eval.report import read_log
+    from nerfgauge.scenes import make_scene
 
-    rows = []
+    unknown = [v for v in variants if v not in VARIANTS]
+    if not variants or unknown:
+        raise InputError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    if not budgets or not all(isinstance(b, (int, float)) and 0 < b < float("inf") for b in budgets):
+        raise InputError(f"budgets must be positive finite seconds, got {budgets!r}")
+    if not scenes:
+        raise InputError("no scenes to benchmark")
     for scene in scenes:
-        data = out / "datasets" / f"{scene}-{width}x{height}-{views}"
-        code, _, _ = run_child(["generate", scene, "--out", str(data), "--views", str(views), "--res",
-                                f"{width}x{height}", "--quiet"])
-        if code != 0:
-            raise InputError(f"generating {scene} failed (exit {code})")
-        for variant in variants:
-            model, extra = VARIANTS[variant]
-            for budget in budgets:
-                run = out / "runs" / f"{scene}-{variant}-{budget:g}s"
-                code, _, peak_mb = run_child(["train", str(data), "--out", str(run), "--model", model,
-                                              "--budget-seconds", str(budget), "--quiet", *extra])
-                if code != 0:
-                    rows.append({"scene": scene, "variant": variant, "budget": budget, "error": f"exit {code}"})
-                    continue
-                log = read_log(run / "log.jsonl")
-                if model == "vanilla":
-                    metrics = {"mean": {"psnr": None, "ssim": None, "depth_absrel": None}, "timing": {}}
-                else:
-                    run_child(["render", str(run), "--quiet"])
-                    metrics = evaluate(data, run / "renders", "test", run / "metrics.json")
-                rows.append({"scene": scene, "variant": variant, "budget": budget, "val_psnr": log[-1]["val_psnr"],
-                             "psnr": metrics["mean"]["psnr"], "ssim": metrics["mean"]["ssim"],
-                             "depth_absrel": metrics["mean"]["depth_absrel"],
-                             "train_seconds": log[-1]["seconds"], "steps": log[-1]["step"],
-                             "steps_per_second": log[-1]["steps_per_second"],
-                             "render_ms_per_frame": metrics["timing"].get("ms_per_frame"),
-                             "model_mb": (run / "model.pt").stat().st_size / 1e6, "peak_memory_mb": peak_mb,
-                             "log": str(run / "log.jsonl")})
-                write_json(out / "train.json", {"rows": rows})
+        make_scene(scene, 0)  # unknown names: InputError before anything is written
+    out = Path(out)
+    rows = []
+    with claim_bench_folder(out, "train"):
+        for scene in scenes:
+            data = out / "datasets" / f"{scene}-{width}x{height}-{views}"
+            code, _, _ = run_child(["generate", scene, "--out", str(data), "--views", str(views), "--res",
+                                    f"{width}x{height}", "--quiet"])
+            if code != 0:
+                raise InputError(f"generating {scene} failed (exit {code})")
+            for variant in variants:
+                model, extra = VARIANTS[variant]
+                for budget in budgets:
+                    run = out / "runs" / f"{scene}-{variant}-{budget:g}s"
+                    remove_owned(run, "run")  # an earlier bench's run of this case: train afresh
+                    code, _, peak_mb = run_child(["train", str(data), "--out", str(run), "--model", model,
+                                                  "--budget-seconds", str(budget), "--quiet", *extra])
+                    if code != 0:
+                        rows.append({"scene": scene, "variant": variant, "budget": budget, "error": f"exit {code}"})
+                        continue
+                    log = read_log(run / "log.jsonl")
+                    if model == "vanilla":
+                        metrics = {"mean": {"psnr": None, "ssim": None, "depth_absrel": None}, "timing": {}}
+                    else:
+                        run_child(["render", str(run), "--quiet"])
+                        metrics = evaluate(data, run / "renders", "test", run / "metrics.json")
+                    rows.append({"scene": scene, "variant": variant, "budget": budget,
+                                 "val_psnr": log[-1]["val_psnr"], "psnr": metrics["mean"]["psnr"],
+                                 "ssim": metrics["mean"]["ssim"], "depth_absrel": metrics["mean"]["depth_absrel"],
+                                 "train_seconds": log[-1]["seconds"], "steps": log[-1]["step"],
+                                 "steps_per_second": log[-1]["steps_per_second"],
+                                 "render_ms_per_frame": metrics["timing"].get("ms_per_frame"),
+                                 "model_mb": (run / "model.pt").stat().st_size / 1e6, "peak_memory_mb": peak_mb,
+                                 "log": str(run / "log.jsonl")})
+                    write_json(out / "train.json", {"rows": rows})
+        write_bytes_atomic(out / "train.md", (table_markdown(rows) + "\n\n" + "\n".join(speedups(rows)) + "\n").encode())
+        pareto_plots(rows, out)
     return rows
 
 
@@ -146,8 +184,7 @@ def table_markdown(rows: list) -> str:
 
 
 def pareto_plots(rows: list, out: Path) -> None:
-    """PSNR against training seconds (every run's val curve) and against model MB."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    """PSNR against training seconds (every run's val curve) and against model MB: OUT/pareto.png."""
     from matplotlib.figure import Figure
     from nerfgauge.eval.report import read_log
 
@@ -166,4 +203,4 @@ def pareto_plots(rows: list, out: Path) -> None:
         axes.grid(alpha=0.3)
     by_size.legend(fontsize=6, loc="lower right")
     figure.tight_layout()
-    FigureCanvasAgg(figure).print_png(str(out / "pareto.png"))
+    write_png_figure(figure, out / "pareto.png")

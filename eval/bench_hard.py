@@ -10,7 +10,9 @@ compact NeRF briefly, render, evaluate), then an audit of everything it wrote:
 - metrics: metrics.json parses with NaN/inf refused, and every metric is either a number
   or null with a frame count of 0 (undefined on that scene, e.g. depth with no hit pixel).
 
-Writes OUT/hard.json (rows, rewritten after each scene) and OUT/hard.md (the table).
+Writes OUT/hard.json (rows, rewritten after each scene) and OUT/hard.md (the table); OUT
+is a nerfgauge "bench" folder (claimed and locked), each OUT/SCENE a "pipeline" folder
+claimed by its `nerfgauge run` child.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.eval.bench import run_child
+from nerfgauge.eval.bench import claim_bench_folder, run_child
 from nerfgauge.eval.report import read_log
 
 from nerfgauge.core.errors import InputError
@@ -103,20 +105,21 @@ def all_finite(found: dict) -> bool:
 
 def bench_hard(config: HardConfig, out: Path, progress_print=print) -> list:
     config.validate()
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(out)
     rows = []
-    for scene in config.scenes:
-        progress_print(f"bench hard: {scene}")
-        folder = out / scene
-        code, seconds, peak_mb = run_child(
-            ["run", scene, "--out", str(folder), "--res", f"{config.width}x{config.height}", "--views", str(config.views),
-             "--test-views", str(config.test_views), "--spp", str(config.spp), "--steps", str(config.steps),
-             "--seed", str(config.seed), "--overwrite", "--quiet"])
-        row = {"scene": scene, "exit": code, "seconds": seconds, "peak_memory_mb": peak_mb} | audit(folder)
-        row["finite"] = all_finite(row)
-        rows.append(row)
-        write_json(out / "hard.json", {"config": asdict(config), "command": config.command(out), "rows": rows})
-    write_bytes_atomic(out / "hard.md", (table_markdown(rows, config.command(out)) + "\n").encode())
+    with claim_bench_folder(out, "hard"):
+        for scene in config.scenes:
+            progress_print(f"bench hard: {scene}")
+            folder = out / scene
+            code, seconds, peak_mb = run_child(
+                ["run", scene, "--out", str(folder), "--res", f"{config.width}x{config.height}", "--views",
+                 str(config.views), "--test-views", str(config.test_views), "--spp", str(config.spp), "--steps",
+                 str(config.steps), "--seed", str(config.seed), "--overwrite", "--quiet"])
+            row = {"scene": scene, "exit": code, "seconds": seconds, "peak_memory_mb": peak_mb} | audit(folder)
+            row["finite"] = all_finite(row)
+            rows.append(row)
+            write_json(out / "hard.json", {"config": asdict(config), "command": config.command(out), "rows": rows})
+        write_bytes_atomic(out / "hard.md", (table_markdown(rows, config.command(out)) + "\n").encode())
     return rows
 
 

@@ -25,17 +25,17 @@ import math
 import os
 import platform
 import shlex
-import shutil
 import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.eval.bench import first_time_reaching, run_child
+from nerfgauge.eval.bench import claim_bench_folder, first_time_reaching, run_child, write_png_figure
 
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import write_json
+from nerfgauge.core.files import write_bytes_atomic, write_json
+from nerfgauge.core.folders import remove_owned
 
 EVAL_EVERY_SECONDS = 2.0  # val PSNR log spacing (training seconds): the resolution of time-to-target
 MODEL = "compact"
@@ -124,39 +124,6 @@ def check_counts(values, flag: str) -> tuple:
     return values
 
 
-def parse_counts(text: str, flag: str) -> tuple:
-    """"64,128,256" -> (64, 128, 256); non-integers, non-positive values and repeats are InputError."""
-    parts = [p.strip() for p in str(text).split(",")]
-    values = []
-    for part in parts:
-        try:
-            values.append(int(part))
-        except ValueError:
-            raise InputError(f"--{flag} must be comma-separated positive integers, got {text!r}") from None
-    return check_counts(values, flag)
-
-
-def parse_count(text: str, flag: str) -> int:
-    """"100" -> 100; anything but a positive integer is an InputError."""
-    try:
-        value = int(str(text).strip())
-    except ValueError:
-        raise InputError(f"--{flag} must be a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise InputError(f"--{flag} must be a positive integer, got {text!r}")
-    return value
-
-
-def parse_positive(text: str, flag: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise InputError(f"--{flag} must be a positive number, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise InputError(f"--{flag} must be a positive number, got {text!r}")
-    return value
-
-
 def _finite(value):
     """A float, or None for missing/NaN/inf (scaling.json is strict JSON)."""
     return None if value is None or not math.isfinite(float(value)) else float(value)
@@ -173,9 +140,9 @@ def nerf_case(config: ScalingConfig, out: Path, resolution: int, views: int, axe
 
     name = f"{config.scene.replace('/', '_').replace(':', '_')}-{resolution}x{resolution}-{views}v"
     data, run = out / "datasets" / name, out / "runs" / f"{name}-{config.budget_seconds:g}s"
-    for folder in (data, run):  # this case's own folders from an earlier run: start fresh, or times would lie
-        if folder.is_dir():
-            shutil.rmtree(folder)
+    # this case's own folders from an earlier run: start fresh, or times would lie (only through their markers)
+    remove_owned(data, "dataset")
+    remove_owned(run, "run")
     row = {"resolution": resolution, "views": views, "axes": list(axes), "train_pixels": views * resolution ** 2,
            "budget": config.budget_seconds, "target_psnr": config.target_psnr}
     code, generation_seconds, _ = run_child(["generate", config.scene, "--out", str(data), "--views", str(views),
@@ -218,26 +185,32 @@ def generation_case(scene: str, views: int, spp: int, resolution: int, axes: tup
 
 
 def bench_scaling(config: ScalingConfig, out: Path) -> dict:
-    """Every generation case, then every NeRF case; OUT/scaling.json is rewritten after each."""
-    out.mkdir(parents=True, exist_ok=True)
-    document = {"command": config.command(out), "config": asdict(config), "eval_every_seconds": EVAL_EVERY_SECONDS,
-                "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                            "python": platform.python_version(), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")},
-                "generation": [], "nerf": []}
-    gen_cases = {(v, config.gen_views_spp): ["views"] for v in config.gen_views}
-    for spp in config.gen_spp:
-        gen_cases.setdefault((config.gen_spp_views, spp), []).append("spp")
-    with tempfile.TemporaryDirectory(dir=out, prefix=".gen-") as scratch:
-        for spp in sorted({spp for _, spp in gen_cases}):  # warm-up: imports, variant, a kernel per spp
-            generation_case(config.scene, 1, spp, config.gen_res, (), Path(scratch))
-        for (views, spp), axes in gen_cases.items():
-            document["generation"].append(generation_case(config.scene, views, spp, config.gen_res, tuple(axes),
-                                                          Path(scratch)))
-            document["fits"] = generation_fits(document["generation"])
+    """Every generation case, then every NeRF case, in the bench folder `out`; OUT/scaling.json
+    is rewritten after each, then OUT/scaling.md and OUT/scaling.png. Returns the document."""
+    config.validate()
+    out = Path(out)
+    with claim_bench_folder(out, "scaling"):
+        document = {"command": config.command(out), "config": asdict(config), "eval_every_seconds": EVAL_EVERY_SECONDS,
+                    "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
+                                "python": platform.python_version(),
+                                "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")},
+                    "generation": [], "nerf": []}
+        gen_cases = {(v, config.gen_views_spp): ["views"] for v in config.gen_views}
+        for spp in config.gen_spp:
+            gen_cases.setdefault((config.gen_spp_views, spp), []).append("spp")
+        with tempfile.TemporaryDirectory(dir=out, prefix=".gen-") as scratch:
+            for spp in sorted({spp for _, spp in gen_cases}):  # warm-up: imports, variant, a kernel per spp
+                generation_case(config.scene, 1, spp, config.gen_res, (), Path(scratch))
+            for (views, spp), axes in gen_cases.items():
+                document["generation"].append(generation_case(config.scene, views, spp, config.gen_res, tuple(axes),
+                                                              Path(scratch)))
+                document["fits"] = generation_fits(document["generation"])
+                write_json(out / "scaling.json", document)
+        for resolution, views, axes in config.nerf_cases():
+            document["nerf"].append(nerf_case(config, out, resolution, views, axes))
             write_json(out / "scaling.json", document)
-    for resolution, views, axes in config.nerf_cases():
-        document["nerf"].append(nerf_case(config, out, resolution, views, axes))
-        write_json(out / "scaling.json", document)
+        write_bytes_atomic(out / "scaling.md", report_markdown(document).encode())
+        scaling_plots(document, out / "scaling.png")
     return document
 
 
@@ -387,7 +360,6 @@ def report_markdown(document: dict) -> str:
 def scaling_plots(document: dict, path: Path) -> None:
     """Six panels: time to target and render ms/frame against resolution and views; generation
     seconds against views and spp (with the fitted lines)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     config = document["config"]
@@ -434,4 +406,4 @@ def scaling_plots(document: dict, path: Path) -> None:
         axes.set_ylim(bottom=min(0.0, axes.get_ylim()[0]))
         axes.grid(alpha=0.3)
     figure.tight_layout()
-    FigureCanvasAgg(figure).print_png(str(path))
+    write_png_figure(figure, path)

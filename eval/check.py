@@ -49,9 +49,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
-import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,6 +59,7 @@ import tomllib
 from nerfgauge.eval.metrics import METRIC_NAMES
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import check_writable_target, write_bytes_atomic
 
 METRICS_SCHEMA = 1
 DEFAULT_TABLE = "*"
@@ -303,27 +302,21 @@ def junit_xml(results: list[CheckResult], properties: Optional[dict[str, str]] =
 
 
 def write_junit(results: list[CheckResult], path, properties: Optional[dict[str, str]] = None) -> None:
-    """Write JUnit XML to a temporary file beside `path`, then rename it into place."""
+    """Write JUnit XML through the atomic writer (a temporary file beside `path`, renamed into
+    place; devices, FIFOs, folders and symlinks are refused)."""
     path = Path(path)
     if not path.parent.is_dir():
         raise InputError(f"cannot write JUnit file {path}: directory {path.parent} does not exist")
-    payload = junit_xml(results, properties)
-    handle, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(payload)
-        os.replace(temp_name, path)
-    except BaseException:
-        if os.path.exists(temp_name):
-            os.unlink(temp_name)
-        raise
+    write_bytes_atomic(path, junit_xml(results, properties))
 
 
 def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[str] = None, out=None) -> int:
     """Load, check, print the table (and write JUnit). Returns 0 all pass, 1 any fails."""
     out = sys.stdout if out is None else out
-    if junit_path is not None and not Path(junit_path).parent.is_dir():
-        raise InputError(f"cannot write JUnit file {junit_path}: directory {Path(junit_path).parent} does not exist")
+    if junit_path is not None:  # refused before the table is printed, not after
+        check_writable_target(junit_path)
+        if not Path(junit_path).parent.is_dir():
+            raise InputError(f"cannot write JUnit file {junit_path}: directory {Path(junit_path).parent} does not exist")
     metrics = load_metrics(metrics_path)
     tables = load_thresholds(thresholds_path)
     table_scene = metrics["scene"] if scene is None else scene

@@ -1,7 +1,48 @@
 """eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`),
-`baseline` (`eval.baselines`) and `bench` (`eval.bench`)."""
+`baseline` (`eval.baselines`) and `bench` (`eval.bench`).
 
+Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
+errors); comma-separated lists are checked item by item (`comma_separated`). Output
+folders are claimed with `core.folders.claim_folder` (marker and lock): `baseline --out
+DIR` as a "baseline", bench folders as "bench"; `evaluate --out FILE` refuses a FILE that
+is not a regular file before computing anything.
+"""
+
+import argparse
+import contextlib
 from pathlib import Path
+
+from nerfgauge.core import arguments
+
+
+def comma_separated(item_type, *, distinct: bool = False):
+    """An argparse type: "a,b,c" -> a tuple of item_type(each), at least one item; with
+    distinct=True a repeated value is refused. Item errors name the item and the list."""
+    def parse(text: str) -> tuple:
+        parts = [part.strip() for part in text.split(",")]
+        if not all(parts):
+            raise argparse.ArgumentTypeError(f"expected comma-separated values, got {text!r}")
+        values = []
+        for part in parts:
+            try:
+                values.append(item_type(part))
+            except argparse.ArgumentTypeError as error:
+                raise argparse.ArgumentTypeError(f"{error} (in {text!r})" if len(parts) > 1 else str(error)) from None
+        if distinct and len(set(values)) < len(values):
+            repeated = next(v for v in values if values.count(v) > 1)
+            raise argparse.ArgumentTypeError(f"{repeated} appears more than once in {text!r}")
+        return tuple(values)
+
+    parse.__name__ = f"comma-separated {item_type.__name__.replace('_', ' ')}s"  # argparse's fallback message
+    return parse
+
+
+def names(text: str) -> tuple:
+    """ "a, b" -> ("a", "b"): comma-separated names, at least one, none empty."""
+    parts = tuple(part.strip() for part in text.split(","))
+    if not all(parts):
+        raise argparse.ArgumentTypeError(f"expected comma-separated names, got {text!r}")
+    return parts
 
 
 def register(subparsers) -> None:
@@ -19,10 +60,11 @@ def register_check(subparsers) -> None:
                     "bounds in a TOML file. Exit 0 when every check passes, 1 when any fails, "
                     "2 for malformed input.",
     )
-    parser.add_argument("metrics", type=Path, metavar="METRICS.json", help="metrics file written by `nerfgauge evaluate`")
-    parser.add_argument("--thresholds", type=Path, required=True, metavar="FILE",
+    parser.add_argument("metrics", type=arguments.path, metavar="METRICS.json",
+                        help="metrics file written by `nerfgauge evaluate`")
+    parser.add_argument("--thresholds", type=arguments.path, required=True, metavar="FILE",
                         help="TOML: [scene] tables of metric = { min = ..., max = ... }; [\"*\"] applies to all scenes")
-    parser.add_argument("--junit", type=Path, metavar="FILE", help="also write the checks as JUnit XML")
+    parser.add_argument("--junit", type=arguments.path, metavar="FILE", help="also write the checks as JUnit XML")
     parser.add_argument("--scene", metavar="NAME",
                         help="use the bounds of scene NAME instead of the scene named in the metrics file")
     parser.set_defaults(func=run_check)
@@ -42,10 +84,10 @@ def register_evaluate(subparsers) -> None:
                     "dataset's frames) against a dataset split; write metrics.json and error maps. "
                     "Accepted file names: see eval/evaluate.py.",
     )
-    parser.add_argument("dataset", type=Path, metavar="DATASET", help="a complete nerfgauge dataset folder")
-    parser.add_argument("--pred", type=Path, required=True, metavar="DIR", help="folder of predicted frames")
+    parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    parser.add_argument("--pred", type=arguments.path, required=True, metavar="DIR", help="folder of predicted frames")
     parser.add_argument("--split", default="test", help="split to score (default test)")
-    parser.add_argument("--out", type=Path, metavar="FILE", help="metrics file (default DIR/metrics.json); "
+    parser.add_argument("--out", type=arguments.path, metavar="FILE", help="metrics file (default DIR/metrics.json); "
                         "error maps go to error_maps/ beside it")
     parser.add_argument("--background", choices=("white", "black"), default="white",
                         help="composite RGBA onto this colour before PSNR/SSIM (default white)")
@@ -55,11 +97,13 @@ def register_evaluate(subparsers) -> None:
 
 
 def run_evaluate(args) -> int:
+    from nerfgauge.core.files import check_writable_target
     from nerfgauge.eval.evaluate import evaluate, format_means
 
-    document = evaluate(args.dataset, args.pred, split=args.split, out=args.out,
-                        background=args.background, depth_kind=args.depth_kind)
     out = args.out if args.out is not None else args.pred / "metrics.json"
+    check_writable_target(out)  # a device, FIFO, folder or symlink is refused before anything is written
+    document = evaluate(args.dataset, args.pred, split=args.split, out=out,
+                        background=args.background, depth_kind=args.depth_kind)
     print(f"scene {document['scene']}, split {document['split']}, {len(document['frames'])} frames, "
           f"background {document['background']}, depth {document['depth_kind']} -> {out}")
     print(format_means(document))
@@ -75,76 +119,118 @@ def register_baseline(subparsers) -> None:
         description="Render a split with a baseline from the lecture and write the frames as PNG named after "
                     "the dataset's frames, plus timing.json; score them with `nerfgauge evaluate`.",
     )
-    parser.add_argument("dataset", type=Path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
     parser.add_argument("--method", choices=METHODS, required=True,
                         help="nearest: closest training view; lightfield-*: two-plane light field "
                              "(datasets made with --layout lightfield)")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for the renders")
+    parser.add_argument("--out", type=arguments.path, required=True, metavar="DIR",
+                        help="folder for the renders (new, empty, or an earlier baseline folder)")
     parser.add_argument("--split", default="test", help="split to render (default test)")
     parser.add_argument("--evaluate", action="store_true", help="then score the renders (writes DIR/metrics.json)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a baseline folder made from another dataset, method or split")
     parser.set_defaults(func=run_baseline)
+
+
+@contextlib.contextmanager
+def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = False):
+    """Claim `out` as a "baseline" folder (core.folders.claim_folder) for the block. Its
+    recipe is the method, the split and the dataset's content (manifest.json's hash), so a
+    rerun on the same dataset continues and another one needs overwrite."""
+    from nerfgauge.core import dataset
+    from nerfgauge.core.files import sha256_file
+    from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
+
+    root, out = dataset.require_complete(root), Path(out)
+    recipe = recipe_hash({"method": method, "split": split, "dataset": sha256_file(root / dataset.MANIFEST)})
+    made = [folder for folder in (out, *out.parents) if not folder.exists()]  # what claiming creates
+    state = None
+    try:
+        with claim_folder(out, "baseline", recipe, overwrite=overwrite) as state:
+            yield state
+    except BaseException:
+        if state == "new" and made:  # the baseline failed (bad input, interrupted): leave no folder behind
+            remove_owned(out, "baseline")
+            for parent in made[1:]:
+                with contextlib.suppress(OSError):  # not empty any more: someone else's now
+                    parent.rmdir()
+        raise
 
 
 def run_baseline(args) -> int:
     from nerfgauge.eval.baselines import write_baseline
 
-    timing = write_baseline(args.dataset, args.method, args.out, split=args.split)
-    print(f"{args.out}: {timing['frames']} frames by {args.method} ({timing['ms_per_frame']:.1f} ms per frame)")
-    if args.evaluate:
-        args.pred, args.out, args.background, args.depth_kind = args.out, None, "white", "distance"
-        return run_evaluate(args)
+    with baseline_folder(args.dataset, args.method, args.out, args.split, overwrite=args.overwrite):
+        timing = write_baseline(args.dataset, args.method, args.out, split=args.split)
+        print(f"{args.out}: {timing['frames']} frames by {args.method} ({timing['ms_per_frame']:.1f} ms per frame)")
+        if args.evaluate:
+            args.pred, args.out, args.background, args.depth_kind = args.out, None, "white", "distance"
+            return run_evaluate(args)
     return 0
 
 
 def register_bench(subparsers) -> None:
+    positive_ints = comma_separated(arguments.positive_int, distinct=True)
     parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants, scaling",
-                                   description="Benchmarks measured in one run on this machine (see BENCHMARKS.md).")
+                                   description="Benchmarks measured in one run on this machine (see BENCHMARKS.md). "
+                                               "Each writes into its own --out folder (a nerfgauge bench folder).")
     kinds = parser.add_subparsers(dest="bench_kind", metavar="KIND", required=True)
     gen = kinds.add_parser("generate", help="generator time against Mitsuba's own render time")
     gen.add_argument("--scene", default="primitives")
-    gen.add_argument("--views", type=int, default=100)
+    gen.add_argument("--views", type=arguments.positive_int, default=100)
     gen.add_argument("--res", default="128")
-    gen.add_argument("--spp", type=int, default=64)
-    gen.add_argument("--repeats", type=int, default=1, help="repeat and report each run (the machine is noisy)")
+    gen.add_argument("--spp", type=arguments.positive_int, default=64)
+    gen.add_argument("--repeats", type=arguments.positive_int, default=1,
+                     help="repeat and report each run (the machine is noisy)")
     gen.set_defaults(func=run_bench_generate)
     train = kinds.add_parser("train", help="scenes x variants x budgets: PSNR, SSIM, depth, time, size, memory")
-    train.add_argument("--scenes", default="primitives", help="comma-separated scene names")
-    train.add_argument("--variants", default="compact,vanilla",
+    train.add_argument("--scenes", type=names, default=("primitives",), help="comma-separated scene names")
+    train.add_argument("--variants", type=names, default=("compact", "vanilla"),
                        help="comma-separated, from: " + ", ".join(_variant_names()))
-    train.add_argument("--budgets", default="30,120", help="comma-separated training seconds")
+    train.add_argument("--budgets", type=comma_separated(arguments.positive_float, distinct=True), default=(30.0, 120.0),
+                       help="comma-separated training seconds (default 30,120)")
     train.add_argument("--res", default="128")
-    train.add_argument("--views", type=int, default=100)
-    train.add_argument("--out", type=Path, default=Path("bench-out"))
+    train.add_argument("--views", type=arguments.positive_int, default=100)
+    train.add_argument("--out", type=arguments.path, default=Path("bench-out/train"),
+                       help="bench folder (default bench-out/train): train.json/.md, pareto.png, datasets/, runs/")
     train.set_defaults(func=run_bench_train)
     scaling = kinds.add_parser("scaling", help="NeRF time-to-PSNR and render time against resolution and views; "
                                                "generation time against views and spp")
     scaling.add_argument("--scene", default="primitives")
-    scaling.add_argument("--resolutions", default="64,128,256",
+    scaling.add_argument("--resolutions", type=positive_ints, default=(64, 128, 256),
                          help="comma-separated square resolutions, each at --views views (default 64,128,256)")
-    scaling.add_argument("--views", default="100", help="train views of the --resolutions cases (default 100)")
-    scaling.add_argument("--view-counts", default="25,50,100", help="comma-separated train-view counts, each at "
-                                                                    "--view-counts-res (default 25,50,100)")
-    scaling.add_argument("--view-counts-res", default="128", help="resolution of the --view-counts cases (default 128)")
-    scaling.add_argument("--budget-seconds", default="120", metavar="T", help="training seconds per case (default 120)")
-    scaling.add_argument("--target-psnr", default="30", metavar="DB",
+    scaling.add_argument("--views", type=arguments.positive_int, default=100,
+                         help="train views of the --resolutions cases (default 100)")
+    scaling.add_argument("--view-counts", type=positive_ints, default=(25, 50, 100),
+                         help="comma-separated train-view counts, each at --view-counts-res (default 25,50,100)")
+    scaling.add_argument("--view-counts-res", type=arguments.positive_int, default=128,
+                         help="resolution of the --view-counts cases (default 128)")
+    scaling.add_argument("--budget-seconds", type=arguments.positive_float, default=120.0, metavar="T",
+                         help="training seconds per case (default 120)")
+    scaling.add_argument("--target-psnr", type=arguments.positive_float, default=30.0, metavar="DB",
                          help="report the time to this val PSNR (default 30)")
-    scaling.add_argument("--gen-views", default="25,50,100", help="generation: train-view counts at --gen-views-spp")
-    scaling.add_argument("--gen-views-spp", default="64", help="spp of the --gen-views cases (default 64)")
-    scaling.add_argument("--gen-spp", default="16,64,256", help="generation: spp values at --gen-spp-views views")
-    scaling.add_argument("--gen-spp-views", default="50", help="views of the --gen-spp cases (default 50)")
-    scaling.add_argument("--gen-res", default="128", help="resolution of the generation cases (default 128)")
-    scaling.add_argument("--out", type=Path, default=Path("bench-out/scaling"),
+    scaling.add_argument("--gen-views", type=positive_ints, default=(25, 50, 100),
+                         help="generation: train-view counts at --gen-views-spp")
+    scaling.add_argument("--gen-views-spp", type=arguments.positive_int, default=64,
+                         help="spp of the --gen-views cases (default 64)")
+    scaling.add_argument("--gen-spp", type=positive_ints, default=(16, 64, 256),
+                         help="generation: spp values at --gen-spp-views views")
+    scaling.add_argument("--gen-spp-views", type=arguments.positive_int, default=50,
+                         help="views of the --gen-spp cases (default 50)")
+    scaling.add_argument("--gen-res", type=arguments.positive_int, default=128,
+                         help="resolution of the generation cases (default 128)")
+    scaling.add_argument("--out", type=arguments.path, default=Path("bench-out/scaling"),
                          help="writes scaling.json/.md/.png; reruns replace the cases' datasets and runs")
     scaling.set_defaults(func=run_bench_scaling)
     hard = kinds.add_parser("hard", help="the hard scenes through generate, brief training and evaluate, "
                                          "audited for NaN/inf")
-    hard.add_argument("--scenes", default=None, help="comma-separated scene names (default: every hard scene)")
+    hard.add_argument("--scenes", type=names, default=None, help="comma-separated scene names (default: every hard scene)")
     hard.add_argument("--res", default="64")
-    hard.add_argument("--views", type=int, default=40)
-    hard.add_argument("--test-views", type=int, default=8)
-    hard.add_argument("--spp", type=int, default=64)
-    hard.add_argument("--steps", type=int, default=400, help="training steps per scene (default 400)")
-    hard.add_argument("--out", type=Path, default=Path("bench-out/hard"))
+    hard.add_argument("--views", type=arguments.positive_int, default=40)
+    hard.add_argument("--test-views", type=arguments.positive_int, default=8)
+    hard.add_argument("--spp", type=arguments.positive_int, default=64)
+    hard.add_argument("--steps", type=arguments.positive_int, default=400, help="training steps per scene (default 400)")
+    hard.add_argument("--out", type=arguments.path, default=Path("bench-out/hard"))
     hard.set_defaults(func=run_bench_hard)
 
 
@@ -158,10 +244,6 @@ def run_bench_generate(args) -> int:
     from nerfgauge.eval.bench import bench_generate
     from nerfgauge.generate.commands import parse_resolution
 
-    from nerfgauge.core.errors import InputError
-
-    if args.repeats < 1:
-        raise InputError(f"--repeats must be a positive integer, got {args.repeats}")
     width, height = parse_resolution(args.res)
     print("| run | views | res | spp | variant | s/view (generator) | s/view (Mitsuba render) | overhead ratio |")
     print("|---|---|---|---|---|---|---|---|")
@@ -173,68 +255,27 @@ def run_bench_generate(args) -> int:
 
 
 def run_bench_train(args) -> int:
-    from nerfgauge.eval.bench import (
-        VARIANTS,
-        bench_train,
-        pareto_plots,
-        speedups,
-        table_markdown,
-    )
+    from nerfgauge.eval.bench import bench_train, speedups, table_markdown
     from nerfgauge.generate.commands import parse_resolution
 
-    from nerfgauge.core.errors import InputError
-
     width, height = parse_resolution(args.res)
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-    unknown = [v for v in variants if v not in VARIANTS]
-    if unknown:
-        raise InputError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
-    try:
-        budgets = [float(b) for b in args.budgets.split(",")]
-    except ValueError:
-        raise InputError(f"--budgets must be comma-separated seconds, got {args.budgets!r}") from None
-    if not budgets or min(budgets) <= 0:
-        raise InputError(f"--budgets must be positive, got {args.budgets!r}")
-    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
-    args.out.mkdir(parents=True, exist_ok=True)
-    rows = bench_train(args.out, scenes, variants, budgets, width, height, args.views)
-    table = table_markdown(rows)
-    notes = speedups(rows)
-    (args.out / "train.md").write_text(table + "\n\n" + "\n".join(notes) + "\n")
-    pareto_plots(rows, args.out)
-    print(table)
-    print("\n".join(notes))
-    print(f"plots: {args.out / 'pareto.png'}")
+    rows = bench_train(args.out, list(args.scenes), list(args.variants), list(args.budgets), width, height, args.views)
+    print(table_markdown(rows))
+    print("\n".join(speedups(rows)))
+    print(f"table: {args.out / 'train.md'}; plots: {args.out / 'pareto.png'}")
     return 0
 
 
 def run_bench_scaling(args) -> int:
-    from nerfgauge.eval.bench_scaling import (
-        ScalingConfig,
-        bench_scaling,
-        parse_count,
-        parse_counts,
-        parse_positive,
-        report_markdown,
-        scaling_plots,
-    )
+    from nerfgauge.eval.bench_scaling import ScalingConfig, bench_scaling, report_markdown
 
     config = ScalingConfig(
-        scene=args.scene, resolutions=parse_counts(args.resolutions, "resolutions"),
-        views=parse_count(args.views, "views"), view_counts=parse_counts(args.view_counts, "view-counts"),
-        view_counts_res=parse_count(args.view_counts_res, "view-counts-res"),
-        budget_seconds=parse_positive(args.budget_seconds, "budget-seconds"),
-        target_psnr=parse_positive(args.target_psnr, "target-psnr"),
-        gen_views=parse_counts(args.gen_views, "gen-views"),
-        gen_views_spp=parse_count(args.gen_views_spp, "gen-views-spp"),
-        gen_spp=parse_counts(args.gen_spp, "gen-spp"), gen_spp_views=parse_count(args.gen_spp_views, "gen-spp-views"),
-        gen_res=parse_count(args.gen_res, "gen-res"))
-    config.validate()
+        scene=args.scene, resolutions=args.resolutions, views=args.views, view_counts=args.view_counts,
+        view_counts_res=args.view_counts_res, budget_seconds=args.budget_seconds, target_psnr=args.target_psnr,
+        gen_views=args.gen_views, gen_views_spp=args.gen_views_spp, gen_spp=args.gen_spp,
+        gen_spp_views=args.gen_spp_views, gen_res=args.gen_res)
     document = bench_scaling(config, args.out)
-    report = report_markdown(document)
-    (args.out / "scaling.md").write_text(report)
-    scaling_plots(document, args.out / "scaling.png")
-    print(report)
+    print(report_markdown(document))
     print(f"data: {args.out / 'scaling.json'}; plots: {args.out / 'scaling.png'}")
     return 0
 
@@ -245,7 +286,7 @@ def run_bench_hard(args) -> int:
     from nerfgauge.scenes import HARD_SCENES
 
     width, height = parse_resolution(args.res)
-    scenes = tuple(HARD_SCENES) if args.scenes is None else tuple(s.strip() for s in args.scenes.split(",") if s.strip())
+    scenes = tuple(HARD_SCENES) if args.scenes is None else args.scenes
     config = HardConfig(scenes, width, height, args.views, args.test_views, args.spp, args.steps)
     rows = bench_hard(config, args.out)
     print(table_markdown(rows, config.command(args.out)))

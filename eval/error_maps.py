@@ -10,6 +10,11 @@ Two maps per frame, 8-bit RGB PNG, named after the frame (test/r_007 -> r_007_*.
   pixels whose ground-truth ray hits geometry, "viridis" on [0, DEPTH_ERROR_MAX] (10 %);
   pixels that miss are black.
 
+The folder is a nerfgauge "evaluation" folder (`core.folders.claim_folder`: marker and
+lock, held while a frame's maps are written): a folder nerfgauge did not make, or one of
+another kind, is refused untouched; maps of a later evaluation replace those of the same
+frame name.
+
 matplotlib is imported inside the functions and only its colormap registry is used (no
 pyplot, no backend selection): no global side effects.
 """
@@ -21,6 +26,7 @@ from typing import Optional
 
 import numpy as np
 
+from nerfgauge.core.folders import claim_folder
 from nerfgauge.core.images import write_png
 
 COLOUR_ERROR_MAX = 0.2
@@ -58,13 +64,14 @@ def colourize(values: np.ndarray, vmax: float, cmap: str) -> np.ndarray:
 
 
 def write_error_maps(folder, frame: str, colour_err: np.ndarray, depth_err: Optional[np.ndarray]) -> list[Path]:
-    """Write one frame's maps (names in the module docstring). Returns the paths written."""
+    """Write one frame's maps (names in the module docstring) into the claimed evaluation
+    folder. Returns the paths written."""
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     name = Path(frame).name
     written = [folder / f"{name}_colour.png"]
-    write_png(written[0], colourize(colour_err, COLOUR_ERROR_MAX, COLOUR_CMAP))
-    if depth_err is not None:
-        written.append(folder / f"{name}_depth.png")
-        write_png(written[1], colourize(depth_err, DEPTH_ERROR_MAX, DEPTH_CMAP))
+    with claim_folder(folder, "evaluation", None):
+        write_png(written[0], colourize(colour_err, COLOUR_ERROR_MAX, COLOUR_CMAP))
+        if depth_err is not None:
+            written.append(folder / f"{name}_depth.png")
+            write_png(written[1], colourize(depth_err, DEPTH_ERROR_MAX, DEPTH_CMAP))
     return written

@@ -3,9 +3,15 @@
 Each stage package has a `commands.py` with `register(subparsers)`, which adds its
 subcommands and sets `func` (called with the parsed arguments, returns an exit code).
 Heavy imports (mitsuba, torch) happen inside those functions, so `nerfgauge --help` and
-argument errors are instant. Bad input (`InputError`) prints one line and exits 2, NaN or
-inf where finite numbers are required (`NumericalError`) one line and exits 3; set
-NERFGAUGE_DEBUG=1 to see the traceback.
+argument errors are instant.
+
+Exit codes: 0 done; 2 bad input, one line on stderr: an argument error, an `InputError`,
+an OS error on the user's paths (no space, permission, read-only, not a folder ...,
+naming the path and the reason), or an allocation too large for this machine; 3 NaN or inf
+where finite numbers are required (`NumericalError`), one line; 130 interrupted; 141
+(silently) when stdout's reader has gone, as `| head` does.
+Commands may return 1 for "ran, and the result failed" (`check`, `bench hard`).
+Set NERFGAUGE_DEBUG=1 to see the traceback instead of the one line.
 """
 
 from __future__ import annotations
@@ -15,13 +21,21 @@ import importlib
 import os
 import sys
 
-from nerfgauge.core.errors import InputError, NumericalError
+from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
 
 STAGES = ("scenes", "generate", "nerf", "eval")
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with a one-line error: `nerfgauge COMMAND: error: MESSAGE`, exit 2, no usage
+    block (`--help` still prints it). Subcommand parsers inherit the class."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {_one_line(message)}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="nerfgauge",
         description="Ground-truth NeRF datasets with Mitsuba 3, a compact NeRF, and an evaluation harness.",
     )
@@ -40,25 +54,58 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(text: str) -> str:
+    lines = [line.strip() for line in str(text).splitlines() if line.strip()]
+    return lines[0] if lines else ""
+
+
+def _fail(command: str, kind: str, message: str, code: int) -> int:
+    print(f"nerfgauge {command}: {kind}: {message}", file=sys.stderr)
+    return code
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush does not fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout is not a file (captured in tests)
+        pass
+
+
 def main(argv=None) -> int:
+    """Run `nerfgauge ARGV`; returns the exit code (argument errors and --help included)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as stop:  # --help (0) or an argument error (2), already printed
+        return stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 2
+    command = " ".join(str(part) for part in (args.command, getattr(args, "bench_kind", None)) if part)
+    debug = bool(os.environ.get("NERFGAUGE_DEBUG"))
     try:
         code = args.func(args)
-    except InputError as error:
-        if os.environ.get("NERFGAUGE_DEBUG"):
-            raise
-        message = str(error).splitlines()[0] if str(error) else type(error).__name__
-        print(f"nerfgauge {args.command}: error: {message}", file=sys.stderr)
-        return 2
-    except NumericalError as error:
-        if os.environ.get("NERFGAUGE_DEBUG"):
-            raise
-        print(f"nerfgauge {args.command}: numerical error: {str(error).splitlines()[0]}", file=sys.stderr)
-        return 3
     except KeyboardInterrupt:
-        print(f"nerfgauge {args.command}: interrupted", file=sys.stderr)
+        print(f"nerfgauge {command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        if debug:
+            raise
+        _silence_stdout()  # the reader left (`nerfgauge scenes | head -1`): nothing to report, as for SIGPIPE
+        return 141
+    except Exception as error:
+        if debug:
+            raise
+        if isinstance(error, OSError):
+            error = input_error_from_os(error)
+        if isinstance(error, InputError):
+            return _fail(command, "error", _one_line(error) or type(error).__name__, 2)
+        if isinstance(error, NumericalError):
+            return _fail(command, "numerical error", _one_line(error), 3)
+        if isinstance(error, MemoryError):
+            detail = _one_line(error)
+            return _fail(command, "error", f"out of memory{': ' + detail if detail else ''} "
+                                           "(use smaller sizes: resolution, views, batch)", 2)
+        raise
     return int(code or 0)
 
 

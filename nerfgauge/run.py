@@ -2,20 +2,32 @@
 
 Each stage is called through its public entry point; this module only decides where
 things go:
+  OUT/                    a nerfgauge "pipeline" folder (.nerfgauge.json: the RunConfig's
+                          hash), locked for the whole run
   OUT/dataset/            the generated dataset (resumed if the same recipe is there)
   OUT/run/                the trained model, its log.jsonl and renders/
+  OUT/baselines/<method>/ the baselines' renders
   OUT/eval/<method>/      metrics.json and error maps per method (the NeRF and baselines)
   OUT/report.html         table, speed-vs-error curve and image grid (also as PNGs in OUT/report/)
+
+Each subfolder is claimed (marked and locked) by the stage that writes it. A rerun with the
+same settings needs --overwrite once OUT/run exists, and then removes the earlier run's
+outputs only through their markers (`core.folders.remove_owned`) and by their known file
+names; other settings in the same OUT need --overwrite, which replaces the whole pipeline
+folder (only ever one that nerfgauge made).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import shutil
+import errno
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 from nerfgauge.core.errors import InputError
+
+REPORT_FILES = ("report.html", "report/curve.png", "report/grid.png")
 
 
 @dataclass(frozen=True)
@@ -35,10 +47,68 @@ class RunConfig:
     seed: int = 0
     variant: str = "auto"
 
+    def recipe(self) -> str:
+        """The hash in OUT's marker: every setting but where OUT is."""
+        from nerfgauge.core.folders import recipe_hash
+
+        return recipe_hash({key: value for key, value in dataclasses.asdict(self).items() if key != "out"})
+
+    def validate(self) -> None:
+        """What the stages' own configs do not check (they check the rest, before anything is written)."""
+        if not isinstance(self.test_views, int) or self.test_views < 1:
+            raise InputError(f"--test-views must be at least 1: the pipeline evaluates on them, got {self.test_views!r}")
+        if self.steps is None and not (isinstance(self.budget_seconds, (int, float)) and math.isfinite(self.budget_seconds)
+                                       and self.budget_seconds > 0):
+            raise InputError(f"--budget-seconds must be a positive number, got {self.budget_seconds!r}")
+        if not str(self.out).strip():
+            raise InputError("--out must name a folder, got an empty path")
+        from nerfgauge.scenes import make_scene
+
+        make_scene(self.scene, self.seed)  # unknown names and unreadable meshes: InputError, before OUT exists
+
+
+def remove_earlier_outputs(out: Path, model: str) -> None:
+    """Delete what an earlier pipeline in OUT (ours, locked) wrote after generating, so
+    nothing stale sits beside a new run: each stage's folder through its marker, the rest
+    by its known file name; folders are removed only once empty (anything the user put
+    there stays)."""
+    from nerfgauge.core.folders import remove_owned
+    from nerfgauge.eval.baselines import METHODS
+
+    remove_owned(out / "run", "run")
+    for method in (model, *METHODS):
+        remove_owned(out / "baselines" / method, "baseline")
+        remove_owned(out / "eval" / method / "error_maps", "evaluation")
+        _remove_file(out / "eval" / method / "metrics.json")
+        _remove_empty_folder(out / "eval" / method)
+    for name in REPORT_FILES:
+        _remove_file(out / name)
+    for folder in ("eval", "baselines", "report"):
+        _remove_empty_folder(out / folder)
+
+
+def _remove_file(path: Path) -> None:
+    if path.is_symlink() or path.is_file():
+        path.unlink()
+    elif path.exists():
+        raise InputError(f"refusing to delete {path}: nerfgauge writes a file there, and it is not one")
+
+
+def _remove_empty_folder(path: Path) -> None:
+    try:
+        path.rmdir()
+    except FileNotFoundError:
+        pass
+    except OSError as error:
+        if error.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+            raise
+
 
 def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool = True) -> dict:
     from nerfgauge.core.files import read_json
+    from nerfgauge.core.folders import claim_folder
     from nerfgauge.eval.baselines import write_baseline
+    from nerfgauge.eval.commands import baseline_folder
     from nerfgauge.eval.evaluate import evaluate, format_means
     from nerfgauge.eval.report import (
         image_grid,
@@ -53,8 +123,6 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     from nerfgauge.nerf.train import train
 
     out = Path(config.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"output path {out} is a file, not a folder")
     generate_config = GenerateConfig(scene=config.scene, seed=config.seed, views=config.views,
                                      val_views=config.val_views, test_views=config.test_views, width=config.width,
                                      height=config.height, spp=config.spp, layout=config.layout, variant=config.variant)
@@ -62,45 +130,46 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                                budget_seconds=None if config.steps else config.budget_seconds, steps=config.steps)
     generate_config.validate()
     train_config.validate()
-    if config.test_views < 1:
-        raise InputError(f"--test-views must be at least 1: the pipeline evaluates on them, got {config.test_views}")
+    config.validate()
     run_dir = out / "run"
-    if run_dir.exists():
-        if not overwrite:
-            raise InputError(f"{run_dir} exists from an earlier run; pass --overwrite to train again")
-        for stale in (run_dir, out / "eval", out / "baselines", out / "report", out / "report.html"):
-            shutil.rmtree(stale, ignore_errors=True) if stale.is_dir() else stale.unlink(missing_ok=True)
+    with claim_folder(out, "pipeline", config.recipe(), overwrite=overwrite) as state:
+        if state == "resume" and run_dir.exists():
+            if not overwrite:
+                raise InputError(f"{run_dir} exists from an earlier run; pass --overwrite to train again")
+            remove_earlier_outputs(out, config.model)
 
-    print(f"[1/5] generate {config.scene} -> {out / 'dataset'}")
-    generate(generate_config, out / "dataset", overwrite=overwrite, progress=progress)
-    length = f"{config.steps} steps" if config.steps else f"{config.budget_seconds:g} s"
-    print(f"[2/5] train {config.model} for {length} -> {run_dir}")
-    summary = train(train_config, run_dir, progress=progress)
-    print("[3/5] render test views")
-    render_split(run_dir, "test", progress=progress)
-    print("[4/5] evaluate and baselines")
-    documents = {f"{config.model} NeRF": evaluate(out / "dataset", run_dir / "renders", "test",
-                                                  out / "eval" / config.model / "metrics.json")}
-    layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
-    baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if layout == "lightfield" else [])
-    for method in baselines:
-        write_baseline(out / "dataset", method, out / "baselines" / method, "test")
-        documents[f"baseline: {method}"] = evaluate(out / "dataset", out / "baselines" / method, "test",
-                                                    out / "eval" / method / "metrics.json")
-    print("[5/5] report")
-    (out / "report").mkdir(parents=True, exist_ok=True)
-    plot_curves({f"{config.model} NeRF": read_log(run_dir / "log.jsonl")}, out / "report" / "curve.png")
-    image_grid(out / "dataset", run_dir / "renders", out / "report" / "grid.png")
-    table = metrics_table(documents)
-    notes = [f"scene {config.scene}, {config.width}x{config.height}, {config.views} train / {config.test_views} test views, "
-             f"{config.spp} spp; {config.model} trained {summary['steps']} steps in {summary['seconds']:.1f} s, "
-             f"saved model {summary['model_bytes'] / 1e6:.2f} MB",
-             "PSNR and SSIM on colour composited onto white; depth metrics on pixels whose centre ray hits "
-             "geometry, on ray distance.",
-             "Image grid columns: ground truth, prediction, colour error (0-0.2), predicted depth, depth error (0-10%)."]
-    write_html(out / "report.html", f"nerfgauge: {config.scene}", table,
-               {"speed against error": out / "report" / "curve.png",
-                "test views": out / "report" / "grid.png"}, notes)
+        print(f"[1/5] generate {config.scene} -> {out / 'dataset'}")
+        generate(generate_config, out / "dataset", overwrite=overwrite, progress=progress)
+        length = f"{config.steps} steps" if config.steps else f"{config.budget_seconds:g} s"
+        print(f"[2/5] train {config.model} for {length} -> {run_dir}")
+        summary = train(train_config, run_dir, progress=progress)
+        print("[3/5] render test views")
+        render_split(run_dir, "test", progress=progress)
+        print("[4/5] evaluate and baselines")
+        documents = {f"{config.model} NeRF": evaluate(out / "dataset", run_dir / "renders", "test",
+                                                      out / "eval" / config.model / "metrics.json")}
+        layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
+        baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if layout == "lightfield" else [])
+        for method in baselines:
+            with baseline_folder(out / "dataset", method, out / "baselines" / method, "test", overwrite=overwrite):
+                write_baseline(out / "dataset", method, out / "baselines" / method, "test")
+            documents[f"baseline: {method}"] = evaluate(out / "dataset", out / "baselines" / method, "test",
+                                                        out / "eval" / method / "metrics.json")
+        print("[5/5] report")
+        (out / "report").mkdir(parents=True, exist_ok=True)
+        plot_curves({f"{config.model} NeRF": read_log(run_dir / "log.jsonl")}, out / "report" / "curve.png")
+        image_grid(out / "dataset", run_dir / "renders", out / "report" / "grid.png")
+        table = metrics_table(documents)
+        notes = [f"scene {config.scene}, {config.width}x{config.height}, {config.views} train / {config.test_views} "
+                 f"test views, {config.spp} spp; {config.model} trained {summary['steps']} steps in "
+                 f"{summary['seconds']:.1f} s, saved model {summary['model_bytes'] / 1e6:.2f} MB",
+                 "PSNR and SSIM on colour composited onto white; depth metrics on pixels whose centre ray hits "
+                 "geometry, on ray distance.",
+                 "Image grid columns: ground truth, prediction, colour error (0-0.2), predicted depth, depth error "
+                 "(0-10%)."]
+        write_html(out / "report.html", f"nerfgauge: {config.scene}", table,
+                   {"speed against error": out / "report" / "curve.png",
+                    "test views": out / "report" / "grid.png"}, notes)
     print(format_means(documents[f"{config.model} NeRF"]))
     print(f"report: {out / 'report.html'}")
     return {"metrics": str(out / "eval" / config.model / "metrics.json"), "report": str(out / "report.html"),
@@ -108,24 +177,30 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
 
 
 def register(subparsers) -> None:
+    from nerfgauge.core import arguments
+
     defaults = RunConfig()
     parser = subparsers.add_parser("run", help="generate, train, render, evaluate, baselines and report in one go",
                                    description="The train-and-evaluate pipeline (about 3 minutes on 2 CPU cores "
                                                "with the defaults).")
     parser.add_argument("scene", nargs="?", default=defaults.scene, help="scene (default primitives)")
-    parser.add_argument("--out", default=defaults.out, help=f"output folder (default {defaults.out})")
+    parser.add_argument("--out", type=arguments.path, default=Path(defaults.out),
+                        help=f"output folder (default {defaults.out})")
     parser.add_argument("--res", default=str(defaults.width), help="N or WxH (default 128)")
-    parser.add_argument("--views", type=int, default=defaults.views)
-    parser.add_argument("--test-views", type=int, default=defaults.test_views)
-    parser.add_argument("--spp", type=int, default=defaults.spp)
+    parser.add_argument("--views", type=arguments.positive_int, default=defaults.views)
+    parser.add_argument("--test-views", type=arguments.positive_int, default=defaults.test_views)
+    parser.add_argument("--spp", type=arguments.positive_int, default=defaults.spp)
     parser.add_argument("--layout", default=defaults.layout)
     length = parser.add_mutually_exclusive_group()
-    length.add_argument("--budget-seconds", type=float, default=defaults.budget_seconds, help="training time (default 90)")
-    length.add_argument("--steps", type=int, default=None, help="training steps instead of time (reproducible)")
+    length.add_argument("--budget-seconds", type=arguments.positive_float, default=defaults.budget_seconds,
+                        help="training time (default 90)")
+    length.add_argument("--steps", type=arguments.positive_int, default=None,
+                        help="training steps instead of time (reproducible)")
     parser.add_argument("--model", default=defaults.model, choices=("compact", "vanilla"))
-    parser.add_argument("--seed", type=int, default=defaults.seed)
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=defaults.seed)
     parser.add_argument("--variant", default=defaults.variant)
-    parser.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an earlier run in --out (only a folder nerfgauge made)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=_run)
 
@@ -134,7 +209,7 @@ def _run(args) -> int:
     from nerfgauge.generate.commands import parse_resolution
 
     width, height = parse_resolution(args.res)
-    config = dataclasses.replace(RunConfig(), scene=args.scene, out=args.out, width=width, height=height,
+    config = dataclasses.replace(RunConfig(), scene=args.scene, out=str(args.out), width=width, height=height,
                                  views=args.views, test_views=args.test_views, spp=args.spp, layout=args.layout,
                                  budget_seconds=args.budget_seconds, steps=args.steps, model=args.model, seed=args.seed,
                                  variant=args.variant)

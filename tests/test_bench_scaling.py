@@ -14,46 +14,50 @@ from nerfgauge.eval.bench_scaling import (
     growth,
     growth_line,
     nerf_table,
-    parse_counts,
     report_markdown,
 )
 
 from nerfgauge.cli import build_parser, main
+from nerfgauge.core.errors import InputError
 
 
 @pytest.mark.parametrize("argv,expected", [
-    (["--resolutions", "64,0"], "--resolutions must be positive"),
-    (["--resolutions", "64,-128"], "--resolutions must be positive"),
-    (["--resolutions", "64,1.5"], "--resolutions must be comma-separated positive integers"),
-    (["--resolutions", "64,128,64"], "--resolutions lists 64 more than once"),
+    (["--resolutions", "64,0"], "argument --resolutions: expected a positive integer, got '0' (in '64,0')"),
+    (["--resolutions", "64,-128"], "argument --resolutions: expected a positive integer, got '-128'"),
+    (["--resolutions", "64,1.5"], "argument --resolutions: expected an integer, got '1.5'"),
+    (["--resolutions", "64,128,64"], "argument --resolutions: 64 appears more than once in '64,128,64'"),
     (["--resolutions", "64,9000"], "larger than 8192"),
-    (["--view-counts", "25,,50"], "--view-counts must be comma-separated"),
-    (["--view-counts", "25,25"], "--view-counts lists 25 more than once"),
-    (["--views", "0"], "--views must be a positive integer"),
-    (["--views", "ten"], "--views must be a positive integer"),
-    (["--view-counts-res", "12.5"], "--view-counts-res must be a positive integer"),
-    (["--gen-views", "25,0"], "--gen-views must be positive"),
-    (["--gen-spp", "16,16"], "--gen-spp lists 16 more than once"),
-    (["--gen-spp", ""], "--gen-spp must be comma-separated"),
-    (["--gen-views-spp", "-1"], "--gen-views-spp must be a positive integer"),
-    (["--gen-spp-views", "0"], "--gen-spp-views must be a positive integer"),
-    (["--gen-res", "x"], "--gen-res must be a positive integer"),
-    (["--budget-seconds", "0"], "--budget-seconds must be a positive number"),
-    (["--budget-seconds", "inf"], "--budget-seconds must be a positive number"),
-    (["--target-psnr", "nan"], "--target-psnr must be a positive number"),
-    (["--target-psnr", "high"], "--target-psnr must be a positive number"),
+    (["--view-counts", "25,,50"], "argument --view-counts: expected comma-separated values, got '25,,50'"),
+    (["--view-counts", "25,25"], "argument --view-counts: 25 appears more than once"),
+    (["--views", "0"], "argument --views: expected a positive integer, got '0'"),
+    (["--views", "ten"], "argument --views: expected an integer, got 'ten'"),
+    (["--view-counts-res", "12.5"], "argument --view-counts-res: expected an integer, got '12.5'"),
+    (["--gen-views", "25,0"], "argument --gen-views: expected a positive integer, got '0'"),
+    (["--gen-spp", "16,16"], "argument --gen-spp: 16 appears more than once"),
+    (["--gen-spp", ""], "argument --gen-spp: expected comma-separated values, got ''"),
+    (["--gen-views-spp", "-1"], "argument --gen-views-spp: expected a positive integer, got '-1'"),
+    (["--gen-spp-views", "0"], "argument --gen-spp-views: expected a positive integer, got '0'"),
+    (["--gen-res", "x"], "argument --gen-res: expected an integer, got 'x'"),
+    (["--budget-seconds", "0"], "argument --budget-seconds: expected a positive number, got '0'"),
+    (["--budget-seconds", "inf"], "argument --budget-seconds: expected a finite number, got 'inf'"),
+    (["--target-psnr", "nan"], "argument --target-psnr: expected a finite number, got 'nan'"),
+    (["--target-psnr", "high"], "argument --target-psnr: expected a number, got 'high'"),
     (["--scene", "no-such-scene"], "unknown scene 'no-such-scene'"),
 ])
 def test_bad_scaling_arguments_exit_2_with_one_line_before_any_work(tmp_path, capsys, argv, expected):
     out = tmp_path / "b"
     assert main(["bench", "scaling", *argv, "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and expected in err, err
+    assert len(err.splitlines()) == 1 and err.startswith("nerfgauge bench scaling: error: ") and expected in err, err
     assert not out.exists()
 
 
-def test_parse_counts_keeps_order():
-    assert parse_counts(" 64, 128,256 ", "resolutions") == (64, 128, 256)
+def test_the_counts_of_a_config_are_checked_like_the_flags():
+    """ScalingConfig built in Python (not through argparse) is held to the same rules."""
+    with pytest.raises(InputError, match="--resolutions lists 64 more than once"):
+        ScalingConfig(resolutions=(64, 64)).validate()
+    with pytest.raises(InputError, match="--budget-seconds must be a positive number"):
+        ScalingConfig(budget_seconds=float("nan")).validate()
 
 
 def test_the_shared_case_runs_once_and_belongs_to_both_axes():
@@ -69,10 +73,10 @@ def test_the_printed_command_parses_back_to_the_same_settings(tmp_path):
     argv = shlex.split(config.command(tmp_path / "my out"))
     assert argv[:3] == ["nerfgauge", "bench", "scaling"]
     args = build_parser().parse_args(argv[1:])
-    assert (args.resolutions, args.views, args.view_counts, args.view_counts_res) == ("16,24", "6", "6,8", "16")
-    assert (float(args.budget_seconds), float(args.target_psnr)) == (2.5, 28.5)
+    assert (args.resolutions, args.views, args.view_counts, args.view_counts_res) == ((16, 24), 6, (6, 8), 16)
+    assert (args.budget_seconds, args.target_psnr) == (2.5, 28.5)
     assert (args.gen_views, args.gen_views_spp, args.gen_spp, args.gen_spp_views, args.gen_res) == \
-        ("2,3", "2", "1,2", "3", "16")
+        ((2, 3), 2, (1, 2), 3, 16)
     assert args.out == tmp_path / "my out"
 
 

@@ -153,3 +153,30 @@ def test_atomic_write_replaces_a_regular_file_whole(tmp_path):
 def test_recipe_hash_is_canonical():
     assert folders.recipe_hash({"a": 1, "b": [1, 2]}) == folders.recipe_hash({"b": [1, 2], "a": 1})
     assert folders.recipe_hash({"a": 1}) != folders.recipe_hash({"a": 2})
+
+
+def test_temporaries_of_a_nested_claimed_folder_are_left_to_its_claimer(tmp_path):
+    out = tmp_path / "pipeline"
+    claim(out, kind="pipeline")
+    claim(out / "dataset")
+    live = out / "dataset" / ".r_000.png.tmp99"
+    live.write_bytes(b"being written by the dataset's own writer")
+    stale = out / ".report.html.tmp98"
+    stale.write_bytes(b"left by a killed run")
+    claim(out, kind="pipeline")
+    assert live.exists() and not stale.exists()
+
+
+def test_a_full_disk_names_the_file(tmp_path, monkeypatch):
+    import errno
+
+    target = tmp_path / "out.json"
+
+    def full(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    with pytest.raises(OSError) as raised:
+        write_bytes_atomic(target, b"{}")
+    assert raised.value.filename == str(target) and raised.value.errno == errno.ENOSPC
+    assert not target.exists()

@@ -41,6 +41,10 @@ def atomic_path(path):
         with open(tmp, "rb") as handle:
             os.fsync(handle.fileno())
         os.replace(tmp, path)
+    except OSError as error:
+        if error.filename is None:  # write() on a full disk names no file: name the target
+            error.filename = str(path)
+        raise
     finally:
         if tmp.exists():
             tmp.unlink()

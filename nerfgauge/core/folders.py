@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import fnmatch
 import hashlib
 import os
 import shutil
@@ -171,12 +172,15 @@ def folder_lock(folder):
 
 
 def remove_temporaries(folder) -> int:
-    """Delete temporary files a killed writer left in `folder` (recursively). Call only
-    while holding `folder_lock(folder)`: another writer's temporaries are live. Returns
-    how many were removed."""
+    """Delete temporary files a killed writer left in `folder` and its subfolders, except
+    subfolders with a marker of their own (their claimer cleans them under their lock).
+    Call only while holding `folder_lock(folder)`: another writer's temporaries are live.
+    Returns how many were removed."""
     removed = 0
-    for stale in Path(folder).rglob(TEMPORARY_GLOB):
-        if stale.is_file() or stale.is_symlink():
-            stale.unlink()
-            removed += 1
+    for parent, subfolders, names in os.walk(folder):
+        subfolders[:] = [name for name in subfolders if not (Path(parent) / name / MARKER).is_file()]
+        for name in names:
+            if fnmatch.fnmatch(name, TEMPORARY_GLOB):
+                (Path(parent) / name).unlink()
+                removed += 1
     return removed

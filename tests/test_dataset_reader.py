@@ -1,0 +1,109 @@
+"""The Dataset reader's arrays against the conventions its docstring states."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from nerfgauge.core import dataset
+from nerfgauge.core.camera import pixel_rays
+from nerfgauge.core.dataset import Dataset
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.images import premultiplied_to_png_rgba, read_png
+
+
+@pytest.fixture(scope="module")
+def ds(tiny_dataset):
+    return Dataset(tiny_dataset)
+
+
+def test_splits_frames_and_scene(ds, tiny_dataset):
+    assert ds.root == tiny_dataset
+    assert ds.splits == ("train", "val", "test")  # the fixture has 4 / 1 / 2 views
+    assert [len(ds.frames(s)) for s in ds.splits] == [4, 1, 2]
+    assert ds.frames("test") == ("test/r_000", "test/r_001")
+    scene = json.loads((tiny_dataset / "scene.json").read_text())
+    assert ds.scene == scene
+    assert ds.bounds.shape == (2, 3) and np.array_equal(ds.bounds, np.array(scene["bounds"]))
+    assert (ds.bounds[0] < ds.bounds[1]).all()
+
+
+def test_intrinsics_and_k(ds):
+    intrinsics = ds.intrinsics("test")
+    assert (intrinsics.width, intrinsics.height) == (32, 32)
+    k = ds.K("test")
+    assert k.dtype == np.float64 and k.shape == (3, 3)
+    assert np.array_equal(k, [[intrinsics.fx, 0, intrinsics.cx], [0, intrinsics.fy, intrinsics.cy], [0, 0, 1]])
+
+
+def test_c2w_is_rigid_float64(ds):
+    for split in ds.splits:
+        c2w = ds.c2w(split)
+        assert c2w.dtype == np.float64 and c2w.shape == (len(ds.frames(split)), 4, 4)
+        rotation = c2w[:, :3, :3]
+        assert np.abs(np.swapaxes(rotation, 1, 2) @ rotation - np.eye(3)).max() < 1e-9
+        assert np.allclose(np.linalg.det(rotation), 1.0, atol=1e-9)
+        assert np.array_equal(c2w[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (len(c2w), 1)))
+    ds.c2w("test")[0, 0, 0] = 99.0  # a copy: the dataset's poses stay as read
+    assert ds.c2w("test")[0, 0, 0] != 99.0
+
+
+def test_images(ds, tiny_dataset):
+    for index in range(2):
+        image, linear = ds.image("test", index), ds.image_linear("test", index)
+        assert image.shape == linear.shape == (32, 32, 4) and image.dtype == linear.dtype == np.float32
+        assert 0.0 <= image.min() and image.max() <= 1.0
+        assert np.array_equal(image, read_png(tiny_dataset / f"test/r_00{index}.png"))
+        # The PNG is the EXR converted (straight alpha, sRGB, 8 bits) by the generator's own function.
+        assert np.array_equal(np.round(image * 255).astype(np.uint8), premultiplied_to_png_rgba(linear))
+        # Premultiplied: colour vanishes with coverage.
+        assert np.all(linear[..., :3][linear[..., 3] == 0] == 0)
+
+
+def test_depths_mask_and_normals_agree_with_the_cameras(ds):
+    intrinsics = ds.intrinsics("test")
+    lo, hi = ds.bounds
+    for index, c2w in enumerate(ds.c2w("test")):
+        distance, z = ds.depth("test", index, "distance"), ds.depth("test", index, kind="z")
+        mask, normals = ds.mask("test", index), ds.normals("test", index)
+        assert distance.shape == z.shape == mask.shape == (32, 32) and normals.shape == (32, 32, 3)
+        assert mask.dtype == bool and distance.dtype == np.float32
+        assert mask.any() and not mask.all()
+        assert np.array_equal(mask, distance > 0) and np.array_equal(mask, z > 0)
+        origins, directions = pixel_rays(c2w, intrinsics)
+        cos_to_axis = directions @ -c2w[:3, 2]  # the camera looks along -Z
+        assert np.allclose(z, distance * cos_to_axis, rtol=1e-5, atol=0)
+        # Hit points (pixel centres, row 0 at the top, +Y up) lie in the scene's bounds.
+        points = origins[mask] + directions[mask] * distance[mask][:, None]
+        slack = 1e-4 * float(np.linalg.norm(hi - lo))
+        assert np.all(points >= lo - slack) and np.all(points <= hi + slack)
+        assert np.allclose(np.linalg.norm(normals[mask], axis=-1), 1.0, atol=1e-3)
+        assert np.all(normals[~mask] == 0)
+
+
+def test_module_level_readers_are_the_same_reader(ds, tiny_dataset):
+    cameras = dataset.read_split(tiny_dataset, "test")
+    assert cameras.stems == ds.frames("test") and np.array_equal(cameras.c2w, ds.c2w("test"))
+    assert cameras.intrinsics == ds.intrinsics("test")
+    stem = cameras.stems[1]
+    assert np.array_equal(dataset.read_rgba(tiny_dataset, stem, cameras.intrinsics), ds.image("test", 1))
+    assert np.array_equal(dataset.read_depth(tiny_dataset, stem, cameras.intrinsics, "z"), ds.depth("test", 1, "z"))
+    assert np.array_equal(dataset.read_mask(ds, stem, cameras.intrinsics), ds.mask("test", 1))
+    assert dataset.require_complete(tiny_dataset) == tiny_dataset
+    assert dataset.open_dataset(ds) is ds
+
+
+def test_bad_requests(ds, tmp_path):
+    with pytest.raises(InputError, match="unknown split 'dev'"):
+        ds.frames("dev")
+    with pytest.raises(InputError, match="unknown depth kind 'inverse'"):
+        ds.depth("test", 0, kind="inverse")
+    with pytest.raises(IndexError):
+        ds.image("test", 2)
+    with pytest.raises(InputError, match="not found"):
+        Dataset(tmp_path / "nowhere")
+    (tmp_path / "unfinished").mkdir()
+    with pytest.raises(InputError, match="incomplete"):
+        Dataset(tmp_path / "unfinished")
