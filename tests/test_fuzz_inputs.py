@@ -776,3 +776,41 @@ def test_full_disk_is_one_line_and_resumable(base, tmp_path):
     assert again.returncode == 0, again.stderr[-600:]
     assert (out / "manifest.json").is_file()
     assert not list(out.rglob(".*.tmp*"))
+
+
+# Cases the drawn examples above once found, kept as fixed examples: hypothesis's draws
+# move whenever this file changes, these do not.
+def _set(*keys, value=None, how=None):
+    def mutate(payload):
+        holder, last = _get(payload, keys)
+        holder[last] = how(holder[last]) if how is not None else value
+    return mutate
+
+
+KNOWN_CHECKPOINTS = {
+    "model.pt node_mask one short": ("render", _set("node_mask", how=lambda t: t.flatten()[:-1])),
+    "model.pt config.threads a string": ("render", _set("config", "threads", value="/nonexistent")),
+    "checkpoint.pt aabb NaN": ("train", _set("model", "state", "field.aabb",
+                                             how=lambda t: t.index_fill(1, __import__("torch").tensor([0]), NAN))),
+    "checkpoint.pt generator as int64": ("train", _set("generator", how=lambda t: t.long())),
+    "checkpoint.pt config a string": ("train", _set("config", value="x")),
+}
+
+
+@pytest.mark.parametrize("name", sorted(KNOWN_CHECKPOINTS))
+def test_known_hostile_checkpoints(base, name):
+    import io
+
+    import torch
+
+    command, mutate = KNOWN_CHECKPOINTS[name]
+    folder, run, path, argv, out = checkpoint_case(base, command, pruned=True)
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        mutate(payload)
+    except KeyError as missing:
+        pytest.fail(f"the checkpoint format changed ({missing} is gone): update this case")
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    write_raw(path, buffer.getvalue())
+    assert_judged(Case(command, argv, folder, out, name, ANY, base["shared"]))
