@@ -232,6 +232,11 @@ def register_bench(subparsers) -> None:
     hard.add_argument("--steps", type=arguments.positive_int, default=400, help="training steps per scene (default 400)")
     hard.add_argument("--out", type=arguments.path, default=Path("bench-out/hard"))
     hard.set_defaults(func=run_bench_hard)
+    read = kinds.add_parser("read", help="what validating a dataset on load costs: sizes only against sizes + sha256")
+    read.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    read.add_argument("--split", default="train", help="split to read (default train)")
+    read.add_argument("--repeats", type=arguments.positive_int, default=15, help="best of this many (default 15)")
+    read.set_defaults(func=run_bench_read)
 
 
 def _variant_names():
@@ -291,3 +296,10 @@ def run_bench_hard(args) -> int:
     rows = bench_hard(config, args.out)
     print(table_markdown(rows, config.command(args.out)))
     return 0 if all(row["finite"] for row in rows) else 1
+
+
+def run_bench_read(args) -> int:
+    from nerfgauge.eval.bench_read import bench_read, table_markdown
+
+    print(table_markdown(bench_read(args.dataset, args.split, args.repeats)))
+    return 0

@@ -61,7 +61,7 @@ from nerfgauge.eval.metrics import (
 
 from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import read_json, write_json
+from nerfgauge.core.files import check_writable_target, read_json, write_json
 from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
 
 SCHEMA = 1
@@ -239,6 +239,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     ds, pred_dir = dataset.Dataset(root), Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")
+    out = check_writable_target(pred_dir / "metrics.json" if out is None else Path(out))  # before the work
     cameras = ds.cameras(split)
     scene = ds.scene.get("recipe")
     if not isinstance(scene, str) or not scene:
@@ -269,7 +270,6 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         column = [frame[metric] for frame in frames]
         means[metric], stds[metric] = summarize(column)
         counts[metric] = sum(value is not None for value in column)
-    out = pred_dir / "metrics.json" if out is None else Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     for stem, colour_err, depth_err in maps:
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)

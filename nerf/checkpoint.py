@@ -3,6 +3,12 @@
 model.pt holds only plain types and tensors: {"format", "version", "model", "config",
 "state", ...}. A compact model is saved pruned: only grid nodes touching an occupied cell
 are stored (float16), with the occupancy mask; the rest load as empty space.
+
+checkpoint.pt holds everything the training step reads, at full precision, so a resumed
+run continues bit for bit: the model's state_dict (float32 as trained), Adam's state, the
+ray-sampling generator, the loop's counters and schedules, and the run's recipe (dataset
+manifest hash and every setting that shapes the trajectory), against which a resume is
+checked.
 """
 
 from __future__ import annotations
@@ -19,7 +25,13 @@ from nerfgauge.core.files import write_bytes_atomic
 
 FORMAT = "nerfgauge-model"
 VERSION = 1
+CHECKPOINT_FORMAT = "nerfgauge-checkpoint"
+CHECKPOINT_VERSION = 2  # version 1 was a float16 model payload inside a "nerfgauge-model"
+FORMATS = {"model": (FORMAT, VERSION), "checkpoint": (CHECKPOINT_FORMAT, CHECKPOINT_VERSION)}
 EMPTY_RAW = -30.0  # softplus(-30 + shift) ~ 1e-13: no density where nothing was stored
+# The training loop's counters, all restored on resume (see train.py for their meaning).
+LOOP_STATE = {"step": int, "seconds": float, "next_eval": float, "visibility_done": int, "stage": int,
+              "stage_steps": int, "logged_step": int}
 
 
 def save_atomic(obj, path) -> int:
@@ -31,8 +43,10 @@ def save_atomic(obj, path) -> int:
 
 
 def load_checked(path, what: str = "model") -> dict:
-    """torch.load(weights_only=True) with one-line errors for missing, corrupt or foreign files."""
+    """torch.load(weights_only=True) with one-line errors for missing, corrupt or foreign
+    files. what: "model" (model.pt) or "checkpoint" (checkpoint.pt)."""
     path = Path(path)
+    expected_format, expected_version = FORMATS[what]
     if not path.is_file():
         raise InputError(f"{what} file not found: {path}")
     try:
@@ -40,10 +54,12 @@ def load_checked(path, what: str = "model") -> dict:
     except Exception as error:  # corrupt zip, pickle refused by weights_only, truncated file
         first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise InputError(f"{path} is not a readable nerfgauge {what}: {first[:200]}") from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise InputError(f"{path} is not a nerfgauge {what} (format {payload.get('format') if isinstance(payload, dict) else type(payload).__name__!r})")
-    if payload.get("version") != VERSION:
-        raise InputError(f"{path} has model format version {payload.get('version')!r}; this nerfgauge reads {VERSION}")
+    found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+    if not isinstance(payload, dict) or found != expected_format:
+        raise InputError(f"{path} is not a nerfgauge {what} (format {found!r})")
+    if payload.get("version") != expected_version:
+        raise InputError(f"{path} has {what} format version {payload.get('version')!r}; this nerfgauge reads "
+                         f"{expected_version}")
     return payload
 
 
@@ -79,16 +95,20 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
     return payload
 
 
-def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None = None):
-    """A fresh model for `config` (resolved), at `resolution` (compact) or its start."""
+def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None = None, init_seed: int = 0):
+    """A fresh model for `config` (resolved), at `resolution` (compact) or its start.
+    nn.Linear draws its initial weights from torch's global generator: it is seeded with
+    `init_seed` inside fork_rng, so building a model never changes the caller's global RNG."""
     from nerfgauge.nerf.grid_field import VoxelGridField
     from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF
 
-    if config.model == "vanilla":
-        return VanillaNeRF(aabb, config.n_coarse, config.n_fine, config.width, config.depth)
-    field = VoxelGridField(aabb, resolution or config.start_resolution, config.final_resolution,
-                           config.view_dependent, config.feature_channels, config.step_ratio)
-    return CompactNeRF(field, use_occupancy=config.occupancy)
+    with torch.random.fork_rng(devices=[]):
+        torch.random.manual_seed(init_seed)
+        if config.model == "vanilla":
+            return VanillaNeRF(aabb, config.n_coarse, config.n_fine, config.width, config.depth)
+        field = VoxelGridField(aabb, resolution or config.start_resolution, config.final_resolution,
+                               config.view_dependent, config.feature_channels, config.step_ratio)
+        return CompactNeRF(field, use_occupancy=config.occupancy)
 
 
 def load_model(path):
@@ -126,3 +146,117 @@ def model_from_payload(payload: dict):
     model.occupancy = payload["occupancy"].bool()
     model.visible = payload["visible"].bool()
     return model
+
+
+# --------------------------------------------------------------------------------------
+# training checkpoints
+
+
+def training_checkpoint(model, optimizer, generator: torch.Generator, config: TrainConfig, recipe: dict,
+                        loop: dict) -> dict:
+    """Everything a resumed run needs to continue exactly where this one is."""
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    field = getattr(model, "field", None)
+    return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": config.to_json(),
+            "recipe": recipe, "model": {"kind": config.model, "resolution": getattr(field, "resolution", None),
+                                        "state": state},
+            "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
+            "loop": {name: loop[name] for name in LOOP_STATE}}
+
+
+def recipe_difference(saved: dict, current: dict) -> str:
+    """What differs between two run recipes, as a phrase for a one-line message."""
+    parts = []
+    for key in sorted(set(saved) | set(current)):
+        if saved.get(key) != current.get(key):
+            if key == "dataset_sha256":
+                parts.append(f"another dataset (manifest.json sha256 {str(saved.get(key))[:12]}..., "
+                             f"this dataset's is {str(current.get(key))[:12]}...)")
+            else:
+                parts.append(f"{key} {saved.get(key)!r} (this command: {current.get(key)!r})")
+    return "; ".join(parts[:3]) + ("; ..." if len(parts) > 3 else "")
+
+
+def load_training_checkpoint(path, recipe: dict) -> dict:
+    """checkpoint.pt, checked to be complete and made by a run of `recipe`; InputError
+    (one line) otherwise."""
+    payload = load_checked(path, "checkpoint")
+    saved_recipe = payload.get("recipe")
+    if not isinstance(saved_recipe, dict):
+        raise InputError(f"{path} is a damaged nerfgauge checkpoint: it has no recipe")
+    if saved_recipe != recipe:
+        raise InputError(f"{path} comes from another run: {recipe_difference(saved_recipe, recipe)}; "
+                         "refusing to resume it")
+    model, optimizer, loop = payload.get("model"), payload.get("optimizer"), payload.get("loop")
+    problem = None
+    if not isinstance(model, dict) or not isinstance(model.get("state"), dict):
+        problem = "no model state"
+    elif not isinstance(optimizer, dict) or not {"state", "param_groups"} <= set(optimizer):
+        problem = "no optimizer state"
+    elif not isinstance(payload.get("generator"), torch.Tensor) or payload["generator"].dtype != torch.uint8:
+        problem = "no generator state"
+    elif not isinstance(loop, dict):
+        problem = "no loop state"
+    else:
+        for name, kind in LOOP_STATE.items():
+            value = loop.get(name)
+            if not isinstance(value, (int, float) if kind is float else int) or isinstance(value, bool):
+                problem = f"loop value {name} is {value!r}"
+                break
+    if problem is not None:
+        raise InputError(f"{path} is a damaged nerfgauge checkpoint: {problem}")
+    return payload
+
+
+def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path):
+    """The model saved in a training checkpoint, every tensor as it was saved. Keys, shapes
+    and dtypes are checked against a model built for `config` first, so a damaged file is
+    one line, not a traceback."""
+    saved = payload["model"]
+    resolution = saved.get("resolution")
+    if config.model == "compact" and not (isinstance(resolution, int) and 4 <= resolution <= 1024):
+        raise InputError(f"{path} is a damaged nerfgauge checkpoint: grid resolution {resolution!r}")
+    model = build_model(config, aabb, resolution)
+    expected = model.state_dict()
+    state = saved["state"]
+    missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))
+    if missing or unexpected:
+        what = f"missing {', '.join(missing[:3])}" if missing else f"unexpected {', '.join(unexpected[:3])}"
+        raise InputError(f"{path} is a damaged nerfgauge checkpoint: model state {what}")
+    for name, tensor in expected.items():
+        value = state[name]
+        if not isinstance(value, torch.Tensor) or value.shape != tensor.shape or value.dtype != tensor.dtype:
+            found = f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor) else type(value).__name__
+            raise InputError(f"{path} is a damaged nerfgauge checkpoint: {name} is {found}, expected "
+                             f"{tuple(tensor.shape)} {tensor.dtype} at resolution {resolution}")
+    model.load_state_dict(state)
+    return model
+
+
+def restore_optimizer(optimizer: torch.optim.Optimizer, saved: dict, path) -> None:
+    """Load Adam's state after checking it fits the optimizer's parameters (torch checks
+    group sizes, not the moments' shapes: a wrong shape would fail later, mid-step)."""
+    groups = saved["param_groups"]
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    try:
+        saved_ids = [i for group in groups for i in group["params"]]
+        if len(groups) != len(optimizer.param_groups) or len(saved_ids) != len(params):
+            raise ValueError(f"{len(saved_ids)} parameters in {len(groups)} groups, the model has {len(params)} "
+                             f"in {len(optimizer.param_groups)}")
+        for index, param in zip(saved_ids, params):
+            for key, value in saved["state"].get(index, {}).items():
+                if key != "step" and (not isinstance(value, torch.Tensor) or value.shape != param.shape):
+                    raise ValueError(f"optimizer {key} of parameter {index} has shape "
+                                     f"{tuple(getattr(value, 'shape', ()))}, expected {tuple(param.shape)}")
+        optimizer.load_state_dict(saved)
+    except (ValueError, TypeError, KeyError, AttributeError) as error:
+        raise InputError(f"{path} is a damaged nerfgauge checkpoint: {str(error).splitlines()[0][:200]}") from None
+
+
+def restore_generator(generator: torch.Generator, state: torch.Tensor, path) -> None:
+    if state.shape != generator.get_state().shape:
+        raise InputError(f"{path} is a damaged nerfgauge checkpoint: generator state of {state.numel()} bytes")
+    try:
+        generator.set_state(state)
+    except RuntimeError as error:
+        raise InputError(f"{path} is a damaged nerfgauge checkpoint: {str(error).splitlines()[0][:200]}") from None

@@ -6,8 +6,7 @@ imported inside the run functions so `nerfgauge --help` stays instant.
 
 from __future__ import annotations
 
-from pathlib import Path
-
+from nerfgauge.core.arguments import nonnegative_float, nonnegative_int, path, positive_float, positive_int
 from nerfgauge.core.errors import InputError
 
 
@@ -28,7 +27,8 @@ def _add_toy_pe(subparsers) -> None:
                     "once on their positional encoding; print both PSNRs and the gap, and with --out write "
                     "toy_pe.png (target | no PE | PE) and toy_pe.json.",
     )
-    parser.add_argument("--out", type=Path, default=None, metavar="DIR", help="directory for toy_pe.png and toy_pe.json")
+    parser.add_argument("--out", type=path, default=None, metavar="DIR", help="directory for toy_pe.png and toy_pe.json")
+    # plain int: these are checked in _run_toy_pe, whose messages name the flag
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="Adam steps per fit (default 200)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the image and the initial weights (default 0)")
     parser.set_defaults(func=_run_toy_pe)
@@ -67,25 +67,36 @@ def _add_train(subparsers) -> None:
         description="Train `compact` (voxel grid, empty-space skipping, only what scene.json says the scene "
                     "needs) or `vanilla` (the lecture's NeRF) for a time budget or a number of steps. Writes "
                     "RUN/config.json, RUN/log.jsonl (val PSNR against training seconds), RUN/checkpoint.pt and "
-                    "RUN/model.pt.")
-    parser.add_argument("dataset", type=Path, help="a complete dataset folder (with manifest.json)")
-    parser.add_argument("--out", type=Path, required=True, metavar="RUN", help="run folder")
+                    "RUN/model.pt. Rerunning the same command in RUN starts over only when the earlier attempt "
+                    "was stopped before its first checkpoint; otherwise pass --resume or --overwrite.")
+    parser.add_argument("dataset", type=path, help="a complete dataset folder (with manifest.json)")
+    parser.add_argument("--out", type=path, required=True, metavar="RUN", help="run folder")
     parser.add_argument("--model", choices=("compact", "vanilla"), default="compact")
     budget = parser.add_mutually_exclusive_group()
-    budget.add_argument("--budget-seconds", type=float, default=None, metavar="T", help="training time (default 120)")
-    budget.add_argument("--steps", type=int, default=None, metavar="N", help="training steps instead of a time budget")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--resume", action="store_true", help="continue RUN from its checkpoint")
+    budget.add_argument("--budget-seconds", type=positive_float, default=None, metavar="T",
+                        help="training time (default 120)")
+    budget.add_argument("--steps", type=positive_int, default=None, metavar="N",
+                        help="training steps instead of a time budget")
+    parser.add_argument("--seed", type=nonnegative_int, default=0)
+    again = parser.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue RUN from its checkpoint (with --steps N: bit-identical to an uninterrupted "
+                            "N-step run at the same --threads)")
+    again.add_argument("--overwrite", action="store_true", help="replace the run in RUN (only a nerfgauge run folder)")
+    parser.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="STEPS",
+                        help="write RUN/checkpoint.pt every STEPS steps (default: at most once a minute of wall "
+                             "time), and always at the end")
     parser.add_argument("--view-dependent", choices=("auto", "on", "off"), default="auto",
                         help="view-dependent colour (auto: from scene.json)")
-    parser.add_argument("--resolution", type=int, default=None, help="final grid resolution (auto: pixel footprint)")
+    parser.add_argument("--resolution", type=positive_int, default=None,
+                        help="final grid resolution (auto: pixel footprint)")
     parser.add_argument("--no-prune", action="store_true", help="save the full grid, not only occupied cells")
     parser.add_argument("--no-occupancy", action="store_true", help="disable empty-space skipping")
-    parser.add_argument("--tv-weight", type=float, default=0.0, help="total-variation weight on density")
-    parser.add_argument("--eval-every", type=float, default=10.0, metavar="SECONDS",
+    parser.add_argument("--tv-weight", type=nonnegative_float, default=0.0, help="total-variation weight on density")
+    parser.add_argument("--eval-every", type=positive_float, default=10.0, metavar="SECONDS",
                         help="training seconds between val PSNR points in log.jsonl (default 10)")
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
-    parser.add_argument("--device", default="auto", help="auto (cuda when present), cpu or cuda")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch CPU threads (default 2)")
+    parser.add_argument("--device", default="auto", help="auto (cuda when present), cpu, cuda or cuda:N")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 
@@ -101,8 +112,9 @@ def _run_train(args) -> int:
     config = TrainConfig(dataset=str(args.dataset), model=args.model, seed=args.seed, steps=args.steps,
                          budget_seconds=budget, view_dependent=view_dependent, final_resolution=args.resolution,
                          prune=not args.no_prune, occupancy=not args.no_occupancy, tv_weight=args.tv_weight,
-                         threads=args.threads, device=args.device, eval_every_seconds=args.eval_every)
-    summary = train(config, args.out, resume=args.resume, progress=not args.quiet)
+                         threads=args.threads, device=args.device, eval_every_seconds=args.eval_every,
+                         checkpoint_every=args.checkpoint_every)
+    summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
           f"model {summary['model_bytes'] / 1e6:.2f} MB")
     return 0
@@ -117,24 +129,25 @@ def _add_render(subparsers) -> None:
         "render", help="render a trained run's views (PNG, depth EXR, timing)",
         description="Render every view of a split with RUN/model.pt, named after the dataset's frames: "
                     "<frame>.png (RGBA, alpha = opacity), <frame>_depth.exr (ray distance) and timing.json "
-                    "(milliseconds per frame).")
-    parser.add_argument("run", type=Path, metavar="RUN", help="a run folder made by nerfgauge train")
+                    "(milliseconds per frame). DIR is a nerfgauge renders folder: one made from another "
+                    "model or step ratio is replaced only with --overwrite.")
+    parser.add_argument("run", type=path, metavar="RUN", help="a run folder made by nerfgauge train")
     parser.add_argument("--split", choices=("train", "val", "test"), default="test")
-    parser.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default RUN/renders)")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: the run's)")
-    parser.add_argument("--step-ratio", type=float, default=1.0, metavar="VOXELS",
+    parser.add_argument("--out", type=path, default=None, metavar="DIR", help="output folder (default RUN/renders)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace DIR when it holds renders of another model (only a nerfgauge renders folder)")
+    parser.add_argument("--threads", type=positive_int, default=None, help="CPU threads (default: the run's)")
+    parser.add_argument("--step-ratio", type=positive_float, default=1.0, metavar="VOXELS",
                         help="compact model's marching step in voxels (default 1; 0.5 renders as trained, slower)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_render)
 
 
 def _run_render(args) -> int:
-    if args.threads is not None and args.threads < 1:
-        raise InputError(f"--threads must be a positive integer, got {args.threads}")
     from nerfgauge.nerf.render_views import render_split
 
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
-                          progress=not args.quiet)
+                          overwrite=args.overwrite, progress=not args.quiet)
     print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
     return 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass
 from typing import Optional
 
@@ -55,39 +56,75 @@ class TrainConfig:
     eval_every_seconds: float = 10.0  # val PSNR points along the way (training clock)
     eval_views: int = 4
     eval_rays: int = 8192  # val pixels per PSNR point (a fixed strided subset of eval_views)
+    # checkpoint.pt every this many steps (and at step 0 and the end); None: at most once a
+    # minute of wall time (and at the end)
+    checkpoint_every: Optional[int] = None
     threads: int = 2
     device: str = "auto"
 
     def validate(self) -> None:
+        """One-line InputError for anything a run cannot use (the API path: the CLI's
+        argument types already refuse NaN, inf and non-positive counts)."""
+        if not isinstance(self.dataset, str) or not self.dataset.strip():
+            raise InputError(f"dataset must be a non-empty path, got {self.dataset!r}")
         if self.model not in MODELS:
             raise InputError(f"unknown model {self.model!r}; choose one of {', '.join(MODELS)}")
         if (self.steps is None) == (self.budget_seconds is None):
             raise InputError("give exactly one of --steps N or --budget-seconds T")
-        if self.steps is not None and (not isinstance(self.steps, int) or self.steps <= 0):
+        if self.steps is not None and not (_is_int(self.steps) and self.steps > 0):
             raise InputError(f"--steps must be a positive integer, got {self.steps!r}")
-        if self.budget_seconds is not None and not (self.budget_seconds > 0 and math.isfinite(self.budget_seconds)):
-            raise InputError(f"--budget-seconds must be positive, got {self.budget_seconds!r}")
+        if self.budget_seconds is not None and not (_is_finite(self.budget_seconds) and self.budget_seconds > 0):
+            raise InputError(f"--budget-seconds must be a positive finite number, got {self.budget_seconds!r}")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
-        for name in ("batch_rays", "n_coarse", "width", "depth", "vanilla_batch_rays", "threads", "feature_channels",
-                     "eval_views", "eval_rays"):
+        for name in ("batch_rays", "n_coarse", "n_fine", "width", "depth", "vanilla_batch_rays", "threads",
+                     "feature_channels", "eval_views", "eval_rays"):
             value = getattr(self, name)
-            if not isinstance(value, int) or value <= 0:
-                raise InputError(f"{name} must be a positive integer, got {value!r}")
+            if not _is_int(value) or value <= 0:
+                raise InputError(f"{_flag(name)} must be a positive integer, got {value!r}")
+        if self.checkpoint_every is not None and not (_is_int(self.checkpoint_every) and self.checkpoint_every > 0):
+            raise InputError(f"--checkpoint-every must be a positive number of steps, got {self.checkpoint_every!r}")
         for name in ("final_resolution", "start_resolution"):
             value = getattr(self, name)
-            if value is not None and (not isinstance(value, int) or not 4 <= value <= 1024):
-                raise InputError(f"{name} must be an integer in [4, 1024], got {value!r}")
-        if not isinstance(self.seed, int) or self.seed < 0:
+            if value is not None and (not _is_int(value) or not 4 <= value <= 1024):
+                raise InputError(f"{_flag(name)} must be an integer in [4, 1024], got {value!r}")
+        if not _is_int(self.seed) or self.seed < 0:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
-        if not self.eval_every_seconds > 0:
-            raise InputError(f"--eval-every must be positive seconds, got {self.eval_every_seconds!r}")
-        if not self.step_ratio > 0 or self.tv_weight < 0 or self.distortion_weight < 0 or self.lr <= 0 \
-                or self.lr_mlp <= 0:
-            raise InputError("step_ratio, lr and lr_mlp must be positive; tv_weight and distortion_weight >= 0")
+        for name in ("eval_every_seconds", "step_ratio", "lr", "lr_mlp"):
+            value = getattr(self, name)
+            if not (_is_finite(value) and value > 0):
+                raise InputError(f"{_flag(name)} must be a positive finite number, got {value!r}")
+        for name in ("tv_weight", "distortion_weight"):
+            value = getattr(self, name)
+            if not (_is_finite(value) and value >= 0):
+                raise InputError(f"{_flag(name)} must be a finite number >= 0, got {value!r}")
+        if not (self.view_dependent is None or isinstance(self.view_dependent, bool)):
+            raise InputError(f"--view-dependent must be true, false or None (auto), got {self.view_dependent!r}")
+        for name in ("prune", "occupancy"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        if not isinstance(self.device, str) or not re.fullmatch(r"auto|cpu|cuda(:\d+)?", self.device):
+            raise InputError(f"unknown device {self.device!r}; choose auto, cpu, cuda or cuda:N")
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
+
+
+# CLI flag of a config field, for messages that name what the user typed
+FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
+         "threads": "--threads", "view_dependent": "--view-dependent"}
+
+
+def _flag(name: str) -> str:
+    return FLAGS.get(name, name)
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquist_period: Optional[float]) -> tuple[int, str]:

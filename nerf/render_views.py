@@ -4,6 +4,10 @@ For frame "test/r_007" it writes OUT/test/r_007.png (RGBA, sRGB, straight alpha 
 opacity) and OUT/test/r_007_depth.exr (expected ray distance, 0 where opacity is 0),
 plus OUT/timing.json with milliseconds per frame (model time only, after one warm-up
 frame) and the render settings, which `nerfgauge evaluate` copies into its metrics.
+
+OUT is claimed as a nerfgauge "renders" folder whose recipe is the model file's hash and
+the step ratio: frames of another model are never mixed in (replaced only with overwrite),
+and a folder nerfgauge did not make is never written into.
 """
 
 from __future__ import annotations
@@ -21,7 +25,8 @@ from tqdm import tqdm
 
 from nerfgauge.core.dataset import read_split
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import write_json
+from nerfgauge.core.files import sha256_file, write_json
+from nerfgauge.core.folders import claim_folder, recipe_hash
 from nerfgauge.core.images import write_exr, write_png
 
 # Marching step at render time, in voxels. Training marches half a voxel with jitter; a
@@ -55,50 +60,60 @@ def render_frame(model, origins, directions, pool, parts: int = 1) -> tuple:
 
 
 def render_split(run_dir, split: str = "test", out=None, *, threads: int | None = None,
-                 step_ratio: float | None = RENDER_STEP_RATIO, progress: bool = True) -> dict:
-    """Render every view of `split`. step_ratio: marching step in voxels for the compact
-    model (None: the training step, half a voxel)."""
+                 step_ratio: float | None = RENDER_STEP_RATIO, overwrite: bool = False, progress: bool = True) -> dict:
+    """Render every view of `split` into `out` (default RUN/renders). step_ratio: marching
+    step in voxels for the compact model (None: the training step, half a voxel)."""
+    if isinstance(run_dir, str) and not run_dir.strip() or isinstance(out, str) and not out.strip():
+        raise InputError("the run folder and --out must be non-empty paths")
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(f"run folder not found: {run_dir}")
-    if step_ratio is not None and not 0 < step_ratio <= 2:
+    if step_ratio is not None and not (isinstance(step_ratio, (int, float)) and 0 < step_ratio <= 2):
         raise InputError(f"--step-ratio must be in (0, 2] voxels, got {step_ratio}")
+    if threads is not None and not (isinstance(threads, int) and not isinstance(threads, bool) and threads > 0):
+        raise InputError(f"--threads must be a positive integer, got {threads!r}")
     model, config = load_model(run_dir / "model.pt")
     threads = threads or config.threads
     device = pick_device(config.device)
+    cameras = read_split(config.dataset, split)
+    out = Path(out) if out is not None else run_dir / "renders"
+    recipe = recipe_hash({"model_sha256": sha256_file(run_dir / "model.pt"), "step_ratio": step_ratio})
+    with claim_folder(out, "renders", recipe, overwrite=overwrite):
+        return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress)
+
+
+def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress) -> dict:
     model = model.to(device).eval()
     if hasattr(model, "field") and step_ratio is not None:
         model.field.step_ratio = step_ratio
     pool = ThreadPoolExecutor(threads) if device.type == "cpu" and threads > 1 else None
     torch.set_num_threads(1 if pool is not None else threads)
-    cameras = read_split(config.dataset, split)
-    out = Path(out) if out is not None else run_dir / "renders"
-    if out.exists() and not out.is_dir():
-        raise InputError(f"output path {out} is a file, not a folder")
     height, width = cameras.intrinsics.height, cameras.intrinsics.width
     seconds = []
-    for index, stem in enumerate(tqdm(cameras.stems, desc=f"render {split}", unit="frame", disable=not progress)):
-        origins, directions = split_rays(cameras, index)
-        if index == 0:  # warm-up: first-call allocations are not the model's speed
-            render_frame(model, origins.to(device), directions.to(device), pool, threads)
-        start = time.perf_counter()
-        rgb, opacity, depth = render_frame(model, origins.to(device), directions.to(device), pool, threads)
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        seconds.append(time.perf_counter() - start)
-        rgb, opacity, depth = (t.cpu().numpy() for t in (rgb, opacity, depth))
-        target = out / stem
-        target.parent.mkdir(parents=True, exist_ok=True)
-        # Expected depth wherever anything was hit (it is normalised by opacity); silhouette
-        # pixels with little opacity still carry the depth of what they partly see.
-        depth = depth.astype(np.float32).reshape(height, width)
-        write_exr(target.with_name(target.name + "_depth.exr"), {"Z": depth},
-                  {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
-        write_png(target.with_name(target.name + ".png"), rgba_png(rgb, opacity, height, width))
+    try:
+        for index, stem in enumerate(tqdm(cameras.stems, desc=f"render {split}", unit="frame", disable=not progress)):
+            origins, directions = split_rays(cameras, index)
+            if index == 0:  # warm-up: first-call allocations are not the model's speed
+                render_frame(model, origins.to(device), directions.to(device), pool, threads)
+            start = time.perf_counter()
+            rgb, opacity, depth = render_frame(model, origins.to(device), directions.to(device), pool, threads)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            seconds.append(time.perf_counter() - start)
+            rgb, opacity, depth = (t.cpu().numpy() for t in (rgb, opacity, depth))
+            target = out / stem
+            target.parent.mkdir(parents=True, exist_ok=True)
+            # Expected depth wherever anything was hit (it is normalised by opacity); silhouette
+            # pixels with little opacity still carry the depth of what they partly see.
+            depth = depth.astype(np.float32).reshape(height, width)
+            write_exr(target.with_name(target.name + "_depth.exr"), {"Z": depth},
+                      {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
+            write_png(target.with_name(target.name + ".png"), rgba_png(rgb, opacity, height, width))
+    finally:
+        if pool is not None:
+            pool.shutdown()
     timing = {"ms_per_frame": 1000 * float(np.mean(seconds)) if seconds else None, "frames": len(seconds),
               "resolution": [width, height], "device": device.type, "threads": threads,
               "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None)}
-    if pool is not None:
-        pool.shutdown()
     write_json(out / "timing.json", timing)
     return timing

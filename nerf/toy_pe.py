@@ -15,9 +15,7 @@ torch.Generator (the weights), both built from `seed`; nothing is seeded globall
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -25,6 +23,8 @@ import numpy as np
 import torch
 from nerfgauge.nerf.encoding import encoded_size, positional_encoding
 from torch import nn
+
+from nerfgauge.core.files import atomic_path, write_json
 
 
 @dataclass(frozen=True)
@@ -184,21 +184,15 @@ def comparison_image(result: ToyPEResult, scale: int = 4, gap: int = 4) -> np.nd
 
 
 def save_comparison(result: ToyPEResult, path: Path) -> None:
-    """Write the comparison PNG and a JSON of the config and PSNRs, each via a temporary name then rename."""
+    """Write the comparison PNG and a JSON of the config and PSNRs (atomically: temporary name, fsync, rename)."""
     from PIL import Image
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    summary = {"config": asdict(result.config), "psnr_no_pe": result.psnr_no_pe, "psnr_pe": result.psnr_pe,
-               "gap_db": result.gap, "png": path.name}
-    _write_atomic(path, lambda f: Image.fromarray(comparison_image(result)).save(f, format="PNG"))
-    _write_atomic(path.with_suffix(".json"), lambda f: f.write((json.dumps(summary, indent=2) + "\n").encode()))
+    def finite(value):  # a perfect fit has infinite PSNR, which JSON cannot hold: null
+        return value if math.isfinite(value) else None
 
-
-def _write_atomic(path: Path, write) -> None:
-    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(temporary, "wb") as f:
-            write(f)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    summary = {"config": asdict(result.config), "psnr_no_pe": finite(result.psnr_no_pe),
+               "psnr_pe": finite(result.psnr_pe), "gap_db": finite(result.gap), "png": path.name}
+    with atomic_path(path) as temporary:
+        Image.fromarray(comparison_image(result)).save(temporary, format="PNG")
+    write_json(path.with_suffix(".json"), summary)

@@ -1,14 +1,22 @@
 """`nerfgauge train`: the one training loop, for both models.
 
-RUN/ holds config.json (resolved, with the reasons for each automatic choice), log.jsonl
-(val PSNR against training seconds: the speed-vs-error curve of this run), checkpoint.pt
-(full state, for --resume) and model.pt (the saved, pruned model). Training seconds
-exclude validation and checkpointing, so curves from different runs compare.
+RUN/ holds config.json (resolved, with the reasons for each automatic choice and the run's
+recipe), log.jsonl (val PSNR against training seconds: the speed-vs-error curve of this
+run), checkpoint.pt (full state, for --resume) and model.pt (the saved, pruned model).
+Training seconds exclude validation and checkpointing, so curves from different runs
+compare.
+
+The run folder is claimed (nerfgauge.core.folders) under a recipe: the dataset's
+manifest.json hash and every setting that shapes the trajectory, not the stopping rule
+(--resume may train further), logging, threads or device. Resuming a `--steps N` run from
+any checkpoint gives the same model.pt, tensor for tensor, as an uninterrupted run at the
+same thread count: the checkpoint holds every piece of state the step reads, and nothing
+scheduled on wall-clock time (val PSNR points, the default checkpoint rule) changes the
+trajectory of a steps-run.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time
@@ -21,9 +29,10 @@ from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
 from nerfgauge.nerf.rendering import composite
 from tqdm import tqdm
 
-from nerfgauge.core.dataset import read_split, require_complete
+from nerfgauge.core.dataset import MANIFEST, read_split, require_complete
 from nerfgauge.core.errors import InputError, NumericalError
-from nerfgauge.core.files import write_bytes_atomic, write_json
+from nerfgauge.core.files import read_json, sha256_file, write_bytes_atomic, write_json
+from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows ...
@@ -31,19 +40,35 @@ MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short bu
 VISIBILITY_AT = (0.4, 0.7, 1.0)  # fractions where hidden cells are measured and skipped
 VISIBILITY_RAY_STRIDE = 4  # every 4th training ray is enough to see every visible cell
 LR_FINAL_FRACTION = 0.1  # learning rate decays exponentially to this fraction
-# checkpoint.pt (grid + Adam state: ~0.5 GB at 220^3) is rewritten at a log point only
-# when this much wall time has passed since the last one, and always at the end: with
-# dense logging (bench scaling logs every 2 s) writing it at every point doubled wall time.
+# checkpoint.pt (grid + Adam state: ~0.5 GB at 220^3) is rewritten, without
+# --checkpoint-every, only when this much wall time has passed since the last one, and
+# always at the end: with dense logging (bench scaling logs every 2 s) writing it at every
+# log point doubled wall time.
 CHECKPOINT_EVERY_WALL_SECONDS = 60.0
+CHECKPOINT, MODEL, CONFIG, LOG = "checkpoint.pt", "model.pt", "config.json", "log.jsonl"
+# Config fields that do not shape the trajectory, so not part of the run's recipe: the
+# dataset's path (its manifest hash stands for it), the stopping rule (resume trains
+# further), logging, checkpointing, threads and device.
+NOT_RECIPE = ("dataset", "steps", "budget_seconds", "eval_every_seconds", "eval_views", "eval_rays",
+              "checkpoint_every", "threads", "device")
 
 
 def pick_device(name: str) -> torch.device:
+    """The torch device for --device (auto, cpu, cuda, cuda:N); one line when it is absent."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
-        return torch.device(name)
-    except RuntimeError:
-        raise InputError(f"unknown device {name!r}") from None
+        device = torch.device(name)
+    except (RuntimeError, ValueError, TypeError):
+        raise InputError(f"unknown device {name!r}; choose auto, cpu or cuda") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InputError(f"device {name!r}: no CUDA GPU is available here; use --device cpu or auto")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise InputError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA GPU(s)")
+    elif device.type != "cpu":
+        raise InputError(f"unsupported device {name!r}; choose auto, cpu or cuda")
+    return device
 
 
 @torch.no_grad()
@@ -89,9 +114,17 @@ def make_optimizer(model, config: TrainConfig):
     return torch.optim.Adam([{"params": model.parameters(), "lr": 5e-4, "base_lr": 5e-4}])
 
 
-def prepare_run(config: TrainConfig, run_dir: Path, resume: bool):
-    """Validate input, load data, resolve the config. Nothing is written before this ends."""
+def run_recipe(config: TrainConfig, dataset_sha256: str) -> dict:
+    """What a run is made from: the dataset (by content) and the resolved settings that
+    shape its trajectory. Two runs of one recipe (and stopping rule) train the same model."""
+    return {"dataset_sha256": dataset_sha256} | {k: v for k, v in config.to_json().items() if k not in NOT_RECIPE}
+
+
+def prepare_run(config: TrainConfig):
+    """Validate input, load data, resolve the config. Nothing is written here.
+    Returns (config, reasons, aabb, train_rays, val_rays, device, recipe)."""
     config.validate()
+    device = pick_device(config.device)
     root = require_complete(config.dataset)
     train_cams = read_split(root, "train")
     if not train_cams.stems:
@@ -100,47 +133,107 @@ def prepare_run(config: TrainConfig, run_dir: Path, resume: bool):
     if aabb is None:
         aabb = aabb_from_cameras(train_cams.c2w)
     config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx)
-    if run_dir.exists() and not run_dir.is_dir():
-        raise InputError(f"run path {run_dir} is a file, not a folder")
-    if (run_dir / "config.json").exists() and not resume:
-        raise InputError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
-    if resume and not (run_dir / "checkpoint.pt").is_file():
-        raise InputError(f"nothing to resume in {run_dir} (no checkpoint.pt)")
+    recipe = run_recipe(config, sha256_file(root / MANIFEST))
     _, train_rays = load_split_rays(root, "train")
     val_split = "val" if read_split(root, "val").stems else "test"
     _, val_rays = load_split_rays(root, val_split, limit=config.eval_views)
-    return config, reasons, torch.tensor(aabb, dtype=torch.float32), train_rays, val_rays
+    return config, reasons, torch.tensor(aabb, dtype=torch.float32), train_rays, val_rays, device, recipe
 
 
-def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool = True) -> dict:
+def _check_resumable(run_dir: Path, recipe: dict) -> None:
+    """Before anything is created: a --resume needs a run of this recipe in `run_dir`; say
+    which setting differs when it is another one."""
+    marker = read_marker(run_dir) if run_dir.is_dir() and not run_dir.is_symlink() else None
+    if marker is None or marker["kind"] != "run":
+        if run_dir.is_dir() and marker is None and not any(run_dir.iterdir()):
+            raise InputError(f"nothing to resume in {run_dir}: the folder is empty")
+        if marker is None and not run_dir.exists():
+            raise InputError(f"nothing to resume: {run_dir} does not exist")
+        return  # claim_folder names what is there instead
+    if marker.get("recipe") != recipe_hash(recipe):
+        saved = _saved_recipe(run_dir)
+        difference = checkpoint.recipe_difference(saved, recipe) if saved else "other settings"
+        raise InputError(f"{run_dir} holds a run of {difference}; refusing to resume it "
+                         "(drop --resume and pass --overwrite to start over, or choose another --out)")
+
+
+def _saved_recipe(run_dir: Path) -> dict | None:
+    try:
+        saved = read_json(run_dir / CONFIG).get("recipe")
+    except InputError:
+        return None
+    return saved if isinstance(saved, dict) else None
+
+
+def _start_over(run_dir: Path) -> None:
+    """Remove an earlier attempt's files from our run folder (we hold its lock): its
+    model, checkpoint, log and config, and renders folders nerfgauge made inside it."""
+    for name in (MODEL, CHECKPOINT, LOG, CONFIG):
+        (run_dir / name).unlink(missing_ok=True)
+    for entry in run_dir.iterdir():
+        marker = read_marker(entry) if entry.is_dir() and not entry.is_symlink() else None
+        if marker is not None and marker["kind"] == "renders":
+            remove_owned(entry, "renders")
+
+
+def train(config: TrainConfig, run_dir, *, resume: bool = False, overwrite: bool = False,
+          progress: bool = True) -> dict:
+    """Train into `run_dir`. A new or empty folder starts a run; a folder holding this
+    recipe's run whose earlier attempt was killed before its first checkpoint starts over;
+    resume=True continues from checkpoint.pt; overwrite=True replaces a run of ours (any
+    recipe). Returns {"steps", "seconds", "val_psnr", "model_bytes"}."""
+    if isinstance(run_dir, str) and not run_dir.strip():
+        raise InputError("the run folder is an empty path; give --out RUN")
+    if resume and overwrite:
+        raise InputError("--resume continues a run and --overwrite starts it over; give one of them")
     run_dir = Path(run_dir)
-    config, reasons, aabb, train_rays, val_rays = prepare_run(config, run_dir, resume)
-    torch.set_num_threads(config.threads)
-    device = pick_device(config.device)
-    generator = torch.Generator(device="cpu").manual_seed(config.seed)
-    torch_init = torch.Generator().manual_seed(config.seed + 1)
-    state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0, "stage": 0, "stage_steps": 0}
+    config, reasons, aabb, train_rays, val_rays, device, recipe = prepare_run(config)
     if resume:
-        saved = checkpoint.load_checked(run_dir / "checkpoint.pt", "checkpoint")
-        # the saved run's settings, with the stopping rule given now (train further)
-        config = dataclasses.replace(TrainConfig(**saved["config"]), steps=config.steps,
-                                     budget_seconds=config.budget_seconds)
-        model = checkpoint.model_from_payload(saved["model_payload"]).to(device)
+        _check_resumable(run_dir, recipe)
+    with claim_folder(run_dir, "run", recipe_hash(recipe), overwrite=overwrite) as claimed:
+        saved = None
+        if claimed == "resume":
+            has_checkpoint = (run_dir / CHECKPOINT).is_file()
+            if resume and has_checkpoint:
+                saved = checkpoint.load_training_checkpoint(run_dir / CHECKPOINT, recipe)
+            elif not resume and not overwrite and (run_dir / MODEL).is_file():
+                raise InputError(f"{run_dir} already holds a finished run; pass --resume to train it further, "
+                                 "--overwrite to start over, or choose another --out")
+            elif not resume and not overwrite and has_checkpoint:
+                raise InputError(f"{run_dir} holds an interrupted run; pass --resume to continue it, "
+                                 "--overwrite to start over, or choose another --out")
+            if saved is None:  # --overwrite of this recipe, or killed before its first checkpoint
+                _start_over(run_dir)
+        return _train_in(run_dir, config, reasons, recipe, aabb, train_rays, val_rays, device, saved, progress)
+
+
+def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, aabb, train_rays, val_rays, device,
+              saved: dict | None, progress: bool) -> dict:
+    """The loop, in a claimed run folder; from `saved` (a checked checkpoint) when given."""
+    torch.set_num_threads(config.threads)
+    generator = torch.Generator(device="cpu").manual_seed(config.seed)
+    # Loop state (all in checkpoint.pt): steps and training seconds done, the training
+    # second of the next val PSNR point, visibility measurements and upsamplings done,
+    # steps at this resolution, and the step of the last log entry.
+    state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0, "stage": 0, "stage_steps": 0,
+             "logged_step": -1}
+    if saved is not None:
+        path = run_dir / CHECKPOINT
+        model = checkpoint.restore_model(saved, config, aabb, path).to(device)
         optimizer = make_optimizer(model, config)
-        optimizer.load_state_dict(saved["optimizer"])
-        generator.set_state(saved["generator"])
-        state.update(step=saved["step"], seconds=saved["seconds"], next_eval=saved["next_eval"],
-                     visibility_done=saved["visibility_done"], stage=saved["stage"], stage_steps=saved["stage_steps"])
-        _truncate_log(run_dir / "log.jsonl", saved["step"])
+        checkpoint.restore_optimizer(optimizer, saved["optimizer"], path)
+        checkpoint.restore_generator(generator, saved["generator"], path)
+        state.update(saved["loop"])
+        _truncate_log(run_dir / LOG, state["step"])
     else:
-        with torch.random.fork_rng(devices=[]):
-            torch.random.manual_seed(int(torch.randint(2**31, (1,), generator=torch_init)))  # init only
-            model = checkpoint.build_model(config, aabb).to(device)
+        torch_init = torch.Generator().manual_seed(config.seed + 1)
+        init_seed = int(torch.randint(2**31, (1,), generator=torch_init))
+        model = checkpoint.build_model(config, aabb, init_seed=init_seed).to(device)
         optimizer = make_optimizer(model, config)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        write_json(run_dir / "config.json", {**config.to_json(), "auto_reasons": reasons})
-        write_bytes_atomic(run_dir / "log.jsonl", b"")
-    log = (run_dir / "log.jsonl").open("a")
+        write_bytes_atomic(run_dir / LOG, b"")
+    # config.json states this attempt's settings (the stopping rule may have changed)
+    write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "recipe": recipe})
+    log = (run_dir / LOG).open("a")
     n_rays = config.batch_rays if config.model == "compact" else config.vanilla_batch_rays
     total = config.steps if config.steps is not None else config.budget_seconds
     # A time budget advances the bar in training seconds; steps/s and PSNR ride in the postfix.
@@ -150,7 +243,9 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
                bar_format=None if config.steps else time_format)
     last_psnr = float("nan")
     losses = []  # since the last log entry
-    last_checkpoint = -math.inf  # wall clock: the first log point (step 0) writes one
+    # the step of the checkpoint on disk, and when (wall clock) it was written
+    checkpointed_step = state["step"] if saved is not None else None
+    last_checkpoint = time.monotonic() if saved is not None else -math.inf
     try:
         while True:
             done = state["step"] / config.steps if config.steps else state["seconds"] / config.budget_seconds
@@ -161,7 +256,10 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
                                          train_rays.directions[::VISIBILITY_RAY_STRIDE].to(device))
                 state["visibility_done"] += 1
                 state["seconds"] += time.perf_counter() - start  # part of training: it speeds it up
-            if state["seconds"] >= state["next_eval"] or done >= 1:
+            # Val PSNR points are scheduled on training seconds; they only read the model
+            # (no generator, no parameter, no cached state the step uses), so where they
+            # fall never changes a steps-run's trajectory.
+            if state["logged_step"] != state["step"] and (state["seconds"] >= state["next_eval"] or done >= 1):
                 last_psnr = psnr_on_white(model, val_rays, device, config.eval_rays)
                 entry = {"step": state["step"], "seconds": round(state["seconds"], 3), "val_psnr": last_psnr,
                          "steps_per_second": state["step"] / max(state["seconds"], 1e-9),
@@ -171,12 +269,17 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
                     entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean())}
                 log.write(json.dumps(entry) + "\n"), log.flush()
                 state["next_eval"] = state["seconds"] + config.eval_every_seconds
-                if done >= 1 or time.monotonic() - last_checkpoint >= CHECKPOINT_EVERY_WALL_SECONDS:
-                    _save_checkpoint(run_dir, model, optimizer, config, generator, state)
-                    last_checkpoint = time.monotonic()
+                state["logged_step"] = state["step"]
                 bar.set_postfix(psnr=f"{last_psnr:.2f}", steps_per_s=f"{entry['steps_per_second']:.1f}", refresh=False)
-                if done >= 1:
-                    break
+            if config.checkpoint_every is not None:
+                due = state["step"] % config.checkpoint_every == 0
+            else:
+                due = time.monotonic() - last_checkpoint >= CHECKPOINT_EVERY_WALL_SECONDS
+            if (due or done >= 1) and checkpointed_step != state["step"]:
+                _save_checkpoint(run_dir, model, optimizer, config, recipe, generator, state)
+                checkpointed_step, last_checkpoint = state["step"], time.monotonic()
+            if done >= 1:
+                break
             start = time.perf_counter()
             if state["stage"] < len(UPSAMPLE_AT) and done >= UPSAMPLE_AT[state["stage"]] \
                     and state["stage_steps"] >= MIN_STAGE_STEPS:
@@ -188,7 +291,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
                 raise NumericalError(
                     f"training diverged at step {state['step']}: loss {loss}, gradients "
                     f"{'finite' if gradients_finite else 'not finite'}; the parameters were not updated and "
-                    f"{run_dir / 'checkpoint.pt'} holds the last saved state")
+                    f"{run_dir / CHECKPOINT} holds the last saved state")
             losses.append(loss)
             elapsed = time.perf_counter() - start
             state["step"] += 1
@@ -198,7 +301,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, progress: bool 
     finally:
         bar.close()
         log.close()
-    size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / "model.pt")
+    size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
     return {"steps": state["step"], "seconds": state["seconds"], "val_psnr": last_psnr, "model_bytes": size}
 
 
@@ -245,17 +348,26 @@ def _train_step(model, optimizer, config, rays, n_rays, generator, device, progr
 
 def _truncate_log(path: Path, last_step: int) -> None:
     """Drop log entries past the checkpoint being resumed (checkpoints are rarer than log
-    points), so the resumed run's entries continue the curve instead of repeating steps."""
-    lines = path.read_text().splitlines() if path.is_file() else []
-    kept = [line for line in lines if line.strip() and json.loads(line)["step"] <= last_step]
+    points), so the resumed run's entries continue the curve instead of repeating steps.
+    A torn last line (the writer was killed mid-line) is dropped; a damaged line before
+    it is an InputError."""
+    lines = [line for line in (path.read_text(errors="replace").split("\n") if path.is_file() else [])
+             if line.strip()]
+    kept = []
+    for number, line in enumerate(lines, 1):
+        try:
+            entry = json.loads(line)
+        except json.JSONDecodeError:
+            if number == len(lines):
+                break  # torn by a kill mid-write
+            raise InputError(f"{path} line {number} is not JSON; fix or delete the line to resume") from None
+        if not isinstance(entry, dict) or not isinstance(entry.get("step"), int):
+            raise InputError(f"{path} line {number} has no integer step; fix or delete the line to resume")
+        if entry["step"] <= last_step:
+            kept.append(line)
     write_bytes_atomic(path, "".join(line + "\n" for line in kept).encode())
 
 
-def _save_checkpoint(run_dir, model, optimizer, config, generator, state):
-    checkpoint.save_atomic({"format": checkpoint.FORMAT, "version": checkpoint.VERSION, "config": config.to_json(),
-                            "model_payload": checkpoint.model_payload(model, config, prune=False),
-                            "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
-                            "step": state["step"], "seconds": state["seconds"], "next_eval": state["next_eval"],
-                            "visibility_done": state["visibility_done"], "stage": state["stage"],
-                            "stage_steps": state["stage_steps"]},
-                           run_dir / "checkpoint.pt")
+def _save_checkpoint(run_dir, model, optimizer, config, recipe, generator, state):
+    checkpoint.save_atomic(checkpoint.training_checkpoint(model, optimizer, generator, config, recipe, state),
+                           run_dir / CHECKPOINT)

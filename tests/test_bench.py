@@ -43,3 +43,12 @@ def test_table_has_a_row_per_run_and_marks_missing_metrics():
             {"scene": "s", "variant": "compact", "budget": 30, "error": "exit 2"}]
     lines = table_markdown(rows).splitlines()
     assert len(lines) == 4 and "| s | vanilla | 30 | 14.00 | – | – | – |" in lines[2] and "exit 2" in lines[3]
+
+
+def test_bench_read_times_both_verification_modes(tiny_dataset):
+    from nerfgauge.eval.bench_read import READS, bench_read, table_markdown
+
+    rows = bench_read(tiny_dataset, "train", repeats=1)
+    assert [row["read"] for row in rows] == list(READS)
+    assert all(row["frames"] == 4 and 0 < row["ms_sizes_only"] < 1e5 and 0 < row["ms_sha256"] < 1e5 for row in rows)
+    assert table_markdown(rows).count("\n") == 1 + len(rows)

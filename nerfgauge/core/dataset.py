@@ -4,7 +4,8 @@ This module is the dataset convention the other stages import (nerf/ trains from
 eval/ scores against it). It does not import mitsuba.
 
 Layout of a dataset folder:
-  config.json                      the generator's config (written first; used to resume)
+  config.json                      what the dataset was made from (recipe, input hashes, versions)
+  .nerfgauge.json                  ownership marker (kind, recipe hash); .nerfgauge.lock: the write lock
   meshes/<shape>.ply               ground-truth meshes, world coordinates
   <split>/r_000.png                RGBA, 8-bit sRGB, straight alpha (alpha = coverage)
   <split>/r_000.exr                RGBA, linear float32, premultiplied
@@ -33,7 +34,7 @@ import numpy as np
 from nerfgauge.core import validate
 from nerfgauge.core.camera import Intrinsics
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import read_json, sha256_file, write_json
+from nerfgauge.core.files import json_from_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.images import read_exr, read_exr_single, read_png
 
 SPLITS = ("train", "val", "test")
@@ -207,8 +208,7 @@ class Dataset:
         return data
 
     def _read_json(self, rel: str, finite: bool) -> dict:
-        self.read_bytes(rel)  # confined and verified; the file is small, read_json reads it again
-        return read_json(self.root / rel, finite=finite)
+        return json_from_bytes(self.read_bytes(rel), self.root / rel, finite=finite)  # the bytes verified
 
     def _read_transforms(self, split: str, name: str) -> SplitCameras:
         where = str(self.root / name)

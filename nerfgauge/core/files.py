@@ -67,15 +67,21 @@ def write_json(path, obj) -> None:
 def read_json(path, *, finite: bool = False) -> dict:
     """A JSON object from `path` (InputError otherwise). finite=True also refuses the NaN
     and Infinity literals Python's parser accepts (files that promise numbers)."""
-    path = Path(path)
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"missing file: {path}") from None
+    return json_from_bytes(data, path, finite=finite)
+
+
+def json_from_bytes(data: bytes, path, *, finite: bool = False) -> dict:
+    """A JSON object from bytes already read from `path` (named in errors); see read_json."""
 
     def refuse(constant):
         raise InputError(f"{path} holds {constant}, which is not valid JSON")
 
     try:
-        value = json.loads(path.read_text(), parse_constant=refuse if finite else None)
-    except FileNotFoundError:
-        raise InputError(f"missing file: {path}") from None
+        value = json.loads(data.decode(), parse_constant=refuse if finite else None)
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise InputError(f"{path} is not valid JSON: {error}") from None
     if not isinstance(value, dict):
