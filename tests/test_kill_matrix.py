@@ -338,7 +338,7 @@ def test_train_killed_after_a_checkpoint_resumes_bit_identical(tmp_path, tiny_da
 def test_train_kill_matrix(tmp_path, tiny_dataset, reference_model):
     """Before the first checkpoint, and two more seeded moments between checkpoints."""
     rng = random.Random(1811)
-    moments = [(0, 0.0)] + [(rng.randint(1, TRAIN_STEPS // CHECKPOINT_EVERY - 1), rng.uniform(0.0, 0.3))
+    moments = [(0, 0.0)] + [(rng.randint(1, TRAIN_STEPS // CHECKPOINT_EVERY - 2), rng.uniform(0.0, 0.3))
                             for _ in range(2)]
     landed = [kill_train_and_resume(tmp_path / f"run-{i}", tiny_dataset, w, d, reference_model)
               for i, (w, d) in enumerate(moments)]
