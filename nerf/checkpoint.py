@@ -115,8 +115,10 @@ def load_model(path):
     """Rebuild a model from model.pt. Returns (model, TrainConfig)."""
     payload = load_checked(path)
     try:
-        return model_from_payload(payload), TrainConfig(**payload["config"])
-    except (KeyError, TypeError, ValueError, RuntimeError) as error:
+        config = TrainConfig(**payload["config"])
+        config.validate()  # the saved settings drive rendering: a damaged value is refused here
+        return model_from_payload(payload), config
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as error:  # InputError is a ValueError
         raise InputError(f"{path} is a damaged nerfgauge model: {str(error).splitlines()[0][:200]}") from None
 
 
@@ -133,9 +135,13 @@ def model_from_payload(payload: dict):
     field = model.field
     if "node_values" in payload:
         shape = payload["grid_shape"]
+        mask, values = payload["node_mask"], payload["node_values"]
+        if tuple(mask.shape) != tuple(shape[1:]) or tuple(values.shape) != (int(mask.sum()), shape[0]):
+            raise ValueError(f"node mask {tuple(mask.shape)} and values {tuple(values.shape)} do not fit "
+                             f"grid {tuple(shape)}")
         grid = torch.zeros(shape)
         grid[0] = EMPTY_RAW
-        grid[:, payload["node_mask"]] = payload["node_values"].float().t()
+        grid[:, mask] = values.float().t()
     else:
         grid = payload["grid"].float()
     if tuple(grid.shape) != tuple(field.grid.shape[1:]):
@@ -229,6 +235,8 @@ def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path):
             found = f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor) else type(value).__name__
             raise InputError(f"{path} is a damaged nerfgauge checkpoint: {name} is {found}, expected "
                              f"{tuple(tensor.shape)} {tensor.dtype} at resolution {resolution}")
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise InputError(f"{path} is a damaged nerfgauge checkpoint: {name} holds NaN or inf")
     model.load_state_dict(state)
     return model
 
@@ -248,6 +256,8 @@ def restore_optimizer(optimizer: torch.optim.Optimizer, saved: dict, path) -> No
                 if key != "step" and (not isinstance(value, torch.Tensor) or value.shape != param.shape):
                     raise ValueError(f"optimizer {key} of parameter {index} has shape "
                                      f"{tuple(getattr(value, 'shape', ()))}, expected {tuple(param.shape)}")
+                if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                    raise ValueError(f"optimizer {key} of parameter {index} holds NaN or inf")
         optimizer.load_state_dict(saved)
     except (ValueError, TypeError, KeyError, AttributeError) as error:
         raise InputError(f"{path} is a damaged nerfgauge checkpoint: {str(error).splitlines()[0][:200]}") from None

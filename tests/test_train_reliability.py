@@ -387,4 +387,5 @@ def test_a_second_writer_is_refused_while_a_run_trains(tiny_dataset, tmp_path, m
     monkeypatch.setattr(train_module, "_save_checkpoint", save_and_intrude)
     train(config, run, progress=False)
     assert "in use" in attempts[0] and f"PID {os.getpid()}" in attempts[0]
-    assert log_steps(run) == [0, 2]
+    steps = log_steps(run)  # val points fall on the training clock: how many depends on the load
+    assert steps[0] == 0 and steps[-1] == 2 and steps == sorted(set(steps)), steps
