@@ -41,8 +41,10 @@ CONTRACTED_EXTENT = 2.0
 def contract(y: torch.Tensor) -> torch.Tensor:
     """mip-NeRF 360 contraction. y [..., 3] (inner region = unit ball) -> [..., 3], |c| < 2.
     Finite for every finite y; |y| -> inf maps to |c| -> 2."""
-    r = y.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return torch.where(r <= 1, y, (2 - 1 / r) * y / r)
+    scale = y.abs().amax(dim=-1, keepdim=True).clamp_min(1e-30)  # no overflow of |y|^2 for huge y
+    unit = y / scale
+    r = scale * unit.norm(dim=-1, keepdim=True)
+    return torch.where(r <= 1, y, (2 - 1 / r) * unit / unit.norm(dim=-1, keepdim=True))
 
 
 def uncontract(c: torch.Tensor) -> torch.Tensor:
