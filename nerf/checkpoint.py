@@ -71,6 +71,22 @@ def node_mask(occupancy: torch.Tensor) -> torch.Tensor:
     return F.max_pool3d(padded, kernel_size=2, stride=1)[0, 0] > 0
 
 
+def quantise_per_channel(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """8-bit storage with a per-channel offset and scale: values [n, C] float ->
+    (codes [n, C] uint8, offset [C], scale [C]) with values ~ offset + codes * scale,
+    error at most scale / 2 per entry (scale = channel range / 255)."""
+    low = values.amin(dim=0) if values.shape[0] else values.new_zeros(values.shape[1])
+    high = values.amax(dim=0) if values.shape[0] else values.new_zeros(values.shape[1])
+    scale = ((high - low) / 255).clamp_min(1e-12)
+    codes = torch.round((values - low) / scale).clamp(0, 255).to(torch.uint8)
+    return codes, low.float(), scale.float()
+
+
+def dequantise_per_channel(codes: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Inverse of `quantise_per_channel`: codes [n, C] uint8 -> values [n, C] float32."""
+    return offset + codes.float() * scale
+
+
 def model_payload(model, config: TrainConfig, prune: bool) -> dict:
     """Everything needed to rebuild `model` for rendering, pruned if asked."""
     from nerfgauge.nerf.models import CompactNeRF
@@ -90,7 +106,11 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
             keep = node_mask(model.occupancy.cpu())
             payload["grid_shape"] = list(grid.shape)
             payload["node_mask"] = keep
-            payload["node_values"] = grid[:, keep].t().contiguous().half()  # [kept, C]
+            values = grid[:, keep].t().contiguous()  # [kept, C]
+            if config.quantise == "int8":
+                payload["node_values_q"], payload["node_offset"], payload["node_scale"] = quantise_per_channel(values)
+            else:
+                payload["node_values"] = values.half()
         else:
             payload["grid"] = grid.half()
     else:
@@ -142,11 +162,15 @@ def model_from_payload(payload: dict):
         raise ValueError(f"its grid's parametrisation does not match its config's {config.parametrisation!r}")
     model = build_model(config, aabb, payload["resolution"], space=space)
     field = model.field
-    if "node_values" in payload:
+    if "node_values" in payload or "node_values_q" in payload:
         shape = payload["grid_shape"]
         grid = torch.zeros(shape)
         grid[0] = EMPTY_RAW
-        grid[:, payload["node_mask"]] = payload["node_values"].float().t()
+        if "node_values_q" in payload:
+            values = dequantise_per_channel(payload["node_values_q"], payload["node_offset"], payload["node_scale"])
+        else:
+            values = payload["node_values"].float()
+        grid[:, payload["node_mask"]] = values.t()
     else:
         grid = payload["grid"].float()
     if tuple(grid.shape) != tuple(field.grid.shape[1:]):

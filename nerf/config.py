@@ -45,6 +45,7 @@ class TrainConfig:
     final_resolution: Optional[int] = None  # voxels along the AABB's longest side
     start_resolution: Optional[int] = None
     prune: bool = True
+    quantise: str = "fp16"  # saved model's grid values: fp16, or int8 with a per-channel scale
     occupancy: bool = True  # empty-space skipping
     tv_weight: float = 0.0
     distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
@@ -79,6 +80,8 @@ class TrainConfig:
             raise InputError(f"--steps must be a positive integer, got {self.steps!r}")
         if self.budget_seconds is not None and not (_is_finite(self.budget_seconds) and self.budget_seconds > 0):
             raise InputError(f"--budget-seconds must be a positive finite number, got {self.budget_seconds!r}")
+        if self.quantise not in ("fp16", "int8"):
+            raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
         for name in ("batch_rays", "n_coarse", "n_fine", "width", "depth", "vanilla_batch_rays", "threads",

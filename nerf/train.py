@@ -49,9 +49,9 @@ CHECKPOINT_EVERY_WALL_SECONDS = 60.0
 CHECKPOINT, MODEL, CONFIG, LOG = "checkpoint.pt", "model.pt", "config.json", "log.jsonl"
 # Config fields that do not shape the trajectory, so not part of the run's recipe: the
 # dataset's path (its manifest hash stands for it), the stopping rule (resume trains
-# further), logging, checkpointing, threads and device.
+# further), logging, checkpointing, threads, device and how model.pt is stored.
 NOT_RECIPE = ("dataset", "steps", "budget_seconds", "eval_every_seconds", "eval_views", "eval_rays",
-              "checkpoint_every", "threads", "device")
+              "checkpoint_every", "threads", "device", "quantise")
 
 
 def pick_device(name: str) -> torch.device:

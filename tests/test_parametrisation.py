@@ -198,3 +198,42 @@ def test_space_round_trips_json():
     assert Space.from_json(space.to_json()) == space
     with pytest.raises(ValueError):
         Space.from_json({"kind": "ndcx", "box": []})
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 200), st.integers(1, 6), st.floats(0.01, 100.0), st.integers(0, 2**31 - 1))
+def test_int8_model_values_round_trip_within_half_a_step(n, channels, spread, seed):
+    from nerfgauge.nerf.checkpoint import dequantise_per_channel, quantise_per_channel
+
+    values = torch.randn((n, channels), generator=torch.Generator().manual_seed(seed)) * spread
+    codes, offset, scale = quantise_per_channel(values)
+    assert codes.dtype == torch.uint8 and offset.shape == scale.shape == (channels,)
+    back = dequantise_per_channel(codes, offset, scale)
+    # half a quantisation step, plus float32 rounding of values of this size
+    assert bool(((back - values).abs() <= scale / 2 + 1e-6 * spread * 8).all())
+
+
+def test_int8_saved_model_renders_like_the_fp16_one():
+    """A pruned model saved with int8 values loads (weights_only) and renders within the
+    colour change its quantisation error allows."""
+    import io
+
+    from nerfgauge.nerf.checkpoint import build_model, model_from_payload, model_payload
+
+    aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    config = TrainConfig(dataset="d", steps=1, view_dependent=False, final_resolution=16, start_resolution=16,
+                         parametrisation="bounded")
+    model = build_model(config, aabb)
+    with torch.no_grad():
+        model.field.grid.normal_(generator=torch.Generator().manual_seed(3))
+    loaded = {}
+    for kind in ("fp16", "int8"):
+        buffer = io.BytesIO()
+        torch.save(model_payload(model, TrainConfig(**{**config.__dict__, "quantise": kind}), prune=True), buffer)
+        buffer.seek(0)
+        loaded[kind] = (model_from_payload(torch.load(buffer, weights_only=True)), buffer.getbuffer().nbytes)
+    assert loaded["int8"][1] < loaded["fp16"][1]
+    grids = [loaded[k][0].field.grid for k in ("fp16", "int8")]
+    channel_range = model.field.grid[0].flatten(1).amax(1) - model.field.grid[0].flatten(1).amin(1)
+    error = (grids[0] - grids[1]).abs()[0].flatten(1).amax(1)
+    assert bool((error <= channel_range / 255 / 2 + 2e-3 * channel_range.abs().max()).all())
