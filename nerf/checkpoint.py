@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from nerfgauge.nerf.config import TrainConfig
+from nerfgauge.nerf.parametrisation import Space
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
@@ -70,6 +71,22 @@ def node_mask(occupancy: torch.Tensor) -> torch.Tensor:
     return F.max_pool3d(padded, kernel_size=2, stride=1)[0, 0] > 0
 
 
+def quantise_per_channel(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """8-bit storage with a per-channel offset and scale: values [n, C] float ->
+    (codes [n, C] uint8, offset [C], scale [C]) with values ~ offset + codes * scale,
+    error at most scale / 2 per entry (scale = channel range / 255)."""
+    low = values.amin(dim=0) if values.shape[0] else values.new_zeros(values.shape[1])
+    high = values.amax(dim=0) if values.shape[0] else values.new_zeros(values.shape[1])
+    scale = ((high - low) / 255).clamp_min(1e-12)
+    codes = torch.round((values - low) / scale).clamp(0, 255).to(torch.uint8)
+    return codes, low.float(), scale.float()
+
+
+def dequantise_per_channel(codes: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Inverse of `quantise_per_channel`: codes [n, C] uint8 -> values [n, C] float32."""
+    return offset + codes.float() * scale
+
+
 def model_payload(model, config: TrainConfig, prune: bool) -> dict:
     """Everything needed to rebuild `model` for rendering, pruned if asked."""
     from nerfgauge.nerf.models import CompactNeRF
@@ -80,6 +97,8 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
         grid = field.grid.detach().cpu()[0]  # [C, nz, ny, nx]
         payload["resolution"] = field.resolution
         payload["aabb"] = field.aabb.cpu().tolist()
+        if field.space is not None:
+            payload["space"] = field.space.to_json()
         payload["occupancy"] = model.occupancy.cpu()
         payload["visible"] = model.visible.cpu()
         payload["head"] = {k: v.cpu() for k, v in field.head.state_dict().items()} if field.head is not None else {}
@@ -87,7 +106,11 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
             keep = node_mask(model.occupancy.cpu())
             payload["grid_shape"] = list(grid.shape)
             payload["node_mask"] = keep
-            payload["node_values"] = grid[:, keep].t().contiguous().half()  # [kept, C]
+            values = grid[:, keep].t().contiguous()  # [kept, C]
+            if config.quantise == "int8":
+                payload["node_values_q"], payload["node_offset"], payload["node_scale"] = quantise_per_channel(values)
+            else:
+                payload["node_values"] = values.half()
         else:
             payload["grid"] = grid.half()
     else:
@@ -95,8 +118,11 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
     return payload
 
 
-def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None = None, init_seed: int = 0):
+def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None = None, init_seed: int = 0,
+                space=None):
     """A fresh model for `config` (resolved), at `resolution` (compact) or its start.
+    space: the compact grid's `nerf.parametrisation.Space` (None or bounded: over `aabb`;
+    otherwise the grid spans space.box and `aabb` is not used).
     nn.Linear draws its initial weights from torch's global generator: it is seeded with
     `init_seed` inside fork_rng, so building a model never changes the caller's global RNG."""
     from nerfgauge.nerf.grid_field import VoxelGridField
@@ -106,8 +132,10 @@ def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None 
         torch.random.manual_seed(init_seed)
         if config.model == "vanilla":
             return VanillaNeRF(aabb, config.n_coarse, config.n_fine, config.width, config.depth)
+        if space is not None and space.kind != "bounded":
+            aabb = torch.tensor(space.box, dtype=torch.float32)
         field = VoxelGridField(aabb, resolution or config.start_resolution, config.final_resolution,
-                               config.view_dependent, config.feature_channels, config.step_ratio)
+                               config.view_dependent, config.feature_channels, config.step_ratio, space=space)
         return CompactNeRF(field, use_occupancy=config.occupancy)
 
 
@@ -131,17 +159,23 @@ def model_from_payload(payload: dict):
         model.load_state_dict(payload["state"])
         return model
     aabb = torch.tensor(payload["aabb"], dtype=torch.float32)
-    model = build_model(config, aabb, payload["resolution"])
+    space = Space.from_json(payload["space"]) if "space" in payload else None
+    if (space.kind if space is not None else "bounded") != (config.parametrisation or "bounded"):
+        raise ValueError(f"its grid's parametrisation does not match its config's {config.parametrisation!r}")
+    model = build_model(config, aabb, payload["resolution"], space=space)
     field = model.field
-    if "node_values" in payload:
-        shape = payload["grid_shape"]
-        mask, values = payload["node_mask"], payload["node_values"]
+    if "node_values" in payload or "node_values_q" in payload:
+        shape, mask = payload["grid_shape"], payload["node_mask"]
+        if "node_values_q" in payload:
+            values = dequantise_per_channel(payload["node_values_q"], payload["node_offset"], payload["node_scale"])
+        else:
+            values = payload["node_values"].float()
         if tuple(mask.shape) != tuple(shape[1:]) or tuple(values.shape) != (int(mask.sum()), shape[0]):
             raise ValueError(f"node mask {tuple(mask.shape)} and values {tuple(values.shape)} do not fit "
                              f"grid {tuple(shape)}")
         grid = torch.zeros(shape)
         grid[0] = EMPTY_RAW
-        grid[:, mask] = values.float().t()
+        grid[:, mask] = values.t()
     else:
         grid = payload["grid"].float()
     if tuple(grid.shape) != tuple(field.grid.shape[1:]):
@@ -165,7 +199,8 @@ def training_checkpoint(model, optimizer, generator: torch.Generator, config: Tr
     field = getattr(model, "field", None)
     return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": config.to_json(),
             "recipe": recipe, "model": {"kind": config.model, "resolution": getattr(field, "resolution", None),
-                                        "state": state},
+                                        "state": state,
+                                        "space": field.space.to_json() if getattr(field, "space", None) else None},
             "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
             "loop": {name: loop[name] for name in LOOP_STATE}}
 
@@ -214,7 +249,7 @@ def load_training_checkpoint(path, recipe: dict) -> dict:
     return payload
 
 
-def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path):
+def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path, space=None):
     """The model saved in a training checkpoint, every tensor as it was saved. Keys, shapes
     and dtypes are checked against a model built for `config` first, so a damaged file is
     one line, not a traceback."""
@@ -222,7 +257,13 @@ def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path):
     resolution = saved.get("resolution")
     if config.model == "compact" and not (isinstance(resolution, int) and 4 <= resolution <= 1024):
         raise InputError(f"{path} is a damaged nerfgauge checkpoint: grid resolution {resolution!r}")
-    model = build_model(config, aabb, resolution)
+    saved_space = saved.get("space")
+    wanted_space = space.to_json() if space is not None and space.kind != "bounded" else None
+    if saved_space != wanted_space:
+        raise InputError(f"{path} holds a grid of another parametrisation "
+                         f"({(saved_space or {}).get('kind', 'bounded')}, this run: {config.parametrisation}); "
+                         "refusing to resume it")
+    model = build_model(config, aabb, resolution, space=space)
     expected = model.state_dict()
     state = saved["state"]
     missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))

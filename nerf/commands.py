@@ -88,8 +88,15 @@ def _add_train(subparsers) -> None:
                              "time), and always at the end")
     parser.add_argument("--view-dependent", choices=("auto", "on", "off"), default="auto",
                         help="view-dependent colour (auto: from scene.json)")
+    parser.add_argument("--parametrisation", default="auto", metavar="KIND",
+                        help="where the grid lives: bounded (the scene's AABB), contracted (mip-NeRF 360 "
+                             "contraction: unbounded and inside-out scenes) or forward (angles and log-depth: "
+                             "forward-facing captures); auto (default) decides from the cameras and bounds and "
+                             "says why in RUN/config.json")
     parser.add_argument("--resolution", type=positive_int, default=None,
                         help="final grid resolution (auto: pixel footprint)")
+    parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
+                        help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
     parser.add_argument("--no-prune", action="store_true", help="save the full grid, not only occupied cells")
     parser.add_argument("--no-occupancy", action="store_true", help="disable empty-space skipping")
     parser.add_argument("--tv-weight", type=nonnegative_float, default=0.0, help="total-variation weight on density")
@@ -111,8 +118,9 @@ def _run_train(args) -> int:
     view_dependent = {"auto": None, "on": True, "off": False}[args.view_dependent]
     config = TrainConfig(dataset=str(args.dataset), model=args.model, seed=args.seed, steps=args.steps,
                          budget_seconds=budget, view_dependent=view_dependent, final_resolution=args.resolution,
-                         prune=not args.no_prune, occupancy=not args.no_occupancy, tv_weight=args.tv_weight,
+                         prune=not args.no_prune, quantise=args.quantise, occupancy=not args.no_occupancy, tv_weight=args.tv_weight,
                          threads=args.threads, device=args.device, eval_every_seconds=args.eval_every,
+                         parametrisation=None if args.parametrisation == "auto" else args.parametrisation,
                          checkpoint_every=args.checkpoint_every)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "

@@ -16,6 +16,7 @@ from typing import Optional
 import numpy as np
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisation
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
@@ -23,6 +24,7 @@ BACKGROUNDS = ("random", "white", "black")
 # features; 512^3 would be 8x that. Cameras inside the scene's bounding sphere (rooms,
 # forward-facing captures) ask for more than any CPU can hold: they get this cap.
 MAX_AUTO_RESOLUTION = 256
+UNBOUNDED_MAX_RESOLUTION = 192  # contracted / forward grids (every cell of them is in view)
 
 
 @dataclass(frozen=True)
@@ -38,9 +40,12 @@ class TrainConfig:
     background: str = "random"  # training background per ray: random makes alpha learnable
     # compact: None = decide from scene.json (see `resolve`)
     view_dependent: Optional[bool] = None
+    # bounded | contracted | forward (nerf.parametrisation); None = from cameras and bounds
+    parametrisation: Optional[str] = None
     final_resolution: Optional[int] = None  # voxels along the AABB's longest side
     start_resolution: Optional[int] = None
     prune: bool = True
+    quantise: str = "fp16"  # saved model's grid values: fp16, or int8 with a per-channel scale
     occupancy: bool = True  # empty-space skipping
     tv_weight: float = 0.0
     distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
@@ -75,6 +80,8 @@ class TrainConfig:
             raise InputError(f"--steps must be a positive integer, got {self.steps!r}")
         if self.budget_seconds is not None and not (_is_finite(self.budget_seconds) and self.budget_seconds > 0):
             raise InputError(f"--budget-seconds must be a positive finite number, got {self.budget_seconds!r}")
+        if self.quantise not in ("fp16", "int8"):
+            raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
         for name in ("batch_rays", "n_coarse", "n_fine", "width", "depth", "vanilla_batch_rays", "threads",
@@ -98,6 +105,9 @@ class TrainConfig:
             value = getattr(self, name)
             if not (_is_finite(value) and value >= 0):
                 raise InputError(f"{_flag(name)} must be a finite number >= 0, got {value!r}")
+        if self.parametrisation is not None and self.parametrisation not in PARAMETRISATIONS:
+            raise InputError(f"unknown parametrisation {self.parametrisation!r}; choose one of "
+                             f"{', '.join(PARAMETRISATIONS)}")
         if not (self.view_dependent is None or isinstance(self.view_dependent, bool)):
             raise InputError(f"--view-dependent must be true, false or None (auto), got {self.view_dependent!r}")
         for name in ("prune", "occupancy"):
@@ -112,7 +122,7 @@ class TrainConfig:
 
 # CLI flag of a config field, for messages that name what the user typed
 FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
-         "threads": "--threads", "view_dependent": "--view-dependent"}
+         "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation"}
 
 
 def _flag(name: str) -> str:
@@ -150,10 +160,13 @@ def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquis
 
 
 def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_c2w: np.ndarray,
-            focal: float) -> tuple[TrainConfig, dict]:
-    """Fill the automatic choices. Returns the resolved config and {choice: reason}."""
+            focal: float, width: Optional[int] = None) -> tuple[TrainConfig, dict]:
+    """Fill the automatic choices. Returns the resolved config and {choice: reason}.
+    width: the training images' width in pixels (the unbounded grids' resolution follows it)."""
     reasons = {}
     updates = {}
+    kind, reasons["parametrisation"] = choose_parametrisation(config.parametrisation, aabb, train_c2w)
+    updates["parametrisation"] = kind
     if config.view_dependent is None:
         if needs is None:
             updates["view_dependent"] = True
@@ -163,7 +176,14 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
             reasons["view_dependent"] = f"scene.json needs.view_dependent = {needs.get('view_dependent')}"
     else:
         reasons["view_dependent"] = "set on the command line"
-    if config.final_resolution is None:
+    if config.final_resolution is None and kind != "bounded":
+        # the contracted cube's inner ball, or the frustum's angles, get about one cell per
+        # pixel across the image: twice the width along the grid's longest side
+        wanted = 2 * (width or 64)
+        updates["final_resolution"] = int(min(max(wanted, 32), UNBOUNDED_MAX_RESOLUTION))
+        reasons["final_resolution"] = (f"{kind} grid: twice the image width ({width} px)"
+                                       + (f", capped at {UNBOUNDED_MAX_RESOLUTION}" if wanted > UNBOUNDED_MAX_RESOLUTION else ""))
+    elif config.final_resolution is None:
         period = None if needs is None else needs.get("finest_texture_period")
         updates["final_resolution"], why = footprint_resolution(aabb, train_c2w, focal, period)
         reasons["final_resolution"] = why

@@ -52,9 +52,12 @@ def grid_shape(aabb: torch.Tensor, resolution: int) -> tuple[int, int, int]:
 
 class VoxelGridField(nn.Module):
     def __init__(self, aabb: torch.Tensor, resolution: int, final_resolution: int, view_dependent: bool,
-                 feature_channels: int = 12, step_ratio: float = 0.5):
+                 feature_channels: int = 12, step_ratio: float = 0.5, space=None):
+        """aabb [2, 3]: the grid's box in grid coordinates (the world AABB when bounded);
+        space: a `nerf.parametrisation.Space` mapping world points into it (None: bounded)."""
         super().__init__()
         self.register_buffer("aabb", aabb.clone().float())
+        self.space = space if space is not None and space.kind != "bounded" else None
         self.view_dependent = view_dependent
         self.step_ratio = step_ratio
         longest = float((aabb[1] - aabb[0]).max())
@@ -79,23 +82,30 @@ class VoxelGridField(nn.Module):
     def density_from_raw(self, raw: torch.Tensor) -> torch.Tensor:
         return DENSITY_SCALE * F.softplus(raw + self.shift) / self.voxel_final
 
+    def _world_density(self, raw: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """Grid-unit density of raw values [M] at world positions [M, 3] -> world sigma [M]."""
+        sigma = self.density_from_raw(raw)
+        return sigma if self.space is None else sigma / self.space.world_per_unit(positions)
+
     def _normalised(self, positions: torch.Tensor) -> torch.Tensor:
         """World [M, 3] -> grid_sample coordinates [1, 1, 1, M, 3] in [-1, 1]."""
+        if self.space is not None:
+            positions = self.space.to_grid(positions)
         scale = 2.0 / (self.aabb[1] - self.aabb[0])  # [3]
         return torch.addcmul(-1.0 - self.aabb[0] * scale, positions, scale).view(1, 1, 1, -1, 3)
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
-        """sigma at world positions [M, 3]. Returns [M]."""
+        """sigma (per world unit) at world positions [M, 3], differentiable w.r.t. them. Returns [M]."""
         raw = F.grid_sample(self.grid[:, :1], self._normalised(positions), mode="bilinear", align_corners=True,
                             padding_mode="border")
-        return self.density_from_raw(raw.view(-1))
+        return self._world_density(raw.view(-1), positions)
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """positions, directions: [M, 3] (world, unit). Returns sigma [M], rgb [M, 3] in [0, 1]."""
         values = F.grid_sample(self.grid, self._normalised(positions), mode="bilinear",
                                align_corners=True, padding_mode="border")  # [1, C, 1, 1, M]
         values = values.view(self.grid.shape[1], -1).t()  # [M, C]
-        sigma = self.density_from_raw(values[:, 0])
+        sigma = self._world_density(values[:, 0], positions)
         if self.head is None:
             return sigma, torch.sigmoid(values[:, 1:])
         features = torch.cat([values[:, 1:], sh_basis_deg3(directions)], dim=-1)

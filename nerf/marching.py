@@ -117,3 +117,52 @@ def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, o
     ray_index = rays[:, None].expand(-1, voxel_steps)
     keep = t_mid < far.index_select(0, rays)[:, None]
     return MarchedSamples(t_mid[keep], ray_index[keep], step, near, far)
+
+
+def sample_deltas(samples: MarchedSamples) -> torch.Tensor:
+    """Every sample's length [n_samples] (a scalar step broadcast, or the per-sample lengths)."""
+    if isinstance(samples.step, torch.Tensor):
+        return samples.step
+    return torch.full_like(samples.t_mid, samples.step)
+
+
+@torch.no_grad()
+def march_space(origins: torch.Tensor, directions: torch.Tensor, space, box: torch.Tensor,
+                occupancy: torch.Tensor, grid_step: float, jitter: torch.Tensor | None = None) -> MarchedSamples:
+    """Packed samples for a non-bounded parametrisation (`nerf.parametrisation.Space`):
+    the space's interval edges along each ray (about `grid_step` grid units apart), kept
+    where the midpoint's grid cell is occupied. Not differentiable.
+
+    origins, directions (unit): [n_rays, 3]; box [2, 3]: the grid's extent in grid
+    coordinates; occupancy [nz, ny, nx] bool (already grown by one cell); jitter [n_rays]
+    in [0, 1): each sample sits at that fraction of its interval (None: the middle).
+    The result's `step` is a tensor of per-sample lengths (world units)."""
+    edges = space.ray_edges(origins, directions, grid_step)  # [n_rays, m + 1]
+    lengths = edges[:, 1:] - edges[:, :-1]  # [n_rays, m]
+    fraction = 0.5 if jitter is None else jitter[:, None]
+    t = edges[:, :-1] + fraction * lengths
+    rays, cols = (lengths > 0).nonzero(as_tuple=True)  # row-major: sorted by ray, then t
+    t, deltas = t[rays, cols], lengths[rays, cols]
+    grid = space.to_grid(origins.index_select(0, rays) + t[:, None] * directions.index_select(0, rays))
+    nz, ny, nx = occupancy.shape
+    size = torch.tensor([nx, ny, nz], device=origins.device)
+    index = ((grid - box[0]) / ((box[1] - box[0]) / size)).floor().long()  # [n, 3] x y z
+    inside = ((index >= 0) & (index < size)).all(-1)
+    index = torch.minimum(index.clamp_min(0), size - 1)
+    keep = inside & occupancy.reshape(-1)[(index[:, 2] * ny + index[:, 1]) * nx + index[:, 0]]
+    kept = keep.nonzero(as_tuple=True)[0]
+    n_rays = origins.shape[0]
+    valid = lengths > 0
+    near = torch.where(valid.any(1), edges[:, 0], torch.zeros(n_rays, dtype=edges.dtype, device=edges.device))
+    far = edges.max(dim=1).values if edges.shape[1] else near
+    return MarchedSamples(t[kept], rays[kept], deltas[kept], near, far)
+
+
+def cell_of(grid_positions: torch.Tensor, box: torch.Tensor, shape) -> torch.Tensor:
+    """Flat cell index [n] of grid-coordinate positions [n, 3] in a grid of `shape`
+    (nz, ny, nx) cells over `box` [2, 3], clamped to the grid."""
+    nz, ny, nx = shape
+    size = torch.tensor([nx, ny, nz], device=grid_positions.device)
+    index = ((grid_positions - box[0]) / ((box[1] - box[0]) / size)).floor().long()
+    index = torch.minimum(index.clamp_min(0), size - 1)
+    return (index[:, 2] * ny + index[:, 1]) * nx + index[:, 0]

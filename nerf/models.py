@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from nerfgauge.nerf.encoding import PositionalEncoding
 from nerfgauge.nerf.grid_field import VoxelGridField
-from nerfgauge.nerf.marching import march, occupancy_pyramid
+from nerfgauge.nerf.marching import cell_of, march, march_space, occupancy_pyramid, sample_deltas
 from nerfgauge.nerf.packed import (
     packed_distortion,
     packed_render,
@@ -54,6 +54,11 @@ class CompactNeRF(nn.Module):
         # interiors, hidden corners) need not be sampled or stored. All, until measured.
         self.register_buffer("visible", torch.ones_like(self.occupancy))
 
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """World-space density: points [n, 3] (world) -> sigma [n] per world unit, whatever
+        the parametrisation; differentiable w.r.t. points."""
+        return self.field.density(points)
+
     @torch.no_grad()
     def update_occupancy(self) -> float:
         """Recompute which cells can hold density. Returns the occupied fraction."""
@@ -84,18 +89,28 @@ class CompactNeRF(nn.Module):
         cell = (self.field.aabb[1] - self.field.aabb[0]) / torch.tensor([nx, ny, nz], device=origins.device)
         for start in range(0, origins.shape[0], chunk):
             o, d = origins[start:start + chunk], directions[start:start + chunk]
-            samples = march(o, d, self.field.aabb, self.occupancy, self.field.marching_step, levels=self._levels())
+            samples = self._march(o, d)
             positions = o[samples.ray_index] + samples.t_mid[:, None] * d[samples.ray_index]
             sigma = self.field.density(positions)
-            transmittance, _ = packed_transmittance(sigma, torch.full_like(sigma, samples.step), samples.ray_index, o.shape[0])
-            index = ((positions - self.field.aabb[0]) / cell).floor().long()
-            index = torch.minimum(index.clamp_min(0), torch.tensor([nx - 1, ny - 1, nz - 1], device=index.device))
-            flat = (index[:, 2] * ny + index[:, 1]) * nx + index[:, 0]
+            transmittance, _ = packed_transmittance(sigma, sample_deltas(samples), samples.ray_index, o.shape[0])
+            if self.field.space is not None:
+                flat = cell_of(self.field.space.to_grid(positions), self.field.aabb, shape)
+            else:
+                index = ((positions - self.field.aabb[0]) / cell).floor().long()
+                index = torch.minimum(index.clamp_min(0), torch.tensor([nx - 1, ny - 1, nz - 1], device=index.device))
+                flat = (index[:, 2] * ny + index[:, 1]) * nx + index[:, 0]
             best.scatter_reduce_(0, flat, transmittance, reduce="amax")
         seen = best.view(shape) > threshold
         self.visible = F.max_pool3d(seen[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
         self.update_occupancy()
         return float(self.visible.float().mean())
+
+    def _march(self, origins, directions, jitter=None):
+        if self.field.space is not None:
+            return march_space(origins, directions, self.field.space, self.field.aabb, self.occupancy,
+                               self.field.marching_step, jitter=jitter)
+        return march(origins, directions, self.field.aabb, self.occupancy, self.field.marching_step,
+                     jitter=jitter, levels=self._levels())
 
     def _levels(self):
         if self._pyramid is None or self._pyramid_of is not self.occupancy:
@@ -108,8 +123,7 @@ class CompactNeRF(nn.Module):
         jitter = None
         if training:
             jitter = torch.rand(origins.shape[0], generator=generator).to(origins.device)
-        samples = march(origins, directions, self.field.aabb, self.occupancy, self.field.marching_step,
-                        jitter=jitter, levels=self._levels())
+        samples = self._march(origins, directions, jitter)
         rays = samples.ray_index  # [n_samples]
 
         def field_at(index):  # the field at the samples `index` [m] (a subset or all)
@@ -123,7 +137,7 @@ class CompactNeRF(nn.Module):
                 field_at, samples.t_mid, rays, samples.step, samples.near, samples.far, window=EARLY_STOP_WINDOW)
             return RayOutput(colour, opacity, depth, evaluated)
         sigma, rgb = field_at(None)
-        deltas = torch.full_like(samples.t_mid, samples.step)
+        deltas = sample_deltas(samples)
         colour, opacity, depth, weights = packed_render(sigma, rgb, deltas, samples.t_mid, rays, samples.near,
                                                         samples.far)
         distortion = None

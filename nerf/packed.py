@@ -99,7 +99,7 @@ def _depth(weighted_t, opacity, near, far):
 
 
 @torch.no_grad()
-def packed_render_early_stop(field_fn, t_mid, ray_index, step: float, near, far, window: int = 8,
+def packed_render_early_stop(field_fn, t_mid, ray_index, step, near, far, window: int = 8,
                              min_transmittance: float = 1e-3):
     """`packed_render` for inference with early ray termination. Not differentiable.
 
@@ -109,7 +109,8 @@ def packed_render_early_stop(field_fn, t_mid, ray_index, step: float, near, far,
     out is at most min_transmittance per ray.
 
     field_fn(sample_index [m]) -> (sigma [m], rgb [m, 3]) evaluates the chosen samples.
-    t_mid, ray_index: [n_samples] sorted by ray then t; near, far: [n_rays].
+    t_mid, ray_index: [n_samples] sorted by ray then t; step: a float or per-sample
+    lengths [n_samples]; near, far: [n_rays].
     Returns rgb [n_rays, 3], opacity [n_rays], depth [n_rays], samples evaluated (int).
     """
     n_rays = near.shape[0]
@@ -126,7 +127,8 @@ def packed_render_early_stop(field_fn, t_mid, ray_index, step: float, near, far,
         chosen, remaining = remaining[in_window], remaining[~in_window]
         rays = ray_index[chosen]
         sigma, colour = field_fn(chosen)
-        local = packed_weights(sigma, torch.full_like(sigma, step), rays, n_rays)  # as if T = 1 at the window
+        deltas = step.index_select(0, chosen) if isinstance(step, torch.Tensor) else torch.full_like(sigma, step)
+        local = packed_weights(sigma, deltas, rays, n_rays)  # as if T = 1 at the window
         weights = transmittance[rays] * local
         rgb += packed_sum(weights[:, None] * colour, rays, n_rays)
         weighted_t += packed_sum(weights * t_mid[chosen], rays, n_rays)

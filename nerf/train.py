@@ -26,6 +26,7 @@ import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.config import TrainConfig, resolve
 from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
+from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite
 from tqdm import tqdm
 
@@ -48,9 +49,9 @@ CHECKPOINT_EVERY_WALL_SECONDS = 60.0
 CHECKPOINT, MODEL, CONFIG, LOG = "checkpoint.pt", "model.pt", "config.json", "log.jsonl"
 # Config fields that do not shape the trajectory, so not part of the run's recipe: the
 # dataset's path (its manifest hash stands for it), the stopping rule (resume trains
-# further), logging, checkpointing, threads and device.
+# further), logging, checkpointing, threads, device and how model.pt is stored.
 NOT_RECIPE = ("dataset", "steps", "budget_seconds", "eval_every_seconds", "eval_views", "eval_rays",
-              "checkpoint_every", "threads", "device")
+              "checkpoint_every", "threads", "device", "quantise")
 
 
 def pick_device(name: str) -> torch.device:
@@ -122,7 +123,7 @@ def run_recipe(config: TrainConfig, dataset_sha256: str) -> dict:
 
 def prepare_run(config: TrainConfig):
     """Validate input, load data, resolve the config. Nothing is written here.
-    Returns (config, reasons, aabb, train_rays, val_rays, device, recipe)."""
+    Returns (config, reasons, (aabb, space), train_rays, val_rays, device, recipe)."""
     config.validate()
     device = pick_device(config.device)
     root = require_complete(config.dataset)
@@ -132,12 +133,17 @@ def prepare_run(config: TrainConfig):
     needs, aabb = scene_info(root)
     if aabb is None:
         aabb = aabb_from_cameras(train_cams.c2w)
-    config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx)
+    check_targets(aabb, train_cams.c2w)
+    config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
+                              train_cams.intrinsics.width)
     recipe = run_recipe(config, sha256_file(root / MANIFEST))
     _, train_rays = load_split_rays(root, "train")
+    stride = max(1, train_rays.origins.shape[0] // 65536)
+    space = make_space(config.parametrisation, aabb, train_cams.c2w, train_rays.origins[::stride],
+                       train_rays.directions[::stride])
     val_split = "val" if read_split(root, "val").stems else "test"
     _, val_rays = load_split_rays(root, val_split, limit=config.eval_views)
-    return config, reasons, torch.tensor(aabb, dtype=torch.float32), train_rays, val_rays, device, recipe
+    return config, reasons, (torch.tensor(aabb, dtype=torch.float32), space), train_rays, val_rays, device, recipe
 
 
 def _check_resumable(run_dir: Path, recipe: dict) -> None:
@@ -211,6 +217,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
               saved: dict | None, progress: bool) -> dict:
     """The loop, in a claimed run folder; from `saved` (a checked checkpoint) when given."""
     torch.set_num_threads(config.threads)
+    aabb, space = aabb
     generator = torch.Generator(device="cpu").manual_seed(config.seed)
     # Loop state (all in checkpoint.pt): steps and training seconds done, the training
     # second of the next val PSNR point, visibility measurements and upsamplings done,
@@ -219,7 +226,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
              "logged_step": -1}
     if saved is not None:
         path = run_dir / CHECKPOINT
-        model = checkpoint.restore_model(saved, config, aabb, path).to(device)
+        model = checkpoint.restore_model(saved, config, aabb, path, space=space).to(device)
         optimizer = make_optimizer(model, config)
         checkpoint.restore_optimizer(optimizer, saved["optimizer"], path)
         checkpoint.restore_generator(generator, saved["generator"], path)
@@ -228,11 +235,12 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     else:
         torch_init = torch.Generator().manual_seed(config.seed + 1)
         init_seed = int(torch.randint(2**31, (1,), generator=torch_init))
-        model = checkpoint.build_model(config, aabb, init_seed=init_seed).to(device)
+        model = checkpoint.build_model(config, aabb, init_seed=init_seed, space=space).to(device)
         optimizer = make_optimizer(model, config)
         write_bytes_atomic(run_dir / LOG, b"")
     # config.json states this attempt's settings (the stopping rule may have changed)
-    write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "recipe": recipe})
+    write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
+                                  "recipe": recipe})
     log = (run_dir / LOG).open("a")
     n_rays = config.batch_rays if config.model == "compact" else config.vanilla_batch_rays
     total = config.steps if config.steps is not None else config.budget_seconds

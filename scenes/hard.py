@@ -162,6 +162,32 @@ def inside(seed: int):
     return build_scene("inside", seed, shapes, [SOFT_SKY], cameras=cameras)
 
 
+def far_reaching(seed: int):
+    """Objects about 1 across at the centre, seen by orbit cameras 3.2 away, in a textured
+    world that reaches 50-100 times further: a checker ground 200 wide (to the horizon
+    at this elevation) and striped and checked hills 55-95 away all around. Every camera
+    stands inside the AABB and every ray that is not skyward ends on far content: a grid
+    over the AABB has metre-sized cells at the objects; a contracted grid does not."""
+    shapes = [
+        Box("ground", (0.0, 0.0, -0.05), (200.0, 200.0, 0.1), Textured("checker", (0.75, 0.7, 0.6),
+                                                                        (0.35, 0.4, 0.3), period=1.0)),
+        Sphere("ball", (-0.45, 0.25, 0.35), 0.35, Diffuse((0.85, 0.25, 0.1))),
+        Box("crate", (0.4, -0.3, 0.3), (0.5, 0.5, 0.6), Textured("stripes", (0.9, 0.9, 0.3), (0.2, 0.3, 0.7),
+                                                                  period=0.15), rotation=(0, 0, 20)),
+        Cylinder("post", (0.35, 0.55, 0.4), 0.15, 0.8, Diffuse((0.2, 0.7, 0.3))),
+    ]
+    hill_materials = [Textured("stripes", (0.3, 0.55, 0.25), (0.55, 0.45, 0.3), period=6.0),
+                      Textured("checker", (0.6, 0.6, 0.65), (0.3, 0.3, 0.4), period=8.0)]
+    for index in range(8):
+        angle = 2 * math.pi * (index + 0.3) / 8
+        distance = 55.0 + 40.0 * ((index * 5) % 8) / 7
+        shapes.append(Sphere(f"hill_{index}", (distance * math.cos(angle), distance * math.sin(angle), -6.0),
+                             14.0 + 2.0 * (index % 3), hill_materials[index % 2]))
+    cameras = CameraHint("orbit", radius=3.2, elevation=(12.0, 12.0))
+    return build_scene("far-reaching", seed, shapes, [SOFT_SKY], aabb=((-100.0, -100.0, -1.0), (100.0, 100.0, 30.0)),
+                       cameras=cameras)
+
+
 # name -> (recipe, one-line description), listed by `nerfgauge scenes`
 HARD_RECIPES = {
     "thin": (thin, "hard: wires and plates thinner than a pixel at some views"),
@@ -172,5 +198,6 @@ HARD_RECIPES = {
     "glass": (glass, "hard: smooth glass sphere and block (depth ambiguous)"),
     "empty": (empty, "hard: nothing but background (no hit pixels)"),
     "tiny": (tiny, "hard: one sphere a few pixels across"),
+    "far-reaching": (far_reaching, "hard: orbit cameras around objects in a textured world 50-100x their size"),
     "inside": (inside, "hard: cameras inside the AABB looking out at a ring of objects"),
 }

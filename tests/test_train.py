@@ -174,3 +174,34 @@ def test_view_dependent_colour_when_asked(small_dataset, tmp_path):
     assert payload["config"]["view_dependent"] is True and payload["head"]  # a colour MLP was trained
     assert json.loads((run / "config.json").read_text())["auto_reasons"]["view_dependent"] == "set on the command line"
     assert main(["render", str(run), "--out", str(tmp_path / "r"), "--quiet"]) == 0
+
+
+def test_contracted_run_trains_saves_and_renders_world_depth(small_dataset, tmp_path):
+    """A run in the contracted parametrisation: config.json names it with its reason and
+    numbers, model.pt loads with weights_only and renders finite world-unit depth, and its
+    density query works on world points."""
+    from nerfgauge.nerf.checkpoint import load_model
+    from nerfgauge.nerf.render_views import render_split
+
+    run = tmp_path / "contracted"
+    assert main(["train", str(small_dataset), "--out", str(run), "--steps", "12", "--parametrisation", "contracted",
+                 "--resolution", "24", "--quiet"]) == 0
+    config = json.loads((run / "config.json").read_text())
+    assert config["parametrisation"] == "contracted" and config["space"]["kind"] == "contracted"
+    assert config["auto_reasons"]["parametrisation"] == "set on the command line"
+    assert config["recipe"]["parametrisation"] == "contracted"
+    torch.load(run / "model.pt", weights_only=True)
+    model, _ = load_model(run / "model.pt")
+    sigma = model.density(torch.tensor([[0.0, 0.0, 0.2], [100.0, -50.0, 3.0]]))
+    assert sigma.shape == (2,) and torch.isfinite(sigma).all()
+    timing = render_split(run, "test", tmp_path / "renders", progress=False)
+    assert timing["frames"] == 3
+
+
+def test_resume_refuses_another_parametrisation(small_dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["train", str(small_dataset), "--out", str(run), "--steps", "4", "--quiet"]) == 0
+    one_line_exit_2(capsys, ["train", str(small_dataset), "--out", str(run), "--steps", "8", "--resume",
+                             "--parametrisation", "contracted"], "parametrisation")
+    one_line_exit_2(capsys, ["train", str(small_dataset), "--out", str(tmp_path / "r6"), "--steps", "4",
+                             "--parametrisation", "ndcx"], "unknown parametrisation 'ndcx'")

@@ -1,0 +1,255 @@
+"""Scene parametrisations: where the compact field's grid lives, and how rays are sampled.
+
+- bounded: the grid spans the scene's AABB in world units (the original compact NeRF).
+- contracted: mip-NeRF 360's contraction about a centre, after scaling so the inner
+  region (radius R) is the unit ball: y = (x - centre) / R,
+      c(y) = y if |y| <= 1 else (2 - 1/|y|) y / |y|,
+  so all of space maps into the ball of radius 2 and the grid spans [-2, 2]^3. Rays are
+  sampled uniformly in t inside the inner ball and uniformly in disparity beyond it.
+- forward: a forward-facing capture's frustum in a reference camera frame (camera
+  centroid, mean viewing direction f, right r, up u):
+      p = (x - origin) @ [r, u, f] = (a, b, z),   g(p) = (a / z, b / z, k log z),
+  angles across, log-depth along: a grid cell is a constant fraction of its depth, so
+  relative depth error is the same at 0.2 and at 50 (NDC's inverse-depth spacing makes
+  far cells z^2-coarse). Rays are sampled uniformly in k log z.
+
+Density is stored per grid unit: the field divides by `world_per_unit(x)`, the world
+length of one grid unit along the marching direction at x, so a grid value means the same
+opacity per marching step everywhere, and sigma stays a world-space density (per world
+unit, independent of direction). Depth is always a world distance along the ray.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from nerfgauge.core.errors import InputError
+
+PARAMETRISATIONS = ("bounded", "contracted", "forward")
+LOG_DEPTH_SCALE = 0.25  # k: a log-depth grid unit spans 1/k times the angle unit -> depth cells ~2x across cells
+CONTRACTED_EXTENT = 2.0
+
+
+# --------------------------------------------------------------------------------------
+# pure maps
+
+
+def contract(y: torch.Tensor) -> torch.Tensor:
+    """mip-NeRF 360 contraction. y [..., 3] (inner region = unit ball) -> [..., 3], |c| < 2.
+    Finite for every finite y; |y| -> inf maps to |c| -> 2."""
+    scale = y.abs().amax(dim=-1, keepdim=True).clamp_min(1e-30)  # no overflow of |y|^2 for huge y
+    unit = y / scale
+    r = scale * unit.norm(dim=-1, keepdim=True)
+    return torch.where(r <= 1, y, (2 - 1 / r) * unit / unit.norm(dim=-1, keepdim=True))
+
+
+def uncontract(c: torch.Tensor) -> torch.Tensor:
+    """Inverse of `contract` for |c| < 2. c [..., 3] -> y [..., 3] (|c| -> 2 gives |y| -> inf)."""
+    s = c.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return torch.where(s <= 1, c, c / (s * (2 - s)))
+
+
+def contract_jacobian(y: torch.Tensor) -> torch.Tensor:
+    """d contract / d y. y [n, 3] -> [n, 3, 3]. Outside the unit ball, with r = |y|,
+    J = (2/r - 1/r^2) I + (2/r^3 - 2/r^2) y y^T / r."""
+    r = y.norm(dim=-1).clamp_min(1e-12)[:, None, None]
+    eye = torch.eye(3, dtype=y.dtype, device=y.device).expand(y.shape[0], 3, 3)
+    outer = y[:, :, None] * y[:, None, :]
+    outside = (2 / r - 1 / r ** 2) * eye + (2 / r ** 3 - 2 / r ** 2) * outer / r
+    return torch.where(r <= 1, eye, outside)
+
+
+def log_perspective(p: torch.Tensor, k: float = LOG_DEPTH_SCALE) -> torch.Tensor:
+    """Camera-frame points p [..., 3] = (a, b, z), z > 0 -> (a/z, b/z, k log z) [..., 3]."""
+    a, b, z = p.unbind(-1)
+    return torch.stack([a / z, b / z, k * torch.log(z)], dim=-1)
+
+
+def log_perspective_inverse(g: torch.Tensor, k: float = LOG_DEPTH_SCALE) -> torch.Tensor:
+    """Inverse of `log_perspective`: g [..., 3] -> p [..., 3] with z = exp(g_z / k) > 0."""
+    u, v, w = g.unbind(-1)
+    z = torch.exp(w / k)
+    return torch.stack([u * z, v * z, z], dim=-1)
+
+
+def log_perspective_jacobian(p: torch.Tensor, k: float = LOG_DEPTH_SCALE) -> torch.Tensor:
+    """d log_perspective / d p. p [n, 3] -> [n, 3, 3]."""
+    a, b, z = p.unbind(-1)
+    zero = torch.zeros_like(z)
+    return torch.stack([torch.stack([1 / z, zero, -a / z ** 2], -1),
+                        torch.stack([zero, 1 / z, -b / z ** 2], -1),
+                        torch.stack([zero, zero, k / z], -1)], dim=-2)
+
+
+# --------------------------------------------------------------------------------------
+# spaces
+
+
+@dataclass
+class Space:
+    """A parametrisation with its numbers. kind: one of PARAMETRISATIONS; box [2, 3]: the
+    grid's extent in grid coordinates; centre [3], radius (contracted); origin [3], frame
+    [3, 3] (rows r, u, f) (forward)."""
+
+    kind: str
+    box: list
+    centre: list | None = None
+    radius: float | None = None
+    origin: list | None = None
+    frame: list | None = None
+
+    def to_json(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if v is not None}
+
+    @staticmethod
+    def from_json(data: dict) -> "Space":
+        if not isinstance(data, dict) or data.get("kind") not in PARAMETRISATIONS:
+            raise ValueError(f"unknown space {data!r}")
+        return Space(**data)
+
+    def _tensors(self, like: torch.Tensor):
+        t = lambda v: torch.tensor(v, dtype=like.dtype, device=like.device)  # noqa: E731
+        if self.kind == "contracted":
+            return t(self.centre), float(self.radius)
+        if self.kind == "forward":
+            return t(self.origin), t(self.frame)
+        return None, None
+
+    def to_grid(self, x: torch.Tensor) -> torch.Tensor:
+        """World points [n, 3] -> grid coordinates [n, 3] (differentiable)."""
+        if self.kind == "bounded":
+            return x
+        a, b = self._tensors(x)
+        if self.kind == "contracted":
+            return contract((x - a) / b)
+        return log_perspective(self._camera(x, a, b))
+
+    @staticmethod
+    def _camera(x, origin, frame):
+        p = (x - origin) @ frame.t()
+        return torch.cat([p[:, :2], p[:, 2:].clamp_min(1e-6)], dim=1)
+
+    def world_per_unit(self, x: torch.Tensor) -> torch.Tensor:
+        """World length of one grid unit along the marching direction at x [n, 3]. Returns [n]
+        (1 for bounded). Differentiable."""
+        if self.kind == "bounded":
+            return torch.ones_like(x[:, 0])
+        a, b = self._tensors(x)
+        if self.kind == "contracted":
+            r2 = (((x - a) / b) ** 2).sum(-1)
+            return b * r2.clamp_min(1.0)
+        return self._camera(x, a, b)[:, 2] / LOG_DEPTH_SCALE
+
+    @torch.no_grad()
+    def ray_edges(self, origins: torch.Tensor, directions: torch.Tensor, grid_step: float) -> torch.Tensor:
+        """Sample interval edges t [n_rays, m + 1] (non-decreasing; zero-length intervals are
+        padding) so one interval is about `grid_step` grid units long. Not differentiable."""
+        if self.kind == "contracted":
+            centre, radius = self._tensors(origins)
+            o = (origins - centre) / radius  # unit-ball frame; t in units of radius
+            b = (o * directions).sum(-1)
+            disc = b * b - ((o * o).sum(-1) - 1)
+            t_exit = torch.where(disc > 0, -b + disc.clamp_min(0).sqrt(), (-b).clamp_min(0)).clamp_min(0)
+            inner = max(1, math.ceil(float(t_exit.max()) / grid_step)) if len(o) else 1
+            k = torch.arange(inner + 1, dtype=o.dtype, device=o.device) * grid_step
+            inner_edges = torch.minimum(k[None, :], t_exit[:, None])
+            # disparity-uniform beyond: u = 1 / (1 + t - t_exit) from 1 to grid_step
+            n_outer = max(1, math.ceil((1 - grid_step) / grid_step))
+            u = 1 - torch.arange(1, n_outer + 1, dtype=o.dtype, device=o.device) * grid_step
+            u = u.clamp_min(grid_step)
+            outer_edges = t_exit[:, None] + (1 / u[None, :] - 1)
+            return torch.cat([inner_edges, outer_edges], dim=1) * radius
+        origin, frame = self._tensors(origins)
+        oz = (origins - origin) @ frame[2]
+        dz = directions @ frame[2]
+        w0, w1 = self.box[0][2], self.box[1][2]
+        n = max(1, math.ceil((w1 - w0) / grid_step))
+        z = torch.exp(torch.linspace(w0, w1, n + 1, dtype=origins.dtype, device=origins.device) / LOG_DEPTH_SCALE)
+        facing = dz > 1e-6
+        t = (z[None, :] - oz[:, None]) / torch.where(facing, dz, torch.ones_like(dz))[:, None]
+        t = torch.where(facing[:, None], t.clamp_min(0), torch.zeros_like(t))
+        return t
+
+
+def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndarray) -> tuple[str, str]:
+    """(kind, reason) from the cameras and bounds, unless `requested` names one.
+    cameras inside the AABB -> contracted; all cameras on one side of the AABB looking
+    within 30 degrees of one direction -> forward; else bounded."""
+    if requested is not None:
+        if requested not in PARAMETRISATIONS:
+            raise InputError(f"unknown parametrisation {requested!r}; choose one of {', '.join(PARAMETRISATIONS)}")
+        return requested, "set on the command line"
+    positions, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
+    inside = ((positions >= aabb[0]) & (positions <= aabb[1])).all(axis=1)
+    if inside.any():
+        return "contracted", f"{int(inside.sum())} of {len(inside)} cameras stand inside the AABB"
+    mean = forward.mean(axis=0)
+    mean = mean / max(np.linalg.norm(mean), 1e-12)
+    spread = float(np.degrees(np.arccos(np.clip(forward @ mean, -1, 1))).max())
+    corners = np.array([[aabb[i][0], aabb[j][1], aabb[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    ahead = float(((corners[None] - positions[:, None]) @ mean).min())
+    if spread <= 30 and ahead > 0:
+        return "forward", (f"forward-facing: viewing directions within {spread:.1f} degrees of their mean and the "
+                           f"whole AABB ahead of every camera (nearest corner {ahead:.3g} ahead)")
+    return "bounded", "cameras outside the AABB looking at it from several sides"
+
+
+def check_targets(aabb: np.ndarray, c2w: np.ndarray) -> None:
+    """One-line InputError when no camera's optical axis passes through the bounds."""
+    origins, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (aabb[0] - origins) / forward
+        t1 = (aabb[1] - origins) / forward
+    t0 = np.nan_to_num(t0, nan=-np.inf)
+    t1 = np.nan_to_num(t1, nan=np.inf)
+    near = np.maximum(np.minimum(t0, t1).max(axis=1), 0)
+    far = np.maximum(t0, t1).min(axis=1)
+    if not (far >= near).any():
+        raise InputError(f"the scene bounds {aabb.tolist()} contain no camera target: no training camera "
+                         "looks into them (check scene.json bounds against the cameras)")
+
+
+def make_space(kind: str, aabb: np.ndarray, c2w: np.ndarray, origins: torch.Tensor | None = None,
+               directions: torch.Tensor | None = None) -> Space:
+    """The numbers of a parametrisation for this dataset. aabb [2, 3]; c2w [n, 4, 4];
+    origins, directions [m, 3]: (a subset of) the training rays (forward: the frustum's extent)."""
+    if kind == "bounded":
+        return Space("bounded", np.asarray(aabb, dtype=float).tolist())
+    positions = c2w[:, :3, 3]
+    box = [[-CONTRACTED_EXTENT] * 3, [CONTRACTED_EXTENT] * 3]
+    if kind == "contracted":
+        centre = (aabb[0] + aabb[1]) / 2
+        # the inner ball holds the cameras and the AABB's inscribed region
+        half = float((aabb[1] - aabb[0]).min()) / 2
+        cams = float(np.linalg.norm(positions - centre, axis=1).max())
+        radius = max(half, 1.1 * cams, 1e-3)
+        return Space("contracted", box, centre=centre.tolist(), radius=radius)
+    origin = positions.mean(axis=0)
+    f = (-c2w[:, :3, 2]).mean(axis=0)
+    f = f / np.linalg.norm(f)
+    up = c2w[:, :3, 1].mean(axis=0)
+    r = np.cross(f, up)
+    r = r / np.linalg.norm(r)
+    u = np.cross(r, f)
+    frame = np.stack([r, u, f])
+    corners = np.array([[aabb[i][0], aabb[j][1], aabb[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    depths = (corners - origin) @ f
+    spread = float(np.linalg.norm(positions - origin, axis=1).max())
+    z_near = max(float(depths.min()), 2 * spread, 1e-3)
+    z_far = float(depths.max())
+    if origins is None:
+        extent = 1.0
+    else:
+        o = (origins.double().numpy() - origin) @ frame.T
+        d = directions.double().numpy() @ frame.T
+        extent = 0.0
+        for z in (z_near, z_far):
+            t = (z - o[:, 2]) / np.maximum(d[:, 2], 1e-6)
+            extent = max(extent, float(np.abs((o[:, :2] + t[:, None] * d[:, :2]) / z).max()))
+        extent *= 1.02
+    box = [[-extent, -extent, LOG_DEPTH_SCALE * math.log(z_near)], [extent, extent, LOG_DEPTH_SCALE * math.log(z_far)]]
+    return Space("forward", box, origin=origin.tolist(), frame=frame.tolist())

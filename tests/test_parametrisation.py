@@ -1,0 +1,239 @@
+"""Scene parametrisations (nerf/parametrisation.py): the maps, their choice, and the grid
+field and marching built on them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from nerfgauge.core.errors import InputError
+from nerfgauge.nerf.config import TrainConfig
+from nerfgauge.nerf.parametrisation import (
+    LOG_DEPTH_SCALE,
+    Space,
+    check_targets,
+    choose_parametrisation,
+    contract,
+    contract_jacobian,
+    log_perspective,
+    log_perspective_inverse,
+    log_perspective_jacobian,
+    make_space,
+    uncontract,
+)
+
+coordinate = st.floats(-50.0, 50.0, allow_nan=False)
+point = st.tuples(coordinate, coordinate, coordinate)
+
+
+@settings(max_examples=60, deadline=None)
+@given(point)
+def test_contraction_round_trips(p):
+    y = torch.tensor([p], dtype=torch.float64)
+    assert torch.allclose(uncontract(contract(y)), y, rtol=1e-9, atol=1e-9)
+    assert float(contract(y).norm()) < 2.0
+
+
+@settings(max_examples=40, deadline=None)
+@given(point, point)
+def test_contraction_is_monotone_along_rays(origin, direction):
+    d = torch.tensor(direction, dtype=torch.float64)
+    if float(d.norm()) < 1e-3:
+        return
+    d = d / d.norm()
+    o = torch.tensor(origin, dtype=torch.float64)
+    t = torch.linspace(0, 1e4, 2001, dtype=torch.float64)
+    c = contract(o + t[:, None] * d)
+    # distance travelled in the contracted space never goes backwards: consecutive points
+    # are distinct and the contracted curve has no reversal (dot of successive steps >= 0)
+    steps = c[1:] - c[:-1]
+    assert bool(((steps[1:] * steps[:-1]).sum(-1) >= -1e-12).all())
+
+
+def test_contraction_is_finite_at_infinity():
+    big = torch.tensor([[1e30, -1e30, 3e29], [float("1e300"), 0, 0]], dtype=torch.float64)
+    c = contract(big)
+    assert torch.isfinite(c).all() and bool((c.norm(dim=-1) <= 2).all())
+    assert torch.allclose(c.norm(dim=-1), torch.full((2,), 2.0, dtype=torch.float64))
+
+
+@settings(max_examples=40, deadline=None)
+@given(point)
+def test_contraction_jacobian_matches_finite_differences(p):
+    y = torch.tensor([p], dtype=torch.float64)
+    if abs(float(y.norm()) - 1) < 1e-3:  # the kink of the piecewise map
+        return
+    eps = 1e-6 * max(1.0, float(y.norm()))
+    numeric = torch.stack([(contract(y + eps * e) - contract(y - eps * e))[0] / (2 * eps)
+                           for e in torch.eye(3, dtype=torch.float64)], dim=1)
+    assert torch.allclose(contract_jacobian(y)[0], numeric, atol=1e-6)
+
+
+depth = st.floats(0.01, 500.0)
+across = st.floats(-5.0, 5.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(across, across, depth)
+def test_log_perspective_round_trips_and_jacobian(a, b, z):
+    p = torch.tensor([[a * z, b * z, z]], dtype=torch.float64)
+    g = log_perspective(p)
+    assert torch.isfinite(g).all()
+    assert torch.allclose(log_perspective_inverse(g), p, rtol=1e-9, atol=1e-12)
+    eps = 1e-6 * z
+    numeric = torch.stack([(log_perspective(p + eps * e) - log_perspective(p - eps * e))[0] / (2 * eps)
+                           for e in torch.eye(3, dtype=torch.float64)], dim=1)
+    assert torch.allclose(log_perspective_jacobian(p)[0], numeric, rtol=1e-5, atol=1e-6 / z)
+
+
+def test_log_perspective_is_monotone_along_forward_rays_and_finite_near():
+    # a ray leaving the camera forward: its log depth only grows, and the near plane is finite
+    d = torch.tensor([0.3, -0.2, 1.0], dtype=torch.float64)
+    t = torch.linspace(1e-4, 1e4, 5000, dtype=torch.float64)
+    g = log_perspective(t[:, None] * d)
+    assert torch.isfinite(g).all()
+    assert bool((g[1:, 2] > g[:-1, 2]).all())
+    assert torch.allclose(g[:, 0], torch.full_like(g[:, 0], 0.3))  # a ray through the centre keeps its angle
+
+
+def _camera(eye, target):
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    f = target - eye
+    f /= np.linalg.norm(f)
+    up = np.array([0.0, 0.0, 1.0]) if abs(f[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, u, -f, eye
+    return c2w
+
+
+def test_choice_follows_cameras_and_bounds():
+    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    orbit = np.stack([_camera((3 * math.cos(a), 3 * math.sin(a), 1.0), (0, 0, 0)) for a in np.linspace(0, 6, 8)])
+    assert choose_parametrisation(None, aabb, orbit)[0] == "bounded"
+    inside = np.stack([_camera((0.1 * math.cos(a), 0.1 * math.sin(a), 0.0), (math.cos(a), math.sin(a), 0))
+                       for a in np.linspace(0, 6, 8)])
+    assert choose_parametrisation(None, aabb, inside)[0] == "contracted"
+    forward = np.stack([_camera((x, -3.0, 0.0), (x, 0.0, 0.0)) for x in (-0.05, 0.0, 0.05)])
+    kind, reason = choose_parametrisation(None, aabb, forward)
+    assert kind == "forward" and "forward-facing" in reason
+    assert choose_parametrisation("contracted", aabb, forward) == ("contracted", "set on the command line")
+
+
+def test_bad_inputs_are_one_line():
+    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    with pytest.raises(InputError, match="unknown parametrisation 'ndcx'"):
+        choose_parametrisation("ndcx", aabb, np.stack([_camera((3, 0, 0), (0, 0, 0))]))
+    with pytest.raises(InputError, match="unknown parametrisation"):
+        TrainConfig(dataset="d", steps=1, parametrisation="sphere").validate()
+    away = np.stack([_camera((3, 0, 0), (6, 0, 0)), _camera((0, 3, 0), (0, 6, 0))])
+    with pytest.raises(InputError, match="contain no camera target") as error:
+        check_targets(aabb, away)
+    assert "\n" not in str(error.value)
+    check_targets(aabb, np.stack([_camera((3, 0, 0), (0, 0, 0))]))  # looks at it: accepted
+
+
+def _forward_space():
+    aabb = np.array([[-3.0, 0.15, -3.0], [3.0, 60.0, 3.0]])
+    c2w = np.stack([_camera((x, 0.0, 0.0), (x, 1.0, 0.0)) for x in (-0.01, 0.0, 0.01)])
+    return make_space("forward", aabb, c2w)
+
+
+def test_forward_depth_is_world_distance_along_the_ray():
+    """An analytic forward-facing case: an opaque wall at y = Y in front of the cameras,
+    density written into the grid through the map; the rendered depth is the world
+    distance to the wall along each ray."""
+    from nerfgauge.nerf.grid_field import VoxelGridField
+    from nerfgauge.nerf.models import CompactNeRF
+
+    space = _forward_space()
+    box = torch.tensor(space.box, dtype=torch.float32)
+    field = VoxelGridField(box, 96, 96, view_dependent=False, space=space)
+    model = CompactNeRF(field)
+    wall = 12.0
+    nz, ny, nx = field.grid.shape[2:]
+    g = torch.stack(torch.meshgrid(*[torch.linspace(float(box[0, i]), float(box[1, i]), n)
+                                     for i, n in zip((2, 1, 0), (nz, ny, nx))], indexing="ij"), -1).flip(-1)
+    z = torch.exp(g[..., 2] / LOG_DEPTH_SCALE)  # camera depth of every node = world y here
+    with torch.no_grad():
+        field.grid[0, 0] = torch.where(z >= wall, torch.tensor(8.0), torch.tensor(-30.0))
+    directions = torch.tensor([[0.0, 1.0, 0.0], [0.2, 1.0, 0.1], [-0.3, 1.0, -0.25]])
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    origins = torch.zeros_like(directions)
+    with torch.no_grad():
+        out = model.render(origins, directions)
+    truth = wall / directions[:, 1]
+    assert torch.allclose(out.opacity, torch.ones(3), atol=1e-3)
+    # within one log-depth cell (relative size (box depth extent / cells) / k) of the truth
+    cell = float(box[1, 2] - box[0, 2]) / (nz - 1) / LOG_DEPTH_SCALE
+    assert torch.allclose(out.depth, truth, rtol=cell)
+
+
+def test_world_density_query_is_differentiable_in_every_space():
+    from nerfgauge.nerf.grid_field import VoxelGridField
+    from nerfgauge.nerf.models import CompactNeRF
+
+    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    orbit = np.stack([_camera((3 * math.cos(a), 3 * math.sin(a), 1.0), (0, 0, 0)) for a in np.linspace(0, 6, 8)])
+    for space in (make_space("contracted", aabb, orbit), _forward_space()):
+        field = VoxelGridField(torch.tensor(space.box, dtype=torch.float32), 16, 16, False, space=space)
+        with torch.no_grad():
+            field.grid.normal_(generator=torch.Generator().manual_seed(0))
+        points = torch.tensor([[0.3, 2.0, 0.1], [5.0, 40.0, -2.0]], requires_grad=True)
+        sigma = CompactNeRF(field).density(points)
+        assert sigma.shape == (2,) and torch.isfinite(sigma).all() and bool((sigma >= 0).all())
+        sigma.sum().backward()
+        assert points.grad is not None and torch.isfinite(points.grad).all()
+
+
+def test_space_round_trips_json():
+    space = _forward_space()
+    assert Space.from_json(space.to_json()) == space
+    with pytest.raises(ValueError):
+        Space.from_json({"kind": "ndcx", "box": []})
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 200), st.integers(1, 6), st.floats(0.01, 100.0), st.integers(0, 2**31 - 1))
+def test_int8_model_values_round_trip_within_half_a_step(n, channels, spread, seed):
+    from nerfgauge.nerf.checkpoint import dequantise_per_channel, quantise_per_channel
+
+    values = torch.randn((n, channels), generator=torch.Generator().manual_seed(seed)) * spread
+    codes, offset, scale = quantise_per_channel(values)
+    assert codes.dtype == torch.uint8 and offset.shape == scale.shape == (channels,)
+    back = dequantise_per_channel(codes, offset, scale)
+    # half a quantisation step, plus float32 rounding of values of this size
+    assert bool(((back - values).abs() <= scale / 2 + 1e-6 * spread * 8).all())
+
+
+def test_int8_saved_model_renders_like_the_fp16_one():
+    """A pruned model saved with int8 values loads (weights_only) and renders within the
+    colour change its quantisation error allows."""
+    import io
+
+    from nerfgauge.nerf.checkpoint import build_model, model_from_payload, model_payload
+
+    aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    config = TrainConfig(dataset="d", steps=1, view_dependent=False, final_resolution=16, start_resolution=16,
+                         parametrisation="bounded")
+    model = build_model(config, aabb)
+    with torch.no_grad():
+        model.field.grid.normal_(generator=torch.Generator().manual_seed(3))
+    loaded = {}
+    for kind in ("fp16", "int8"):
+        buffer = io.BytesIO()
+        torch.save(model_payload(model, TrainConfig(**{**config.__dict__, "quantise": kind}), prune=True), buffer)
+        buffer.seek(0)
+        loaded[kind] = (model_from_payload(torch.load(buffer, weights_only=True)), buffer.getbuffer().nbytes)
+    assert loaded["int8"][1] < loaded["fp16"][1]
+    grids = [loaded[k][0].field.grid for k in ("fp16", "int8")]
+    channel_range = model.field.grid[0].flatten(1).amax(1) - model.field.grid[0].flatten(1).amin(1)
+    error = (grids[0] - grids[1]).abs()[0].flatten(1).amax(1)
+    assert bool((error <= channel_range / 255 / 2 + 2e-3 * channel_range.abs().max()).all())
