@@ -97,6 +97,11 @@ class CompactNeRF(nn.Module):
         self.update_occupancy()
         return float(self.visible.float().mean())
 
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """sigma at world points [n, 3]. Returns [n]. Differentiable (normals are its
+        negative normalised gradient); the mesh and normal tools query the model through it."""
+        return self.field.density(points)
+
     def _levels(self):
         if self._pyramid is None or self._pyramid_of is not self.occupancy:
             self._pyramid, self._pyramid_of = occupancy_pyramid(self.occupancy), self.occupancy
