@@ -132,10 +132,10 @@ def test_visibility_from_exact_depth(tiny_dataset):
     r = np.linalg.norm(cams.c2w[:, :3, 3], axis=1).max() + 2
     margin = r * np.sqrt(2) / (2 * cams.intrinsics.fx) * np.tan(np.radians(80))
     x, y = samples.points[:, 0], samples.points[:, 1]
-    bottom = (samples.normals[:, 2] < -0.99) & (samples.points[:, 2] < 1e-6) & (x > 0.151 + margin) & \
-        (x < 0.949 - margin) & (y > 0.101 + margin) & (y < 0.899 - margin)
-    if margin < 0.35:
-        assert bottom.any() and not visible[bottom].any()
+    assert margin > 0.3  # at 32 px the tolerance is wide: test the underside's centre
+    bottom_centre = (samples.normals[:, 2] < -0.99) & (samples.points[:, 2] < 1e-6) & \
+        (np.abs(x - 0.55) < 0.08) & (np.abs(y - 0.5) < 0.08)
+    assert bottom_centre.any() and not visible[bottom_centre].any()
     assert 0.05 < visible.mean() < 0.95
     # a visible sample is where some train camera's exact depth says the surface is: its
     # projection lands on a hit pixel
@@ -238,7 +238,7 @@ def test_end_to_end_tiny_run(tiny_dataset, tmp_path):
     from nerfgauge.nerf.train import train
 
     run = tmp_path / "run"
-    train(TrainConfig(dataset=str(tiny_dataset), steps=60, batch_rays=1024), run, progress=False)
+    train(TrainConfig(dataset=str(tiny_dataset), steps=300, batch_rays=2048), run, progress=False)
     assert main(["mesh", str(run), "-o", str(tmp_path / "mesh.ply"), "--resolution", "48"]) == 0
     assert main(["geometry", str(tiny_dataset), "--pred-mesh", str(tmp_path / "mesh.ply"), "-o",
                  str(tmp_path / "g.json"), "--samples", "20000", "--run", str(run)]) == 0
