@@ -24,7 +24,10 @@ One table per scene, one entry per metric, each an inline table with `min` and/o
 - Table names: a scene from `scenes.registry.RECIPES`, a `mesh:PATH` scene, or `"*"`.
   Anything else is an error naming it.
 - Metric names: `eval.metrics.METRIC_NAMES` (psnr, ssim, psnr_foreground, depth_absrel,
-  depth_rmse, depth_mae, depth_delta1, opacity_iou), compared with metrics.json's `mean` table.
+  depth_rmse, depth_mae, depth_delta1, opacity_iou), compared with metrics.json's `mean` table,
+  and the geometry figures `eval.geometry.SUMMARY_NAMES` (geometry_chamfer_l1,
+  geometry_fscore_1pct, normal_angle_mean, ...), compared with metrics.json's `geometry`
+  table (written by `nerfgauge run` for the compact model).
 - Entry keys: only `min` and `max`, finite numbers, at least one, min <= max. Bounds are
   inclusive: a value equal to its bound passes.
 - The bounds for a scene are the `"*"` table overlaid by the scene's own table (per
@@ -56,12 +59,16 @@ from pathlib import Path
 from typing import Optional
 
 import tomllib
-from nerfgauge.eval.metrics import METRIC_NAMES
+from nerfgauge.eval.geometry import SUMMARY_NAMES
+from nerfgauge.eval.metrics import METRIC_NAMES as IMAGE_METRIC_NAMES
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import check_writable_target, write_bytes_atomic
 
 METRICS_SCHEMA = 1
+# image metrics (metrics.json `mean`) and geometry figures (metrics.json `geometry`, written
+# by `nerfgauge run`: eval.geometry.summary)
+METRIC_NAMES = IMAGE_METRIC_NAMES + SUMMARY_NAMES
 DEFAULT_TABLE = "*"
 BOUND_KEYS = ("min", "max")
 MESH_PREFIX = "mesh:"
@@ -197,6 +204,12 @@ def validate_metrics(data, source: str = "metrics") -> dict:
     for metric, value in mean.items():
         if value is not None and not _is_number(value):
             raise InputError(f"{source}: mean.{metric} must be a number or null, got {value!r}")
+    geometry = data.get("geometry", {})
+    if not isinstance(geometry, dict):
+        raise InputError(f"{source}: 'geometry' must be an object of values, got {geometry!r}")
+    for metric, value in geometry.items():
+        if value is not None and not _is_number(value):
+            raise InputError(f"{source}: geometry.{metric} must be a number or null, got {value!r}")
     return data
 
 
@@ -323,7 +336,7 @@ def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[st
     if scene is not None and not known_scene(scene):
         raise InputError(f"unknown scene {scene!r} for --scene; known: {_known_scenes_text()}")
     bounds = bounds_for_scene(tables, table_scene, str(thresholds_path))
-    results = evaluate_bounds(metrics["scene"], metrics["mean"], bounds)
+    results = evaluate_bounds(metrics["scene"], {**metrics.get("geometry", {}), **metrics["mean"]}, bounds)
 
     via = "" if table_scene == metrics["scene"] else f" (bounds of scene {table_scene})"
     print(f"checking {metrics_path} (scene {metrics['scene']}, split {metrics.get('split', '?')}) "

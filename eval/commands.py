@@ -1,5 +1,6 @@
 """eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`),
-`baseline` (`eval.baselines`) and `bench` (`eval.bench`).
+`baseline` (`eval.baselines`), `bench` (`eval.bench`), and `mesh` (`nerf.mesh`) and
+`geometry` (`eval.geometry`, `eval.normals`).
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Output
@@ -50,6 +51,7 @@ def register(subparsers) -> None:
     register_evaluate(subparsers)
     register_baseline(subparsers)
     register_bench(subparsers)
+    register_geometry(subparsers)
 
 
 def register_check(subparsers) -> None:
@@ -302,4 +304,100 @@ def run_bench_read(args) -> int:
     from nerfgauge.eval.bench_read import bench_read, table_markdown
 
     print(table_markdown(bench_read(args.dataset, args.split, args.repeats)))
+    return 0
+
+
+# --- geometry: `mesh` and `geometry` (issue 13) -------------------------------------------
+
+
+def register_geometry(subparsers) -> None:
+    mesh = subparsers.add_parser(
+        "mesh", help="a mesh (PLY) from a trained run's density by marching cubes",
+        description="Marching cubes on the field's density over the scene bounds, at the density where the model "
+                    "renders its surface on training rays; triangles no training camera sees are dropped "
+                    "(nerf/mesh.py).")
+    mesh.add_argument("run", type=arguments.path, metavar="RUN_DIR", help="a finished training run (model.pt)")
+    mesh.add_argument("-o", "--out", type=arguments.path, required=True, metavar="OUT.ply", help="mesh file to write")
+    mesh.add_argument("--resolution", type=arguments.positive_int, default=256,
+                      help="grid cells along the scene's longest side (default 256)")
+    mesh.add_argument("--no-cull", action="store_true", help="keep triangles no training camera sees")
+    mesh.add_argument("--level", type=arguments.positive_float, metavar="SIGMA",
+                      help="density of the surface (default: the median density where the model renders its "
+                           "surface on training rays)")
+    mesh.set_defaults(func=run_mesh)
+    geometry = subparsers.add_parser(
+        "geometry", help="score a mesh, point cloud or rendered depth against the dataset's exact meshes",
+        description="Accuracy, completeness, Chamfer-L1, normal consistency and F-score at distance thresholds "
+                    "against DATASET/meshes/*.ply (eval/geometry.py); with --run, also the field's normals "
+                    "against the exact normal images (eval/normals.py).")
+    geometry.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    source = geometry.add_mutually_exclusive_group(required=True)
+    source.add_argument("--pred-mesh", type=arguments.path, metavar="FILE", help="mesh or point cloud (PLY, OBJ, ...)")
+    source.add_argument("--pred-depth", type=arguments.path, metavar="DIR",
+                        help="folder of rendered ray-distance depth (r_000_depth.exr) of the --split views")
+    geometry.add_argument("-o", "--out", type=arguments.path, default=Path("geometry.json"), metavar="FILE",
+                          help="scores (default geometry.json)")
+    geometry.add_argument("--tau", type=arguments.positive_float, action="append", default=[], metavar="T",
+                          help="also score F-score at this distance in world units (repeatable); 0.5%% and 1%% of the "
+                               "ground truth's bounding-box diagonal always")
+    geometry.add_argument("--samples", type=arguments.positive_int, default=1_000_000,
+                          help="points sampled on each surface (default 1000000)")
+    geometry.add_argument("--seed", type=arguments.nonnegative_int, default=0, help="sampling seed (default 0)")
+    geometry.add_argument("--whole-surface", action="store_true",
+                          help="score all ground truth, not only what the reference cameras see")
+    geometry.add_argument("--split", default="test", help="views of --pred-depth and of --run's normals (default test)")
+    geometry.add_argument("--run", type=arguments.path, metavar="RUN_DIR",
+                          help="also score this run's field normals on the --split views")
+    geometry.set_defaults(func=run_geometry)
+
+
+def _output_file(out: Path, recipe: dict):
+    """Refuse a target that is not a regular file; claim a parent folder this command
+    creates as an "evaluation" folder (marker and lock)."""
+    from nerfgauge.core.files import check_writable_target
+    from nerfgauge.core.folders import claim_folder, recipe_hash
+
+    check_writable_target(out)
+    if out.parent.exists():
+        return contextlib.nullcontext()
+    return claim_folder(out.parent, "evaluation", recipe_hash(recipe))
+
+
+def run_mesh(args) -> int:
+    from nerfgauge.core.files import write_bytes_atomic
+    from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".ply":
+        from nerfgauge.core.errors import InputError
+
+        raise InputError(f"-o {out}: the mesh is written as PLY; name it *.ply")
+    with _output_file(out, {"mesh": str(args.run), "resolution": args.resolution}):
+        mesh = mesh_from_run(args.run, args.resolution, cull=not args.no_cull, level=args.level)
+        write_bytes_atomic(out, ply_bytes(mesh.vertices, mesh.faces))
+    print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces ({mesh.faces_culled} unseen dropped), "
+          f"level sigma = {mesh.level:.4g} ({mesh.level_source}), {args.resolution} cells, "
+          f"{mesh.seconds:.1f} s")
+    return 0
+
+
+def run_geometry(args) -> int:
+    from nerfgauge.core.files import write_json
+    from nerfgauge.eval.geometry import format_geometry, score_geometry
+
+    out = Path(args.out)
+    recipe = {"geometry": str(args.dataset), "mesh": str(args.pred_mesh), "depth": str(args.pred_depth)}
+    with _output_file(out, recipe):
+        document, _ = score_geometry(args.dataset, args.pred_mesh, args.pred_depth, split=args.split,
+                                     taus=tuple(args.tau), samples=args.samples, seed=args.seed,
+                                     whole_surface=args.whole_surface)
+        if args.run is not None:
+            from nerfgauge.eval.normals import score_normals
+            from nerfgauge.nerf.checkpoint import load_model
+
+            model, _ = load_model(Path(args.run) / "model.pt")
+            document["normals"] = score_normals(model, args.dataset, args.split)
+        write_json(out, document)
+    print(format_geometry(document))
+    print(f"-> {out}")
     return 0

@@ -110,3 +110,42 @@ img{{max-width:100%;image-rendering:pixelated}}</style></head><body>
 <h1>{html.escape(title)}</h1><table><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}</tr>{rows}</table>
 <ul>{notes_html}</ul>{figures}</body></html>"""
     write_bytes_atomic(out, page.encode())
+
+
+def geometry_table(document: dict) -> str:
+    """One line of the geometry scores (eval.geometry's document) for the report's notes."""
+    from nerfgauge.eval.geometry import summary
+
+    labels = {"geometry_chamfer_l1": "Chamfer-L1", "geometry_accuracy": "accuracy",
+              "geometry_completeness": "completeness", "geometry_fscore_0p5pct": "F-score@0.5%",
+              "geometry_fscore_1pct": "F-score@1%", "geometry_normal_consistency": "normal consistency",
+              "normal_angle_mean": "normal error mean deg", "normal_angle_median": "normal error median deg",
+              "normal_within_11_25": "normals within 11.25 deg", "normal_within_30": "normals within 30 deg"}
+    flat = summary(document)
+    cells = [f"{label} {flat[key]:.4g}" for key, label in labels.items() if flat.get(key) is not None]
+    return "geometry against the exact meshes (mesh by marching cubes, distances in scene units, taus as " \
+           "fractions of the ground-truth diagonal): " + "; ".join(cells)
+
+
+def geometry_histogram(distances: dict, document: dict, out) -> None:
+    """Histograms of predicted-to-ground-truth and ground-truth-to-predicted distances, with
+    the F-score thresholds marked; PNG."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    taus = [row["tau"] for row in document["at_tau"]]
+    top = max(3 * max(taus), 1e-9)
+    figure = Figure(figsize=(6, 3.5), dpi=110)
+    axes = figure.add_subplot()
+    bins = np.linspace(0, top, 60)
+    for key, label in (("accuracy", "prediction to ground truth"), ("completeness", "ground truth to prediction")):
+        values = np.minimum(distances[key], top)  # the last bin gathers everything beyond
+        axes.hist(values, bins=bins, alpha=0.6, label=label, density=True)
+    for tau in taus:
+        axes.axvline(tau, color="k", linestyle=":", linewidth=1)
+    axes.set_xlabel(f"distance (scene units; last bin: >= {top:.3g}; dotted: F-score taus)")
+    axes.set_ylabel("density")
+    axes.legend()
+    figure.tight_layout()
+    with atomic_path(out) as tmp:
+        FigureCanvasAgg(figure).print_png(str(tmp))

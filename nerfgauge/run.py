@@ -27,7 +27,9 @@ from pathlib import Path
 
 from nerfgauge.core.errors import InputError
 
-REPORT_FILES = ("report.html", "report/curve.png", "report/grid.png")
+REPORT_FILES = ("report.html", "report/curve.png", "report/grid.png", "report/geometry.png")
+GEOMETRY_RESOLUTION = 256  # marching-cubes cells along the scene's longest side
+GEOMETRY_SAMPLES = 200_000  # points per surface (the scoring cost grows with their square off the surface)
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,8 @@ def remove_earlier_outputs(out: Path, model: str) -> None:
         remove_owned(out / "baselines" / method, "baseline")
         remove_owned(out / "eval" / method / "error_maps", "evaluation")
         _remove_file(out / "eval" / method / "metrics.json")
+        _remove_file(out / "eval" / method / "geometry.json")
+        _remove_file(out / "eval" / method / "mesh.ply")
         _remove_empty_folder(out / "eval" / method)
     for name in REPORT_FILES:
         _remove_file(out / name)
@@ -105,12 +109,15 @@ def _remove_empty_folder(path: Path) -> None:
 
 
 def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool = True) -> dict:
-    from nerfgauge.core.files import read_json
+    from nerfgauge.core.files import read_json, write_json
     from nerfgauge.core.folders import claim_folder
+    from nerfgauge.eval.geometry import summary
     from nerfgauge.eval.baselines import write_baseline
     from nerfgauge.eval.commands import baseline_folder
     from nerfgauge.eval.evaluate import evaluate, format_means
     from nerfgauge.eval.report import (
+        geometry_histogram,
+        geometry_table,
         image_grid,
         metrics_table,
         plot_curves,
@@ -148,6 +155,11 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
         print("[4/5] evaluate and baselines")
         documents = {f"{config.model} NeRF": evaluate(out / "dataset", run_dir / "renders", "test",
                                                       out / "eval" / config.model / "metrics.json")}
+        geometry = None
+        if config.model == "compact":
+            geometry = geometry_step(out / "dataset", run_dir, out / "eval" / config.model)
+            documents[f"{config.model} NeRF"]["geometry"] = summary(geometry[0])
+            write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
         layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
         baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if layout == "lightfield" else [])
         for method in baselines:
@@ -167,13 +179,37 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                  "geometry, on ray distance.",
                  "Image grid columns: ground truth, prediction, colour error (0-0.2), predicted depth, depth error "
                  "(0-10%)."]
-        write_html(out / "report.html", f"nerfgauge: {config.scene}", table,
-                   {"speed against error": out / "report" / "curve.png",
-                    "test views": out / "report" / "grid.png"}, notes)
+        images = {"speed against error": out / "report" / "curve.png", "test views": out / "report" / "grid.png"}
+        if geometry is not None:
+            geometry_histogram(geometry[1], geometry[0], out / "report" / "geometry.png")
+            images["geometry: distances to the exact meshes"] = out / "report" / "geometry.png"
+            notes.append(geometry_table(geometry[0]))
+        write_html(out / "report.html", f"nerfgauge: {config.scene}", table, images, notes)
     print(format_means(documents[f"{config.model} NeRF"]))
     print(f"report: {out / 'report.html'}")
     return {"metrics": str(out / "eval" / config.model / "metrics.json"), "report": str(out / "report.html"),
             "train": summary}
+
+
+def geometry_step(dataset_root: Path, run_dir: Path, eval_dir: Path) -> tuple[dict, dict]:
+    """Mesh the field (eval_dir/mesh.ply), score it and the field's test-view normals
+    against the exact ground truth (eval_dir/geometry.json). Returns (document, distances)."""
+    from nerfgauge.core.files import write_bytes_atomic, write_json
+    from nerfgauge.eval.geometry import format_geometry, score_geometry
+    from nerfgauge.eval.normals import score_normals
+    from nerfgauge.nerf.checkpoint import load_model
+    from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
+
+    mesh = mesh_from_run(run_dir, GEOMETRY_RESOLUTION)
+    write_bytes_atomic(eval_dir / "mesh.ply", ply_bytes(mesh.vertices, mesh.faces))
+    document, distances = score_geometry(dataset_root, eval_dir / "mesh.ply", samples=GEOMETRY_SAMPLES)
+    document["mesh"] = {"resolution": mesh.resolution, "level": mesh.level, "level_source": mesh.level_source,
+                        "faces": int(len(mesh.faces)), "seconds": mesh.seconds}
+    model, _ = load_model(run_dir / "model.pt")
+    document["normals"] = score_normals(model, dataset_root, "test")
+    write_json(eval_dir / "geometry.json", document)
+    print(format_geometry(document))
+    return document, distances
 
 
 def register(subparsers) -> None:

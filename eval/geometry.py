@@ -1,0 +1,438 @@
+"""Geometry against the exact ground-truth meshes: `nerfgauge geometry`.
+
+    nerfgauge geometry DATASET (--pred-mesh FILE | --pred-depth DIR) [-o geometry.json]
+                       [--tau T ...] [--samples N] [--seed S] [--whole-surface] [--run RUN]
+
+The prediction is any mesh or point cloud trimesh reads (PLY, OBJ, ...; a PLY or OBJ
+without faces is a point cloud), or a method's rendered depth of a split's views
+(`r_007_depth.exr` ray distance, found as `nerfgauge evaluate` finds it), back-projected
+along the dataset's pixel rays. The ground truth is the union of DATASET/meshes/*.ply.
+
+Both surfaces become point sets: a mesh is sampled uniformly by area (`samples` points,
+an explicit numpy Generator seeded with `seed`), each sample carrying its face's normal;
+a point cloud is used as given (a random subset of `samples` if larger). Distances are
+point-to-point nearest neighbours (scipy cKDTree) between these dense samples (exact within the
+largest tau, from a 1/16 subsample beyond it: see `nearest`), in world units:
+
+    accuracy      mean over predicted points of the distance to the ground truth
+    completeness  mean over (visible) ground-truth points of the distance to the prediction
+    chamfer_l1    (accuracy + completeness) / 2
+    precision(t)  share of predicted points within t of the ground truth
+    recall(t)     share of (visible) ground-truth points within t of the prediction
+    fscore(t)     2 P R / (P + R)  (0 when both are 0)
+    normal_consistency  mean |n . n_nearest| over both directions (orientation-free;
+                  null for a prediction without normals)
+
+t runs over fractions of the ground-truth bounding-box diagonal (0.5% and 1%) and any
+world-unit values given with --tau. Point-to-point distances overestimate point-to-surface
+ones by about s^2 / (2 d) for a sample spacing s; at a million samples on a unit-sized
+scene that is far below the thresholds.
+
+Visibility. Only ground truth that some camera saw can be asked of a method: by default a
+ground-truth sample counts for completeness and recall only if it is visible in some view
+of the reference split (train for meshes; the predicted views' split for --pred-depth).
+A sample is visible in a view if it projects into the image and its distance from the
+camera matches the view's exact ray-distance depth at that pixel within
+
+    tol = r * sqrt(2) / (2 f) * min(tan(theta), tan(80 deg)) + 1e-5 r
+
+(r the sample's distance, f the focal length in pixels, theta the angle between the
+sample's normal and the ray): the sample is at most half a pixel diagonal,
+r sqrt(2) / (2 f), off the pixel-centre ray, and on a plane tilted by theta that moves the
+depth by that offset times tan(theta); grazing angles are capped at 80 degrees; 1e-5 r
+covers float32 storage. --whole-surface counts every ground-truth sample. Accuracy and
+precision always compare against the whole ground truth (a correct guess at a hidden
+surface is not an error).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from nerfgauge.core.camera import pixel_rays
+from nerfgauge.core.dataset import Dataset
+from nerfgauge.core.errors import InputError
+
+SCHEMA = 1
+DEFAULT_TAU_FRACTIONS = (0.005, 0.01)
+DEFAULT_SAMPLES = 1_000_000
+DEFAULT_SEED = 0
+GRAZING_CAP_DEGREES = 80.0
+COARSE_STRIDE = 16  # reference subsampling for points beyond every tau (see `nearest`)
+MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb", ".gltf")
+
+
+@dataclass(frozen=True)
+class Surface:
+    """What a file holds: vertices [n, 3] float64 and faces [m, 3] int64 (None: a point
+    cloud), normals [n, 3] of a point cloud's points when the file has them."""
+
+    vertices: np.ndarray
+    faces: Optional[np.ndarray]
+    normals: Optional[np.ndarray] = None
+
+
+@dataclass(frozen=True)
+class PointSet:
+    """points [n, 3] float64; normals [n, 3] unit or None."""
+
+    points: np.ndarray
+    normals: Optional[np.ndarray]
+
+
+# --- reading -------------------------------------------------------------------------
+
+
+def _declares_faces(data: bytes) -> bool:
+    """A PLY header with an `element face` line: a mesh, even when it has zero faces."""
+    if not data.startswith(b"ply"):
+        return False
+    header = data[:data.find(b"end_header")] if b"end_header" in data else data[:4096]
+    return any(line.split()[:2] == [b"element", b"face"] for line in header.splitlines())
+
+
+def surface_from_bytes(data: bytes, name: str, file_type: str) -> Surface:
+    """Parse mesh or point-cloud bytes with trimesh; one-line InputError for anything that
+    is not a non-empty, finite surface."""
+    import trimesh
+
+    try:
+        loaded = trimesh.load(io.BytesIO(data), file_type=file_type, process=False)
+    except Exception as error:  # trimesh raises many types for garbage
+        text = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        raise InputError(f"{name} is not a readable mesh or point cloud: {text[:200]}") from None
+    if isinstance(loaded, trimesh.Scene):
+        parts = [g for g in loaded.geometry.values() if isinstance(g, (trimesh.Trimesh, trimesh.PointCloud))]
+        meshes = [g for g in parts if isinstance(g, trimesh.Trimesh)]
+        if meshes:
+            loaded = trimesh.util.concatenate(meshes)
+        elif parts:
+            loaded = trimesh.PointCloud(np.concatenate([np.asarray(g.vertices) for g in parts]))
+        else:
+            raise InputError(f"{name} holds no mesh or points (an empty file)")
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+    if isinstance(loaded, trimesh.Trimesh):
+        faces = np.asarray(loaded.faces, np.int64).reshape(-1, 3)
+        normals = None
+    elif isinstance(loaded, trimesh.PointCloud):
+        if _declares_faces(data):
+            raise InputError(f"{name} declares faces but has zero faces")
+        faces = None
+        normals = _point_normals(loaded, len(vertices))
+    else:
+        raise InputError(f"{name} is not a mesh or point cloud (trimesh read a {type(loaded).__name__})")
+    if not len(vertices):
+        raise InputError(f"{name} is empty: no vertices")
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise InputError(f"{name} has {int(bad.sum())} vertices with NaN or inf coordinates")
+    if faces is not None:
+        if not len(faces):
+            raise InputError(f"{name} has zero faces")
+        if faces.min() < 0 or faces.max() >= len(vertices):
+            raise InputError(f"{name} has faces indexing vertices outside 0..{len(vertices) - 1}")
+    return Surface(vertices, faces, normals)
+
+
+def _point_normals(cloud, count: int) -> Optional[np.ndarray]:
+    """Per-point normals of a PLY point cloud (nx, ny, nz properties), if present and usable."""
+    data = getattr(cloud, "metadata", {}).get("_ply_raw", {}).get("vertex", {}).get("data")
+    names = set(data) if isinstance(data, dict) else set(getattr(getattr(data, "dtype", None), "names", None) or ())
+    if data is None or not {"nx", "ny", "nz"} <= names:
+        return None
+    normals = np.stack([np.asarray(data[k]) for k in ("nx", "ny", "nz")], axis=-1).astype(np.float64).reshape(-1, 3)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    if len(normals) != count or not (np.isfinite(normals).all() and (length > 0).all()):
+        return None
+    return normals / length
+
+
+def read_surface(path) -> Surface:
+    """A mesh or point cloud file (format from its suffix)."""
+    path = Path(path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise InputError(f"{path}: unknown mesh format {path.suffix!r}; expected one of {', '.join(MESH_SUFFIXES)}")
+    if not path.is_file():
+        raise InputError(f"mesh file not found: {path}")
+    return surface_from_bytes(path.read_bytes(), str(path), path.suffix.lower().lstrip("."))
+
+
+def ground_truth_surface(ds: Dataset) -> Surface:
+    """The union of DATASET/meshes/*.ply (read through the manifest check)."""
+    folder = ds.root / "meshes"
+    names = sorted(f"meshes/{path.name}" for path in folder.glob("*.ply")) if folder.is_dir() else []
+    if not names:
+        raise InputError(f"dataset {ds.root} has no ground-truth meshes (meshes/*.ply); regenerate it with "
+                         "nerfgauge generate")
+    vertices, faces, offset = [], [], 0
+    for rel in names:
+        surface = surface_from_bytes(ds.read_bytes(rel), str(ds.root / rel), "ply")
+        if surface.faces is None:
+            raise InputError(f"{ds.root / rel} is a point cloud; ground-truth meshes need faces")
+        vertices.append(surface.vertices)
+        faces.append(surface.faces + offset)
+        offset += len(surface.vertices)
+    return Surface(np.concatenate(vertices), np.concatenate(faces))
+
+
+# --- sampling ------------------------------------------------------------------------
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, rng: np.random.Generator,
+                   name: str = "mesh") -> PointSet:
+    """`count` points uniform by area over the triangles, each with its face's unit normal.
+
+    vertices [n, 3], faces [m, 3]. A face is drawn with probability area / total area, a
+    point in it by the square-root barycentric map (uniform on the triangle)."""
+    triangles = vertices[faces]  # [m, 3, 3]
+    cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])  # [m, 3]
+    double_area = np.linalg.norm(cross, axis=1)
+    total = double_area.sum()
+    if not (total > 0 and math.isfinite(total)):
+        raise InputError(f"{name} has zero surface area (every face is degenerate)")
+    face = rng.choice(len(faces), size=count, p=double_area / total)
+    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
+    a, b, c = (triangles[face, k] for k in range(3))
+    points = (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
+    normals = cross[face] / np.maximum(double_area[face], 1e-300)[:, None]
+    return PointSet(points, normals)
+
+
+def point_set(surface: Surface, count: int, rng: np.random.Generator, name: str) -> PointSet:
+    """A mesh sampled by area; a point cloud as given (a random `count` of it if larger)."""
+    if surface.faces is not None:
+        return sample_surface(surface.vertices, surface.faces, count, rng, name)
+    points, normals = surface.vertices, surface.normals
+    if len(points) > count:
+        pick = rng.choice(len(points), size=count, replace=False)
+        points, normals = points[pick], None if normals is None else normals[pick]
+    return PointSet(points, normals)
+
+
+# --- visibility ----------------------------------------------------------------------
+
+
+def visible_in_views(points: np.ndarray, normals: np.ndarray, ds: Dataset, split: str) -> np.ndarray:
+    """Ground-truth samples [n, 3] (unit normals [n, 3]) visible in some view of `split`,
+    by the exact depth test of the module docstring. Returns [n] bool."""
+    from nerfgauge.nerf.mesh import project
+
+    cameras = ds.cameras(split)
+    intrinsics = cameras.intrinsics
+    focal = max(intrinsics.fx, intrinsics.fy)
+    cap = math.tan(math.radians(GRAZING_CAP_DEGREES))
+    visible = np.zeros(len(points), bool)
+    for index, pose in enumerate(cameras.c2w):
+        todo = np.flatnonzero(~visible)
+        if not len(todo):
+            break
+        u, v, distance = project(points[todo], pose, intrinsics)
+        with np.errstate(invalid="ignore"):
+            inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+        todo, u, v, distance = todo[inside], u[inside], v[inside], distance[inside]
+        if not len(todo):
+            continue
+        depth = ds.depth(split, index, kind="distance").astype(np.float64)  # [H, W]
+        recorded = depth[v.astype(np.int64), u.astype(np.int64)]
+        ray = (points[todo] - pose[:3, 3]) / np.maximum(distance, 1e-300)[:, None]
+        cos = np.clip(np.abs(np.einsum("ij,ij->i", normals[todo], ray)), 1e-12, 1.0)
+        tan = np.minimum(np.sqrt(1 - cos ** 2) / cos, cap)
+        tolerance = distance * (math.sqrt(2) / (2 * focal) * tan + 1e-5)
+        visible[todo[(recorded > 0) & (np.abs(recorded - distance) <= tolerance)]] = True
+    return visible
+
+
+# --- prediction from depth -----------------------------------------------------------
+
+
+def depth_points(ds: Dataset, pred_dir, split: str = "test") -> tuple[np.ndarray, list[str]]:
+    """Back-project a method's ray-distance depth of every view of `split` (files as
+    `nerfgauge evaluate` finds them: DIR/<split>/r_007_depth.exr or DIR/r_007_depth.exr,
+    .exr or .npy, or _distance). Pixels with depth 0 are misses. Returns points [n, 3]
+    and the files read."""
+    from nerfgauge.eval.evaluate import DEPTH_SUFFIXES, read_plane
+
+    pred_dir = Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise InputError(f"prediction folder not found: {pred_dir}")
+    cameras = ds.cameras(split)
+    if not cameras.stems:
+        raise InputError(f"dataset {ds.root} has no {split} views")
+    points, used = [], []
+    for index, stem in enumerate(cameras.stems):
+        name = Path(stem).name
+        candidates = [folder / (name + suffix + ext) for folder in (pred_dir / split, pred_dir)
+                      for suffix in DEPTH_SUFFIXES["distance"] for ext in (".exr", ".npy")]
+        path = next((p for p in candidates if p.is_file()), None)
+        if path is None:
+            raise InputError(f"no predicted depth for frame {stem} (looked for {candidates[0]} and {candidates[2]})")
+        depth = read_plane(path, cameras.intrinsics, "distance")
+        if not np.isfinite(depth).all():
+            raise InputError(f"{path} holds NaN or inf depth")
+        if (depth < 0).any():
+            raise InputError(f"{path} holds negative depth")
+        origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)
+        hit = depth > 0
+        points.append(origins[hit] + depth[hit][:, None] * directions[hit])
+        used.append(str(path))
+    cloud = np.concatenate(points)
+    if not len(cloud):
+        raise InputError(f"the predicted depth in {pred_dir} hits nothing (every pixel is 0)")
+    return cloud, used
+
+
+# --- scoring -------------------------------------------------------------------------
+
+
+def fscores(accuracy_distances: np.ndarray, completeness_distances: np.ndarray, taus, diagonal: float) -> list[dict]:
+    """[{"tau", "tau_fraction", "precision", "recall", "fscore"}] per tau (world units)."""
+    rows = []
+    for tau in taus:
+        precision = float((accuracy_distances < tau).mean())
+        recall = float((completeness_distances < tau).mean())
+        total = precision + recall
+        rows.append({"tau": float(tau), "tau_fraction": float(tau / diagonal), "precision": precision,
+                     "recall": recall, "fscore": 2 * precision * recall / total if total > 0 else 0.0})
+    return rows
+
+
+def nearest(reference: np.ndarray, queries: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance and index of the nearest reference point [n_ref, 3] of every query [n, 3].
+
+    Exact within `bound`. A k-d tree query for a point at distance d from a surface
+    sampled with spacing s visits ~(d / s)^2 points (measured: 45 s for a million points
+    at d = 28 s), so queries farther than `bound` (beyond every tau, so F-scores stay
+    exact) are answered from every COARSE_STRIDE-th reference point: spacing S = s *
+    sqrt(COARSE_STRIDE), an overestimate of about S^2 / (2 pi d) <= S^2 / (2 pi bound)."""
+    from scipy.spatial import cKDTree
+
+    distance, index = cKDTree(reference).query(queries, distance_upper_bound=bound, workers=-1)
+    far = np.flatnonzero(~np.isfinite(distance))
+    if len(far):
+        coarse = np.arange(0, len(reference), COARSE_STRIDE)
+        far_distance, far_index = cKDTree(reference[coarse]).query(queries[far], workers=-1)
+        distance[far], index[far] = far_distance, coarse[far_index]
+    return distance, index
+
+
+def compare(pred: PointSet, gt_all: PointSet, gt_mask: np.ndarray, taus, diagonal: float) -> tuple[dict, dict]:
+    """Scores of `pred` against ground-truth samples (all of them for accuracy, those in
+    gt_mask [n] for completeness). Returns (scores, {"accuracy": d [n_pred],
+    "completeness": d [n_visible]} distances)."""
+    gt_points = gt_all.points[gt_mask]
+    if not len(gt_points):
+        raise InputError("no ground-truth surface is visible from the reference cameras; pass --whole-surface")
+    bound = max(taus)
+    to_gt, gt_index = nearest(gt_all.points, pred.points, bound)
+    to_pred, pred_index = nearest(pred.points, gt_points, bound)
+    accuracy, completeness = float(to_gt.mean()), float(to_pred.mean())
+    consistency = None
+    if pred.normals is not None and gt_all.normals is not None:
+        forward = np.abs(np.einsum("ij,ij->i", pred.normals, gt_all.normals[gt_index])).mean()
+        backward = np.abs(np.einsum("ij,ij->i", gt_all.normals[gt_mask], pred.normals[pred_index])).mean()
+        consistency = float((forward + backward) / 2)
+    scores = {"accuracy": accuracy, "completeness": completeness, "chamfer_l1": (accuracy + completeness) / 2,
+              "normal_consistency": consistency, "at_tau": fscores(to_gt, to_pred, taus, diagonal)}
+    return scores, {"accuracy": to_gt, "completeness": to_pred}
+
+
+def check_in_bounds(points: np.ndarray, box: np.ndarray, name: str) -> None:
+    inside = ((points >= box[0]) & (points <= box[1])).all(axis=1)
+    if not inside.any():
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        raise InputError(f"{name} lies entirely outside the scene bounds {np.round(box, 4).tolist()} "
+                         f"(its points span {np.round(lo, 4).tolist()} to {np.round(hi, 4).tolist()})")
+
+
+def score_geometry(root, pred_mesh=None, pred_depth=None, *, split: str = "test", taus=(), samples: int = DEFAULT_SAMPLES,
+                   seed: int = DEFAULT_SEED, whole_surface: bool = False) -> tuple[dict, dict]:
+    """Score a mesh or point cloud file (pred_mesh) or a folder of depth maps (pred_depth)
+    against the dataset's meshes. Returns (document, distances) (see `compare`)."""
+    start = time.perf_counter()
+    if (pred_mesh is None) == (pred_depth is None):
+        raise InputError("give exactly one of --pred-mesh FILE or --pred-depth DIR")
+    if not (isinstance(samples, int) and samples > 0):
+        raise InputError(f"--samples must be a positive integer, got {samples!r}")
+    for tau in taus:
+        if not (isinstance(tau, (int, float)) and math.isfinite(tau) and tau > 0):
+            raise InputError(f"--tau must be a positive distance, got {tau!r}")
+    ds = Dataset(root)
+    gt_surface = ground_truth_surface(ds)
+    rng = np.random.default_rng(seed)
+    if pred_mesh is not None:
+        surface, name, kind, reference = read_surface(pred_mesh), str(pred_mesh), None, "train"
+        kind = "mesh" if surface.faces is not None else "points"
+    else:
+        cloud, _ = depth_points(ds, pred_depth, split)
+        surface, name, kind, reference = Surface(cloud, None), str(pred_depth), "depth", split
+    gt_box = np.stack([gt_surface.vertices.min(axis=0), gt_surface.vertices.max(axis=0)])
+    box = ds.bounds if ds.bounds is not None else gt_box
+    check_in_bounds(surface.vertices, box, name)
+    diagonal = float(np.linalg.norm(gt_box[1] - gt_box[0]))
+    pred = point_set(surface, samples, rng, name)
+    gt = sample_surface(gt_surface.vertices, gt_surface.faces, samples, rng, "the ground-truth meshes")
+    visible = np.ones(len(gt.points), bool) if whole_surface else visible_in_views(gt.points, gt.normals, ds, reference)
+    all_taus = sorted({*(f * diagonal for f in DEFAULT_TAU_FRACTIONS), *(float(t) for t in taus)})
+    scores, distances = compare(pred, gt, visible, all_taus, diagonal)
+    scene = ds.scene.get("recipe") if isinstance(ds.scene.get("recipe"), str) else ds.root.name
+    document = {"schema": SCHEMA, "scene": scene, "prediction": {"source": name, "kind": kind,
+                                                                  "points": int(len(pred.points))},
+                "ground_truth": {"diagonal": diagonal, "samples": int(len(gt.points)),
+                                 "scored_samples": int(visible.sum()), "scored_fraction": float(visible.mean()),
+                                 "whole_surface": bool(whole_surface),
+                                 "visibility_split": None if whole_surface else reference},
+                "samples": samples, "seed": seed, **scores,
+                "seconds": time.perf_counter() - start}
+    return document, distances
+
+
+def summary(document: dict) -> dict:
+    """Flat numbers for the run's metrics.json `geometry` section (gated by `nerfgauge check`)."""
+    flat = {}
+    if "chamfer_l1" in document:
+        flat.update({"geometry_accuracy": document["accuracy"], "geometry_completeness": document["completeness"],
+                     "geometry_chamfer_l1": document["chamfer_l1"],
+                     "geometry_normal_consistency": document["normal_consistency"]})
+        for row in document["at_tau"]:
+            for fraction, label in ((0.005, "0p5pct"), (0.01, "1pct")):
+                if math.isclose(row["tau_fraction"], fraction, rel_tol=1e-9):
+                    flat[f"geometry_fscore_{label}"] = row["fscore"]
+    normals = document.get("normals")
+    if normals:
+        flat.update({"normal_angle_mean": normals["mean_degrees"], "normal_angle_median": normals["median_degrees"],
+                     "normal_within_11_25": normals["within"]["11.25"],
+                     "normal_within_22_5": normals["within"]["22.5"], "normal_within_30": normals["within"]["30"]})
+    return flat
+
+
+SUMMARY_NAMES = ("geometry_accuracy", "geometry_completeness", "geometry_chamfer_l1", "geometry_normal_consistency",
+                 "geometry_fscore_0p5pct", "geometry_fscore_1pct", "normal_angle_mean", "normal_angle_median",
+                 "normal_within_11_25", "normal_within_22_5", "normal_within_30")
+
+
+def format_geometry(document: dict) -> str:
+    """A few plain-text lines of the scores."""
+    lines = []
+    if "chamfer_l1" in document:
+        gt = document["ground_truth"]
+        nc = document["normal_consistency"]
+        lines.append(f"accuracy {document['accuracy']:.5f}  completeness {document['completeness']:.5f}  "
+                     f"chamfer-L1 {document['chamfer_l1']:.5f}  normal consistency {'-' if nc is None else f'{nc:.4f}'}"
+                     f"  (ground truth scored: {100 * gt['scored_fraction']:.1f}% of its surface)")
+        for row in document["at_tau"]:
+            lines.append(f"tau {row['tau']:.5f} ({100 * row['tau_fraction']:.2f}% of the diagonal): precision "
+                         f"{row['precision']:.4f}  recall {row['recall']:.4f}  F-score {row['fscore']:.4f}")
+    normals = document.get("normals")
+    if normals:
+        within = normals["within"]
+        lines.append(f"normals: mean {normals['mean_degrees']:.2f} deg, median {normals['median_degrees']:.2f} deg; "
+                     f"within 11.25/22.5/30 deg: {within['11.25']:.3f}/{within['22.5']:.3f}/{within['30']:.3f} "
+                     f"({normals['pixels']} pixels)")
+    return "\n".join(lines)

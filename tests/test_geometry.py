@@ -1,0 +1,255 @@
+"""Geometry: meshes from the field and scores against the exact ground-truth meshes.
+
+Analytic cases: a sphere against itself scaled by (1 + d/r) is at distance d everywhere
+(up to the facets: an icosphere's face planes sit within 0.1% of the radius), so accuracy,
+completeness and Chamfer equal d up to the point-to-point sampling bias s^2 / (2 d) (s the
+sample spacing: with 100k samples on the unit sphere, E[s^2] = 4 pi / (pi 1e5) = 4e-5, a
+bias of 2e-4 = 0.2% of d = 0.1); every F-score is 1 above d and 0 below it.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from nerfgauge.cli import main
+from nerfgauge.eval.geometry import (
+    PointSet,
+    compare,
+    sample_surface,
+    surface_from_bytes,
+    visible_in_views,
+)
+from nerfgauge.nerf.mesh import extract_mesh, seen_by_any
+
+SAMPLES = 100_000
+
+
+def sphere(radius=1.0, subdivisions=5):
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+
+
+def test_scaled_sphere_distances_equal_the_offset():
+    vertices, faces = sphere()
+    d = 0.1
+    rng = np.random.default_rng(1)
+    gt = sample_surface(vertices, faces, SAMPLES, rng)
+    pred = sample_surface(vertices * (1 + d), faces, SAMPLES, rng)
+    scores, distances = compare(pred, gt, np.ones(SAMPLES, bool), [0.9 * d, 1.1 * d], 2.0 * np.sqrt(3))
+    for key in ("accuracy", "completeness", "chamfer_l1"):
+        assert scores[key] == pytest.approx(d, rel=0.01), key
+    low, high = scores["at_tau"]
+    assert (low["precision"], low["recall"], low["fscore"]) == (0.0, 0.0, 0.0)
+    assert (high["precision"], high["recall"], high["fscore"]) == (1.0, 1.0, 1.0)
+    assert high["tau_fraction"] == pytest.approx(1.1 * d / (2 * np.sqrt(3)))
+    assert distances["accuracy"].shape == (SAMPLES,)
+
+
+def test_identical_meshes_have_normal_consistency_one_and_no_distance():
+    vertices, faces = sphere()
+    rng = np.random.default_rng(2)
+    a = sample_surface(vertices, faces, SAMPLES, rng)
+    b = sample_surface(vertices, faces, SAMPLES, rng)
+    scores, _ = compare(a, b, np.ones(SAMPLES, bool), [0.05], 1.0)  # tau well above the spacing
+    # nearest samples lie on the same or a neighbouring face (about 2 degrees apart at subdivision 5)
+    assert scores["normal_consistency"] == pytest.approx(1.0, abs=1e-3)
+    assert scores["chamfer_l1"] < 0.012  # sample spacing ~ sqrt(4 pi / 1e5) = 0.011
+    assert scores["at_tau"][0]["fscore"] == 1.0
+
+
+def test_flipped_normals_still_consistent_and_point_clouds_have_none():
+    vertices, faces = sphere(subdivisions=3)
+    rng = np.random.default_rng(3)
+    a = sample_surface(vertices, faces, 20_000, rng)
+    flipped = sample_surface(vertices, faces[:, ::-1], 20_000, rng)
+    assert np.einsum("ij,ij->i", flipped.normals, flipped.points).max() < 0  # really inward
+    scores, _ = compare(flipped, a, np.ones(20_000, bool), [0.05], 1.0)
+    assert scores["normal_consistency"] > 0.99
+    scores, _ = compare(PointSet(a.points, None), a, np.ones(20_000, bool), [0.05], 1.0)
+    assert scores["normal_consistency"] is None
+
+
+def test_sampling_is_uniform_by_area_and_seeded():
+    # two unit squares, one scaled by 3: 9x the area gets 9x the points
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    both_v = np.concatenate([vertices, vertices * 3 + [5, 0, 0]])
+    both_f = np.concatenate([faces, faces + 4])
+    first = sample_surface(both_v, both_f, 100_000, np.random.default_rng(7))
+    again = sample_surface(both_v, both_f, 100_000, np.random.default_rng(7))
+    np.testing.assert_array_equal(first.points, again.points)
+    share = (first.points[:, 0] >= 5).mean()
+    assert share == pytest.approx(0.9, abs=0.005)  # binomial sd 0.001
+    small = first.points[first.points[:, 0] < 5]
+    assert (small[:, 0] < 0.5).mean() == pytest.approx(0.5, abs=0.01)  # uniform inside a square
+
+
+class Ball(torch.nn.Module):
+    """An analytic field: a smooth ball of radius 0.5 at the origin."""
+
+    def density(self, points):
+        return 100 * torch.sigmoid((0.5 - points.norm(dim=-1)) * 100)
+
+
+def test_marching_cubes_finds_the_ball_with_outward_faces():
+    box = np.array([[-1.0, -1, -1], [1, 1, 1]])
+    level = 50.0  # sigmoid = 1/2: exactly the radius
+    mesh = extract_mesh(Ball(), box, 64, level=level)
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    assert np.abs(radius - 0.5).max() < 2 / 64 / 4  # linear interpolation of a smooth field: well within a cell
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    assert (np.einsum("ij,ij->i", tm.face_normals, tm.triangles_center) > 0).all()
+    assert mesh.level_source == "given"
+
+
+def test_frustum_culling_keeps_only_what_a_camera_sees():
+    from nerfgauge.core.camera import Intrinsics, look_at
+
+    intrinsics = Intrinsics.from_fov(32, 32, 30.0)
+    c2w = look_at((0, 0, 5), (0, 0, 0), up=(0, 1, 0))[None]
+    points = np.array([[0, 0, 0], [0, 0, 6], [3, 0, 0], [0.5, 0.5, 0]])  # centre, behind, outside, inside
+    np.testing.assert_array_equal(seen_by_any(points, c2w, intrinsics), [True, False, False, True])
+
+
+def test_visibility_from_exact_depth(tiny_dataset):
+    """Every ground-truth sample that a train view's exact depth confirms is visible; the
+    undersides of the primitives (resting on z = 0, cameras above) are not."""
+    from nerfgauge.core.dataset import Dataset
+    from nerfgauge.eval.geometry import ground_truth_surface
+
+    ds = Dataset(tiny_dataset)
+    gt = ground_truth_surface(ds)
+    samples = sample_surface(gt.vertices, gt.faces, 20_000, np.random.default_rng(0))
+    visible = visible_in_views(samples.points, samples.normals, ds, "train")
+    # the blue box's underside, away from its edges by more than the largest depth tolerance
+    # (r sqrt(2) / (2 f) tan 80 deg: r < 6, f = 32 px / (2 tan(fov / 2)) > 20 px -> < 0.75)
+    cams = ds.cameras("train")
+    r = np.linalg.norm(cams.c2w[:, :3, 3], axis=1).max() + 2
+    margin = r * np.sqrt(2) / (2 * cams.intrinsics.fx) * np.tan(np.radians(80))
+    x, y = samples.points[:, 0], samples.points[:, 1]
+    assert margin > 0.3  # at 32 px the tolerance is wide: test the underside's centre
+    bottom_centre = (samples.normals[:, 2] < -0.99) & (samples.points[:, 2] < 1e-6) & \
+        (np.abs(x - 0.55) < 0.08) & (np.abs(y - 0.5) < 0.08)
+    assert bottom_centre.any() and not visible[bottom_centre].any()
+    assert 0.05 < visible.mean() < 0.95
+    # a visible sample is where some train camera's exact depth says the surface is: its
+    # projection lands on a hit pixel
+    hit_somewhere = np.zeros(len(samples.points), bool)
+    for index, pose in enumerate(cams.c2w):
+        from nerfgauge.nerf.mesh import project
+
+        u, v, _ = project(samples.points, pose, cams.intrinsics)
+        inside = (u >= 0) & (u < cams.intrinsics.width) & (v >= 0) & (v < cams.intrinsics.height)
+        mask = ds.mask("train", index)
+        hit_somewhere[np.flatnonzero(inside)[mask[v[inside].astype(int), u[inside].astype(int)]]] = True
+    assert not (visible & ~hit_somewhere).any()
+
+
+def test_geometry_command_scores_the_ground_truth_itself(tiny_dataset, tmp_path, capsys):
+    """The dataset's own meshes, exported as one PLY, score a perfect F-score and a
+    Chamfer distance of the order of the sample spacing."""
+    from nerfgauge.core.dataset import Dataset
+    from nerfgauge.eval.geometry import ground_truth_surface
+
+    gt = ground_truth_surface(Dataset(tiny_dataset))
+    path = tmp_path / "gt.ply"
+    path.write_bytes(trimesh.Trimesh(gt.vertices, gt.faces, process=False).export(file_type="ply"))
+    out = tmp_path / "new" / "geometry.json"
+    assert main(["geometry", str(tiny_dataset), "--pred-mesh", str(path), "-o", str(out), "--samples", "50000",
+                 "--tau", "0.2"]) == 0
+    document = json.loads(out.read_text())
+    assert [row["tau_fraction"] for row in document["at_tau"]][:2] == pytest.approx([0.005, 0.01])
+    assert document["at_tau"][-1]["tau"] == 0.2
+    assert all(row["fscore"] > 0.99 for row in document["at_tau"][1:])
+    assert document["normal_consistency"] > 0.99
+    # sample spacing sqrt(area / n) = sqrt(9.3 / 5e4) = 0.014 bounds the mean nearest distance
+    assert document["chamfer_l1"] < 0.014
+    assert (out.parent / ".nerfgauge.json").is_file()  # a folder the command made is claimed
+
+
+def _ply(vertices, faces=None) -> bytes:
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(vertices)}", "property float x", "property float y",
+             "property float z"]
+    if faces is not None:
+        lines += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    lines.append("end_header")
+    lines += [" ".join(str(c) for c in v) for v in vertices]
+    lines += [f"3 {' '.join(str(i) for i in f)}" for f in (faces or [])]
+    return ("\n".join(lines) + "\n").encode()
+
+
+@pytest.mark.parametrize("name,content,expected", [
+    ("empty.ply", _ply([]), "empty"),
+    ("nofaces.ply", _ply([[0, 0, 0], [1, 0, 0], [0, 1, 0]], []), "zero faces"),
+    ("nan.ply", _ply([[0, 0, 0], [float("nan"), 0, 0], [0, 1, 0]], [[0, 1, 2]]), "NaN or inf"),
+    ("inf.obj", b"v 0 0 0\nv inf 0 0\nv 0 1 0\nf 1 2 3\n", "NaN or inf"),
+    ("junk.ply", b"this is not a mesh at all", "not a readable mesh"),
+    ("far.ply", _ply([[100, 100, 100], [101, 100, 100], [100, 101, 100]], [[0, 1, 2]]), "outside the scene bounds"),
+    ("flat.ply", _ply([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]]), "zero surface area"),
+    ("mesh.txt", b"hello", "unknown mesh format"),
+])
+def test_bad_meshes_are_one_line_errors(tiny_dataset, tmp_path, capsys, name, content, expected):
+    path = tmp_path / name
+    path.write_bytes(content)
+    assert main(["geometry", str(tiny_dataset), "--pred-mesh", str(path), "-o", str(tmp_path / "g.json"),
+                 "--samples", "1000"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and expected in err, err
+    assert not (tmp_path / "g.json").exists()
+
+
+def test_dataset_without_meshes_is_refused(tiny_dataset, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dataset, copy)
+    shutil.rmtree(copy / "meshes")
+    mesh = tmp_path / "m.ply"
+    mesh.write_bytes(_ply([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
+    assert main(["geometry", str(copy), "--pred-mesh", str(mesh), "-o", str(tmp_path / "g.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no ground-truth meshes" in err
+
+
+def test_point_cloud_and_flags(tiny_dataset, tmp_path, capsys):
+    path = tmp_path / "cloud.ply"
+    path.write_bytes(_ply([[0.5, 0.5, 0.3], [0.4, 0.5, 0.3]]))
+    assert main(["geometry", str(tiny_dataset), "--pred-mesh", str(path), "-o", str(tmp_path / "g.json"),
+                 "--samples", "2000", "--whole-surface"]) == 0
+    document = json.loads((tmp_path / "g.json").read_text())
+    assert document["prediction"]["kind"] == "points" and document["normal_consistency"] is None
+    assert document["ground_truth"]["scored_fraction"] == 1.0
+    for flags in (["--tau", "nan"], ["--tau", "-1"], ["--samples", "0"], []):
+        assert main(["geometry", str(tiny_dataset), *flags] + (["--pred-mesh", str(path)] if flags else [])) == 2
+        assert capsys.readouterr().err.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_end_to_end_tiny_run(tiny_dataset, tmp_path):
+    """A few training steps, then mesh, geometry of the mesh and of the rendered depth,
+    and the field's normals: every number finite."""
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.render_views import render_split
+    from nerfgauge.nerf.train import train
+
+    run = tmp_path / "run"
+    train(TrainConfig(dataset=str(tiny_dataset), steps=300, batch_rays=2048), run, progress=False)
+    assert main(["mesh", str(run), "-o", str(tmp_path / "mesh.ply"), "--resolution", "48"]) == 0
+    assert main(["geometry", str(tiny_dataset), "--pred-mesh", str(tmp_path / "mesh.ply"), "-o",
+                 str(tmp_path / "g.json"), "--samples", "20000", "--run", str(run)]) == 0
+    document = json.loads((tmp_path / "g.json").read_text())
+    numbers = [document["accuracy"], document["completeness"], document["chamfer_l1"],
+               document["normals"]["mean_degrees"]] + [row["fscore"] for row in document["at_tau"]]
+    assert all(np.isfinite(numbers))
+    assert 0 <= document["normals"]["within"]["30"] <= 1
+    render_split(run, "test", progress=False)
+    assert main(["geometry", str(tiny_dataset), "--pred-depth", str(run / "renders"), "-o",
+                 str(tmp_path / "d.json"), "--samples", "20000"]) == 0
+    depth_doc = json.loads((tmp_path / "d.json").read_text())
+    assert depth_doc["ground_truth"]["visibility_split"] == "test"
+    assert np.isfinite(depth_doc["chamfer_l1"])
