@@ -38,6 +38,11 @@ CALIBRATION_RAYS = 16384  # training rays (strided over every view) that set the
 DENSITY_CHUNK = 1 << 21  # points per density query (~100 MB of temporaries)
 
 
+class NoSurface(InputError):
+    """The field has no surface to mesh (an empty scene, or a field trained too briefly):
+    a fact about the model, which the pipeline reports as "geometry n/a" instead of failing."""
+
+
 @dataclass(frozen=True)
 class ExtractedMesh:
     """vertices [n, 3] float64 world, faces [m, 3] int64; level: the density extracted
@@ -196,7 +201,7 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
     if not np.isfinite(volume).all():
         raise InputError(f"the field's density is NaN or inf at {int((~np.isfinite(volume)).sum())} grid points")
     if not volume.min() < level < volume.max():
-        raise InputError(f"the field has no surface in {np.round(box, 4).tolist()}: density ranges over "
+        raise NoSurface(f"the field has no surface in {np.round(box, 4).tolist()}: density ranges over "
                          f"[{volume.min():.4g}, {volume.max():.4g}], the surface level is {level:.4g}")
     # gradient_direction="ascent": the inside is where values exceed the level (density), so
     # the faces' normals point out of the dense region
@@ -213,7 +218,7 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
         remap[used] = np.arange(len(used))
         vertices, faces = vertices[used], remap[faces]
     if not len(faces):
-        raise InputError("no surface of the field lies where a training camera sees")
+        raise NoSurface("no surface of the field lies where a training camera sees")
     return ExtractedMesh(vertices, faces, float(level), source, resolution, np.asarray(box, np.float64), culled,
                          time.perf_counter() - start)
 

@@ -111,7 +111,8 @@ def _remove_empty_folder(path: Path) -> None:
 def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool = True) -> dict:
     from nerfgauge.core.files import read_json, write_json
     from nerfgauge.core.folders import claim_folder
-    from nerfgauge.eval.geometry import summary
+    from nerfgauge.eval.geometry import summary as geometry_summary
+    from nerfgauge.nerf.mesh import NoSurface
     from nerfgauge.eval.baselines import write_baseline
     from nerfgauge.eval.commands import baseline_folder
     from nerfgauge.eval.evaluate import evaluate, format_means
@@ -155,11 +156,16 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
         print("[4/5] evaluate and baselines")
         documents = {f"{config.model} NeRF": evaluate(out / "dataset", run_dir / "renders", "test",
                                                       out / "eval" / config.model / "metrics.json")}
-        geometry = None
+        geometry, no_geometry = None, None
         if config.model == "compact":
-            geometry = geometry_step(out / "dataset", run_dir, out / "eval" / config.model)
-            documents[f"{config.model} NeRF"]["geometry"] = summary(geometry[0])
-            write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
+            try:
+                geometry = geometry_step(out / "dataset", run_dir, out / "eval" / config.model)
+            except NoSurface as reason:  # a fact about the model: scored n/a, and a geometry gate fails on it
+                no_geometry = f"geometry n/a: {reason}"
+                print(no_geometry)
+            else:
+                documents[f"{config.model} NeRF"]["geometry"] = geometry_summary(geometry[0])
+                write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
         layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
         baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if layout == "lightfield" else [])
         for method in baselines:
@@ -180,6 +186,8 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                  "Image grid columns: ground truth, prediction, colour error (0-0.2), predicted depth, depth error "
                  "(0-10%)."]
         images = {"speed against error": out / "report" / "curve.png", "test views": out / "report" / "grid.png"}
+        if no_geometry is not None:
+            notes.append(no_geometry)
         if geometry is not None:
             geometry_histogram(geometry[1], geometry[0], out / "report" / "geometry.png")
             images["geometry: distances to the exact meshes"] = out / "report" / "geometry.png"
