@@ -45,9 +45,9 @@ METHODS = ("nearest", "lightfield-nearest", "lightfield-quadrilinear")
 GRID_TOLERANCE = 1e-6  # training cameras must sit on grid nodes to this fraction of a cell
 
 
-def _png_rgba_uint8(root: Path, stem: str, intrinsics) -> np.ndarray:
+def _png_rgba_uint8(ds: dataset.Dataset, stem: str, intrinsics) -> np.ndarray:
     """The frame's PNG as RGBA uint8 [H, W, 4] (exactly as stored, alpha added if absent)."""
-    rgba = dataset.read_rgba(root, stem, intrinsics)  # checks the size
+    rgba = dataset.read_rgba(ds, stem, intrinsics)  # checks the size
     return np.round(rgba * 255.0).astype(np.uint8)
 
 
@@ -65,25 +65,23 @@ def pose_distance(query_c2w: np.ndarray, train_c2w: np.ndarray, scale: float) ->
     return np.linalg.norm(offset, axis=-1) / scale + (1.0 - forward_q @ forward_k.T)
 
 
-def scene_scale(root: Path) -> float:
-    """Diagonal of the AABB from scene.json's bounds."""
-    try:
-        lo, hi = (np.asarray(b, np.float64) for b in dataset.read_scene_json(root)["bounds"])
-        scale = float(np.linalg.norm(hi - lo))
-    except (KeyError, TypeError, ValueError) as error:
-        raise InputError(f"{root / 'scene.json'}: 'bounds' must be [[x, y, z], [x, y, z]] ({error!r})") from None
-    if not np.isfinite(scale) or scale <= 0:
-        raise InputError(f"{root / 'scene.json'}: the bounds span no volume (diagonal {scale})")
-    return scale
+def scene_scale(root) -> float:
+    """Diagonal of the AABB from scene.json's bounds (finite, min < max: checked on open).
+    root: a dataset folder or an open Dataset (as for every function here)."""
+    ds = dataset.open_dataset(root)
+    if ds.bounds is None:
+        raise InputError(f"{ds.root / 'scene.json'}: no 'bounds' [[x, y, z], [x, y, z]]; the nearest baseline needs the scene's size")
+    return float(np.linalg.norm(ds.bounds[1] - ds.bounds[0]))
 
 
-def render_nearest(root: Path, split: str) -> dict:
+def render_nearest(root, split: str) -> dict:
     """{stem: RGBA uint8 [H, W, 4]}: each query frame's nearest training image."""
-    train, query = dataset.read_split(root, "train"), dataset.read_split(root, split)
+    ds = dataset.open_dataset(root)
+    train, query = ds.cameras("train"), ds.cameras(split)
     if not train.stems:
-        raise InputError(f"dataset {root} has no training views to copy")
-    nearest = np.argmin(pose_distance(query.c2w, train.c2w, scene_scale(root)), axis=1)  # [Q]
-    return {stem: _png_rgba_uint8(root, train.stems[k], train.intrinsics) for stem, k in zip(query.stems, nearest)}
+        raise InputError(f"dataset {ds.root} has no training views to copy")
+    nearest = np.argmin(pose_distance(query.c2w, train.c2w, scene_scale(ds)), axis=1)  # [Q]
+    return {stem: _png_rgba_uint8(ds, train.stems[k], train.intrinsics) for stem, k in zip(query.stems, nearest)}
 
 
 # --- two-plane light field ----------------------------------------------------------------
@@ -92,8 +90,10 @@ def render_nearest(root: Path, split: str) -> dict:
 class LightField:
     """The training grid of a light-field dataset: premultiplied images and cameras by node."""
 
-    def __init__(self, root: Path):
-        camera = dataset.read_scene_json(root).get("camera", {})
+    def __init__(self, root):
+        ds = dataset.open_dataset(root)
+        root = ds.root
+        camera = ds.scene.get("camera", {})
         plane = camera.get("lightfield") if isinstance(camera, dict) else None
         if not plane:
             raise InputError(f"dataset {root} was not made with --layout lightfield (camera.layout is "
@@ -107,7 +107,7 @@ class LightField:
             self.focal_distance = float(plane["focal_plane_distance"])
         except (KeyError, TypeError, ValueError) as error:
             raise InputError(f"{root / 'scene.json'}: camera.lightfield is malformed: {error!r}") from None
-        train = dataset.read_split(root, "train")
+        train = ds.cameras("train")
         self.intrinsics = train.intrinsics
         if min(self.intrinsics.width, self.intrinsics.height) < 2 or min(self.rows, self.cols) < 2:
             raise InputError("the light field needs a grid of at least 2x2 cameras and images of at least 2x2 pixels")
@@ -120,7 +120,7 @@ class LightField:
                              "grid of camera.lightfield one per node")
         order = np.argsort(index[:, 1] * self.cols + index[:, 0])  # row-major (t, s)
         self.c2w = train.c2w[order]  # [rows * cols, 4, 4]
-        self.images = np.stack([_png_rgba_uint8(root, train.stems[k], self.intrinsics) for k in order])  # [K, H, W, 4]
+        self.images = np.stack([_png_rgba_uint8(ds, train.stems[k], self.intrinsics) for k in order])  # [K, H, W, 4]
 
     def plane_coordinates(self, points: np.ndarray) -> np.ndarray:
         """Points on the camera plane -> (s, t) in grid units. points: [..., 3]. Returns [..., 2]."""
@@ -194,10 +194,11 @@ def _cell(coords: np.ndarray, sizes) -> tuple[np.ndarray, np.ndarray]:
     return base, np.clip(coords - base, 0.0, 1.0)
 
 
-def render_lightfield(root: Path, split: str, mode: str) -> dict:
+def render_lightfield(root, split: str, mode: str) -> dict:
     """{stem: RGBA uint8 [H, W, 4]} of every frame of `split` through the training light field."""
-    field = LightField(root)
-    query = dataset.read_split(root, split)
+    ds = dataset.open_dataset(root)
+    field = LightField(ds)
+    query = ds.cameras(split)
     if query.intrinsics != field.intrinsics:
         raise InputError(f"split {split} has other intrinsics than the training grid: {query.intrinsics} vs {field.intrinsics}")
     return {stem: _straight_to_png(field.render(c2w, mode)) for stem, c2w in zip(query.stems, query.c2w)}
@@ -215,12 +216,12 @@ def write_baseline(root, method: str, out, split: str = "test") -> dict:
     """Render `split` with `method` into out/<split>/ and write out/timing.json. Returns the timing."""
     if method not in METHODS:
         raise InputError(f"unknown baseline {method!r}; choose one of {', '.join(METHODS)}")
-    root, out = dataset.require_complete(root), Path(out)
+    ds, out = dataset.Dataset(root), Path(out)
     start = time.perf_counter()
     if method == "nearest":
-        frames = render_nearest(root, split)
+        frames = render_nearest(ds, split)
     else:
-        frames = render_lightfield(root, split, method.removeprefix("lightfield-"))
+        frames = render_lightfield(ds, split, method.removeprefix("lightfield-"))
     seconds = time.perf_counter() - start
     for stem, image in frames.items():
         (out / stem).parent.mkdir(parents=True, exist_ok=True)

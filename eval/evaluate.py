@@ -183,25 +183,26 @@ def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.n
 # --- scoring ----------------------------------------------------------------------------
 
 
-def score_frame(root: Path, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str):
+def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str):
     """Metrics of one frame ({metric: float or None}) and its error images."""
     rgb, alpha = read_colour(files.colour, intrinsics)
     if files.opacity is not None:
         alpha = _finite(read_plane(files.opacity, intrinsics), files.opacity)
     pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
-    gt = composite(dataset.read_rgba(root, stem, intrinsics), background)  # [H, W, 3]
-    mask = dataset.read_mask(root, stem, intrinsics)  # [H, W] bool
+    gt_rgba = dataset.read_rgba(ds, stem, intrinsics)  # [H, W, 4]
+    gt = composite(gt_rgba, background)  # [H, W, 3]
+    mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
-    values["psnr_foreground"] = psnr_foreground(pred, gt, foreground_pixels(root, stem, intrinsics, alpha))
+    values["psnr_foreground"] = psnr_foreground(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
     depth_err = None
     if files.depth is not None:
         depth = read_plane(files.depth, intrinsics, depth_kind)
-        gt_depth = dataset.read_depth(root, stem, intrinsics, depth_kind)
+        gt_depth = dataset.read_depth(ds, stem, intrinsics, depth_kind)
         try:
             scores = depth_metrics(depth, gt_depth, mask)
         except InputError as error:  # the prediction's fault or (a corrupt dataset) the ground truth's
-            gt_file = root / (stem + dataset.FRAME_SUFFIXES["distance" if depth_kind == "distance" else "z_depth"])
+            gt_file = ds.root / (stem + dataset.FRAME_SUFFIXES["distance" if depth_kind == "distance" else "z_depth"])
             raise InputError(f"{files.depth} against {gt_file}: {error}") from None
         values.update({f"depth_{key}": value for key, value in scores.items()})
         depth_err = depth_relative_error(depth, gt_depth, mask)
@@ -210,11 +211,11 @@ def score_frame(root: Path, stem: str, intrinsics, files: PredictionFiles, backg
     return values, colour_error(pred, gt).astype(np.float32), depth_err
 
 
-def foreground_pixels(root: Path, stem: str, intrinsics, pred_alpha) -> np.ndarray:
-    """Where either image is not pure background: ground-truth coverage (PNG alpha) above
-    zero, or predicted opacity that shows in 8 bits (> 0.5 / 255). Coverage rather than the
-    centre-ray mask, so wires thinner than a pixel count. Returns [H, W] bool."""
-    foreground = dataset.read_rgba(root, stem, intrinsics)[..., 3] > 0
+def foreground_pixels(gt_alpha: np.ndarray, pred_alpha) -> np.ndarray:
+    """Where either image is not pure background: ground-truth coverage (PNG alpha [H, W])
+    above zero, or predicted opacity that shows in 8 bits (> 0.5 / 255). Coverage rather
+    than the centre-ray mask, so wires thinner than a pixel count. Returns [H, W] bool."""
+    foreground = gt_alpha > 0
     if pred_alpha is not None:
         foreground |= pred_alpha > 0.5 / 255
     return foreground
@@ -233,13 +234,13 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         raise InputError(f"unknown background {background!r}; choose white or black")
     if depth_kind not in DEPTH_SUFFIXES:
         raise InputError(f"unknown depth kind {depth_kind!r}; choose distance or z")
-    root, pred_dir = dataset.require_complete(root), Path(pred_dir)
+    ds, pred_dir = dataset.Dataset(root), Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")
-    cameras = dataset.read_split(root, split)
-    scene = dataset.read_scene_json(root).get("recipe")
+    cameras = ds.cameras(split)
+    scene = ds.scene.get("recipe")
     if not isinstance(scene, str) or not scene:
-        raise InputError(f"{root / 'scene.json'}: 'recipe' must name the scene, got {scene!r}")
+        raise InputError(f"{ds.root / 'scene.json'}: 'recipe' must name the scene, got {scene!r}")
     extras = extra_frames(pred_dir, split, {Path(stem).name for stem in cameras.stems})
     if extras:
         raise InputError(f"{len(extras)} extra prediction file(s) not among the {len(cameras.stems)} frames of split "
@@ -254,10 +255,11 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     frames, maps = [], []
     for stem, files in found.items():
         try:
-            values, colour_err, depth_err = score_frame(root, stem, cameras.intrinsics, files,
+            values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
                                                         BACKGROUNDS[background], depth_kind)
-        except InputError as error:
-            raise InputError(f"frame {stem}: {error}") from None
+        except InputError as error:  # name the frame once (the dataset reader may have already)
+            message = str(error)
+            raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
         frames.append({"name": stem, **values})
         maps.append((stem, colour_err, depth_err))
     means, stds, counts = {}, {}, {}

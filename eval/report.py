@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from nerfgauge.eval.error_maps import colour_error, colourize, depth_relative_error
 
-from nerfgauge.core.dataset import read_depth, read_mask, read_rgba, read_split
+from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
 from nerfgauge.core.files import atomic_path, write_bytes_atomic
 from nerfgauge.core.images import read_exr_single, read_png
 
@@ -70,16 +70,17 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
     """Rows of (ground truth, prediction, colour error, predicted depth, depth error) PNG."""
     from nerfgauge.core.images import write_png
 
-    cameras = read_split(dataset_root, split)
+    ds = open_dataset(dataset_root)
+    cameras = ds.cameras(split)
     bg = np.asarray(background, np.float32)
     rows = []
     for stem in cameras.stems[:frames]:
-        gt = read_rgba(dataset_root, stem, cameras.intrinsics)
+        gt = read_rgba(ds, stem, cameras.intrinsics)
         pred = read_png(Path(pred_dir) / (stem + ".png"))
         gt_rgb = gt[..., :3] * gt[..., 3:] + bg * (1 - gt[..., 3:])
         pred_rgb = pred[..., :3] * pred[..., 3:] + bg * (1 - pred[..., 3:]) if pred.shape[-1] == 4 else pred
-        gt_depth = read_depth(dataset_root, stem, cameras.intrinsics)
-        mask = read_mask(dataset_root, stem, cameras.intrinsics)
+        gt_depth = read_depth(ds, stem, cameras.intrinsics)
+        mask = read_mask(ds, stem, cameras.intrinsics)
         depth_path = Path(pred_dir) / (stem + "_depth.exr")
         pred_depth = read_exr_single(depth_path) if depth_path.is_file() else np.zeros_like(gt_depth)
         far = float(gt_depth[mask].max()) if mask.any() else 1.0

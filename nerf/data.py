@@ -13,8 +13,7 @@ import numpy as np
 import torch
 
 from nerfgauge.core.camera import pixel_rays
-from nerfgauge.core.dataset import SplitCameras, read_rgba, read_split, require_complete
-from nerfgauge.core.files import read_json
+from nerfgauge.core.dataset import SplitCameras, open_dataset, read_rgba
 
 
 @dataclass(frozen=True)
@@ -36,14 +35,16 @@ def split_rays(cameras: SplitCameras, index: int) -> tuple[torch.Tensor, torch.T
 
 
 def load_split_rays(root, split: str, limit: Optional[int] = None) -> tuple[SplitCameras, RayBatch]:
-    """All rays and RGBA targets of a split (the first `limit` views if given)."""
-    cameras = read_split(root, split)
+    """All rays and RGBA targets of a split (the first `limit` views if given).
+    root: a dataset folder or an open nerfgauge.core.dataset.Dataset."""
+    ds = open_dataset(root)
+    cameras = ds.cameras(split)
     count = len(cameras.stems) if limit is None else min(limit, len(cameras.stems))
     origins, directions, colours = [], [], []
     for index in range(count):
         o, d = split_rays(cameras, index)
         origins.append(o), directions.append(d)
-        colours.append(torch.from_numpy(read_rgba(root, cameras.stems[index], cameras.intrinsics).reshape(-1, 4)))
+        colours.append(torch.from_numpy(read_rgba(ds, cameras.stems[index], cameras.intrinsics).reshape(-1, 4)))
     if not origins:
         empty = torch.zeros((0, 3))
         return cameras, RayBatch(empty, empty, torch.zeros((0, 4)), 0)
@@ -51,15 +52,10 @@ def load_split_rays(root, split: str, limit: Optional[int] = None) -> tuple[Spli
 
 
 def scene_info(root) -> tuple[Optional[dict], Optional[np.ndarray]]:
-    """(needs, aabb [2, 3]) from scene.json, or (None, None) for datasets without one."""
-    root = require_complete(root)
-    path = root / "scene.json"
-    if not path.is_file():
-        return None, None
-    scene = read_json(path)
-    bounds = scene.get("bounds")
-    aabb = np.asarray(bounds, np.float64) if bounds is not None else None
-    return scene.get("needs"), aabb
+    """(needs, aabb [2, 3]) from scene.json (either None when absent). The bounds are
+    checked on open: finite, min < max on every axis (nerfgauge.core.validate.bounds)."""
+    ds = open_dataset(root)
+    return ds.scene.get("needs"), ds.bounds
 
 
 def aabb_from_cameras(c2w: np.ndarray) -> np.ndarray:

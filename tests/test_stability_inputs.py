@@ -305,6 +305,7 @@ def test_corrupt_ground_truth_depth_names_the_dataset_file(half_hit, capsys):
     broken = distance.copy()
     broken[0, 0] = 0.0
     write_exr(root / "test/r_000_distance.exr", {"Z": broken}, {"nerfgauge_depth": "ray_distance"})
+    dataset.write_manifest(root, dataset.read_manifest(root))  # vouch for the edit: test the depth check
     assert main(["evaluate", str(root), "--pred", str(pred)]) == 2
     err = capsys.readouterr().err
     assert "test/r_000_distance.exr" in err and "ground-truth depth must be > 0" in err, err
@@ -557,6 +558,7 @@ def test_transforms_with_nan_pose_name_the_file(tmp_path, make_dataset):
     meta = json.loads(path.read_text())
     meta["frames"][1]["transform_matrix"][0][3] = float("nan")
     path.write_text(json.dumps(meta))
+    dataset.write_manifest(root, dataset.read_manifest(root))  # vouch for the edit: test the pose check
     with pytest.raises(InputError, match=r"transforms_test.json.*NaN or inf.*r_001"):
         dataset.read_split(root, "test")
 

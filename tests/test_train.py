@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from nerfgauge.cli import main
+from nerfgauge.core import dataset
 
 TRAIN_STEPS = 150
 
@@ -128,6 +129,7 @@ def test_bad_training_input(small_dataset, tmp_path, capsys):
     meta = json.loads((resized / "transforms_train.json").read_text())
     meta["w"] = 40
     (resized / "transforms_train.json").write_text(json.dumps(meta))
+    dataset.write_manifest(resized, dataset.read_manifest(resized))  # vouch for the edit: test the size check
     one_line_exit_2(capsys, ["train", str(resized), "--out", str(tmp_path / "r5"), "--steps", "5"], "32x32")
     for name in ("r1", "r2", "r3", "r4", "r5"):
         assert not (tmp_path / name).exists()

@@ -15,7 +15,12 @@ Layout of a dataset folder:
   transforms_{train,val,test}.json NeRF-synthetic
   transforms.json                  nerfstudio
   scene.json                       recipe, seed, bounds, needs, variant, versions
-  manifest.json                    sha256 of every file above; written last
+  manifest.json                    sha256 and size of every file above; written last
+
+Reading goes through `Dataset` (validated on open, every file confined to the root and
+checked against the manifest as it is read; see its docstring for the conventions of the
+arrays). The module-level readers (read_split, read_rgba, ...) take a Dataset or a path
+and run the same code.
 """
 
 from __future__ import annotations
@@ -25,13 +30,15 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfgauge.core import validate
 from nerfgauge.core.camera import Intrinsics
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, sha256_file, write_json
-from nerfgauge.core.images import read_exr_single, read_png
+from nerfgauge.core.images import read_exr, read_exr_single, read_png
 
 SPLITS = ("train", "val", "test")
 MANIFEST = "manifest.json"
+MANIFEST_SCHEMA = 2  # {"files": {rel: {"sha256": hex, "bytes": n}}}; schema 1 ({rel: hex}) is still read
 FRAME_SUFFIXES = {
     "png": ".png",
     "exr": ".exr",
@@ -83,16 +90,34 @@ def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses
 
 
 def write_manifest(root: Path, relative_paths) -> None:
-    """Hash every listed file and write manifest.json: the mark of a complete dataset."""
-    files = {rel: sha256_file(root / rel) for rel in sorted(relative_paths)}
-    write_json(root / MANIFEST, {"schema": 1, "files": files})
+    """Hash every listed file and write manifest.json (schema 2: sha256 and size in bytes):
+    the mark of a complete dataset."""
+    root = Path(root)
+    files = {rel: {"sha256": sha256_file(root / rel), "bytes": (root / rel).stat().st_size}
+             for rel in sorted(relative_paths)}
+    write_json(root / MANIFEST, {"schema": MANIFEST_SCHEMA, "files": files})
 
 
 def verify_manifest(root) -> list[str]:
-    """Relative paths whose content no longer matches manifest.json (missing counts)."""
-    manifest = read_json(Path(root) / MANIFEST)
-    return [rel for rel, digest in manifest.get("files", {}).items()
-            if not (Path(root) / rel).is_file() or sha256_file(Path(root) / rel) != digest]
+    """Relative paths whose content no longer matches manifest.json (missing, moved out of
+    the dataset through a symlink, resized or changed all count)."""
+    root = Path(root)
+    real_root = root.resolve()
+    changed = []
+    for rel, entry in read_manifest(root).items():
+        try:
+            data = validate.confine(real_root, rel).read_bytes()
+            validate.content(data, entry, root / rel)
+        except (InputError, OSError):
+            changed.append(rel)
+    return changed
+
+
+def read_manifest(root) -> dict:
+    """manifest.json -> {relative path: validate.ManifestEntry}; InputError if garbled."""
+    root = Path(root)
+    path = validate.confine(root.resolve(), MANIFEST)
+    return validate.manifest(read_json(path, finite=True), root / MANIFEST)
 
 
 # --- reading, for nerf/ and eval/ ---------------------------------------------------
@@ -108,52 +133,200 @@ class SplitCameras:
     intrinsics: Intrinsics
 
 
+class Dataset:
+    """A dataset folder, validated on open, read one verified file at a time.
+
+        ds = Dataset(root)             # InputError (one line) unless it is complete and sane
+        ds.splits                      # ("train", "val", "test") minus splits without frames
+        ds.frames("test")              # ("test/r_000", "test/r_001", ...): stems
+        ds.intrinsics("test"), ds.K("test"), ds.c2w("test"), ds.bounds, ds.scene
+        ds.image("test", 0)            # and image_linear, depth, normals, mask
+
+    Conventions (those of nerfgauge.core.camera and of the generator):
+    - c2w: [n, 4, 4] float64 camera-to-world, OpenGL/NeRF axes: +X right, +Y up, the camera
+      looks along -Z. Rigid: checked on open (nerfgauge.core.validate.pose).
+    - K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels; pixel (row i, col j) is sampled by
+      the ray through (j + 0.5, i + 0.5), row 0 at the top (camera.pixel_rays).
+    - image: [H, W, 4] float32 sRGB in [0, 1], straight alpha (alpha = coverage): the PNG.
+      image_linear: [H, W, 4] float32 linear RGB, premultiplied alpha: the EXR.
+    - depth: [H, W] float32, 0 = miss. kind="distance": Euclidean distance from the camera
+      centre along the pixel-centre ray; kind="z": depth along the optical axis, equal to
+      distance * cos(angle between the ray and -Z of c2w).
+    - normals: [H, W, 3] float32 world-space unit shading normals, 0 on misses.
+    - mask: [H, W] bool, True where the pixel-centre ray hits geometry (== depth > 0).
+
+    Every file is read through one path: its name is confined to the root (no absolute
+    paths or `..`; symlinks resolved and required to stay inside), it must be listed in
+    manifest.json, its size must match (schema 2), and its sha256 is computed over the bytes
+    read for decoding (verify_hashes=False skips only the hash). Images are checked before
+    decoding: signature, size at most validate.MAX_IMAGE_SIDE a side, size equal to the
+    transforms' w and h.
+    """
+
+    def __init__(self, root, *, verify_hashes: bool = True):
+        self.root = Path(root)
+        self.verify_hashes = verify_hashes
+        if not self.root.is_dir():
+            raise InputError(f"dataset folder not found: {self.root}")
+        if not (self.root / MANIFEST).is_file():
+            raise InputError(f"dataset {self.root} is incomplete (no {MANIFEST}); finish it with nerfgauge generate")
+        self._real_root = self.root.resolve()
+        self._manifest = read_manifest(self.root)
+        self._cameras = {}
+        for split in SPLITS:
+            name = f"transforms_{split}.json"
+            if name in self._manifest or (self.root / name).exists():
+                self._cameras[split] = self._read_transforms(split, name)
+        if not self._cameras:
+            raise InputError(f"dataset {self.root} has no transforms_<split>.json for any of {', '.join(SPLITS)}")
+        self.scene = self._read_json("scene.json", finite=True) if ("scene.json" in self._manifest
+                                                        or (self.root / "scene.json").exists()) else {}
+        bounds = self.scene.get("bounds")
+        self.bounds = None if bounds is None else validate.bounds(bounds, str(self.root / "scene.json"))
+
+    # --- files --------------------------------------------------------------------------
+
+    def read_bytes(self, rel: str, what: str = "") -> bytes:
+        """The bytes of the dataset file `rel` (relative POSIX path), confined to the root
+        and checked against the manifest. what: the frame, named in errors."""
+        label = f"{what}: " if what else ""
+        rel = validate.relative_path(rel, f"{label}{rel!r} in dataset {self.root}")
+        path = validate.confine(self._real_root, rel, what)
+        entry = self._manifest.get(rel)
+        if entry is None:
+            raise InputError(f"{label}{self.root / rel} is not listed in {self.root / MANIFEST}")
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise InputError(f"{label}{self.root / rel} is listed in {MANIFEST} but missing") from None
+        except OSError as error:
+            raise InputError(f"{label}cannot read {self.root / rel}: {error.strerror or error}") from None
+        validate.content(data, entry, self.root / rel, self.verify_hashes)
+        return data
+
+    def _read_json(self, rel: str, finite: bool) -> dict:
+        self.read_bytes(rel)  # confined and verified; the file is small, read_json reads it again
+        return read_json(self.root / rel, finite=finite)
+
+    def _read_transforms(self, split: str, name: str) -> SplitCameras:
+        where = str(self.root / name)
+        meta = self._read_json(name, finite=False)  # NaN in a pose is refused naming the frame
+        frames = meta.get("frames")
+        if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
+            raise InputError(f"{where}: 'frames' must be a list of objects")
+        intrinsics = validate.intrinsics(meta, where)
+        stems, poses = [], []
+        for k, frame in enumerate(frames):
+            if "file_path" not in frame or "transform_matrix" not in frame:
+                raise InputError(f"{where}: frame {k} needs file_path and transform_matrix")
+            stem = validate.relative_path(frame["file_path"], f"{where}: frame {k} file_path")
+            for key in ("depth_file_path", "mask_path"):
+                if key in frame:
+                    validate.relative_path(frame[key], f"{where}: frame {stem} {key}")
+            stems.append(stem)
+            poses.append(validate.pose(frame["transform_matrix"], stem, where))
+        c2w = np.stack(poses) if poses else np.zeros((0, 4, 4))
+        return SplitCameras(split, tuple(stems), c2w, intrinsics)
+
+    def _frame_file(self, stem: str, kind: str) -> tuple[Path, bytes]:
+        rel = stem + FRAME_SUFFIXES[kind]
+        return self.root / rel, self.read_bytes(rel, f"frame {stem}")
+
+    # --- cameras ------------------------------------------------------------------------
+
+    def cameras(self, split: str) -> SplitCameras:
+        """Stems, poses and intrinsics of `split` (empty for a split the dataset lacks)."""
+        if split not in SPLITS:
+            raise InputError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
+        if split not in self._cameras:
+            any_split = next(iter(self._cameras.values()))
+            return SplitCameras(split, (), np.zeros((0, 4, 4)), any_split.intrinsics)
+        return self._cameras[split]
+
+    @property
+    def splits(self) -> tuple:
+        return tuple(split for split in SPLITS if self.cameras(split).stems)
+
+    def frames(self, split: str) -> tuple:
+        return self.cameras(split).stems
+
+    def intrinsics(self, split: str) -> Intrinsics:
+        return self.cameras(split).intrinsics
+
+    def K(self, split: str) -> np.ndarray:
+        """[3, 3] float64 pinhole matrix in pixels."""
+        i = self.intrinsics(split)
+        return np.array([[i.fx, 0.0, i.cx], [0.0, i.fy, i.cy], [0.0, 0.0, 1.0]])
+
+    def c2w(self, split: str) -> np.ndarray:
+        """[n, 4, 4] float64 camera-to-world, OpenGL axes (a copy)."""
+        return self.cameras(split).c2w.copy()
+
+    # --- frames -------------------------------------------------------------------------
+
+    def _stem(self, split: str, index: int) -> str:
+        return self.frames(split)[index]
+
+    def image(self, split: str, index: int) -> np.ndarray:
+        """[H, W, 4] float32 straight-alpha sRGB in [0, 1] (the PNG)."""
+        return read_rgba(self, self._stem(split, index), self.intrinsics(split))
+
+    def image_linear(self, split: str, index: int) -> np.ndarray:
+        """[H, W, 4] float32 linear premultiplied RGBA (the EXR)."""
+        stem = self._stem(split, index)
+        path, data = self._frame_file(stem, "exr")
+        channels, _ = read_exr(path, data, self.intrinsics(split))
+        if "RGBA" in channels:
+            return channels["RGBA"]
+        if set("RGBA") <= set(channels):
+            return np.stack([channels[c] for c in "RGBA"], axis=-1)
+        raise InputError(f"frame {stem}: {path} has no RGBA channels (has {sorted(channels)})")
+
+    def depth(self, split: str, index: int, kind: str = "distance") -> np.ndarray:
+        """[H, W] float32, 0 = miss; kind "distance" (along the ray) or "z" (optical axis)."""
+        return read_depth(self, self._stem(split, index), self.intrinsics(split), kind)
+
+    def normals(self, split: str, index: int) -> np.ndarray:
+        """[H, W, 3] float32 world-space normals, 0 on misses."""
+        stem = self._stem(split, index)
+        path, data = self._frame_file(stem, "normals")
+        channels, _ = read_exr(path, data, self.intrinsics(split))
+        if not set("XYZ") <= set(channels):
+            raise InputError(f"frame {stem}: {path} has no X, Y, Z channels (has {sorted(channels)})")
+        return np.stack([channels[c] for c in "XYZ"], axis=-1)
+
+    def mask(self, split: str, index: int) -> np.ndarray:
+        """[H, W] bool: the pixel-centre ray hits geometry."""
+        return read_mask(self, self._stem(split, index), self.intrinsics(split))
+
+
+# --- the module-level readers: the same code, for callers holding a path ----------------
+
+
+def open_dataset(root) -> Dataset:
+    """`root` itself if it is a Dataset already, else Dataset(root)."""
+    return root if isinstance(root, Dataset) else Dataset(root)
+
+
 def require_complete(root) -> Path:
-    """The dataset folder, or an InputError if it is missing or was never finished."""
-    root = Path(root)
-    if not root.is_dir():
-        raise InputError(f"dataset folder not found: {root}")
-    if not (root / MANIFEST).is_file():
-        raise InputError(f"dataset {root} is incomplete (no {MANIFEST}); finish it with nerfgauge generate")
-    return root
+    """The dataset folder, or an InputError if it is missing, unfinished or fails the
+    checks on open (Dataset)."""
+    return open_dataset(root).root
 
 
 def read_split(root, split: str) -> SplitCameras:
     """Cameras of one split from transforms_<split>.json (NeRF-synthetic, with our extras)."""
-    if split not in SPLITS:
-        raise InputError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
-    root = require_complete(root)
-    meta = read_json(root / f"transforms_{split}.json")
-    try:
-        frames = meta["frames"]
-        poses = np.array([frame["transform_matrix"] for frame in frames], dtype=np.float64)
-        stems = tuple(frame["file_path"].removeprefix("./") for frame in frames)
-        width, height = int(meta["w"]), int(meta["h"])
-        intrinsics = Intrinsics(width, height, float(meta["fl_x"]), float(meta["fl_y"]),
-                                float(meta["cx"]), float(meta["cy"]))
-    except (KeyError, TypeError, ValueError) as error:
-        raise InputError(f"{root / f'transforms_{split}.json'} is malformed: {error!r}") from None
-    if len(frames) and poses.shape[1:] != (4, 4):
-        raise InputError(f"transforms_{split}.json: transform_matrix must be 4x4, got {poses.shape[1:]}")
-    if not np.isfinite(poses).all():
-        bad = sorted({stems[i] for i in np.flatnonzero(~np.isfinite(poses.reshape(len(poses), -1)).all(axis=1))})
-        raise InputError(f"{root / f'transforms_{split}.json'}: transform_matrix holds NaN or inf for {', '.join(bad[:3])}")
-    return SplitCameras(split, stems, poses.reshape(-1, 4, 4), intrinsics)
-
-
-def _check_size(array, intrinsics: Intrinsics, path) -> np.ndarray:
-    if array.shape[:2] != (intrinsics.height, intrinsics.width):
-        raise InputError(f"{path} is {array.shape[1]}x{array.shape[0]}, but the transforms say "
-                         f"{intrinsics.width}x{intrinsics.height}")
-    return array
+    return open_dataset(root).cameras(split)
 
 
 def read_rgba(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
     """The frame's PNG as straight-alpha sRGB in [0, 1]. Returns [H, W, 4] float32."""
-    path = Path(root) / (stem + FRAME_SUFFIXES["png"])
-    image = _check_size(read_png(path), intrinsics, path)
+    path, data = open_dataset(root)._frame_file(stem, "png")
+    image = read_png(path, data, intrinsics)
     if image.ndim == 2:
-        image = np.repeat(image[..., None], 3, axis=-1)
+        image = image[..., None]
+    if image.shape[-1] in (1, 2):  # gray (+ alpha)
+        image = np.concatenate([np.repeat(image[..., :1], 3, axis=-1), image[..., 1:]], axis=-1)
     if image.shape[-1] == 3:
         image = np.concatenate([image, np.ones_like(image[..., :1])], axis=-1)
     return image
@@ -163,15 +336,17 @@ def read_depth(root, stem: str, intrinsics: Intrinsics, kind: str = "distance") 
     """Ground-truth depth: "distance" (along the ray) or "z" (along the optical axis). [H, W]."""
     if kind not in DEPTH_KINDS:
         raise InputError(f"unknown depth kind {kind!r}; choose distance or z")
-    path = Path(root) / (stem + FRAME_SUFFIXES["distance" if kind == "distance" else "z_depth"])
-    return _check_size(read_exr_single(path), intrinsics, path)
+    path, data = open_dataset(root)._frame_file(stem, "distance" if kind == "distance" else "z_depth")
+    return read_exr_single(path, data, intrinsics)
 
 
 def read_mask(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
     """Pixels whose centre ray hits geometry. Returns [H, W] bool."""
-    path = Path(root) / (stem + FRAME_SUFFIXES["mask"])
-    return _check_size(read_png(path), intrinsics, path) > 0.5
+    path, data = open_dataset(root)._frame_file(stem, "mask")
+    mask = read_png(path, data, intrinsics)
+    return (mask if mask.ndim == 2 else mask[..., 0]) > 0.5
 
 
 def read_scene_json(root) -> dict:
-    return read_json(Path(root) / "scene.json")
+    """scene.json as validated on open ({} for a dataset without one)."""
+    return open_dataset(root).scene

@@ -2,14 +2,25 @@
 
 Every write is atomic (nerfgauge.core.files.atomic_path). PNG colour is straight (not premultiplied) alpha, as in
 NeRF-synthetic; EXR colour is linear and premultiplied, as EXR expects.
+
+Reading checks before decoding (nerfgauge.core.validate): the file's signature matches its
+extension, and the header's size is at most MAX_IMAGE_SIDE pixels a side (and, when given,
+the size the caller expects). Reading takes the file's bytes when the caller already has
+them (the dataset reader hashes them against the manifest first), so a file is read once.
 """
 
 from __future__ import annotations
+
+import io
+import warnings
+from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import OpenEXR
 from PIL import Image
 
+from nerfgauge.core import validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path
 
@@ -36,14 +47,45 @@ def write_png(path, image: np.ndarray) -> None:
         Image.fromarray(image).save(tmp, format="PNG")
 
 
-def read_png(path) -> np.ndarray:
-    """Returns float32 in [0, 1], [H, W] or [H, W, C] as stored."""
+def _file_bytes(path) -> bytes:
     try:
-        with Image.open(path) as image:
-            array = np.asarray(image)
-    except (OSError, ValueError) as error:
+        return Path(path).read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"missing file: {path}") from None
+    except OSError as error:
+        raise InputError(f"cannot read {path}: {error.strerror or error}") from None
+
+
+def read_png(path, data: Optional[bytes] = None, expected_size=None) -> np.ndarray:
+    """Returns float32 in [0, 1], [H, W] or [H, W, C] as stored (palette and 1-bit images
+    expanded). data: the file's bytes if already read (and verified); expected_size:
+    Intrinsics or (width, height) the header must state.
+
+    The signature and the header's size are checked before any pixel is decoded
+    (nerfgauge.core.validate: at most MAX_IMAGE_SIDE pixels a side); Pillow's
+    decompression-bomb error and warning become InputError.
+    """
+    data = _file_bytes(path) if data is None else data
+    validate.image_magic(data, path)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data), formats=["PNG"]) as image:  # lazy: the header only
+                validate.image_size(*image.size, path)
+                if expected_size is not None:
+                    validate.header_matches(*image.size, expected_size, path)
+                if image.mode in ("P", "PA"):
+                    image = image.convert("RGBA" if "transparency" in image.info or image.mode == "PA" else "RGB")
+                elif image.mode == "1":
+                    image = image.convert("L")
+                array = np.asarray(image)
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as error:
+        raise InputError(f"{path}: {error} (images above {validate.MAX_IMAGE_SIDE} pixels on a side are refused)") from None
+    except (OSError, ValueError, SyntaxError, EOFError) as error:
+        if isinstance(error, InputError):
+            raise
         raise InputError(f"cannot read image {path}: {error}") from None
-    if array.dtype == np.uint16:
+    if array.dtype == np.uint16 or array.dtype == np.int32:  # 16-bit PNG ("I;16" or "I")
         return array.astype(np.float32) / 65535.0
     return array.astype(np.float32) / 255.0
 
@@ -61,20 +103,41 @@ def write_exr(path, channels: dict, attributes: dict | None = None) -> None:
             exr.write(str(tmp))
 
 
-def read_exr(path) -> tuple[dict, dict]:
-    """Returns (channels: name -> float32 array, header dict)."""
+def read_exr(path, data: Optional[bytes] = None, expected_size=None) -> tuple[dict, dict]:
+    """Returns (channels: name -> float32 array, header dict). data, expected_size: as for
+    read_png. The signature and the dataWindow's size are checked before pixels are read.
+
+    The pixels are decoded from `data` through a stream where OpenEXR's binding accepts one
+    (3.5+); older bindings read `path` again (from the page cache) after the check.
+    """
+    data = _file_bytes(path) if data is None else data
+    validate.image_magic(data, path)
     try:
-        with OpenEXR.File(str(path)) as exr:
-            header = dict(exr.header())
+        try:
+            sources = (io.BytesIO(data), io.BytesIO(data))
+            with OpenEXR.File(sources[0], header_only=True) as exr:
+                header = dict(exr.header())
+        except TypeError:  # a binding without stream support
+            sources = (str(path), str(path))
+            with OpenEXR.File(sources[0], header_only=True) as exr:
+                header = dict(exr.header())
+        low, high = (np.asarray(corner, np.int64) for corner in header["dataWindow"])
+        width, height = (int(n) for n in high - low + 1)
+        validate.image_size(width, height, path)
+        if expected_size is not None:
+            validate.header_matches(width, height, expected_size, path)
+        with OpenEXR.File(sources[1], header_only=False) as exr:
             channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
+    except InputError:
+        raise
     except Exception as error:  # OpenEXR raises RuntimeError/OSError variants
         raise InputError(f"cannot read EXR {path}: {str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
     return channels, header
 
 
-def read_exr_single(path) -> np.ndarray:
+def read_exr_single(path, data: Optional[bytes] = None, expected_size=None) -> np.ndarray:
     """The one channel of a single-channel EXR (depth files). Returns [H, W] float32."""
-    channels, _ = read_exr(path)
+    channels, _ = read_exr(path, data, expected_size)
     if len(channels) != 1:
         raise InputError(f"{path} should hold one channel, has {sorted(channels)}")
     (values,) = channels.values()

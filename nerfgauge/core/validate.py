@@ -1,0 +1,216 @@
+"""Checks on what a dataset says about itself, run as it is read.
+
+Every function here raises `InputError` with one line naming the file (and the frame)
+and what was expected, and returns the checked value. All are pure but `confine`, which
+asks the file system where a path really leads.
+
+- Paths: a path read from a dataset file is relative, has no `..`, and resolves (symlinks
+  followed, `Path.resolve`) inside the dataset root.
+- Intrinsics: fl_x, fl_y finite and > 0; cx, cy finite; w, h integers in [1, MAX_IMAGE_SIDE].
+- Bounds: [[x, y, z], [x, y, z]], finite, min < max on every axis.
+- Poses: 4x4 finite; rotation orthonormal (max |R^T R - I| <= POSE_TOLERANCE) with
+  |det R - 1| <= POSE_TOLERANCE (no scale, shear or mirror); bottom row exactly 0 0 0 1.
+- Images: the magic bytes match the extension (PNG 89 50 4E 47 0D 0A 1A 0A, EXR 76 2F 31 01),
+  so JPEG bytes in a .png are refused. The size is read from the header (a PNG's IHDR via
+  Pillow's lazy open, an EXR's dataWindow) and refused BEFORE any pixel is decoded when a
+  side exceeds MAX_IMAGE_SIDE = 8192 pixels, the generator's own cap
+  (GenerateConfig.validate): at most 8192 * 8192 = 67,108,864 pixels, 1 GiB as float32
+  RGBA, and below Pillow's decompression-bomb threshold (89,478,485 pixels), so its
+  warning never fires for an image we accept.
+- manifest.json: schema 2 {"schema": 2, "files": {rel: {"sha256": hex, "bytes": n}}};
+  schema 1 {"schema": 1, "files": {rel: hex}} (no sizes) is still read. A file read from
+  the dataset must be listed, have the listed size and (unless hashing is off) the listed
+  sha256.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import numbers
+import re
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Optional
+
+import numpy as np
+
+from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.errors import InputError
+
+MAX_IMAGE_SIDE = 8192
+POSE_TOLERANCE = 1e-4
+MAGIC = {".png": b"\x89PNG\r\n\x1a\n", ".exr": b"\x76\x2f\x31\x01"}
+_OTHER_FORMATS = {b"\xff\xd8\xff": "JPEG", b"GIF8": "GIF", b"BM": "BMP", b"RIFF": "RIFF/WebP",
+                  b"II*\x00": "TIFF", b"MM\x00*": "TIFF", b"\x89PNG": "PNG", b"\x76\x2f\x31\x01": "EXR"}
+_SHA256 = re.compile(r"^[0-9a-f]{64}$")
+
+
+# --- paths -------------------------------------------------------------------------------
+
+
+def relative_path(value, what: str) -> str:
+    """A path as a dataset file states it -> normalised POSIX relative path ("./a//b" -> "a/b").
+
+    Refuses non-strings, empty paths, absolute paths, backslashes and `..` components.
+    """
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"{what}: expected a relative path, got {value!r}")
+    if "\\" in value or "\x00" in value:
+        raise InputError(f"{what}: path {value!r} holds a backslash or NUL; use / separated relative paths")
+    path = PurePosixPath(value)
+    if path.is_absolute():
+        raise InputError(f"{what}: absolute path {value!r} refused; paths must stay inside the dataset")
+    if ".." in path.parts:
+        raise InputError(f"{what}: path {value!r} climbs out with '..'; paths must stay inside the dataset")
+    normal = path.as_posix()
+    if normal in ("", "."):
+        raise InputError(f"{what}: expected a relative path, got {value!r}")
+    return normal
+
+
+def confine(real_root: Path, rel: str, what: str = "") -> Path:
+    """The real path of `rel` under `real_root` (already resolved), symlinks followed; an
+    InputError if it leads outside the root. what: who asked (e.g. "frame test/r_000")."""
+    label = f"{what}: " if what else ""
+    rel = relative_path(rel, label + repr(rel))
+    real = (real_root / rel).resolve()
+    if real != real_root and real_root not in real.parents:
+        raise InputError(f"{label}{rel} resolves to {real}, outside the dataset {real_root}")
+    return real
+
+
+# --- numbers from transforms and scene.json ----------------------------------------------
+
+
+def _real(value, name: str, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(float(value)):
+        raise InputError(f"{where}: {name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _side(value, name: str, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise InputError(f"{where}: {name} must be a whole number of pixels, got {value!r}")
+    if not 1 <= value <= MAX_IMAGE_SIDE:
+        raise InputError(f"{where}: {name} = {value} is outside 1..{MAX_IMAGE_SIDE} pixels")
+    return int(value)
+
+
+def intrinsics(meta: dict, where: str) -> Intrinsics:
+    """Intrinsics from a transforms document's w, h, fl_x, fl_y, cx, cy."""
+    missing = [key for key in ("w", "h", "fl_x", "fl_y", "cx", "cy") if key not in meta]
+    if missing:
+        raise InputError(f"{where}: missing camera field(s) {', '.join(missing)}")
+    width, height = _side(meta["w"], "w", where), _side(meta["h"], "h", where)
+    fx, fy = _real(meta["fl_x"], "fl_x", where), _real(meta["fl_y"], "fl_y", where)
+    if fx <= 0 or fy <= 0:
+        raise InputError(f"{where}: focal lengths must be > 0, got fl_x={fx} fl_y={fy}")
+    return Intrinsics(width, height, fx, fy, _real(meta["cx"], "cx", where), _real(meta["cy"], "cy", where))
+
+
+def bounds(value, where: str) -> np.ndarray:
+    """[[xmin, ymin, zmin], [xmax, ymax, zmax]] -> [2, 3] float64, finite, min < max."""
+    try:
+        array = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: bounds must be [[x, y, z], [x, y, z]] of numbers, got {value!r}") from None
+    if array.shape != (2, 3) or any(isinstance(v, (bool, str)) for row in value for v in row):
+        raise InputError(f"{where}: bounds must be [[x, y, z], [x, y, z]] of numbers, got {value!r}")
+    if not np.isfinite(array).all():
+        raise InputError(f"{where}: bounds hold NaN or inf: {array.tolist()}")
+    if not (array[0] < array[1]).all():
+        axes = ", ".join("xyz"[k] for k in np.flatnonzero(~(array[0] < array[1])))
+        raise InputError(f"{where}: bounds need min < max on every axis, not on {axes}: {array.tolist()}")
+    return array
+
+
+def pose(matrix, frame: str, where: str) -> np.ndarray:
+    """A rigid camera-to-world matrix -> [4, 4] float64 (see the module docstring)."""
+    try:
+        array = np.array(matrix, dtype=np.float64)
+        numeric = all(not isinstance(v, (bool, str)) for row in matrix for v in row)
+    except (TypeError, ValueError):
+        array, numeric = None, False
+    if array is None or not numeric or array.shape != (4, 4):
+        raise InputError(f"{where}: transform_matrix must be 4x4 numbers for frame {frame}")
+    if not np.isfinite(array).all():
+        raise InputError(f"{where}: transform_matrix holds NaN or inf for frame {frame}")
+    if array[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+        raise InputError(f"{where}: transform_matrix bottom row must be 0 0 0 1 for frame {frame}, got {array[3].tolist()}")
+    rotation = array[:3, :3]
+    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    det = float(np.linalg.det(rotation))
+    if error > POSE_TOLERANCE or abs(det - 1.0) > POSE_TOLERANCE:
+        raise InputError(f"{where}: transform_matrix is not a rigid camera-to-world for frame {frame} "
+                         f"(max |R^T R - I| = {error:.3g}, det R = {det:.6g}; need <= {POSE_TOLERANCE} and 1)")
+    return array
+
+
+# --- image headers -----------------------------------------------------------------------
+
+
+def image_magic(data: bytes, path) -> None:
+    """The leading bytes of `data` match the extension of `path` (.png or .exr)."""
+    suffix = Path(path).suffix.lower()
+    magic = MAGIC.get(suffix)
+    if magic is None or data.startswith(magic):
+        return
+    found = next((name for prefix, name in _OTHER_FORMATS.items() if data.startswith(prefix)), None)
+    what = f"{found} data" if found else f"no {suffix[1:].upper()} signature (starts {data[:8].hex(' ') or 'empty'})"
+    raise InputError(f"{path}: holds {what}, but its extension says {suffix[1:].upper()}")
+
+
+def image_size(width: int, height: int, path) -> None:
+    """Refuse an image whose header states a side above MAX_IMAGE_SIDE (before decoding)."""
+    if not (1 <= width <= MAX_IMAGE_SIDE and 1 <= height <= MAX_IMAGE_SIDE):
+        raise InputError(f"{path}: header says {width}x{height} pixels; images above {MAX_IMAGE_SIDE} "
+                         "pixels on a side are refused before decoding")
+
+
+def header_matches(width: int, height: int, expected, path) -> None:
+    """The header's size equals the transforms' (expected: Intrinsics or (width, height))."""
+    want = (expected.width, expected.height) if isinstance(expected, Intrinsics) else tuple(expected)
+    if (width, height) != want:
+        raise InputError(f"{path} is {width}x{height}, but the transforms say {want[0]}x{want[1]}")
+
+
+# --- manifest ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ManifestEntry:
+    """One file as manifest.json recorded it; size is None in schema-1 manifests."""
+
+    sha256: str
+    size: Optional[int]
+
+
+def manifest(document: dict, path) -> dict:
+    """A parsed manifest.json -> {relative path: ManifestEntry} (schema 1 or 2)."""
+    schema, files = document.get("schema"), document.get("files")
+    if schema not in (1, 2) or not isinstance(files, dict):
+        raise InputError(f"{path}: expected {{\"schema\": 1 or 2, \"files\": {{...}}}}, "
+                         f"got schema {schema!r} and files of type {type(files).__name__}")
+    entries = {}
+    for rel, entry in files.items():
+        if schema == 1:
+            digest, size = entry, None
+        elif isinstance(entry, dict):
+            digest, size = entry.get("sha256"), entry.get("bytes")
+        else:
+            digest, size = None, None
+        if not isinstance(digest, str) or not _SHA256.match(digest) or (
+                schema == 2 and (isinstance(size, bool) or not isinstance(size, int) or size < 0)):
+            raise InputError(f"{path}: entry {rel!r} is malformed; expected "
+                             + ("a sha256 hex digest" if schema == 1 else '{"sha256": hex, "bytes": size}'))
+        entries[relative_path(rel, f"{path}: entry")] = ManifestEntry(digest, size)
+    return entries
+
+
+def content(data: bytes, entry: ManifestEntry, path, check_hash: bool = True) -> None:
+    """`data` (a file's bytes) has the size and sha256 the manifest recorded."""
+    if entry.size is not None and len(data) != entry.size:
+        raise InputError(f"{path} changed since the manifest was written ({len(data)} bytes, manifest says {entry.size})")
+    if check_hash and hashlib.sha256(data).hexdigest() != entry.sha256:
+        raise InputError(f"{path} changed since the manifest was written (sha256 differs)")
