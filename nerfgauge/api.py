@@ -27,11 +27,16 @@ from pathlib import Path
 from nerfgauge.core.errors import InputError
 
 
-def _split_options(function: str, options: dict, config_class, run_settings: dict) -> tuple[dict, dict]:
+def _split_options(function: str, options: dict, config_class, run_settings: dict,
+                   first: str) -> tuple[dict, dict]:
     """(config fields, run settings) from `options`; unknown names are an InputError.
 
-    run_settings: {name: default} accepted beside the config's fields."""
-    fields = {field.name for field in dataclasses.fields(config_class)}
+    run_settings: {name: default} accepted beside the config's fields. first: the config
+    field given as the first argument (scene, dataset): repeating it as an option is an
+    InputError too, not Python's TypeError."""
+    if first in options:
+        raise InputError(f"{function}: {first} is the first argument; do not repeat it as an option")
+    fields = {field.name for field in dataclasses.fields(config_class)} - {first}
     unknown = sorted(name for name in options if name not in fields and name not in run_settings)
     if unknown:
         known = sorted(fields | set(run_settings))
@@ -42,12 +47,11 @@ def _split_options(function: str, options: dict, config_class, run_settings: dic
     return config, settings
 
 
-def _positional_only(function: str, options: dict, names: tuple) -> None:
-    """A positional-only argument (scene, dataset) repeated as a keyword option is an
-    InputError, not Python's TypeError: generate_dataset("primitives", out, scene="thin")."""
-    repeated = [name for name in names if name in options]
-    if repeated:
-        raise InputError(f"{function}: {', '.join(repeated)} is the first argument; do not repeat it as an option")
+def _folder(dataset):
+    """A dataset argument as a path: a folder, or the root of a `Dataset` already open."""
+    from nerfgauge.core.dataset import Dataset
+
+    return dataset.root if isinstance(dataset, Dataset) else dataset
 
 
 def generate_dataset(scene: str, /, out, **options) -> Path:
@@ -57,13 +61,11 @@ def generate_dataset(scene: str, /, out, **options) -> Path:
     max_depth, fov, layout, sampling, elevation, radius, variant) and workers=1,
     overwrite=False, progress=False. Returns the dataset folder.
     """
-    from nerfgauge.generate.pipeline import GenerateConfig
-    from nerfgauge.generate.pipeline import generate as generate_dataset
+    from nerfgauge.generate import pipeline
 
-    _positional_only("generate_dataset", options, ("scene",))
-    fields, settings = _split_options("generate_dataset", options, GenerateConfig,
-                                      {"workers": 1, "overwrite": False, "progress": False})
-    generate_dataset(GenerateConfig(scene=scene, **fields), out, **settings)
+    fields, settings = _split_options("generate_dataset", options, pipeline.GenerateConfig,
+                                      {"workers": 1, "overwrite": False, "progress": False}, first="scene")
+    pipeline.generate(pipeline.GenerateConfig(scene=scene, **fields), out, **settings)
     return Path(out)
 
 
@@ -77,9 +79,9 @@ def train(dataset, /, out, **options) -> dict:
     from nerfgauge.nerf.config import TrainConfig
     from nerfgauge.nerf.train import train as train_run
 
-    _positional_only("train", options, ("dataset",))
-    fields, settings = _split_options("train", options, TrainConfig, {"resume": False, "progress": False})
-    return train_run(TrainConfig(dataset=str(dataset), **fields), out, **settings)
+    fields, settings = _split_options("train", options, TrainConfig, {"resume": False, "progress": False},
+                                      first="dataset")
+    return train_run(TrainConfig(dataset=str(_folder(dataset)), **fields), out, **settings)
 
 
 def render(run_dir, split: str = "test", *, out=None, threads=None, progress: bool = False) -> Path:
@@ -101,7 +103,7 @@ def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = 
     ({"schema", "scene", "split", "mean", "std", "count", "frames", "timing", ...})."""
     from nerfgauge.eval.evaluate import evaluate as evaluate_split
 
-    return evaluate_split(dataset, pred, split=split, out=out, background=background, depth_kind=depth_kind)
+    return evaluate_split(_folder(dataset), pred, split=split, out=out, background=background, depth_kind=depth_kind)
 
 
 def check(metrics, thresholds, *, scene: str | None = None) -> list:
@@ -138,5 +140,6 @@ def run_pipeline(scene: str = "primitives", out="nerfgauge-run", **options) -> d
     from nerfgauge.run import RunConfig
     from nerfgauge.run import run_pipeline as run_stages
 
-    fields, settings = _split_options("run_pipeline", options, RunConfig, {"overwrite": False, "progress": False})
+    fields, settings = _split_options("run_pipeline", options, RunConfig, {"overwrite": False, "progress": False},
+                                      first="scene")
     return run_stages(RunConfig(scene=scene, out=str(out), **fields), **settings)

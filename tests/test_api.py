@@ -107,7 +107,7 @@ def test_train_render_evaluate_check_on_a_tiny_dataset(tiny_dataset, tmp_path):
     renders = nerfgauge.render(tmp_path / "run")
     assert renders == tmp_path / "run" / "renders"
     assert sorted(p.name for p in (renders / "test").glob("*.png")) == ["r_000.png", "r_001.png"]
-    metrics = nerfgauge.evaluate(tiny_dataset, renders, out=tmp_path / "metrics.json")
+    metrics = nerfgauge.evaluate(nerfgauge.Dataset(tiny_dataset), renders, out=tmp_path / "metrics.json")  # or a path
     assert json.loads((tmp_path / "metrics.json").read_text())["mean"] == metrics["mean"]
     assert metrics["scene"] == "primitives" and len(metrics["frames"]) == 2
     results = nerfgauge.check(metrics, {"primitives": {"psnr": {"min": 0.0}, "depth_delta1": {"max": 1.0}}})
