@@ -123,7 +123,7 @@ def readme_example() -> str:
     return match.group(1)
 
 
-@pytest.mark.slow  # generates a dataset and trains 20 steps: 5-10 s on two idle cores
+@pytest.mark.slow  # generates a dataset and trains 20 steps: well over 5 s
 def test_readme_example_runs_as_written(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     exec(compile(readme_example(), str(REPOSITORY / "README.md"), "exec"), {"__name__": "__main__"})
