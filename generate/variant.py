@@ -103,7 +103,7 @@ def resolve_variant(requested: str = "auto") -> str:
     if prepare_llvm_path() is not None:
         return VARIANTS["llvm"]
     _note_once("no libLLVM >= 17 found (Debian: apt-get install libllvm19); rendering with "
-               "scalar_rgb, 5-8x slower than llvm_ad_rgb")
+               "scalar_rgb, slower than llvm_ad_rgb (the demo's dataset: about 2x the CPU time)")
     return VARIANTS["scalar"]
 
 
