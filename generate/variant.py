@@ -1,7 +1,10 @@
 """Mitsuba variant choice, in one place.
 
 auto: `cuda_ad_rgb` when a CUDA driver answers, `llvm_ad_rgb` when a working libLLVM is
-found, else `scalar_rgb` with one note. Dr.Jit reads `DRJIT_LIBLLVM_PATH` when its LLVM
+found, else `scalar_rgb` with one note. The environment variable NERFGAUGE_MITSUBA_VARIANT
+(auto|cuda|llvm|scalar) replaces what auto picks, for every command and test at once:
+`NERFGAUGE_MITSUBA_VARIANT=scalar` runs on a machine with libLLVM as if it had none (CI
+proves the scalar path that way); an explicit `--variant` still wins over it. Dr.Jit reads `DRJIT_LIBLLVM_PATH` when its LLVM
 backend starts, so the path is set before mitsuba is first imported. The system's older
 LLVMs (14, 15) crash Dr.Jit, so only libLLVM 17 or newer is picked automatically; a
 `DRJIT_LIBLLVM_PATH` set by the user is trusted as it is.
@@ -20,6 +23,7 @@ from nerfgauge.core.errors import InputError
 
 VARIANTS = {"cuda": "cuda_ad_rgb", "llvm": "llvm_ad_rgb", "scalar": "scalar_rgb"}
 CHOICES = ("auto",) + tuple(VARIANTS)
+ENVIRONMENT = "NERFGAUGE_MITSUBA_VARIANT"
 MIN_LLVM_MAJOR = 17
 LIBLLVM_PATTERNS = (
     "/usr/lib/*-linux-gnu/libLLVM-[0-9]*.so*",
@@ -67,23 +71,39 @@ def _note_once(message: str) -> None:
     print(f"nerfgauge: note: {message}", file=sys.stderr)
 
 
+def environment_choice() -> str:
+    """What NERFGAUGE_MITSUBA_VARIANT asks `auto` to be: auto (unset or empty), cuda, llvm or scalar."""
+    value = os.environ.get(ENVIRONMENT, "").strip()
+    if not value:
+        return "auto"
+    if value not in CHOICES:
+        raise InputError(f"{ENVIRONMENT}={value!r} is not a variant; choose one of {', '.join(CHOICES)}")
+    return value
+
+
 def resolve_variant(requested: str = "auto") -> str:
-    """The Mitsuba variant name for `requested` (auto|cuda|llvm|scalar), without importing it."""
+    """The Mitsuba variant name for `requested` (auto|cuda|llvm|scalar), without importing it.
+
+    auto means NERFGAUGE_MITSUBA_VARIANT when that is set, else the fastest variant found."""
     if requested not in CHOICES:
         raise InputError(f"unknown variant {requested!r}; choose one of {', '.join(CHOICES)}")
+    source = f"variant {requested}"
+    if requested == "auto":
+        requested = environment_choice()
+        source = f"{ENVIRONMENT}={requested}"
     if requested != "auto":
         if requested == "llvm" and prepare_llvm_path() is None:
-            raise InputError("variant llvm needs libLLVM >= 17 (Debian: apt-get install libllvm19) "
+            raise InputError(f"{source} needs libLLVM >= 17 (Debian: apt-get install libllvm19) "
                              "or DRJIT_LIBLLVM_PATH")
         if requested == "cuda" and not cuda_available():
-            raise InputError("variant cuda needs a CUDA driver and a GPU; none was found")
+            raise InputError(f"{source} needs a CUDA driver and a GPU; none was found")
         return VARIANTS[requested]
     if cuda_available():
         return VARIANTS["cuda"]
     if prepare_llvm_path() is not None:
         return VARIANTS["llvm"]
     _note_once("no libLLVM >= 17 found (Debian: apt-get install libllvm19); rendering with "
-               "scalar_rgb, 5-8x slower than llvm_ad_rgb")
+               "scalar_rgb, slower than llvm_ad_rgb (the demo's dataset: about 2x the CPU time)")
     return VARIANTS["scalar"]
 
 

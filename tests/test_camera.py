@@ -14,6 +14,24 @@ from nerfgauge.core.camera import (
 )
 
 
+def mitsuba_sensor_rays(mi, sensor, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mitsuba's own rays through every pixel centre, row-major. Returns origins, directions [H * W, 3].
+
+    The vectorised variants take all film positions in one call; scalar_rgb's Point2f holds
+    one point, so there it is one call per pixel."""
+    rows, cols = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    u = ((cols + 0.5) / width).ravel().astype(np.float32)  # [H * W]
+    v = ((rows + 0.5) / height).ravel().astype(np.float32)
+    if mi.variant().startswith("scalar"):
+        rays = [sensor.sample_ray(0.0, 0.0, mi.Point2f(float(a), float(b)), mi.Point2f(0.5, 0.5))[0]
+                for a, b in zip(u, v)]
+        return (np.array([[ray.o[k] for k in range(3)] for ray in rays], np.float64),
+                np.array([[ray.d[k] for k in range(3)] for ray in rays], np.float64))
+    ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(u, v), mi.Point2f(0.5, 0.5))
+    return (np.stack([np.array(ray.o[k]) for k in range(3)], -1).astype(np.float64),
+            np.stack([np.array(ray.d[k]) for k in range(3)], -1).astype(np.float64))
+
+
 @pytest.mark.parametrize("width,height", [(32, 32), (40, 24), (17, 29)])
 def test_pixel_rays_equal_mitsuba_sensor_rays(mi, width, height):
     from nerfgauge.generate.render import sensor_dict
@@ -22,15 +40,10 @@ def test_pixel_rays_equal_mitsuba_sensor_rays(mi, width, height):
     intrinsics = Intrinsics.from_fov(width, height, 50.0)
     sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, 1))
     origins, directions = pixel_rays(c2w, intrinsics)
-    rows, cols = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
-    film_pos = mi.Point2f(((cols + 0.5) / width).ravel().astype(np.float32),
-                          ((rows + 0.5) / height).ravel().astype(np.float32))
-    ray, _ = sensor.sample_ray(0.0, 0.0, film_pos, mi.Point2f(0.5, 0.5))
-    mitsuba_d = np.stack([np.array(ray.d[k]) for k in range(3)], -1)
+    mitsuba_o, mitsuba_d = mitsuba_sensor_rays(mi, sensor, width, height)
     # float32 film positions and Mitsuba's float32 matrices: ~1e-7 per component.
     np.testing.assert_allclose(mitsuba_d, directions.reshape(-1, 3), atol=1e-5)
     # Mitsuba starts rays at the near clip along the same line through the camera centre.
-    mitsuba_o = np.stack([np.array(ray.o[k]) for k in range(3)], -1)
     offset = mitsuba_o - origins.reshape(-1, 3)
     np.testing.assert_allclose(np.cross(offset, directions.reshape(-1, 3)), 0, atol=1e-5)
 
