@@ -38,7 +38,8 @@ def test_the_scene_package_never_imports_a_renderer():
     import subprocess
     import sys
 
-    code = "import sys, scenes; scenes.make_scene('random', 1); print('mitsuba' in sys.modules)"
+    code = ("import sys, nerfgauge.scenes as scenes; scenes.make_scene('random', 1); "
+            "print('mitsuba' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout.strip() == "False"
 
 
