@@ -21,7 +21,6 @@ from nerfgauge.eval.geometry import (
     PointSet,
     compare,
     sample_surface,
-    surface_from_bytes,
     visible_in_views,
 )
 from nerfgauge.nerf.mesh import extract_mesh, seen_by_any

@@ -9,6 +9,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from cli_errors import one_line_exit_2
 
 from nerfgauge.cli import main
 from nerfgauge.core import dataset
@@ -63,7 +64,11 @@ def test_model_loads_with_weights_only_and_renders_every_frame(trained_run, smal
 def test_pruned_model_renders_like_the_full_one(trained_run):
     """Pruning drops only grid nodes no occupied cell touches, and stores values as float16:
     renders agree to float16's resolution of the colour logits (~1e-3), not exactly."""
-    from nerfgauge.nerf.checkpoint import load_checked, model_from_payload, restore_model
+    from nerfgauge.nerf.checkpoint import (
+        load_checked,
+        model_from_payload,
+        restore_model,
+    )
     from nerfgauge.nerf.config import TrainConfig
     from nerfgauge.nerf.data import load_split_rays
     from nerfgauge.nerf.train import render_rays_chunked
@@ -109,17 +114,6 @@ def test_vanilla_nerf_trains_a_few_steps(small_dataset, tmp_path):
     payload = torch.load(run / "model.pt", weights_only=True)
     assert payload["model"] == "vanilla" and any(k.startswith("fine.") for k in payload["state"])
 
-
-def one_line_exit_2(capsys, argv, expected):
-    """Exit 2 and one error line naming `expected`: an InputError (main returns 2) or a
-    flag argparse refused (SystemExit 2, after its usage lines)."""
-    try:
-        code = main(argv)
-    except SystemExit as exit:
-        code = exit.code
-    err = capsys.readouterr().err.strip()
-    errors = [line for line in err.splitlines() if "error:" in line]
-    assert code == 2 and len(errors) == 1 and expected in errors[0] and "Traceback" not in err, err
 
 
 def test_bad_training_input(small_dataset, tmp_path, capsys):

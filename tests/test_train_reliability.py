@@ -21,12 +21,12 @@ import time
 
 import pytest
 import torch
-
-from nerfgauge.cli import main
+from cli_errors import one_line_exit_2
 from nerfgauge.nerf import train as train_module
 from nerfgauge.nerf.config import TrainConfig
 from nerfgauge.nerf.train import train
 
+from nerfgauge.cli import main
 from nerfgauge.core.errors import InputError
 
 
@@ -175,17 +175,6 @@ def test_a_torn_last_log_line_is_dropped_on_resume(tiny_dataset, tmp_path):
     assert main(["train", str(tiny_dataset), "--out", str(run), "--steps", "5", "--resume", "--quiet"]) == 0
     assert log_steps(run) == [0, 3, 5]
 
-
-def one_line_exit_2(capsys, argv, expected):
-    """Exit 2 and one error line naming `expected`: an InputError (main returns 2) or a
-    flag argparse refused (SystemExit 2, after its usage lines)."""
-    try:
-        code = main(argv)
-    except SystemExit as exit:
-        code = exit.code
-    err = capsys.readouterr().err.strip()
-    errors = [line for line in err.splitlines() if "error:" in line]
-    assert code == 2 and len(errors) == 1 and expected in errors[0] and "Traceback" not in err, err
 
 
 @pytest.fixture(scope="module")

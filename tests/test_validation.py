@@ -15,6 +15,7 @@ import zlib
 
 import numpy as np
 import pytest
+from cli_errors import one_line_exit_2
 from PIL import Image, PngImagePlugin
 
 from nerfgauge.cli import main
@@ -49,10 +50,7 @@ def edit_json(path, change):
 
 
 def one_line(capsys, argv, *expected):
-    assert main(argv) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and all(text in err for text in expected), err
-    return err
+    return one_line_exit_2(capsys, argv, *expected)
 
 
 def evaluate_fails(capsys, root, *expected):
