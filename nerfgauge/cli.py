@@ -84,6 +84,7 @@ def main(argv=None) -> int:
     debug = bool(os.environ.get("NERFGAUGE_DEBUG"))
     try:
         code = args.func(args)
+        sys.stdout.flush()  # a reader that left shows here (BrokenPipeError), not at interpreter exit
     except KeyboardInterrupt:
         print(f"nerfgauge {command}: interrupted", file=sys.stderr)
         return 130
