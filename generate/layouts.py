@@ -33,7 +33,8 @@ class LayoutSpec:
     radius: camera distance from the AABB centre (scene units).
     eye, target, spread: "forward" (cluster centre, the point faced, cluster radius) and
     "inside" (spread = half-size of the box around the AABB centre the cameras stand in);
-    None picks a default from the AABB."""
+    target also centres the orbiting layouts (a scene whose objects sit in a far larger
+    world orbits them, inside its AABB, on purpose); None picks a default from the AABB."""
 
     layout: str
     counts: tuple  # (train, val, test)
@@ -78,9 +79,12 @@ def camera_poses(spec: LayoutSpec, aabb: np.ndarray, rng: np.random.Generator) -
         if spec.layout == "sphere":
             lo, hi = -89.0, 89.0
         directions = _directions(spec.layout, spec.sampling, total, lo, hi, rng)
+        # A target comes from a scene's camera hint; otherwise cameras inside the AABB are
+        # a radius that is too small, and a layout meant to look in would look out.
+        centre = centre if spec.target is None else np.asarray(spec.target, np.float64)
         eyes = centre + spec.radius * directions
         inside = np.all((eyes >= aabb[0]) & (eyes <= aabb[1]), axis=1)
-        if inside.any():
+        if spec.target is None and inside.any():
             raise InputError(f"camera radius {spec.radius:g} puts cameras inside the scene's AABB "
                              f"{aabb[0].round(3).tolist()}..{aabb[1].round(3).tolist()}; use a larger --radius")
         stacked = np.stack([look_at(eye, centre) for eye in eyes])

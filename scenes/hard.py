@@ -183,7 +183,7 @@ def far_reaching(seed: int):
         distance = 55.0 + 40.0 * ((index * 5) % 8) / 7
         shapes.append(Sphere(f"hill_{index}", (distance * math.cos(angle), distance * math.sin(angle), -6.0),
                              14.0 + 2.0 * (index % 3), hill_materials[index % 2]))
-    cameras = CameraHint("orbit", radius=3.2, elevation=(12.0, 12.0))
+    cameras = CameraHint("orbit", radius=3.2, elevation=(12.0, 12.0), target=(0.0, 0.0, 0.35))
     return build_scene("far-reaching", seed, shapes, [SOFT_SKY], aabb=((-100.0, -100.0, -1.0), (100.0, 100.0, 30.0)),
                        cameras=cameras)
 

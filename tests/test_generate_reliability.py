@@ -308,3 +308,23 @@ def test_kill_9_with_two_workers_leaves_no_orphans_and_resumes_byte_identical(tm
     assert run_cli(*args[:-3], "--quiet", "--out", clean) == 0  # one process: the bytes do not depend on workers
     assert dataset.verify_manifest(out) == []
     assert tree(out) == tree(clean)
+
+
+def test_a_scene_target_centres_the_orbit_inside_its_world():
+    """A scene hint's target centres an orbit that stands inside the AABB on purpose (the
+    far-reaching scene); without a target, cameras inside the AABB are still refused."""
+    from nerfgauge.core.errors import InputError
+    from nerfgauge.generate.layouts import LayoutSpec, camera_poses
+
+    aabb = np.array([[-100.0, -100.0, -1.0], [100.0, 100.0, 30.0]])
+    target = np.array([0.0, 0.0, 0.35])
+    spec = LayoutSpec("orbit", (6, 0, 2), 3.2, (12.0, 12.0), target=tuple(target))
+    poses = np.concatenate([p for p in camera_poses(spec, aabb, np.random.default_rng(0)).values() if len(p)])
+    eyes = poses[:, :3, 3]
+    np.testing.assert_allclose(np.linalg.norm(eyes - target, axis=1), 3.2, rtol=1e-12)
+    forward = -poses[:, :3, 2]  # OpenGL cameras look along -Z
+    towards = (target - eyes) / np.linalg.norm(target - eyes, axis=1, keepdims=True)
+    np.testing.assert_allclose(np.sum(forward * towards, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.degrees(np.arcsin((eyes[:, 2] - target[2]) / 3.2)), 12.0, atol=1e-9)
+    with pytest.raises(InputError, match="inside the scene's AABB"):
+        camera_poses(LayoutSpec("orbit", (6, 0, 2), 3.2, (12.0, 12.0)), aabb, np.random.default_rng(0))
