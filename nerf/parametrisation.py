@@ -232,14 +232,15 @@ def contraction_frame(aabb: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, fl
     """(centre [3], inner radius) of the contraction for cameras among the content.
 
     Centre: where the optical axes meet (an orbit's target; outward-looking cameras: about
-    their centroid), kept inside the AABB; the AABB's centre when the axes are parallel.
+    their centroid), kept inside the AABB; the cameras' centroid when the axes are parallel
+    (the AABB's centre may be far from anything the cameras see).
     Radius: the inner (linear, finest) ball holds the cameras (1.1 x the farthest); when the
     whole AABB lies within NEAR_AABB_FACTOR of that, it is all near content and the ball
     reaches the AABB's faces (a room), else content beyond the cameras is contracted (an
     AABB of far terrain would otherwise spread the grid over it)."""
     aabb = np.asarray(aabb, dtype=float)
     focus = axes_focus(c2w)
-    centre = (aabb[0] + aabb[1]) / 2 if focus is None else np.clip(focus, aabb[0], aabb[1])
+    centre = np.clip(c2w[:, :3, 3].mean(axis=0) if focus is None else focus, aabb[0], aabb[1])
     cams = 1.1 * float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).max())
     reach = float(np.maximum(aabb[1] - centre, centre - aabb[0]).max())
     radius = reach if reach <= NEAR_AABB_FACTOR * cams else cams

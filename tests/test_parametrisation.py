@@ -262,10 +262,10 @@ def test_contraction_frame_centres_on_the_orbit_target_and_sizes_the_inner_ball(
     reach = float(np.maximum(room[1] - centre, centre - room[0]).max())
     cams = 1.1 * float(np.linalg.norm(inside[:, :3, 3] - centre, axis=1).max())
     assert cams < reach <= NEAR_AABB_FACTOR * cams and radius == pytest.approx(reach)
-    # parallel axes (forward-facing): no focus, the AABB's centre
-    parallel = np.stack([_camera((x, 0.0, 0.0), (x, 1.0, 0.0)) for x in (-0.5, 0.0, 0.5)])
+    # parallel axes (forward-facing among the content): no focus, the cameras' centroid
+    parallel = np.stack([_camera((x, 0.0, 0.5), (x, 1.0, 0.5)) for x in (-0.5, 0.0, 0.5)])
     centre, _ = contraction_frame(terrain, parallel)
-    assert np.allclose(centre, terrain.mean(axis=0))
+    assert np.allclose(centre, [0.0, 0.0, 0.5])
 
 
 @pytest.mark.parametrize("kind", ["contracted", "forward"])
