@@ -236,14 +236,14 @@ def contraction_frame(aabb: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, fl
     (the AABB's centre may be far from anything the cameras see).
     Radius: the inner (linear, finest) ball holds the cameras (1.1 x the farthest); when the
     whole AABB lies within NEAR_AABB_FACTOR of that, it is all near content and the ball
-    reaches the AABB's faces (a room), else content beyond the cameras is contracted (an
+    also reaches the AABB's faces (a room), else content beyond the cameras is contracted (an
     AABB of far terrain would otherwise spread the grid over it)."""
     aabb = np.asarray(aabb, dtype=float)
     focus = axes_focus(c2w)
     centre = np.clip(c2w[:, :3, 3].mean(axis=0) if focus is None else focus, aabb[0], aabb[1])
     cams = 1.1 * float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).max())
     reach = float(np.maximum(aabb[1] - centre, centre - aabb[0]).max())
-    radius = reach if reach <= NEAR_AABB_FACTOR * cams else cams
+    radius = max(reach, cams) if reach <= NEAR_AABB_FACTOR * cams else cams
     return centre, max(radius, 1e-3)
 
 
