@@ -126,10 +126,6 @@ def sample_deltas(samples: MarchedSamples) -> torch.Tensor:
     return torch.full_like(samples.t_mid, samples.step)
 
 
-SKIP_INTERVALS = 8  # march_space: fine intervals per coarse segment
-SKIP_BLOCK = 8  # march_space: occupancy cells per block of the coarse test
-
-
 @torch.no_grad()
 def march_space(origins: torch.Tensor, directions: torch.Tensor, space, box: torch.Tensor,
                 occupancy: torch.Tensor, grid_step: float, jitter: torch.Tensor | None = None) -> MarchedSamples:
@@ -137,58 +133,27 @@ def march_space(origins: torch.Tensor, directions: torch.Tensor, space, box: tor
     the space's interval edges along each ray (about `grid_step` grid units apart), kept
     where the midpoint's grid cell is occupied. Not differentiable.
 
-    Coarse skipping: runs of SKIP_INTERVALS intervals are first tested at their middle
-    against SKIP_BLOCK-cell blocks grown by one block; a run whose ends lie within half a
-    block of its middle (every axis, in cells) cannot reach an occupied cell when that
-    block is empty, and is dropped whole. Other runs are tested interval by interval, so
-    the samples are exactly those of the interval-by-interval test.
-
     origins, directions (unit): [n_rays, 3]; box [2, 3]: the grid's extent in grid
     coordinates; occupancy [nz, ny, nx] bool (already grown by one cell); jitter [n_rays]
     in [0, 1): each sample sits at that fraction of its interval (None: the middle).
     The result's `step` is a tensor of per-sample lengths (world units)."""
     edges = space.ray_edges(origins, directions, grid_step)  # [n_rays, m + 1]
-    n_rays, m = origins.shape[0], edges.shape[1] - 1
+    lengths = edges[:, 1:] - edges[:, :-1]  # [n_rays, m]
+    fraction = 0.5 if jitter is None else jitter[:, None]
+    t = edges[:, :-1] + fraction * lengths
+    rays, cols = (lengths > 0).nonzero(as_tuple=True)  # row-major: sorted by ray, then t
+    t, deltas = t[rays, cols], lengths[rays, cols]
+    grid = space.to_grid(origins.index_select(0, rays) + t[:, None] * directions.index_select(0, rays))
     nz, ny, nx = occupancy.shape
     size = torch.tensor([nx, ny, nz], device=origins.device)
-    cell = (box[1] - box[0]) / size  # [3] grid units per cell
-    # coarse runs of intervals
-    bounds = torch.clamp(torch.arange(0, m + SKIP_INTERVALS, SKIP_INTERVALS, device=edges.device), max=m)
-    bounds = torch.unique_consecutive(bounds)
-    run_edges = edges.index_select(1, bounds)  # [n_rays, n_runs + 1]
-    rays, runs = (run_edges[:, 1:] > run_edges[:, :-1]).nonzero(as_tuple=True)  # sorted by ray, then t
-    t0, t1 = run_edges[rays, runs], run_edges[rays, runs + 1]
-    o, d = origins.index_select(0, rays), directions.index_select(0, rays)
-    ends = space.to_grid(torch.cat([o + t0[:, None] * d, o + (0.5 * (t0 + t1))[:, None] * d, o + t1[:, None] * d]))
-    c0, cm, c1 = ((ends - box[0]) / cell).chunk(3)  # [n_run, 3] each, in cells
-    compact = torch.maximum((c0 - cm).abs(), (c1 - cm).abs()).amax(-1) <= SKIP_BLOCK / 2
-    pooled = F.max_pool3d(occupancy[None, None].float(), SKIP_BLOCK, stride=SKIP_BLOCK, ceil_mode=True)
-    blocks = F.max_pool3d(pooled, 3, stride=1, padding=1)[0, 0] > 0  # [bz, by, bx]
-    bz, by, bx = blocks.shape
-    bsize = torch.tensor([bx, by, bz], device=origins.device)
-    block = (cm / SKIP_BLOCK).floor().long()
-    in_blocks = ((block >= 0) & (block < bsize)).all(-1)
-    block = torch.minimum(block.clamp_min(0), bsize - 1)
-    empty = ~blocks.reshape(-1)[(block[:, 2] * by + block[:, 1]) * bx + block[:, 0]]
-    test = ~(compact & in_blocks & empty)
-    rays, runs = rays[test], runs[test]
-    # the kept runs' intervals, still sorted by ray then t
-    cols = bounds[runs][:, None] + torch.arange(SKIP_INTERVALS, device=edges.device)  # [n_test, SKIP_INTERVALS]
-    valid = cols < bounds[runs + 1][:, None]  # the last run may be shorter
-    rays, cols = rays[:, None].expand_as(cols)[valid], cols[valid]
-    start, stop = edges[rays, cols], edges[rays, cols + 1]
-    live = stop > start
-    rays, start, deltas = rays[live], start[live], (stop - start)[live]
-    fraction = 0.5 if jitter is None else jitter.index_select(0, rays)
-    t = start + fraction * deltas
-    grid = space.to_grid(origins.index_select(0, rays) + t[:, None] * directions.index_select(0, rays))
-    index = ((grid - box[0]) / cell).floor().long()  # [n, 3] x y z
+    index = ((grid - box[0]) / ((box[1] - box[0]) / size)).floor().long()  # [n, 3] x y z
     inside = ((index >= 0) & (index < size)).all(-1)
     index = torch.minimum(index.clamp_min(0), size - 1)
     keep = inside & occupancy.reshape(-1)[(index[:, 2] * ny + index[:, 1]) * nx + index[:, 0]]
     kept = keep.nonzero(as_tuple=True)[0]
-    lengths = edges[:, 1:] - edges[:, :-1]
-    near = torch.where((lengths > 0).any(1), edges[:, 0], torch.zeros(n_rays, dtype=edges.dtype, device=edges.device))
+    n_rays = origins.shape[0]
+    valid = lengths > 0
+    near = torch.where(valid.any(1), edges[:, 0], torch.zeros(n_rays, dtype=edges.dtype, device=edges.device))
     far = edges.max(dim=1).values if edges.shape[1] else near
     return MarchedSamples(t[kept], rays[kept], deltas[kept], near, far)
 

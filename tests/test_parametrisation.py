@@ -269,10 +269,10 @@ def test_contraction_frame_centres_on_the_orbit_target_and_sizes_the_inner_ball(
 
 
 @pytest.mark.parametrize("kind", ["contracted", "forward"])
-def test_march_space_skipping_keeps_exactly_the_per_interval_samples(kind):
-    """march_space drops runs of intervals by a coarse block test; the samples must be
-    exactly those of testing every interval's midpoint cell (the brute force below), for a
-    sparse, surface-like occupancy (where skipping drops most runs) and a dense one."""
+def test_march_space_keeps_exactly_the_samples_in_occupied_cells(kind):
+    """march_space's samples are exactly the intervals whose sample point lies in an
+    occupied cell (the brute force below), for a sparse, surface-like occupancy and a
+    dense one (a guard for any faster marching: it must keep the same samples)."""
     from nerfgauge.nerf.marching import march_space
 
     g = torch.Generator().manual_seed(3)
