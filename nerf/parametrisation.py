@@ -213,6 +213,40 @@ def check_targets(aabb: np.ndarray, c2w: np.ndarray) -> None:
                          "looks into them (check scene.json bounds against the cameras)")
 
 
+NEAR_AABB_FACTOR = 8.0  # an AABB reaching at most this many camera radii is all near content
+
+
+def axes_focus(c2w: np.ndarray) -> np.ndarray | None:
+    """The point nearest (least squares) to every camera's optical axis, [3], or None when
+    the axes are (nearly) parallel. c2w [n, 4, 4]."""
+    positions, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
+    forward = forward / np.linalg.norm(forward, axis=1, keepdims=True)
+    projectors = np.eye(3)[None] - forward[:, :, None] * forward[:, None, :]  # [n, 3, 3]: off-axis part
+    a = projectors.sum(axis=0)
+    if np.linalg.eigvalsh(a).min() < 0.05 * len(c2w):  # axes within ~13 degrees of one direction
+        return None
+    return np.linalg.solve(a, (projectors @ positions[:, :, None]).sum(axis=0))[:, 0]
+
+
+def contraction_frame(aabb: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, float]:
+    """(centre [3], inner radius) of the contraction for cameras among the content.
+
+    Centre: where the optical axes meet (an orbit's target; outward-looking cameras: about
+    their centroid), kept inside the AABB; the cameras' centroid when the axes are parallel
+    (the AABB's centre may be far from anything the cameras see).
+    Radius: the inner (linear, finest) ball holds the cameras (1.1 x the farthest); when the
+    whole AABB lies within NEAR_AABB_FACTOR of that, it is all near content and the ball
+    also reaches the AABB's faces (a room), else content beyond the cameras is contracted (an
+    AABB of far terrain would otherwise spread the grid over it)."""
+    aabb = np.asarray(aabb, dtype=float)
+    focus = axes_focus(c2w)
+    centre = np.clip(c2w[:, :3, 3].mean(axis=0) if focus is None else focus, aabb[0], aabb[1])
+    cams = 1.1 * float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).max())
+    reach = float(np.maximum(aabb[1] - centre, centre - aabb[0]).max())
+    radius = max(reach, cams) if reach <= NEAR_AABB_FACTOR * cams else cams
+    return centre, max(radius, 1e-3)
+
+
 def make_space(kind: str, aabb: np.ndarray, c2w: np.ndarray, origins: torch.Tensor | None = None,
                directions: torch.Tensor | None = None) -> Space:
     """The numbers of a parametrisation for this dataset. aabb [2, 3]; c2w [n, 4, 4];
@@ -222,11 +256,7 @@ def make_space(kind: str, aabb: np.ndarray, c2w: np.ndarray, origins: torch.Tens
     positions = c2w[:, :3, 3]
     box = [[-CONTRACTED_EXTENT] * 3, [CONTRACTED_EXTENT] * 3]
     if kind == "contracted":
-        centre = (aabb[0] + aabb[1]) / 2
-        # the inner ball holds the cameras and the AABB's inscribed region
-        half = float((aabb[1] - aabb[0]).min()) / 2
-        cams = float(np.linalg.norm(positions - centre, axis=1).max())
-        radius = max(half, 1.1 * cams, 1e-3)
+        centre, radius = contraction_frame(aabb, c2w)
         return Space("contracted", box, centre=centre.tolist(), radius=radius)
     origin = positions.mean(axis=0)
     f = (-c2w[:, :3, 2]).mean(axis=0)

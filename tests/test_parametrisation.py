@@ -237,3 +237,74 @@ def test_int8_saved_model_renders_like_the_fp16_one():
     channel_range = model.field.grid[0].flatten(1).amax(1) - model.field.grid[0].flatten(1).amin(1)
     error = (grids[0] - grids[1]).abs()[0].flatten(1).amax(1)
     assert bool((error <= channel_range / 255 / 2 + 2e-3 * channel_range.abs().max()).all())
+
+
+def test_contraction_frame_centres_on_the_orbit_target_and_sizes_the_inner_ball():
+    """Orbit cameras inside a huge terrain AABB: the centre is their target (not the AABB's
+    middle, 14 units above it) and the inner ball just holds the cameras. Cameras in a room
+    whose walls are a few camera radii away: the inner ball reaches the walls."""
+    from nerfgauge.nerf.parametrisation import NEAR_AABB_FACTOR, contraction_frame
+
+    target = np.array([0.0, 0.0, 0.3])
+    orbit = np.stack([_camera(target + 3.2 * np.array([math.cos(a), math.sin(a), 0.2]), target)
+                      for a in np.linspace(0, 6, 12)])
+    terrain = np.array([[-100.0, -100.0, -1.0], [100.0, 100.0, 30.0]])
+    centre, radius = contraction_frame(terrain, orbit)
+    assert np.allclose(centre, target, atol=1e-6)
+    farthest = float(np.linalg.norm(orbit[:, :3, 3] - target, axis=1).max())
+    assert radius == pytest.approx(1.1 * farthest)
+    # outward-looking cameras near the middle of a 5 x 5 x 1.2 room: the walls are near content
+    room = np.array([[-2.5, -2.5, -0.3], [2.5, 2.5, 0.9]])
+    inside = np.stack([_camera((0.4 * math.cos(a), 0.4 * math.sin(a), 0.3),
+                               (2 * math.cos(a), 2 * math.sin(a), 0.3)) for a in np.linspace(0, 6, 12)])
+    centre, radius = contraction_frame(room, inside)
+    assert np.all(centre >= room[0]) and np.all(centre <= room[1])
+    reach = float(np.maximum(room[1] - centre, centre - room[0]).max())
+    cams = 1.1 * float(np.linalg.norm(inside[:, :3, 3] - centre, axis=1).max())
+    assert cams < reach <= NEAR_AABB_FACTOR * cams and radius == pytest.approx(reach)
+    # parallel axes (forward-facing among the content): no focus, the cameras' centroid
+    parallel = np.stack([_camera((x, 0.0, 0.5), (x, 1.0, 0.5)) for x in (-0.5, 0.0, 0.5)])
+    centre, _ = contraction_frame(terrain, parallel)
+    assert np.allclose(centre, [0.0, 0.0, 0.5])
+
+
+@pytest.mark.parametrize("kind", ["contracted", "forward"])
+def test_march_space_keeps_exactly_the_samples_in_occupied_cells(kind):
+    """march_space's samples are exactly the intervals whose sample point lies in an
+    occupied cell (the brute force below), for a sparse, surface-like occupancy and a
+    dense one (a guard for any faster marching: it must keep the same samples)."""
+    from nerfgauge.nerf.marching import march_space
+
+    g = torch.Generator().manual_seed(3)
+    if kind == "contracted":
+        space = Space("contracted", [[-2.0] * 3, [2.0] * 3], centre=[0.0, 0.0, 0.3], radius=1.5)
+        origins = torch.randn(300, 3, generator=g) * 0.4
+        directions = torch.nn.functional.normalize(torch.randn(300, 3, generator=g), dim=-1)
+    else:
+        space = _forward_space()
+        origins = (torch.rand(300, 3, generator=g) - 0.5) * 0.02
+        directions = torch.nn.functional.normalize(
+            torch.cat([(torch.rand(300, 1, generator=g) - 0.5) * 0.6, torch.ones(300, 1),
+                       (torch.rand(300, 1, generator=g) - 0.5) * 0.6], dim=1), dim=-1)
+    box = torch.tensor(space.box, dtype=torch.float32)
+    res = 40
+    nodes = torch.stack(torch.meshgrid(*[torch.linspace(0, 1, res)] * 3, indexing="ij"), -1)
+    shell = ((nodes - 0.5).norm(dim=-1) - 0.3).abs() < 0.03  # a thin spherical shell of cells
+    dense = torch.rand((res,) * 3, generator=g) < 0.3
+    step = 0.5 * float((box[1] - box[0]).max()) / res
+    jitter = torch.rand(300, generator=g)
+    for occupancy in (shell, dense):
+        got = march_space(origins, directions, space, box, occupancy, step, jitter=jitter)
+        edges = space.ray_edges(origins, directions, step)
+        lengths = edges[:, 1:] - edges[:, :-1]
+        rays, cols = (lengths > 0).nonzero(as_tuple=True)
+        t = edges[rays, cols] + jitter[rays] * lengths[rays, cols]
+        grid = space.to_grid(origins[rays] + t[:, None] * directions[rays])
+        index = ((grid - box[0]) / ((box[1] - box[0]) / res)).floor().long()
+        inside = ((index >= 0) & (index < res)).all(-1)
+        index = index.clamp(0, res - 1)
+        keep = inside & occupancy[index[:, 2], index[:, 1], index[:, 0]]
+        assert keep.any() and not keep.all()
+        assert torch.equal(got.ray_index, rays[keep])
+        assert torch.equal(got.t_mid, t[keep])
+        assert torch.equal(got.step, lengths[rays, cols][keep])
