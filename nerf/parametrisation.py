@@ -177,8 +177,11 @@ class Space:
 
 def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndarray) -> tuple[str, str]:
     """(kind, reason) from the cameras and bounds, unless `requested` names one.
-    cameras inside the AABB -> contracted; all cameras on one side of the AABB looking
-    within 30 degrees of one direction -> forward; else bounded."""
+    cameras inside an AABB that reaches far beyond them (more than NEAR_AABB_FACTOR camera
+    radii: distant terrain) -> contracted; all cameras on one side of the AABB looking
+    within 30 degrees of one direction -> forward; else bounded, also for cameras inside an
+    AABB of near content (a room: measured on `inside`, bounded led contracted by about
+    2 dB of val PSNR at every step compared)."""
     if requested is not None:
         if requested not in PARAMETRISATIONS:
             raise InputError(f"unknown parametrisation {requested!r}; choose one of {', '.join(PARAMETRISATIONS)}")
@@ -186,7 +189,13 @@ def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndar
     positions, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
     inside = ((positions >= aabb[0]) & (positions <= aabb[1])).all(axis=1)
     if inside.any():
-        return "contracted", f"{int(inside.sum())} of {len(inside)} cameras stand inside the AABB"
+        centre, _ = contraction_frame(aabb, c2w)
+        cams = 1.1 * float(np.linalg.norm(positions - centre, axis=1).max())
+        reach = float(np.maximum(aabb[1] - centre, centre - aabb[0]).max())
+        where = f"{int(inside.sum())} of {len(inside)} cameras stand inside the AABB"
+        if reach > NEAR_AABB_FACTOR * cams:
+            return "contracted", f"{where}, which reaches {reach / cams:.0f}x beyond them (far content)"
+        return "bounded", f"{where}, all of it within {NEAR_AABB_FACTOR:g}x their reach (near content: one grid)"
     mean = forward.mean(axis=0)
     mean = mean / max(np.linalg.norm(mean), 1e-12)
     spread = float(np.degrees(np.arccos(np.clip(forward @ mean, -1, 1))).max())

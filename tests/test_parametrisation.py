@@ -308,3 +308,15 @@ def test_march_space_keeps_exactly_the_samples_in_occupied_cells(kind):
         assert torch.equal(got.ray_index, rays[keep])
         assert torch.equal(got.t_mid, t[keep])
         assert torch.equal(got.step, lengths[rays, cols][keep])
+
+
+@pytest.mark.parametrize("scene, expected", [("inside", "bounded"), ("far-reaching", "contracted"),
+                                             ("depth-range", "forward"), ("primitives", "bounded")])
+def test_auto_choice_on_the_planned_cameras_of_real_scenes(scene, expected):
+    """Cameras among near content (a room) keep one grid; cameras among content that reaches
+    far beyond them get contraction; a forward-facing capture gets log depth."""
+    from nerfgauge.generate.pipeline import GenerateConfig, plan
+
+    the_plan = plan(GenerateConfig(scene=scene, views=12, val_views=0, test_views=2, width=16, height=16, spp=1))
+    kind, reason = choose_parametrisation(None, np.asarray(the_plan.scene.aabb), the_plan.poses["train"])
+    assert kind == expected, reason
