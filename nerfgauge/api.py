@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from nerfgauge.core.errors import InputError
+from nerfgauge.core.errors import InputError, os_errors_as_input_errors
 
 
 def _split_options(function: str, options: dict, config_class, run_settings: dict,
@@ -54,6 +54,7 @@ def _folder(dataset):
     return dataset.root if isinstance(dataset, Dataset) else dataset
 
 
+@os_errors_as_input_errors()  # an OSError on the user's paths: the CLI's one line
 def generate_dataset(scene: str, /, out, **options) -> Path:
     """Render `scene` into a dataset folder `out` (resumed if it holds the same recipe).
 
@@ -69,6 +70,7 @@ def generate_dataset(scene: str, /, out, **options) -> Path:
     return Path(out)
 
 
+@os_errors_as_input_errors()
 def train(dataset, /, out, **options) -> dict:
     """Train a NeRF on `dataset` into the run folder `out`.
 
@@ -84,6 +86,7 @@ def train(dataset, /, out, **options) -> dict:
     return train_run(TrainConfig(dataset=str(_folder(dataset)), **fields), out, **settings)
 
 
+@os_errors_as_input_errors()
 def render(run_dir, split: str = "test", *, out=None, threads=None, progress: bool = False) -> Path:
     """Render every view of `split` with the trained model in `run_dir`.
 
@@ -96,6 +99,7 @@ def render(run_dir, split: str = "test", *, out=None, threads=None, progress: bo
     return Path(run_dir) / "renders" if out is None else Path(out)
 
 
+@os_errors_as_input_errors()
 def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = "white",
              depth_kind: str = "distance") -> dict:
     """Score the renders in `pred` against `dataset`'s `split`; write metrics.json (to `out`,
@@ -106,6 +110,7 @@ def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = 
     return evaluate_split(_folder(dataset), pred, split=split, out=out, background=background, depth_kind=depth_kind)
 
 
+@os_errors_as_input_errors()
 def check(metrics, thresholds, *, scene: str | None = None) -> list:
     """The CI gate: one `CheckResult` per bound (see nerfgauge.eval.check for the format).
 
@@ -129,6 +134,7 @@ def check(metrics, thresholds, *, scene: str | None = None) -> list:
     return gate.evaluate_bounds(document["scene"], document["mean"], bounds)
 
 
+@os_errors_as_input_errors()
 def run_pipeline(scene: str = "primitives", out="nerfgauge-run", **options) -> dict:
     """The whole pipeline, as `nerfgauge run`: generate, train, render, evaluate,
     baselines and report under `out`.

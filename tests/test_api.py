@@ -73,7 +73,11 @@ def test_api_errors_are_the_cli_messages(tmp_path, capsys):
         (lambda: nerfgauge.render(missing), ["render", missing]),
         (lambda: nerfgauge.evaluate(missing, tmp_path), ["evaluate", missing, "--pred", str(tmp_path)]),
         (lambda: nerfgauge.check(missing, thresholds), ["check", missing, "--thresholds", thresholds]),
+        # an OSError on the user's path (a folder under a regular file): the same one line
+        (lambda: nerfgauge.generate_dataset("primitives", tmp_path / "file" / "d", width=16, height=16, views=2),
+         ["generate", "primitives", "--out", str(tmp_path / "file" / "d"), "--res", "16", "--views", "2"]),
     ]
+    (tmp_path / "file").write_text("a regular file where a folder is needed")
     for call, argv in cases:
         with pytest.raises(nerfgauge.InputError) as caught:
             call()
