@@ -26,32 +26,22 @@ def finite_float(text: str) -> float:
     return _number(text, float)
 
 
-def positive_float(text: str) -> float:
-    value = _number(text, float)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return value
+def _at_least(kind, bound, strict: bool, wanted: str):
+    """An argparse type for numbers of `kind` above `bound` (strict) or at least it."""
+
+    def parse(text: str):
+        value = _number(text, kind)
+        if value < bound or (strict and value == bound):
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text!r}")
+        return value
+
+    return parse
 
 
-def nonnegative_float(text: str) -> float:
-    value = _number(text, float)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return value
-
-
-def positive_int(text: str) -> int:
-    value = _number(text, int)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
-
-
-def nonnegative_int(text: str) -> int:
-    value = _number(text, int)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return value
+positive_float = _at_least(float, 0, True, "a positive number")
+nonnegative_float = _at_least(float, 0, False, "a number >= 0")
+positive_int = _at_least(int, 0, True, "a positive integer")
+nonnegative_int = _at_least(int, 0, False, "an integer >= 0")
 
 
 def path(text: str) -> Path:
