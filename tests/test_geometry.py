@@ -252,3 +252,18 @@ def test_end_to_end_tiny_run(tiny_dataset, tmp_path):
     depth_doc = json.loads((tmp_path / "d.json").read_text())
     assert depth_doc["ground_truth"]["visibility_split"] == "test"
     assert np.isfinite(depth_doc["chamfer_l1"])
+
+
+def test_nearest_is_exact_also_far_from_the_surface():
+    """Distances far beyond every tau enter the means: they are exact, not estimated."""
+    from nerfgauge.eval.geometry import nearest
+
+    rng = np.random.default_rng(3)
+    reference = rng.normal(size=(2000, 3))
+    reference /= np.linalg.norm(reference, axis=1, keepdims=True)  # a unit sphere's samples
+    queries = np.concatenate([rng.normal(size=(300, 3)) * 0.01 + [0, 0, 1.0],  # near the surface
+                              rng.normal(size=(300, 3)) * 3.0 + [0, 0, 8.0]])  # floaters far away
+    distance, index = nearest(reference, queries)
+    brute = np.linalg.norm(queries[:, None] - reference[None], axis=2)
+    np.testing.assert_allclose(distance, brute.min(axis=1), rtol=1e-12)
+    np.testing.assert_array_equal(index, brute.argmin(axis=1))
