@@ -132,6 +132,22 @@ def wait_for(condition, process: subprocess.Popen, timeout: float = 300.0) -> bo
     raise AssertionError(f"timed out waiting; the process is {'running' if process.poll() is None else 'done'}")
 
 
+def kill_when(process: subprocess.Popen, condition, delay: float = 0.0) -> tuple[bool, list]:
+    """Wait until condition() holds, then `delay` s, then kill -9 the parent (if it is still
+    running). Returns (killed, descendants that outlived it). The process is always reaped."""
+    try:
+        landed = wait_for(condition, process)
+        time.sleep(delay)
+        landed = landed and process.poll() is None
+        survivors = kill_parent_and_watch(process) if landed else []
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        process.stderr.close()
+    return landed, survivors
+
+
 # --------------------------------------------------------------------------------------
 # generate
 
@@ -157,20 +173,13 @@ def kill_generate_and_resume(folder: Path, workers: int, views_before_kill: int,
              f"nerfgauge {' '.join(map(str, argv))}")
     process = subprocess.Popen(command(argv), cwd=folder.parent, stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE, start_new_session=True)
-    try:
-        if views_before_kill == 0:
-            landed = wait_for(lambda: (folder / "config.json").is_file() or folder.is_dir() and
-                              any(folder.iterdir()), process)
-        else:
-            landed = wait_for(lambda: views_on_disk(folder) >= views_before_kill, process)
-        landed = landed and process.poll() is None
-        # the workers are up once the first view is written; give them a moment otherwise
-        survivors = kill_parent_and_watch(process) if landed else []
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-        process.stderr.close()
+    if views_before_kill == 0:
+        def started():
+            return (folder / "config.json").is_file() or folder.is_dir() and any(folder.iterdir())
+    else:
+        def started():
+            return views_on_disk(folder) >= views_before_kill
+    landed, survivors = kill_when(process, started)
     assert not survivors, f"workers {survivors} outlived their killed parent by {WORKER_GRACE_SECONDS} s\n  {repro}"
     rerun = subprocess.run(command(argv), cwd=folder.parent, capture_output=True, text=True, timeout=600)
     assert rerun.returncode == 0, f"rerun after kill: exit {rerun.returncode}: {rerun.stderr[-600:]}\n  {repro}"
@@ -306,16 +315,7 @@ def kill_train_and_resume(run: Path, dataset, writes_before_kill: int, delay: fl
             seen.append(identity)
         return len(seen) >= writes_before_kill if writes_before_kill else (run / "config.json").is_file()
 
-    try:
-        landed = wait_for(written_enough, process)
-        time.sleep(delay)
-        landed = landed and process.poll() is None
-        survivors = kill_parent_and_watch(process) if landed else []
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-        process.stderr.close()
+    landed, survivors = kill_when(process, written_enough, delay)
     assert not survivors, f"processes {survivors} outlived the killed training\n  {repro}"
     resume = (run / "checkpoint.pt").is_file()
     rerun = subprocess.run(command(argv + (["--resume"] if resume else [])), cwd=run.parent,
