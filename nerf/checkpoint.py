@@ -1,8 +1,10 @@
 """Saving and loading models and training state, loadable with `weights_only=True`.
 
 model.pt holds only plain types and tensors: {"format", "version", "model", "config",
-"state", ...}. A compact model is saved pruned: only grid nodes touching an occupied cell
-are stored (float16), with the occupancy mask; the rest load as empty space.
+"state", ...}. A compact model is saved pruned: only allocated grid nodes touching an
+occupied cell are stored (float16, or 8 bits with --quantise int8), with the occupancy
+mask; the rest load as empty space. Boolean masks are stored as zlib-compressed bits
+(`pack_mask`): a surface's mask is mostly runs of zeros.
 
 checkpoint.pt holds everything the training step reads, at full precision, so a resumed
 run continues bit for bit: the model's state_dict (float32 as trained), Adam's state, the
@@ -14,8 +16,10 @@ checked.
 from __future__ import annotations
 
 import io
+import zlib
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from nerfgauge.nerf.config import TrainConfig
@@ -25,11 +29,10 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
 
 FORMAT = "nerfgauge-model"
-VERSION = 1
+VERSION = 2  # version 1 stored a dense grid or byte-per-node masks
 CHECKPOINT_FORMAT = "nerfgauge-checkpoint"
 CHECKPOINT_VERSION = 2  # version 1 was a float16 model payload inside a "nerfgauge-model"
 FORMATS = {"model": (FORMAT, VERSION), "checkpoint": (CHECKPOINT_FORMAT, CHECKPOINT_VERSION)}
-EMPTY_RAW = -30.0  # softplus(-30 + shift) ~ 1e-13: no density where nothing was stored
 # The training loop's counters, all restored on resume (see train.py for their meaning).
 LOOP_STATE = {"step": int, "seconds": float, "next_eval": float, "visibility_done": int, "stage": int,
               "stage_steps": int, "logged_step": int}
@@ -71,6 +74,28 @@ def node_mask(occupancy: torch.Tensor) -> torch.Tensor:
     return F.max_pool3d(padded, kernel_size=2, stride=1)[0, 0] > 0
 
 
+def pack_mask(mask: torch.Tensor) -> dict:
+    """A bool tensor as {"shape": [...], "bits": uint8 tensor of zlib-compressed packed bits}."""
+    bits = np.packbits(mask.detach().cpu().numpy().astype(bool).reshape(-1))
+    packed = zlib.compress(bits.tobytes(), 9)
+    return {"shape": list(mask.shape), "bits": torch.frombuffer(bytearray(packed), dtype=torch.uint8)}
+
+
+def unpack_mask(packed: dict, shape) -> torch.Tensor:
+    """Inverse of `pack_mask`, checked to have `shape`. ValueError on damage."""
+    if not isinstance(packed, dict) or list(packed.get("shape", [])) != list(shape) \
+            or not isinstance(packed.get("bits"), torch.Tensor) or packed["bits"].dtype != torch.uint8:
+        raise ValueError(f"a stored mask does not have the grid's shape {list(shape)}")
+    try:
+        bits = np.frombuffer(zlib.decompress(packed["bits"].numpy().tobytes()), dtype=np.uint8)
+    except zlib.error:
+        raise ValueError("a stored mask does not decompress") from None
+    count = int(np.prod(shape))
+    if bits.size != (count + 7) // 8:
+        raise ValueError(f"a stored mask holds {bits.size * 8} bits, the grid {count}")
+    return torch.from_numpy(np.unpackbits(bits, count=count).astype(bool).reshape(shape))
+
+
 def quantise_per_channel(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """8-bit storage with a per-channel offset and scale: values [n, C] float ->
     (codes [n, C] uint8, offset [C], scale [C]) with values ~ offset + codes * scale,
@@ -94,25 +119,23 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
     payload = {"format": FORMAT, "version": VERSION, "model": config.model, "config": config.to_json()}
     if isinstance(model, CompactNeRF):
         field = model.field
-        grid = field.grid.detach().cpu()[0]  # [C, nz, ny, nx]
         payload["resolution"] = field.resolution
         payload["aabb"] = field.aabb.cpu().tolist()
         if field.space is not None:
             payload["space"] = field.space.to_json()
-        payload["occupancy"] = model.occupancy.cpu()
-        payload["visible"] = model.visible.cpu()
+        payload["occupancy"] = pack_mask(model.occupancy)
+        payload["visible"] = pack_mask(model.visible)
         payload["head"] = {k: v.cpu() for k, v in field.head.state_dict().items()} if field.head is not None else {}
+        keep = field.index.cpu() > 0
         if prune:
-            keep = node_mask(model.occupancy.cpu())
-            payload["grid_shape"] = list(grid.shape)
-            payload["node_mask"] = keep
-            values = grid[:, keep].t().contiguous()  # [kept, C]
-            if config.quantise == "int8":
-                payload["node_values_q"], payload["node_offset"], payload["node_scale"] = quantise_per_channel(values)
-            else:
-                payload["node_values"] = values.half()
+            keep &= node_mask(model.occupancy.cpu())
+        payload["grid_shape"] = [1 + field.channels, *field.shape]
+        payload["node_mask"] = pack_mask(keep)
+        values = field.node_values(keep).cpu()  # [kept, C]
+        if config.quantise == "int8":
+            payload["node_values_q"], payload["node_offset"], payload["node_scale"] = quantise_per_channel(values)
         else:
-            payload["grid"] = grid.half()
+            payload["node_values"] = values.half()
     else:
         payload["state"] = {k: v.cpu() for k, v in model.state_dict().items()}
     return payload
@@ -164,27 +187,20 @@ def model_from_payload(payload: dict):
         raise ValueError(f"its grid's parametrisation does not match its config's {config.parametrisation!r}")
     model = build_model(config, aabb, payload["resolution"], space=space)
     field = model.field
-    if "node_values" in payload or "node_values_q" in payload:
-        shape, mask = payload["grid_shape"], payload["node_mask"]
-        if "node_values_q" in payload:
-            values = dequantise_per_channel(payload["node_values_q"], payload["node_offset"], payload["node_scale"])
-        else:
-            values = payload["node_values"].float()
-        if tuple(mask.shape) != tuple(shape[1:]) or tuple(values.shape) != (int(mask.sum()), shape[0]):
-            raise ValueError(f"node mask {tuple(mask.shape)} and values {tuple(values.shape)} do not fit "
-                             f"grid {tuple(shape)}")
-        grid = torch.zeros(shape)
-        grid[0] = EMPTY_RAW
-        grid[:, mask] = values.t()
+    shape = payload["grid_shape"]
+    if list(shape) != [1 + field.channels, *field.shape]:
+        raise ValueError(f"grid shape {tuple(shape)} does not match resolution {payload['resolution']}")
+    mask = unpack_mask(payload["node_mask"], shape[1:])
+    if "node_values_q" in payload:
+        values = dequantise_per_channel(payload["node_values_q"], payload["node_offset"], payload["node_scale"])
     else:
-        grid = payload["grid"].float()
-    if tuple(grid.shape) != tuple(field.grid.shape[1:]):
-        raise ValueError(f"grid shape {tuple(grid.shape)} does not match resolution {payload['resolution']}")
-    field.grid.data.copy_(grid[None])
+        values = payload["node_values"].float()
+    field.load_nodes(mask, values)
     if field.head is not None:
         field.head.load_state_dict(payload["head"])
-    model.occupancy = payload["occupancy"].bool()
-    model.visible = payload["visible"].bool()
+    cells = [n - 1 for n in field.shape]
+    model.occupancy = unpack_mask(payload["occupancy"], cells)
+    model.visible = unpack_mask(payload["visible"], cells)
     return model
 
 
@@ -264,6 +280,9 @@ def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path, 
                          f"({(saved_space or {}).get('kind', 'bounded')}, this run: {config.parametrisation}); "
                          "refusing to resume it")
     model = build_model(config, aabb, resolution, space=space)
+    rows = saved["state"].get("field.density_table")
+    if config.model == "compact" and isinstance(rows, torch.Tensor) and rows.ndim == 2 and rows.shape[0] >= 1:
+        model.field.reserve(rows.shape[0])  # the sparse grid's allocated rows, as saved
     expected = model.state_dict()
     state = saved["state"]
     missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))
@@ -279,6 +298,11 @@ def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path, 
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             raise InputError(f"{path} is a damaged nerfgauge checkpoint: {name} holds NaN or inf")
     model.load_state_dict(state)
+    if config.model == "compact":
+        try:
+            model.field.check_index()
+        except ValueError as error:
+            raise InputError(f"{path} is a damaged nerfgauge checkpoint: {error}") from None
     return model
 
 

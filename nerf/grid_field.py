@@ -1,7 +1,15 @@
-"""The compact field: a dense voxel grid (DVGO-style) with an occupancy grid.
+"""The compact field: a sparse voxel grid (DVGO-style values, stored only where needed).
 
-Chosen by measurement on 2 CPU cores (DESIGN.md): a dense grid with occupancy skipping
-beat a plain-PyTorch hash grid and a positional-encoding MLP in PSNR per second.
+Chosen by measurement on 2 CPU cores (DESIGN.md, BENCHMARKS.md): a voxel grid with
+occupancy skipping beat a plain-PyTorch hash grid and a positional-encoding MLP in PSNR
+per second. Its values live in a table with one row per *allocated* grid node, and a
+dense int32 `index` maps each node to its row (0: not allocated, read as empty space).
+Every node is allocated while the grid is coarse; each coarse-to-fine step allocates
+only the nodes of cells the coarser field found occupied (and visible), so storage,
+optimizer state and the cost of an Adam step follow the occupied volume, not the box
+(BENCHMARKS.md, "Cost that follows the scene"). Interpolation is trilinear between the
+eight corner nodes, as `grid_sample(align_corners=True, padding_mode="border")` on the
+dense grid would give.
 
 Density: raw values are trilinearly interpolated, then activated,
     sigma = DENSITY_SCALE * softplus(raw + shift) / voxel_final,
@@ -50,11 +58,31 @@ def grid_shape(aabb: torch.Tensor, resolution: int) -> tuple[int, int, int]:
     return nz, ny, nx
 
 
+EMPTY_RAW = -30.0  # raw density of nodes with no row: softplus(-30 + shift) ~ 1e-13, empty space
+CORNER_BITS = torch.tensor([[dz, dy, dx] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])  # [8, 3] zyx
+
+
+def _zero_first_row(gradient: torch.Tensor) -> torch.Tensor:
+    """Row 0 stands for every unallocated node: it stays EMPTY_RAW (Adam moves nothing
+    whose gradient is always zero)."""
+    gradient = gradient.clone()
+    gradient[0] = 0
+    return gradient
+
+
+def node_cells(nodes: int, cells_before: int) -> torch.Tensor:
+    """For each of `nodes` evenly spaced nodes along an axis, the cell (of `cells_before`
+    cells spanning the same extent) it lies in. Returns [nodes] long."""
+    position = torch.arange(nodes, dtype=torch.float64) * (cells_before / (nodes - 1))
+    return position.floor().long().clamp(0, cells_before - 1)
+
+
 class VoxelGridField(nn.Module):
     def __init__(self, aabb: torch.Tensor, resolution: int, final_resolution: int, view_dependent: bool,
                  feature_channels: int = 12, step_ratio: float = 0.5, space=None):
         """aabb [2, 3]: the grid's box in grid coordinates (the world AABB when bounded);
-        space: a `nerf.parametrisation.Space` mapping world points into it (None: bounded)."""
+        space: a `nerf.parametrisation.Space` mapping world points into it (None: bounded).
+        Every node starts allocated, with raw values 0."""
         super().__init__()
         self.register_buffer("aabb", aabb.clone().float())
         self.space = space if space is not None and space.kind != "bounded" else None
@@ -64,12 +92,102 @@ class VoxelGridField(nn.Module):
         self.voxel_final = longest / final_resolution
         # alpha = 1 - exp(-DENSITY_SCALE * softplus(shift) * step_ratio) = ALPHA_INIT at a step
         self.shift = math.log(math.expm1(-math.log(1 - ALPHA_INIT) / (step_ratio * DENSITY_SCALE)))
-        channels = feature_channels if view_dependent else 3
-        self.grid = nn.Parameter(torch.zeros((1, 1 + channels) + grid_shape(self.aabb, resolution)))
+        self.channels = feature_channels if view_dependent else 3
+        self.resolution = resolution
+        shape = grid_shape(self.aabb, resolution)
+        n = math.prod(shape)
+        self.register_buffer("index", torch.zeros(shape, dtype=torch.int32))
+        self._set_nodes(torch.ones(shape, dtype=torch.bool), torch.zeros(n, 1), torch.zeros(n, self.channels))
         self.head = None
         if view_dependent:
-            self.head = nn.Sequential(nn.Linear(channels + 16, 64), nn.ReLU(), nn.Linear(64, 3))
-        self.resolution = resolution
+            self.head = nn.Sequential(nn.Linear(self.channels + 16, 64), nn.ReLU(), nn.Linear(64, 3))
+
+    # ----------------------------------------------------------------------------------
+    # storage
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(nz, ny, nx) grid nodes."""
+        return tuple(self.index.shape)
+
+    @property
+    def allocated(self) -> int:
+        """Nodes with a row in the value tables."""
+        return self.density_table.shape[0] - 1
+
+    def grid_parameters(self) -> list:
+        """The value tables (voxel learning rate); the head has its own."""
+        return [self.density_table, self.features]
+
+    def _set_nodes(self, mask: torch.Tensor, raw: torch.Tensor, features: torch.Tensor) -> None:
+        """Allocate the nodes of `mask` [nz, ny, nx] bool (row order: flat zyx order), with
+        raw density [n, 1] and features [n, C]; every other node reads as empty."""
+        device = self.aabb.device
+        mask = mask.to(device)
+        index = torch.zeros(mask.shape, dtype=torch.int32, device=device)
+        index[mask] = torch.arange(1, int(mask.sum()) + 1, dtype=torch.int32, device=device)
+        self.index = index
+        empty = torch.full((1, 1), EMPTY_RAW, device=device)
+        self.density_table = nn.Parameter(torch.cat([empty, raw.to(device).float()]))
+        self.features = nn.Parameter(torch.cat([torch.zeros(1, self.channels, device=device),
+                                                features.to(device).float()]))
+        for table in self.grid_parameters():
+            table.register_hook(_zero_first_row)
+
+    def reserve(self, rows: int) -> None:
+        """Resize the tables to `rows` rows (row 0 included), zeroed: the shape a saved
+        state_dict is then loaded into."""
+        device = self.aabb.device
+        self.density_table = nn.Parameter(torch.zeros(rows, 1, device=device))
+        self.features = nn.Parameter(torch.zeros(rows, self.channels, device=device))
+        for table in self.grid_parameters():
+            table.register_hook(_zero_first_row)
+
+    def check_index(self) -> None:
+        """ValueError unless the index addresses rows that exist (a loaded state)."""
+        rows = self.density_table.shape[0]
+        if self.features.shape[0] != rows:
+            raise ValueError(f"density and feature tables hold {rows} and {self.features.shape[0]} rows")
+        if int(self.index.min()) < 0 or int(self.index.max()) >= rows:
+            raise ValueError(f"the node index addresses rows outside the {rows}-row tables")
+
+    def load_nodes(self, mask: torch.Tensor, values: torch.Tensor) -> None:
+        """Allocate the nodes of `mask` [nz, ny, nx] with values [n, 1 + C] (raw density first)."""
+        if tuple(mask.shape) != self.shape or tuple(values.shape) != (int(mask.sum()), 1 + self.channels):
+            raise ValueError(f"node mask {tuple(mask.shape)} and values {tuple(values.shape)} do not fit "
+                             f"a {self.shape} grid of {1 + self.channels} channels")
+        self._set_nodes(mask.bool(), values[:, :1], values[:, 1:])
+
+    @torch.no_grad()
+    def to_dense(self) -> torch.Tensor:
+        """The grid as a dense tensor [1 + C, nz, ny, nx] (unallocated nodes: EMPTY_RAW, 0)."""
+        table = torch.cat([self.density_table, self.features], dim=1)  # [n + 1, 1 + C]
+        return table[self.index.long()].permute(3, 0, 1, 2).contiguous()
+
+    def load_dense(self, grid: torch.Tensor) -> None:
+        """Allocate every node with the values of a dense grid [1 + C, nz, ny, nx]."""
+        if tuple(grid.shape) != (1 + self.channels, *self.shape):
+            raise ValueError(f"grid shape {tuple(grid.shape)} does not match {(1 + self.channels, *self.shape)}")
+        flat = grid.reshape(grid.shape[0], -1).t()
+        self._set_nodes(torch.ones(self.shape, dtype=torch.bool), flat[:, :1], flat[:, 1:])
+
+    def node_values(self, mask: torch.Tensor) -> torch.Tensor:
+        """Values [n, 1 + C] of the nodes of `mask` [nz, ny, nx] (flat zyx order)."""
+        rows = self.index[mask.to(self.index.device)].long()
+        return torch.cat([self.density_table[rows], self.features[rows]], dim=1).detach()
+
+    @torch.no_grad()
+    def keep_rows(self, keep: torch.Tensor) -> torch.Tensor:
+        """Free every allocated node outside `keep` [nz, ny, nx] bool. Returns the old row
+        of each new row [n' + 1] (row 0 first), for moving optimizer state along."""
+        mask = (self.index > 0) & keep.to(self.index.device)
+        rows = torch.cat([torch.zeros(1, dtype=torch.long, device=mask.device), self.index[mask].long()])
+        raw, features = self.density_table[rows[1:]], self.features[rows[1:]]
+        self._set_nodes(mask, raw, features)
+        return rows
+
+    # ----------------------------------------------------------------------------------
+    # lookups
 
     @property
     def voxel(self) -> float:
@@ -87,35 +205,76 @@ class VoxelGridField(nn.Module):
         sigma = self.density_from_raw(raw)
         return sigma if self.space is None else sigma / self.space.world_per_unit(positions)
 
-    def _normalised(self, positions: torch.Tensor) -> torch.Tensor:
-        """World [M, 3] -> grid_sample coordinates [1, 1, 1, M, 3] in [-1, 1]."""
-        if self.space is not None:
-            positions = self.space.to_grid(positions)
-        scale = 2.0 / (self.aabb[1] - self.aabb[0])  # [3]
-        return torch.addcmul(-1.0 - self.aabb[0] * scale, positions, scale).view(1, 1, 1, -1, 3)
+    def corners(self, box_positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Trilinear stencil of points in the grid's box [M, 3] (clamped to it, like
+        grid_sample's border padding): rows [M, 8] long (0: empty) and weights [M, 8],
+        differentiable w.r.t. the positions."""
+        nz, ny, nx = self.shape
+        last = torch.tensor([nx - 1, ny - 1, nz - 1], device=box_positions.device, dtype=box_positions.dtype)
+        scale = last / (self.aabb[1] - self.aabb[0])  # [3] nodes per unit
+        u = torch.minimum(torch.addcmul(-self.aabb[0] * scale, box_positions, scale).clamp_min(0), last)
+        base = torch.minimum(u.detach().floor(), last - 1)  # [M, 3] xyz, a cell's first node
+        fraction = u - base  # [M, 3] in [0, 1]
+        base = base.long()
+        flat = (base[:, 2] * ny + base[:, 1]) * nx + base[:, 0]  # [M]
+        bits = CORNER_BITS.to(box_positions.device)
+        offsets = (bits[:, 0] * ny + bits[:, 1]) * nx + bits[:, 2]  # [8]
+        rows = self.index.view(-1)[flat[:, None] + offsets].long()  # [M, 8]
+        fx, fy, fz = fraction.unbind(-1)
+        wx = torch.stack([1 - fx, fx], dim=-1)
+        wy = torch.stack([1 - fy, fy], dim=-1)
+        wz = torch.stack([1 - fz, fz], dim=-1)
+        weights = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8)  # [M, 8]
+        return rows, weights
+
+    @staticmethod
+    def _blend(table: torch.Tensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """sum_k weights[:, k] table[rows[:, k]]: [M, C]."""
+        return torch.bmm(weights[:, None, :], F.embedding(rows, table))[:, 0]
+
+    def _to_box(self, positions: torch.Tensor) -> torch.Tensor:
+        return positions if self.space is None else self.space.to_grid(positions)
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
         """sigma (per world unit) at world positions [M, 3], differentiable w.r.t. them. Returns [M]."""
-        raw = F.grid_sample(self.grid[:, :1], self._normalised(positions), mode="bilinear", align_corners=True,
-                            padding_mode="border")
-        return self._world_density(raw.view(-1), positions)
+        rows, weights = self.corners(self._to_box(positions))
+        return self._world_density(self._blend(self.density_table, rows, weights)[:, 0], positions)
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """positions, directions: [M, 3] (world, unit). Returns sigma [M], rgb [M, 3] in [0, 1]."""
-        values = F.grid_sample(self.grid, self._normalised(positions), mode="bilinear",
-                               align_corners=True, padding_mode="border")  # [1, C, 1, 1, M]
-        values = values.view(self.grid.shape[1], -1).t()  # [M, C]
-        sigma = self._world_density(values[:, 0], positions)
+        rows, weights = self.corners(self._to_box(positions))
+        sigma = self._world_density(self._blend(self.density_table, rows, weights)[:, 0], positions)
+        features = self._blend(self.features, rows, weights)
         if self.head is None:
-            return sigma, torch.sigmoid(values[:, 1:])
-        features = torch.cat([values[:, 1:], sh_basis_deg3(directions)], dim=-1)
-        return sigma, torch.sigmoid(self.head(features))
+            return sigma, torch.sigmoid(features)
+        return sigma, torch.sigmoid(self.head(torch.cat([features, sh_basis_deg3(directions)], dim=-1)))
+
+    # ----------------------------------------------------------------------------------
+    # coarse to fine, occupancy, regularisation
 
     @torch.no_grad()
-    def upsample(self, resolution: int) -> None:
-        """Coarse to fine: trilinear resampling of the grid (the AABB stays)."""
+    def upsample(self, resolution: int, keep_cells: torch.Tensor | None = None) -> None:
+        """Coarse to fine: trilinear resampling onto a finer grid (the box stays).
+        keep_cells: [nz-1, ny-1, nx-1] bool cells of the current grid; only new nodes in
+        these cells, grown by one cell, are allocated. None: every node."""
         shape = grid_shape(self.aabb, resolution)
-        self.grid = nn.Parameter(F.interpolate(self.grid.data, size=shape, mode="trilinear", align_corners=True))
+        if keep_cells is None:
+            mask = torch.ones(shape, dtype=torch.bool)
+        else:
+            grown = F.max_pool3d(keep_cells[None, None].float(), 3, stride=1, padding=1)[0, 0].cpu() > 0
+            cz, cy, cx = (node_cells(new, old) for new, old in zip(shape, grown.shape))
+            mask = grown[cz[:, None, None], cy[None, :, None], cx[None, None, :]]
+        nodes = mask.nonzero().to(self.aabb.device)  # [n, 3] zyx
+        last = torch.tensor([shape[2] - 1, shape[1] - 1, shape[0] - 1], device=self.aabb.device)
+        box = self.aabb[0] + nodes.flip(-1).float() / last * (self.aabb[1] - self.aabb[0])  # [n, 3]
+        raw, features = [], []
+        for start in range(0, box.shape[0], 1 << 18):
+            rows, weights = self.corners(box[start:start + (1 << 18)])
+            raw.append(self._blend(self.density_table, rows, weights))
+            features.append(self._blend(self.features, rows, weights))
+        self.index = torch.zeros(shape, dtype=torch.int32, device=self.aabb.device)
+        self._set_nodes(mask, torch.cat(raw) if raw else torch.zeros(0, 1),
+                        torch.cat(features) if features else torch.zeros(0, self.channels))
         self.resolution = resolution
 
     @torch.no_grad()
@@ -125,8 +284,8 @@ class VoxelGridField(nn.Module):
         Trilinear interpolation never exceeds its corners and softplus is monotone, so a
         cell whose corners are all below the threshold is below it everywhere.
         Returns [nz-1, ny-1, nx-1] bool."""
-        sigma = self.density_from_raw(self.grid[0, 0])
-        alpha = -torch.expm1(-sigma * self.marching_step)  # [nz, ny, nx]
+        sigma = self.density_from_raw(self.density_table[:, 0])
+        alpha = -torch.expm1(-sigma * self.marching_step)[self.index.long()]  # [nz, ny, nx]
         corner_max = F.max_pool3d(alpha[None, None], kernel_size=2, stride=1)[0, 0]  # [nz-1, ny-1, nx-1]
         occupied = corner_max > OCCUPANCY_ALPHA
         if dilate:
@@ -135,7 +294,13 @@ class VoxelGridField(nn.Module):
         return occupied
 
     def total_variation(self) -> torch.Tensor:
-        """Mean squared difference of neighbouring raw densities (smoothness prior)."""
-        d = self.grid[0, 0]
-        return ((d[1:] - d[:-1]) ** 2).mean() + ((d[:, 1:] - d[:, :-1]) ** 2).mean() + \
-            ((d[:, :, 1:] - d[:, :, :-1]) ** 2).mean()
+        """Mean squared difference of neighbouring allocated raw densities (smoothness prior)."""
+        raw = self.density_table[:, 0]
+        total = raw.new_zeros(())
+        for dim in range(3):
+            a = self.index.narrow(dim, 1, self.index.shape[dim] - 1)
+            b = self.index.narrow(dim, 0, self.index.shape[dim] - 1)
+            both = (a > 0) & (b > 0)
+            if bool(both.any()):
+                total = total + ((raw[a[both].long()] - raw[b[both].long()]) ** 2).mean()
+        return total

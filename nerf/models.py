@@ -47,7 +47,7 @@ class CompactNeRF(nn.Module):
         super().__init__()
         self.field = field
         self.use_occupancy = use_occupancy
-        self.register_buffer("occupancy", torch.ones(tuple(s - 1 for s in field.grid.shape[2:]), dtype=torch.bool))
+        self.register_buffer("occupancy", torch.ones(self._cells(), dtype=torch.bool))
         self._pyramid = None  # coarse-to-fine occupancy for marching, rebuilt when occupancy changes
         self._pyramid_of = None
         # Cells some training ray can see (transmittance reaches them); the rest (object
@@ -65,14 +65,18 @@ class CompactNeRF(nn.Module):
         if self.use_occupancy:
             self.occupancy = self.field.occupancy() & self.visible
         else:
-            self.occupancy = torch.ones(tuple(s - 1 for s in self.field.grid.shape[2:]), dtype=torch.bool,
-                                        device=self.field.grid.device)
+            self.occupancy = torch.ones(self._cells(), dtype=torch.bool, device=self.field.aabb.device)
         return float(self.occupancy.float().mean())
 
+    def _cells(self) -> tuple[int, int, int]:
+        return tuple(s - 1 for s in self.field.shape)
+
     def upsample(self, resolution: int) -> None:
-        self.field.upsample(resolution)
-        self.visible = torch.ones(tuple(s - 1 for s in self.field.grid.shape[2:]), dtype=torch.bool,
-                                  device=self.field.grid.device)
+        """A finer grid, allocated only inside the cells the current one finds occupied and
+        visible (every cell without occupancy skipping): storage follows the scene."""
+        keep = self.field.occupancy() & self.visible if self.use_occupancy else None
+        self.field.upsample(resolution, keep)
+        self.visible = torch.ones(self._cells(), dtype=torch.bool, device=self.field.aabb.device)
         self.update_occupancy()
 
     @torch.no_grad()
@@ -146,7 +150,7 @@ class CompactNeRF(nn.Module):
         return RayOutput(colour, opacity, depth, int(rays.numel()), distortion=distortion)
 
     def regularisation(self, tv_weight: float) -> torch.Tensor:
-        return tv_weight * self.field.total_variation() if tv_weight > 0 else self.field.grid.new_zeros(())
+        return tv_weight * self.field.total_variation() if tv_weight > 0 else self.field.aabb.new_zeros(())
 
 
 class NeRFMLP(nn.Module):

@@ -108,7 +108,7 @@ def make_optimizer(model, config: TrainConfig):
     from nerfgauge.nerf.models import CompactNeRF
 
     if isinstance(model, CompactNeRF):
-        groups = [{"params": [model.field.grid], "lr": config.lr, "base_lr": config.lr}]
+        groups = [{"params": model.field.grid_parameters(), "lr": config.lr, "base_lr": config.lr}]
         if model.field.head is not None:
             groups.append({"params": model.field.head.parameters(), "lr": config.lr_mlp, "base_lr": config.lr_mlp})
         return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)

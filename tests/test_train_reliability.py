@@ -326,8 +326,9 @@ class RunsCode:
 
 
 @pytest.mark.parametrize("case, expected", [
-    ("missing grid", "missing field.grid"),
-    ("grid shape", "field.grid is"),
+    ("missing grid", "missing field.index"),
+    ("grid shape", "field.index is"),
+    ("index range", "addresses rows outside"),
     ("adam moment shape", "exp_avg"),
     ("no loop", "no loop state"),
     ("generator", "generator"),
@@ -340,9 +341,11 @@ def test_damaged_checkpoints_are_one_line(tiny_dataset, finished_run, tmp_path, 
     shutil.copytree(finished_run, run)
     marker = tmp_path / "code-ran"
     if case == "missing grid":
-        damage(run, lambda p: p["model"]["state"].pop("field.grid"))
+        damage(run, lambda p: p["model"]["state"].pop("field.index"))
     elif case == "grid shape":
-        damage(run, lambda p: p["model"]["state"].update({"field.grid": torch.zeros(1, 4, 5, 5, 5)}))
+        damage(run, lambda p: p["model"]["state"].update({"field.index": torch.zeros(5, 5, 5, dtype=torch.int32)}))
+    elif case == "index range":
+        damage(run, lambda p: p["model"]["state"]["field.index"].view(-1)[0:1].fill_(1 << 30))
     elif case == "adam moment shape":
         damage(run, lambda p: p["optimizer"]["state"][0].update({"exp_avg": torch.zeros(3)}))
     elif case == "no loop":
