@@ -62,12 +62,30 @@ EMPTY_RAW = -30.0  # raw density of nodes with no row: softplus(-30 + shift) ~ 1
 CORNER_BITS = torch.tensor([[dz, dy, dx] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])  # [8, 3] zyx
 
 
-def _zero_first_row(gradient: torch.Tensor) -> torch.Tensor:
-    """Row 0 stands for every unallocated node: it stays EMPTY_RAW (Adam moves nothing
-    whose gradient is always zero)."""
-    gradient = gradient.clone()
-    gradient[0] = 0
-    return gradient
+class Blend(torch.autograd.Function):
+    """sum_k weights[:, k] table[rows[:, k]]: table [n, C], rows [M, K] long, weights
+    [M, K] -> [M, C]. F.embedding would do it, but its CPU backward was 3-6x slower than
+    the index_add_ below (BENCHMARKS.md). Row 0 stands for every unallocated node: its
+    gradient is zero, so it stays EMPTY_RAW (Adam never moves a row it has no gradient for)."""
+
+    @staticmethod
+    def forward(ctx, table, rows, weights):
+        values = table[rows]  # [M, K, C]
+        ctx.save_for_backward(rows, weights, values if weights.requires_grad else None)
+        ctx.table_shape = table.shape
+        return torch.bmm(weights[:, None, :], values)[:, 0]
+
+    @staticmethod
+    def backward(ctx, grad):
+        rows, weights, values = ctx.saved_tensors
+        grad_table = grad_weights = None
+        if ctx.needs_input_grad[0]:
+            contributions = (weights[:, :, None] * grad[:, None, :]).reshape(-1, grad.shape[1])  # [M K, C]
+            grad_table = grad.new_zeros(ctx.table_shape).index_add_(0, rows.reshape(-1), contributions)
+            grad_table[0] = 0
+        if ctx.needs_input_grad[2]:
+            grad_weights = torch.bmm(values, grad[:, :, None])[:, :, 0]  # [M, K]
+        return grad_table, None, grad_weights
 
 
 def node_cells(nodes: int, cells_before: int) -> torch.Tensor:
@@ -131,8 +149,6 @@ class VoxelGridField(nn.Module):
         self.density_table = nn.Parameter(torch.cat([empty, raw.to(device).float()]))
         self.features = nn.Parameter(torch.cat([torch.zeros(1, self.channels, device=device),
                                                 features.to(device).float()]))
-        for table in self.grid_parameters():
-            table.register_hook(_zero_first_row)
 
     def reserve(self, rows: int) -> None:
         """Resize the tables to `rows` rows (row 0 included), zeroed: the shape a saved
@@ -140,8 +156,6 @@ class VoxelGridField(nn.Module):
         device = self.aabb.device
         self.density_table = nn.Parameter(torch.zeros(rows, 1, device=device))
         self.features = nn.Parameter(torch.zeros(rows, self.channels, device=device))
-        for table in self.grid_parameters():
-            table.register_hook(_zero_first_row)
 
     def check_index(self) -> None:
         """ValueError unless the index addresses rows that exist (a loaded state)."""
@@ -230,7 +244,7 @@ class VoxelGridField(nn.Module):
     @staticmethod
     def _blend(table: torch.Tensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         """sum_k weights[:, k] table[rows[:, k]]: [M, C]."""
-        return torch.bmm(weights[:, None, :], F.embedding(rows, table))[:, 0]
+        return Blend.apply(table, rows, weights)
 
     def _to_box(self, positions: torch.Tensor) -> torch.Tensor:
         return positions if self.space is None else self.space.to_grid(positions)
