@@ -1,6 +1,6 @@
 """eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`),
 `baseline` (`eval.baselines`), `bench` (`eval.bench`), and `mesh` (`nerf.mesh`) and
-`geometry` (`eval.geometry`, `eval.normals`).
+`geometry` (`eval.geometry`, `eval.normals`), and `suite` (`eval.suite_commands`).
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Output
@@ -52,6 +52,9 @@ def register(subparsers) -> None:
     register_baseline(subparsers)
     register_bench(subparsers)
     register_geometry(subparsers)
+    from nerfgauge.eval import suite_commands
+
+    suite_commands.register(subparsers)
 
 
 def register_check(subparsers) -> None:
