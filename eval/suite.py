@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.resources
+import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -276,7 +277,9 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
                 log(f"[{index}/{len(suite.scenes)}] {entry.id}: complete, skipped")
                 continue
             log(f"[{index}/{len(suite.scenes)}] {entry.id}: generate {entry.scene} (seed {entry.seed})")
+            start = time.perf_counter()
             generate(suite.generate_config(entry), folder, overwrite=overwrite, progress=progress)
+            log(f"    {entry.id}: generated in {time.perf_counter() - start:.1f} s")
         document = {**suite.identity(), "schema": SCHEMA, "datasets": {
             entry.id: dataset_record(out, entry) for entry in suite.scenes}}
         write_json(manifest_path, document)

@@ -51,16 +51,23 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
         log(f"[{index}/{len(suite.scenes)}] {entry.id}: train {suite.train.get('model', 'compact')} "
             f"{suite.train['steps']} steps")
         config = TrainConfig(dataset=str(data), seed=entry.seed, **suite.train)
+        clock = time.perf_counter()
         summary = train(config, run_dir, overwrite=True, progress=progress)
+        stages = {"train": time.perf_counter() - clock}
+        clock = time.perf_counter()
         render_split(run_dir, split, predictions / OURS / entry.id, overwrite=True, progress=progress)
+        stages["render"], clock = time.perf_counter() - clock, time.perf_counter()
         extras[entry.id] = {"train_seconds": summary["seconds"], "model_bytes": summary["model_bytes"],
                             "steps": summary["steps"], "geometry": geometry_of(suite, data, run_dir, log)}
+        stages["geometry"], clock = time.perf_counter() - clock, time.perf_counter()
         layout = read_scene_json(data).get("camera", {}).get("layout")
         for method in methods_for(suite, layout):
             target = predictions / method / entry.id
             with baseline_folder(data, method, target, split, overwrite=True):
                 write_baseline(data, method, target, split)
             baseline_roots.setdefault(method, []).append(entry.id)
+        stages["baselines"] = time.perf_counter() - clock
+        log(f"    {entry.id}: " + ", ".join(f"{name} {seconds:.1f} s" for name, seconds in stages.items()))
     methods = {OURS: extras}
     for method, ids in baseline_roots.items():
         methods[method] = {entry_id: {"train_seconds": 0.0, "model_bytes": None} for entry_id in ids}
