@@ -102,7 +102,7 @@ def register_evaluate(subparsers) -> None:
                         default="auto", help="how DIR names its files: ours, ns-render dataset output, NerfBaselines "
                                              "predictions, or a plain folder of images (default: detect; eval/foreign.py)")
     parser.add_argument("--ns-eval", type=arguments.path, metavar="FILE",
-                        help="also write the scores as nerfstudio's ns-eval JSON")
+                        help="also write nerfstudio's ns-eval JSON (checkpoint: RUN/model.pt for RUN/renders)")
     parser.add_argument("--nerfbaselines", type=arguments.path, metavar="FILE",
                         help="also write the scores as NerfBaselines' results.json")
     parser.add_argument("--method-name", default=None, metavar="NAME",
@@ -127,9 +127,11 @@ def run_evaluate(args) -> int:
         from nerfgauge.eval.foreign_results import nerfbaselines_document, ns_eval_document
 
         method = getattr(args, "method_name", None) or Path(args.pred).resolve().name
+        model = Path(args.pred).resolve().parent / "model.pt"  # RUN/renders of `nerfgauge render`
+        checkpoint = str(model) if model.is_file() else str(args.pred)
         if extra["ns-eval"] is not None:
             write_json(extra["ns-eval"], ns_eval_document(document, experiment_name=document["scene"],
-                                                          method_name=method, checkpoint=str(args.pred)))
+                                                          method_name=method, checkpoint=checkpoint))
             print(f"ns-eval results -> {extra['ns-eval']}")
         if extra["nerfbaselines"] is not None:
             write_json(extra["nerfbaselines"], nerfbaselines_document(document, dataset_root=args.dataset,

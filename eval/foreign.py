@@ -108,7 +108,8 @@ def match_frames(images: list[Path], folder: Path, stems: tuple, what: str) -> d
                 parts.append(f"{len(unmatched)} image(s) named after no frame ({', '.join(p.name for p in unmatched[:3])}"
                              f"{' ...' if len(unmatched) > 3 else ''})")
             if missing:
-                parts.append(f"no image for {len(missing)} frame(s) ({', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''})")
+                more = " ..." if len(missing) > 3 else ""
+                parts.append(f"no image for {len(missing)} frame(s) ({', '.join(missing[:3])}{more})")
             raise InputError(f"{what} images in {folder} do not match the split's {len(stems)} frames by name: "
                              + "; ".join(parts))
         return by_name

@@ -243,7 +243,8 @@ def claim_suite_folder(suite: Suite, out, *, overwrite: bool = False):
 
 def check_same_suite(suite: Suite, identity: dict, where: str) -> None:
     """Refuse (InputError) results or folders made for another suite, version or definition."""
-    name, version, sha = identity.get("suite", identity.get("name")), identity.get("version"), identity.get("suite_sha256", identity.get("sha256"))
+    name, version = identity.get("suite", identity.get("name")), identity.get("version")
+    sha = identity.get("suite_sha256", identity.get("sha256"))
     if name != suite.name:
         raise InputError(f"{where} is for suite {name!r}, not {suite.name!r}")
     if version != suite.version:

@@ -108,7 +108,8 @@ def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
 
 def markdown(board: dict) -> str:
     lines = [f"# Leaderboard: suite {board['suite']} v{board['version']}", "",
-             f"suite sha256 `{board['suite_sha256']}`; ↓ lower is better; – not defined or not applicable.", ""]
+             f"suite sha256 `{board['suite_sha256']}`; ↓ lower is better; – not defined or not applicable; "
+             "means are over the datasets where a value is defined (leaderboard.json: scenes_scored).", ""]
     for title, rows in tables(board):
         lines += [f"## {title}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
         lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
@@ -135,6 +136,7 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
         link = f" (<a href='{html.escape(links[title])}'>report</a>)" if title in links else ""
         sections.append(f"<h2>{html.escape(title)}{link}</h2>" + sortable_table_html(rows))
     notes = [f"suite sha256 {board['suite_sha256']}", "↓ lower is better; – not defined or not applicable; "
+             "means are over the datasets where a value is defined (leaderboard.json: scenes_scored); "
              "click a column header to sort."]
     write_bytes_atomic(out / "leaderboard.html",
                        page_html(f"nerfgauge leaderboard: {board['suite']} v{board['version']}", "".join(sections), notes))
