@@ -237,19 +237,21 @@ def claim_suite_folder(suite: Suite, out, *, overwrite: bool = False):
 
     out = Path(out)
     if (out / SUITE_FILE).is_file() and not overwrite:
-        check_same_suite(suite, read_json(out / SUITE_FILE), f"{out / SUITE_FILE}")
+        check_same_suite(suite, read_json(out / SUITE_FILE), f"{out / SUITE_FILE}",
+                         remedy="choose another --out, or pass --overwrite to replace it")
     return claim_folder(out, "suite", suite.sha256, overwrite=overwrite)
 
 
-def check_same_suite(suite: Suite, identity: dict, where: str) -> None:
+def check_same_suite(suite: Suite, identity: dict, where: str,
+                     remedy: str = "results against another suite version are refused") -> None:
     """Refuse (InputError) results or folders made for another suite, version or definition."""
     name, version = identity.get("suite", identity.get("name")), identity.get("version")
     sha = identity.get("suite_sha256", identity.get("sha256"))
     if name != suite.name:
-        raise InputError(f"{where} is for suite {name!r}, not {suite.name!r}")
+        raise InputError(f"{where} is for suite {name!r}, not {suite.name!r}; {remedy}")
     if version != suite.version:
         raise InputError(f"{where} was made with suite {name} version {version}, not version {suite.version}; "
-                         "results against another suite version are refused")
+                         f"{remedy}")
     if sha != suite.sha256:
         raise InputError(f"{where} was made with another definition of suite {name} version {version} "
                          f"(sha256 {str(sha)[:12]}..., this one {suite.sha256[:12]}...); bump the version when editing a suite")

@@ -261,3 +261,16 @@ def test_smoke_suite_end_to_end(tmp_path, capsys):
             assert scene["values"][metric] == value
         assert (out / "report" / entry_id / "report.html").is_file()
     assert os.path.getsize(out / "leaderboard.html") > 0 and (out / "leaderboard.md").is_file()
+
+
+def test_generate_over_another_version_needs_overwrite(suite_dir, tmp_path, capsys):
+    copy = tmp_path / "copy"
+    shutil.copytree(suite_dir, copy, ignore=shutil.ignore_patterns(".nerfgauge.lock", "results", "leaderboard.*"))
+    v2 = tmp_path / "tiny-v2.toml"
+    v2.write_text(TINY.format(version=2))
+    code, _, err = run(capsys, "suite", "generate", v2, "--out", copy)
+    one_line_error(code, err, "version 1, not version 2", "--overwrite")
+    assert read_json(copy / SUITE_MANIFEST)["version"] == 1  # untouched
+    code, _, err = run(capsys, "suite", "generate", v2, "--out", copy, "--overwrite")
+    assert code == 0, err
+    assert read_json(copy / SUITE_MANIFEST)["version"] == 2 and read_json(copy / "suite.json")["version"] == 2
