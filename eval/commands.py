@@ -1,6 +1,6 @@
 """eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`),
 `baseline` (`eval.baselines`), `bench` (`eval.bench`), and `mesh` (`nerf.mesh`) and
-`geometry` (`eval.geometry`, `eval.normals`).
+`geometry` (`eval.geometry`, `eval.normals`), and `suite` (`eval.suite_commands`).
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Output
@@ -52,6 +52,9 @@ def register(subparsers) -> None:
     register_baseline(subparsers)
     register_bench(subparsers)
     register_geometry(subparsers)
+    from nerfgauge.eval import suite_commands
+
+    suite_commands.register(subparsers)
 
 
 def register_check(subparsers) -> None:
@@ -95,20 +98,45 @@ def register_evaluate(subparsers) -> None:
                         help="composite RGBA onto this colour before PSNR/SSIM (default white)")
     parser.add_argument("--depth-kind", choices=("distance", "z"), default="distance",
                         help="what predicted depth holds: ray distance (default) or z-depth")
+    parser.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
+                        default="auto", help="how DIR names its files: ours, ns-render dataset output, NerfBaselines "
+                                             "predictions, or a plain folder of images (default: detect; eval/foreign.py)")
+    parser.add_argument("--ns-eval", type=arguments.path, metavar="FILE",
+                        help="also write nerfstudio's ns-eval JSON (checkpoint: RUN/model.pt for RUN/renders)")
+    parser.add_argument("--nerfbaselines", type=arguments.path, metavar="FILE",
+                        help="also write the scores as NerfBaselines' results.json")
+    parser.add_argument("--method-name", default=None, metavar="NAME",
+                        help="method named in --ns-eval / --nerfbaselines output (default: DIR's name)")
     parser.set_defaults(func=run_evaluate)
 
 
 def run_evaluate(args) -> int:
-    from nerfgauge.core.files import check_writable_target
+    from nerfgauge.core.files import check_writable_target, write_json
     from nerfgauge.eval.evaluate import evaluate, format_means
 
     out = args.out if args.out is not None else args.pred / "metrics.json"
-    check_writable_target(out)  # a device, FIFO, folder or symlink is refused before anything is written
-    document = evaluate(args.dataset, args.pred, split=args.split, out=out,
-                        background=args.background, depth_kind=args.depth_kind)
+    extra = {"ns-eval": getattr(args, "ns_eval", None), "nerfbaselines": getattr(args, "nerfbaselines", None)}
+    for target in (out, *(path for path in extra.values() if path is not None)):
+        check_writable_target(target)  # a device, FIFO, folder or symlink is refused before anything is written
+    document = evaluate(args.dataset, args.pred, split=args.split, out=out, background=args.background,
+                        depth_kind=args.depth_kind, pred_format=getattr(args, "pred_format", "auto"))
     print(f"scene {document['scene']}, split {document['split']}, {len(document['frames'])} frames, "
           f"background {document['background']}, depth {document['depth_kind']} -> {out}")
     print(format_means(document))
+    if any(path is not None for path in extra.values()):
+        from nerfgauge.eval.foreign_results import nerfbaselines_document, ns_eval_document
+
+        method = getattr(args, "method_name", None) or Path(args.pred).resolve().name
+        model = Path(args.pred).resolve().parent / "model.pt"  # RUN/renders of `nerfgauge render`
+        checkpoint = str(model) if model.is_file() else str(args.pred)
+        if extra["ns-eval"] is not None:
+            write_json(extra["ns-eval"], ns_eval_document(document, experiment_name=document["scene"],
+                                                          method_name=method, checkpoint=checkpoint))
+            print(f"ns-eval results -> {extra['ns-eval']}")
+        if extra["nerfbaselines"] is not None:
+            write_json(extra["nerfbaselines"], nerfbaselines_document(document, dataset_root=args.dataset,
+                                                                      pred_dir=args.pred, method_name=method))
+            print(f"NerfBaselines results -> {extra['nerfbaselines']}")
     return 0
 
 

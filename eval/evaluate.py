@@ -2,6 +2,11 @@
 
     nerfgauge evaluate DATASET --pred DIR [--split test] [--out FILE]
                        [--background white|black] [--depth-kind distance|z]
+                       [--pred-format auto|nerfgauge|nerfstudio|nerfbaselines|folder]
+
+Other tools' folders (ns-render dataset output, NerfBaselines predictions, plain folders of
+PNG/JPEG/EXR matched by stem or order) are read as they are: eval/foreign.py. What follows
+is our own naming ("nerfgauge" format).
 
 Accepted prediction files, for the dataset frame "test/r_007" (r_007 below):
 
@@ -133,7 +138,11 @@ def _sized(values: np.ndarray, path: Path, intrinsics) -> np.ndarray:
 
 
 def read_colour(path: Path, intrinsics) -> tuple[np.ndarray, Optional[np.ndarray]]:
-    """(sRGB [H, W, 3] in [0, 1], straight alpha [H, W] or None) from a PNG or EXR."""
+    """(sRGB [H, W, 3] in [0, 1], straight alpha [H, W] or None) from a PNG, JPEG or EXR."""
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        from nerfgauge.eval.foreign import read_jpeg
+
+        return read_jpeg(path, intrinsics), None
     if path.suffix == ".exr":
         channels, _ = read_exr(path)
         if "RGBA" in channels or "RGB" in channels:
@@ -158,8 +167,12 @@ def read_colour(path: Path, intrinsics) -> tuple[np.ndarray, Optional[np.ndarray
 
 
 def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.ndarray:
-    """A one-channel EXR, .npy or (opacity) PNG as [H, W] float64."""
-    if path.suffix == ".npy":
+    """A one-channel EXR, .npy, (opacity) PNG or foreign depth (.npy.gz, .bin) as [H, W] float64."""
+    if path.name.endswith(".npy.gz") or path.suffix == ".bin":
+        from nerfgauge.eval.foreign import read_depth_file
+
+        values = read_depth_file(path)
+    elif path.suffix == ".npy":
         try:
             values = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as error:
@@ -213,6 +226,16 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     return values, colour_error(pred, gt).astype(np.float32), depth_err
 
 
+def find_nerfgauge_predictions(pred_dir: Path, split: str, stems: tuple, depth_kind: str) -> dict:
+    """{stem: PredictionFiles or None} in our own naming; files that look like frames of
+    none of `stems` are an InputError."""
+    extras = extra_frames(pred_dir, split, {Path(stem).name for stem in stems})
+    if extras:
+        raise InputError(f"{len(extras)} extra prediction file(s) not among the {len(stems)} frames of split "
+                         f"{split}: {', '.join(str(p) for p in extras[:4])}{' ...' if len(extras) > 4 else ''}")
+    return {stem: find_prediction(pred_dir, stem, depth_kind) for stem in stems}
+
+
 def foreground_pixels(gt_alpha: np.ndarray, pred_alpha) -> np.ndarray:
     """Where either image is not pure background: ground-truth coverage (PNG alpha [H, W])
     above zero, or predicted opacity that shows in 8 bits (> 0.5 / 255). Coverage rather
@@ -229,8 +252,11 @@ def read_timing(pred_dir: Path) -> dict:
 
 
 def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
-             depth_kind: str = "distance") -> dict:
-    """Score every frame of `split`; write metrics.json and error maps. Returns the document."""
+             depth_kind: str = "distance", pred_format: str = "auto") -> dict:
+    """Score every frame of `split`; write metrics.json and error maps. Returns the document.
+    pred_format: how `pred_dir` names its files (eval.foreign.FORMATS; "auto" detects it)."""
+    from nerfgauge.eval import foreign
+
     start = time.perf_counter()
     if background not in BACKGROUNDS:
         raise InputError(f"unknown background {background!r}; choose white or black")
@@ -244,12 +270,15 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     scene = ds.scene.get("recipe")
     if not isinstance(scene, str) or not scene:
         raise InputError(f"{ds.root / 'scene.json'}: 'recipe' must name the scene, got {scene!r}")
-    extras = extra_frames(pred_dir, split, {Path(stem).name for stem in cameras.stems})
-    if extras:
-        raise InputError(f"{len(extras)} extra prediction file(s) not among the {len(cameras.stems)} frames of split "
-                         f"{split}: {', '.join(str(p) for p in extras[:4])}{' ...' if len(extras) > 4 else ''}")
-    found = {stem: find_prediction(pred_dir, stem, depth_kind) for stem in cameras.stems}
-    missing = [stem for stem, files in found.items() if files is None]
+    if pred_format not in foreign.FORMATS:
+        raise InputError(f"unknown prediction format {pred_format!r}; choose one of {', '.join(foreign.FORMATS)}")
+    if pred_format == "auto":
+        pred_format = foreign.detect_format(pred_dir, split)
+    if pred_format == "nerfgauge":
+        found = find_nerfgauge_predictions(pred_dir, split, cameras.stems, depth_kind)
+    else:
+        found = foreign.locate(pred_dir, pred_format, split, cameras.stems)
+    missing = [stem for stem, files in found.items() if files is None]  # nerfgauge format only
     if missing:
         raise InputError(f"no prediction for {len(missing)} of {len(found)} frames of split {split}: "
                          f"{', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} (looked for "
@@ -263,7 +292,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
-        frames.append({"name": stem, **values})
+        frames.append({"name": stem, "file": files.colour.relative_to(pred_dir).as_posix(), **values})
         maps.append((stem, colour_err, depth_err))
     means, stds, counts = {}, {}, {}
     for metric in METRIC_NAMES:

@@ -14,11 +14,12 @@ import json
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.eval.error_maps import colour_error, colourize, depth_relative_error
+from nerfgauge.eval.error_maps import colour_error, depth_relative_error
 
 from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
+from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, write_bytes_atomic
-from nerfgauge.core.images import read_exr_single, read_png
+from nerfgauge.core.images import read_exr_single
 
 TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_foreground", "foreground PSNR dB", "{:.2f}"),
                  ("depth_absrel", "depth AbsRel", "{:.4f}"),
@@ -45,71 +46,268 @@ def metrics_table(rows: dict) -> list[list[str]]:
     return table
 
 
-def plot_curves(curves: dict, out) -> None:
-    """curves: {label: [log entries]} -> PNG of val PSNR against training seconds."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+def _figure(width: float, height: float):
     from matplotlib.figure import Figure
 
-    figure = Figure(figsize=(6, 4), dpi=110)
-    axes = figure.add_subplot()
-    for label, entries in curves.items():
-        points = [(e["seconds"], e["val_psnr"]) for e in entries if e.get("val_psnr") is not None]
-        if points:
-            axes.plot(*zip(*points), marker="o", markersize=3, label=label)
-    axes.set_xlabel("training seconds")
-    axes.set_ylabel("validation PSNR (dB)")
-    axes.set_title("speed against error")
-    axes.grid(alpha=0.3)
-    axes.legend()
-    figure.tight_layout()
+    return Figure(figsize=(width, height), dpi=110)
+
+
+def _save(figure, out) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     with atomic_path(out) as tmp:
         FigureCanvasAgg(figure).print_png(str(tmp))
 
 
+def plot_curves(curves: dict, out, baselines: dict | None = None, finals: dict | None = None) -> None:
+    """Speed against error, PNG. curves: {label: [log entries]}: validation PSNR against
+    training seconds. baselines: {label: test PSNR}: methods that do not train, drawn at 0 s
+    with a dashed line across. finals: {label: (training seconds, test PSNR)}: a trained
+    method's final test score, a star."""
+    figure = _figure(6.4, 4.2)
+    axes = figure.add_subplot()
+    for label, entries in curves.items():
+        points = [(e["seconds"], e["val_psnr"]) for e in entries if e.get("val_psnr") is not None]
+        if points:
+            axes.plot(*zip(*points), marker="o", markersize=3, label=f"{label} (validation)")
+    for label, (seconds, value) in (finals or {}).items():
+        if value is not None and seconds is not None:
+            axes.plot([seconds], [value], marker="*", markersize=12, linestyle="none", label=f"{label} (test)")
+    for k, (label, value) in enumerate((baselines or {}).items()):
+        if value is None:
+            continue
+        colour = f"C{(k + 3) % 10}"
+        axes.axhline(value, color=colour, linestyle="--", linewidth=1)
+        axes.plot([0.0], [value], marker="s", color=colour, linestyle="none", label=f"{label} (test, no training)")
+    axes.set_xlabel("training seconds")
+    axes.set_ylabel("PSNR (dB)")
+    axes.set_title("speed against error")
+    axes.grid(alpha=0.3)
+    if axes.get_legend_handles_labels()[0]:
+        axes.legend(fontsize=8)
+    figure.tight_layout()
+    _save(figure, out)
+
+
+GRID_COLUMNS = (("ground truth", None, None), ("prediction", None, None),
+                ("colour error |Δ| (mean over RGB)", "magma", 0.2), ("predicted depth (ray distance)", "viridis", None),
+                ("depth relative error |Δ|/d", "viridis", 0.1))
+
+
+def _pred_rgb(pred_dir: Path, stem: str, intrinsics, background) -> np.ndarray:
+    """The prediction of `stem` composited onto the background, [H, W, 3], whatever its
+    format (eval.evaluate / eval.foreign find it)."""
+    from nerfgauge.eval.evaluate import composite, find_prediction, read_colour
+
+    files = find_prediction(pred_dir, stem, "distance")
+    if files is None:
+        raise InputError(f"no prediction for frame {stem} in {pred_dir}")
+    rgb, alpha = read_colour(files.colour, intrinsics)
+    return composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
+
+
 def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3, background=(1.0, 1.0, 1.0)) -> None:
-    """Rows of (ground truth, prediction, colour error, predicted depth, depth error) PNG."""
-    from nerfgauge.core.images import write_png
+    """PNG: one row per frame; labelled columns ground truth, prediction, colour error,
+    predicted depth, depth error, each map with its colour bar (scale in the label)."""
+    from nerfgauge.eval.evaluate import composite
 
     ds = open_dataset(dataset_root)
     cameras = ds.cameras(split)
-    bg = np.asarray(background, np.float32)
-    rows = []
-    for stem in cameras.stems[:frames]:
-        gt = read_rgba(ds, stem, cameras.intrinsics)
-        pred = read_png(Path(pred_dir) / (stem + ".png"))
-        gt_rgb = gt[..., :3] * gt[..., 3:] + bg * (1 - gt[..., 3:])
-        pred_rgb = pred[..., :3] * pred[..., 3:] + bg * (1 - pred[..., 3:]) if pred.shape[-1] == 4 else pred
+    stems = cameras.stems[:frames]
+    bg = np.asarray(background, np.float64)
+    figure = _figure(2.1 * len(GRID_COLUMNS), 2.0 * max(len(stems), 1) + 1.0)
+    grid = figure.subplots(max(len(stems), 1), len(GRID_COLUMNS), squeeze=False)
+    images = {}
+    for row, stem in enumerate(stems):
+        gt = composite(read_rgba(ds, stem, cameras.intrinsics).astype(np.float64), bg)
+        pred = _pred_rgb(Path(pred_dir), stem, cameras.intrinsics, bg)
         gt_depth = read_depth(ds, stem, cameras.intrinsics)
         mask = read_mask(ds, stem, cameras.intrinsics)
         depth_path = Path(pred_dir) / (stem + "_depth.exr")
-        pred_depth = read_exr_single(depth_path) if depth_path.is_file() else np.zeros_like(gt_depth)
+        pred_depth = read_exr_single(depth_path) if depth_path.is_file() else None
         far = float(gt_depth[mask].max()) if mask.any() else 1.0
-        near = float(gt_depth[mask].min()) if mask.any() else 0.0
-        depth_vis = colourize(np.where(pred_depth > 0, (far - pred_depth) / max(far - near, 1e-9), 0.0), 1.0, "viridis")
-        tiles = [gt_rgb, pred_rgb, colourize(colour_error(pred_rgb, gt_rgb), 0.2, "magma") / 255.0,
-                 depth_vis / 255.0, colourize(depth_relative_error(pred_depth, gt_depth, mask), 0.1, "viridis") / 255.0]
-        rows.append(np.concatenate([np.clip(t[..., :3], 0, 1) for t in tiles], axis=1))
-    write_png(out, np.round(np.concatenate(rows, axis=0) * 255).astype(np.uint8))
+        tiles = [gt, pred, colour_error(pred, gt),
+                 np.where(pred_depth > 0, pred_depth, np.nan) if pred_depth is not None else None,
+                 depth_relative_error(pred_depth, gt_depth, mask) if pred_depth is not None else None]
+        for col, ((label, cmap, vmax), tile) in enumerate(zip(GRID_COLUMNS, tiles)):
+            axes = grid[row, col]
+            axes.set_xticks([])
+            axes.set_yticks([])
+            if row == 0:
+                axes.set_title(label, fontsize=7)
+            if col == 0:
+                axes.set_ylabel(stem, fontsize=7)
+            if tile is None:
+                axes.text(0.5, 0.5, "no depth", ha="center", va="center", fontsize=7, transform=axes.transAxes)
+                continue
+            if cmap is None:
+                axes.imshow(np.clip(tile, 0, 1), interpolation="nearest")
+            else:
+                images[col] = axes.imshow(tile, cmap=cmap, vmin=0.0, vmax=vmax if vmax is not None else far,
+                                          interpolation="nearest")
+    for col, image in images.items():
+        bar = figure.colorbar(image, ax=list(grid[:, col]), orientation="horizontal", fraction=0.08, pad=0.04)
+        bar.ax.tick_params(labelsize=6)
+    _save(figure, out)
+
+
+def frusta_plot(dataset_root, out, splits=("train", "test"), bounds=None) -> None:
+    """PNG: the cameras of `splits` as frusta (apex at the centre, the image plane at a
+    tenth of the scene's size) around the scene's bounding box, in 3D."""
+    ds = open_dataset(dataset_root)
+    bounds = ds.bounds if bounds is None else np.asarray(bounds)
+    figure = _figure(5.5, 5.0)
+    axes = figure.add_subplot(projection="3d")
+    points = []
+    if bounds is not None:
+        lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        for i in range(8):
+            for j in range(i + 1, 8):
+                if np.sum(corners[i] != corners[j]) == 1:  # the 12 edges
+                    axes.plot(*zip(corners[i], corners[j]), color="k", linewidth=0.8)
+        points.append(corners)
+    centres = np.concatenate([ds.cameras(split).c2w[:, :3, 3] for split in splits if ds.cameras(split).stems] or
+                             [np.zeros((0, 3))])
+    extent = [p for p in points] + [centres]
+    span = np.ptp(np.concatenate(extent), axis=0).max() if sum(len(e) for e in extent) > 1 else 1.0
+    size = 0.08 * max(span, 1e-6)
+    for split, colour in zip(splits, ("tab:blue", "tab:red", "tab:green")):
+        cameras = ds.cameras(split)
+        if not cameras.stems:
+            continue
+        k = cameras.intrinsics
+        half_w, half_h = 0.5 * k.width / k.fx, 0.5 * k.height / k.fy
+        local = np.array([[-half_w, -half_h, -1], [half_w, -half_h, -1], [half_w, half_h, -1], [-half_w, half_h, -1]])
+        for c2w in cameras.c2w:
+            apex = c2w[:3, 3]
+            quad = apex + (local * size) @ c2w[:3, :3].T  # [4, 3]: OpenGL cameras look along -Z
+            for corner in quad:
+                axes.plot(*zip(apex, corner), color=colour, linewidth=0.5)
+            loop = np.vstack([quad, quad[:1]])
+            axes.plot(loop[:, 0], loop[:, 1], loop[:, 2], color=colour, linewidth=0.7)
+        axes.plot([], [], color=colour, label=f"{split} ({len(cameras.stems)})")
+        points.append(cameras.c2w[:, :3, 3])
+    allpoints = np.concatenate(points) if points else np.zeros((1, 3))
+    middle, radius = (allpoints.max(0) + allpoints.min(0)) / 2, max(np.ptp(allpoints, axis=0).max() / 2, 1e-6) * 1.1
+    axes.set_xlim(middle[0] - radius, middle[0] + radius)
+    axes.set_ylim(middle[1] - radius, middle[1] + radius)
+    axes.set_zlim(middle[2] - radius, middle[2] + radius)
+    axes.set_xlabel("x")
+    axes.set_ylabel("y")
+    axes.set_zlabel("z")
+    axes.set_title("cameras and scene bounds", fontsize=9)
+    axes.legend(fontsize=8, loc="upper left")
+    _save(figure, out)
 
 
 def _data_uri(path) -> str:
     return "data:image/png;base64," + base64.b64encode(Path(path).read_bytes()).decode()
 
 
-def write_html(out, title: str, table: list, images: dict, notes: list[str]) -> None:
-    """A self-contained page: the table and every image inlined as a data URI."""
+# A table sorts by the column whose header is clicked (again: the other way round); numbers
+# compare as numbers, "–" sorts last. The page's URL hash "#sort=<table index>:<column
+# index>[:desc]" sorts at load, so a sorted view can be linked to.
+SORT_SCRIPT = """<script>
+function cellValue(row, col) {
+  var text = row.cells[col].textContent.trim();
+  var number = parseFloat(text);
+  return isNaN(number) ? text : number;
+}
+function sortTable(table, col, descending) {
+  var body = table.tBodies[0];
+  var rows = Array.prototype.slice.call(body.rows);
+  rows.sort(function (a, b) {
+    var x = cellValue(a, col), y = cellValue(b, col);
+    if (typeof x !== typeof y) { return typeof x === "number" ? -1 : 1; }
+    var order = x < y ? -1 : x > y ? 1 : 0;
+    return descending ? -order : order;
+  });
+  rows.forEach(function (row) { body.appendChild(row); });
+  table.setAttribute("data-sorted", col + (descending ? ":desc" : ":asc"));
+}
+document.querySelectorAll("table.sortable").forEach(function (table) {
+  Array.prototype.forEach.call(table.tHead.rows[0].cells, function (header, col) {
+    header.addEventListener("click", function () {
+      sortTable(table, col, table.getAttribute("data-sorted") === col + ":asc");
+    });
+  });
+});
+(function () {
+  var match = /^#sort=(\\d+):(\\d+)(:desc)?$/.exec(window.location.hash);
+  var tables = document.querySelectorAll("table.sortable");
+  if (match && tables[+match[1]]) { sortTable(tables[+match[1]], +match[2], !!match[3]); }
+})();
+</script>"""
+
+STYLE = """<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto}table{border-collapse:collapse;margin-bottom:1em}
+td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}td:first-child,th:first-child{text-align:left}
+table.sortable th{cursor:pointer;background:#f4f4f4}img{max-width:100%}</style>"""
+
+
+def sortable_table_html(table: list) -> str:
+    """A header row and body rows of strings as a sortable <table>."""
     head, *body = table
-    rows = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>" for row in body)
+    header = "".join(f"<th>{html.escape(str(h))}</th>" for h in head)
+    rows = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in body)
+    return f"<table class='sortable'><thead><tr>{header}</tr></thead><tbody>{rows}</tbody></table>"
+
+
+def page_html(title: str, body: str, notes: list[str] = ()) -> bytes:
+    """A self-contained page around `body`, with the notes and the sorting script."""
+    notes_html = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<link rel='icon' href='data:,'>{STYLE}</head><body><h1>{html.escape(title)}</h1><ul>{notes_html}</ul>"
+            f"{body}{SORT_SCRIPT}</body></html>").encode()
+
+
+def write_html(out, title: str, table: list, images: dict, notes: list[str], extra_tables: dict | None = None) -> None:
+    """A self-contained page: the (sortable) table, then every image inlined as a data URI,
+    then extra_tables ({caption: table}) as sortable tables."""
     figures = "".join(f"<h2>{html.escape(caption)}</h2><img src='{_data_uri(path)}' alt='{html.escape(caption)}'>"
                       for caption, path in images.items())
-    notes_html = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
-    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
-<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}td:first-child{{text-align:left}}
-img{{max-width:100%;image-rendering:pixelated}}</style></head><body>
-<h1>{html.escape(title)}</h1><table><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}</tr>{rows}</table>
-<ul>{notes_html}</ul>{figures}</body></html>"""
-    write_bytes_atomic(out, page.encode())
+    extra = "".join(f"<h2>{html.escape(caption)}</h2>{sortable_table_html(rows)}"
+                    for caption, rows in (extra_tables or {}).items())
+    write_bytes_atomic(out, page_html(title, sortable_table_html(table) + figures + extra, notes))
+
+
+def per_view_table(documents: dict) -> list[list[str]]:
+    """One row per (frame, method) of the metrics documents ({method: document}): the
+    frame, the method and every metric of eval.metrics.METRIC_NAMES defined anywhere."""
+    from nerfgauge.eval.metrics import METRIC_NAMES
+
+    names = [m for m in METRIC_NAMES if any(f.get(m) is not None for d in documents.values() for f in d["frames"])]
+    table = [["frame", "method"] + [dict((k, label) for k, label, _ in TABLE_METRICS).get(m, m) for m in names]]
+    formats = {k: fmt for k, _, fmt in TABLE_METRICS}
+    for method, document in documents.items():
+        for frame in document["frames"]:
+            table.append([frame["name"], method] + ["–" if frame.get(m) is None else formats.get(m, "{:.4f}").format(frame[m])
+                                                    for m in names])
+    return table
+
+
+def write_report(out, title: str, dataset_root, renders, documents: dict, *, log_path=None, ours: str,
+                 train_seconds=None, notes=(), split: str = "test", frames: int = 3) -> Path:
+    """report.html beside its figures (out's folder): the metrics table of every method, the
+    labelled image grid of `renders` (our method's), the speed-against-error curve with the
+    baselines on it, the camera frusta with the scene bounds, and the sortable per-view table.
+    documents: {method: metrics document}, `ours` among them."""
+    out = Path(out)
+    folder = out.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    background = (1.0, 1.0, 1.0) if documents[ours].get("background", "white") == "white" else (0.0, 0.0, 0.0)
+    image_grid(dataset_root, renders, folder / "grid.png", split=split, frames=frames, background=background)
+    curves = {ours: read_log(log_path)} if log_path is not None and Path(log_path).is_file() else {}
+    plot_curves(curves, folder / "curve.png",
+                baselines={m: d["mean"].get("psnr") for m, d in documents.items() if m != ours},
+                finals={ours: (train_seconds, documents[ours]["mean"].get("psnr"))})
+    frusta_plot(dataset_root, folder / "cameras.png", splits=("train", split) if split != "train" else ("train",))
+    images = {"test views (columns labelled; colour bars give the scales)": folder / "grid.png",
+              "speed against error (baselines: no training, at 0 s)": folder / "curve.png",
+              "train and test cameras with the scene bounds": folder / "cameras.png"}
+    write_html(out, title, metrics_table(documents), images, list(notes),
+               extra_tables={"per view (click a header to sort)": per_view_table(documents)})
+    return out
 
 
 def geometry_table(document: dict) -> str:

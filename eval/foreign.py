@@ -1,0 +1,208 @@
+"""Other tools' render folders, read as they are: `nerfgauge evaluate DATASET --pred DIR
+[--pred-format auto|nerfgauge|nerfstudio|nerfbaselines|folder]`.
+
+Formats (checked against the tools' own writers):
+
+- `nerfstudio`: `ns-render dataset --output-path OUT --split test` writes
+  OUT/<split>/<output name>/<image name>.png|.jpg, the image name being the dataset image's
+  path relative to the common folder of the split's images (nerfstudio scripts/render.py,
+  DatasetRender). For a nerfgauge dataset's transforms.json that is r_007. Colour comes
+  from rgba/ (straight alpha) when present, else rgb/ (composited by nerfstudio);
+  raw-depth/<name>.npy.gz (float [H, W, 1], already divided by the dataparser scale) is
+  read as depth of the --depth-kind given (nerfacto's is ray distance, splatfacto's z).
+  The colour-mapped depth/ and gt-* folders are ignored. DIR may be OUT or OUT/<split>.
+- `nerfbaselines`: a `nerfbaselines render` predictions folder: info.json (must parse as a
+  JSON object), color/<relative name>.png, gt-color/ (the tool's copy of the ground truth,
+  not used: ours is read from the dataset, hashes checked), optional depth/<name>.bin
+  (int32 height, width, then float16 values: nerfbaselines io.save_depth).
+- `folder`: plain PNG, JPEG or EXR colour images in DIR/<split>/ or DIR.
+- `nerfgauge`: our own naming, r_007.png / r_007_depth.exr (eval/evaluate.py).
+
+`auto` picks nerfbaselines when DIR has info.json and color/, nerfstudio when it has
+<split>/rgb(a)/ or rgb(a)/, nerfgauge when a file is named like r_<digits>[_kind].png|exr|npy,
+folder when DIR/<split> or DIR holds other images, else nerfgauge (whose error names what
+is missing).
+
+Matching images to the split's frames (nerfstudio, nerfbaselines, folder): by file stem
+when any image is named after a frame (then every image must be, and every frame must have
+one: the names that do not match are reported), else by natural sort order (then the
+counts must be equal). Sizes are checked when each image is read. Every problem is an
+InputError with one line.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+
+from nerfgauge.core import validate
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json
+
+FORMATS = ("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
+NERFSTUDIO_COLOUR = ("rgba", "rgb")  # output names, first found wins
+NERFGAUGE_FILE = re.compile(r"^r_\d+(?:_[A-Za-z]+)?\.(?:png|exr|npy)$")
+
+
+def natural_key(text: str) -> list:
+    """"r_10" after "r_9": digit runs compare as numbers."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
+
+
+def detect_format(pred_dir: Path, split: str) -> str:
+    """The format of a prediction folder (see the module docstring for the rules)."""
+    pred_dir = Path(pred_dir)
+    if (pred_dir / "info.json").is_file() and (pred_dir / "color").is_dir():
+        return "nerfbaselines"
+    if any((folder / name).is_dir() for folder in (pred_dir / split, pred_dir) for name in NERFSTUDIO_COLOUR):
+        return "nerfstudio"
+    plain = False
+    for folder in (pred_dir / split, pred_dir):
+        if folder.is_dir():
+            files = [p for p in folder.iterdir() if p.is_file()]
+            if any(NERFGAUGE_FILE.match(p.name) for p in files):
+                return "nerfgauge"
+            plain = plain or any(p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") for p in files)
+    return "folder" if plain else "nerfgauge"  # no images at all: our naming's message says what is missing
+
+
+def _images(folder: Path, suffixes=IMAGE_SUFFIXES) -> list[Path]:
+    """Image files under `folder` (recursively: nerfbaselines keeps relative sub-folders),
+    naturally sorted by their path relative to it."""
+    files = [p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in suffixes
+             and not p.name.startswith(".")]
+    return sorted(files, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
+
+
+def match_frames(images: list[Path], folder: Path, stems: tuple, what: str) -> dict:
+    """{frame stem: image path}: by name when any image is named after a frame, else by order.
+
+    A name is the image's path relative to `folder` without its suffix, compared with the
+    frame's stem ("test/r_007") and with its last part ("r_007")."""
+    if not images:
+        raise InputError(f"no {what} images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+    keys = {}
+    for stem in stems:
+        keys[stem] = stem
+        keys[Path(stem).name] = stem
+    by_name, unmatched = {}, []
+    for path in images:
+        name = path.relative_to(folder).with_suffix("").as_posix()
+        stem = keys.get(name)
+        if stem is None:
+            unmatched.append(path)
+        elif stem in by_name:
+            raise InputError(f"frame {stem}: predicted twice, as {by_name[stem]} and {path}; keep one")
+        else:
+            by_name[stem] = path
+    if by_name:  # named after the frames: every name must match
+        missing = [stem for stem in stems if stem not in by_name]
+        if unmatched or missing:
+            parts = []
+            if unmatched:
+                parts.append(f"{len(unmatched)} image(s) named after no frame ({', '.join(p.name for p in unmatched[:3])}"
+                             f"{' ...' if len(unmatched) > 3 else ''})")
+            if missing:
+                more = " ..." if len(missing) > 3 else ""
+                parts.append(f"no image for {len(missing)} frame(s) ({', '.join(missing[:3])}{more})")
+            raise InputError(f"{what} images in {folder} do not match the split's {len(stems)} frames by name: "
+                             + "; ".join(parts))
+        return by_name
+    if len(images) != len(stems):
+        raise InputError(f"{folder} holds {len(images)} {what} image(s) named after none of the split's frames, "
+                         f"and the split has {len(stems)} frames: cannot match them by order")
+    return dict(zip(stems, images))
+
+
+def _split_folder(pred_dir: Path, split: str, has) -> Path:
+    """DIR/<split> when it holds the output (`has(folder)`), else DIR itself."""
+    return pred_dir / split if (pred_dir / split).is_dir() and has(pred_dir / split) else pred_dir
+
+
+def locate(pred_dir, fmt: str, split: str, stems: tuple) -> dict:
+    """{frame stem: PredictionFiles} for a foreign folder of format `fmt` (not "nerfgauge")."""
+    from nerfgauge.eval.evaluate import PredictionFiles
+
+    pred_dir = Path(pred_dir)
+    if fmt == "nerfstudio":
+        base = _split_folder(pred_dir, split, lambda f: any((f / n).is_dir() for n in NERFSTUDIO_COLOUR))
+        colour_dir = next((base / n for n in NERFSTUDIO_COLOUR if (base / n).is_dir()), None)
+        if colour_dir is None:
+            raise InputError(f"{pred_dir} is not an ns-render dataset output: no {split}/rgb/ or rgb/ folder")
+        colours = match_frames(_images(colour_dir, (".png", ".jpg", ".jpeg")), colour_dir, stems, "nerfstudio " + colour_dir.name)
+        depth_dir = base / "raw-depth"
+        return {stem: PredictionFiles(path, _sibling(depth_dir, colour_dir, path, ".npy.gz"), None)
+                for stem, path in colours.items()}
+    if fmt == "nerfbaselines":
+        read_info(pred_dir)
+        colour_dir = pred_dir / "color"
+        if not colour_dir.is_dir():
+            raise InputError(f"{pred_dir} is not a NerfBaselines predictions folder: no color/ folder")
+        colours = match_frames(_images(colour_dir), colour_dir, stems, "NerfBaselines color")
+        return {stem: PredictionFiles(path, _sibling(pred_dir / "depth", colour_dir, path, ".bin"), None)
+                for stem, path in colours.items()}
+    if fmt == "folder":
+        base = _split_folder(pred_dir, split, lambda f: bool(_images(f)))
+        images = [p for p in _images(base) if p.parent == base]  # flat: sub-folders are not frames
+        return {stem: PredictionFiles(path, None, None)
+                for stem, path in match_frames(images, base, stems, "colour").items()}
+    raise InputError(f"unknown prediction format {fmt!r}; choose one of {', '.join(FORMATS)}")
+
+
+def _sibling(folder: Path, colour_dir: Path, colour: Path, suffix: str):
+    """The file in `folder` with the same relative name as `colour` and `suffix`, if any."""
+    candidate = folder / (colour.relative_to(colour_dir).with_suffix("").as_posix() + suffix)
+    return candidate if candidate.is_file() else None
+
+
+def read_info(pred_dir: Path) -> dict:
+    """NerfBaselines' info.json as a dict; a file that does not parse is an InputError."""
+    path = Path(pred_dir) / "info.json"
+    if not path.is_file():
+        raise InputError(f"{pred_dir} is not a NerfBaselines predictions folder: no info.json")
+    return read_json(path)
+
+
+# --- reading foreign files ------------------------------------------------------------
+
+
+def read_jpeg(path: Path, intrinsics) -> np.ndarray:
+    """A JPEG as sRGB [H, W, 3] float64 in [0, 1]; the header's size checked before decoding."""
+    from PIL import Image, JpegImagePlugin
+
+    try:
+        data = Path(path).read_bytes()
+        with JpegImagePlugin.JpegImageFile(io.BytesIO(data)) as image:
+            validate.image_size(*image.size, path)
+            validate.header_matches(*image.size, intrinsics, path)
+            array = np.asarray(image.convert("RGB"))
+    except InputError:
+        raise
+    except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as error:
+        raise InputError(f"cannot read image {path}: {error}") from None
+    return array.astype(np.float64) / 255.0
+
+
+def read_depth_file(path: Path) -> np.ndarray:
+    """nerfstudio raw-depth (.npy.gz, [H, W] or [H, W, 1]) or NerfBaselines depth (.bin:
+    int32 height, width, float16 values) as a float64 array."""
+    try:
+        if path.name.endswith(".npy.gz"):
+            with gzip.open(path, "rb") as handle:
+                values = np.load(io.BytesIO(handle.read()), allow_pickle=False)
+        else:
+            data = path.read_bytes()
+            if len(data) < 8:
+                raise ValueError("shorter than its 8-byte header")
+            height, width = np.frombuffer(data[:8], "<i4")
+            if height <= 0 or width <= 0 or len(data) != 8 + 2 * int(height) * int(width):
+                raise ValueError(f"header says {width}x{height} but holds {len(data) - 8} bytes of float16")
+            values = np.frombuffer(data[8:], "<f2").reshape(int(height), int(width))
+    except (OSError, ValueError, EOFError) as error:
+        raise InputError(f"cannot read depth {path}: {error}") from None
+    return np.asarray(values, np.float64)

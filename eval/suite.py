@@ -1,0 +1,428 @@
+"""Benchmark suites: versioned sets of datasets, and results tied to them.
+
+A suite is a TOML file (suites/*.toml, installed as the package nerfgauge.suites; or any
+path ending in .toml):
+
+    name = "smoke"                 # required
+    version = 1                    # required, a positive integer: bump it on any change
+    description = "..."            # optional
+    [dataset]                      # required: nerfgauge generate settings (GenerateConfig
+    width = 16 ...                 #   fields but scene and seed); width, height, views,
+                                   #   test_views and spp are required
+    [train]                        # required: our NeRF (TrainConfig fields but dataset and
+    steps = 80 ...                 #   seed); steps is required (reproducible)
+    [protocol]                     # required: split, background, depth_kind; optional
+    split = "test" ...             #   baselines (eval.baselines.METHODS; the lightfield ones
+                                   #   run on lightfield layouts only) and geometry
+                                   #   {resolution, samples} (our NeRF's mesh scored)
+    [[scenes]]                     # at least one: scene (a registered recipe) and seed are
+    scene = "primitives"           #   required; id (default: the scene) names its folder;
+    seed = 0                       #   any [dataset] key overrides the default for it
+
+A missing or unknown field, a wrong type, an unknown scene, or two entries with one id is an
+InputError naming the file and the field. The suite's identity is its version and the
+sha256 of its canonical JSON (`Suite.sha256`): editing a suite without bumping its
+version still changes the hash, and results are refused either way.
+
+A suite folder (`nerfgauge suite generate SUITE --out DIR`, a nerfgauge "suite" folder):
+    DIR/suite.json                  the suite as parsed: name, version, sha256, definition
+    DIR/datasets/<id>/              one nerfgauge dataset per scene entry
+    DIR/suite-manifest.json         written last, when every dataset is complete: every
+                                    dataset's manifest.json sha256 and every file's sha256
+    DIR/results/<method>/<id>/metrics.json  `suite evaluate` (eval.evaluate's document)
+    DIR/results/<method>/result.json        written last: suite version and sha256, each
+                                    dataset's manifest sha256, training time, model size
+Generation is resumable: a dataset whose manifest verifies and whose recipe matches is
+skipped; an interrupted one is resumed by the generator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from nerfgauge.core import dataset
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
+
+SUITE_FILE = "suite.json"
+SUITE_MANIFEST = "suite-manifest.json"
+RESULT_FILE = "result.json"
+SCHEMA = 1
+REQUIRED = {"dataset": ("width", "height", "views", "test_views", "spp"), "train": ("steps",),
+            "protocol": ("split", "background", "depth_kind")}
+PROTOCOL_KEYS = {"split": str, "background": str, "depth_kind": str, "baselines": list, "geometry": dict}
+GEOMETRY_KEYS = ("resolution", "samples")
+
+
+@dataclass(frozen=True)
+class SceneEntry:
+    id: str
+    scene: str
+    seed: int
+    dataset: dict  # GenerateConfig fields (the suite's [dataset] with this entry's overrides)
+
+
+@dataclass(frozen=True)
+class Suite:
+    name: str
+    version: int
+    description: str
+    train: dict  # TrainConfig fields
+    protocol: dict
+    scenes: tuple  # SceneEntry
+    source: str  # where it was read from (named in errors)
+
+    def definition(self) -> dict:
+        """Everything that makes results comparable (not where the file lives)."""
+        return {"name": self.name, "version": self.version, "description": self.description,
+                "train": self.train, "protocol": self.protocol,
+                "scenes": [dataclasses.asdict(entry) for entry in self.scenes]}
+
+    @property
+    def sha256(self) -> str:
+        import hashlib
+
+        return hashlib.sha256(json_bytes(self.definition())).hexdigest()
+
+    def generate_config(self, entry: SceneEntry):
+        from nerfgauge.generate.pipeline import GenerateConfig
+
+        return GenerateConfig(scene=entry.scene, seed=entry.seed, **entry.dataset)
+
+    def identity(self) -> dict:
+        return {"suite": self.name, "version": self.version, "suite_sha256": self.sha256}
+
+
+# --- reading suite files ----------------------------------------------------------------
+
+
+def builtin_suites() -> dict:
+    """{name: path-like} of the suites shipped with nerfgauge."""
+    folder = importlib.resources.files("nerfgauge.suites")
+    return {item.name[:-5]: item for item in sorted(folder.iterdir(), key=lambda i: i.name) if item.name.endswith(".toml")}
+
+
+def load_suite(spec) -> Suite:
+    """A suite by built-in name ("smoke") or from a .toml path; InputError (one line) if bad."""
+    spec = str(spec)
+    if spec.endswith(".toml"):
+        path = Path(spec)
+        if not path.is_file():
+            raise InputError(f"suite file not found: {path}")
+        text, source = path.read_bytes(), str(path)
+    else:
+        known = builtin_suites()
+        if spec not in known:
+            raise InputError(f"unknown suite {spec!r}; known: {', '.join(known)} (or give a path to a .toml file)")
+        text, source = known[spec].read_bytes(), f"suites/{spec}.toml"
+    try:
+        data = tomllib.loads(text.decode())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        raise InputError(f"{source} is not valid TOML: {error}") from None
+    return parse_suite(data, source)
+
+
+def _table(data: dict, key: str, source: str) -> dict:
+    if key not in data:
+        raise InputError(f"{source}: missing field [{key}]")
+    if not isinstance(data[key], dict):
+        raise InputError(f"{source}: [{key}] must be a table, got {type(data[key]).__name__}")
+    for field in REQUIRED.get(key, ()):
+        if field not in data[key]:
+            raise InputError(f"{source}: missing field {key}.{field}")
+    return dict(data[key])
+
+
+def _check_fields(values: dict, allowed: set, where: str) -> None:
+    unknown = sorted(set(values) - allowed)
+    if unknown:
+        raise InputError(f"{where}: unknown field {unknown[0]!r}; known: {', '.join(sorted(allowed))}")
+
+
+def parse_suite(data: dict, source: str) -> Suite:
+    from nerfgauge.eval.baselines import METHODS
+    from nerfgauge.eval.evaluate import BACKGROUNDS, DEPTH_SUFFIXES
+    from nerfgauge.generate.pipeline import GenerateConfig
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.scenes.registry import RECIPES
+
+    _check_fields(data, {"name", "version", "description", "dataset", "train", "protocol", "scenes"}, source)
+    for field in ("name", "version"):
+        if field not in data:
+            raise InputError(f"{source}: missing field {field}")
+    name, version = data["name"], data["version"]
+    if not isinstance(name, str) or not name.strip() or "/" in name:
+        raise InputError(f"{source}: name must be a non-empty string without '/', got {name!r}")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise InputError(f"{source}: version must be a positive integer, got {version!r}")
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise InputError(f"{source}: description must be a string, got {description!r}")
+    dataset_defaults = _table(data, "dataset", source)
+    generate_fields = {f.name for f in dataclasses.fields(GenerateConfig)} - {"scene", "seed"}
+    _check_fields(dataset_defaults, generate_fields, f"{source} [dataset]")
+    train = _table(data, "train", source)
+    _check_fields(train, {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "seed", "budget_seconds"},
+                  f"{source} [train]")
+    protocol = _table(data, "protocol", source)
+    _check_fields(protocol, set(PROTOCOL_KEYS), f"{source} [protocol]")
+    for key, kind in PROTOCOL_KEYS.items():
+        if key in protocol and not isinstance(protocol[key], kind):
+            raise InputError(f"{source}: protocol.{key} must be a {kind.__name__}, got {protocol[key]!r}")
+    if protocol["background"] not in BACKGROUNDS or protocol["depth_kind"] not in DEPTH_SUFFIXES:
+        raise InputError(f"{source}: protocol.background must be one of {', '.join(BACKGROUNDS)} and "
+                         f"protocol.depth_kind one of {', '.join(DEPTH_SUFFIXES)}")
+    if protocol["split"] not in dataset.SPLITS:
+        raise InputError(f"{source}: protocol.split must be one of {', '.join(dataset.SPLITS)}, got {protocol['split']!r}")
+    protocol.setdefault("baselines", [])
+    for method in protocol["baselines"]:
+        if method not in METHODS:
+            raise InputError(f"{source}: protocol.baselines: unknown baseline {method!r}; known: {', '.join(METHODS)}")
+    if "geometry" in protocol:
+        geometry = protocol["geometry"]
+        _check_fields(geometry, set(GEOMETRY_KEYS), f"{source} protocol.geometry")
+        for key in GEOMETRY_KEYS:
+            if not isinstance(geometry.get(key), int) or isinstance(geometry.get(key), bool) or geometry[key] < 2:
+                raise InputError(f"{source}: protocol.geometry.{key} must be an integer >= 2, got {geometry.get(key)!r}")
+    scenes = data.get("scenes")
+    if scenes is None:
+        raise InputError(f"{source}: missing field [[scenes]]")
+    if not isinstance(scenes, list) or not scenes or not all(isinstance(s, dict) for s in scenes):
+        raise InputError(f"{source}: [[scenes]] must be a non-empty list of tables")
+    entries, ids = [], set()
+    for k, raw in enumerate(scenes):
+        where = f"{source} scenes[{k}]"
+        _check_fields(raw, generate_fields | {"id", "scene", "seed"}, where)
+        for field in ("scene", "seed"):
+            if field not in raw:
+                raise InputError(f"{where}: missing field {field}")
+        if raw["scene"] not in RECIPES:
+            raise InputError(f"{where}: unknown scene {raw['scene']!r}; known: {', '.join(RECIPES)}")
+        if not isinstance(raw["seed"], int) or isinstance(raw["seed"], bool) or raw["seed"] < 0:
+            raise InputError(f"{where}: seed must be a non-negative integer, got {raw['seed']!r}")
+        entry_id = raw.get("id", raw["scene"])
+        if not isinstance(entry_id, str) or not entry_id or "/" in entry_id or entry_id.startswith("."):
+            raise InputError(f"{where}: id must be a folder name, got {entry_id!r}")
+        if entry_id in ids:
+            raise InputError(f"{where}: id {entry_id!r} is used twice; give each entry its own id")
+        ids.add(entry_id)
+        settings = {**dataset_defaults, **{key: value for key, value in raw.items() if key in generate_fields}}
+        if isinstance(settings.get("elevation"), list):
+            settings["elevation"] = tuple(settings["elevation"])
+        entry = SceneEntry(entry_id, raw["scene"], raw["seed"], settings)
+        try:
+            config = GenerateConfig(scene=entry.scene, seed=entry.seed, **settings)
+            config.validate()
+            TrainConfig(dataset=".", seed=entry.seed, **train).validate()
+        except (TypeError, ValueError) as error:
+            raise InputError(f"{where}: {error}") from None
+        except InputError as error:
+            raise InputError(f"{where}: {error}") from None
+        entries.append(entry)
+    return Suite(name, version, description, train, protocol, tuple(entries), source)
+
+
+# --- the suite folder --------------------------------------------------------------------
+
+
+def claim_suite_folder(suite: Suite, out, *, overwrite: bool = False):
+    """claim_folder(out, "suite", sha256), refusing first with one line when `out` holds
+    another suite or another version of this one."""
+    from nerfgauge.core.folders import claim_folder
+
+    out = Path(out)
+    if (out / SUITE_FILE).is_file() and not overwrite:
+        check_same_suite(suite, read_json(out / SUITE_FILE), f"{out / SUITE_FILE}",
+                         remedy="choose another --out, or pass --overwrite to replace it")
+    return claim_folder(out, "suite", suite.sha256, overwrite=overwrite)
+
+
+def check_same_suite(suite: Suite, identity: dict, where: str,
+                     remedy: str = "results against another suite version are refused") -> None:
+    """Refuse (InputError) results or folders made for another suite, version or definition."""
+    name, version = identity.get("suite", identity.get("name")), identity.get("version")
+    sha = identity.get("suite_sha256", identity.get("sha256"))
+    if name != suite.name:
+        raise InputError(f"{where} is for suite {name!r}, not {suite.name!r}; {remedy}")
+    if version != suite.version:
+        raise InputError(f"{where} was made with suite {name} version {version}, not version {suite.version}; "
+                         f"{remedy}")
+    if sha != suite.sha256:
+        raise InputError(f"{where} was made with another definition of suite {name} version {version} "
+                         f"(sha256 {str(sha)[:12]}..., this one {suite.sha256[:12]}...); bump the version when editing a suite")
+
+
+def dataset_dir(out, entry: SceneEntry) -> Path:
+    return Path(out) / "datasets" / entry.id
+
+
+def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print) -> dict:
+    """Every dataset of the suite into out/datasets/<id>/, then suite-manifest.json. Returns it."""
+    from nerfgauge.generate.pipeline import generate
+
+    out = Path(out)
+    for entry in suite.scenes:
+        suite.generate_config(entry).validate()
+    with claim_suite_folder(suite, out, overwrite=overwrite):
+        write_json(out / SUITE_FILE, {**suite.identity(), "schema": SCHEMA, "definition": suite.definition()})
+        manifest_path = out / SUITE_MANIFEST
+        previous = read_json(manifest_path) if manifest_path.is_file() else {"datasets": {}}
+        if manifest_path.is_file():
+            manifest_path.unlink()  # rewritten below once every dataset is complete
+        for index, entry in enumerate(suite.scenes, 1):
+            folder = dataset_dir(out, entry)
+            if _unchanged(folder, previous["datasets"].get(entry.id)):
+                log(f"[{index}/{len(suite.scenes)}] {entry.id}: complete, skipped")
+                continue
+            log(f"[{index}/{len(suite.scenes)}] {entry.id}: generate {entry.scene} (seed {entry.seed})")
+            start = time.perf_counter()
+            generate(suite.generate_config(entry), folder, overwrite=overwrite, progress=progress)
+            log(f"    {entry.id}: generated in {time.perf_counter() - start:.1f} s")
+        document = {**suite.identity(), "schema": SCHEMA, "datasets": {
+            entry.id: dataset_record(out, entry) for entry in suite.scenes}}
+        write_json(manifest_path, document)
+    return document
+
+
+def _unchanged(folder: Path, recorded) -> bool:
+    """The dataset is complete and its manifest is the one recorded, every file verifying."""
+    manifest = folder / dataset.MANIFEST
+    if not recorded or not manifest.is_file() or sha256_file(manifest) != recorded.get("manifest_sha256"):
+        return False
+    return not dataset.verify_manifest(folder)
+
+
+def dataset_record(out: Path, entry: SceneEntry) -> dict:
+    folder = dataset_dir(out, entry)
+    files = {rel: item.sha256 for rel, item in dataset.read_manifest(folder).items()}
+    return {"path": folder.relative_to(out).as_posix(), "scene": entry.scene, "seed": entry.seed,
+            "manifest_sha256": sha256_file(folder / dataset.MANIFEST), "files": files}
+
+
+def read_suite_folder(suite: Suite, out) -> dict:
+    """The suite manifest of a complete suite folder made from `suite`; InputError otherwise,
+    also when a dataset's manifest.json no longer has the hash the suite manifest recorded."""
+    out = Path(out)
+    if not (out / SUITE_FILE).is_file():
+        raise InputError(f"{out} is not a suite folder (no {SUITE_FILE}); make it with nerfgauge suite generate")
+    check_same_suite(suite, read_json(out / SUITE_FILE), str(out / SUITE_FILE))
+    if not (out / SUITE_MANIFEST).is_file():
+        raise InputError(f"suite folder {out} is incomplete (no {SUITE_MANIFEST}); finish it with nerfgauge suite generate")
+    manifest = read_json(out / SUITE_MANIFEST, finite=True)
+    check_same_suite(suite, manifest, str(out / SUITE_MANIFEST))
+    for entry in suite.scenes:
+        record = manifest.get("datasets", {}).get(entry.id)
+        path = dataset_dir(out, entry) / dataset.MANIFEST
+        if record is None:
+            raise InputError(f"{out / SUITE_MANIFEST} lists no dataset {entry.id!r}")
+        if not path.is_file() or sha256_file(path) != record.get("manifest_sha256"):
+            raise InputError(f"dataset {dataset_dir(out, entry)}: its manifest hash differs from the one in "
+                             f"{out / SUITE_MANIFEST}; regenerate with nerfgauge suite generate --overwrite")
+    return manifest
+
+
+# --- results ----------------------------------------------------------------------------
+
+
+def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: str = "auto",
+                   extras: dict | None = None, log=print, entries=None) -> dict:
+    """Score PRED_ROOT/<id>/ against every dataset of the suite (eval.evaluate, the same
+    function as `nerfgauge evaluate`) into out/results/<method>/; result.json last.
+
+    extras: {id: {"train_seconds", "model_bytes", "geometry"}} known to the caller (suite run).
+    PRED_ROOT/<id>/train.json ({"seconds", "model_bytes"}), when present, gives the same for
+    another tool's runs. A PRED_ROOT/suite.json naming another suite or version is refused.
+    entries: the suite's SceneEntry to score (default all; `suite run` passes the light-field
+    datasets only for the light-field baselines)."""
+    from nerfgauge.core.folders import folder_lock
+    from nerfgauge.eval.evaluate import evaluate
+
+    out, pred_root = Path(out), Path(pred_root)
+    if not method or "/" in method or method.startswith("."):
+        raise InputError(f"--method must be a folder name, got {method!r}")
+    manifest = read_suite_folder(suite, out)
+    if not pred_root.is_dir():
+        raise InputError(f"prediction folder not found: {pred_root}")
+    if (pred_root / SUITE_FILE).is_file():
+        check_same_suite(suite, read_json(pred_root / SUITE_FILE), str(pred_root / SUITE_FILE))
+    entries = suite.scenes if entries is None else tuple(entries)
+    missing = [entry.id for entry in entries if not (pred_root / entry.id).is_dir()]
+    if missing:
+        raise InputError(f"{pred_root} has no predictions for {len(missing)} of the suite's {len(suite.scenes)} "
+                         f"datasets: {', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} "
+                         f"(expected {pred_root}/<id>/ for each)")
+    extras = extras or {}
+    results_dir = out / "results" / method
+    with folder_lock(out):
+        (results_dir / RESULT_FILE).unlink(missing_ok=True)  # no stale result.json beside new metrics
+        rows = {}
+        for index, entry in enumerate(entries, 1):
+            log(f"[{index}/{len(entries)}] evaluate {method} on {entry.id}")
+            metrics_path = results_dir / entry.id / "metrics.json"
+            document = evaluate(dataset_dir(out, entry), pred_root / entry.id, split=suite.protocol["split"],
+                                out=metrics_path, background=suite.protocol["background"],
+                                depth_kind=suite.protocol["depth_kind"], pred_format=pred_format)
+            row = {"manifest_sha256": manifest["datasets"][entry.id]["manifest_sha256"],
+                   "metrics": metrics_path.relative_to(out).as_posix(),
+                   "ms_per_frame": document["timing"].get("ms_per_frame"),
+                   "train_seconds": None, "model_bytes": None, "geometry": None}
+            train_file = pred_root / entry.id / "train.json"
+            if train_file.is_file():
+                info = read_json(train_file, finite=True)
+                row["train_seconds"], row["model_bytes"] = info.get("seconds"), info.get("model_bytes")
+            row.update(extras.get(entry.id, {}))
+            rows[entry.id] = row
+        result = {**suite.identity(), "schema": SCHEMA, "method": method, "pred_root": str(pred_root),
+                  "datasets": rows}
+        write_json(results_dir / RESULT_FILE, result)
+    return result
+
+
+def read_results(suite: Suite, out) -> dict:
+    """{method: result.json} of every method in out/results/, each checked against the suite
+    folder: another suite version, definition or dataset manifest hash is refused. A method
+    may lack some datasets (shown as not applicable)."""
+    out = Path(out)
+    manifest = read_suite_folder(suite, out)
+    results = {}
+    folder = out / "results"
+    for path in sorted(folder.glob(f"*/{RESULT_FILE}")) if folder.is_dir() else []:
+        result = read_json(path, finite=True)
+        check_same_suite(suite, result, str(path))
+        for entry in suite.scenes:
+            row = result.get("datasets", {}).get(entry.id)
+            if row is None:  # a method that does not apply to this dataset (light-field baselines)
+                continue
+            if row.get("manifest_sha256") != manifest["datasets"][entry.id]["manifest_sha256"]:
+                raise InputError(f"{path}: dataset {entry.id} was scored against a dataset whose manifest hash "
+                                 f"differs from {out / SUITE_MANIFEST}; evaluate again")
+        results[result["method"]] = result
+    if not results:
+        raise InputError(f"{out} holds no results yet (no results/<method>/{RESULT_FILE}); "
+                         "run nerfgauge suite evaluate or suite run")
+    return results
+
+
+def suite_from_folder(out) -> Suite:
+    """The suite a folder was made from, as recorded in its suite.json."""
+    path = Path(out) / SUITE_FILE
+    if not path.is_file():
+        raise InputError(f"{out} is not a suite folder (no {SUITE_FILE}); make it with nerfgauge suite generate")
+    recorded = read_json(path, finite=True)
+    definition = recorded.get("definition")
+    if not isinstance(definition, dict):
+        raise InputError(f"{path}: no suite definition")
+    scenes = definition.get("scenes", [])
+    try:
+        entries = tuple(SceneEntry(s["id"], s["scene"], s["seed"], s["dataset"]) for s in scenes)
+        suite = Suite(definition["name"], definition["version"], definition.get("description", ""),
+                      definition["train"], definition["protocol"], entries, str(path))
+    except (KeyError, TypeError) as error:
+        raise InputError(f"{path}: malformed suite definition ({error!r})") from None
+    check_same_suite(suite, recorded, str(path))
+    return suite

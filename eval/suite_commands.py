@@ -1,0 +1,93 @@
+"""`nerfgauge suite`: benchmark suites (eval/suite.py), run (eval/suite_run.py) and the
+leaderboard (eval/suite_report.py).
+
+    nerfgauge suite list
+    nerfgauge suite generate SUITE --out DIR [--overwrite]
+    nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...]
+    nerfgauge suite run SUITE --out DIR [--overwrite]
+    nerfgauge suite report DIR
+
+SUITE is a built-in name (`suite list`) or a path to a .toml file.
+"""
+
+from __future__ import annotations
+
+from nerfgauge.core import arguments
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("suite", help="benchmark suites: versioned sets of datasets, a leaderboard",
+                                   description="Versioned benchmark suites (suites/*.toml): generate their datasets, "
+                                               "score any method's renders on all of them, and rank the methods.")
+    kinds = parser.add_subparsers(dest="suite_command", metavar="ACTION", required=True)
+    listing = kinds.add_parser("list", help="the built-in suites")
+    listing.set_defaults(func=run_list)
+    generate = kinds.add_parser("generate", help="render every dataset of a suite (resumable) and its manifest")
+    generate.add_argument("suite", metavar="SUITE", help="built-in suite name or path to a .toml file")
+    generate.add_argument("--out", type=arguments.path, required=True, metavar="DIR", help="suite folder")
+    generate.add_argument("--overwrite", action="store_true", help="replace a suite folder of another suite or version")
+    generate.add_argument("--progress", action="store_true", help="progress bars")
+    generate.set_defaults(func=run_generate)
+    evaluate = kinds.add_parser("evaluate", help="score a method's renders on every dataset of a suite")
+    evaluate.add_argument("suite", metavar="SUITE")
+    evaluate.add_argument("dir", type=arguments.path, metavar="DIR", help="the suite folder (suite generate)")
+    evaluate.add_argument("--method", required=True, metavar="NAME", help="the method's name on the leaderboard")
+    evaluate.add_argument("--pred", type=arguments.path, required=True, metavar="PRED_ROOT",
+                          help="PRED_ROOT/<dataset id>/ holds the renders of each dataset (any format evaluate reads)")
+    evaluate.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
+                          default="auto", help="how the renders are named (default: detect per dataset)")
+    evaluate.set_defaults(func=run_evaluate)
+    run = kinds.add_parser("run", help="our NeRF and the baselines through a whole suite, then the leaderboard")
+    run.add_argument("suite", metavar="SUITE")
+    run.add_argument("--out", type=arguments.path, required=True, metavar="DIR", help="suite folder")
+    run.add_argument("--overwrite", action="store_true", help="replace a suite folder of another suite or version")
+    run.add_argument("--progress", action="store_true", help="progress bars")
+    run.set_defaults(func=run_run)
+    report = kinds.add_parser("report", help="the leaderboard (Markdown, HTML, JSON) and per-dataset reports")
+    report.add_argument("dir", type=arguments.path, metavar="DIR", help="the suite folder")
+    report.set_defaults(func=run_report)
+
+
+def run_list(args) -> int:
+    from nerfgauge.eval.suite import builtin_suites, load_suite
+
+    for name in builtin_suites():
+        suite = load_suite(name)
+        print(f"{name:10s} v{suite.version}  {len(suite.scenes):2d} datasets  {suite.description}")
+    return 0
+
+
+def run_generate(args) -> int:
+    from nerfgauge.eval.suite import generate_suite, load_suite
+
+    suite = load_suite(args.suite)
+    manifest = generate_suite(suite, args.out, overwrite=args.overwrite, progress=args.progress)
+    files = sum(len(record["files"]) for record in manifest["datasets"].values())
+    print(f"suite {suite.name} v{suite.version}: {len(manifest['datasets'])} datasets, {files} files -> "
+          f"{args.out / 'suite-manifest.json'}")
+    return 0
+
+
+def run_evaluate(args) -> int:
+    from nerfgauge.eval.suite import evaluate_suite, load_suite
+
+    suite = load_suite(args.suite)
+    result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format)
+    print(f"{args.method}: {len(result['datasets'])} datasets scored -> {args.dir / 'results' / args.method}")
+    return 0
+
+
+def run_run(args) -> int:
+    from nerfgauge.eval.suite import load_suite
+    from nerfgauge.eval.suite_run import run_suite
+
+    run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress)
+    return 0
+
+
+def run_report(args) -> int:
+    from nerfgauge.eval.suite import suite_from_folder
+    from nerfgauge.eval.suite_report import write_leaderboard
+
+    write_leaderboard(suite_from_folder(args.dir), args.dir)
+    return 0

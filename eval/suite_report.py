@@ -1,0 +1,170 @@
+"""`nerfgauge suite report DIR`: the leaderboard of a suite folder, as JSON, Markdown and
+HTML, and a report.html per dataset (eval.report.write_report).
+
+Numbers are copied from the metrics.json files `suite evaluate` wrote with eval.evaluate
+(the function behind `nerfgauge evaluate`), never recomputed, so a method's leaderboard
+entry for a dataset equals its single-run `nerfgauge evaluate` numbers exactly. Columns:
+every metric of eval.metrics.METRIC_NAMES that has a value somewhere (metrics added there
+show up here), then our NeRF's geometry where scored (eval.geometry.summary), then cost:
+training seconds, model size, render milliseconds per frame. The mean row of a method is
+the mean over the datasets where the value is defined; `scenes` says over how many.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+from pathlib import Path
+
+from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
+from nerfgauge.eval.suite import Suite, dataset_dir, read_results
+
+GEOMETRY_COLUMNS = ("geometry_chamfer_l1", "geometry_fscore_1pct", "normal_angle_mean")
+COST_COLUMNS = ("train_seconds", "model_bytes", "ms_per_frame")
+LOWER_IS_BETTER_PREFIXES = ("depth_absrel", "depth_rmse", "depth_mae", "geometry_chamfer", "geometry_accuracy",
+                            "geometry_completeness", "normal_angle", "lpips", "train_seconds", "model_bytes",
+                            "ms_per_frame")
+LABELS = {"psnr": "PSNR dB", "ssim": "SSIM", "psnr_foreground": "fg PSNR dB", "depth_absrel": "depth AbsRel",
+          "depth_rmse": "depth RMSE", "depth_mae": "depth MAE", "depth_delta1": "depth δ<1.25",
+          "opacity_iou": "opacity IoU", "geometry_chamfer_l1": "Chamfer-L1", "geometry_fscore_1pct": "F@1%",
+          "normal_angle_mean": "normal err °", "train_seconds": "train s", "model_bytes": "model MB",
+          "ms_per_frame": "render ms/frame"}
+
+
+def metric_names() -> tuple:
+    from nerfgauge.eval.metrics import METRIC_NAMES
+
+    return tuple(METRIC_NAMES)
+
+
+def leaderboard(suite: Suite, out) -> dict:
+    """The leaderboard document from the suite folder's results (checked by read_results)."""
+    out = Path(out)
+    results = read_results(suite, out)
+    methods = {}
+    for method, result in results.items():
+        scenes = {}
+        for entry in suite.scenes:
+            row = result["datasets"].get(entry.id)
+            if row is None:
+                continue
+            document = read_json(out / row["metrics"], finite=True)
+            values = dict(document["mean"])
+            geometry = row.get("geometry") or {}
+            values.update({key: geometry.get(key) for key in GEOMETRY_COLUMNS})
+            values.update({"train_seconds": row.get("train_seconds"), "model_bytes": row.get("model_bytes"),
+                           "ms_per_frame": row.get("ms_per_frame")})
+            scenes[entry.id] = {"values": values, "frames": len(document["frames"]),
+                                "geometry_na": geometry.get("n/a"), "metrics": row["metrics"]}
+        methods[method] = {"scenes": scenes}
+    columns = [name for name in (*metric_names(), *GEOMETRY_COLUMNS, *COST_COLUMNS)
+               if any(isinstance(s["values"].get(name), (int, float)) for m in methods.values() for s in m["scenes"].values())]
+    for method in methods.values():
+        method["mean"], method["scenes_scored"] = {}, {}
+        for name in columns:
+            defined = [s["values"][name] for s in method["scenes"].values() if isinstance(s["values"].get(name), (int, float))]
+            method["mean"][name] = math.fsum(defined) / len(defined) if defined else None
+            method["scenes_scored"][name] = len(defined)
+    return {**suite.identity(), "schema": 1, "columns": columns, "scenes": [e.id for e in suite.scenes],
+            "methods": methods}
+
+
+def _cell(name: str, value) -> str:
+    if not isinstance(value, (int, float)):
+        return "–"
+    if name == "model_bytes":
+        return f"{value / 1e6:.2f}"
+    if name in ("psnr", "psnr_foreground", "train_seconds", "ms_per_frame", "normal_angle_mean") or name.startswith("psnr"):
+        return f"{value:.2f}"
+    return f"{value:.4f}"
+
+
+def _label(name: str) -> str:
+    return LABELS.get(name, name) + (" ↓" if name.startswith(LOWER_IS_BETTER_PREFIXES) else "")
+
+
+def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
+    """(title, rows with a header row first): the means, then one table per dataset."""
+    columns = board["columns"]
+    n = len(board["scenes"])
+    head = ["method", "scenes"] + [_label(c) for c in columns]
+    mean_rows = [head]
+    for method, data in board["methods"].items():
+        scored = max(data["scenes_scored"].values(), default=0)
+        mean_rows.append([method, f"{len(data['scenes'])}/{n}" if len(data["scenes"]) != n else str(n)]
+                         + [_cell(c, data["mean"].get(c)) for c in columns])
+    result = [(f"mean over datasets ({n})", mean_rows)]
+    for scene in board["scenes"]:
+        rows = [["method", "frames"] + [_label(c) for c in columns]]
+        for method, data in board["methods"].items():
+            entry = data["scenes"].get(scene)
+            if entry is None:
+                rows.append([method, "n/a"] + ["–"] * len(columns))
+            else:
+                rows.append([method, str(entry["frames"])] + [_cell(c, entry["values"].get(c)) for c in columns])
+        result.append((scene, rows))
+    return result
+
+
+def markdown(board: dict) -> str:
+    lines = [f"# Leaderboard: suite {board['suite']} v{board['version']}", "",
+             f"suite sha256 `{board['suite_sha256']}`; ↓ lower is better; – not defined or not applicable; "
+             "means are over the datasets where a value is defined (leaderboard.json: scenes_scored).", ""]
+    for title, rows in tables(board):
+        lines += [f"## {title}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+        lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> dict:
+    """leaderboard.json, .md and .html in `out`, and report/<id>/report.html per dataset."""
+    from nerfgauge.eval.report import page_html, sortable_table_html
+
+    out = Path(out)
+    board = leaderboard(suite, out)
+    links = {}
+    if reports:
+        for entry in suite.scenes:
+            page = scene_report(suite, out, entry, board)
+            if page is not None:
+                links[entry.id] = page.relative_to(out).as_posix()
+    write_json(out / "leaderboard.json", board)
+    write_bytes_atomic(out / "leaderboard.md", markdown(board).encode())
+    sections = []
+    for title, rows in tables(board):
+        link = f" (<a href='{html.escape(links[title])}'>report</a>)" if title in links else ""
+        sections.append(f"<h2>{html.escape(title)}{link}</h2>" + sortable_table_html(rows))
+    notes = [f"suite sha256 {board['suite_sha256']}", "↓ lower is better; – not defined or not applicable; "
+             "means are over the datasets where a value is defined (leaderboard.json: scenes_scored); "
+             "click a column header to sort."]
+    write_bytes_atomic(out / "leaderboard.html",
+                       page_html(f"nerfgauge leaderboard: {board['suite']} v{board['version']}", "".join(sections), notes))
+    log(markdown(board).split("\n## ", 2)[1].split("\n", 1)[1] if len(board["scenes"]) else "")
+    log(f"leaderboard: {out / 'leaderboard.md'}, {out / 'leaderboard.html'}, {out / 'leaderboard.json'}")
+    return board
+
+
+def scene_report(suite: Suite, out: Path, entry, board: dict):
+    """report/<id>/report.html: our NeRF against the baselines on one dataset, when our
+    NeRF's renders are in the suite folder (suite run). Returns its path or None."""
+    from nerfgauge.eval.report import write_report
+    from nerfgauge.eval.suite_run import OURS
+
+    renders = out / "predictions" / OURS / entry.id
+    if OURS not in board["methods"] or entry.id not in board["methods"][OURS]["scenes"] or not renders.is_dir():
+        return None
+    documents, baselines = {}, {}
+    for method, data in board["methods"].items():
+        scene = data["scenes"].get(entry.id)
+        if scene is not None:
+            documents[method] = read_json(out / scene["metrics"], finite=True)
+            if method != OURS:
+                baselines[method] = documents[method]
+    target = out / "report" / entry.id / "report.html"
+    write_report(target, f"{suite.name} v{suite.version}: {entry.id}", dataset_dir(out, entry), renders,
+                 documents, log_path=out / "runs" / entry.id / "log.jsonl", ours=OURS,
+                 train_seconds=board["methods"][OURS]["scenes"][entry.id]["values"].get("train_seconds"),
+                 notes=[f"scene {entry.scene}, seed {entry.seed}, {entry.dataset.get('width')}x"
+                        f"{entry.dataset.get('height')}, split {suite.protocol['split']}"])
+    return target
