@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from nerfgauge.nerf.config import TrainConfig
+from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.parametrisation import Space
 
 from nerfgauge.core.errors import InputError
@@ -65,13 +66,6 @@ def load_checked(path, what: str = "model") -> dict:
         raise InputError(f"{path} has {what} format version {payload.get('version')!r}; this nerfgauge reads "
                          f"{expected_version}")
     return payload
-
-
-def node_mask(occupancy: torch.Tensor) -> torch.Tensor:
-    """Grid nodes that are a corner of an occupied cell. occupancy [nz-1, ny-1, nx-1] ->
-    [nz, ny, nx] bool."""
-    padded = F.pad(occupancy[None, None].float(), (1, 1, 1, 1, 1, 1))
-    return F.max_pool3d(padded, kernel_size=2, stride=1)[0, 0] > 0
 
 
 def pack_mask(mask: torch.Tensor) -> dict:

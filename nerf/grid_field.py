@@ -95,6 +95,13 @@ def node_cells(nodes: int, cells_before: int) -> torch.Tensor:
     return position.floor().long().clamp(0, cells_before - 1)
 
 
+def node_mask(occupancy: torch.Tensor) -> torch.Tensor:
+    """Grid nodes that are a corner of an occupied cell. occupancy [nz-1, ny-1, nx-1] ->
+    [nz, ny, nx] bool."""
+    padded = F.pad(occupancy[None, None].float(), (1, 1, 1, 1, 1, 1))
+    return F.max_pool3d(padded, kernel_size=2, stride=1)[0, 0] > 0
+
+
 class VoxelGridField(nn.Module):
     def __init__(self, aabb: torch.Tensor, resolution: int, final_resolution: int, view_dependent: bool,
                  feature_channels: int = 12, step_ratio: float = 0.5, space=None):

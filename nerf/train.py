@@ -115,6 +115,23 @@ def make_optimizer(model, config: TrainConfig):
     return torch.optim.Adam([{"params": model.parameters(), "lr": 5e-4, "base_lr": 5e-4}])
 
 
+def free_unoccupied(model, optimizer) -> None:
+    """Free the grid rows of nodes that no occupied (and visible) cell touches, so storage
+    and each Adam step shrink with the scene; Adam's moments move along with their rows."""
+    from nerfgauge.nerf.grid_field import node_mask
+
+    old = model.field.grid_parameters()
+    rows = model.field.keep_rows(node_mask(model.occupancy))
+    new = {id(before): after for before, after in zip(old, model.field.grid_parameters())}
+    for group in optimizer.param_groups:
+        group["params"] = [new.get(id(p), p) for p in group["params"]]
+    for before in old:
+        moments = optimizer.state.pop(before, None)
+        if moments:
+            optimizer.state[new[id(before)]] = {k: v[rows] if torch.is_tensor(v) and v.dim() > 0 else v
+                                                for k, v in moments.items()}
+
+
 def run_recipe(config: TrainConfig, dataset_sha256: str) -> dict:
     """What a run is made from: the dataset (by content) and the resolved settings that
     shape its trajectory. Two runs of one recipe (and stopping rule) train the same model."""
@@ -262,6 +279,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                 start = time.perf_counter()
                 model.measure_visibility(train_rays.origins[::VISIBILITY_RAY_STRIDE].to(device),
                                          train_rays.directions[::VISIBILITY_RAY_STRIDE].to(device))
+                if config.occupancy:
+                    free_unoccupied(model, optimizer)
                 state["visibility_done"] += 1
                 state["seconds"] += time.perf_counter() - start  # part of training: it speeds it up
             # Val PSNR points are scheduled on training seconds; they only read the model
