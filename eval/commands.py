@@ -52,6 +52,9 @@ def register(subparsers) -> None:
     register_baseline(subparsers)
     register_bench(subparsers)
     register_geometry(subparsers)
+    from nerfgauge.eval import lpips_commands
+
+    lpips_commands.register(subparsers)
 
 
 def register_check(subparsers) -> None:

