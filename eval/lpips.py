@@ -333,19 +333,23 @@ def lpips_scores(model, pred, gt) -> np.ndarray:
         return model(tensor(pred), tensor(gt)).double().numpy()
 
 
-class LpipsBatch:
-    """Scores frames in batches of `size` (one frame at a time wastes most of the
-    convolution time on thread start-up): add(pred, gt) per frame, then scores() -> [n]."""
+BATCH_PIXELS = 2**20  # pixels per image of a batch: 64 frames of 128 px (~0.1 GB of features), one of 1024 px
 
-    def __init__(self, model, size: int = 16):
-        self.model, self.size = model, size
+
+class LpipsBatch:
+    """Scores frames in batches of about BATCH_PIXELS pixels (one small frame at a time
+    spends most of the time starting convolutions): add(pred, gt) per frame, then
+    scores() -> [n] in the order added."""
+
+    def __init__(self, model):
+        self.model = model
         self.pending_pred, self.pending_gt, self.done = [], [], []
 
     def add(self, pred, gt) -> None:
-        """pred, gt: [H, W, 3] in [0, 1]; every frame of one batch has one size."""
+        """pred, gt: [H, W, 3] in [0, 1]; every frame has the same size."""
         self.pending_pred.append(np.asarray(pred, np.float32))
         self.pending_gt.append(np.asarray(gt, np.float32))
-        if len(self.pending_pred) >= self.size:
+        if len(self.pending_pred) * self.pending_pred[0].shape[0] * self.pending_pred[0].shape[1] >= BATCH_PIXELS:
             self._flush()
 
     def _flush(self) -> None:
