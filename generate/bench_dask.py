@@ -22,7 +22,7 @@ def views_per_second(config: GenerateConfig, workers: int, folder: Path) -> floa
     """generate `config` on a fresh LocalCluster of `workers` single-threaded workers."""
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=None, silence_logs=50) as cluster:
+    with LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=":0", silence_logs=50) as cluster:
         with dask_client(cluster.scheduler_address) as client:
             wait_for_workers(client, workers)
             client.run(set_render_threads, 1)

@@ -73,7 +73,7 @@ def dask_client(scheduler: str):
                           "distributed.admin.system-monitor.gil.enabled": False}):
         if kind == "local":
             # One thread per worker: Mitsuba's LLVM backend already uses every core it is given.
-            with LocalCluster(n_workers=value, threads_per_worker=1, processes=True, dashboard_address=None,
+            with LocalCluster(n_workers=value, threads_per_worker=1, processes=True, dashboard_address=":0",
                               silence_logs=50) as cluster, Client(cluster) as client:
                 # N workers share this machine's cores instead of each taking all of them.
                 client.run(set_render_threads, max(1, (os.cpu_count() or 1) // value))
