@@ -291,11 +291,11 @@ def check_state_dict(state, source: str) -> dict:
 def load_lpips(path: Optional[Path] = None):
     """The LPIPS-Alex network in eval mode on CPU, or None when the weights are not installed.
     A weights file that is there but wrong raises InputError (never a silent n/a)."""
-    import torch
-
     path = Path(path) if path is not None else weights_path()
     if not path.is_file():
-        return None
+        return None  # without weights evaluate does not even import torch for LPIPS
+    import torch
+
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # unpickling refused or a corrupt file
