@@ -25,7 +25,9 @@ Metrics (eval.metrics): PSNR and SSIM on colour composited onto the background (
 and the straight-alpha ground-truth PNG alike; RGB predictions are taken as composited);
 PSNR on the foreground (pixels with ground-truth coverage or visible predicted opacity;
 null when a view has none); depth on ground-truth hit pixels (read_mask), null when a view
-hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty).
+hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty);
+LPIPS-Alex (eval.lpips) on the composited pair, null with a reason in metrics.json's `notes`
+when its weights are not installed or the images are under 31 px.
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
