@@ -24,7 +24,7 @@ One table per scene, one entry per metric, each an inline table with `min` and/o
 - Table names: a scene from `scenes.registry.RECIPES`, a `mesh:PATH` scene, or `"*"`.
   Anything else is an error naming it.
 - Metric names: `eval.metrics.METRIC_NAMES` (psnr, ssim, psnr_foreground, depth_absrel,
-  depth_rmse, depth_mae, depth_delta1, opacity_iou), compared with metrics.json's `mean` table,
+  depth_rmse, depth_mae, depth_delta1, opacity_iou, lpips), compared with metrics.json's `mean` table,
   and the geometry figures `eval.geometry.SUMMARY_NAMES` (geometry_chamfer_l1,
   geometry_fscore_1pct, normal_angle_mean, ...), compared with metrics.json's `geometry`
   table (written by `nerfgauge run` for the compact model).
@@ -36,7 +36,7 @@ One table per scene, one entry per metric, each an inline table with `min` and/o
 
 Each bound is one check. Its margin is `value - min` or `max - value`: positive or zero
 passes. A metric that is null or missing in metrics.json while it has a bound fails, with
-the reason; so does NaN. `--scene NAME` checks the metrics against NAME's bounds instead of
+the reason (for lpips without its weights: "lpips is n/a (install: nerfgauge lpips install)"); so does NaN. `--scene NAME` checks the metrics against NAME's bounds instead of
 those of the scene the metrics file names (e.g. a `random` run with another seed).
 
 metrics.json (written by `nerfgauge evaluate`), schema 1::
@@ -236,25 +236,28 @@ def bounds_for_scene(tables: dict[str, dict[str, Bound]], scene: str, source: st
 # --- checking -----------------------------------------------------------------------
 
 
-def evaluate_bounds(scene: str, mean: dict, bounds: list[Bound]) -> list[CheckResult]:
-    """One CheckResult per (metric, min/max) bound, in the order of `bounds`."""
+def evaluate_bounds(scene: str, mean: dict, bounds: list[Bound], notes: Optional[dict] = None) -> list[CheckResult]:
+    """One CheckResult per (metric, min/max) bound, in the order of `bounds`. `notes`
+    (metrics.json's "notes", e.g. {"lpips": "n/a (install: ...)"}) explain null values."""
     results = []
     for bound in bounds:
         for kind in BOUND_KEYS:
             limit = getattr(bound, kind)
             if limit is None:
                 continue
-            results.append(_check_one(scene, bound.metric, kind, limit, mean))
+            results.append(_check_one(scene, bound.metric, kind, limit, mean, notes or {}))
     return results
 
 
-def _check_one(scene: str, metric: str, kind: str, limit: float, mean: dict) -> CheckResult:
+def _check_one(scene: str, metric: str, kind: str, limit: float, mean: dict, notes: dict) -> CheckResult:
     def fail(value, reason):
         return CheckResult(scene, metric, kind, limit, value, None, False, reason)
 
     if metric not in mean:
         return fail(None, f"{metric} is missing from the metrics file")
     value = mean[metric]
+    if value is None and isinstance(notes.get(metric), str):
+        return fail(None, f"{metric} is {notes[metric]} but has a bound")
     if value is None:
         return fail(None, f"{metric} is null in the metrics file (not measured) but has a bound")
     value = float(value)
@@ -336,7 +339,8 @@ def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[st
     if scene is not None and not known_scene(scene):
         raise InputError(f"unknown scene {scene!r} for --scene; known: {_known_scenes_text()}")
     bounds = bounds_for_scene(tables, table_scene, str(thresholds_path))
-    results = evaluate_bounds(metrics["scene"], {**metrics.get("geometry", {}), **metrics["mean"]}, bounds)
+    notes = metrics.get("notes") if isinstance(metrics.get("notes"), dict) else {}
+    results = evaluate_bounds(metrics["scene"], {**metrics.get("geometry", {}), **metrics["mean"]}, bounds, notes)
 
     via = "" if table_scene == metrics["scene"] else f" (bounds of scene {table_scene})"
     print(f"checking {metrics_path} (scene {metrics['scene']}, split {metrics.get('split', '?')}) "

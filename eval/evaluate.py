@@ -30,7 +30,9 @@ Metrics (eval.metrics): PSNR and SSIM on colour composited onto the background (
 and the straight-alpha ground-truth PNG alike; RGB predictions are taken as composited);
 PSNR on the foreground (pixels with ground-truth coverage or visible predicted opacity;
 null when a view has none); depth on ground-truth hit pixels (read_mask), null when a view
-hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty).
+hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty);
+LPIPS-Alex (eval.lpips) on the composited pair, null with a reason in metrics.json's `notes`
+when its weights are not installed or the images are under 31 px.
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
@@ -198,8 +200,10 @@ def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.n
 # --- scoring ----------------------------------------------------------------------------
 
 
-def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str):
-    """Metrics of one frame ({metric: float or None}) and its error images."""
+def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
+                lpips_batch=None):
+    """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
+    None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any."""
     rgb, alpha = read_colour(files.colour, intrinsics)
     if files.opacity is not None:
         alpha = _finite(read_plane(files.opacity, intrinsics), files.opacity)
@@ -210,6 +214,8 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
     values["psnr_foreground"] = psnr_foreground(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
+    if lpips_batch is not None:
+        lpips_batch.add(pred, gt)
     depth_err = None
     if files.depth is not None:
         depth = read_plane(files.depth, intrinsics, depth_kind)
@@ -284,16 +290,20 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
                          f"{', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} (looked for "
                          f"{pred_dir}/{missing[0]}.png|.exr and {pred_dir}/{Path(missing[0]).name}.png|.exr)")
     timing = read_timing(pred_dir)
+    lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
     frames, maps = [], []
     for stem, files in found.items():
         try:
             values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
-                                                        BACKGROUNDS[background], depth_kind)
+                                                        BACKGROUNDS[background], depth_kind, lpips_batch)
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
         frames.append({"name": stem, "file": files.colour.relative_to(pred_dir).as_posix(), **values})
         maps.append((stem, colour_err, depth_err))
+    if lpips_batch is not None:
+        for frame, value in zip(frames, lpips_batch.scores()):
+            frame["lpips"] = value
     means, stds, counts = {}, {}, {}
     for metric in METRIC_NAMES:
         column = [frame[metric] for frame in frames]
@@ -303,10 +313,21 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     for stem, colour_err, depth_err in maps:
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
     document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
-                "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts, "frames": frames,
+                "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
+                "notes": {} if lpips_note is None else {"lpips": lpips_note}, "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}
     write_json(out, document)
     return document
+
+
+def lpips_scorer(intrinsics):
+    """(eval.lpips.LpipsBatch, None) when LPIPS can be measured, else (None, why it is n/a)."""
+    from nerfgauge.eval.lpips import MIN_SIDE, NOT_AVAILABLE, LpipsBatch, load_lpips
+
+    if min(intrinsics.width, intrinsics.height) < MIN_SIDE:
+        return None, f"n/a (LPIPS-Alex needs images of at least {MIN_SIDE} px)"
+    model = load_lpips()
+    return (None, NOT_AVAILABLE) if model is None else (LpipsBatch(model), None)
 
 
 def format_means(document: dict) -> str:
@@ -315,7 +336,8 @@ def format_means(document: dict) -> str:
     rows = [("metric", "mean", "std", "frames")]
     for metric in METRIC_NAMES:
         mean, std = document["mean"][metric], document["std"][metric]
-        rows.append((metric, "-" if mean is None else f"{mean:.4f}", "-" if std is None else f"{std:.4f}",
+        note = document.get("notes", {}).get(metric)
+        rows.append((metric, (note or "-") if mean is None else f"{mean:.4f}", "-" if std is None else f"{std:.4f}",
                      f"{document['count'][metric]}/{total}"))
     widths = [max(len(row[i]) for row in rows) for i in range(4)]
     return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows)

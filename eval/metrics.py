@@ -39,6 +39,7 @@ METRIC_NAMES = (
     "depth_mae",
     "depth_delta1",
     "opacity_iou",
+    "lpips",  # eval.lpips: LPIPS-Alex v0.1; null (n/a) where its weights are not installed
 )
 
 MSE_FLOOR = 1e-10

@@ -24,7 +24,7 @@ from nerfgauge.core.images import read_exr_single
 TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_foreground", "foreground PSNR dB", "{:.2f}"),
                  ("depth_absrel", "depth AbsRel", "{:.4f}"),
                  ("depth_rmse", "depth RMSE", "{:.4f}"), ("depth_delta1", "depth δ<1.25", "{:.4f}"),
-                 ("opacity_iou", "opacity IoU", "{:.4f}"))
+                 ("opacity_iou", "opacity IoU", "{:.4f}"), ("lpips", "LPIPS (Alex)", "{:.4f}"))
 
 
 def read_log(path) -> list[dict]:
@@ -39,7 +39,8 @@ def metrics_table(rows: dict) -> list[list[str]]:
         cells = [method]
         for key, _, fmt in TABLE_METRICS:
             mean, std = document["mean"].get(key), document["std"].get(key)
-            cells.append("–" if mean is None else fmt.format(mean) + ("" if not std else f" ± {fmt.format(std)}"))
+            absent = document.get("notes", {}).get(key, "–")  # e.g. lpips: "n/a (install: nerfgauge lpips install)"
+            cells.append(absent if mean is None else fmt.format(mean) + ("" if not std else f" ± {fmt.format(std)}"))
         ms = document.get("timing", {}).get("ms_per_frame")
         cells.append("–" if ms is None else f"{ms:.1f}")
         table.append(cells)

@@ -58,6 +58,9 @@ def register(subparsers) -> None:
     parser.add_argument("--radius", type=arguments.positive_float, default=None, help="camera distance from the AABB centre (default: fit)")
     parser.add_argument("--variant", choices=CHOICES, default="auto")
     parser.add_argument("--workers", type=arguments.positive_int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="render on a dask.distributed cluster: tcp://HOST:PORT of a running scheduler, or "
+                             "local:N to start N local worker processes (needs the dask extra)")
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset nerfgauge made in --out from another recipe or other inputs "
                              "(never a folder nerfgauge did not make)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -72,7 +75,8 @@ def run(args) -> int:
                             test_views=args.test_views, width=width, height=height, spp=args.spp,
                             max_depth=args.max_depth, fov=args.fov, layout=args.layout, sampling=args.sampling,
                             elevation=args.elevation and parse_band(args.elevation), radius=args.radius, variant=args.variant)
-    result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet)
+    result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet,
+                      scheduler=args.scheduler)
     rendered = result["views_rendered"]
     print(f"{args.out}: {rendered} views rendered in {result['seconds']:.1f} s "
           f"({result['variant']}; Mitsuba render {result['render_seconds']:.1f} s)"

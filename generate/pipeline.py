@@ -13,6 +13,7 @@ changed is refused (or, with --overwrite, re-rendered) instead of resumed as "co
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib.metadata
 import math
@@ -257,20 +258,34 @@ def finish(out: Path, the_plan: Plan) -> None:
 
 
 def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool = False,
-             progress: bool = True) -> dict:
-    """Render the dataset into `out`. Returns timing: views rendered, seconds, render seconds."""
+             progress: bool = True, scheduler: Optional[str] = None) -> dict:
+    """Render the dataset into `out`. Returns timing: views rendered, seconds, render seconds.
+    `scheduler` (tcp://HOST:PORT or local:N) renders on a dask cluster (generate.distributed)."""
     if not isinstance(workers, int) or workers < 1:
         raise InputError(f"--workers must be a positive integer, got {workers!r}")
+    if scheduler is not None:
+        from nerfgauge.generate.distributed import parse_scheduler, require_dask
+
+        parse_scheduler(scheduler)
+        require_dask()
+        if workers != 1:
+            raise InputError(f"--workers {workers} and --scheduler {scheduler} both choose where views render; "
+                             "give one (local:N starts N dask workers)")
     out = Path(out)
     the_plan = plan(config)
     recipe = the_plan.recipe()
     if not overwrite:
         refuse_stale(out, recipe)
-    with claim_folder(out, "dataset", recipe_hash(recipe), overwrite=overwrite):
-        return _generate_claimed(out, the_plan, recipe, workers, progress)
+    cluster = contextlib.nullcontext()
+    if scheduler is not None:
+        from nerfgauge.generate.distributed import dask_client
+
+        cluster = dask_client(scheduler)  # connected before the folder is touched: an unreachable one writes nothing
+    with cluster as client, claim_folder(out, "dataset", recipe_hash(recipe), overwrite=overwrite):
+        return _generate_claimed(out, the_plan, recipe, workers, progress, client)
 
 
-def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, progress: bool) -> dict:
+def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, progress: bool, client=None) -> dict:
     """The run, while this process holds `out`'s write lock."""
     start = time.perf_counter()
     write_json(out / CONFIG, recipe)  # what the folder is made from (the same bytes when resuming)
@@ -280,7 +295,7 @@ def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, pro
         (out / dataset.MANIFEST).unlink()  # views are missing: the dataset is not complete
     from nerfgauge.generate.workers import render_views  # imports mitsuba
 
-    render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress)
+    render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress, client=client)
     if todo or not (out / dataset.MANIFEST).is_file():
         finish(out, the_plan)
     return {"views_rendered": len(todo), "seconds": time.perf_counter() - start, "render_seconds": render_seconds,

@@ -44,12 +44,18 @@ def _render_one(mi, scene, out, the_plan, split, index):
     return images, time.perf_counter() - start
 
 
-def render_views(out, the_plan, todo, *, workers: int = 1, progress: bool = True) -> float:
-    """Render and write every (split, index) in `todo`. Returns seconds spent rendering."""
+def render_views(out, the_plan, todo, *, workers: int = 1, progress: bool = True, client=None) -> float:
+    """Render and write every (split, index) in `todo`: on the dask cluster of `client`
+    (a distributed.Client, see generate.distributed) if given, else here or on `workers`
+    local processes. Returns seconds spent rendering (summed over processes)."""
     total = sum(len(s) for s in the_plan.stems.values())
     bar = tqdm(total=total, initial=total - len(todo), unit="view", desc="generate", disable=not progress,
                dynamic_ncols=True)
     try:
+        if client is not None and todo:
+            from nerfgauge.generate.distributed import render_on_cluster
+
+            return render_on_cluster(client, out, the_plan, todo, bar)
         if workers == 1 or len(todo) < 2:
             return _render_here(out, the_plan, todo, bar)
         return _render_pool(out, the_plan, todo, workers, bar)

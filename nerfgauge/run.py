@@ -182,7 +182,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                  f"test views, {config.spp} spp; {config.model} trained {summary['steps']} steps in "
                  f"{summary['seconds']:.1f} s, saved model {summary['model_bytes'] / 1e6:.2f} MB",
                  "PSNR and SSIM on colour composited onto white; depth metrics on pixels whose centre ray hits "
-                 "geometry, on ray distance.",
+                 "geometry, on ray distance. LPIPS: AlexNet, v0.1 linear layers (nerfgauge lpips install).",
                  "Image grid columns: ground truth, prediction, colour error (0-0.2), predicted depth, depth error "
                  "(0-10%)."]
         images = {"speed against error": out / "report" / "curve.png", "test views": out / "report" / "grid.png"}

