@@ -1,0 +1,159 @@
+"""The compact field's sparse storage: lookups equal the dense grid's trilinear
+interpolation, storage and optimizer state follow the occupied cells, and masks survive
+the saved model."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from nerfgauge.nerf.checkpoint import pack_mask, unpack_mask
+from nerfgauge.nerf.grid_field import EMPTY_RAW, VoxelGridField, node_mask
+from nerfgauge.nerf.models import CompactNeRF
+from nerfgauge.nerf.train import free_unoccupied
+
+AABB = torch.tensor([[-1.0, -0.5, -0.75], [1.0, 0.5, 0.75]])
+
+
+def random_field(resolution=12, view_dependent=False, seed=0) -> VoxelGridField:
+    field = VoxelGridField(AABB, resolution, resolution, view_dependent)
+    field.load_dense(field.to_dense().normal_(generator=torch.Generator().manual_seed(seed)))
+    return field
+
+
+def dense_lookup(field: VoxelGridField, positions: torch.Tensor) -> torch.Tensor:
+    """grid_sample on the dense grid (the field before sparse storage): [M, 1 + C]."""
+    grid = field.to_dense()[None]
+    normalised = 2 * (positions - AABB[0]) / (AABB[1] - AABB[0]) - 1
+    values = F.grid_sample(grid, normalised.view(1, 1, 1, -1, 3), mode="bilinear", align_corners=True,
+                           padding_mode="border")
+    return values.view(grid.shape[1], -1).t()
+
+
+def test_lookup_equals_dense_trilinear_interpolation_inside_and_beyond_the_box():
+    field = random_field()
+    generator = torch.Generator().manual_seed(1)
+    positions = (torch.rand((4000, 3), generator=generator) * 1.4 - 0.2) * (AABB[1] - AABB[0]) + AABB[0]
+    rows, weights = field.corners(positions)
+    sparse = torch.cat([field._blend(field.density_table, rows, weights),
+                        field._blend(field.features, rows, weights)], dim=1)
+    # float32 trilinear of values ~N(0, 1): rounding of a few ulps
+    assert torch.allclose(sparse, dense_lookup(field, positions), atol=1e-5)
+    assert torch.allclose(weights.sum(dim=1), torch.ones(len(positions)), atol=1e-6)
+
+
+def test_blend_gradients_match_autograd_of_the_gather_and_skip_row_zero():
+    field = random_field(6)
+    generator = torch.Generator().manual_seed(2)
+    positions = (torch.rand((500, 3), generator=generator) * (AABB[1] - AABB[0]) + AABB[0]).requires_grad_()
+    rows, weights = field.corners(positions)
+    rows = torch.where(torch.arange(rows.numel()).view(rows.shape) % 5 == 0, torch.zeros_like(rows), rows)
+    upstream = torch.randn((500, field.channels), generator=generator)
+    (field._blend(field.features, rows, weights) * upstream).sum().backward()
+    ours_table, ours_positions = field.features.grad.clone(), positions.grad.clone()
+    field.features.grad, positions.grad = None, None
+    rows_again, weights_again = field.corners(positions)
+    reference = (weights_again[:, :, None] * field.features[rows]).sum(dim=1)
+    (reference * upstream).sum().backward()
+    expected_table = field.features.grad.clone()
+    expected_table[0] = 0  # row 0 is every unallocated node: never trained
+    assert torch.allclose(ours_table, expected_table, atol=1e-5)
+    assert torch.allclose(ours_positions, positions.grad, atol=1e-4)
+
+
+def test_upsample_allocates_only_the_kept_cells_and_resamples_them():
+    field = random_field(8)
+    before = [field.to_dense(), field.shape]
+    keep = torch.zeros(tuple(n - 1 for n in field.shape), dtype=torch.bool)
+    keep[1:3, 2:4, 3:5] = True
+    field.upsample(24, keep)
+    allocated = field.index > 0
+    assert 0 < int(allocated.sum()) < allocated.numel() / 4
+    # every allocated node holds the old field's trilinear value at its position
+    nodes = allocated.nonzero()
+    last = torch.tensor([field.shape[2] - 1, field.shape[1] - 1, field.shape[0] - 1])
+    positions = AABB[0] + nodes.flip(-1).float() / last * (AABB[1] - AABB[0])
+    old = VoxelGridField(AABB, 8, 8, False)
+    old.load_dense(before[0])
+    assert torch.allclose(field.node_values(allocated), dense_lookup(old, positions), atol=1e-5)
+    # a corner far from the kept cells has no allocated node around it: empty space
+    with torch.no_grad():
+        far_corner = field.density(AABB[1:2] - 1e-4)
+    assert torch.allclose(far_corner, field.density_from_raw(torch.tensor([EMPTY_RAW])))
+
+
+def test_keep_rows_frees_nodes_and_keeps_values():
+    field = random_field(10)
+    keep = torch.zeros(field.shape, dtype=torch.bool)
+    keep[2:6, 3:7, 1:5] = True
+    values = field.node_values(keep)
+    rows = field.keep_rows(keep)
+    assert field.allocated == int(keep.sum()) and rows.shape == (field.allocated + 1,)
+    assert torch.equal(field.node_values(keep), values)
+    assert bool((field.index[~keep] == 0).all())
+
+
+def test_free_unoccupied_moves_adam_moments_with_their_rows():
+    field = random_field(10)
+    model = CompactNeRF(field)
+    optimizer = torch.optim.Adam([{"params": field.grid_parameters(), "lr": 0.1}])
+    positions = torch.rand((2000, 3), generator=torch.Generator().manual_seed(4)) * (AABB[1] - AABB[0]) + AABB[0]
+    sigma, rgb = field(positions, F.normalize(torch.ones_like(positions), dim=-1))
+    (sigma.sum() + rgb.sum()).backward()
+    optimizer.step()
+    occupancy = torch.zeros(tuple(n - 1 for n in field.shape), dtype=torch.bool)
+    occupancy[2:5, 1:4, 3:8] = True
+    model.occupancy = occupancy
+    keep = node_mask(occupancy) & (field.index > 0)
+    moment_before = optimizer.state[field.density_table]["exp_avg"][field.index[keep].long()].clone()
+    free_unoccupied(model, optimizer)
+    assert field.allocated == int(keep.sum())
+    assert optimizer.param_groups[0]["params"][0] is field.density_table
+    state = optimizer.state[field.density_table]
+    assert torch.equal(state["exp_avg"][field.index[keep].long()], moment_before)
+    assert state["exp_avg"].shape == field.density_table.shape
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(1, 9), min_size=1, max_size=4), st.floats(0.0, 1.0), st.integers(0, 2**31 - 1))
+def test_packed_masks_round_trip(shape, density, seed):
+    generator = torch.Generator().manual_seed(seed)
+    mask = torch.rand(shape, generator=generator) < density
+    packed = pack_mask(mask)
+    assert torch.equal(unpack_mask(packed, shape), mask)
+
+
+def test_damaged_packed_masks_are_refused():
+    packed = pack_mask(torch.ones((4, 5, 6), dtype=torch.bool))
+    with pytest.raises(ValueError):
+        unpack_mask(packed, (4, 5, 7))
+    with pytest.raises(ValueError):
+        unpack_mask({"shape": [4, 5, 6], "bits": torch.tensor([1, 2, 3], dtype=torch.uint8)}, (4, 5, 6))
+    short = pack_mask(torch.ones((4, 5, 5), dtype=torch.bool))
+    with pytest.raises(ValueError):
+        unpack_mask({"shape": [4, 5, 6], "bits": short["bits"]}, (4, 5, 6))
+
+
+@pytest.mark.slow
+def test_training_at_256_px_stores_a_fraction_of_the_dense_grid(tmp_path):
+    """A 256 px run: the final grid allocates far fewer rows than it has nodes, and the
+    saved model renders finite images."""
+    from nerfgauge.api import generate_dataset, train
+    from nerfgauge.nerf.checkpoint import load_model
+
+    dataset = tmp_path / "d"
+    generate_dataset("primitives", dataset, width=256, height=256, views=12, test_views=2, val_views=0, spp=4)
+    run = tmp_path / "run"
+    train(dataset, run, steps=320)
+    model, config = load_model(run / "model.pt")
+    nodes = math.prod(model.field.shape)
+    assert config.final_resolution >= 128
+    assert model.field.allocated < 0.25 * nodes
+    with torch.no_grad():
+        out = model.render(torch.tensor([[0.0, -4.0, 0.5]]), F.normalize(torch.tensor([[0.0, 1.0, -0.1]]), dim=-1))
+    assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
