@@ -101,13 +101,15 @@ def render(run_dir, split: str = "test", *, out=None, threads=None, progress: bo
 
 @os_errors_as_input_errors()
 def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = "white",
-             depth_kind: str = "distance") -> dict:
+             depth_kind: str = "distance", pred_format: str = "auto") -> dict:
     """Score the renders in `pred` against `dataset`'s `split`; write metrics.json (to `out`,
     default PRED/metrics.json) and error maps beside it. Returns the metrics document
-    ({"schema", "scene", "split", "mean", "std", "count", "frames", "timing", ...})."""
+    ({"schema", "scene", "split", "mean", "std", "count", "frames", "timing", ...}).
+    pred_format: auto (detected), nerfgauge, nerfstudio, nerfbaselines or folder."""
     from nerfgauge.eval.evaluate import evaluate as evaluate_split
 
-    return evaluate_split(_folder(dataset), pred, split=split, out=out, background=background, depth_kind=depth_kind)
+    return evaluate_split(_folder(dataset), pred, split=split, out=out, background=background, depth_kind=depth_kind,
+                          pred_format=pred_format)
 
 
 @os_errors_as_input_errors()
