@@ -136,10 +136,11 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
 
 
 def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None = None, init_seed: int = 0,
-                space=None):
+                space=None, allocate: bool = True):
     """A fresh model for `config` (resolved), at `resolution` (compact) or its start.
     space: the compact grid's `nerf.parametrisation.Space` (None or bounded: over `aabb`;
-    otherwise the grid spans space.box and `aabb` is not used).
+    otherwise the grid spans space.box and `aabb` is not used). allocate=False: a compact
+    grid with no node allocated yet (its values are loaded next).
     nn.Linear draws its initial weights from torch's global generator: it is seeded with
     `init_seed` inside fork_rng, so building a model never changes the caller's global RNG."""
     from nerfgauge.nerf.grid_field import VoxelGridField
@@ -152,7 +153,8 @@ def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None 
         if space is not None and space.kind != "bounded":
             aabb = torch.tensor(space.box, dtype=torch.float32)
         field = VoxelGridField(aabb, resolution or config.start_resolution, config.final_resolution,
-                               config.view_dependent, config.feature_channels, config.step_ratio, space=space)
+                               config.view_dependent, config.feature_channels, config.step_ratio, space=space,
+                               allocate=allocate)
         return CompactNeRF(field, use_occupancy=config.occupancy)
 
 
@@ -179,7 +181,7 @@ def model_from_payload(payload: dict):
     space = Space.from_json(payload["space"]) if "space" in payload else None
     if (space.kind if space is not None else "bounded") != (config.parametrisation or "bounded"):
         raise ValueError(f"its grid's parametrisation does not match its config's {config.parametrisation!r}")
-    model = build_model(config, aabb, payload["resolution"], space=space)
+    model = build_model(config, aabb, payload["resolution"], space=space, allocate=False)
     field = model.field
     shape = payload["grid_shape"]
     if list(shape) != [1 + field.channels, *field.shape]:
@@ -273,7 +275,7 @@ def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path, 
         raise InputError(f"{path} holds a grid of another parametrisation "
                          f"({(saved_space or {}).get('kind', 'bounded')}, this run: {config.parametrisation}); "
                          "refusing to resume it")
-    model = build_model(config, aabb, resolution, space=space)
+    model = build_model(config, aabb, resolution, space=space, allocate=False)
     rows = saved["state"].get("field.density_table")
     if config.model == "compact" and isinstance(rows, torch.Tensor) and rows.ndim == 2 and rows.shape[0] >= 1:
         model.field.reserve(rows.shape[0])  # the sparse grid's allocated rows, as saved

@@ -104,10 +104,11 @@ def node_mask(occupancy: torch.Tensor) -> torch.Tensor:
 
 class VoxelGridField(nn.Module):
     def __init__(self, aabb: torch.Tensor, resolution: int, final_resolution: int, view_dependent: bool,
-                 feature_channels: int = 12, step_ratio: float = 0.5, space=None):
+                 feature_channels: int = 12, step_ratio: float = 0.5, space=None, allocate: bool = True):
         """aabb [2, 3]: the grid's box in grid coordinates (the world AABB when bounded);
         space: a `nerf.parametrisation.Space` mapping world points into it (None: bounded).
-        Every node starts allocated, with raw values 0."""
+        Every node starts allocated with raw values 0 (allocate=False: none, for a field
+        whose nodes are loaded next)."""
         super().__init__()
         self.register_buffer("aabb", aabb.clone().float())
         self.space = space if space is not None and space.kind != "bounded" else None
@@ -120,9 +121,9 @@ class VoxelGridField(nn.Module):
         self.channels = feature_channels if view_dependent else 3
         self.resolution = resolution
         shape = grid_shape(self.aabb, resolution)
-        n = math.prod(shape)
         self.register_buffer("index", torch.zeros(shape, dtype=torch.int32))
-        self._set_nodes(torch.ones(shape, dtype=torch.bool), torch.zeros(n, 1), torch.zeros(n, self.channels))
+        n = math.prod(shape) if allocate else 0
+        self._set_nodes(torch.full(shape, allocate), torch.zeros(n, 1), torch.zeros(n, self.channels))
         self.head = None
         if view_dependent:
             self.head = nn.Sequential(nn.Linear(self.channels + 16, 64), nn.ReLU(), nn.Linear(64, 3))
