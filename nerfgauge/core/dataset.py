@@ -330,9 +330,14 @@ class Dataset:
         """[H, W] bool: the pixel-centre ray hits geometry."""
         return read_mask(self, self._stem(split, index), self.intrinsics(split))
 
+    @property
+    def manifest_files(self) -> frozenset:
+        """Relative paths manifest.json lists (older datasets have no instance, albedo or
+        noise files: ask before reading them)."""
+        return frozenset(self._manifest)
+
     def has_frame_file(self, split: str, index: int, kind: str) -> bool:
-        """Whether the manifest lists the frame's file of `kind` (older datasets have no
-        instance, albedo or noise files)."""
+        """Whether the manifest lists the frame's file of `kind` (a FRAME_SUFFIXES key)."""
         return self._stem(split, index) + FRAME_SUFFIXES[kind] in self._manifest
 
     def instance(self, split: str, index: int) -> np.ndarray:
