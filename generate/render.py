@@ -180,12 +180,12 @@ def render_passes(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, 
             passes[1].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk)), count)
             chunk += 1
         return passes
-    grow(max(1, target.start_spp // 2))
+    grow(max(1, min(target.start_spp, target.max_spp) // 2))
     goal = 10 ** (-target.noise_psnr / 10)  # the variance the target allows
     while True:
         total = passes[0].spp + passes[1].spp
         variance = auto_variance(passes[0].mean[..., :4], passes[1].mean[..., :4], passes[0].spp, passes[1].spp)
-        if variance <= goal or total >= target.max_spp:
+        if variance <= goal or total + 2 > target.max_spp:  # reached, or no room for one more pair
             return passes
         # Variance falls as 1/spp (at least): ask for what that predicts, 10% over, at
         # least double, within the cap.
