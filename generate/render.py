@@ -36,6 +36,11 @@ SEED_STRIDE = 0x9E3779B9  # odd, ~0.62 * 2^32: sub-pass k of a view renders with
 MSE_FLOOR = 1e-10  # as eval.metrics: a noiseless view (all background) scores 100 dB, not inf
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}  # those `nerfgauge evaluate` offers
 AOVS = "albedo:albedo"
+# Albedo is box-filtered over the pixel from primary hits only (no light transport): only
+# edge pixels vary, so few samples do. Mitsuba's aov integrator wrapped around the path
+# tracer doubled the render time (128 px, primitives, llvm); alone at 4 spp it adds ~3%.
+MAX_ALBEDO_SPP = 4
+ALBEDO_CHUNK = 1 << 16  # the albedo render's chunk number (far beyond any pass's)
 MAX_INSTANCES = 65535  # 16-bit ids, 0 = no geometry
 
 
@@ -54,7 +59,8 @@ class ViewImages:
     """rgba [H,W,4] linear premultiplied (alpha = coverage); distance, z_depth [H,W]
     (0 where the centre ray misses); normals [H,W,3] world shading normals (0 on
     misses); hit [H,W] bool; instance [H,W] uint16 (0 = miss, k = legend entry k);
-    albedo [H,W,3] linear, box-filtered like rgba; noise: `noise_estimate`'s dict."""
+    albedo [H,W,3] linear, box-filtered like rgba; passes: ((rgba A [H,W,4], spp A),
+    (rgba B, spp B)) or just A with spp 1 (their means, float64)."""
 
     rgba: np.ndarray
     distance: np.ndarray
@@ -63,7 +69,14 @@ class ViewImages:
     hit: np.ndarray
     instance: Optional[np.ndarray] = None
     albedo: Optional[np.ndarray] = None
-    noise: Optional[dict] = None
+    passes: tuple = ()
+
+    @property
+    def noise(self) -> dict:
+        """noise_estimate of the passes (computed on each call: the writer thread calls it
+        once, off the render thread)."""
+        (rgba_a, n_a), (rgba_b, n_b) = self.passes if len(self.passes) == 2 else (self.passes[0], (None, 0))
+        return noise_estimate(rgba_a, rgba_b, n_a, n_b)
 
 
 def sensor_dict(mi, c2w: np.ndarray, intrinsics: Intrinsics, spp: int) -> dict:
@@ -147,18 +160,25 @@ class _Pass:
         return self.total / self.spp
 
 
-def aov_integrator(mi, scene):
-    """The scene's own path tracer wrapped in Mitsuba's `aov` integrator, which adds the
-    albedo of the first surface hit as channels 4-6 (0 where the sample misses)."""
-    return mi.load_dict({"type": "aov", "aovs": AOVS, "integrator": scene.integrator()})
+def aov_integrator(mi):
+    """Mitsuba's `aov` integrator alone: the albedo of the first surface each camera
+    sample hits, [H, W, 3] (0 where the sample misses)."""
+    return mi.load_dict({"type": "aov", "aovs": AOVS})
 
 
-def render_passes(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int,
-                  target: Optional[NoiseTarget] = None) -> tuple:
+def render_albedo(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
+    """Linear albedo, box-filtered over the pixel with min(spp, MAX_ALBEDO_SPP) samples.
+    Returns [H, W, 3] float32."""
+    count = max(n for n in range(1, min(int(spp), MAX_ALBEDO_SPP) + 1) if multijitter_exact(n))
+    return render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, ALBEDO_CHUNK))[..., -3:]
+
+
+def render_passes(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
+                  target: Optional[NoiseTarget] = None, integrator=None) -> tuple:
     """Two independent passes of spp/2 samples each (spp 1: pass A only). With a target,
     both passes grow by equal amounts until the noise estimate reaches it or the total
-    reaches target.max_spp. Returns (pass A, pass B or None), each with .mean [H, W, C]
-    and .spp."""
+    reaches target.max_spp. Returns (pass A, pass B or None), each with .mean [H, W, 4]
+    and .spp. integrator: None for the scene's own."""
     passes, chunk = (_Pass(), _Pass()), 0
 
     def grow(per_pass: int) -> None:
@@ -200,13 +220,25 @@ def mean_of_passes(pass_a: _Pass, pass_b: Optional[_Pass]) -> np.ndarray:
     return ((pass_a.total + pass_b.total) / (pass_a.spp + pass_b.spp)).astype(np.float32)
 
 
-def as_metrics_see(rgba_linear: np.ndarray, background) -> np.ndarray:
-    """Linear premultiplied RGBA -> the colour `nerfgauge evaluate` scores: straight-alpha
-    sRGB (the PNG, before 8-bit rounding) composited as c * a + b * (1 - a) (as
-    eval.metrics.composite). [H, W, 4] -> [H, W, 3] float64."""
+def straight_srgb(rgba_linear: np.ndarray) -> tuple:
+    """Linear premultiplied RGBA [H, W, 4] -> (straight-alpha sRGB [H, W, 3], alpha
+    [H, W, 1]) as the PNG holds them before 8-bit rounding, float64."""
     alpha = np.clip(rgba_linear[..., 3:4].astype(np.float64), 0.0, 1.0)
     straight = np.divide(rgba_linear[..., :3], alpha, out=np.zeros(rgba_linear.shape[:-1] + (3,)), where=alpha > 0)
-    return np.clip(linear_to_srgb(straight) * alpha + np.asarray(background, np.float64) * (1 - alpha), 0.0, 1.0)
+    return linear_to_srgb(straight), alpha
+
+
+def _composite(srgb_alpha: tuple, background) -> np.ndarray:
+    """c * a + b * (1 - a), as eval.metrics.composite. Returns [H, W, 3] float64."""
+    srgb, alpha = srgb_alpha
+    return np.clip(srgb * alpha + np.asarray(background, np.float64) * (1 - alpha), 0.0, 1.0)
+
+
+def as_metrics_see(rgba_linear: np.ndarray, background) -> np.ndarray:
+    """Linear premultiplied RGBA -> the colour `nerfgauge evaluate` scores: straight-alpha
+    sRGB (the PNG, before 8-bit rounding) composited onto `background`. [H, W, 4] ->
+    [H, W, 3] float64."""
+    return _composite(straight_srgb(rgba_linear), background)
 
 
 def png_as_metrics_see(rgba_linear: np.ndarray, background) -> np.ndarray:
@@ -231,8 +263,8 @@ def psnr_of_variance(variance: float) -> float:
 
 def auto_variance(rgba_a, rgba_b, n_a, n_b) -> float:
     """What --spp auto drives down: the larger sRGB variance of the two backgrounds."""
-    return max(_variance_of_mean(as_metrics_see(rgba_a, bg), as_metrics_see(rgba_b, bg), n_a, n_b)
-               for bg in BACKGROUNDS.values())
+    a, b = straight_srgb(rgba_a), straight_srgb(rgba_b)
+    return max(_variance_of_mean(_composite(a, bg), _composite(b, bg), n_a, n_b) for bg in BACKGROUNDS.values())
 
 
 def noise_estimate(rgba_a: np.ndarray, rgba_b: Optional[np.ndarray], n_a: int, n_b: int) -> dict:
@@ -245,7 +277,8 @@ def noise_estimate(rgba_a: np.ndarray, rgba_b: Optional[np.ndarray], n_a: int, n
     from the sRGB variance plus the PNG's own 8-bit rounding error}. spp: samples used.
     With one pass (spp 1) the numbers are None and `reason` says why."""
     mean = rgba_a if rgba_b is None else (n_a * rgba_a.astype(np.float64) + n_b * rgba_b) / (n_a + n_b)
-    quantisation = {name: float(np.mean((png_as_metrics_see(mean, bg) - as_metrics_see(mean, bg)) ** 2))
+    mean_srgb = straight_srgb(mean)
+    quantisation = {name: float(np.mean((png_as_metrics_see(mean, bg) - _composite(mean_srgb, bg)) ** 2))
                     for name, bg in BACKGROUNDS.items()}
     out = {"spp": int(n_a + n_b), "passes": [int(n_a)] + ([int(n_b)] if rgba_b is not None else []),
            "png_quantisation_mse": quantisation}
@@ -253,8 +286,9 @@ def noise_estimate(rgba_a: np.ndarray, rgba_b: Optional[np.ndarray], n_a: int, n
         reason = "spp 1: a single pass, no two independent halves to compare"
         return out | {"noise_psnr": None, "psnr_ceiling": None, "reason": reason}
     variance = {"linear": _variance_of_mean(rgba_a[..., :3], rgba_b[..., :3], n_a, n_b)}
+    srgb_a, srgb_b = straight_srgb(rgba_a), straight_srgb(rgba_b)
     for name, bg in BACKGROUNDS.items():
-        variance[f"srgb_{name}"] = _variance_of_mean(as_metrics_see(rgba_a, bg), as_metrics_see(rgba_b, bg), n_a, n_b)
+        variance[f"srgb_{name}"] = _variance_of_mean(_composite(srgb_a, bg), _composite(srgb_b, bg), n_a, n_b)
     return out | {"noise_psnr": {key: psnr_of_variance(value) for key, value in variance.items()},
                   "psnr_ceiling": {name: psnr_of_variance(variance[f"srgb_{name}"] + quantisation[name])
                                    for name in BACKGROUNDS}}
@@ -282,11 +316,18 @@ def cast_rays_with_ids(mi, scene, origins: np.ndarray, directions: np.ndarray, s
     hit = np.array(si.is_valid(), dtype=bool)
     distance = np.where(hit, np.array(si.t, dtype=np.float64), np.inf)
     normals = np.stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)], -1)
-    instance = np.zeros(len(hit), np.uint16)
-    shapes = {shape.id(): shape for shape in scene.shapes()}
-    for number, name in enumerate(shape_ids, start=1):
-        if name in shapes:
-            instance[np.array(si.shape == mi.ShapePtr(shapes[name]), dtype=bool) & hit] = number
+    # A ShapePtr is an index into Dr.Jit's instance registry: one read, then a lookup table.
+    import drjit as dr
+
+    registry = np.array(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.int64)
+    numbers = {name: number for number, name in enumerate(shape_ids, start=1)}
+    table = np.zeros(max([int(registry.max(initial=0))] + [0]) + 1, np.uint16)
+    for shape in scene.shapes():
+        index = int(np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape)))[0])
+        if index >= len(table):
+            continue  # no ray hit it
+        table[index] = numbers.get(shape.id(), 0)
+    instance = np.where(hit, table[registry], 0).astype(np.uint16)
     return distance, np.where(hit[:, None], normals, 0.0), hit, instance
 
 
@@ -328,26 +369,26 @@ def instance_legend(scene) -> tuple:
     return tuple(sorted(shape.id() for shape in scene.shapes()))
 
 
-_LOADED = {}  # the last scene's (scene, aov integrator, legend): one integrator per loaded scene
+_LOADED = {}  # the last scene's (scene, albedo integrator, legend): one integrator per loaded scene
 
 
 def _loaded_for(mi, scene) -> tuple:
     """(aov integrator, legend) of `scene`, made once per scene: a new integrator object
     per view would make Dr.Jit compile the render kernel again for every view."""
     if _LOADED.get("scene") is not scene:
-        _LOADED.update(scene=scene, integrator=aov_integrator(mi, scene), legend=instance_legend(scene))
+        _LOADED.update(scene=scene, integrator=aov_integrator(mi), legend=instance_legend(scene))
     return _LOADED["integrator"], _LOADED["legend"]
 
 
 def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int, *,
                 target: Optional[NoiseTarget] = None, integrator=None, legend: Optional[tuple] = None) -> ViewImages:
-    """Everything one view writes. integrator, legend: aov_integrator(mi, scene) and
+    """Everything one view writes. integrator, legend: aov_integrator(mi) (for albedo) and
     instance_legend(scene); made once per scene when not given."""
     if integrator is None or legend is None:
         integrator, legend = _loaded_for(mi, scene)
-    pass_a, pass_b = render_passes(mi, scene, integrator, c2w, intrinsics, spp, seed, target)
+    pass_a, pass_b = render_passes(mi, scene, c2w, intrinsics, spp, seed, target)
     image = mean_of_passes(pass_a, pass_b)
-    noise = noise_estimate(pass_a.mean[..., :4], None if pass_b is None else pass_b.mean[..., :4],
-                           pass_a.spp, 0 if pass_b is None else pass_b.spp)
+    albedo = render_albedo(mi, scene, integrator, c2w, intrinsics, pass_a.spp + (pass_b.spp if pass_b else 0), seed)
+    passes = ((pass_a.mean, pass_a.spp),) + (() if pass_b is None else ((pass_b.mean, pass_b.spp),))
     distance, z_depth, normals, hit, instance = render_geometry_with_ids(mi, scene, c2w, intrinsics, legend)
-    return ViewImages(image[..., :4], distance, z_depth, normals, hit, instance, image[..., 4:7], noise)
+    return ViewImages(image[..., :4], distance, z_depth, normals, hit, instance, albedo, passes)
