@@ -29,6 +29,7 @@ from nerfgauge.core.camera import (
     to_mitsuba,
     z_depth_from_distance,
 )
+from nerfgauge.core.errors import InputError
 from nerfgauge.core.images import linear_to_srgb, premultiplied_to_png_rgba
 
 NEAR_CLIP = 1e-3  # scene units; only clips what is closer than this to the camera
@@ -384,6 +385,9 @@ def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int, *,
                 target: Optional[NoiseTarget] = None, integrator=None, legend: Optional[tuple] = None) -> ViewImages:
     """Everything one view writes. integrator, legend: aov_integrator(mi) (for albedo) and
     instance_legend(scene); made once per scene when not given."""
+    if spp == "auto" and target is None:
+        # generate/workers.py must pass the_plan.config.noise_target as `target`.
+        raise InputError("--spp auto: this generator's workers do not pass the noise target to render_view")
     if integrator is None or legend is None:
         integrator, legend = _loaded_for(mi, scene)
     pass_a, pass_b = render_passes(mi, scene, c2w, intrinsics, spp, seed, target)

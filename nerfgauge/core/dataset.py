@@ -163,6 +163,7 @@ class Dataset:
         ds.frames("test")              # ("test/r_000", "test/r_001", ...): stems
         ds.intrinsics("test"), ds.K("test"), ds.c2w("test"), ds.bounds, ds.scene
         ds.image("test", 0)            # and image_linear, depth, normals, mask
+        ds.instance("test", 0), ds.instance_names(), ds.albedo("test", 0), ds.noise("test", 0)
 
     Conventions (those of nerfgauge.core.camera and of the generator):
     - c2w: [n, 4, 4] float64 camera-to-world, OpenGL/NeRF axes: +X right, +Y up, the camera
@@ -176,6 +177,12 @@ class Dataset:
       distance * cos(angle between the ray and -Z of c2w).
     - normals: [H, W, 3] float32 world-space unit shading normals, 0 on misses.
     - mask: [H, W] bool, True where the pixel-centre ray hits geometry (== depth > 0).
+    - instance: [H, W] int64 id of the shape the pixel-centre ray hits, 0 = miss (so
+      instance > 0 == mask); instance_names() {id: shape name} from scene.json.
+    - albedo: [H, W, 3] float32 linear, box-filtered, 0 where samples miss.
+    - noise: the frame's Monte Carlo noise estimate (docs/conventions.md, "Noise").
+    Datasets made before instance ids, albedo and noise lack those files
+    (`manifest_files` says which are there; reading a missing one is an InputError).
 
     Every file is read through one path: its name is confined to the root (no absolute
     paths or `..`; symlinks resolved and required to stay inside), it must be listed in
