@@ -71,7 +71,10 @@ class GenerateConfig:
     test_views: int = 20
     width: int = 128
     height: int = 128
-    spp: object = 64  # samples per pixel, or "auto": add samples until noise_psnr is reached
+    # Samples per pixel, or "auto" (add samples until noise_psnr is reached). 72 = two passes
+    # of 36, a 6x6 multijitter grid each: as noisy as one 64-sample pass was (64 = 2 x 32 is
+    # not a grid Mitsuba can lay out, 2.2 dB noisier at 128 px; docs/conventions.md "Noise").
+    spp: object = 72
     max_depth: int = 8
     fov: float = 40.0
     layout: str = "auto"  # "auto": the scene's suggested cameras, else the hemisphere

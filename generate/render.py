@@ -242,10 +242,11 @@ def as_metrics_see(rgba_linear: np.ndarray, background) -> np.ndarray:
     return _composite(straight_srgb(rgba_linear), background)
 
 
-def png_as_metrics_see(rgba_linear: np.ndarray, background) -> np.ndarray:
-    """The stored 8-bit PNG of `rgba_linear`, composited as the evaluator does. [H, W, 3]."""
+def png_straight(rgba_linear: np.ndarray) -> tuple:
+    """The stored 8-bit PNG of `rgba_linear` as (straight sRGB [H, W, 3], alpha [H, W, 1])
+    on [0, 1], for _composite."""
     png = premultiplied_to_png_rgba(rgba_linear).astype(np.float64) / 255.0
-    return np.clip(png[..., :3] * png[..., 3:] + np.asarray(background, np.float64) * (1 - png[..., 3:]), 0.0, 1.0)
+    return png[..., :3], png[..., 3:]
 
 
 def _variance_of_mean(a: np.ndarray, b: np.ndarray, n_a: int, n_b: int) -> float:
@@ -278,8 +279,8 @@ def noise_estimate(rgba_a: np.ndarray, rgba_b: Optional[np.ndarray], n_a: int, n
     from the sRGB variance plus the PNG's own 8-bit rounding error}. spp: samples used.
     With one pass (spp 1) the numbers are None and `reason` says why."""
     mean = rgba_a if rgba_b is None else (n_a * rgba_a.astype(np.float64) + n_b * rgba_b) / (n_a + n_b)
-    mean_srgb = straight_srgb(mean)
-    quantisation = {name: float(np.mean((png_as_metrics_see(mean, bg) - _composite(mean_srgb, bg)) ** 2))
+    mean_srgb, png = straight_srgb(mean), png_straight(mean)
+    quantisation = {name: float(np.mean((_composite(png, bg) - _composite(mean_srgb, bg)) ** 2))
                     for name, bg in BACKGROUNDS.items()}
     out = {"spp": int(n_a + n_b), "passes": [int(n_a)] + ([int(n_b)] if rgba_b is not None else []),
            "png_quantisation_mse": quantisation}

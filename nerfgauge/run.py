@@ -41,7 +41,7 @@ class RunConfig:
     views: int = 100
     val_views: int = 10
     test_views: int = 20
-    spp: int = 64
+    spp: int = 72  # GenerateConfig's default (two 6x6 multijitter passes)
     layout: str = "auto"  # the scene's suggested cameras, else the hemisphere
     model: str = "compact"
     budget_seconds: float = 90.0
