@@ -127,12 +127,13 @@ def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: i
                         continue
                     log = read_log(run / "log.jsonl")
                     if model == "vanilla":
-                        metrics = {"mean": {"psnr": None, "ssim": None, "depth_absrel": None}, "timing": {}}
+                        metrics = {"mean": {"psnr": None, "ssim": None, "depth_absrel": None}, "timing": {}, "noise": {}}
                     else:
                         run_child(["render", str(run), "--quiet"])
                         metrics = evaluate(data, run / "renders", "test", run / "metrics.json")
                     rows.append({"scene": scene, "variant": variant, "budget": budget,
                                  "val_psnr": log[-1]["val_psnr"], "psnr": metrics["mean"]["psnr"],
+                                 "psnr_ceiling": (metrics.get("noise") or {}).get("psnr_ceiling"),
                                  "ssim": metrics["mean"]["ssim"], "depth_absrel": metrics["mean"]["depth_absrel"],
                                  "lpips": metrics["mean"].get("lpips"), "lpips_note": metrics.get("notes", {}).get("lpips"),
                                  "train_seconds": log[-1]["seconds"], "steps": log[-1]["step"],
@@ -168,15 +169,19 @@ def speedups(rows: list) -> list[str]:
 
 
 def table_markdown(rows: list) -> str:
-    head = ("scene", "variant", "budget s", "val PSNR", "test PSNR", "SSIM", "LPIPS", "depth AbsRel", "train s", "steps/s", "render ms",
+    from nerfgauge.eval.report import ceiling_cell
+
+    head = ("scene", "variant", "budget s", "val PSNR", "test PSNR", "PSNR ceiling", "SSIM", "LPIPS", "depth AbsRel", "train s",
+            "steps/s", "render ms",
             "model MB", "peak MB")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['scene']} | {r['variant']} | {r['budget']:g} | {r['error']} |" + " |" * 9)
+            lines.append(f"| {r['scene']} | {r['variant']} | {r['budget']:g} | {r['error']} |" + " |" * (len(head) - 4))
             continue
         cells = [r["scene"], r["variant"], f"{r['budget']:g}", f"{r['val_psnr']:.2f}",
-                 "–" if r["psnr"] is None else f"{r['psnr']:.2f}", "–" if r["ssim"] is None else f"{r['ssim']:.4f}",
+                 "–" if r["psnr"] is None else f"{r['psnr']:.2f}", ceiling_cell(r.get("psnr"), r.get("psnr_ceiling")),
+                 "–" if r["ssim"] is None else f"{r['ssim']:.4f}",
                  (r.get("lpips_note") or "–") if r.get("lpips") is None else f"{r['lpips']:.4f}",
                  "–" if r["depth_absrel"] is None else f"{r['depth_absrel']:.4f}", f"{r['train_seconds']:.0f}",
                  f"{r['steps_per_second']:.1f}", "–" if r["render_ms_per_frame"] is None else f"{r['render_ms_per_frame']:.0f}",

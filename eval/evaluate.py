@@ -39,6 +39,15 @@ The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each groun
 file confined to it and checked against its manifest as it is read (one read per file).
 Outputs: FILE (default DIR/metrics.json, schema 1, written atomically) and error maps in
 `error_maps/` beside it (eval.error_maps).
+
+Beside the metrics (docs/conventions.md, "Noise"): each frame's `psnr_ceiling`, the PSNR the
+noise-free image would score against the ground truth (from the dataset's noise estimate,
+for the chosen background; null for datasets without one or rendered at spp 1), and
+`noise` with their mean and `at_noise_floor` (mean PSNR within NOISE_FLOOR_DB of it: the
+methods cannot be told apart there; render with more spp). `psnr_objects`: PSNR on each
+instance's pixels (datasets with instance ids), per frame and averaged per object.
+`empty_views`: test views whose ground truth holds no geometry (they score background
+against background) with a warning when more than a quarter of the split is empty.
 """
 
 from __future__ import annotations
@@ -68,10 +77,12 @@ from nerfgauge.eval.metrics import (
 
 from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import check_writable_target, read_json, write_json
+from nerfgauge.core.files import check_writable_target, json_from_bytes, read_json, write_json
 from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
 
 SCHEMA = 1
+NOISE_FLOOR_DB = 1.0  # a mean PSNR this close to the mean ceiling is at the noise floor
+EMPTY_WARNING_FRACTION = 0.25
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 DEPTH_SUFFIXES = {"distance": ("_depth", "_distance"), "z": ("_depth", "_zdepth")}
 DEPTH_HEADER = {"distance": "ray_distance", "z": "z_depth"}
@@ -216,6 +227,8 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     values["psnr_foreground"] = psnr_foreground(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
     if lpips_batch is not None:
         lpips_batch.add(pred, gt)
+    values["psnr_objects"] = object_psnrs(ds, stem, intrinsics, pred, gt)
+    values["empty"] = not mask.any()
     depth_err = None
     if files.depth is not None:
         depth = read_plane(files.depth, intrinsics, depth_kind)
@@ -240,6 +253,57 @@ def find_nerfgauge_predictions(pred_dir: Path, split: str, stems: tuple, depth_k
         raise InputError(f"{len(extras)} extra prediction file(s) not among the {len(stems)} frames of split "
                          f"{split}: {', '.join(str(p) for p in extras[:4])}{' ...' if len(extras) > 4 else ''}")
     return {stem: find_prediction(pred_dir, stem, depth_kind) for stem in stems}
+def object_psnrs(ds: dataset.Dataset, stem: str, intrinsics, pred, gt) -> Optional[dict]:
+    """{shape name: PSNR on the pixels whose centre ray hits it} for the shapes in view;
+    None for a dataset without instance ids."""
+    if stem + dataset.FRAME_SUFFIXES["instance"] not in ds.manifest_files:
+        return None
+    ids, names = dataset.read_instance(ds, stem, intrinsics), ds.instance_names()
+    return {names.get(int(number), f"instance {int(number)}"): psnr_foreground(pred, gt, ids == number)
+            for number in np.unique(ids) if number != 0}
+
+
+def frame_ceiling(ds: dataset.Dataset, stem: str, background: str) -> Optional[float]:
+    """The frame's psnr_ceiling on `background` from its noise estimate (None without one)."""
+    if stem + dataset.FRAME_SUFFIXES["noise"] not in ds.manifest_files:
+        return None
+    noise = ds.frame_file(stem, "noise", lambda path, data: json_from_bytes(data, path, finite=True))
+    ceiling = noise.get("psnr_ceiling") if isinstance(noise, dict) else None
+    value = ceiling.get(background) if isinstance(ceiling, dict) else None
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def noise_summary(frames: list) -> dict:
+    """Mean psnr_ceiling of the frames that have one, and whether the mean PSNR is at it."""
+    ceilings = [frame["psnr_ceiling"] for frame in frames if frame["psnr_ceiling"] is not None]
+    if len(ceilings) < len(frames):
+        return {"psnr_ceiling": None, "at_noise_floor": None,
+                "note": f"{len(frames) - len(ceilings)} of {len(frames)} frames have no noise estimate "
+                        "(an older dataset, or spp 1)"}
+    mean_ceiling, _ = summarize(ceilings)
+    mean_psnr, _ = summarize([frame["psnr"] for frame in frames])
+    at_floor = mean_psnr is not None and mean_ceiling is not None and mean_psnr >= mean_ceiling - NOISE_FLOOR_DB
+    return {"psnr_ceiling": mean_ceiling, "at_noise_floor": bool(at_floor),
+            "note": "at the noise floor: add spp" if at_floor else None}
+
+
+def object_means(frames: list) -> Optional[dict]:
+    """{shape name: mean PSNR over the frames that show it}; None without instance ids."""
+    if any(frame["psnr_objects"] is None for frame in frames):
+        return None
+    names = sorted({name for frame in frames for name in frame["psnr_objects"]})
+    return {name: summarize([frame["psnr_objects"][name] for frame in frames if name in frame["psnr_objects"]])[0]
+            for name in names}
+
+
+def empty_views(frames: list) -> dict:
+    """Which frames' ground truth holds no geometry, and a warning past a quarter."""
+    empty = [frame["name"] for frame in frames if frame["empty"]]
+    warning = None
+    if frames and len(empty) > EMPTY_WARNING_FRACTION * len(frames):
+        warning = (f"{len(empty)} of {len(frames)} views hold no geometry (background scored against background); "
+                   "choose cameras that see the scene (e.g. --elevation)")
+    return {"count": len(empty), "of": len(frames), "frames": empty, "warning": warning}
 
 
 def foreground_pixels(gt_alpha: np.ndarray, pred_alpha) -> np.ndarray:
@@ -299,6 +363,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
+        values["psnr_ceiling"] = frame_ceiling(ds, stem, background)
         frames.append({"name": stem, "file": files.colour.relative_to(pred_dir).as_posix(), **values})
         maps.append((stem, colour_err, depth_err))
     if lpips_batch is not None:
@@ -314,7 +379,9 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
     document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
-                "notes": {} if lpips_note is None else {"lpips": lpips_note}, "frames": frames,
+                "notes": {} if lpips_note is None else {"lpips": lpips_note},
+                "noise": noise_summary(frames), "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
+                "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}
     write_json(out, document)
     return document
@@ -339,5 +406,13 @@ def format_means(document: dict) -> str:
         note = document.get("notes", {}).get(metric)
         rows.append((metric, (note or "-") if mean is None else f"{mean:.4f}", "-" if std is None else f"{std:.4f}",
                      f"{document['count'][metric]}/{total}"))
+    noise = document.get("noise") or {}
+    if noise.get("psnr_ceiling") is not None:
+        rows.insert(2, ("psnr_ceiling", f"{noise['psnr_ceiling']:.4f}", "-", f"{total}/{total}"))
     widths = [max(len(row[i]) for row in rows) for i in range(4)]
-    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows)
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+    if noise.get("at_noise_floor"):
+        lines.append(f"psnr within {NOISE_FLOOR_DB:g} dB of the ceiling: at the noise floor: add spp")
+    if (document.get("empty_views") or {}).get("warning"):
+        lines.append("warning: " + document["empty_views"]["warning"])
+    return "\n".join(lines)

@@ -32,15 +32,29 @@ def read_log(path) -> list[dict]:
     return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
 
 
+def ceiling_cell(psnr, ceiling) -> str:
+    """The dataset's noise ceiling (evaluate's noise.psnr_ceiling), marked when the PSNR is
+    within NOISE_FLOOR_DB of it."""
+    from nerfgauge.eval.evaluate import NOISE_FLOOR_DB
+
+    if ceiling is None:
+        return "–"
+    at_floor = psnr is not None and psnr >= ceiling - NOISE_FLOOR_DB
+    return f"{ceiling:.2f}" + (" (at the noise floor: add spp)" if at_floor else "")
+
+
 def metrics_table(rows: dict) -> list[list[str]]:
     """rows: {method: metrics.json document}. Returns a header row and one row per method."""
-    table = [["method"] + [label for _, label, _ in TABLE_METRICS] + ["ms/frame"]]
+    table = [["method"] + [label for _, label, _ in TABLE_METRICS[:1]] + ["PSNR ceiling dB"]
+             + [label for _, label, _ in TABLE_METRICS[1:]] + ["ms/frame"]]
     for method, document in rows.items():
         cells = [method]
         for key, _, fmt in TABLE_METRICS:
             mean, std = document["mean"].get(key), document["std"].get(key)
             absent = document.get("notes", {}).get(key, "–")  # e.g. lpips: "n/a (install: nerfgauge lpips install)"
             cells.append(absent if mean is None else fmt.format(mean) + ("" if not std else f" ± {fmt.format(std)}"))
+            if key == "psnr":
+                cells.append(ceiling_cell(mean, (document.get("noise") or {}).get("psnr_ceiling")))
         ms = document.get("timing", {}).get("ms_per_frame")
         cells.append("–" if ms is None else f"{ms:.1f}")
         table.append(cells)

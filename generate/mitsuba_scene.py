@@ -53,6 +53,16 @@ def ground_truth_meshes(scene) -> dict:
     return meshes
 
 
+def instance_names(scene) -> list:
+    """The instance legend: names of everything a camera ray can hit (the keys of
+    scene_dict's shapes and rectangle lights), sorted, so id k (1-based) names the same
+    shape in every view and run. render.instance_legend reads the same list back from the
+    loaded Mitsuba scene (its shape ids are these keys)."""
+    names = [shape.name for shape in scene.shapes]
+    names += [f"light_{index}" for index, light in enumerate(scene.lights) if isinstance(light, RectangleLight)]
+    return sorted(names)
+
+
 def write_meshes(scene, folder: Path) -> dict:
     """Write every ground-truth mesh as `folder/<name>.ply`. Returns {name: path}."""
     folder.mkdir(parents=True, exist_ok=True)

@@ -41,6 +41,11 @@ from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_pn
 CONFIG = "config.json"
 DEFAULT_LAYOUT = "hemisphere"
 DEFAULT_ELEVATION = (10.0, 75.0)
+# Cameras inside an enclosure looking up past its walls see only sky: "inside" defaults to a
+# band around the horizon (a scene's hint or --elevation still wins).
+DEFAULT_ELEVATION_BY_LAYOUT = {"inside": (-20.0, 20.0)}
+MAX_NOISE_PSNR = 80.0  # dB; beyond it the 8-bit PNG's own rounding (about 59 dB) dominates anyway
+DEFAULT_MAX_SPP = 4096
 SPLIT_SEED_OFFSET = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 RENDERER_PACKAGES = ("mitsuba", "drjit", "nerfgauge")  # their versions are part of a dataset's recipe
 
@@ -67,7 +72,10 @@ class GenerateConfig:
     test_views: int = 20
     width: int = 128
     height: int = 128
-    spp: int = 64
+    # Samples per pixel, or "auto" (add samples until noise_psnr is reached). 72 = two passes
+    # of 36, a 6x6 multijitter grid each: as noisy as one 64-sample pass was (64 = 2 x 32 is
+    # not a grid Mitsuba can lay out, 2.2 dB noisier at 128 px; docs/conventions.md "Noise").
+    spp: object = 72
     max_depth: int = 8
     fov: float = 40.0
     layout: str = "auto"  # "auto": the scene's suggested cameras, else the hemisphere
@@ -75,10 +83,14 @@ class GenerateConfig:
     elevation: Optional[tuple] = None  # None: the scene's suggestion, else DEFAULT_ELEVATION
     radius: Optional[float] = None  # None: the scene's suggestion, else fit the AABB's bounding sphere in view
     variant: str = "auto"
+    noise_psnr: Optional[float] = None  # --spp auto's target: each view's sRGB noise PSNR, dB
+    max_spp: int = DEFAULT_MAX_SPP  # --spp auto's cap per view
 
     def validate(self) -> None:
-        positive = {"views": self.views, "width": self.width, "height": self.height, "spp": self.spp,
-                    "max-depth": self.max_depth}
+        positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
+                    "max-spp": self.max_spp}
+        if self.spp != "auto":
+            positive["spp"] = self.spp
         for name, value in positive.items():
             if not isinstance(value, (int, np.integer)) or value <= 0:
                 raise InputError(f"--{name} must be a positive integer, got {value!r}")
@@ -97,6 +109,29 @@ class GenerateConfig:
             raise InputError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANT_CHOICES)}")
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
+        self._validate_noise()
+
+    def _validate_noise(self) -> None:
+        target = self.noise_psnr
+        if target is not None and (isinstance(target, bool) or not isinstance(target, (int, float, np.number))
+                                   or not math.isfinite(target) or not 0 < target <= MAX_NOISE_PSNR):
+            raise InputError(f"--noise-psnr must be a finite number of dB in (0, {MAX_NOISE_PSNR:g}], got {target!r}")
+        if self.spp == "auto" and target is None:
+            raise InputError("--spp auto needs --noise-psnr TARGET (dB)")
+        if target is not None and self.spp == 1:
+            raise InputError("--spp 1 renders one pass, so there is no noise estimate to reach --noise-psnr; "
+                             "use --spp auto")
+        if target is not None and self.spp != "auto":
+            raise InputError(f"--noise-psnr is the target of --spp auto, not of a fixed --spp {self.spp}")
+        if self.spp == "auto" and self.max_spp < 2:
+            raise InputError(f"--max-spp must be at least 2 with --spp auto, got {self.max_spp}")
+
+    @property
+    def noise_target(self):
+        """The render's NoiseTarget with --spp auto, else None."""
+        from nerfgauge.generate.render import NoiseTarget
+
+        return NoiseTarget(float(self.noise_psnr), max_spp=int(self.max_spp)) if self.spp == "auto" else None
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self) | {"elevation": None if self.elevation is None else list(self.elevation)}
@@ -145,13 +180,15 @@ def plan(config: GenerateConfig) -> Plan:
 
 def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
     """The cameras asked for: the command line first, then (with --layout auto) the
-    scene's suggestion, then the defaults (hemisphere, elevation 10-75, radius that fits)."""
+    scene's suggestion, then the defaults (hemisphere, elevation 10-75 (inside: -20-20),
+    radius that fits)."""
     hint = scene.cameras if config.layout == "auto" else None
     layout = config.layout if hint is None else hint.layout
     layout = DEFAULT_LAYOUT if layout == "auto" else layout
     radius = config.radius or (hint and hint.radius) or layouts.default_radius(scene.aabb, config.fov, config.width,
                                                                                 config.height)
-    elevation = config.elevation or (hint and hint.elevation) or DEFAULT_ELEVATION
+    elevation = config.elevation or (hint and hint.elevation) or DEFAULT_ELEVATION_BY_LAYOUT.get(layout,
+                                                                                                 DEFAULT_ELEVATION)
     return layouts.LayoutSpec(layout, (config.views, config.val_views, config.test_views), float(radius),
                               tuple(float(a) for a in elevation), config.sampling,
                               eye=hint and hint.eye, target=hint and hint.target, spread=hint and hint.spread)
@@ -201,7 +238,7 @@ def view_complete(out: Path, stem: str) -> bool:
 
 
 def write_view(out: Path, stem: str, images) -> None:
-    """Write one view's six files; the PNG last is no marker: completeness is all six."""
+    """Write one view's nine files; the PNG last is no marker: completeness is all nine."""
     files = {kind: out / rel for kind, rel in dataset.frame_files(stem).items()}
     files["png"].parent.mkdir(parents=True, exist_ok=True)
     write_exr(files["exr"], {"RGBA": images.rgba}, {"nerfgauge": "linear RGBA, premultiplied alpha = coverage"})
@@ -210,6 +247,10 @@ def write_view(out: Path, stem: str, images) -> None:
     write_exr(files["normals"], {"X": images.normals[..., 0], "Y": images.normals[..., 1], "Z": images.normals[..., 2]},
               {"nerfgauge": "world-space shading normals, 0 on misses"})
     write_png(files["mask"], (images.hit * 255).astype(np.uint8))
+    dataset.write_instance_png(files["instance"], images.instance)
+    write_exr(files["albedo"], {"R": images.albedo[..., 0], "G": images.albedo[..., 1], "B": images.albedo[..., 2]},
+              {"nerfgauge": "linear albedo of the first surface (Mitsuba aov integrator), box-filtered, 0 on misses"})
+    write_json(files["noise"], images.noise)
     write_png(files["png"], premultiplied_to_png_rgba(images.rgba))
 
 
@@ -231,6 +272,8 @@ def finish(out: Path, the_plan: Plan) -> None:
                            dataset.synthetic_transforms(intrinsics, stems[split], poses[split]))
     write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses))
     scene = the_plan.scene
+    from nerfgauge.generate.mitsuba_scene import instance_names
+
     scene_json = {
         "schema": 1,
         "recipe": scene.name, "seed": scene.seed, "scene": scene.to_json(),
@@ -243,7 +286,11 @@ def finish(out: Path, the_plan: Plan) -> None:
                   "z": "*_zdepth.exr: depth along the optical axis", "miss": 0,
                   "source": "scene.ray_intersect of pixel-centre rays, not the filtered depth AOV"},
         "images": {"png": "8-bit sRGB, straight alpha = coverage", "exr": "linear float32, premultiplied alpha",
-                   "spp": the_plan.config.spp, "max_depth": the_plan.config.max_depth, "filter": "box"},
+                   "spp": the_plan.config.spp, "max_depth": the_plan.config.max_depth, "filter": "box",
+                   "albedo": "*_albedo.exr: linear albedo of the first surface, box-filtered, 0 on misses"},
+        "instances": {"file": "*_instance.png: 16-bit ids of the pixel-centre ray's shape, 0 = miss",
+                      "names": instance_names(scene)},
+        "noise": noise_summary(out, stems, the_plan.config),
         "variant": the_plan.variant,
         "inputs": the_plan.inputs,
         "recipe_sha256": recipe_hash(the_plan.recipe()),
@@ -255,6 +302,36 @@ def finish(out: Path, the_plan: Plan) -> None:
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
              if p.is_file() and p.name != dataset.MANIFEST and not p.name.startswith(".")]
     dataset.write_manifest(out, files)
+
+
+NOISE_METHOD = ("two independent passes of spp/2 samples (seeds differ); the image is their mean; "
+                "Var(mean) = E[(A - B)^2] / 4; sRGB: the transfer function and compositing applied to each pass "
+                "before differencing; noise_psnr = 10 log10(1 / mean variance); psnr_ceiling adds the 8-bit PNG's "
+                "rounding error (docs/conventions.md, Noise)")
+
+
+def noise_summary(out: Path, stems: dict, config: GenerateConfig) -> dict:
+    """scene.json's "noise": every frame's estimate (from its _noise.json) and per split the
+    mean of each frame's dB figure (as PSNR is averaged), spp range, and why there is no
+    estimate when there is none."""
+    splits = {}
+    for split in dataset.SPLITS:
+        frames = [{"name": stem, **read_json(out / dataset.frame_files(stem)["noise"], finite=True)}
+                  for stem in stems[split]]
+        summary = {"frames": frames}
+        if frames:
+            summary["spp"] = {"min": min(f["spp"] for f in frames), "max": max(f["spp"] for f in frames),
+                              "mean": float(np.mean([f["spp"] for f in frames]))}
+            if all(f["noise_psnr"] is not None for f in frames):
+                for key in ("noise_psnr", "psnr_ceiling"):
+                    summary[key] = {name: float(np.mean([f[key][name] for f in frames])) for name in frames[0][key]}
+            else:
+                summary["noise_psnr"] = summary["psnr_ceiling"] = None
+                summary["reason"] = next(f["reason"] for f in frames if f["noise_psnr"] is None)
+        splits[split] = summary
+    target = None if config.spp != "auto" else {"noise_psnr": config.noise_psnr, "max_spp": config.max_spp,
+                                                 "on": "the worse of srgb_white and srgb_black"}
+    return {"method": NOISE_METHOD, "auto": target, "splits": splits}
 
 
 def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool = False,

@@ -1,14 +1,25 @@
-"""Render one view: RGBA with the path tracer, exact depth and normals from pixel-centre rays.
+"""Render one view: RGBA and albedo with the path tracer (two independent half passes, so
+the view states its own Monte Carlo noise), exact depth, normals and instance ids from
+pixel-centre rays.
 
 Depth is not the filtered depth AOV (averaged across edges, measured from a near-clip
 shifted origin): every pixel's centre ray from `nerfgauge.core.camera.pixel_rays` is intersected
-with the scene, giving the Euclidean ray distance from the camera centre.
+with the scene, giving the Euclidean ray distance from the camera centre. Instance ids
+come from the same rays (not Mitsuba's box-filtered shape_index AOV, which averages ids
+across edges), so they agree with the hit mask pixel for pixel.
+
+Noise (docs/conventions.md, "Noise"): the spp samples of a view are rendered as two
+passes A and B of spp/2 samples with different seeds; the stored image is their mean M.
+A and B are independent and identically distributed, so Var(M) = Var(A) / 2 and
+E[(A - B)^2] = 2 Var(A): a quarter of the mean squared difference estimates the mean's
+variance without a reference. With spp 1 there is one pass and no estimate.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -18,21 +29,55 @@ from nerfgauge.core.camera import (
     to_mitsuba,
     z_depth_from_distance,
 )
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.images import linear_to_srgb, premultiplied_to_png_rgba
 
 NEAR_CLIP = 1e-3  # scene units; only clips what is closer than this to the camera
+SEED_STRIDE = 0x9E3779B9  # odd, ~0.62 * 2^32: sub-pass k of a view renders with seed + k * stride
+MSE_FLOOR = 1e-10  # as eval.metrics: a noiseless view (all background) scores 100 dB, not inf
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}  # those `nerfgauge evaluate` offers
+AOVS = "albedo:albedo"
+# Albedo is box-filtered over the pixel from primary hits only (no light transport): only
+# edge pixels vary, so few samples do. Mitsuba's aov integrator wrapped around the path
+# tracer doubled the render time (128 px, primitives, llvm); alone at 4 spp it adds ~3%.
+MAX_ALBEDO_SPP = 4
+ALBEDO_CHUNK = 1 << 16  # the albedo render's chunk number (far beyond any pass's)
+MAX_INSTANCES = 65535  # 16-bit ids, 0 = no geometry
+
+
+@dataclass(frozen=True)
+class NoiseTarget:
+    """--spp auto: add samples until the view's sRGB noise PSNR (the worse background)
+    reaches `noise_psnr` dB, starting from `start_spp` and never beyond `max_spp`."""
+
+    noise_psnr: float
+    start_spp: int = 16
+    max_spp: int = 4096
 
 
 @dataclass(frozen=True)
 class ViewImages:
     """rgba [H,W,4] linear premultiplied (alpha = coverage); distance, z_depth [H,W]
     (0 where the centre ray misses); normals [H,W,3] world shading normals (0 on
-    misses); hit [H,W] bool."""
+    misses); hit [H,W] bool; instance [H,W] uint16 (0 = miss, k = legend entry k);
+    albedo [H,W,3] linear, box-filtered like rgba; passes: ((rgba A [H,W,4], spp A),
+    (rgba B, spp B)) or just A with spp 1 (their means, float64)."""
 
     rgba: np.ndarray
     distance: np.ndarray
     z_depth: np.ndarray
     normals: np.ndarray
     hit: np.ndarray
+    instance: Optional[np.ndarray] = None
+    albedo: Optional[np.ndarray] = None
+    passes: tuple = ()
+
+    @property
+    def noise(self) -> dict:
+        """noise_estimate of the passes (computed on each call: the writer thread calls it
+        once, off the render thread)."""
+        (rgba_a, n_a), (rgba_b, n_b) = self.passes if len(self.passes) == 2 else (self.passes[0], (None, 0))
+        return noise_estimate(rgba_a, rgba_b, n_a, n_b)
 
 
 def sensor_dict(mi, c2w: np.ndarray, intrinsics: Intrinsics, spp: int) -> dict:
@@ -53,64 +98,302 @@ def sensor_dict(mi, c2w: np.ndarray, intrinsics: Intrinsics, spp: int) -> dict:
     }
 
 
+def multijitter_exact(spp: int) -> bool:
+    """Mitsuba's multijitter uses a = floor(sqrt(spp)) columns and ceil(spp / a) rows and
+    rounds the count up to their product (32 -> 35): exact for a^2, a^2 + a, a^2 + 2a."""
+    columns = math.isqrt(int(spp))
+    return columns * -(-int(spp) // columns) == int(spp)
+
+
 def sampler_dict(spp: int) -> dict:
     """Multi-jittered samples when Mitsuba can lay `spp` out as a grid exactly; otherwise
-    independent samples, so a view never gets a different count than scene.json states.
+    independent samples, so a view never gets a different count than scene.json states."""
+    return {"type": "multijitter" if multijitter_exact(spp) else "independent", "sample_count": int(spp)}
 
-    Mitsuba's multijitter uses a = floor(sqrt(spp)) columns and ceil(spp / a) rows and
-    rounds the count up to their product (32 -> 35)."""
-    columns = math.isqrt(int(spp))
-    exact = columns * -(-int(spp) // columns) == int(spp)
-    return {"type": "multijitter" if exact else "independent", "sample_count": int(spp)}
+
+def sample_chunks(spp: int) -> list:
+    """`spp` as a sum of multijitter-exact counts, largest first (32 -> [30, 2]).
+
+    Stratification matters: at 64 px, 64 multi-jittered samples of `primitives` are 8 dB
+    less noisy than 64 independent ones; two passes of 36 are as good as one of 64. So a
+    pass whose count multijitter cannot lay out is rendered as an exact grid plus a small
+    remainder rather than with independent samples."""
+    chunks, left = [], int(spp)
+    while left > 0:
+        a = math.isqrt(left)
+        exact = max(n for n in (a * a, a * a + a, a * a + 2 * a) if n <= left)
+        chunks.append(exact)
+        left -= exact
+    return chunks
+
+
+def chunk_seed(view_seed: int, chunk: int) -> int:
+    """Seed of a view's chunk-th render call; chunk 0 keeps the view's own seed."""
+    return (int(view_seed) + chunk * SEED_STRIDE) % (2**32)
+
+
+def render_chunk(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
+    """One mi.render call. Returns [H, W, C] float32: RGBA, then the integrator's AOVs."""
+    sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp))
+    image = mi.render(scene, sensor=sensor, integrator=integrator, spp=int(spp), seed=int(seed))
+    array = np.array(image, dtype=np.float32)
+    return array.reshape(intrinsics.height, intrinsics.width, -1)
 
 
 def render_rgba(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
-    """Path-traced linear premultiplied RGBA. Returns [H, W, 4] float32."""
-    sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp))
-    image = mi.render(scene, sensor=sensor, spp=int(spp), seed=int(seed))
-    return np.array(image, dtype=np.float32).reshape(intrinsics.height, intrinsics.width, 4)
+    """Path-traced linear premultiplied RGBA in one pass. Returns [H, W, 4] float32."""
+    return render_chunk(mi, scene, None, c2w, intrinsics, spp, seed)[..., :4]
+
+
+class _Pass:
+    """A running sample-weighted mean of chunk images ([H, W, C] float64)."""
+
+    def __init__(self):
+        self.spp, self.total = 0, None
+
+    def add(self, image: np.ndarray, spp: int) -> None:
+        weighted = image.astype(np.float64) * spp
+        self.total = weighted if self.total is None else self.total + weighted
+        self.spp += spp
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.total / self.spp
+
+
+def aov_integrator(mi):
+    """Mitsuba's `aov` integrator alone: the albedo of the first surface each camera
+    sample hits, [H, W, 3] (0 where the sample misses)."""
+    return mi.load_dict({"type": "aov", "aovs": AOVS})
+
+
+def render_albedo(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
+    """Linear albedo, box-filtered over the pixel with min(spp, MAX_ALBEDO_SPP) samples.
+    Returns [H, W, 3] float32."""
+    count = max(n for n in range(1, min(int(spp), MAX_ALBEDO_SPP) + 1) if multijitter_exact(n))
+    return render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, ALBEDO_CHUNK))[..., -3:]
+
+
+def render_passes(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
+                  target: Optional[NoiseTarget] = None, integrator=None) -> tuple:
+    """Two independent passes of spp/2 samples each (spp 1: pass A only). With a target,
+    both passes grow by equal amounts until the noise estimate reaches it or the total
+    reaches target.max_spp. Returns (pass A, pass B or None), each with .mean [H, W, 4]
+    and .spp. integrator: None for the scene's own."""
+    passes, chunk = (_Pass(), _Pass()), 0
+
+    def grow(per_pass: int) -> None:
+        nonlocal chunk
+        for one in passes:
+            for count in sample_chunks(per_pass):
+                one.add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk)), count)
+                chunk += 1
+
+    if target is None:
+        if spp == 1:
+            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, 1, seed), 1)
+            return passes[0], None
+        a_spp = spp // 2
+        for count in sample_chunks(a_spp):
+            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk)), count)
+            chunk += 1
+        for count in sample_chunks(spp - a_spp):
+            passes[1].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk)), count)
+            chunk += 1
+        return passes
+    grow(max(1, min(target.start_spp, target.max_spp) // 2))
+    goal = 10 ** (-target.noise_psnr / 10)  # the variance the target allows
+    while True:
+        total = passes[0].spp + passes[1].spp
+        variance = auto_variance(passes[0].mean[..., :4], passes[1].mean[..., :4], passes[0].spp, passes[1].spp)
+        if variance <= goal or total + 2 > target.max_spp:  # reached, or no room for one more pair
+            return passes
+        # Variance falls as 1/spp (at least): ask for what that predicts, 10% over, at
+        # least double, within the cap.
+        wanted = min(target.max_spp, max(2 * total, math.ceil(1.1 * total * variance / goal)))
+        grow(max(1, (wanted - total) // 2))
+
+
+def mean_of_passes(pass_a: _Pass, pass_b: Optional[_Pass]) -> np.ndarray:
+    """The stored image: the sample-weighted mean of both passes. [H, W, C] float32."""
+    if pass_b is None:
+        return pass_a.mean.astype(np.float32)
+    return ((pass_a.total + pass_b.total) / (pass_a.spp + pass_b.spp)).astype(np.float32)
+
+
+def straight_srgb(rgba_linear: np.ndarray) -> tuple:
+    """Linear premultiplied RGBA [H, W, 4] -> (straight-alpha sRGB [H, W, 3], alpha
+    [H, W, 1]) as the PNG holds them before 8-bit rounding, float64."""
+    alpha = np.clip(rgba_linear[..., 3:4].astype(np.float64), 0.0, 1.0)
+    straight = np.divide(rgba_linear[..., :3], alpha, out=np.zeros(rgba_linear.shape[:-1] + (3,)), where=alpha > 0)
+    return linear_to_srgb(straight), alpha
+
+
+def _composite(srgb_alpha: tuple, background) -> np.ndarray:
+    """c * a + b * (1 - a), as eval.metrics.composite. Returns [H, W, 3] float64."""
+    srgb, alpha = srgb_alpha
+    return np.clip(srgb * alpha + np.asarray(background, np.float64) * (1 - alpha), 0.0, 1.0)
+
+
+def as_metrics_see(rgba_linear: np.ndarray, background) -> np.ndarray:
+    """Linear premultiplied RGBA -> the colour `nerfgauge evaluate` scores: straight-alpha
+    sRGB (the PNG, before 8-bit rounding) composited onto `background`. [H, W, 4] ->
+    [H, W, 3] float64."""
+    return _composite(straight_srgb(rgba_linear), background)
+
+
+def png_straight(rgba_linear: np.ndarray) -> tuple:
+    """The stored 8-bit PNG of `rgba_linear` as (straight sRGB [H, W, 3], alpha [H, W, 1])
+    on [0, 1], for _composite."""
+    png = premultiplied_to_png_rgba(rgba_linear).astype(np.float64) / 255.0
+    return png[..., :3], png[..., 3:]
+
+
+def _variance_of_mean(a: np.ndarray, b: np.ndarray, n_a: int, n_b: int) -> float:
+    """Mean over pixels and channels of the estimated variance of the (n_a A + n_b B) /
+    (n_a + n_b) mean: E[(A - B)^2] = s2 (1/n_a + 1/n_b), Var = s2 / (n_a + n_b), so the
+    factor is n_a n_b / (n_a + n_b)^2 (1/4 for equal passes, where it needs no assumption
+    about how variance falls with spp)."""
+    factor = n_a * n_b / (n_a + n_b) ** 2
+    return float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2) * factor)
+
+
+def psnr_of_variance(variance: float) -> float:
+    """10 log10(1 / variance) for a peak of 1, capped at 100 dB like eval.metrics.psnr."""
+    return 10.0 * math.log10(1.0 / max(variance, MSE_FLOOR))
+
+
+def auto_variance(rgba_a, rgba_b, n_a, n_b) -> float:
+    """What --spp auto drives down: the larger sRGB variance of the two backgrounds."""
+    a, b = straight_srgb(rgba_a), straight_srgb(rgba_b)
+    return max(_variance_of_mean(_composite(a, bg), _composite(b, bg), n_a, n_b) for bg in BACKGROUNDS.values())
+
+
+def noise_estimate(rgba_a: np.ndarray, rgba_b: Optional[np.ndarray], n_a: int, n_b: int) -> dict:
+    """The view's noise, from its two passes (linear premultiplied RGBA [H, W, 4] each).
+
+    noise_psnr: {"linear": on the EXR's RGB, "srgb_white"/"srgb_black": on the colour the
+    evaluator scores (as_metrics_see), the transfer function applied to each pass before
+    differencing}; dB, 10 log10(1 / mean variance of the stored mean). psnr_ceiling:
+    {background: the PSNR that the noise-free image would score against the stored PNG,
+    from the sRGB variance plus the PNG's own 8-bit rounding error}. spp: samples used.
+    With one pass (spp 1) the numbers are None and `reason` says why."""
+    mean = rgba_a if rgba_b is None else (n_a * rgba_a.astype(np.float64) + n_b * rgba_b) / (n_a + n_b)
+    mean_srgb, png = straight_srgb(mean), png_straight(mean)
+    quantisation = {name: float(np.mean((_composite(png, bg) - _composite(mean_srgb, bg)) ** 2))
+                    for name, bg in BACKGROUNDS.items()}
+    out = {"spp": int(n_a + n_b), "passes": [int(n_a)] + ([int(n_b)] if rgba_b is not None else []),
+           "png_quantisation_mse": quantisation}
+    if rgba_b is None:
+        reason = "spp 1: a single pass, no two independent halves to compare"
+        return out | {"noise_psnr": None, "psnr_ceiling": None, "reason": reason}
+    variance = {"linear": _variance_of_mean(rgba_a[..., :3], rgba_b[..., :3], n_a, n_b)}
+    srgb_a, srgb_b = straight_srgb(rgba_a), straight_srgb(rgba_b)
+    for name, bg in BACKGROUNDS.items():
+        variance[f"srgb_{name}"] = _variance_of_mean(_composite(srgb_a, bg), _composite(srgb_b, bg), n_a, n_b)
+    return out | {"noise_psnr": {key: psnr_of_variance(value) for key, value in variance.items()},
+                  "psnr_ceiling": {name: psnr_of_variance(variance[f"srgb_{name}"] + quantisation[name])
+                                   for name in BACKGROUNDS}}
 
 
 def cast_rays(mi, scene, origins: np.ndarray, directions: np.ndarray):
+    """Intersect rays with the scene: cast_rays_with_ids without the ids."""
+    return cast_rays_with_ids(mi, scene, origins, directions)[:3]
+
+
+def cast_rays_with_ids(mi, scene, origins: np.ndarray, directions: np.ndarray, shape_ids: tuple = ()):
     """Intersect rays with the scene.
 
-    origins, directions: [N, 3] (directions unit). Returns distance [N] (inf on miss),
-    shading normal [N, 3] (0 on miss), hit [N] bool.
+    origins, directions: [N, 3] (directions unit). shape_ids: Mitsuba shape ids in legend
+    order. Returns distance [N] (inf on miss), shading normal [N, 3] (0 on miss), hit [N]
+    bool, instance [N] uint16 (1 + the hit shape's position in shape_ids, 0 on a miss or a
+    shape not listed).
     """
     if mi.variant().startswith("scalar"):
-        return _cast_rays_scalar(mi, scene, origins, directions)
+        return _cast_rays_scalar(mi, scene, origins, directions, shape_ids)
+
     o = mi.Point3f(*(np.ascontiguousarray(origins[:, k], np.float32) for k in range(3)))
     d = mi.Vector3f(*(np.ascontiguousarray(directions[:, k], np.float32) for k in range(3)))
     si = scene.ray_intersect(mi.Ray3f(o, d))
     hit = np.array(si.is_valid(), dtype=bool)
     distance = np.where(hit, np.array(si.t, dtype=np.float64), np.inf)
     normals = np.stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)], -1)
-    return distance, np.where(hit[:, None], normals, 0.0), hit
+    # A ShapePtr is an index into Dr.Jit's instance registry: one read, then a lookup table.
+    import drjit as dr
+
+    registry = np.array(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.int64)
+    numbers = {name: number for number, name in enumerate(shape_ids, start=1)}
+    table = np.zeros(max([int(registry.max(initial=0))] + [0]) + 1, np.uint16)
+    for shape in scene.shapes():
+        index = int(np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape)))[0])
+        if index >= len(table):
+            continue  # no ray hit it
+        table[index] = numbers.get(shape.id(), 0)
+    instance = np.where(hit, table[registry], 0).astype(np.uint16)
+    return distance, np.where(hit[:, None], normals, 0.0), hit, instance
 
 
-def _cast_rays_scalar(mi, scene, origins, directions):
+def _cast_rays_scalar(mi, scene, origins, directions, shape_ids):
     n = len(origins)
     distance, normals, hit = np.full(n, np.inf), np.zeros((n, 3)), np.zeros(n, bool)
+    instance = np.zeros(n, np.uint16)
+    numbers = {name: number for number, name in enumerate(shape_ids, start=1)}
     for index in range(n):
         si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*origins[index]), mi.Vector3f(*directions[index])))
         if si.is_valid():
             hit[index], distance[index] = True, si.t
             normals[index] = [si.sh_frame.n[0], si.sh_frame.n[1], si.sh_frame.n[2]]
-    return distance, normals, hit
+            instance[index] = numbers.get(si.shape.id(), 0)
+    return distance, normals, hit, instance
 
 
 def render_geometry(mi, scene, c2w, intrinsics: Intrinsics):
     """Exact distance, z-depth, normals and hit mask from pixel-centre rays."""
+    return render_geometry_with_ids(mi, scene, c2w, intrinsics)[:4]
+
+
+def render_geometry_with_ids(mi, scene, c2w, intrinsics: Intrinsics, shape_ids: tuple = ()):
+    """Exact distance, z-depth, normals, hit mask and instance ids ([H, W] uint16, see
+    cast_rays_with_ids) from pixel-centre rays."""
     origins, directions = pixel_rays(c2w, intrinsics)
     shape = directions.shape[:2]
-    distance, normals, hit = cast_rays(mi, scene, origins.reshape(-1, 3), directions.reshape(-1, 3))
+    distance, normals, hit, instance = cast_rays_with_ids(mi, scene, origins.reshape(-1, 3), directions.reshape(-1, 3),
+                                                 shape_ids)
     distance = np.where(hit, distance, 0.0).reshape(shape)
     z_depth = z_depth_from_distance(distance, directions, c2w)
     return (distance.astype(np.float32), z_depth.astype(np.float32),
-            normals.reshape(*shape, 3).astype(np.float32), hit.reshape(shape))
+            normals.reshape(*shape, 3).astype(np.float32), hit.reshape(shape), instance.reshape(shape))
 
 
-def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> ViewImages:
-    rgba = render_rgba(mi, scene, c2w, intrinsics, spp, seed)
-    distance, z_depth, normals, hit = render_geometry(mi, scene, c2w, intrinsics)
-    return ViewImages(rgba, distance, z_depth, normals, hit)
+def instance_legend(scene) -> tuple:
+    """Mitsuba shape ids in legend order: every shape sorted by id, so a number names the
+    same shape in every view and every run (Mitsuba's own shape order is not promised)."""
+    return tuple(sorted(shape.id() for shape in scene.shapes()))
+
+
+_LOADED = {}  # the last scene's (scene, albedo integrator, legend): one integrator per loaded scene
+
+
+def _loaded_for(mi, scene) -> tuple:
+    """(aov integrator, legend) of `scene`, made once per scene: a new integrator object
+    per view would make Dr.Jit compile the render kernel again for every view."""
+    if _LOADED.get("scene") is not scene:
+        _LOADED.update(scene=scene, integrator=aov_integrator(mi), legend=instance_legend(scene))
+    return _LOADED["integrator"], _LOADED["legend"]
+
+
+def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int, *,
+                target: Optional[NoiseTarget] = None, integrator=None, legend: Optional[tuple] = None) -> ViewImages:
+    """Everything one view writes. integrator, legend: aov_integrator(mi) (for albedo) and
+    instance_legend(scene); made once per scene when not given."""
+    if spp == "auto" and target is None:
+        # generate/workers.py must pass the_plan.config.noise_target as `target`.
+        raise InputError("--spp auto: this generator's workers do not pass the noise target to render_view")
+    if integrator is None or legend is None:
+        integrator, legend = _loaded_for(mi, scene)
+    pass_a, pass_b = render_passes(mi, scene, c2w, intrinsics, spp, seed, target)
+    image = mean_of_passes(pass_a, pass_b)
+    albedo = render_albedo(mi, scene, integrator, c2w, intrinsics, pass_a.spp + (pass_b.spp if pass_b else 0), seed)
+    passes = ((pass_a.mean, pass_a.spp),) + (() if pass_b is None else ((pass_b.mean, pass_b.spp),))
+    distance, z_depth, normals, hit, instance = render_geometry_with_ids(mi, scene, c2w, intrinsics, legend)
+    return ViewImages(image[..., :4], distance, z_depth, normals, hit, instance, albedo, passes)

@@ -142,12 +142,22 @@ def run_pipeline(scene: str = "primitives", out="nerfgauge-run", **options) -> d
     baselines and report under `out`.
 
     options: RunConfig fields (width, height, views, val_views, test_views, spp, layout,
-    model, budget_seconds, steps, seed, variant) and overwrite=False, progress=False.
+    model, budget_seconds, steps, seed, variant, workers), every other GenerateConfig field
+    (fov, elevation, radius, sampling, max_depth, noise_psnr, max_spp, ...: as for
+    generate_dataset) and overwrite=False, progress=False.
     Returns {"metrics": path of metrics.json, "report": path of report.html, "train": summary}.
     """
+    from nerfgauge.generate.pipeline import GenerateConfig
     from nerfgauge.run import RunConfig
     from nerfgauge.run import run_pipeline as run_stages
 
-    fields, settings = _split_options("run_pipeline", options, RunConfig, {"overwrite": False, "progress": False},
-                                      first="scene")
-    return run_stages(RunConfig(scene=scene, out=str(out), **fields), **settings)
+    run_fields = {field.name for field in dataclasses.fields(RunConfig)}
+    generator = {field.name: None for field in dataclasses.fields(GenerateConfig)
+                 if field.name not in run_fields and field.name != "scene"}
+    fields, settings = _split_options("run_pipeline", options, RunConfig,
+                                      {"overwrite": False, "progress": False, **generator}, first="scene")
+    extra = {name: options[name] for name in generator if name in options}
+    config = RunConfig(scene=scene, out=str(out), **fields)
+    if extra:
+        config = dataclasses.replace(config, generate_options={**config.generate_options, **extra})
+    return run_stages(config, overwrite=settings["overwrite"], progress=settings["progress"])

@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from nerfgauge.core.errors import InputError
@@ -41,19 +41,40 @@ class RunConfig:
     views: int = 100
     val_views: int = 10
     test_views: int = 20
-    spp: int = 64
+    spp: int = 72  # GenerateConfig's default (two 6x6 multijitter passes)
     layout: str = "auto"  # the scene's suggested cameras, else the hemisphere
     model: str = "compact"
     budget_seconds: float = 90.0
     steps: int | None = None  # instead of the time budget: reproducible across machines (CI gates)
     seed: int = 0
     variant: str = "auto"
+    # Every other GenerateConfig field (fov, elevation, radius, sampling, max_depth,
+    # noise_psnr, max_spp, ...), passed to the generator as given.
+    generate_options: dict = field(default_factory=dict)
+    workers: int = 1  # the generator's worker processes (not part of the recipe: same dataset)
 
     def recipe(self) -> str:
-        """The hash in OUT's marker: every setting but where OUT is."""
+        """The hash in OUT's marker: every setting but where OUT is and how many workers render."""
         from nerfgauge.core.folders import recipe_hash
 
-        return recipe_hash({key: value for key, value in dataclasses.asdict(self).items() if key != "out"})
+        return recipe_hash({key: value for key, value in dataclasses.asdict(self).items()
+                            if key not in ("out", "workers")})
+
+    def generate_config(self):
+        """The dataset's GenerateConfig: this config's shared fields plus generate_options."""
+        from nerfgauge.generate.pipeline import GenerateConfig
+
+        if not isinstance(self.generate_options, dict):
+            raise InputError(f"generate_options must be a dict of generator settings, got {self.generate_options!r}")
+        own = {"scene", "seed", "views", "val_views", "test_views", "width", "height", "spp", "layout", "variant"}
+        known = {f.name for f in dataclasses.fields(GenerateConfig)} - own
+        unknown = sorted(set(self.generate_options) - known)
+        if unknown:
+            raise InputError(f"unknown generator option{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}; "
+                             f"known: {', '.join(sorted(known))}")
+        return GenerateConfig(scene=self.scene, seed=self.seed, views=self.views, val_views=self.val_views,
+                              test_views=self.test_views, width=self.width, height=self.height, spp=self.spp,
+                              layout=self.layout, variant=self.variant, **self.generate_options)
 
     def validate(self) -> None:
         """What the stages' own configs do not check (they check the rest, before anything is written)."""
@@ -131,9 +152,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     from nerfgauge.nerf.train import train
 
     out = Path(config.out)
-    generate_config = GenerateConfig(scene=config.scene, seed=config.seed, views=config.views,
-                                     val_views=config.val_views, test_views=config.test_views, width=config.width,
-                                     height=config.height, spp=config.spp, layout=config.layout, variant=config.variant)
+    generate_config = config.generate_config()
     train_config = TrainConfig(dataset=str(out / "dataset"), model=config.model, seed=config.seed,
                                budget_seconds=None if config.steps else config.budget_seconds, steps=config.steps)
     generate_config.validate()
@@ -147,7 +166,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
             remove_earlier_outputs(out, config.model)
 
         print(f"[1/5] generate {config.scene} -> {out / 'dataset'}")
-        generate(generate_config, out / "dataset", overwrite=overwrite, progress=progress)
+        generate(generate_config, out / "dataset", workers=config.workers, overwrite=overwrite, progress=progress)
         length = f"{config.steps} steps" if config.steps else f"{config.budget_seconds:g} s"
         print(f"[2/5] train {config.model} for {length} -> {run_dir}")
         summary = train(train_config, run_dir, progress=progress)
@@ -222,6 +241,7 @@ def geometry_step(dataset_root: Path, run_dir: Path, eval_dir: Path) -> tuple[di
 
 def register(subparsers) -> None:
     from nerfgauge.core import arguments
+    from nerfgauge.generate.options import add_generate_arguments
 
     defaults = RunConfig()
     parser = subparsers.add_parser("run", help="generate, train, render, evaluate, baselines and report in one go",
@@ -230,19 +250,13 @@ def register(subparsers) -> None:
     parser.add_argument("scene", nargs="?", default=defaults.scene, help="scene (default primitives)")
     parser.add_argument("--out", type=arguments.path, default=Path(defaults.out),
                         help=f"output folder (default {defaults.out})")
-    parser.add_argument("--res", default=str(defaults.width), help="N or WxH (default 128)")
-    parser.add_argument("--views", type=arguments.positive_int, default=defaults.views)
-    parser.add_argument("--test-views", type=arguments.positive_int, default=defaults.test_views)
-    parser.add_argument("--spp", type=arguments.positive_int, default=defaults.spp)
-    parser.add_argument("--layout", default=defaults.layout)
+    add_generate_arguments(parser, defaults.generate_config(), need_test_views=True)  # every generator option, defined once
     length = parser.add_mutually_exclusive_group()
     length.add_argument("--budget-seconds", type=arguments.positive_float, default=defaults.budget_seconds,
                         help="training time (default 90)")
     length.add_argument("--steps", type=arguments.positive_int, default=None,
                         help="training steps instead of time (reproducible)")
     parser.add_argument("--model", default=defaults.model, choices=("compact", "vanilla"))
-    parser.add_argument("--seed", type=arguments.nonnegative_int, default=defaults.seed)
-    parser.add_argument("--variant", default=defaults.variant)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an earlier run in --out (only a folder nerfgauge made)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -250,12 +264,15 @@ def register(subparsers) -> None:
 
 
 def _run(args) -> int:
-    from nerfgauge.generate.commands import parse_resolution
+    from nerfgauge.generate.options import generate_fields
 
-    width, height = parse_resolution(args.res)
-    config = dataclasses.replace(RunConfig(), scene=args.scene, out=str(args.out), width=width, height=height,
-                                 views=args.views, test_views=args.test_views, spp=args.spp, layout=args.layout,
-                                 budget_seconds=args.budget_seconds, steps=args.steps, model=args.model, seed=args.seed,
-                                 variant=args.variant)
+    fields = generate_fields(args)
+    own = {f.name for f in dataclasses.fields(RunConfig)}
+    defaults = RunConfig().generate_config()
+    extra = {name: value for name, value in fields.items()
+             if name not in own and value != getattr(defaults, name)}  # only what the user changed: same recipe
+    config = dataclasses.replace(RunConfig(), scene=args.scene, out=str(args.out), budget_seconds=args.budget_seconds,
+                                 steps=args.steps, model=args.model, workers=args.workers, generate_options=extra,
+                                 **{name: value for name, value in fields.items() if name in own})
     run_pipeline(config, overwrite=args.overwrite, progress=not args.quiet)
     return 0

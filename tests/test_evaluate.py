@@ -15,7 +15,8 @@ from nerfgauge.cli import main
 from nerfgauge.core import dataset
 from nerfgauge.core.images import read_exr, read_png, write_exr, write_png
 
-TOP_KEYS = {"schema", "scene", "split", "background", "depth_kind", "mean", "std", "count", "notes", "frames", "timing"}
+TOP_KEYS = {"schema", "scene", "split", "background", "depth_kind", "mean", "std", "count", "notes", "frames", "timing",
+            "noise", "psnr_objects", "empty_views"}
 
 
 @pytest.fixture(scope="module")

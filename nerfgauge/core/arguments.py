@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 from pathlib import Path
 
 
@@ -51,3 +52,38 @@ def path(text: str) -> Path:
     if "\0" in text:
         raise argparse.ArgumentTypeError(f"expected a path, got {text!r} (NUL byte)")
     return Path(text)
+
+
+def number_pair(what: str, example: str):
+    """An argparse type for "MIN,MAX": two finite numbers, MIN <= MAX, negatives as written
+    ("-15,25"; the parser must also allow_negative_values)."""
+
+    def parse(text: str) -> tuple[float, float]:
+        parts = text.split(",")
+        if len(parts) != 2:
+            raise argparse.ArgumentTypeError(f"expected {what} as MIN,MAX (e.g. {example}), got {text!r}")
+        low, high = (_number(part.strip(), float) for part in parts)
+        if low > high:
+            raise argparse.ArgumentTypeError(f"expected {what} MIN,MAX with MIN <= MAX, got {text!r}")
+        return low, high
+
+    return parse
+
+
+def spp(text: str):
+    """Samples per pixel: a positive integer, or "auto" (grow until a noise target)."""
+    return "auto" if text.strip().lower() == "auto" else positive_int(text)
+
+
+# argparse takes any word starting with "-" for an option unless it looks like a negative
+# number; "-15,25" does not, so `--elevation -15,25` failed with "expected one argument".
+# Numbers and comma-separated lists of them (with signs, decimals, exponents) are values.
+NEGATIVE_VALUE = re.compile(r"^-\.?\d[\d.eE+-]*(,\s*[-+]?\.?\d[\d.eE+-]*)*$")
+
+
+def allow_negative_values(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Let `parser` take negative numbers and lists like "-15,25" as option values as
+    written. Sets argparse's own negative-number pattern (an attribute of the parser;
+    safe while no option name itself looks like a negative number, which ours never do)."""
+    parser._negative_number_matcher = NEGATIVE_VALUE
+    return parser

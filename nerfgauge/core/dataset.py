@@ -13,9 +13,14 @@ Layout of a dataset folder:
   <split>/r_000_zdepth.exr         depth along the optical axis ("Z", 0 = miss)
   <split>/r_000_normal.exr         world-space shading normals ("X", "Y", "Z")
   <split>/r_000_mask.png           8-bit: 255 where the pixel-centre ray hits geometry
+  <split>/r_000_instance.png       16-bit gray: instance id of the pixel-centre ray's shape (0 = miss;
+                                   names in scene.json "instances")
+  <split>/r_000_albedo.exr         albedo of the first surface ("R", "G", "B"), linear, box-filtered
+  <split>/r_000_noise.json         the view's Monte Carlo noise estimate and spp (docs/conventions.md)
   transforms_{train,val,test}.json NeRF-synthetic
   transforms.json                  nerfstudio
-  scene.json                       recipe, seed, bounds, needs, variant, versions
+  scene.json                       recipe, seed, bounds, needs, variant, versions, instance
+                                   legend, noise per frame and per split
   manifest.json                    sha256 and size of every file above; written last
 
 Reading goes through `Dataset` (validated on open, every file confined to the root and
@@ -30,11 +35,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from nerfgauge.core import validate
 from nerfgauge.core.camera import Intrinsics
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import json_from_bytes, read_json, sha256_file, write_json
+from nerfgauge.core.files import atomic_path, json_from_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.images import read_exr, read_exr_single, read_png
 
 SPLITS = ("train", "val", "test")
@@ -47,7 +53,13 @@ FRAME_SUFFIXES = {
     "z_depth": "_zdepth.exr",
     "normals": "_normal.exr",
     "mask": "_mask.png",
+    "instance": "_instance.png",
+    "albedo": "_albedo.exr",
+    "noise": "_noise.json",
 }
+# Files a frame of an older dataset may lack (datasets made before instance ids, albedo
+# and the noise estimate): readers say so in one line instead of failing the dataset.
+OPTIONAL_FRAME_KINDS = ("instance", "albedo", "noise")
 DEPTH_KINDS = {"distance": "ray_distance", "z": "z_depth"}
 
 
@@ -60,6 +72,14 @@ def frame_stem(split: str, index: int, count: int) -> str:
 def frame_files(stem: str) -> dict:
     """{kind: relative path} of every file one frame owns."""
     return {kind: stem + suffix for kind, suffix in FRAME_SUFFIXES.items()}
+
+
+def write_instance_png(path, ids: np.ndarray) -> None:
+    """ids [H, W] uint16 as a 16-bit grayscale PNG (Pillow mode "I;16"), atomically."""
+    if ids.dtype != np.uint16 or ids.ndim != 2:
+        raise ValueError(f"instance ids must be [H, W] uint16, got {ids.shape} {ids.dtype}")
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(ids)).save(tmp, format="PNG")
 
 
 def synthetic_transforms(intrinsics: Intrinsics, stems, poses) -> dict:
@@ -143,6 +163,7 @@ class Dataset:
         ds.frames("test")              # ("test/r_000", "test/r_001", ...): stems
         ds.intrinsics("test"), ds.K("test"), ds.c2w("test"), ds.bounds, ds.scene
         ds.image("test", 0)            # and image_linear, depth, normals, mask
+        ds.instance("test", 0), ds.instance_names(), ds.albedo("test", 0), ds.noise("test", 0)
 
     Conventions (those of nerfgauge.core.camera and of the generator):
     - c2w: [n, 4, 4] float64 camera-to-world, OpenGL/NeRF axes: +X right, +Y up, the camera
@@ -156,6 +177,12 @@ class Dataset:
       distance * cos(angle between the ray and -Z of c2w).
     - normals: [H, W, 3] float32 world-space unit shading normals, 0 on misses.
     - mask: [H, W] bool, True where the pixel-centre ray hits geometry (== depth > 0).
+    - instance: [H, W] int64 id of the shape the pixel-centre ray hits, 0 = miss (so
+      instance > 0 == mask); instance_names() {id: shape name} from scene.json.
+    - albedo: [H, W, 3] float32 linear, box-filtered, 0 where samples miss.
+    - noise: the frame's Monte Carlo noise estimate (docs/conventions.md, "Noise").
+    Datasets made before instance ids, albedo and noise lack those files
+    (`manifest_files` says which are there; reading a missing one is an InputError).
 
     Every file is read through one path: its name is confined to the root (no absolute
     paths or `..`; symlinks resolved and required to stay inside), it must be listed in
@@ -310,6 +337,48 @@ class Dataset:
         """[H, W] bool: the pixel-centre ray hits geometry."""
         return read_mask(self, self._stem(split, index), self.intrinsics(split))
 
+    @property
+    def manifest_files(self) -> frozenset:
+        """Relative paths manifest.json lists (older datasets have no instance, albedo or
+        noise files: ask before reading them)."""
+        return frozenset(self._manifest)
+
+    def has_frame_file(self, split: str, index: int, kind: str) -> bool:
+        """Whether the manifest lists the frame's file of `kind` (a FRAME_SUFFIXES key)."""
+        return self._stem(split, index) + FRAME_SUFFIXES[kind] in self._manifest
+
+    def instance(self, split: str, index: int) -> np.ndarray:
+        """[H, W] int64 instance ids of the pixel-centre rays' shapes, 0 = miss (the hit
+        mask is exactly instance > 0); names in instance_names()."""
+        return read_instance(self, self._stem(split, index), self.intrinsics(split))
+
+    def instance_names(self) -> dict:
+        """{id: shape name} from scene.json's "instances" legend ({} if it has none)."""
+        legend = self.scene.get("instances", {}).get("names", [])
+        if not isinstance(legend, list) or not all(isinstance(name, str) for name in legend):
+            raise InputError(f"{self.root / 'scene.json'}: instances.names must be a list of shape names")
+        return {number: name for number, name in enumerate(legend, start=1)}
+
+    def albedo(self, split: str, index: int) -> np.ndarray:
+        """[H, W, 3] float32 linear albedo of the first surface, box-filtered over the pixel
+        like the RGBA (0 where samples miss)."""
+        def decode(path, data):
+            channels, _ = read_exr(path, data, self.intrinsics(split))
+            if "RGB" in channels:  # OpenEXR's binding groups R, G, B on reading
+                return channels["RGB"]
+            if not set("RGB") <= set(channels):
+                raise InputError(f"{path} has no R, G, B channels (has {sorted(channels)})")
+            return np.stack([channels[c] for c in "RGB"], axis=-1)
+
+        return self.frame_file(self._stem(split, index), "albedo", decode)
+
+    def noise(self, split: str, index: int) -> dict:
+        """The frame's noise estimate (docs/conventions.md, "Noise"): spp, passes,
+        noise_psnr {linear, srgb_white, srgb_black} and psnr_ceiling {white, black} in dB,
+        or None for both with a `reason` (spp 1)."""
+        stem = self._stem(split, index)
+        return self.frame_file(stem, "noise", lambda path, data: json_from_bytes(data, path, finite=True))
+
 
 # --- the module-level readers: the same code, for callers holding a path ----------------
 
@@ -354,6 +423,14 @@ def read_mask(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
     """Pixels whose centre ray hits geometry. Returns [H, W] bool."""
     mask = open_dataset(root).frame_file(stem, "mask", lambda path, data: read_png(path, data, intrinsics))
     return (mask if mask.ndim == 2 else mask[..., 0]) > 0.5
+
+
+def read_instance(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
+    """The frame's 16-bit instance PNG as integer ids. Returns [H, W] int64."""
+    ids = open_dataset(root).frame_file(stem, "instance", lambda path, data: read_png(path, data, intrinsics))
+    if ids.ndim != 2:
+        raise InputError(f"frame {stem}: instance image must be one 16-bit channel, got shape {ids.shape}")
+    return np.rint(ids.astype(np.float64) * 65535.0).astype(np.int64)
 
 
 def read_scene_json(root) -> dict:

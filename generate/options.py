@@ -1,0 +1,72 @@
+"""The generator's command-line options, defined once: `nerfgauge generate` and
+`nerfgauge run` both add them (`add_generate_arguments`) and read them back as
+GenerateConfig fields (`generate_fields`).
+
+Everything but the scene, the output folder and the commands' own switches (--out,
+--overwrite, --quiet) is here. Range options take negative values as written
+(`--elevation -15,25`).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from nerfgauge.core import arguments
+
+# Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
+CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
+                  "elevation", "radius", "variant", "noise_psnr", "max_spp")
+
+
+def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
+                           need_test_views: bool = False) -> argparse.ArgumentParser:
+    """Add the generator's options to `parser`. defaults: a GenerateConfig whose values
+    are the defaults (a command may default to fewer views), else GenerateConfig().
+    need_test_views: --test-views must be positive (a command that evaluates on them)."""
+    from nerfgauge.generate.layouts import LAYOUTS
+    from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, GenerateConfig
+    from nerfgauge.generate.variant import CHOICES
+
+    d = GenerateConfig() if defaults is None else defaults
+    arguments.allow_negative_values(parser)
+    parser.add_argument("--views", type=arguments.positive_int, default=d.views, help=f"training views (default {d.views})")
+    parser.add_argument("--val-views", type=arguments.nonnegative_int, default=d.val_views)
+    parser.add_argument("--test-views", type=arguments.positive_int if need_test_views else arguments.nonnegative_int,
+                        default=d.test_views)
+    parser.add_argument("--res", default=str(d.width) if d.width == d.height else f"{d.width}x{d.height}",
+                        help=f"N or WxH (default {d.width if d.width == d.height else f'{d.width}x{d.height}'})")
+    parser.add_argument("--spp", type=arguments.spp, default=d.spp,
+                        help=f"samples per pixel, rendered as two half passes whose difference estimates the noise "
+                             f"(default {d.spp}); or auto with --noise-psnr")
+    parser.add_argument("--noise-psnr", type=arguments.finite_float, default=d.noise_psnr,
+                        help=f"with --spp auto: add samples per view until its sRGB noise PSNR reaches this many dB "
+                             f"(at most {MAX_NOISE_PSNR:g})")
+    parser.add_argument("--max-spp", type=arguments.positive_int, default=d.max_spp,
+                        help=f"with --spp auto: at most this many samples per view (default {d.max_spp})")
+    parser.add_argument("--max-depth", type=arguments.positive_int, default=d.max_depth,
+                        help=f"path tracer's maximum depth (default {d.max_depth})")
+    parser.add_argument("--fov", type=arguments.finite_float, default=d.fov,
+                        help=f"horizontal field of view, degrees (default {d.fov:g})")
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=d.seed)
+    parser.add_argument("--layout", choices=("auto",) + LAYOUTS, default=d.layout,
+                        help="camera layout (default auto: the scene's suggestion, else hemisphere)")
+    parser.add_argument("--sampling", choices=("fibonacci", "random"), default=d.sampling,
+                        help="camera directions on the (hemi)sphere: even or seeded random")
+    parser.add_argument("--elevation", type=arguments.number_pair("--elevation", "10,75 or -15,25"),
+                        default=d.elevation,
+                        help="MIN,MAX camera elevation in degrees, negative below the horizon (default: the scene's "
+                             "suggestion, else 10,75; inside: -20,20)")
+    parser.add_argument("--radius", type=arguments.positive_float, default=d.radius,
+                        help="camera distance from the AABB centre (default: fit)")
+    parser.add_argument("--variant", choices=CHOICES, default=d.variant)
+    parser.add_argument("--workers", type=arguments.positive_int, default=1, help="worker processes (default 1)")
+    return parser
+
+
+def generate_fields(args: argparse.Namespace) -> dict:
+    """The GenerateConfig fields (all but scene) from arguments added by
+    add_generate_arguments."""
+    from nerfgauge.generate.commands import parse_resolution
+
+    width, height = parse_resolution(args.res)
+    return {"width": width, "height": height, **{name: getattr(args, name) for name in CONFIG_OPTIONS}}
