@@ -387,8 +387,7 @@ def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int, *,
     """Everything one view writes. integrator, legend: aov_integrator(mi) (for albedo) and
     instance_legend(scene); made once per scene when not given."""
     if spp == "auto" and target is None:
-        # generate/workers.py must pass the_plan.config.noise_target as `target`.
-        raise InputError("--spp auto: this generator's workers do not pass the noise target to render_view")
+        raise InputError("--spp auto needs a noise target (--noise-psnr)")
     if integrator is None or legend is None:
         integrator, legend = _loaded_for(mi, scene)
     pass_a, pass_b = render_passes(mi, scene, c2w, intrinsics, spp, seed, target)
