@@ -155,7 +155,7 @@ def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None 
         field = VoxelGridField(aabb, resolution or config.start_resolution, config.final_resolution,
                                config.view_dependent, config.feature_channels, config.step_ratio, space=space,
                                allocate=allocate)
-        return CompactNeRF(field, use_occupancy=config.occupancy)
+        return CompactNeRF(field, use_occupancy=config.occupancy, sparse=config.prune)
 
 
 def load_model(path):

@@ -97,7 +97,8 @@ def _add_train(subparsers) -> None:
                         help="final grid resolution (auto: pixel footprint)")
     parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
                         help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
-    parser.add_argument("--no-prune", action="store_true", help="save the full grid, not only occupied cells")
+    parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "
+                        "(a dense grid: the ablation of sparse storage)")
     parser.add_argument("--no-occupancy", action="store_true", help="disable empty-space skipping")
     parser.add_argument("--tv-weight", type=nonnegative_float, default=0.0, help="total-variation weight on density")
     parser.add_argument("--eval-every", type=positive_float, default=10.0, metavar="SECONDS",

@@ -43,10 +43,14 @@ class RayOutput:
 
 
 class CompactNeRF(nn.Module):
-    def __init__(self, field: VoxelGridField, use_occupancy: bool = True):
+    def __init__(self, field: VoxelGridField, use_occupancy: bool = True, sparse: bool = True):
+        """use_occupancy: skip empty space when marching. sparse: allocate finer grids only
+        in occupied, visible cells and free rows no occupied cell touches (with
+        use_occupancy); False keeps every node (the unpruned ablation)."""
         super().__init__()
         self.field = field
         self.use_occupancy = use_occupancy
+        self.sparse = sparse and use_occupancy
         self.register_buffer("occupancy", torch.ones(self._cells(), dtype=torch.bool))
         self._pyramid = None  # coarse-to-fine occupancy for marching, rebuilt when occupancy changes
         self._pyramid_of = None
@@ -74,7 +78,7 @@ class CompactNeRF(nn.Module):
     def upsample(self, resolution: int) -> None:
         """A finer grid, allocated only inside the cells the current one finds occupied and
         visible (every cell without occupancy skipping): storage follows the scene."""
-        keep = self.field.occupancy() & self.visible if self.use_occupancy else None
+        keep = self.field.occupancy() & self.visible if self.sparse else None
         self.field.upsample(resolution, keep)
         self.visible = torch.ones(self._cells(), dtype=torch.bool, device=self.field.aabb.device)
         self.update_occupancy()

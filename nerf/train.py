@@ -279,7 +279,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                 start = time.perf_counter()
                 model.measure_visibility(train_rays.origins[::VISIBILITY_RAY_STRIDE].to(device),
                                          train_rays.directions[::VISIBILITY_RAY_STRIDE].to(device))
-                if config.occupancy:
+                if model.sparse:
                     free_unoccupied(model, optimizer)
                 state["visibility_done"] += 1
                 state["seconds"] += time.perf_counter() - start  # part of training: it speeds it up

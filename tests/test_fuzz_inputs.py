@@ -788,7 +788,8 @@ def _set(*keys, value=None, how=None):
 
 
 KNOWN_CHECKPOINTS = {
-    "model.pt node_mask one short": ("render", _set("node_mask", how=lambda t: t.flatten()[:-1])),
+    "model.pt node_mask one byte short": ("render", _set("node_mask", "bits", how=lambda t: t[:-1])),
+    "model.pt node_mask another shape": ("render", _set("node_mask", "shape", how=lambda s: s[:-1] + [s[-1] + 1])),
     "model.pt config.threads a string": ("render", _set("config", "threads", value="/nonexistent")),
     "checkpoint.pt aabb NaN": ("train", _set("model", "state", "field.aabb",
                                              how=lambda t: t.index_fill(1, __import__("torch").tensor([0]), NAN))),
