@@ -446,8 +446,11 @@ def score_geometry(root, pred_mesh=None, pred_depth=None, *, split: str = "test"
     return document, distances
 
 
-def summary(document: dict) -> dict:
-    """Flat numbers for the run's metrics.json `geometry` section (gated by `nerfgauge check`)."""
+def summary(document: Optional[dict]) -> dict:
+    """Flat numbers for the run's metrics.json `geometry` section (gated by `nerfgauge check`).
+    None (the field had no surface to score): every figure null, so its bounds fail."""
+    if document is None:
+        return dict.fromkeys(SUMMARY_NAMES)
     flat = {}
     if "chamfer_l1" in document:
         flat.update({"geometry_accuracy": document["accuracy"], "geometry_completeness": document["completeness"],
