@@ -115,7 +115,7 @@ def surface_from_bytes(data: bytes, name: str, file_type: str) -> Surface:
         elif parts:
             loaded = trimesh.PointCloud(np.concatenate([np.asarray(g.vertices) for g in parts]))
         else:
-            raise InputError(f"{name} holds no mesh or points (an empty file)")
+            raise InputError(f"{name} holds no mesh or points (an empty file, or not {file_type.upper()})")
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
     if isinstance(loaded, trimesh.Trimesh):
         faces = np.asarray(loaded.faces, np.int64).reshape(-1, 3)
@@ -158,6 +158,8 @@ def read_surface(path) -> Surface:
     path = Path(path)
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise InputError(f"{path}: unknown mesh format {path.suffix!r}; expected one of {', '.join(MESH_SUFFIXES)}")
+    if path.is_dir():
+        raise InputError(f"{path} is a folder; expected a mesh or point cloud file")
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}")
     return surface_from_bytes(path.read_bytes(), str(path), path.suffix.lower().lstrip("."))
