@@ -347,8 +347,9 @@ class NearestNeighbours:
     the truth costs time; answering those from a subsample instead (tried) overestimated
     the primitives CI model's completeness by 6.5% and single distances by up to 0.077, so
     the scores stay exact. What makes it fast is memory order: the references and the
-    queries both in spatial order, so consecutive queries walk the same cells (measured:
-    100k queries into 1M samples, 3.9 s in sampling order, 1.0 s in spatial order)."""
+    queries both in spatial order, so consecutive queries walk the same cells (measured on
+    a loaded machine, 100k of the demo mesh's samples into 1M ground-truth ones, one
+    thread: 3.9 s in sampling order, 1.0 s with both sets in spatial order)."""
 
     def __init__(self, reference: np.ndarray, order: Optional[np.ndarray] = None):
         from scipy.spatial import cKDTree
