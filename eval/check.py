@@ -2,8 +2,9 @@
 
     nerfgauge check METRICS.json --thresholds thresholds.toml [--junit FILE] [--scene NAME]
 
-Exit codes: 0 every check passes, 1 at least one fails, 2 malformed input (`InputError`:
-unreadable or malformed files, unknown scene / metric / key, wrong schema).
+Exit codes: 0 every check passes (or is skipped), 1 at least one fails, 2 malformed input
+(`InputError`: unreadable or malformed files, unknown scene / metric / key, wrong schema,
+nothing to check).
 
 thresholds.toml
 ---------------
@@ -39,13 +40,24 @@ passes. A metric that is null or missing in metrics.json while it has a bound fa
 the reason (for lpips without its weights: "lpips is n/a (install: nerfgauge lpips install)"); so does NaN. `--scene NAME` checks the metrics against NAME's bounds instead of
 those of the scene the metrics file names (e.g. a `random` run with another seed).
 
-metrics.json (written by `nerfgauge evaluate`), schema 1::
+Geometry bounds are checked only against a metrics.json that has a `geometry` table.
+One thresholds file serves both kinds of metrics file: `nerfgauge run` writes the table
+(for the compact model; every figure null when the field had no surface, which fails its
+bounds), plain `nerfgauge evaluate` scores images only and writes none. Against a file
+without the table, each geometry bound is reported as skipped ("SKIP" in the table,
+`<skipped>` in JUnit, `skipped=True, passed=True` from the API) with the reason "skipped:
+no geometry in metrics", and does not fail the gate. A table that is present but lacks a
+bounded figure, or holds it as null, fails as any metric does. If every bound of the scene
+would be skipped, nothing would be checked: an error, as for a scene without bounds.
+
+metrics.json (written by `nerfgauge evaluate`; `nerfgauge run` adds `geometry`), schema 1::
 
     {"schema": 1, "scene": "primitives", "split": "test",
      "mean": {"psnr": 31.2, "ssim": 0.95, "depth_absrel": 0.01, ...},
+     "geometry": {"geometry_fscore_1pct": 0.30, "normal_angle_mean": 28.2, ...},
      "std": {...}, "frames": [...], "timing": {...}}
 
-Only `schema`, `scene` and `mean` are read here.
+Only `schema`, `scene`, `mean` and `geometry` are read here.
 """
 
 from __future__ import annotations
@@ -89,7 +101,9 @@ class CheckResult:
 
     kind is "min" (value >= bound) or "max" (value <= bound). margin is value - bound for
     "min" and bound - value for "max" (>= 0 passes); None when the value is null or
-    missing. reason explains a failure and is "" for a pass.
+    missing. reason explains a failure or a skip and is "" for a pass. A skipped check (a
+    geometry bound against metrics without geometry) has skipped=True and passed=True: it
+    does not fail the gate.
     """
 
     scene: str
@@ -100,6 +114,11 @@ class CheckResult:
     margin: Optional[float]
     passed: bool
     reason: str
+    skipped: bool = False
+
+    @property
+    def status(self) -> str:
+        return "SKIP" if self.skipped else "PASS" if self.passed else "FAIL"
 
     @property
     def relation(self) -> str:
@@ -236,16 +255,41 @@ def bounds_for_scene(tables: dict[str, dict[str, Bound]], scene: str, source: st
 # --- checking -----------------------------------------------------------------------
 
 
-def evaluate_bounds(scene: str, mean: dict, bounds: list[Bound], notes: Optional[dict] = None) -> list[CheckResult]:
-    """One CheckResult per (metric, min/max) bound, in the order of `bounds`. `notes`
-    (metrics.json's "notes", e.g. {"lpips": "n/a (install: ...)"}) explain null values."""
+SKIPPED_NO_GEOMETRY = "skipped: no geometry in metrics"
+
+
+def evaluate_bounds(scene: str, mean: dict, bounds: list[Bound], geometry: Optional[dict] = None,
+                    notes: Optional[dict] = None) -> list[CheckResult]:
+    """One CheckResult per (metric, min/max) bound, in the order of `bounds`.
+
+    mean: the image metrics (metrics.json `mean`); geometry: metrics.json's `geometry`
+    table, None when it has none (geometry bounds are then skipped, see the module
+    docstring); notes: metrics.json's "notes" (e.g. {"lpips": "n/a (install: ...)"}),
+    which explain null values."""
+    values = {**(geometry or {}), **mean}
     results = []
     for bound in bounds:
         for kind in BOUND_KEYS:
             limit = getattr(bound, kind)
             if limit is None:
                 continue
-            results.append(_check_one(scene, bound.metric, kind, limit, mean, notes or {}))
+            if geometry is None and bound.metric in SUMMARY_NAMES:
+                results.append(CheckResult(scene, bound.metric, kind, limit, None, None, True, SKIPPED_NO_GEOMETRY,
+                                           skipped=True))
+            else:
+                results.append(_check_one(scene, bound.metric, kind, limit, values, notes or {}))
+    return results
+
+
+def check_metrics(metrics: dict, bounds: list[Bound], source: str = "thresholds") -> list[CheckResult]:
+    """The checks of a validated metrics document against `bounds`; InputError when every
+    one would be skipped (nothing would be checked)."""
+    notes = metrics.get("notes") if isinstance(metrics.get("notes"), dict) else {}
+    results = evaluate_bounds(metrics["scene"], metrics["mean"], bounds, metrics.get("geometry"), notes)
+    if results and all(r.skipped for r in results):
+        raise InputError(f"{source}: every bound for scene {metrics['scene']!r} is a geometry figure and the metrics "
+                         "have no geometry table (from `nerfgauge evaluate`, not `nerfgauge run`): nothing would be "
+                         "checked")
     return results
 
 
@@ -285,7 +329,7 @@ def format_table(results: list[CheckResult]) -> str:
             "null" if r.value is None else f"{r.value:.6g}",
             f"{r.relation} {r.bound:.6g}",
             "-" if r.margin is None else f"{r.margin:+.6g}",
-            "PASS" if r.passed else "FAIL",
+            r.status,
             r.reason,
         ))
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
@@ -301,7 +345,7 @@ def junit_xml(results: list[CheckResult], properties: Optional[dict[str, str]] =
         "tests": str(len(results)),
         "failures": str(failures),
         "errors": "0",
-        "skipped": "0",
+        "skipped": str(sum(r.skipped for r in results)),
     })
     if properties:
         props = ET.SubElement(suite, "properties")
@@ -309,7 +353,9 @@ def junit_xml(results: list[CheckResult], properties: Optional[dict[str, str]] =
             ET.SubElement(props, "property", {"name": key, "value": str(value)})
     for r in results:
         case = ET.SubElement(suite, "testcase", {"classname": f"nerfgauge.check.{r.scene}", "name": r.name})
-        if not r.passed:
+        if r.skipped:
+            ET.SubElement(case, "skipped", {"message": r.reason})
+        elif not r.passed:
             failure = ET.SubElement(case, "failure", {"message": r.reason, "type": "ThresholdFailure"})
             failure.text = (f"scene {r.scene}: {r.metric} = {'null' if r.value is None else f'{r.value:.6g}'}, "
                             f"required {r.relation} {r.bound:.6g}")
@@ -339,15 +385,15 @@ def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[st
     if scene is not None and not known_scene(scene):
         raise InputError(f"unknown scene {scene!r} for --scene; known: {_known_scenes_text()}")
     bounds = bounds_for_scene(tables, table_scene, str(thresholds_path))
-    notes = metrics.get("notes") if isinstance(metrics.get("notes"), dict) else {}
-    results = evaluate_bounds(metrics["scene"], {**metrics.get("geometry", {}), **metrics["mean"]}, bounds, notes)
+    results = check_metrics(metrics, bounds, str(thresholds_path))
 
     via = "" if table_scene == metrics["scene"] else f" (bounds of scene {table_scene})"
     print(f"checking {metrics_path} (scene {metrics['scene']}, split {metrics.get('split', '?')}) "
           f"against {thresholds_path}{via}", file=out)
     print(format_table(results), file=out)
-    failed = sum(not r.passed for r in results)
-    print(f"{len(results)} checks: {len(results) - failed} passed, {failed} failed", file=out)
+    failed, skipped = sum(not r.passed for r in results), sum(r.skipped for r in results)
+    print(f"{len(results)} checks: {len(results) - failed - skipped} passed, {failed} failed"
+          + (f", {skipped} skipped (no geometry in metrics)" if skipped else ""), file=out)
     if junit_path is not None:
         write_junit(results, junit_path, {"metrics": str(metrics_path), "thresholds": str(thresholds_path),
                                           "scene": metrics["scene"], "bounds_scene": table_scene})

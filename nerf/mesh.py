@@ -17,6 +17,9 @@ reach it (measured: 113 steps on primitives, median 3.0 at the rendered surface,
 sees (behind every camera or outside every image) are dropped: the field there was never
 constrained.
 
+torch is imported inside the functions that use it: `nerfgauge geometry` uses `project`
+and should not pay torch's import.
+
 Faces are oriented with their normals pointing out of the dense region (towards
 decreasing density), as the ground-truth meshes' are.
 """
@@ -28,7 +31,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from nerfgauge.core.camera import Intrinsics
 from nerfgauge.core.errors import InputError
@@ -58,19 +60,25 @@ class ExtractedMesh:
     seconds: float
 
 
+def pixel_coordinates(x: np.ndarray, y: np.ndarray, z: np.ndarray, intrinsics: Intrinsics
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates u, v [n] of points given in camera axes x, y, z [n] (OpenGL: the
+    camera looks down -z; camera.pixel_rays' convention: pixel (row i, col j) covers
+    [j, j + 1) x [i, i + 1) in (u, v)). NaN for points not in front of the camera."""
+    ahead = -z
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse = np.where(ahead > 0, 1.0 / ahead, np.nan)
+    return intrinsics.cx + intrinsics.fx * x * inverse, intrinsics.cy - intrinsics.fy * y * inverse
+
+
 def project(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel coordinates of world points in one camera (OpenGL axes, camera.pixel_rays'
-    convention: pixel (row i, col j) covers [j, j + 1) x [i, i + 1) in (u, v)).
+    """Pixel coordinates of world points in one camera (see pixel_coordinates).
 
     points [n, 3], c2w [4, 4]. Returns u, v [n] (NaN behind the camera) and the distance
     from the camera centre [n]."""
     c2w = np.asarray(c2w, np.float64)
     local = (np.asarray(points, np.float64) - c2w[:3, 3]) @ c2w[:3, :3]  # [n, 3] camera axes
-    ahead = -local[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inverse = np.where(ahead > 0, 1.0 / ahead, np.nan)
-    u = intrinsics.cx + intrinsics.fx * local[:, 0] * inverse
-    v = intrinsics.cy - intrinsics.fy * local[:, 1] * inverse
+    u, v = pixel_coordinates(local[:, 0], local[:, 1], local[:, 2], intrinsics)
     return u, v, np.linalg.norm(local, axis=1)
 
 
@@ -104,20 +112,22 @@ def extraction_grid(box: np.ndarray, resolution: int) -> tuple[list[np.ndarray],
     return axes, cell
 
 
-@torch.no_grad()
 def density_volume(model, axes: list[np.ndarray], device: torch.device | str = "cpu") -> np.ndarray:
     """sigma on the grid nodes, [nx, ny, nz] float32 (x-major, as marching cubes' spacing
     expects), queried through `model.density` in chunks of whole x-slabs."""
-    xs, ys, zs = (torch.as_tensor(a, dtype=torch.float32, device=device) for a in axes)
-    plane = torch.stack(torch.meshgrid(ys, zs, indexing="ij"), dim=-1).reshape(-1, 2)  # [ny * nz, 2]
-    per_chunk = max(1, DENSITY_CHUNK // plane.shape[0])
-    volume = np.empty((len(xs), len(ys), len(zs)), np.float32)
-    for start in range(0, len(xs), per_chunk):
-        x = xs[start:start + per_chunk]
-        points = torch.cat([x.repeat_interleave(plane.shape[0])[:, None], plane.repeat(len(x), 1)], dim=1)
-        sigma = model.density(points)
-        volume[start:start + len(x)] = sigma.float().cpu().numpy().reshape(len(x), len(ys), len(zs))
-    return volume
+    import torch
+
+    with torch.no_grad():
+        xs, ys, zs = (torch.as_tensor(a, dtype=torch.float32, device=device) for a in axes)
+        plane = torch.stack(torch.meshgrid(ys, zs, indexing="ij"), dim=-1).reshape(-1, 2)  # [ny * nz, 2]
+        per_chunk = max(1, DENSITY_CHUNK // plane.shape[0])
+        volume = np.empty((len(xs), len(ys), len(zs)), np.float32)
+        for start in range(0, len(xs), per_chunk):
+            x = xs[start:start + per_chunk]
+            points = torch.cat([x.repeat_interleave(plane.shape[0])[:, None], plane.repeat(len(x), 1)], dim=1)
+            sigma = model.density(points)
+            volume[start:start + len(x)] = sigma.float().cpu().numpy().reshape(len(x), len(ys), len(zs))
+        return volume
 
 
 def model_voxel(model) -> float | None:
@@ -130,7 +140,11 @@ def model_voxel(model) -> float | None:
 def model_box(model) -> np.ndarray | None:
     field = getattr(model, "field", None)
     aabb = getattr(field, "aabb", getattr(model, "aabb", None))
-    return None if aabb is None else np.asarray(torch.as_tensor(aabb).cpu(), np.float64)
+    if aabb is None:
+        return None
+    import torch
+
+    return np.asarray(torch.as_tensor(aabb).cpu(), np.float64)
 
 
 def extraction_box(scene_bounds: np.ndarray | None, model) -> np.ndarray:
@@ -150,27 +164,29 @@ def voxel_level(model, cell: float) -> float:
     return -math.log(1.0 - OPACITY_LEVEL) / (model_voxel(model) or cell)
 
 
-@torch.no_grad()
 def rendered_surface_level(model, c2w: np.ndarray, intrinsics: Intrinsics, rays: int = CALIBRATION_RAYS,
                            device: torch.device | str = "cpu") -> float | None:
     """Median density at the expected-depth points of `rays` training rays (an even stride
     over all views' pixels) whose opacity reaches OPACITY_LEVEL; None if no ray does."""
+    import torch
+
     from nerfgauge.core.camera import pixel_rays
 
-    per_view = max(1, rays // max(len(c2w), 1))
-    origins, directions = [], []
-    for pose in c2w:
-        o, d = pixel_rays(pose, intrinsics)
-        pick = np.linspace(0, o.shape[0] * o.shape[1] - 1, per_view).astype(np.int64)
-        origins.append(o.reshape(-1, 3)[pick]), directions.append(d.reshape(-1, 3)[pick])
-    o = torch.as_tensor(np.concatenate(origins), dtype=torch.float32, device=device)
-    d = torch.as_tensor(np.concatenate(directions), dtype=torch.float32, device=device)
-    out = model.render(o, d)
-    hit = out.opacity >= OPACITY_LEVEL
-    if not bool(hit.any()):
-        return None
-    sigma = model.density(o[hit] + out.depth[hit, None] * d[hit])
-    return float(sigma.median())
+    with torch.no_grad():
+        per_view = max(1, rays // max(len(c2w), 1))
+        origins, directions = [], []
+        for pose in c2w:
+            o, d = pixel_rays(pose, intrinsics)
+            pick = np.linspace(0, o.shape[0] * o.shape[1] - 1, per_view).astype(np.int64)
+            origins.append(o.reshape(-1, 3)[pick]), directions.append(d.reshape(-1, 3)[pick])
+        o = torch.as_tensor(np.concatenate(origins), dtype=torch.float32, device=device)
+        d = torch.as_tensor(np.concatenate(directions), dtype=torch.float32, device=device)
+        out = model.render(o, d)
+        hit = out.opacity >= OPACITY_LEVEL
+        if not bool(hit.any()):
+            return None
+        sigma = model.density(o[hit] + out.depth[hit, None] * d[hit])
+        return float(sigma.median())
 
 
 def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray | None = None,

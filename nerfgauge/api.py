@@ -133,7 +133,7 @@ def check(metrics, thresholds, *, scene: str | None = None) -> list:
         raise InputError(f"unknown scene {scene!r} for --scene; known: {known}")
     source = "thresholds" if isinstance(thresholds, dict) else str(thresholds)
     bounds = gate.bounds_for_scene(tables, document["scene"] if scene is None else scene, source)
-    return gate.evaluate_bounds(document["scene"], document["mean"], bounds)
+    return gate.check_metrics(document, bounds, source)
 
 
 @os_errors_as_input_errors()

@@ -179,12 +179,11 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
         if config.model == "compact":
             try:
                 geometry = geometry_step(out / "dataset", run_dir, out / "eval" / config.model)
-            except NoSurface as reason:  # a fact about the model: scored n/a, and a geometry gate fails on it
+            except NoSurface as reason:  # a fact about the model: scored n/a (nulls), and a geometry gate fails on it
                 no_geometry = f"geometry n/a: {reason}"
                 print(no_geometry)
-            else:
-                documents[f"{config.model} NeRF"]["geometry"] = geometry_summary(geometry[0])
-                write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
+            documents[f"{config.model} NeRF"]["geometry"] = geometry_summary(None if geometry is None else geometry[0])
+            write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
         layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
         baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if layout == "lightfield" else [])
         for method in baselines:

@@ -209,3 +209,71 @@ def test_mesh_scenes_and_default_table_are_accepted():
     assert tables["mesh:assets/bunny.obj"]["psnr"] == Bound("psnr", None, 60.0)
     with pytest.raises(InputError, match="unknown scene 'mesh:'"):
         parse_thresholds({"mesh:": {"psnr": {"min": 1}}})
+
+
+# --- geometry bounds: checked against a run's metrics, skipped for plain evaluate -------
+
+GEOMETRY_THRESHOLDS = THRESHOLDS + "geometry_fscore_1pct = { min = 0.2 }\nnormal_angle_mean = { max = 35.0 }\n"
+
+
+def test_geometry_bounds_are_skipped_for_metrics_without_geometry(files, capsys, tmp_path):
+    """A plain `nerfgauge evaluate` metrics.json (no geometry table) passes a thresholds
+    file with geometry floors: those checks are reported as skipped, not failed."""
+    metrics, thresholds = files(metrics_doc(), GEOMETRY_THRESHOLDS)
+    junit = tmp_path / "check.xml"
+    code, out, _ = run(capsys, metrics, "--thresholds", thresholds, "--junit", str(junit))
+    assert code == 0, out
+    table = rows(out)
+    assert table[("geometry_fscore_1pct", ">= 0.2")][2:7] == ["null", ">=", "0.2", "-", "SKIP"]
+    assert table[("normal_angle_mean", "<= 35")][6] == "SKIP"
+    assert "skipped: no geometry in metrics" in out
+    assert "7 checks: 5 passed, 0 failed, 2 skipped" in out
+    suite = ET.parse(junit).getroot()
+    assert (suite.get("tests"), suite.get("failures"), suite.get("skipped")) == ("7", "0", "2")
+    skipped = {case.get("name"): case.find("skipped").get("message") for case in suite.findall("testcase")
+               if case.find("skipped") is not None}
+    assert skipped == {"geometry_fscore_1pct >= 0.2": "skipped: no geometry in metrics",
+                       "normal_angle_mean <= 35": "skipped: no geometry in metrics"}
+    assert all(case.find("failure") is None for case in suite.findall("testcase"))
+
+
+@pytest.mark.parametrize("geometry, code, reason", [
+    ({"geometry_fscore_1pct": 0.3, "normal_angle_mean": 28.0}, 0, None),
+    ({"geometry_fscore_1pct": 0.1, "normal_angle_mean": 28.0}, 1, "geometry_fscore_1pct = 0.1 is below the minimum 0.2"),
+    ({"geometry_fscore_1pct": 0.3, "normal_angle_mean": 40.0}, 1, "normal_angle_mean = 40 is above the maximum 35"),
+    # the run's field had no surface: every figure null, which fails rather than skips
+    ({"geometry_fscore_1pct": None, "normal_angle_mean": None}, 1, "geometry_fscore_1pct is null in the metrics file"),
+    ({"normal_angle_mean": 28.0}, 1, "geometry_fscore_1pct is missing from the metrics file"),
+])
+def test_geometry_bounds_are_checked_when_metrics_have_geometry(files, capsys, geometry, code, reason):
+    metrics, thresholds = files({**metrics_doc(), "geometry": geometry}, GEOMETRY_THRESHOLDS)
+    got, out, _ = run(capsys, metrics, "--thresholds", thresholds)
+    assert got == code, out
+    assert "SKIP" not in out and "skipped" not in out
+    assert reason is None or reason in out
+
+
+def test_only_geometry_bounds_and_no_geometry_is_an_error(files, capsys):
+    """Nothing would be checked: exit 2, as for a scene without bounds."""
+    metrics, thresholds = files(metrics_doc(), "[primitives]\ngeometry_fscore_1pct = { min = 0.2 }\n")
+    code, out, err = run(capsys, metrics, "--thresholds", thresholds)
+    assert (code, out) == (2, "")
+    assert len(err.strip().splitlines()) == 1 and "nothing would be checked" in err and "no geometry table" in err
+
+
+def test_skipped_results_from_the_api_do_not_fail_the_gate():
+    bounds = [Bound("psnr", 30.0), Bound("geometry_chamfer_l1", max=0.1)]
+    skipped = evaluate_bounds("primitives", {"psnr": 31.0}, bounds)
+    assert [(r.metric, r.passed, r.skipped, r.value) for r in skipped] == [
+        ("psnr", True, False, 31.0), ("geometry_chamfer_l1", True, True, None)]
+    checked = evaluate_bounds("primitives", {"psnr": 31.0}, bounds, {"geometry_chamfer_l1": 0.25})
+    assert [(r.passed, r.skipped) for r in checked] == [(True, False), (False, False)]
+    assert checked[1].margin == pytest.approx(-0.15)
+
+
+def test_run_summary_without_a_surface_is_all_null():
+    """`nerfgauge run` writes this table when the field has no surface: every geometry
+    bound then fails (null) instead of being skipped."""
+    from nerfgauge.eval.geometry import SUMMARY_NAMES, summary
+
+    assert summary(None) == dict.fromkeys(SUMMARY_NAMES)

@@ -27,3 +27,4 @@ def test_small_pipeline_passes_the_repository_thresholds(tmp_path, capsys):
     assert code == 0, report
     suite = ElementTree.parse(junit).getroot()
     assert int(suite.get("tests")) >= 4 and int(suite.get("failures")) == 0
+    assert int(suite.get("skipped", 0)) == 0  # geometry is scored by `run`, so its bounds are checked

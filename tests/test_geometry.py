@@ -149,6 +149,61 @@ def test_visibility_from_exact_depth(tiny_dataset):
     assert not (visible & ~hit_somewhere).any()
 
 
+def _visible_sample_by_sample(points, normals, ds, split):
+    """The depth test of eval.geometry's docstring, written out per view for every sample
+    (no working set, no pre-test): the reference the fast version must reproduce."""
+    from nerfgauge.nerf.mesh import project
+
+    cameras = ds.cameras(split)
+    focal = max(cameras.intrinsics.fx, cameras.intrinsics.fy)
+    visible = np.zeros(len(points), bool)
+    for index, pose in enumerate(cameras.c2w):
+        u, v, distance = project(points, pose, cameras.intrinsics)
+        with np.errstate(invalid="ignore"):
+            inside = (u >= 0) & (u < cameras.intrinsics.width) & (v >= 0) & (v < cameras.intrinsics.height)
+        depth = ds.depth(split, index, kind="distance").astype(np.float64)
+        for k in np.flatnonzero(inside):
+            recorded = depth[int(v[k]), int(u[k])]
+            ray = (points[k] - pose[:3, 3]) / distance[k]
+            theta = np.arccos(np.clip(abs(normals[k] @ ray), 0, 1))
+            tolerance = distance[k] * (np.sqrt(2) / (2 * focal) * min(np.tan(theta), np.tan(np.radians(80))) + 1e-5)
+            visible[k] |= recorded > 0 and abs(recorded - distance[k]) <= tolerance
+    return visible
+
+
+def test_visibility_matches_the_sample_by_sample_definition(tiny_dataset):
+    from nerfgauge.core.dataset import Dataset
+    from nerfgauge.eval.geometry import ground_truth_surface
+
+    ds = Dataset(tiny_dataset)
+    gt = ground_truth_surface(ds)
+    samples = sample_surface(gt.vertices, gt.faces, 3000, np.random.default_rng(5))
+    for split in ("train", "test"):
+        expected = _visible_sample_by_sample(samples.points, samples.normals, ds, split)
+        assert 0.05 < expected.mean() < 0.95  # both kinds present
+        np.testing.assert_array_equal(visible_in_views(samples.points, samples.normals, ds, split), expected)
+
+
+def test_completeness_counts_only_the_masked_ground_truth():
+    """compare's distances against brute force, for a mask that keeps a scattered subset."""
+    rng = np.random.default_rng(8)
+    gt = PointSet(rng.normal(size=(1500, 3)), None)
+    pred = PointSet(rng.normal(size=(1200, 3)) * 1.1, None)
+    mask = rng.random(1500) < 0.4
+    scores, distances = compare(pred, gt, mask, [0.1], 5.0)
+    brute = np.linalg.norm(pred.points[:, None] - gt.points[None], axis=2)  # [1200, 1500]
+    np.testing.assert_allclose(distances["accuracy"], brute.min(axis=1), rtol=1e-12)
+    np.testing.assert_allclose(distances["completeness"], brute[:, mask].min(axis=0), rtol=1e-12)
+    assert scores["completeness"] == pytest.approx(brute[:, mask].min(axis=0).mean(), rel=1e-12)
+    normals = rng.normal(size=(1500, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    with_normals, _ = compare(PointSet(pred.points, normals[:1200]), PointSet(gt.points, normals), mask, [0.1], 5.0)
+    forward = np.abs(np.sum(normals[:1200] * normals[brute.argmin(axis=1)], axis=1)).mean()
+    masked = np.flatnonzero(mask)
+    backward = np.abs(np.sum(normals[masked] * normals[:1200][brute[:, mask].argmin(axis=0)], axis=1)).mean()
+    assert with_normals["normal_consistency"] == pytest.approx((forward + backward) / 2, rel=1e-12)
+
+
 def test_geometry_command_scores_the_ground_truth_itself(tiny_dataset, tmp_path, capsys):
     """The dataset's own meshes, exported as one PLY, score a perfect F-score and a
     Chamfer distance of the order of the sample spacing."""
@@ -191,6 +246,13 @@ def _ply(vertices, faces=None) -> bytes:
     ("far.ply", _ply([[100, 100, 100], [101, 100, 100], [100, 101, 100]], [[0, 1, 2]]), "outside the scene bounds"),
     ("flat.ply", _ply([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]]), "zero surface area"),
     ("mesh.txt", b"hello", "unknown mesh format"),
+    ("zero.ply", b"", "not a readable mesh"),
+    ("zero.obj", b"", "holds no mesh or points"),
+    ("random.stl", bytes(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8)), "holds no mesh or points"),
+    ("random.glb", bytes(np.random.default_rng(1).integers(0, 256, 300, dtype=np.uint8)), "not a readable mesh"),
+    ("truncated.ply", _ply([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])[:-12], "not a readable mesh"),
+    ("index.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "not a readable mesh"),
+    ("nancloud.ply", _ply([[0, 0, float("nan")], [1, 0, 0]]), "NaN or inf"),
 ])
 def test_bad_meshes_are_one_line_errors(tiny_dataset, tmp_path, capsys, name, content, expected):
     path = tmp_path / name
@@ -200,6 +262,14 @@ def test_bad_meshes_are_one_line_errors(tiny_dataset, tmp_path, capsys, name, co
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and expected in err, err
     assert not (tmp_path / "g.json").exists()
+
+
+def test_a_folder_is_not_a_mesh(tiny_dataset, tmp_path, capsys):
+    (tmp_path / "folder.ply").mkdir()
+    assert main(["geometry", str(tiny_dataset), "--pred-mesh", str(tmp_path / "folder.ply"), "-o",
+                 str(tmp_path / "g.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is a folder" in err
 
 
 def test_dataset_without_meshes_is_refused(tiny_dataset, tmp_path, capsys):
@@ -267,3 +337,58 @@ def test_nearest_is_exact_also_far_from_the_surface():
     brute = np.linalg.norm(queries[:, None] - reference[None], axis=2)
     np.testing.assert_allclose(distance, brute.min(axis=1), rtol=1e-12)
     np.testing.assert_array_equal(index, brute.argmin(axis=1))
+
+
+def _depth_folder(tiny_dataset, folder, change=None):
+    """The dataset's exact test-split ray distances as a method's depth (.npy), optionally changed."""
+    from nerfgauge.core.dataset import Dataset
+
+    ds = Dataset(tiny_dataset)
+    folder.mkdir()
+    for index, stem in enumerate(ds.cameras("test").stems):
+        depth = ds.depth("test", index, kind="distance").astype(np.float64)
+        np.save(folder / f"{stem.split('/')[-1]}_depth.npy", depth if change is None else change(depth))
+    return folder
+
+
+def test_exact_depth_scores_as_the_ground_truth(tiny_dataset, tmp_path):
+    """The exact depth, back-projected, lies on the ground-truth surface: every predicted
+    point is within a sample spacing of a ground-truth sample (sqrt(9.3 / 5e4) = 0.014,
+    below tau = 1% of the diagonal, 0.027), and what the test views see is recalled the
+    same way (visibility from the test split)."""
+    pred = _depth_folder(tiny_dataset, tmp_path / "pred")
+    assert main(["geometry", str(tiny_dataset), "--pred-depth", str(pred), "-o", str(tmp_path / "g.json"),
+                 "--samples", "50000"]) == 0
+    document = json.loads((tmp_path / "g.json").read_text())
+    assert document["prediction"]["kind"] == "depth" and document["ground_truth"]["visibility_split"] == "test"
+    one_percent = document["at_tau"][1]
+    assert one_percent["tau_fraction"] == pytest.approx(0.01)
+    assert one_percent["precision"] > 0.999
+    # a 32 px view back-projects ~1000 points with ~0.1-unit spacing: recall is limited by
+    # that spacing (not by the truth), so only its order is asserted
+    assert one_percent["recall"] > 0.05
+    assert document["accuracy"] < 0.014
+
+
+@pytest.mark.parametrize("change, expected", [
+    (lambda d: np.where(d > 0, np.nan, d), "NaN or inf depth"),
+    (lambda d: -d, "negative depth"),
+    (lambda d: np.zeros_like(d), "hits nothing"),
+    (lambda d: d[:5], "the ground truth is 32x32"),
+])
+def test_bad_depth_is_a_one_line_error(tiny_dataset, tmp_path, capsys, change, expected):
+    pred = _depth_folder(tiny_dataset, tmp_path / "pred", change)
+    assert main(["geometry", str(tiny_dataset), "--pred-depth", str(pred), "-o", str(tmp_path / "g.json"),
+                 "--samples", "1000"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and expected in err, err
+    assert not (tmp_path / "g.json").exists()
+
+
+def test_missing_depth_is_a_one_line_error(tiny_dataset, tmp_path, capsys):
+    for folder in (tmp_path / "nowhere", tmp_path / "empty"):
+        if folder.name == "empty":
+            folder.mkdir()
+        assert main(["geometry", str(tiny_dataset), "--pred-depth", str(folder), "-o", str(tmp_path / "g.json")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and ("not found" in err or "no predicted depth" in err), err
