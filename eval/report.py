@@ -302,13 +302,15 @@ def per_view_table(documents: dict) -> list[list[str]]:
 
 
 def write_report(out, title: str, dataset_root, renders, documents: dict, *, log_path=None, ours: str,
-                 train_seconds=None, notes=(), split: str = "test", frames: int = 3) -> Path:
-    """report.html beside its figures (out's folder): the metrics table of every method, the
-    labelled image grid of `renders` (our method's), the speed-against-error curve with the
-    baselines on it, the camera frusta with the scene bounds, and the sortable per-view table.
+                 train_seconds=None, notes=(), split: str = "test", frames: int = 3, figures=None,
+                 extra_images=None) -> Path:
+    """report.html with its figures (in `figures`, default out's folder): the metrics table
+    of every method, the labelled image grid of `renders` (our method's), the
+    speed-against-error curve with the baselines on it, the camera frusta with the scene
+    bounds, the sortable per-view table, then `extra_images` ({caption: PNG path}).
     documents: {method: metrics document}, `ours` among them."""
     out = Path(out)
-    folder = out.parent
+    folder = out.parent if figures is None else Path(figures)
     folder.mkdir(parents=True, exist_ok=True)
     background = (1.0, 1.0, 1.0) if documents[ours].get("background", "white") == "white" else (0.0, 0.0, 0.0)
     image_grid(dataset_root, renders, folder / "grid.png", split=split, frames=frames, background=background)
@@ -319,7 +321,7 @@ def write_report(out, title: str, dataset_root, renders, documents: dict, *, log
     frusta_plot(dataset_root, folder / "cameras.png", splits=("train", split) if split != "train" else ("train",))
     images = {"test views (columns labelled; colour bars give the scales)": folder / "grid.png",
               "speed against error (baselines: no training, at 0 s)": folder / "curve.png",
-              "train and test cameras with the scene bounds": folder / "cameras.png"}
+              "train and test cameras with the scene bounds": folder / "cameras.png", **(extra_images or {})}
     write_html(out, title, metrics_table(documents), images, list(notes),
                extra_tables={"per view (click a header to sort)": per_view_table(documents)})
     return out

@@ -8,7 +8,8 @@ things go:
   OUT/run/                the trained model, its log.jsonl and renders/
   OUT/baselines/<method>/ the baselines' renders
   OUT/eval/<method>/      metrics.json and error maps per method (the NeRF and baselines)
-  OUT/report.html         table, speed-vs-error curve and image grid (also as PNGs in OUT/report/)
+  OUT/report.html         metrics table, speed-vs-error curve with the baselines, labelled image grid, camera
+                          frusta and a sortable per-view table (figures also as PNGs in OUT/report/)
 
 Each subfolder is claimed (marked and locked) by the stage that writes it. A rerun with the
 same settings needs --overwrite once OUT/run exists, and then removes the earlier run's
@@ -27,7 +28,7 @@ from pathlib import Path
 
 from nerfgauge.core.errors import InputError
 
-REPORT_FILES = ("report.html", "report/curve.png", "report/grid.png", "report/geometry.png")
+REPORT_FILES = ("report.html", "report/curve.png", "report/grid.png", "report/cameras.png", "report/geometry.png")
 GEOMETRY_RESOLUTION = 256  # marching-cubes cells along the scene's longest side
 GEOMETRY_SAMPLES = 200_000  # points per surface (the scoring cost grows with their square off the surface)
 
@@ -140,11 +141,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     from nerfgauge.eval.report import (
         geometry_histogram,
         geometry_table,
-        image_grid,
-        metrics_table,
-        plot_curves,
-        read_log,
-        write_html,
+        write_report,
     )
     from nerfgauge.generate.pipeline import GenerateConfig, generate
     from nerfgauge.nerf.config import TrainConfig
@@ -193,24 +190,21 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                                                         out / "eval" / method / "metrics.json")
         print("[5/5] report")
         (out / "report").mkdir(parents=True, exist_ok=True)
-        plot_curves({f"{config.model} NeRF": read_log(run_dir / "log.jsonl")}, out / "report" / "curve.png")
-        image_grid(out / "dataset", run_dir / "renders", out / "report" / "grid.png")
-        table = metrics_table(documents)
         notes = [f"scene {config.scene}, {config.width}x{config.height}, {config.views} train / {config.test_views} "
                  f"test views, {config.spp} spp; {config.model} trained {summary['steps']} steps in "
                  f"{summary['seconds']:.1f} s, saved model {summary['model_bytes'] / 1e6:.2f} MB",
                  "PSNR and SSIM on colour composited onto white; depth metrics on pixels whose centre ray hits "
-                 "geometry, on ray distance. LPIPS: AlexNet, v0.1 linear layers (nerfgauge lpips install).",
-                 "Image grid columns: ground truth, prediction, colour error (0-0.2), predicted depth, depth error "
-                 "(0-10%)."]
-        images = {"speed against error": out / "report" / "curve.png", "test views": out / "report" / "grid.png"}
+                 "geometry, on ray distance. LPIPS: AlexNet, v0.1 linear layers (nerfgauge lpips install)."]
+        images = {}
         if no_geometry is not None:
             notes.append(no_geometry)
         if geometry is not None:
             geometry_histogram(geometry[1], geometry[0], out / "report" / "geometry.png")
             images["geometry: distances to the exact meshes"] = out / "report" / "geometry.png"
             notes.append(geometry_table(geometry[0]))
-        write_html(out / "report.html", f"nerfgauge: {config.scene}", table, images, notes)
+        write_report(out / "report.html", f"nerfgauge: {config.scene}", out / "dataset", run_dir / "renders", documents,
+                     log_path=run_dir / "log.jsonl", ours=f"{config.model} NeRF", train_seconds=summary["seconds"],
+                     notes=notes, figures=out / "report", extra_images=images)
     print(format_means(documents[f"{config.model} NeRF"]))
     print(f"report: {out / 'report.html'}")
     return {"metrics": str(out / "eval" / config.model / "metrics.json"), "report": str(out / "report.html"),
