@@ -57,6 +57,13 @@ def register(subparsers) -> None:
                         help="MIN,MAX camera elevation in degrees (default: the scene's suggestion, else 10,75)")
     parser.add_argument("--radius", type=arguments.positive_float, default=None, help="camera distance from the AABB centre (default: fit)")
     parser.add_argument("--variant", choices=CHOICES, default="auto")
+    parser.add_argument("--aperture", type=arguments.finite_float, default=0.0, metavar="RADIUS",
+                        help="thin-lens aperture radius in scene units (default 0: pinhole); needs --focus-distance")
+    parser.add_argument("--focus-distance", type=arguments.finite_float, default=None, metavar="D",
+                        help="distance of the plane in focus along the optical axis, scene units")
+    parser.add_argument("--lens-splits", choices=("test", "all"), default="test",
+                        help="views rendered through the lens: test (default) or all splits; depth, normals and "
+                             "masks stay those of the pinhole pixel-centre rays")
     parser.add_argument("--workers", type=arguments.positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="render on a dask.distributed cluster: tcp://HOST:PORT of a running scheduler, or "
@@ -74,7 +81,8 @@ def run(args) -> int:
     config = GenerateConfig(scene=args.scene, seed=args.seed, views=args.views, val_views=args.val_views,
                             test_views=args.test_views, width=width, height=height, spp=args.spp,
                             max_depth=args.max_depth, fov=args.fov, layout=args.layout, sampling=args.sampling,
-                            elevation=args.elevation and parse_band(args.elevation), radius=args.radius, variant=args.variant)
+                            elevation=args.elevation and parse_band(args.elevation), radius=args.radius, variant=args.variant,
+                            aperture=args.aperture, focus_distance=args.focus_distance, lens_splits=args.lens_splits)
     result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet,
                       scheduler=args.scheduler)
     rendered = result["views_rendered"]

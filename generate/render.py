@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
 from nerfgauge.core.camera import (
     Intrinsics,
+    ThinLens,
     pixel_rays,
     to_mitsuba,
     z_depth_from_distance,
@@ -35,13 +37,19 @@ class ViewImages:
     hit: np.ndarray
 
 
-def sensor_dict(mi, c2w: np.ndarray, intrinsics: Intrinsics, spp: int) -> dict:
-    """A Mitsuba perspective sensor for an OpenGL camera-to-world pose."""
+def sensor_dict(mi, c2w: np.ndarray, intrinsics: Intrinsics, spp: int, lens: Optional[ThinLens] = None) -> dict:
+    """A Mitsuba perspective sensor for an OpenGL camera-to-world pose; Mitsuba's `thinlens`
+    sensor (same pose and field of view) when `lens` has a non-zero aperture. A lens with
+    aperture 0 is the pinhole: the same perspective sensor, so the same pixels bit for bit."""
     if abs(intrinsics.fx - intrinsics.fy) > 1e-9 * intrinsics.fx or \
             (intrinsics.cx, intrinsics.cy) != (intrinsics.width / 2, intrinsics.height / 2):
         raise ValueError("Mitsuba's perspective sensor needs square pixels and a centred principal point")
-    return {
-        "type": "perspective",
+    optics = {"type": "perspective"}
+    if lens is not None and not lens.is_pinhole:
+        # focus_distance: along the optical axis, as camera.thin_lens_rays has it
+        optics = {"type": "thinlens", "aperture_radius": float(lens.aperture_radius),
+                  "focus_distance": float(lens.focus_distance)}
+    return optics | {
         "fov": intrinsics.fov_x_degrees,
         "fov_axis": "x",
         "near_clip": NEAR_CLIP,
@@ -64,9 +72,10 @@ def sampler_dict(spp: int) -> dict:
     return {"type": "multijitter" if exact else "independent", "sample_count": int(spp)}
 
 
-def render_rgba(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
-    """Path-traced linear premultiplied RGBA. Returns [H, W, 4] float32."""
-    sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp))
+def render_rgba(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
+                lens: Optional[ThinLens] = None) -> np.ndarray:
+    """Path-traced linear premultiplied RGBA (through `lens` if given). Returns [H, W, 4] float32."""
+    sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp, lens))
     image = mi.render(scene, sensor=sensor, spp=int(spp), seed=int(seed))
     return np.array(image, dtype=np.float32).reshape(intrinsics.height, intrinsics.width, 4)
 
@@ -110,7 +119,10 @@ def render_geometry(mi, scene, c2w, intrinsics: Intrinsics):
             normals.reshape(*shape, 3).astype(np.float32), hit.reshape(shape))
 
 
-def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> ViewImages:
-    rgba = render_rgba(mi, scene, c2w, intrinsics, spp, seed)
+def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
+                lens: Optional[ThinLens] = None) -> ViewImages:
+    """Colour through `lens` (None: pinhole); depth, normals and mask always from the
+    pinhole pixel-centre rays, whatever the lens."""
+    rgba = render_rgba(mi, scene, c2w, intrinsics, spp, seed, lens)
     distance, z_depth, normals, hit = render_geometry(mi, scene, c2w, intrinsics)
     return ViewImages(rgba, distance, z_depth, normals, hit)

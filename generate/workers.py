@@ -40,7 +40,7 @@ def _render_one(mi, scene, out, the_plan, split, index):
     config = the_plan.config
     start = time.perf_counter()
     images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
-                         view_seed(config.seed, split, index))
+                         view_seed(config.seed, split, index), the_plan.lens(split))
     return images, time.perf_counter() - start
 
 
