@@ -114,3 +114,21 @@ def test_refocus_baseline_writes_every_test_frame_and_evaluates(lens_lightfield,
 def test_refocus_on_a_dataset_that_is_not_a_camera_array_is_one_line(tiny_dataset, tmp_path, capsys):
     one_line_exit_2(capsys, ["baseline", tiny_dataset, "--method", "refocus", "--out", tmp_path / "r"],
                     "not a camera array", "refocusing")
+
+
+def test_report_rows_and_aperture_table(lens_lightfield, tmp_path, capsys):
+    """The report's defocus pieces: an image row per method and PSNR/SSIM against aperture."""
+    from nerfgauge.eval.report import aperture_table, focus_rows
+
+    out = tmp_path / "refocus"
+    assert main(["baseline", str(lens_lightfield), "--method", "refocus", "--out", str(out)]) == 0
+    assert main(["evaluate", str(lens_lightfield), "--pred", str(out)]) == 0
+    capsys.readouterr()
+    document = json.loads((out / "metrics.json").read_text())
+    table = aperture_table({"refocus": {0.1: document}, "nerf": {}}, [0.1])
+    assert table[0] == ["method", "PSNR dB A=0.1", "SSIM A=0.1"]
+    assert table[1] == ["refocus", f"{document['mean']['psnr']:.2f}", f"{document['mean']['ssim']:.4f}"]
+    assert table[2] == ["nerf", "–", "–"]
+    focus_rows({0.1: lens_lightfield}, {"refocus": {0.1: out}}, "test/r_000", tmp_path / "rows.png")
+    image = read_png(tmp_path / "rows.png")
+    assert image.shape[0] > image.shape[1]  # two rows (truth, refocus), one column
