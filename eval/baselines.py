@@ -271,8 +271,10 @@ def _straight_to_png(rgba: np.ndarray) -> np.ndarray:
     return image
 
 
-def write_baseline(root, method: str, out, split: str = "test") -> dict:
-    """Render `split` with `method` into out/<split>/ and write out/timing.json. Returns the timing."""
+def write_baseline(root, method: str, out, split: str = "test", *, lens: ThinLens | None = None,
+                   samples: int = REFOCUS_SAMPLES, seed: int = 0) -> dict:
+    """Render `split` with `method` into out/<split>/ and write out/timing.json. Returns the timing.
+    refocus only: `lens` for every frame instead of each frame's own, lens `samples` and `seed`."""
     if method not in METHODS:
         raise InputError(f"unknown baseline {method!r}; choose one of {', '.join(METHODS)}")
     ds, out = dataset.Dataset(root), Path(out)
@@ -280,7 +282,7 @@ def write_baseline(root, method: str, out, split: str = "test") -> dict:
     if method == "nearest":
         frames = render_nearest(ds, split)
     elif method == "refocus":
-        frames = render_refocus(ds, split)
+        frames = render_refocus(ds, split, samples, seed, lens)
     else:
         frames = render_lightfield(ds, split, method.removeprefix("lightfield-"))
     seconds = time.perf_counter() - start
@@ -289,5 +291,7 @@ def write_baseline(root, method: str, out, split: str = "test") -> dict:
         write_png(out / (stem + ".png"), image)
     timing = {"method": method, "split": split, "frames": len(frames), "seconds": seconds,
               "ms_per_frame": 1000.0 * seconds / max(len(frames), 1)}
+    if method == "refocus":
+        timing |= {"lens_samples": samples, "lens_seed": seed, "lens": None if lens is None else lens.to_json()}
     write_json(out / "timing.json", timing)
     return timing

@@ -132,3 +132,18 @@ def test_report_rows_and_aperture_table(lens_lightfield, tmp_path, capsys):
     focus_rows({0.1: lens_lightfield}, {"refocus": {0.1: out}}, "test/r_000", tmp_path / "rows.png")
     image = read_png(tmp_path / "rows.png")
     assert image.shape[0] > image.shape[1]  # two rows (truth, refocus), one column
+
+
+def test_refocus_any_lens_overrides_the_frames(lens_lightfield, tmp_path):
+    """write_baseline(lens=...) refocuses every frame at that aperture and focus: aperture 0
+    at the light field's focal plane is the quadrilinear light field (the same 16 samples)."""
+    from nerfgauge.eval.baselines import write_baseline
+
+    focal = LightField(lens_lightfield).focal_distance
+    timing = write_baseline(lens_lightfield, "refocus", tmp_path / "r0", lens=ThinLens(0.0, focal), samples=8)
+    write_baseline(lens_lightfield, "lightfield-quadrilinear", tmp_path / "quad")
+    assert timing["lens"]["aperture_radius"] == 0.0 and timing["lens_samples"] == 8
+    for stem in dataset.read_split(lens_lightfield, "test").stems:
+        # the same sums up to float rounding, which may tip a uint8 step
+        np.testing.assert_allclose(read_png(tmp_path / "r0" / (stem + ".png")),
+                                   read_png(tmp_path / "quad" / (stem + ".png")), atol=1.01 / 255)
