@@ -26,6 +26,18 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
   F in each: 16 samples. Samples are premultiplied RGBA (sRGB values), so interpolation
   never mixes in the colour of transparent pixels. (s, t) beyond the grid and (u, v)
   beyond an image are clamped to the edge.
+- `refocus`: synthetic-aperture refocusing (shift and add) over the same camera grid. A
+  frame with a thin lens (aperture radius A, focus distance D; docs/conventions.md) is
+  the mean over `samples` stratified lens points l (camera.lens_samples, seeded) of the
+  light field along the thin-lens ray from l through the pixel's focus point P (on the
+  plane z = -D of the query camera): the ray meets the camera plane at (s, t), and each of
+  the 4 grid cameras around (s, t) is read bilinearly at its projection of P, weighted
+  bilinearly in (s, t). For a query on the camera plane this is the lecture's
+  shift-and-add: every grid view shifted so that the plane in focus lines up, averaged
+  with the weight of its cell's overlap with the aperture disc. Points on the plane in
+  focus come out sharp, others blur by the thin-lens circle of confusion (sampled by the
+  camera grid's spacing). Aperture 0 is view interpolation focused at D; a frame without
+  a lens is refocused with aperture 0 at the light field's own focal plane.
 """
 
 from __future__ import annotations
@@ -36,12 +48,13 @@ from pathlib import Path
 import numpy as np
 
 from nerfgauge.core import dataset
-from nerfgauge.core.camera import pixel_rays
+from nerfgauge.core.camera import ThinLens, camera_directions, lens_samples, pixel_rays, thin_lens_rays
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_json
 from nerfgauge.core.images import write_png
 
-METHODS = ("nearest", "lightfield-nearest", "lightfield-quadrilinear")
+METHODS = ("nearest", "lightfield-nearest", "lightfield-quadrilinear", "refocus")
+REFOCUS_SAMPLES = 64  # lens samples per pixel of the refocus baseline
 GRID_TOLERANCE = 1e-6  # training cameras must sit on grid nodes to this fraction of a cell
 
 
@@ -90,15 +103,15 @@ def render_nearest(root, split: str) -> dict:
 class LightField:
     """The training grid of a light-field dataset: premultiplied images and cameras by node."""
 
-    def __init__(self, root):
+    def __init__(self, root, needed_by: str = "the lightfield baselines"):
         ds = dataset.open_dataset(root)
         root = ds.root
         camera = ds.scene.get("camera", {})
         plane = camera.get("lightfield") if isinstance(camera, dict) else None
         if not plane:
-            raise InputError(f"dataset {root} was not made with --layout lightfield (camera.layout is "
-                             f"{camera.get('layout') if isinstance(camera, dict) else None!r}); "
-                             "the lightfield baselines need its camera grid")
+            raise InputError(f"dataset {root} is not a camera array: it was not made with --layout lightfield "
+                             f"(camera.layout is {camera.get('layout') if isinstance(camera, dict) else None!r}); "
+                             f"{needed_by} need its camera grid")
         try:
             self.origin = np.asarray(plane["camera_plane_origin"], np.float64)  # [3]
             self.axes = np.stack([np.asarray(plane[k], np.float64) for k in ("s_axis", "t_axis", "view_axis")])
@@ -170,20 +183,46 @@ class LightField:
             pixel = np.floor(self.project(camera, focal) + 0.5).astype(int)  # [P, 2]
             premultiplied = self.sample(camera, pixel[:, 0], pixel[:, 1])  # [P, 4]
         elif mode == "quadrilinear":
-            base, frac = _cell(st, [self.cols, self.rows])  # [P, 2] each
-            premultiplied = np.zeros((len(st), 4))
-            for ds, dt in ((0, 0), (1, 0), (0, 1), (1, 1)):
-                w_st = (frac[:, 0] if ds else 1 - frac[:, 0]) * (frac[:, 1] if dt else 1 - frac[:, 1])  # [P]
-                camera = (base[:, 1] + dt) * self.cols + base[:, 0] + ds  # [P]
-                pbase, pfrac = _cell(self.project(camera, focal), [k.width, k.height])  # [P, 2] each
-                for dc, dr in ((0, 0), (1, 0), (0, 1), (1, 1)):
-                    w_uv = (pfrac[:, 0] if dc else 1 - pfrac[:, 0]) * (pfrac[:, 1] if dr else 1 - pfrac[:, 1])
-                    premultiplied += (w_st * w_uv)[:, None] * self.sample(camera, pbase[:, 0] + dc, pbase[:, 1] + dr)
+            premultiplied = self.quadrilinear(st, focal)
         else:
             raise InputError(f"unknown light-field mode {mode!r}; choose nearest or quadrilinear")
-        alpha = premultiplied[:, 3:]  # [P, 1]
-        rgb = np.divide(premultiplied[:, :3], alpha, out=np.zeros((len(alpha), 3)), where=alpha > 0)
-        return np.clip(np.concatenate([rgb, alpha], -1), 0.0, 1.0).reshape(k.height, k.width, 4)
+        return _unpremultiply(premultiplied).reshape(k.height, k.width, 4)
+
+    def quadrilinear(self, st: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Premultiplied RGBA [P, 4]: bilinear in (s, t) [P, 2] over the 4 grid cameras
+        around it, each read bilinearly at its projection of `points` [P, 3]."""
+        k = self.intrinsics
+        base, frac = _cell(st, [self.cols, self.rows])  # [P, 2] each
+        premultiplied = np.zeros((len(st), 4))
+        for ds, dt in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            w_st = (frac[:, 0] if ds else 1 - frac[:, 0]) * (frac[:, 1] if dt else 1 - frac[:, 1])  # [P]
+            camera = (base[:, 1] + dt) * self.cols + base[:, 0] + ds  # [P]
+            pbase, pfrac = _cell(self.project(camera, points), [k.width, k.height])  # [P, 2] each
+            for dc, dr in ((0, 0), (1, 0), (0, 1), (1, 1)):
+                w_uv = (pfrac[:, 0] if dc else 1 - pfrac[:, 0]) * (pfrac[:, 1] if dr else 1 - pfrac[:, 1])
+                premultiplied += (w_st * w_uv)[:, None] * self.sample(camera, pbase[:, 0] + dc, pbase[:, 1] + dr)
+        return premultiplied
+
+    def refocus(self, c2w: np.ndarray, lens: ThinLens, samples: int = REFOCUS_SAMPLES, seed=0) -> np.ndarray:
+        """Straight-alpha RGBA [H, W, 4] in [0, 1] of camera c2w [4, 4] through `lens`, by
+        synthetic-aperture refocusing (module docstring) over `samples` lens points."""
+        k = self.intrinsics
+        focus = (lens.focus_distance * camera_directions(k) @ np.asarray(c2w)[:3, :3].T + np.asarray(c2w)[:3, 3])
+        focus = focus.reshape(-1, 3)  # [P, 3]: where each pixel's lens rays meet
+        disk = lens_samples(1 if lens.is_pinhole else samples, seed)  # [S, 2]
+        origins, directions = thin_lens_rays(c2w, k, lens, disk)  # [S, H, W, 3] each
+        premultiplied = np.zeros((len(focus), 4))
+        for o, d in zip(origins, directions):
+            st, _ = self.intersect(o.reshape(-1, 3), d.reshape(-1, 3))
+            premultiplied += self.quadrilinear(st, focus)
+        return _unpremultiply(premultiplied / len(disk)).reshape(k.height, k.width, 4)
+
+
+def _unpremultiply(premultiplied: np.ndarray) -> np.ndarray:
+    """Premultiplied RGBA [P, 4] -> straight RGBA [P, 4] clipped to [0, 1] (colour 0 where alpha is 0)."""
+    alpha = premultiplied[:, 3:]  # [P, 1]
+    rgb = np.divide(premultiplied[:, :3], alpha, out=np.zeros((len(alpha), 3)), where=alpha > 0)
+    return np.clip(np.concatenate([rgb, alpha], -1), 0.0, 1.0)
 
 
 def _cell(coords: np.ndarray, sizes) -> tuple[np.ndarray, np.ndarray]:
@@ -204,6 +243,26 @@ def render_lightfield(root, split: str, mode: str) -> dict:
     return {stem: _straight_to_png(field.render(c2w, mode)) for stem, c2w in zip(query.stems, query.c2w)}
 
 
+def render_refocus(root, split: str, samples: int = REFOCUS_SAMPLES, seed: int = 0,
+                   lens: ThinLens | None = None) -> dict:
+    """{stem: RGBA uint8 [H, W, 4]} of every frame of `split` refocused through its own
+    thin lens (or `lens` for every frame, any aperture and focus distance); frames without
+    a lens: aperture 0 at the light field's focal plane. Lens samples are seeded by
+    (seed, frame index)."""
+    if not (isinstance(samples, int) and samples > 0):
+        raise InputError(f"refocus needs a positive number of lens samples, got {samples!r}")
+    ds = dataset.open_dataset(root)
+    field = LightField(ds, needed_by="synthetic-aperture refocusing")
+    query = ds.cameras(split)
+    if query.intrinsics != field.intrinsics:
+        raise InputError(f"split {split} has other intrinsics than the training grid: {query.intrinsics} vs {field.intrinsics}")
+    frames = {}
+    for index, (stem, c2w) in enumerate(zip(query.stems, query.c2w)):
+        frame_lens = lens or query.lens(index) or ThinLens(0.0, field.focal_distance)
+        frames[stem] = _straight_to_png(field.refocus(c2w, frame_lens, samples, (seed, index)))
+    return frames
+
+
 def _straight_to_png(rgba: np.ndarray) -> np.ndarray:
     """Straight RGBA [H, W, 4] in [0, 1] -> uint8; colour 0 where alpha rounds to 0 (as the
     dataset's PNGs have it: a weight of 1e-15 on a covered pixel must not colour a hole)."""
@@ -212,14 +271,18 @@ def _straight_to_png(rgba: np.ndarray) -> np.ndarray:
     return image
 
 
-def write_baseline(root, method: str, out, split: str = "test") -> dict:
-    """Render `split` with `method` into out/<split>/ and write out/timing.json. Returns the timing."""
+def write_baseline(root, method: str, out, split: str = "test", *, lens: ThinLens | None = None,
+                   samples: int = REFOCUS_SAMPLES, seed: int = 0) -> dict:
+    """Render `split` with `method` into out/<split>/ and write out/timing.json. Returns the timing.
+    refocus only: `lens` for every frame instead of each frame's own, lens `samples` and `seed`."""
     if method not in METHODS:
         raise InputError(f"unknown baseline {method!r}; choose one of {', '.join(METHODS)}")
     ds, out = dataset.Dataset(root), Path(out)
     start = time.perf_counter()
     if method == "nearest":
         frames = render_nearest(ds, split)
+    elif method == "refocus":
+        frames = render_refocus(ds, split, samples, seed, lens)
     else:
         frames = render_lightfield(ds, split, method.removeprefix("lightfield-"))
     seconds = time.perf_counter() - start
@@ -228,5 +291,7 @@ def write_baseline(root, method: str, out, split: str = "test") -> dict:
         write_png(out / (stem + ".png"), image)
     timing = {"method": method, "split": split, "frames": len(frames), "seconds": seconds,
               "ms_per_frame": 1000.0 * seconds / max(len(frames), 1)}
+    if method == "refocus":
+        timing |= {"lens_samples": samples, "lens_seed": seed, "lens": None if lens is None else lens.to_json()}
     write_json(out / "timing.json", timing)
     return timing

@@ -354,6 +354,9 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
                          f"{', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} (looked for "
                          f"{pred_dir}/{missing[0]}.png|.exr and {pred_dir}/{Path(missing[0]).name}.png|.exr)")
     timing = read_timing(pred_dir)
+    # frames whose ground truth was rendered through a thin lens say so (they are scored
+    # against that defocused truth like any other frame)
+    lens_of = {stem: {"lens": cameras.lens(i).to_json()} for i, stem in enumerate(cameras.stems) if cameras.lens(i)}
     lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
     frames, maps = [], []
     for stem, files in found.items():
@@ -364,7 +367,8 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
         values["psnr_ceiling"] = frame_ceiling(ds, stem, background)
-        frames.append({"name": stem, "file": files.colour.relative_to(pred_dir).as_posix(), **values})
+        frames.append({"name": stem, "file": files.colour.relative_to(pred_dir).as_posix(), **values,
+                       **lens_of.get(stem, {})})
         maps.append((stem, colour_err, depth_err))
     if lpips_batch is not None:
         for frame, value in zip(frames, lpips_batch.scores()):

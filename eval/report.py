@@ -364,3 +364,57 @@ def geometry_histogram(distances: dict, document: dict, out) -> None:
     figure.tight_layout()
     with atomic_path(out) as tmp:
         FigureCanvasAgg(figure).print_png(str(tmp))
+
+
+# --- defocus: methods against the thin-lens truth at several apertures ---------------------
+
+
+def aperture_table(scores: dict, apertures: list) -> list[list[str]]:
+    """Rows: methods; columns: PSNR and SSIM at each aperture radius.
+    scores: {method: {aperture: metrics.json document}} (a missing aperture shows "–")."""
+    head = ["method"] + [f"{name} A={a:g}" for a in apertures for name in ("PSNR dB", "SSIM")]
+    rows = [head]
+    for method, by_aperture in scores.items():
+        row = [method]
+        for a in apertures:
+            mean = by_aperture[a]["mean"] if a in by_aperture else {}
+            row += [f"{mean['psnr']:.2f}" if mean.get("psnr") is not None else "–",
+                    f"{mean['ssim']:.4f}" if mean.get("ssim") is not None else "–"]
+        rows.append(row)
+    return rows
+
+
+def focus_rows(datasets: dict, preds: dict, stem: str, out, background=(1.0, 1.0, 1.0), crop=None) -> None:
+    """PNG: one row per method (ground truth first), one column per aperture, all of frame
+    `stem` composited on the background: how each method's focus plane stays sharp and the
+    rest blurs as the aperture grows. datasets: {aperture: dataset root}; preds: {method:
+    {aperture: prediction folder}}; crop: (row0, row1, col0, col1) of the image or None."""
+    from nerfgauge.eval.evaluate import composite
+
+    bg = np.asarray(background, np.float64)
+    apertures = list(datasets)
+    rows = ["ground truth"] + list(preds)
+    figure = _figure(1.9 * len(apertures) + 0.6, 1.9 * len(rows) + 0.3)
+    grid = figure.subplots(len(rows), len(apertures), squeeze=False)
+    for col, aperture in enumerate(apertures):
+        ds = open_dataset(datasets[aperture])
+        intrinsics = ds.cameras(stem.split("/")[0]).intrinsics
+        for row, name in enumerate(rows):
+            axes = grid[row, col]
+            axes.set_xticks([])
+            axes.set_yticks([])
+            if row == 0:
+                axes.set_title(f"aperture {aperture:g}", fontsize=8)
+            if col == 0:
+                axes.set_ylabel(name, fontsize=8)
+            if name == "ground truth":
+                tile = composite(read_rgba(ds, stem, intrinsics).astype(np.float64), bg)
+            elif aperture in preds[name]:
+                tile = _pred_rgb(Path(preds[name][aperture]), stem, intrinsics, bg)
+            else:
+                axes.text(0.5, 0.5, "–", ha="center", va="center", transform=axes.transAxes)
+                continue
+            if crop is not None:
+                tile = tile[crop[0]:crop[1], crop[2]:crop[3]]
+            axes.imshow(np.clip(tile, 0, 1), interpolation="nearest")
+    _save(figure, out)

@@ -15,7 +15,7 @@ from nerfgauge.core import arguments
 
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
-                  "elevation", "radius", "variant", "noise_psnr", "max_spp")
+                  "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits")
 
 
 def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
@@ -59,6 +59,13 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
     parser.add_argument("--radius", type=arguments.positive_float, default=d.radius,
                         help="camera distance from the AABB centre (default: fit)")
     parser.add_argument("--variant", choices=CHOICES, default=d.variant)
+    parser.add_argument("--aperture", type=arguments.finite_float, default=d.aperture, metavar="RADIUS",
+                        help="thin-lens aperture radius in scene units (default 0: pinhole); needs --focus-distance")
+    parser.add_argument("--focus-distance", type=arguments.finite_float, default=d.focus_distance, metavar="D",
+                        help="distance of the plane in focus along the optical axis, scene units")
+    parser.add_argument("--lens-splits", choices=("test", "all"), default=d.lens_splits,
+                        help="views rendered through the lens: test (default) or all splits; depth, normals and "
+                             "masks stay those of the pinhole pixel-centre rays")
     parser.add_argument("--workers", type=arguments.positive_int, default=1, help="worker processes (default 1)")
     return parser
 

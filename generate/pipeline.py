@@ -32,7 +32,7 @@ from nerfgauge.scenes import make_scene
 from nerfgauge.scenes.registry import scene_inputs
 
 from nerfgauge.core import dataset
-from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash
@@ -47,6 +47,7 @@ DEFAULT_ELEVATION_BY_LAYOUT = {"inside": (-20.0, 20.0)}
 MAX_NOISE_PSNR = 80.0  # dB; beyond it the 8-bit PNG's own rounding (about 59 dB) dominates anyway
 DEFAULT_MAX_SPP = 4096
 SPLIT_SEED_OFFSET = {"train": 0, "val": 1_000_000, "test": 2_000_000}
+LENS_SPLITS = {"test": ("test",), "all": ("train", "val", "test")}  # --lens-splits -> splits with the lens
 RENDERER_PACKAGES = ("mitsuba", "drjit", "nerfgauge")  # their versions are part of a dataset's recipe
 
 
@@ -85,6 +86,11 @@ class GenerateConfig:
     variant: str = "auto"
     noise_psnr: Optional[float] = None  # --spp auto's target: each view's sRGB noise PSNR, dB
     max_spp: int = DEFAULT_MAX_SPP  # --spp auto's cap per view
+    # Thin lens (Mitsuba's thinlens sensor) for the colour of the views of lens_splits
+    # ("test" or "all"); aperture 0 with no focus distance: every view a pinhole.
+    aperture: float = 0.0
+    focus_distance: Optional[float] = None
+    lens_splits: str = "test"
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
@@ -110,6 +116,7 @@ class GenerateConfig:
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
         self._validate_noise()
+        self._validate_lens()
 
     def _validate_noise(self) -> None:
         target = self.noise_psnr
@@ -133,8 +140,28 @@ class GenerateConfig:
 
         return NoiseTarget(float(self.noise_psnr), max_spp=int(self.max_spp)) if self.spp == "auto" else None
 
+    def _validate_lens(self) -> None:
+        if self.lens_splits not in LENS_SPLITS:
+            raise InputError(f"--lens-splits must be one of {', '.join(LENS_SPLITS)}, got {self.lens_splits!r}")
+        if self.aperture != 0 and self.focus_distance is None:
+            check_lens(self.aperture, 1.0)  # a negative aperture is named first
+            raise InputError(f"--aperture {self.aperture:g} needs --focus-distance (distance of the plane in focus)")
+        self.lens()  # InputError for a negative aperture or a focus distance <= 0
+
+    def lens(self) -> Optional[ThinLens]:
+        """The thin lens of the lens splits' views, None for a pinhole-only dataset."""
+        if self.aperture == 0 and self.focus_distance is None:
+            return None
+        return ThinLens(self.aperture, self.focus_distance)
+
     def to_json(self) -> dict:
-        return dataclasses.asdict(self) | {"elevation": None if self.elevation is None else list(self.elevation)}
+        """The recipe's config. The lens fields only when a lens is asked for, so a pinhole
+        dataset keeps the recipe (and hash) it had before lenses existed."""
+        out = dataclasses.asdict(self) | {"elevation": None if self.elevation is None else list(self.elevation)}
+        if self.lens() is None and self.lens_splits == "test":
+            for key in ("aperture", "focus_distance", "lens_splits"):
+                del out[key]
+        return out
 
 
 @dataclass(frozen=True)
@@ -155,6 +182,10 @@ class Plan:
     @property
     def radius(self) -> float:
         return self.layout.radius
+
+    def lens(self, split: str) -> Optional[ThinLens]:
+        """The thin lens the colour of `split`'s views is rendered through (None: pinhole)."""
+        return self.config.lens() if split in LENS_SPLITS[self.config.lens_splits] else None
 
     def recipe(self) -> dict:
         """What config.json holds: the config plus the resolved radius and variant, the
@@ -269,8 +300,9 @@ def finish(out: Path, the_plan: Plan) -> None:
     intrinsics, stems, poses = the_plan.intrinsics, the_plan.stems, the_plan.poses
     for split in dataset.SPLITS:
         write_json(out / f"transforms_{split}.json",
-                           dataset.synthetic_transforms(intrinsics, stems[split], poses[split]))
-    write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses))
+                   dataset.synthetic_transforms(intrinsics, stems[split], poses[split], the_plan.lens(split)))
+    lenses = {split: the_plan.lens(split) for split in dataset.SPLITS}
+    write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses))
     scene = the_plan.scene
     from nerfgauge.generate.mitsuba_scene import instance_names
 
@@ -281,7 +313,11 @@ def finish(out: Path, the_plan: Plan) -> None:
         "needs": dataclasses.asdict(scene.needs),
         "camera": {"convention": "OpenGL camera-to-world: +X right, +Y up, looks along -Z",
                    "pixel_centres": "(col + 0.5, row + 0.5), row 0 at the top",
-                   "layout": the_plan.layout.layout, "radius": the_plan.radius, "lightfield": the_plan.lightfield},
+                   "layout": the_plan.layout.layout, "radius": the_plan.radius, "lightfield": the_plan.lightfield,
+                   **({"lens": {"splits": list(LENS_SPLITS[the_plan.config.lens_splits]),
+                                **the_plan.config.lens().to_json(),
+                                "note": "colour only; depth, normals and masks are of the pinhole pixel-centre rays"}}
+                      if the_plan.config.lens() is not None else {})},
         "depth": {"distance": "*_distance.exr: Euclidean distance from the camera centre along the pixel-centre ray",
                   "z": "*_zdepth.exr: depth along the optical axis", "miss": 0,
                   "source": "scene.ray_intersect of pixel-centre rays, not the filtered depth AOV"},

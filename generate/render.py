@@ -25,6 +25,7 @@ import numpy as np
 
 from nerfgauge.core.camera import (
     Intrinsics,
+    ThinLens,
     pixel_rays,
     to_mitsuba,
     z_depth_from_distance,
@@ -80,13 +81,19 @@ class ViewImages:
         return noise_estimate(rgba_a, rgba_b, n_a, n_b)
 
 
-def sensor_dict(mi, c2w: np.ndarray, intrinsics: Intrinsics, spp: int) -> dict:
-    """A Mitsuba perspective sensor for an OpenGL camera-to-world pose."""
+def sensor_dict(mi, c2w: np.ndarray, intrinsics: Intrinsics, spp: int, lens: Optional[ThinLens] = None) -> dict:
+    """A Mitsuba perspective sensor for an OpenGL camera-to-world pose; Mitsuba's `thinlens`
+    sensor (same pose and field of view) when `lens` has a non-zero aperture. A lens with
+    aperture 0 is the pinhole: the same perspective sensor, so the same pixels bit for bit."""
     if abs(intrinsics.fx - intrinsics.fy) > 1e-9 * intrinsics.fx or \
             (intrinsics.cx, intrinsics.cy) != (intrinsics.width / 2, intrinsics.height / 2):
         raise ValueError("Mitsuba's perspective sensor needs square pixels and a centred principal point")
-    return {
-        "type": "perspective",
+    optics = {"type": "perspective"}
+    if lens is not None and not lens.is_pinhole:
+        # focus_distance: along the optical axis, as camera.thin_lens_rays has it
+        optics = {"type": "thinlens", "aperture_radius": float(lens.aperture_radius),
+                  "focus_distance": float(lens.focus_distance)}
+    return optics | {
         "fov": intrinsics.fov_x_degrees,
         "fov_axis": "x",
         "near_clip": NEAR_CLIP,
@@ -132,17 +139,21 @@ def chunk_seed(view_seed: int, chunk: int) -> int:
     return (int(view_seed) + chunk * SEED_STRIDE) % (2**32)
 
 
-def render_chunk(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
-    """One mi.render call. Returns [H, W, C] float32: RGBA, then the integrator's AOVs."""
-    sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp))
+def render_chunk(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int,
+                 lens: Optional[ThinLens] = None) -> np.ndarray:
+    """One mi.render call (through `lens` if given). Returns [H, W, C] float32: RGBA, then
+    the integrator's AOVs."""
+    sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp, lens))
     image = mi.render(scene, sensor=sensor, integrator=integrator, spp=int(spp), seed=int(seed))
     array = np.array(image, dtype=np.float32)
     return array.reshape(intrinsics.height, intrinsics.width, -1)
 
 
-def render_rgba(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
-    """Path-traced linear premultiplied RGBA in one pass. Returns [H, W, 4] float32."""
-    return render_chunk(mi, scene, None, c2w, intrinsics, spp, seed)[..., :4]
+def render_rgba(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
+                lens: Optional[ThinLens] = None) -> np.ndarray:
+    """Path-traced linear premultiplied RGBA in one pass (through `lens` if given).
+    Returns [H, W, 4] float32."""
+    return render_chunk(mi, scene, None, c2w, intrinsics, spp, seed, lens)[..., :4]
 
 
 class _Pass:
@@ -175,30 +186,30 @@ def render_albedo(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, 
 
 
 def render_passes(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
-                  target: Optional[NoiseTarget] = None, integrator=None) -> tuple:
+                  target: Optional[NoiseTarget] = None, integrator=None, lens: Optional[ThinLens] = None) -> tuple:
     """Two independent passes of spp/2 samples each (spp 1: pass A only). With a target,
     both passes grow by equal amounts until the noise estimate reaches it or the total
     reaches target.max_spp. Returns (pass A, pass B or None), each with .mean [H, W, 4]
-    and .spp. integrator: None for the scene's own."""
+    and .spp. integrator: None for the scene's own; lens: the colour's thin lens (None: pinhole)."""
     passes, chunk = (_Pass(), _Pass()), 0
 
     def grow(per_pass: int) -> None:
         nonlocal chunk
         for one in passes:
             for count in sample_chunks(per_pass):
-                one.add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk)), count)
+                one.add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens), count)
                 chunk += 1
 
     if target is None:
         if spp == 1:
-            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, 1, seed), 1)
+            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, 1, seed, lens), 1)
             return passes[0], None
         a_spp = spp // 2
         for count in sample_chunks(a_spp):
-            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk)), count)
+            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens), count)
             chunk += 1
         for count in sample_chunks(spp - a_spp):
-            passes[1].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk)), count)
+            passes[1].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens), count)
             chunk += 1
         return passes
     grow(max(1, min(target.start_spp, target.max_spp) // 2))
@@ -383,14 +394,16 @@ def _loaded_for(mi, scene) -> tuple:
 
 
 def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int, *,
-                target: Optional[NoiseTarget] = None, integrator=None, legend: Optional[tuple] = None) -> ViewImages:
+                target: Optional[NoiseTarget] = None, integrator=None, legend: Optional[tuple] = None,
+                lens: Optional[ThinLens] = None) -> ViewImages:
     """Everything one view writes. integrator, legend: aov_integrator(mi) (for albedo) and
-    instance_legend(scene); made once per scene when not given."""
+    instance_legend(scene); made once per scene when not given. Colour through `lens`
+    (None: pinhole); depth, normals, mask, ids and albedo always from the pinhole camera."""
     if spp == "auto" and target is None:
         raise InputError("--spp auto needs a noise target (--noise-psnr)")
     if integrator is None or legend is None:
         integrator, legend = _loaded_for(mi, scene)
-    pass_a, pass_b = render_passes(mi, scene, c2w, intrinsics, spp, seed, target)
+    pass_a, pass_b = render_passes(mi, scene, c2w, intrinsics, spp, seed, target, lens=lens)
     image = mean_of_passes(pass_a, pass_b)
     albedo = render_albedo(mi, scene, integrator, c2w, intrinsics, pass_a.spp + (pass_b.spp if pass_b else 0), seed)
     passes = ((pass_a.mean, pass_a.spp),) + (() if pass_b is None else ((pass_b.mean, pass_b.spp),))

@@ -40,7 +40,8 @@ def _render_one(mi, scene, out, the_plan, split, index):
     config = the_plan.config
     start = time.perf_counter()
     images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
-                         view_seed(config.seed, split, index), target=config.noise_target)
+                         view_seed(config.seed, split, index), target=config.noise_target,
+                         lens=the_plan.lens(split))
     return images, time.perf_counter() - start
 
 

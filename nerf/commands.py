@@ -148,6 +148,13 @@ def _add_render(subparsers) -> None:
     parser.add_argument("--threads", type=positive_int, default=None, help="CPU threads (default: the run's)")
     parser.add_argument("--step-ratio", type=positive_float, default=1.0, metavar="VOXELS",
                         help="compact model's marching step in voxels (default 1; 0.5 renders as trained, slower)")
+    parser.add_argument("--aperture-samples", type=positive_int, default=16, metavar="N",
+                        help="lens samples per pixel for frames rendered through a thin lens (their transforms "
+                             "entry has \"lens\"): stratified on the lens disc, seeded (default 16)")
+    parser.add_argument("--lens-seed", type=nonnegative_int, default=0, help="seed of the lens samples (default 0)")
+    parser.add_argument("--dataset", type=path, default=None, metavar="DATASET",
+                        help="render the views of this dataset of the same scene (e.g. the test cameras through "
+                             "a lens) instead of those of the dataset the run was trained on")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_render)
 
@@ -156,7 +163,11 @@ def _run_render(args) -> int:
     from nerfgauge.nerf.render_views import render_split
 
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
-                          overwrite=args.overwrite, progress=not args.quiet)
+                          overwrite=args.overwrite, progress=not args.quiet, aperture_samples=args.aperture_samples,
+                          lens_seed=args.lens_seed, dataset=args.dataset)
+    if timing.get("lens_frames"):
+        print(f"{timing['lens_frames']} frames through their thin lens at {timing['aperture_samples']} lens samples: "
+              f"{timing['ms_per_lens_frame']:.1f} ms per frame")
     print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
     return 0

@@ -5,6 +5,14 @@ opacity) and OUT/test/r_007_depth.exr (expected ray distance, 0 where opacity is
 plus OUT/timing.json with milliseconds per frame (model time only, after one warm-up
 frame) and the render settings, which `nerfgauge evaluate` copies into its metrics.
 
+A frame whose transforms entry has a thin lens ("lens": aperture_radius, focus_distance;
+see docs/conventions.md) is rendered through it: its colour is the mean of
+`aperture_samples` renders of thin-lens rays (nerfgauge.core.camera.thin_lens_rays), one
+per stratified concentric-disc lens sample seeded by (lens_seed, frame index), so a
+rerender is identical; its depth is still that of the pinhole pixel-centre rays (as the
+dataset's ground truth is). A lens with aperture 0 renders the pinhole path unchanged.
+The cost is aperture_samples + 1 pinhole renders per lens frame.
+
 OUT is claimed as a nerfgauge "renders" folder whose recipe is the model file's hash and
 the step ratio: frames of another model are never mixed in (replaced only with overwrite),
 and a folder nerfgauge did not make is never written into.
@@ -23,7 +31,8 @@ from nerfgauge.nerf.data import split_rays
 from nerfgauge.nerf.train import pick_device, render_rays_chunked
 from tqdm import tqdm
 
-from nerfgauge.core.dataset import read_split
+from nerfgauge.core.camera import lens_samples, thin_lens_rays
+from nerfgauge.core.dataset import open_dataset, read_split
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash
@@ -33,6 +42,7 @@ from nerfgauge.core.images import write_exr, write_png
 # whole voxel renders ~1.6x faster for -0.2 dB on primitives (38.29 vs 38.50 dB, measured
 # on 6 test views of the 120-s benchmark model). --step-ratio 0.5 renders as trained.
 RENDER_STEP_RATIO = 1.0
+APERTURE_SAMPLES = 16  # lens samples per pixel of a thin-lens frame (--aperture-samples)
 
 
 def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -59,10 +69,39 @@ def render_frame(model, origins, directions, pool, parts: int = 1) -> tuple:
     return tuple(torch.cat(column) for column in zip(*results))
 
 
+def lens_frame(model, cameras, index: int, samples: int, seed: int, pool, parts: int, device) -> tuple:
+    """Frame `index` through its thin lens: premultiplied rgb [H*W, 3] and opacity [H*W]
+    averaged over `samples` stratified lens samples (seeded by (seed, index)), and the depth
+    [H*W] of the pinhole pixel-centre rays."""
+    disk = lens_samples(samples, (seed, index))  # [S, 2]
+    origins, directions = thin_lens_rays(cameras.c2w[index], cameras.intrinsics, cameras.lens(index), disk)
+    o = torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)).to(device)
+    d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
+    rgb, opacity, _ = render_frame(model, o, d, pool, parts)
+    pixels = cameras.intrinsics.width * cameras.intrinsics.height
+    rgb, opacity = rgb.view(samples, pixels, 3).mean(dim=0), opacity.view(samples, pixels).mean(dim=0)
+    centre_o, centre_d = split_rays(cameras, index)
+    _, _, depth = render_frame(model, centre_o.to(device), centre_d.to(device), pool, parts)
+    return rgb, opacity, depth
+
+
+def check_same_scene(trained_on, other) -> None:
+    """InputError unless dataset `other` shows the scene (recipe and seed) `trained_on` does."""
+    a, b = open_dataset(trained_on).scene, open_dataset(other).scene
+    key = lambda scene: (scene.get("recipe"), scene.get("seed"), scene.get("bounds"))  # noqa: E731
+    if key(a) != key(b):
+        raise InputError(f"--dataset {other} shows scene {key(b)[:2]}, but the run was trained on "
+                         f"{trained_on} showing {key(a)[:2]}")
+
+
 def render_split(run_dir, split: str = "test", out=None, *, threads: int | None = None,
-                 step_ratio: float | None = RENDER_STEP_RATIO, overwrite: bool = False, progress: bool = True) -> dict:
+                 step_ratio: float | None = RENDER_STEP_RATIO, overwrite: bool = False, progress: bool = True,
+                 aperture_samples: int = APERTURE_SAMPLES, lens_seed: int = 0, dataset=None) -> dict:
     """Render every view of `split` into `out` (default RUN/renders). step_ratio: marching
-    step in voxels for the compact model (None: the training step, half a voxel)."""
+    step in voxels for the compact model (None: the training step, half a voxel).
+    aperture_samples, lens_seed: lens samples per pixel and their seed for frames with a
+    thin lens. dataset: render this dataset's views (of the scene the run was trained on;
+    e.g. the same cameras through a lens) instead of the training dataset's."""
     if isinstance(run_dir, str) and not run_dir.strip() or isinstance(out, str) and not out.strip():
         raise InputError("the run folder and --out must be non-empty paths")
     run_dir = Path(run_dir)
@@ -72,34 +111,49 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
         raise InputError(f"--step-ratio must be in (0, 2] voxels, got {step_ratio}")
     if threads is not None and not (isinstance(threads, int) and not isinstance(threads, bool) and threads > 0):
         raise InputError(f"--threads must be a positive integer, got {threads!r}")
+    if not (isinstance(aperture_samples, int) and not isinstance(aperture_samples, bool) and aperture_samples > 0):
+        raise InputError(f"--aperture-samples must be a positive integer, got {aperture_samples!r}")
+    if not (isinstance(lens_seed, int) and not isinstance(lens_seed, bool) and lens_seed >= 0):
+        raise InputError(f"--lens-seed must be a non-negative integer, got {lens_seed!r}")
     model, config = load_model(run_dir / "model.pt")
     threads = threads or config.threads
     device = pick_device(config.device)
-    cameras = read_split(config.dataset, split)
+    if dataset is not None:
+        check_same_scene(config.dataset, dataset)
+    cameras = read_split(config.dataset if dataset is None else dataset, split)
+    lens = {"aperture_samples": aperture_samples, "lens_seed": lens_seed} if cameras.lenses else None
     out = Path(out) if out is not None else run_dir / "renders"
-    recipe = recipe_hash({"model_sha256": sha256_file(run_dir / "model.pt"), "step_ratio": step_ratio})
+    # The lens settings and another dataset are part of the recipe only when used, so a
+    # pinhole render keeps the recipe it always had.
+    recipe = recipe_hash({"model_sha256": sha256_file(run_dir / "model.pt"), "step_ratio": step_ratio}
+                         | ({"lens": lens} if lens else {}) | ({"dataset": str(dataset)} if dataset is not None else {}))
     with claim_folder(out, "renders", recipe, overwrite=overwrite):
-        return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress)
+        return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress, lens)
 
 
-def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress) -> dict:
+def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress, lens=None) -> dict:
     model = model.to(device).eval()
     if hasattr(model, "field") and step_ratio is not None:
         model.field.step_ratio = step_ratio
     pool = ThreadPoolExecutor(threads) if device.type == "cpu" and threads > 1 else None
     torch.set_num_threads(1 if pool is not None else threads)
     height, width = cameras.intrinsics.height, cameras.intrinsics.width
-    seconds = []
+    seconds, lens_seconds = [], []
     try:
         for index, stem in enumerate(tqdm(cameras.stems, desc=f"render {split}", unit="frame", disable=not progress)):
             origins, directions = split_rays(cameras, index)
             if index == 0:  # warm-up: first-call allocations are not the model's speed
                 render_frame(model, origins.to(device), directions.to(device), pool, threads)
+            through_lens = lens is not None and cameras.lens(index) is not None and not cameras.lens(index).is_pinhole
             start = time.perf_counter()
-            rgb, opacity, depth = render_frame(model, origins.to(device), directions.to(device), pool, threads)
+            if through_lens:
+                rgb, opacity, depth = lens_frame(model, cameras, index, lens["aperture_samples"], lens["lens_seed"],
+                                                 pool, threads, device)
+            else:
+                rgb, opacity, depth = render_frame(model, origins.to(device), directions.to(device), pool, threads)
             if device.type == "cuda":
                 torch.cuda.synchronize()
-            seconds.append(time.perf_counter() - start)
+            (lens_seconds if through_lens else seconds).append(time.perf_counter() - start)
             rgb, opacity, depth = (t.cpu().numpy() for t in (rgb, opacity, depth))
             target = out / stem
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -112,8 +166,14 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     finally:
         if pool is not None:
             pool.shutdown()
-    timing = {"ms_per_frame": 1000 * float(np.mean(seconds)) if seconds else None, "frames": len(seconds),
+    all_seconds = seconds + lens_seconds
+    timing = {"ms_per_frame": 1000 * float(np.mean(all_seconds)) if all_seconds else None, "frames": len(all_seconds),
               "resolution": [width, height], "device": device.type, "threads": threads,
               "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None)}
+    if lens is not None:  # the thin-lens frames' own cost, beside the pinhole frames'
+        timing |= {"aperture_samples": lens["aperture_samples"], "lens_seed": lens["lens_seed"],
+                   "lens_frames": len(lens_seconds),
+                   "ms_per_lens_frame": 1000 * float(np.mean(lens_seconds)) if lens_seconds else None,
+                   "ms_per_pinhole_frame": 1000 * float(np.mean(seconds)) if seconds else None}
     write_json(out / "timing.json", timing)
     return timing

@@ -9,6 +9,7 @@ has its ray through (j + 0.5, i + 0.5), row 0 at the top. Pure numpy; no rendere
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,3 +128,122 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 def to_mitsuba(c2w: np.ndarray) -> np.ndarray:
     """OpenGL camera-to-world -> Mitsuba sensor to_world (and back: the same flip)."""
     return np.asarray(c2w, np.float64) @ GL_TO_MITSUBA
+
+
+# --- thin lens ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ThinLens:
+    """A thin lens in front of the pinhole camera (Mitsuba's `thinlens` sensor).
+
+    aperture_radius: radius of the lens disc in scene units (0: a pinhole).
+    focus_distance: distance from the lens to the plane in focus, measured along the
+    optical axis (the plane z = -focus_distance in camera space), scene units.
+    """
+
+    aperture_radius: float
+    focus_distance: float
+
+    def __post_init__(self):
+        check_lens(self.aperture_radius, self.focus_distance)
+
+    @property
+    def is_pinhole(self) -> bool:
+        return self.aperture_radius == 0
+
+    def to_json(self) -> dict:
+        return {"model": "thinlens", "aperture_radius": float(self.aperture_radius),
+                "focus_distance": float(self.focus_distance)}
+
+    @classmethod
+    def from_json(cls, value, where: str) -> "ThinLens":
+        """A frame's "lens" entry; InputError (one line, naming `where`) if malformed."""
+        if not isinstance(value, dict) or value.get("model", "thinlens") != "thinlens":
+            raise InputError(f"{where}: lens must be {{\"model\": \"thinlens\", \"aperture_radius\": R, "
+                             f"\"focus_distance\": D}}, got {value!r}")
+        try:
+            radius, distance = float(value["aperture_radius"]), float(value["focus_distance"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"{where}: lens needs numeric aperture_radius and focus_distance, got {value!r}") from None
+        try:
+            return cls(radius, distance)
+        except InputError as error:
+            raise InputError(f"{where}: {error}") from None
+
+
+def check_lens(aperture_radius, focus_distance) -> None:
+    """InputError unless aperture_radius >= 0 and focus_distance > 0 (in front of the camera), both finite."""
+    def real(x):
+        return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
+
+    if not (real(aperture_radius) and aperture_radius >= 0):
+        raise InputError(f"lens aperture radius (--aperture) must be a finite number >= 0 in scene units, "
+                         f"got {aperture_radius!r}")
+    if not (real(focus_distance) and focus_distance > 0):
+        raise InputError(f"lens focus distance (--focus-distance) must be a finite number > 0 (in front of the "
+                         f"camera), got {focus_distance!r}")
+
+
+def stratified_unit_square(count: int, rng: np.random.Generator) -> np.ndarray:
+    """`count` jittered samples in [0, 1)^2, one in each cell of an a x b grid (a * b = count,
+    a the largest divisor of count not above sqrt(count)): every cell has the same area, so
+    the estimate over them is stratified for any count. Returns [count, 2]."""
+    if count < 1:
+        raise ValueError(f"need at least one sample, got {count}")
+    rows = max(a for a in range(1, math.isqrt(count) + 1) if count % a == 0)
+    cols = count // rows
+    j, i = np.meshgrid(np.arange(cols), np.arange(rows))
+    jitter = rng.random((count, 2))
+    return np.stack([(j.ravel() + jitter[:, 0]) / cols, (i.ravel() + jitter[:, 1]) / rows], axis=1)
+
+
+def concentric_disk(square: np.ndarray) -> np.ndarray:
+    """Shirley-Chiu concentric map of [0, 1)^2 onto the unit disc (area-preserving, so
+    stratified squares stay stratified discs; Mitsuba's thinlens uses the same map).
+    square: [n, 2]. Returns [n, 2]."""
+    a = 2.0 * square[:, 0] - 1.0
+    b = 2.0 * square[:, 1] - 1.0
+    first = np.abs(a) > np.abs(b)
+    safe_a = np.where(a == 0, 1.0, a)
+    safe_b = np.where(b == 0, 1.0, b)
+    radius = np.where(first, a, b)
+    angle = np.where(first, (math.pi / 4) * (b / safe_a), math.pi / 2 - (math.pi / 4) * (a / safe_b))
+    radius = np.where((a == 0) & (b == 0), 0.0, radius)
+    return np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=1)
+
+
+def lens_samples(count: int, seed) -> np.ndarray:
+    """`count` stratified points on the unit disc from a seeded generator. Returns [count, 2]."""
+    return concentric_disk(stratified_unit_square(count, np.random.default_rng(seed)))
+
+
+def thin_lens_rays(c2w: np.ndarray, intrinsics: Intrinsics, lens: ThinLens,
+                   disk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays of a thin-lens camera, one bundle per lens sample.
+
+    The ray of pixel (i, j) for lens sample (u, v) in the unit disc starts on the lens at
+    camera-space L = (R u, R v, 0) (R = aperture_radius) and passes through the point where
+    that pixel's pinhole centre ray meets the focus plane, F = D * (x, y, -1) with
+    (x, y, -1) = camera_directions: every ray of a pixel meets at F, so the plane
+    z = -D (D = focus_distance) is imaged sharply and a point at another depth spreads
+    into a disc (the circle of confusion).
+
+    c2w: [4, 4] (OpenGL axes); disk: [S, 2] points in the unit disc (lens_samples).
+    Returns origins [S, H, W, 3] and unit directions [S, H, W, 3] (float64). A pinhole lens
+    (aperture 0) returns pixel_rays exactly, repeated S times.
+    """
+    origins, directions = pixel_rays(c2w, intrinsics)  # validates c2w
+    disk = np.asarray(disk, np.float64).reshape(-1, 2)
+    if lens.is_pinhole:
+        return (np.broadcast_to(origins, (len(disk),) + origins.shape).copy(),
+                np.broadcast_to(directions, (len(disk),) + directions.shape).copy())
+    c2w = np.asarray(c2w, np.float64)
+    rotation = c2w[:3, :3]
+    focus = lens.focus_distance * camera_directions(intrinsics)  # [H, W, 3] camera space
+    on_lens = np.concatenate([lens.aperture_radius * disk, np.zeros((len(disk), 1))], axis=1)  # [S, 3]
+    local = focus[None] - on_lens[:, None, None, :]  # [S, H, W, 3]
+    d = local @ rotation.T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    o = on_lens @ rotation.T + c2w[:3, 3]  # [S, 3]
+    return np.broadcast_to(o[:, None, None, :], d.shape).copy(), d

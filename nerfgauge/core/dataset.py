@@ -33,12 +33,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 from PIL import Image
 
 from nerfgauge.core import validate
-from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.camera import Intrinsics, ThinLens
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, json_from_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.images import read_exr, read_exr_single, read_png
@@ -82,20 +83,27 @@ def write_instance_png(path, ids: np.ndarray) -> None:
         Image.fromarray(np.ascontiguousarray(ids)).save(tmp, format="PNG")
 
 
-def synthetic_transforms(intrinsics: Intrinsics, stems, poses) -> dict:
-    """transforms_<split>.json in the NeRF-synthetic format (plus w/h/fl_x/... extras)."""
+def _lens_entry(lens) -> dict:
+    """A frame's "lens" key (camera.ThinLens.to_json), or nothing for a pinhole frame."""
+    return {} if lens is None else {"lens": lens.to_json()}
+
+
+def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[ThinLens] = None) -> dict:
+    """transforms_<split>.json in the NeRF-synthetic format (plus w/h/fl_x/... extras; each
+    frame's "lens" when its colour was rendered through a thin lens)."""
     return {
         "camera_angle_x": intrinsics.camera_angle_x,
         "w": intrinsics.width, "h": intrinsics.height,
         "fl_x": intrinsics.fx, "fl_y": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy,
         "frames": [{"file_path": "./" + stem, "transform_matrix": np.asarray(pose).tolist(),
                     "depth_file_path": "./" + stem + FRAME_SUFFIXES["distance"],
-                    "mask_path": "./" + stem + FRAME_SUFFIXES["mask"]}
+                    "mask_path": "./" + stem + FRAME_SUFFIXES["mask"]} | _lens_entry(lens)
                    for stem, pose in zip(stems, poses)],
     }
 
 
-def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses: dict) -> dict:
+def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses: dict,
+                          split_lenses: Optional[dict] = None) -> dict:
     """transforms.json for nerfstudio. Its depth is z-depth in scene units (nerfstudio
     expects z-depth; pass --depth-unit-scale-factor 1 to its dataparser)."""
     frames, filenames = [], {}
@@ -104,7 +112,7 @@ def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses
         for stem, pose in zip(split_stems[split], split_poses[split]):
             frames.append({"file_path": stem + ".png", "transform_matrix": np.asarray(pose).tolist(),
                            "depth_file_path": stem + FRAME_SUFFIXES["z_depth"],
-                           "mask_path": stem + FRAME_SUFFIXES["mask"]})
+                           "mask_path": stem + FRAME_SUFFIXES["mask"]} | _lens_entry((split_lenses or {}).get(split)))
     return {"camera_model": "OPENCV", "fl_x": intrinsics.fx, "fl_y": intrinsics.fy,
             "cx": intrinsics.cx, "cy": intrinsics.cy, "w": intrinsics.width, "h": intrinsics.height,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames, **filenames}
@@ -147,12 +155,18 @@ def read_manifest(root) -> dict:
 @dataclass(frozen=True)
 class SplitCameras:
     """One split: frame stems (relative, extension-less), poses [n, 4, 4] (read-only),
-    intrinsics."""
+    intrinsics, and per frame the thin lens its colour was rendered through (None: a
+    pinhole frame; an empty tuple when no frame has a lens)."""
 
     split: str
     stems: tuple
     c2w: np.ndarray
     intrinsics: Intrinsics
+    lenses: tuple = ()
+
+    def lens(self, index: int) -> Optional[ThinLens]:
+        """Frame `index`'s thin lens, None for a pinhole frame."""
+        return self.lenses[index] if self.lenses else None
 
 
 class Dataset:
@@ -244,7 +258,7 @@ class Dataset:
         if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
             raise InputError(f"{where}: 'frames' must be a list of objects")
         intrinsics = validate.intrinsics(meta, where)
-        stems, poses = [], []
+        stems, poses, lenses = [], [], []
         for k, frame in enumerate(frames):
             if "file_path" not in frame or "transform_matrix" not in frame:
                 raise InputError(f"{where}: frame {k} needs file_path and transform_matrix")
@@ -254,9 +268,10 @@ class Dataset:
                     validate.relative_path(frame[key], f"{where}: frame {stem} {key}")
             stems.append(stem)
             poses.append(validate.pose(frame["transform_matrix"], stem, where))
+            lenses.append(ThinLens.from_json(frame["lens"], f"{where}: frame {stem}") if "lens" in frame else None)
         c2w = np.stack(poses) if poses else np.zeros((0, 4, 4))
         c2w.flags.writeable = False  # shared by every caller of cameras(split)
-        return SplitCameras(split, tuple(stems), c2w, intrinsics)
+        return SplitCameras(split, tuple(stems), c2w, intrinsics, tuple(lenses) if any(lenses) else ())
 
     def frame_file(self, stem: str, kind: str, decode):
         """decode(path, verified bytes) of the frame's file of `kind` (a FRAME_SUFFIXES

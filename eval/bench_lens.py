@@ -1,0 +1,149 @@
+"""Defocus bench: NeRF through a thin lens vs the refocused light field vs the nearest view,
+all scored against Mitsuba's thin-lens ground truth, at several aperture radii.
+
+    python -m nerfgauge.eval.bench_lens --out DIR [--apertures 0.1,0.2] [--budget-seconds 120]
+
+One light-field capture of the scene (--layout lightfield: a grid of --views training
+cameras facing +Y, off-grid test cameras on the same plane) is generated once per aperture
+(aperture 0 is the pinhole dataset; the others differ only in their test views, rendered
+through the lens focused at --focus-distance, default the camera distance: the scene's
+centre plane). The compact NeRF trains once, on the pinhole dataset's training views (the
+same pixels as every lens dataset's), for --budget-seconds; then for every aperture:
+
+- nerf: `nerfgauge render RUN --dataset DS --aperture-samples N` (the field integrates the lens);
+- refocus: `nerfgauge baseline DS --method refocus` (shift and add over the camera grid);
+- lightfield-quadrilinear: the two-plane light field, which has no lens (a pinhole view);
+- nearest: the nearest training view, unchanged (sharp everywhere);
+
+each evaluated with `nerfgauge evaluate DS`. Writes OUT/lens.json (every metrics document's
+means, the render costs), OUT/lens.md (PSNR/SSIM against aperture), OUT/lens.png (an image
+row per method at each aperture) and OUT/lens.html. The NeRF's defocus cost is its
+milliseconds per lens frame against per pinhole frame (timing.json). Times are of this
+machine at the time of the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
+
+METHODS = ("nerf", "refocus", "lightfield-quadrilinear", "nearest")
+
+
+def _cli(argv: list) -> None:
+    from nerfgauge.cli import main
+
+    code = main([str(a) for a in argv])
+    if code != 0:
+        raise SystemExit(f"bench_lens: `nerfgauge {' '.join(map(str, argv))}` exited {code}")
+
+
+def run_lens_bench(out, *, scene: str = "primitives", views: int = 64, test_views: int = 6, res: int = 96,
+                   spp: int = 64, radius: float = 3.5, focus_distance=None, apertures=(0.1, 0.2),
+                   budget_seconds: float = 120.0, aperture_samples: int = 16, threads: int = 2) -> dict:
+    from nerfgauge.eval.bench import claim_bench_folder
+    from nerfgauge.eval.report import aperture_table, focus_rows, page_html, sortable_table_html, _data_uri
+    from nerfgauge.generate.pipeline import GenerateConfig, generate
+
+    out = Path(out)
+    focus = radius if focus_distance is None else focus_distance
+    all_apertures = [0.0] + [float(a) for a in apertures]
+    with claim_bench_folder(out, "lens"):
+        datasets = {}
+        for aperture in all_apertures:
+            datasets[aperture] = out / "data" / f"aperture_{aperture:g}"
+            lens = {"aperture": aperture, "focus_distance": focus} if aperture else {}
+            generate(GenerateConfig(scene=scene, layout="lightfield", views=views, val_views=2, test_views=test_views,
+                                    width=res, height=res, spp=spp, radius=radius, **lens), datasets[aperture],
+                     progress=False)
+        run = out / "run"
+        if not (run / "model.pt").is_file():
+            _cli(["train", datasets[0.0], "--out", run, "--budget-seconds", budget_seconds, "--threads", threads,
+                  "--quiet", "--overwrite"])
+        preds, scores, costs = {m: {} for m in METHODS}, {m: {} for m in METHODS}, {}
+        for aperture, root in datasets.items():
+            for method in METHODS:
+                pred = out / "pred" / f"aperture_{aperture:g}" / method
+                if method == "nerf":
+                    _cli(["render", run, "--dataset", root, "--out", pred, "--aperture-samples", aperture_samples,
+                          "--threads", threads, "--quiet", "--overwrite"])
+                else:
+                    _cli(["baseline", root, "--method", method, "--out", pred, "--overwrite"])
+                _cli(["evaluate", root, "--pred", pred])
+                preds[method][aperture] = pred
+                scores[method][aperture] = read_json(pred / "metrics.json")
+                costs.setdefault(method, {})[aperture] = read_json(pred / "timing.json")
+        stem = f"test/r_{0:03d}"
+        focus_rows(datasets, preds, stem, out / "lens.png")
+        table = aperture_table(scores, all_apertures)
+        nerf_pinhole = scores["nerf"][0.0]["mean"]["psnr"]
+        summary = {
+            "scene": scene, "views": views, "test_views": test_views, "resolution": res, "spp": spp,
+            "camera_distance": radius, "focus_distance": focus, "apertures": all_apertures,
+            "budget_seconds": budget_seconds, "aperture_samples": aperture_samples,
+            "mean": {m: {f"{a:g}": scores[m][a]["mean"] for a in all_apertures} for m in METHODS},
+            "nerf_psnr_minus_pinhole": {f"{a:g}": scores["nerf"][a]["mean"]["psnr"] - nerf_pinhole
+                                        for a in all_apertures},
+            "ms_per_frame": {m: {f"{a:g}": costs[m][a].get("ms_per_frame") for a in all_apertures} for m in METHODS},
+            "nerf_ms_per_lens_frame": {f"{a:g}": costs["nerf"][a].get("ms_per_lens_frame") for a in all_apertures},
+            "nerf_ms_per_pinhole_frame": costs["nerf"][0.0].get("ms_per_frame"),
+        }
+        write_json(out / "lens.json", summary)
+        markdown = _markdown(table, summary)
+        write_bytes_atomic(out / "lens.md", markdown.encode())
+        notes = [f"{scene}, light-field grid of {views} cameras at distance {radius:g}, {res} px, {spp} spp; "
+                 f"focus distance {focus:g}; NeRF trained {budget_seconds:g} s on the pinhole training views, "
+                 f"{aperture_samples} lens samples per pixel"]
+        body = (sortable_table_html(table) + f"<h2>frame {stem}: one row per method</h2>"
+                f"<img src='{_data_uri(out / 'lens.png')}' alt='focus rows'>")
+        write_bytes_atomic(out / "lens.html", page_html("defocus: methods against the thin-lens truth", body, notes))
+        print(markdown)
+        return summary
+
+
+def _markdown(table: list, summary: dict) -> str:
+    head, *rows = table
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    deltas = ", ".join(f"A={a}: {d:+.2f} dB" for a, d in summary["nerf_psnr_minus_pinhole"].items())
+    lens_ms = ", ".join(f"A={a}: {v:.0f} ms" for a, v in summary["nerf_ms_per_lens_frame"].items() if v)
+    lines += ["", f"NeRF PSNR minus its pinhole PSNR: {deltas}.",
+              f"NeRF per frame: pinhole {summary['nerf_ms_per_pinhole_frame']:.0f} ms; through the lens "
+              f"({summary['aperture_samples']} samples + the pinhole depth pass) {lens_ms}."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m nerfgauge.eval.bench_lens", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", required=True, type=Path)
+    parser.add_argument("--scene", default="primitives")
+    parser.add_argument("--views", type=int, default=64, help="training grid (a square, default 64 = 8x8)")
+    parser.add_argument("--test-views", type=int, default=6)
+    parser.add_argument("--res", type=int, default=96)
+    parser.add_argument("--spp", type=int, default=64)
+    parser.add_argument("--radius", type=float, default=3.5, help="camera plane's distance from the scene centre")
+    parser.add_argument("--focus-distance", type=float, default=None, help="default: --radius")
+    parser.add_argument("--apertures", default="0.1,0.2", help="comma-separated aperture radii (scene units)")
+    parser.add_argument("--budget-seconds", type=float, default=120.0)
+    parser.add_argument("--aperture-samples", type=int, default=16)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+    try:
+        apertures = [float(a) for a in args.apertures.split(",") if a.strip()]
+        run_lens_bench(args.out, scene=args.scene, views=args.views, test_views=args.test_views, res=args.res,
+                       spp=args.spp, radius=args.radius, focus_distance=args.focus_distance, apertures=apertures,
+                       budget_seconds=args.budget_seconds, aperture_samples=args.aperture_samples,
+                       threads=args.threads)
+    except (InputError, ValueError) as error:
+        print(f"bench_lens: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
