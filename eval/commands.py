@@ -160,11 +160,17 @@ def register_baseline(subparsers) -> None:
     parser.add_argument("--evaluate", action="store_true", help="then score the renders (writes DIR/metrics.json)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a baseline folder made from another dataset, method or split")
+    parser.add_argument("--aperture", type=arguments.finite_float, default=None, metavar="RADIUS",
+                        help="refocus: lens radius for every frame (default: each frame's own lens)")
+    parser.add_argument("--focus-distance", type=arguments.finite_float, default=None, metavar="D",
+                        help="refocus: focus distance for every frame (with --aperture)")
+    parser.add_argument("--lens-samples", type=arguments.positive_int, default=64, metavar="N",
+                        help="refocus: lens samples per pixel (default 64)")
     parser.set_defaults(func=run_baseline)
 
 
 @contextlib.contextmanager
-def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = False):
+def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = False, options=None):
     """Claim `out` as a "baseline" folder (core.folders.claim_folder) for the block. Its
     recipe is the method, the split and the dataset's content (manifest.json's hash), so a
     rerun on the same dataset continues and another one needs overwrite."""
@@ -173,7 +179,8 @@ def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = Fal
     from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
 
     root, out = dataset.require_complete(root), Path(out)
-    recipe = recipe_hash({"method": method, "split": split, "dataset": sha256_file(root / dataset.MANIFEST)})
+    recipe = recipe_hash({"method": method, "split": split, "dataset": sha256_file(root / dataset.MANIFEST)}
+                         | ({"options": options} if options else {}))
     made = [folder for folder in (out, *out.parents) if not folder.exists()]  # what claiming creates
     state = None
     try:
@@ -191,8 +198,18 @@ def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = Fal
 def run_baseline(args) -> int:
     from nerfgauge.eval.baselines import write_baseline
 
-    with baseline_folder(args.dataset, args.method, args.out, args.split, overwrite=args.overwrite):
-        timing = write_baseline(args.dataset, args.method, args.out, split=args.split)
+    from nerfgauge.core.camera import ThinLens
+    from nerfgauge.core.errors import InputError
+
+    lens = None
+    if args.aperture is not None or args.focus_distance is not None:
+        if args.method != "refocus" or args.aperture is None or args.focus_distance is None:
+            raise InputError("--aperture and --focus-distance go together, with --method refocus")
+        lens = ThinLens(args.aperture, args.focus_distance)
+    with baseline_folder(args.dataset, args.method, args.out, args.split, overwrite=args.overwrite,
+                         options=None if lens is None else lens.to_json() | {"samples": args.lens_samples}):
+        timing = write_baseline(args.dataset, args.method, args.out, split=args.split, lens=lens,
+                                samples=args.lens_samples)
         print(f"{args.out}: {timing['frames']} frames by {args.method} ({timing['ms_per_frame']:.1f} ms per frame)")
         if args.evaluate:
             args.pred, args.out, args.background, args.depth_kind = args.out, None, "white", "distance"
@@ -263,11 +280,42 @@ def register_bench(subparsers) -> None:
     hard.add_argument("--steps", type=arguments.positive_int, default=400, help="training steps per scene (default 400)")
     hard.add_argument("--out", type=arguments.path, default=Path("bench-out/hard"))
     hard.set_defaults(func=run_bench_hard)
+    lens = kinds.add_parser("lens", help="defocus: the NeRF through a thin lens against refocused light fields and "
+                                         "the nearest view, at several apertures")
+    lens.add_argument("--scene", default="primitives")
+    lens.add_argument("--views", type=arguments.positive_int, default=64, help="training grid (a square, default 64 = 8x8)")
+    lens.add_argument("--test-views", type=arguments.positive_int, default=6)
+    lens.add_argument("--res", type=arguments.positive_int, default=96)
+    lens.add_argument("--spp", type=arguments.positive_int, default=64)
+    lens.add_argument("--radius", type=arguments.positive_float, default=3.5, help="camera plane's distance from the scene centre")
+    lens.add_argument("--focus-distance", type=arguments.positive_float, default=None, help="default: --radius")
+    lens.add_argument("--apertures", type=positive_floats, default=(0.1, 0.2),
+                      help="comma-separated aperture radii, scene units (default 0.1,0.2)")
+    lens.add_argument("--budget-seconds", type=arguments.positive_float, default=120.0)
+    lens.add_argument("--aperture-samples", type=arguments.positive_int, default=16)
+    lens.add_argument("--threads", type=arguments.positive_int, default=2)
+    lens.add_argument("--out", type=arguments.path, default=Path("bench-out/lens"))
+    lens.set_defaults(func=run_bench_lens)
     read = kinds.add_parser("read", help="what validating a dataset on load costs: sizes only against sizes + sha256")
     read.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
     read.add_argument("--split", default="train", help="split to read (default train)")
     read.add_argument("--repeats", type=arguments.positive_int, default=15, help="best of this many (default 15)")
     read.set_defaults(func=run_bench_read)
+
+
+def run_bench_lens(args) -> int:
+    from nerfgauge.eval.bench_lens import run_lens_bench
+
+    run_lens_bench(args.out, scene=args.scene, views=args.views, test_views=args.test_views, res=args.res,
+                   spp=args.spp, radius=args.radius, focus_distance=args.focus_distance, apertures=args.apertures,
+                   budget_seconds=args.budget_seconds, aperture_samples=args.aperture_samples, threads=args.threads)
+    print(f"bench lens: {args.out}")
+    return 0
+
+
+def positive_floats(text: str) -> tuple:
+    """"0.1,0.2" -> (0.1, 0.2): comma-separated positive finite numbers."""
+    return tuple(arguments.positive_float(part) for part in text.split(","))
 
 
 def _variant_names():
