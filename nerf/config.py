@@ -20,9 +20,10 @@ from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisat
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
-# A dense 256^3 grid with Adam state is ~1 GB for a diffuse scene, ~3.5 GB with view-dependent
-# features; 512^3 would be 8x that. Cameras inside the scene's bounding sphere (rooms,
-# forward-facing captures) ask for more than any CPU can hold: they get this cap.
+# The sparse grid stores values only where cells are occupied, but its node index (4 bytes
+# a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
+# the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing
+# captures) ask for an unbounded resolution: they get this cap.
 MAX_AUTO_RESOLUTION = 256
 UNBOUNDED_MAX_RESOLUTION = 192  # contracted / forward grids (every cell of them is in view)
 
@@ -155,7 +156,7 @@ def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquis
     wanted = math.ceil(longest / voxel)
     resolution = int(min(max(wanted, 16), MAX_AUTO_RESOLUTION))
     if wanted > MAX_AUTO_RESOLUTION:
-        reason += f" asks for {wanted} voxels; capped at {MAX_AUTO_RESOLUTION} (dense-grid memory)"
+        reason += f" asks for {wanted} voxels; capped at {MAX_AUTO_RESOLUTION} (node index and samples per ray)"
     return resolution, reason
 
 
