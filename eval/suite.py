@@ -261,11 +261,18 @@ def dataset_dir(out, entry: SceneEntry) -> Path:
     return Path(out) / "datasets" / entry.id
 
 
-def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print) -> dict:
-    """Every dataset of the suite into out/datasets/<id>/, then suite-manifest.json. Returns it."""
+def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print,
+                   scheduler: str | None = None) -> dict:
+    """Every dataset of the suite into out/datasets/<id>/, then suite-manifest.json. Returns it.
+    scheduler: tcp://HOST:PORT or local:N renders every dataset's views as tasks on a dask
+    cluster (generate.distributed); None renders here."""
     from nerfgauge.generate.pipeline import generate
 
     out = Path(out)
+    if scheduler is not None:
+        from nerfgauge.generate.distributed import parse_scheduler
+
+        parse_scheduler(scheduler)  # a malformed address is one line before anything is written
     for entry in suite.scenes:
         suite.generate_config(entry).validate()
     with claim_suite_folder(suite, out, overwrite=overwrite):
@@ -281,7 +288,7 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
                 continue
             log(f"[{index}/{len(suite.scenes)}] {entry.id}: generate {entry.scene} (seed {entry.seed})")
             start = time.perf_counter()
-            generate(suite.generate_config(entry), folder, overwrite=overwrite, progress=progress)
+            generate(suite.generate_config(entry), folder, overwrite=overwrite, progress=progress, scheduler=scheduler)
             log(f"    {entry.id}: generated in {time.perf_counter() - start:.1f} s")
         document = {**suite.identity(), "schema": SCHEMA, "datasets": {
             entry.id: dataset_record(out, entry) for entry in suite.scenes}}

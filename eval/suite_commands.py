@@ -27,6 +27,9 @@ def register(subparsers) -> None:
     generate.add_argument("--out", type=arguments.path, required=True, metavar="DIR", help="suite folder")
     generate.add_argument("--overwrite", action="store_true", help="replace a suite folder of another suite or version")
     generate.add_argument("--progress", action="store_true", help="progress bars")
+    generate.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                          help="render the views on a dask.distributed cluster: tcp://HOST:PORT or local:N "
+                               "(needs the dask extra)")
     generate.set_defaults(func=run_generate)
     evaluate = kinds.add_parser("evaluate", help="score a method's renders on every dataset of a suite")
     evaluate.add_argument("suite", metavar="SUITE")
@@ -61,7 +64,8 @@ def run_generate(args) -> int:
     from nerfgauge.eval.suite import generate_suite, load_suite
 
     suite = load_suite(args.suite)
-    manifest = generate_suite(suite, args.out, overwrite=args.overwrite, progress=args.progress)
+    manifest = generate_suite(suite, args.out, overwrite=args.overwrite, progress=args.progress,
+                              scheduler=args.scheduler)
     files = sum(len(record["files"]) for record in manifest["datasets"].values())
     print(f"suite {suite.name} v{suite.version}: {len(manifest['datasets'])} datasets, {files} files -> "
           f"{args.out / 'suite-manifest.json'}")

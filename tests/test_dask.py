@@ -178,3 +178,21 @@ def test_a_worker_killed_mid_generation_still_gives_the_single_process_bytes(tmp
     assert result["views_rendered"] == 62
     assert dataset.verify_manifest(out) == []
     assert tree(out) == tree(tmp_path / "clean")
+
+
+@pytest.mark.slow
+@needs_dask
+def test_suite_generate_on_a_local_cluster_equals_the_plain_run(tmp_path):
+    """`suite generate --scheduler local:2` renders every dataset's views as cluster tasks:
+    the suite folder (datasets and suite-manifest.json) equals a plain run byte for byte."""
+    plain, clustered = tmp_path / "plain", tmp_path / "cluster"
+    assert main(["suite", "generate", "smoke", "--out", str(plain)]) == 0
+    assert main(["suite", "generate", "smoke", "--out", str(clustered), "--scheduler", "local:2"]) == 0
+    assert tree(clustered) == tree(plain)
+
+
+def test_suite_generate_refuses_a_malformed_scheduler_before_writing(tmp_path, capsys):
+    out = tmp_path / "suite"
+    assert main(["suite", "generate", "smoke", "--out", str(out), "--scheduler", "local:zero"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "local:N" in err[0] and not out.exists()
