@@ -39,7 +39,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser("generate", help="render a scene into a NeRF dataset",
                                    description="Render posed views of a procedural scene with Mitsuba 3, with "
                                                "exact depth, normals and masks, into a NeRF-synthetic + nerfstudio dataset.")
-    parser.add_argument("scene", help="scene name (see `nerfgauge scenes`) or mesh:PATH")
+    parser.add_argument("scene", help="scene name (see `nerfgauge scenes`), mesh:PATH or a scene file (.toml/.json)")
     parser.add_argument("--out", required=True, type=arguments.path, help="dataset folder (created; resumed if it holds the same recipe)")
     parser.add_argument("--views", type=arguments.positive_int, default=100, help="training views (default 100)")
     parser.add_argument("--val-views", type=arguments.nonnegative_int, default=10)
@@ -57,6 +57,13 @@ def register(subparsers) -> None:
                         help="MIN,MAX camera elevation in degrees (default: the scene's suggestion, else 10,75)")
     parser.add_argument("--radius", type=arguments.positive_float, default=None, help="camera distance from the AABB centre (default: fit)")
     parser.add_argument("--variant", choices=CHOICES, default="auto")
+    parser.add_argument("--units", choices=("normalise", "keep"), default="normalise",
+                        help="user assets: normalise into [-1, 1]^3 (default; the transform is in scene.json) or "
+                             "keep the files' coordinates, so depth and meshes/ are in the asset's units")
+    parser.add_argument("--envmap", type=arguments.path, default=None, metavar="FILE",
+                        help="light the scene with an equirectangular .exr/.hdr instead of its own lights")
+    parser.add_argument("--envmap-rotation", type=arguments.finite_float, default=0.0, metavar="DEG",
+                        help="turn the --envmap about +Z by DEG degrees (default 0)")
     parser.add_argument("--workers", type=arguments.positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="render on a dask.distributed cluster: tcp://HOST:PORT of a running scheduler, or "
@@ -74,7 +81,9 @@ def run(args) -> int:
     config = GenerateConfig(scene=args.scene, seed=args.seed, views=args.views, val_views=args.val_views,
                             test_views=args.test_views, width=width, height=height, spp=args.spp,
                             max_depth=args.max_depth, fov=args.fov, layout=args.layout, sampling=args.sampling,
-                            elevation=args.elevation and parse_band(args.elevation), radius=args.radius, variant=args.variant)
+                            elevation=args.elevation and parse_band(args.elevation), radius=args.radius, variant=args.variant,
+                            units=args.units, envmap=args.envmap and str(args.envmap),
+                            envmap_rotation=args.envmap_rotation)
     result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet,
                       scheduler=args.scheduler)
     rendered = result["views_rendered"]

@@ -75,6 +75,9 @@ class GenerateConfig:
     elevation: Optional[tuple] = None  # None: the scene's suggestion, else DEFAULT_ELEVATION
     radius: Optional[float] = None  # None: the scene's suggestion, else fit the AABB's bounding sphere in view
     variant: str = "auto"
+    units: str = "normalise"  # "keep": user assets stay in their files' units
+    envmap: Optional[str] = None  # an equirectangular .exr/.hdr lighting the scene instead of its lights
+    envmap_rotation: float = 0.0  # degrees about +Z
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "spp": self.spp,
@@ -99,7 +102,12 @@ class GenerateConfig:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self) | {"elevation": None if self.elevation is None else list(self.elevation)}
+        out = dataclasses.asdict(self) | {"elevation": None if self.elevation is None else list(self.elevation)}
+        # Left out at their defaults, so datasets made before these options keep their recipe hash.
+        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0)):
+            if out[name] == default:
+                del out[name]
+        return out
 
 
 @dataclass(frozen=True)
@@ -131,7 +139,8 @@ class Plan:
 def plan(config: GenerateConfig) -> Plan:
     """Validate and resolve everything without writing anything."""
     config.validate()
-    scene = make_scene(config.scene, config.seed)
+    scene = make_scene(config.scene, config.seed, units=config.units, envmap=config.envmap,
+                       envmap_rotation=config.envmap_rotation)
     intrinsics = Intrinsics.from_fov(config.width, config.height, config.fov)
     spec = layout_spec(config, scene)
     rng = np.random.default_rng(config.seed)

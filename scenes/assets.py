@@ -1,0 +1,488 @@
+"""Reading a user's asset file into named objects with their materials, in the file's units.
+
+A GLB/glTF scene graph gives one object per node that holds a mesh (trimesh.load without
+force="mesh" returns a trimesh.Scene; `scene.graph[node]` gives the node's world transform
+and geometry). An OBJ gives one object per `o`/`g` group (split further by `usemtl`), read
+by the small parser below because trimesh's OBJ loader renames split objects after the
+first one ("first", "first_1", ...). PLY/STL/OFF files hold one unnamed object.
+
+Materials follow glTF's metallic-roughness model: a linear base colour, optionally times
+an sRGB base-colour texture (and per-vertex colours, taken as linear like glTF's COLOR_0),
+optional roughness and metallic (then rendered with Mitsuba's principled BSDF, else
+diffuse). Coordinates stay in the file's units here: registry.py normalises (or not).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import trimesh
+import trimesh.resolvers
+from nerfgauge.scenes.meshes import MeshData
+
+from nerfgauge.core.errors import InputError
+
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
+UNNAMED = "user_mesh"  # the name of the one object of a file that names none (PLY, STL, OBJ without o/g)
+
+
+def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+    """sRGB transfer function inverted; encoded in [0, 1]. Same shape out."""
+    encoded = np.asarray(encoded, np.float64)
+    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4)
+
+
+@dataclass(frozen=True)
+class TextureImage:
+    """A texture read from an asset: where it came from and its size. The pixels (linear
+    RGB [H, W, 3] float32, row 0 at the top of the image as stored) are an attribute
+    outside the dataclass fields, so scene.json (dataclasses.asdict) records the source
+    and hash, not a million numbers."""
+
+    source: str
+    sha256: str
+    width: int
+    height: int
+
+    @classmethod
+    def from_pixels(cls, source: str, pixels: np.ndarray) -> "TextureImage":
+        pixels = np.ascontiguousarray(pixels, np.float32)
+        image = cls(source, hashlib.sha256(pixels.tobytes()).hexdigest(), int(pixels.shape[1]), int(pixels.shape[0]))
+        object.__setattr__(image, "pixels", pixels)
+        return image
+
+
+@dataclass(frozen=True)
+class AssetMaterial:
+    """An asset's material. base_color is linear RGB; texture (if any) is already
+    multiplied by it. vertex_colors: the mesh's per-vertex colours (already multiplied by
+    base_color) are the albedo. roughness/metallic: None when the file gives neither
+    (then the surface is diffuse)."""
+
+    name: str
+    base_color: tuple = (0.6, 0.6, 0.6)
+    texture: Optional[TextureImage] = None
+    vertex_colors: bool = False
+    roughness: Optional[float] = None
+    metallic: Optional[float] = None
+
+    @property
+    def view_dependent(self) -> bool:
+        return self.roughness is not None or self.metallic is not None
+
+
+@dataclass(frozen=True, eq=False)
+class AssetObject:
+    """One named object of an asset: its mesh in the file's world coordinates (uv are
+    texture coordinates, v up as in OBJ), its material (None: the default grey) and a
+    constant emission (None: not a light)."""
+
+    name: str
+    mesh: MeshData = field(repr=False)
+    material: Optional[AssetMaterial] = None
+    emission: Optional[tuple] = None
+
+
+@dataclass(frozen=True, eq=False)
+class Asset:
+    """objects, {path: sha256} of every file read (the asset first), warning lines."""
+
+    path: Path
+    objects: list
+    inputs: dict
+    warnings: list
+
+
+def warn(message: str) -> None:
+    """One warning line on stderr (what the run still does despite the problem)."""
+    print(f"warning: {message}", file=sys.stderr)
+
+
+def read_asset(path: Path) -> Asset:
+    """Read every object of `path` with its material, in the file's own coordinates.
+    Bad files raise a one-line InputError; a missing texture is a warning (the base colour
+    is used instead). OS errors (permission, I/O) propagate."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"mesh file not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise InputError(f"mesh {path} has unsupported extension {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
+    content = path.read_bytes()
+    if not content:
+        raise InputError(f"mesh {path} is empty")
+    inputs = {str(path): hashlib.sha256(content).hexdigest()}
+    warnings: list = []
+    if suffix == ".obj":
+        objects = _read_obj(path, content, inputs, warnings)
+    else:
+        objects = _read_with_trimesh(path, suffix, content, inputs, warnings)
+    objects = [obj for obj in objects if len(obj.mesh.faces)]
+    if not objects:
+        raise InputError(f"mesh {path} has no triangles")
+    return Asset(path, _unique_names(objects), inputs, warnings)
+
+
+def _unique_names(objects: list) -> list:
+    """File-name-safe, unique names (they name meshes/<name>.ply and Mitsuba shapes);
+    `light_*` is left to the scene's lights."""
+    seen, out = set(), []
+    for obj in objects:
+        base = re.sub(r"[^A-Za-z0-9_-]+", "_", obj.name).strip("_") or "object"
+        base = "object_" + base if base.startswith("light_") else base
+        name, count = base, 1
+        while name in seen:
+            count += 1
+            name = f"{base}_{count}"
+        seen.add(name)
+        out.append(AssetObject(name, obj.mesh, obj.material, obj.emission))
+    return out
+
+
+def checked_mesh(path: Path, vertices, faces, normals=None, uv=None, colors=None) -> MeshData:
+    """A MeshData after the checks every format shares: faces index existing vertices whose
+    coordinates are finite. normals None: flat shading; uv None: zeros."""
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(faces) == 0:
+        return MeshData(vertices, faces, None, np.zeros((len(vertices), 2)))
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"mesh {path} has faces indexing vertices {faces.min()}..{faces.max()}, "
+                         f"but only {len(vertices)} vertices")
+    non_finite = ~np.isfinite(vertices[np.unique(faces)]).all(axis=1)  # [used V]
+    if non_finite.any():
+        raise InputError(f"mesh {path} has {int(non_finite.sum())} vertices with NaN or inf coordinates "
+                         f"used by its triangles")
+    if normals is not None:
+        normals = np.asarray(normals, np.float64).reshape(-1, 3)
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        # Unusable file normals (zero or non-finite) mean flat shading rather than NaN shading.
+        normals = normals / length if np.isfinite(normals).all() and (length > 0).all() else None
+    uv = np.zeros((len(vertices), 2)) if uv is None else np.asarray(uv, np.float64).reshape(-1, 2)
+    if not np.isfinite(uv).all():
+        uv = np.nan_to_num(uv, nan=0.0, posinf=0.0, neginf=0.0)
+    if colors is not None:
+        colors = np.clip(np.asarray(colors, np.float64).reshape(-1, 3), 0, None)
+    return MeshData(vertices, faces, normals, uv, colors)
+
+
+# --- glTF, GLB, PLY, STL, OFF through trimesh --------------------------------------------
+
+
+class RecordingResolver(trimesh.resolvers.FilePathResolver):
+    """trimesh's resolver for files a mesh refers to (glTF buffers and images), noting the
+    sha256 of each one it reads (they are inputs too) and each one that is missing."""
+
+    def __init__(self, mesh_path: Path):
+        super().__init__(str(mesh_path))
+        self.read, self.missing = {}, []
+
+    def get(self, name: str):
+        try:
+            data = super().get(name)
+        except (FileNotFoundError, IsADirectoryError):
+            self.missing.append(str(Path(self.parent) / name))
+            raise
+        self.read[str(Path(self.parent) / name)] = hashlib.sha256(data).hexdigest()
+        return data
+
+
+def _read_with_trimesh(path, suffix, content, inputs, warnings) -> list:
+    resolver = RecordingResolver(path)
+    try:
+        loaded = trimesh.load(io.BytesIO(content), file_type=suffix[1:], resolver=resolver, process=False)
+    except ImportError as error:  # an optional parser trimesh reaches for: one line, not a missing-module trace
+        needs = ("its text is not UTF-8, and guessing another encoding needs the optional package charset_normalizer"
+                 if error.name == "charset_normalizer" else f"reading it needs the optional package {error.name or error}")
+        raise InputError(f"cannot read mesh {path}: not a valid {suffix} mesh ({needs})") from None
+    except Exception as error:  # trimesh raises many types for malformed files
+        if resolver.missing:
+            raise InputError(f"cannot read mesh {path}: it refers to {resolver.missing[0]}, which is missing") from None
+        detail = str(error).splitlines()[0] if str(error).strip() else type(error).__name__
+        raise InputError(f"cannot read mesh {path}: not a valid {suffix} mesh ({detail})") from None
+    inputs.update(resolver.read)
+    if resolver.missing:
+        message = f"{path} refers to missing {', '.join(resolver.missing)}: using the base colour instead"
+        warn(message)
+        warnings.append(message)
+    if isinstance(loaded, trimesh.Scene):
+        objects = []
+        for node in loaded.graph.nodes_geometry:
+            matrix, geometry_name = loaded.graph[node]
+            geometry = loaded.geometry[geometry_name]
+            if isinstance(geometry, trimesh.Trimesh):
+                objects.append(_trimesh_object(path, str(node), geometry, np.asarray(matrix, np.float64)))
+        return objects
+    if isinstance(loaded, trimesh.Trimesh):
+        return [_trimesh_object(path, UNNAMED, loaded, np.eye(4))]
+    return []
+
+
+def _trimesh_object(path, name, geometry: trimesh.Trimesh, matrix: np.ndarray) -> AssetObject:
+    vertices = np.asarray(geometry.vertices, np.float64)
+    faces = np.asarray(geometry.faces, np.int64)
+    # The file's normals: trimesh keeps normals it was given in its cache (it would
+    # compute some on access otherwise, and a flat-shaded file must stay flat).
+    normals = geometry._cache.cache.get("vertex_normals")
+    visual = geometry.visual
+    uv = getattr(visual, "uv", None) if visual.kind == "texture" else None
+    colors = None
+    if visual.kind == "vertex":
+        colors = np.asarray(visual.vertex_colors, np.float64)[:, :3] / 255
+    elif visual.kind == "face":  # one colour per face: every corner its own vertex
+        corners = faces.reshape(-1)
+        vertices, faces = vertices[corners], np.arange(len(corners)).reshape(-1, 3)
+        normals = None if normals is None else np.asarray(normals)[corners]
+        colors = np.repeat(np.asarray(visual.face_colors, np.float64)[:, :3] / 255, 3, axis=0)
+    if uv is not None and len(uv) != len(vertices):
+        uv = None
+    mesh = checked_mesh(path, vertices, faces, normals, uv, colors)
+    mesh = _apply_matrix(mesh, matrix)
+    material, emission = None, None
+    if visual.kind == "texture" and getattr(visual, "material", None) is not None:
+        material, emission = _gltf_material(path, visual.material, has_uv=uv is not None)
+    if colors is not None:
+        material = AssetMaterial("vertex_colors", (1.0, 1.0, 1.0), vertex_colors=True)
+    return AssetObject(name, mesh, material, emission)
+
+
+def _apply_matrix(mesh: MeshData, matrix: np.ndarray) -> MeshData:
+    """Points by the 4x4 `matrix`; normals by its inverse transpose (then unit); a mirroring
+    matrix (det < 0) also reverses the winding so faces keep facing out."""
+    linear = matrix[:3, :3]
+    if np.allclose(matrix, np.eye(4)):
+        return mesh
+    vertices = mesh.vertices @ linear.T + matrix[:3, 3]
+    normals = None
+    if mesh.normals is not None:
+        normals = mesh.normals @ np.linalg.inv(linear)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    faces = mesh.faces[:, ::-1] if np.linalg.det(linear) < 0 else mesh.faces
+    return MeshData(vertices, np.ascontiguousarray(faces), normals, mesh.uv, mesh.colors)
+
+
+def _gltf_material(path, material, has_uv: bool):
+    """(AssetMaterial, emission or None) from a trimesh PBRMaterial or SimpleMaterial."""
+    name = str(getattr(material, "name", None) or "material")
+    if isinstance(material, trimesh.visual.material.SimpleMaterial):
+        material = material.to_pbr()
+    factor = np.asarray(material.baseColorFactor if material.baseColorFactor is not None else [255] * 4, np.float64)
+    factor = factor / 255 if factor.dtype.kind in "iu" or factor.max() > 1 else factor
+    alpha_mode = str(getattr(material, "alphaMode", None) or "OPAQUE").upper()
+    if alpha_mode in ("BLEND", "MASK"):
+        raise InputError(f"mesh {path}: material {name!r} is transparent (alphaMode {alpha_mode}), "
+                         "which nerfgauge cannot render; make it OPAQUE")
+    if getattr(material, "emissiveTexture", None) is not None:
+        raise InputError(f"mesh {path}: material {name!r} has an emissive texture, which nerfgauge cannot render; "
+                         "remove it (a constant emissiveFactor is supported)")
+    emissive = getattr(material, "emissiveFactor", None)
+    emission = None
+    if emissive is not None and np.any(np.asarray(emissive, np.float64) > 0):
+        emission = tuple(float(x) for x in np.asarray(emissive, np.float64)[:3])
+    base = tuple(float(x) for x in factor[:3])
+    texture = None
+    image = getattr(material, "baseColorTexture", None)
+    if image is not None and has_uv:
+        texture = texture_from_image(f"{path}#{name}", image, base)
+    roughness = None if material.roughnessFactor is None else float(material.roughnessFactor)
+    metallic = None if material.metallicFactor is None else float(material.metallicFactor)
+    if (roughness is None) != (metallic is None):  # glTF's default for the one not given is 1
+        roughness, metallic = (1.0 if roughness is None else roughness), (1.0 if metallic is None else metallic)
+    return AssetMaterial(name, base, texture, False, roughness, metallic), emission
+
+
+def texture_from_image(source: str, image, base_color) -> TextureImage:
+    """A PIL image (sRGB) times the linear `base_color` as a TextureImage."""
+    rgb = np.asarray(image.convert("RGB"), np.float64) / 255  # [H, W, 3]
+    return TextureImage.from_pixels(source, srgb_to_linear(rgb) * np.asarray(base_color, np.float64))
+
+
+def _read_image(path: Path, data: bytes):
+    from PIL import Image
+
+    try:
+        image = Image.open(io.BytesIO(data))
+        image.load()
+        return image
+    except Exception as error:  # PIL raises several types for bad images
+        detail = str(error).splitlines()[0] if str(error).strip() else type(error).__name__
+        raise InputError(f"cannot read texture {path}: not an image ({detail})") from None
+
+
+# --- OBJ + MTL -----------------------------------------------------------------------------
+
+
+def _floats(parts, count, path, line_number) -> list:
+    try:
+        values = [float(x) for x in parts[:count]]
+    except ValueError:
+        raise InputError(f"cannot read mesh {path}: not a valid .obj mesh (line {line_number}: "
+                         f"expected numbers, got {' '.join(parts[:count])[:40]!r})") from None
+    if len(values) < count:
+        raise InputError(f"cannot read mesh {path}: not a valid .obj mesh (line {line_number}: too few numbers)")
+    return values
+
+
+def _read_obj(path: Path, content: bytes, inputs: dict, warnings: list) -> list:
+    """Objects of an OBJ: one per (o/g name, usemtl) pair, in the order they first appear."""
+    text = content.decode("utf-8", errors="replace")
+    positions, colors, texcoords, normals = [], [], [], []
+    chunks: dict = {}  # (group, material) -> list of corner triples (v, vt, vn), -1 when absent
+    group, material_name, libraries, named = None, None, [], False
+    for number, raw in enumerate(text.splitlines(), 1):
+        parts = raw.split("#", 1)[0].split()
+        if not parts:
+            continue
+        key, rest = parts[0], parts[1:]
+        if key == "v":
+            positions.append(_floats(rest, 3, path, number))
+            colors.append(_floats(rest[3:], 3, path, number) if len(rest) >= 6 else None)
+        elif key == "vt":
+            texcoords.append((_floats(rest, 2, path, number) if len(rest) >= 2 else _floats(rest, 1, path, number) + [0.0]))
+        elif key == "vn":
+            normals.append(_floats(rest, 3, path, number))
+        elif key == "f":
+            corners = [_corner(token, (len(positions), len(texcoords), len(normals)), path, number) for token in rest]
+            if len(corners) < 3:
+                raise InputError(f"cannot read mesh {path}: not a valid .obj mesh (line {number}: a face needs 3 corners)")
+            fan = [(corners[0], corners[i], corners[i + 1]) for i in range(1, len(corners) - 1)]
+            chunks.setdefault((group, material_name), []).extend(fan)
+        elif key in ("o", "g"):
+            group, named = " ".join(rest) or None, True
+        elif key == "usemtl":
+            material_name = " ".join(rest) or None
+        elif key == "mtllib":
+            libraries.append(raw.split("#", 1)[0].strip()[len("mtllib"):].strip())
+    materials = {}
+    for library in libraries:
+        materials.update(_read_mtl(path, path.parent / library, inputs, warnings))
+    position_array = np.asarray(positions, np.float64).reshape(-1, 3)
+    texcoord_array = np.asarray(texcoords, np.float64).reshape(-1, 2)
+    normal_array = np.asarray(normals, np.float64).reshape(-1, 3)
+    has_colors = bool(colors) and all(c is not None for c in colors)
+    color_array = np.asarray(colors if has_colors else [], np.float64).reshape(-1, 3)
+    groups_with = {}
+    for key in chunks:
+        groups_with.setdefault(key[0], []).append(key[1])
+    objects = []
+    for (group_name, mtl), triangles in chunks.items():
+        corners = np.asarray(triangles, np.int64).reshape(-1, 3)  # [3F, (v, vt, vn)]
+        table, inverse = np.unique(corners, axis=0, return_inverse=True)
+        faces = inverse.reshape(-1, 3)
+        vertices = position_array[table[:, 0]]
+        uv = texcoord_array[table[:, 1]] if (table[:, 1] >= 0).all() and len(texcoord_array) else None
+        vertex_normals = normal_array[table[:, 2]] if (table[:, 2] >= 0).all() and len(normal_array) else None
+        vertex_colors = color_array[table[:, 0]] if has_colors else None
+        if group_name is None:
+            name = mtl if (mtl is not None and len(chunks) > 1) else UNNAMED
+        else:
+            name = group_name if len(groups_with[group_name]) == 1 else f"{group_name}_{mtl}"
+        mesh = checked_mesh(path, vertices, faces, vertex_normals, uv, vertex_colors)
+        material, emission = (None, None)
+        if mtl is not None and mtl in materials:
+            material, emission = materials[mtl]
+            if material.texture is not None and uv is None:
+                material = AssetMaterial(material.name, material.base_color, None, False,
+                                         material.roughness, material.metallic)
+        if vertex_colors is not None:
+            base = material.base_color if material is not None else (1.0, 1.0, 1.0)
+            mesh = MeshData(mesh.vertices, mesh.faces, mesh.normals, mesh.uv, mesh.colors * np.asarray(base))
+            material = AssetMaterial("vertex_colors", (1.0, 1.0, 1.0), None, True,
+                                     None if material is None else material.roughness,
+                                     None if material is None else material.metallic)
+        objects.append(AssetObject(name, mesh, material, emission))
+    return objects
+
+
+def _corner(token: str, counts, path, line_number) -> tuple:
+    """"v", "v/vt", "v//vn" or "v/vt/vn" (1-based, negative from the end) -> 0-based, -1 absent."""
+    out = []
+    pieces = token.split("/")
+    if len(pieces) > 3:
+        raise InputError(f"cannot read mesh {path}: not a valid .obj mesh (line {line_number}: bad corner {token[:20]!r})")
+    for piece, count in zip(pieces + [""] * (3 - len(pieces)), counts):
+        if piece == "":
+            out.append(-1)
+            continue
+        try:
+            index = int(piece)
+        except ValueError:
+            raise InputError(f"cannot read mesh {path}: not a valid .obj mesh "
+                             f"(line {line_number}: bad corner {token[:20]!r})") from None
+        index = index - 1 if index > 0 else count + index
+        if not 0 <= index < count:
+            raise InputError(f"mesh {path} has a face (line {line_number}) indexing {piece}, "
+                             f"but only {count} are defined before it")
+        out.append(index)
+    if out[0] < 0:
+        raise InputError(f"cannot read mesh {path}: not a valid .obj mesh (line {line_number}: corner without a vertex)")
+    return tuple(out)
+
+
+def _read_mtl(obj_path: Path, path: Path, inputs: dict, warnings: list) -> dict:
+    """{material name: (AssetMaterial, emission or None)} from an MTL file. Kd and Ke are
+    taken as linear RGB, map_Kd as an sRGB image; Pr and Pm (the PBR extension) give
+    roughness and metallic. A missing MTL or texture is a warning, not an error."""
+    if not path.is_file():
+        message = f"{obj_path} refers to missing {path}: its objects are grey"
+        warn(message)
+        warnings.append(message)
+        return {}
+    content = path.read_bytes()
+    inputs[str(path)] = hashlib.sha256(content).hexdigest()
+    entries: dict = {}
+    current = None
+    for number, raw in enumerate(content.decode("utf-8", errors="replace").splitlines(), 1):
+        line = raw.split("#", 1)[0].strip()
+        parts = line.split()
+        if not parts:
+            continue
+        key, rest = parts[0], parts[1:]
+        if key == "newmtl":
+            current = " ".join(rest)
+            entries[current] = {}
+        elif current is None:
+            continue
+        elif key in ("Kd", "Ke"):
+            entries[current][key] = _floats(rest, 3, path, number)
+        elif key in ("Pr", "Pm", "d"):
+            entries[current][key] = _floats(rest, 1, path, number)[0]
+        elif key == "Tr":
+            entries[current]["d"] = 1.0 - _floats(rest, 1, path, number)[0]
+        elif key == "map_Kd" and rest:
+            entries[current][key] = rest[-1]  # options (-s, -o, ...) come first; the file name last
+        elif key in ("map_d", "map_Ke"):
+            entries[current][key] = True
+    materials = {}
+    for name, entry in entries.items():
+        if entry.get("d", 1.0) < 1.0 or entry.get("map_d"):
+            raise InputError(f"material {name!r} in {path} is transparent (d < 1 or map_d), "
+                             "which nerfgauge cannot render; make it opaque")
+        if entry.get("map_Ke"):
+            raise InputError(f"material {name!r} in {path} has an emission texture (map_Ke), "
+                             "which nerfgauge cannot render; use a constant Ke")
+        base = tuple(float(x) for x in entry.get("Kd", (0.6, 0.6, 0.6)))
+        texture = None
+        if "map_Kd" in entry:
+            texture_path = path.parent / entry["map_Kd"]
+            if not texture_path.is_file():
+                message = f"texture {texture_path} of material {name!r} is missing: using its base colour {base}"
+                warn(message)
+                warnings.append(message)
+            else:
+                data = texture_path.read_bytes()
+                inputs[str(texture_path)] = hashlib.sha256(data).hexdigest()
+                texture = texture_from_image(str(texture_path), _read_image(texture_path, data), base)
+        roughness, metallic = entry.get("Pr"), entry.get("Pm")
+        if (roughness is None) != (metallic is None):
+            roughness, metallic = (1.0 if roughness is None else roughness), (0.0 if metallic is None else metallic)
+        emission = tuple(float(x) for x in entry["Ke"]) if any(x > 0 for x in entry.get("Ke", ())) else None
+        materials[name] = (AssetMaterial(name, base, texture, False, roughness, metallic), emission)
+    return materials
