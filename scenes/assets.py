@@ -25,11 +25,14 @@ from typing import Optional
 import numpy as np
 import trimesh
 import trimesh.resolvers
+from nerfgauge.scenes.description import Diffuse, TriangleMesh
 from nerfgauge.scenes.meshes import MeshData
 
 from nerfgauge.core.errors import InputError
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
+UNITS = ("normalise", "keep")
+DEFAULT_GREY = Diffuse((0.6, 0.6, 0.6))  # objects without a material, as before assets kept theirs
 UNNAMED = "user_mesh"  # the name of the one object of a file that names none (PLY, STL, OBJ without o/g)
 
 
@@ -127,10 +130,10 @@ def read_asset(path: Path) -> Asset:
     objects = [obj for obj in objects if len(obj.mesh.faces)]
     if not objects:
         raise InputError(f"mesh {path} has no triangles")
-    return Asset(path, _unique_names(objects), inputs, warnings)
+    return Asset(path, unique_names(objects), inputs, warnings)
 
 
-def _unique_names(objects: list) -> list:
+def unique_names(objects: list) -> list:
     """File-name-safe, unique names (they name meshes/<name>.ply and Mitsuba shapes);
     `light_*` is left to the scene's lights."""
     seen, out = set(), []
@@ -171,6 +174,55 @@ def checked_mesh(path: Path, vertices, faces, normals=None, uv=None, colors=None
     if colors is not None:
         colors = np.clip(np.asarray(colors, np.float64).reshape(-1, 3), 0, None)
     return MeshData(vertices, faces, normals, uv, colors)
+
+
+# --- placing objects in the scene ----------------------------------------------------------
+
+
+def place_objects(objects: list, label: str, units: str, source: str = "") -> tuple[list, dict]:
+    """Clean the objects' triangles and place them in scene units. Returns (TriangleMesh
+    shapes, {"scale", "translation"}: scene point = scale * file point + translation).
+
+    Zero-area triangles (twice the area below 1e-12 of the squared largest extent of all
+    objects) are dropped, then every vertex no remaining face uses, so neither counts
+    towards the bounds; an object left without triangles is dropped. A flat (planar) asset
+    keeps zero extent across its plane; the scene's AABB padding gives it thickness."""
+    if units not in UNITS:
+        raise InputError(f"--units must be one of {', '.join(UNITS)}, got {units!r}")
+    triangles = np.concatenate([obj.mesh.vertices[obj.mesh.faces].reshape(-1, 3) for obj in objects])
+    centre, extent = _bounds(triangles)
+    if not np.isfinite(centre).all() or not np.isfinite(extent):
+        raise InputError(f"mesh {label} has coordinates too large for float64 arithmetic "
+                         f"(up to {np.abs(triangles).max():.3g})")
+    kept = []
+    for obj in objects:
+        if extent <= 0:
+            break
+        unit = (obj.mesh.vertices[obj.mesh.faces] - centre) / extent  # [F, 3, 3]: areas neither underflow nor overflow
+        area2 = np.linalg.norm(np.cross(unit[:, 1] - unit[:, 0], unit[:, 2] - unit[:, 0]), axis=1)  # [F]
+        if (area2 > 1e-12).any():
+            kept.append((obj, obj.mesh.subset(area2 > 1e-12)))
+    if not kept:
+        raise InputError(f"mesh {label} has only degenerate (zero-area) triangles")
+    if units == "keep":
+        scale, translation = 1.0, np.zeros(3)
+    else:
+        centre, extent = _bounds(np.concatenate([mesh.vertices for _, mesh in kept]))
+        scale = 2.0 / extent
+        translation = -centre * scale
+    shapes = []
+    for obj, mesh in kept:
+        placed = mesh if units == "keep" else mesh.scaled(scale, translation)
+        material = obj.material if obj.material is not None else DEFAULT_GREY
+        shapes.append(TriangleMesh(obj.name, placed, material, source=source or label, emission=obj.emission))
+    return shapes, {"scale": float(scale), "translation": [float(x) for x in translation]}
+
+
+def _bounds(points):
+    """[N, 3] -> centre [3], largest extent (inf if float64 overflows)."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return (lo + hi) / 2, float((hi - lo).max())
 
 
 # --- glTF, GLB, PLY, STL, OFF through trimesh --------------------------------------------
@@ -244,7 +296,7 @@ def _trimesh_object(path, name, geometry: trimesh.Trimesh, matrix: np.ndarray) -
     if uv is not None and len(uv) != len(vertices):
         uv = None
     mesh = checked_mesh(path, vertices, faces, normals, uv, colors)
-    mesh = _apply_matrix(mesh, matrix)
+    mesh = apply_matrix(mesh, matrix)
     material, emission = None, None
     if visual.kind == "texture" and getattr(visual, "material", None) is not None:
         material, emission = _gltf_material(path, visual.material, has_uv=uv is not None)
@@ -253,7 +305,7 @@ def _trimesh_object(path, name, geometry: trimesh.Trimesh, matrix: np.ndarray) -
     return AssetObject(name, mesh, material, emission)
 
 
-def _apply_matrix(mesh: MeshData, matrix: np.ndarray) -> MeshData:
+def apply_matrix(mesh: MeshData, matrix: np.ndarray) -> MeshData:
     """Points by the 4x4 `matrix`; normals by its inverse transpose (then unit); a mirroring
     matrix (det < 0) also reverses the winding so faces keep facing out."""
     linear = matrix[:3, :3]

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 from nerfgauge.scenes import library
-from nerfgauge.scenes.assets import MESH_SUFFIXES, read_asset
+from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, read_asset
 from nerfgauge.scenes.envmap import EnvironmentMap, read_envmap
-from nerfgauge.scenes.description import Diffuse, Scene, TriangleMesh, build_scene
+from nerfgauge.scenes.description import Scene, build_scene
 from nerfgauge.scenes.hard import HARD_RECIPES
 from nerfgauge.scenes.meshes import MeshData
 
@@ -71,9 +71,6 @@ def with_envmap(scene: Scene, light: EnvironmentMap) -> Scene:
     return dataclasses.replace(scene, lights=(light,), params=params)
 
 
-UNITS = ("normalise", "keep")
-
-
 def mesh_scene(path: Path, seed: int, units: str = "normalise") -> Scene:
     """A user's asset: one shape per object of the file, with its material and name.
 
@@ -87,52 +84,6 @@ def mesh_scene(path: Path, seed: int, units: str = "normalise") -> Scene:
     return build_scene(f"{MESH_PREFIX}{path}", seed, shapes, [library.SOFT_SKY],
                        params={"path": str(path), "sha256": asset.inputs[str(path)], "inputs": asset.inputs,
                                "units": units, "to_scene": to_scene, "objects": [s.name for s in shapes]})
-
-
-def place_objects(objects: list, label: str, units: str, source: str = "") -> tuple[list, dict]:
-    """Clean the objects' triangles and place them in scene units. Returns (TriangleMesh
-    shapes, {"scale", "translation"}: scene point = scale * file point + translation).
-
-    Zero-area triangles (twice the area below 1e-12 of the squared largest extent of all
-    objects) are dropped, then every vertex no remaining face uses, so neither counts
-    towards the bounds; an object left without triangles is dropped. A flat (planar) asset
-    keeps zero extent across its plane; the scene's AABB padding gives it thickness."""
-    if units not in UNITS:
-        raise InputError(f"--units must be one of {', '.join(UNITS)}, got {units!r}")
-    triangles = np.concatenate([obj.mesh.vertices[obj.mesh.faces].reshape(-1, 3) for obj in objects])
-    centre, extent = _bounds(triangles)
-    if not np.isfinite(centre).all() or not np.isfinite(extent):
-        raise InputError(f"mesh {label} has coordinates too large for float64 arithmetic "
-                         f"(up to {np.abs(triangles).max():.3g})")
-    kept = []
-    for obj in objects:
-        if extent <= 0:
-            break
-        unit = (obj.mesh.vertices[obj.mesh.faces] - centre) / extent  # [F, 3, 3]: areas neither underflow nor overflow
-        area2 = np.linalg.norm(np.cross(unit[:, 1] - unit[:, 0], unit[:, 2] - unit[:, 0]), axis=1)  # [F]
-        if (area2 > 1e-12).any():
-            kept.append((obj, obj.mesh.subset(area2 > 1e-12)))
-    if not kept:
-        raise InputError(f"mesh {label} has only degenerate (zero-area) triangles")
-    if units == "keep":
-        scale, translation = 1.0, np.zeros(3)
-    else:
-        centre, extent = _bounds(np.concatenate([mesh.vertices for _, mesh in kept]))
-        scale = 2.0 / extent
-        translation = -centre * scale
-    shapes = []
-    for obj, mesh in kept:
-        placed = mesh if units == "keep" else mesh.scaled(scale, translation)
-        material = obj.material if obj.material is not None else Diffuse((0.6, 0.6, 0.6))
-        shapes.append(TriangleMesh(obj.name, placed, material, source=source or label, emission=obj.emission))
-    return shapes, {"scale": float(scale), "translation": [float(x) for x in translation]}
-
-
-def _bounds(points):
-    """[N, 3] -> centre [3], largest extent (inf if float64 overflows)."""
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    with np.errstate(over="ignore", invalid="ignore"):
-        return (lo + hi) / 2, float((hi - lo).max())
 
 
 def scene_inputs(scene: Scene) -> dict:
