@@ -7,9 +7,10 @@ Colour checks use a plane lit by a constant environment of radiance 1 (an all-on
 --envmap): a diffuse surface of albedo a that sees the whole sky and nothing else sends
 L = a * 1 towards every direction, so the rendered linear colour of a pixel inside one
 texel region is the texel's linear albedo. The path tracer's per-sample estimate at the
-first hit is bounded: its BSDF-sampled term is a * w_bsdf <= a and its emitter-sampled term
-(uniform sphere, pdf 1/4pi, power-heuristic weight) is 4 a c / (1 + 16 c^2) <= a / 2 for
-c = cos(theta), so every sample lies in [0, 1.5 a]. The mean of n such samples is within
+first hit is bounded: its BSDF-sampled term (pdf p_b = cos / pi) is a L w_bsdf <= a L_max,
+and its emitter-sampled term with the power heuristic is
+(a / pi) cos L p_e / (p_e^2 + p_b^2) <= (a / pi) cos L / (2 p_b) = a L / 2 (AM-GM), whatever
+the emitter's sampling pdf p_e; so with L <= 1 every sample lies in [0, 1.5 a]. The mean of n such samples is within
 t = 1.5 a sqrt(ln(2 / delta) / (2 n)) of a except with probability delta (Hoeffding);
 delta = 1e-6 here, n = spp times the pixels averaged.
 """
@@ -30,7 +31,7 @@ from nerfgauge.scenes.envmap import read_envmap
 from PIL import Image
 
 from nerfgauge.cli import main
-from nerfgauge.core.camera import Intrinsics, pixel_rays
+from nerfgauge.core.camera import Intrinsics, look_at, pixel_rays
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.images import write_exr
 
@@ -319,6 +320,38 @@ def test_envmap_that_is_not_an_image_is_one_line_and_exit_2(tmp_path, capsys, na
                         *CLI_TINY)
     assert code == 2 and len(err) == 1 and name in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("rotation, lit", [(90.0, True), (-90.0, False)])
+def test_envmap_orientation_and_rotation(tmp_path, mi, rotation, lit):
+    """A map whose left half (columns u < 0.5) has radiance 1 and right half 0 lights the
+    world's +X half-space (u = atan2(x, y) / 2pi, docs/scene-files.md); turned +90 degrees
+    about +Z that is the +Y half-space. A Kd 0.5 plane facing +Y then sees radiance 1 over
+    its whole hemisphere (L = 0.5) and, turned -90 degrees, none (L = 0). Bilinear lookup
+    blurs the boundary within one texel (2pi/64) of grazing, whose cosine-weighted share of
+    the hemisphere is sin^2(2pi/64) < 0.01."""
+    half = np.zeros((32, 64), np.float32)
+    half[:, :32] = 1
+    write_exr(tmp_path / "half.exr", {"R": half, "G": half, "B": half})
+    (tmp_path / "sign.mtl").write_text("newmtl paint\nKd 0.5 0.5 0.5\n")
+    obj = tmp_path / "wall.obj"
+    obj.write_text("mtllib sign.mtl\nv -1 0 -1\nv -1 0 1\nv 1 0 1\nv 1 0 -1\nvn 0 1 0\n"
+                   "usemtl paint\nf 1//1 2//1 3//1 4//1\n")
+    scene = make_scene(f"mesh:{obj}", 0, envmap=tmp_path / "half.exr", envmap_rotation=rotation)
+    paths = write_meshes(scene, tmp_path / "meshes")
+    loaded = mi.load_dict(scene_dict(mi, scene, paths, max_depth=8))
+    c2w = look_at((0, 3, 0), (0, 0, 0))
+    intrinsics = Intrinsics.from_fov(16, 16, 30.0)
+    spp = 16
+    images = render_view(mi, loaded, c2w, intrinsics, spp, seed=2)
+    origins, directions = pixel_rays(c2w, intrinsics)
+    point = origins + (-origins[..., 1] / directions[..., 1])[..., None] * directions
+    inside = (np.abs(point[..., 0]) < 0.9) & (np.abs(point[..., 2]) < 0.9)
+    assert inside.sum() > 50
+    albedo = 0.5
+    bound = 1.5 * albedo * math.sqrt(math.log(2 / DELTA) / (2 * spp * inside.sum())) + albedo * math.sin(2 * math.pi / 64) ** 2
+    expected = albedo if lit else 0.0
+    np.testing.assert_array_less(np.abs(images.rgba[inside][:, :3].mean(axis=0) - expected), bound)
 
 
 def test_envmap_is_recorded_with_hash_and_rotation(tmp_path):
