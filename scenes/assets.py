@@ -14,8 +14,10 @@ diffuse). Coordinates stay in the file's units here: registry.py normalises (or 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
+import math
 import re
 import sys
 from dataclasses import dataclass, field
@@ -216,6 +218,33 @@ def place_objects(objects: list, label: str, units: str, source: str = "") -> tu
         material = obj.material if obj.material is not None else DEFAULT_GREY
         shapes.append(TriangleMesh(obj.name, placed, material, source=source or label, emission=obj.emission))
     return shapes, {"scale": float(scale), "translation": [float(x) for x in translation]}
+
+
+def texel_size(mesh: MeshData, texture: TextureImage) -> Optional[float]:
+    """One texel's side on the surface, in scene units: sqrt(world area per uv area / texels),
+    the median over triangles with non-zero uv area (robust to a few stretched ones)."""
+    corners, uv = mesh.vertices[mesh.faces], mesh.uv[mesh.faces]  # [F, 3, 3], [F, 3, 2]
+    world = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    texture_area = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    usable = texture_area > 1e-12
+    if not usable.any():
+        return None
+    ratio = float(np.median(world[usable] / texture_area[usable]))
+    return math.sqrt(ratio / (texture.width * texture.height)) if ratio > 0 else None
+
+
+def with_texture_period(scene):
+    """`scene` whose needs.finest_texture_period also counts the assets' textures (a texel
+    on the surface), so a radiance field's grid is sized for them as for procedural ones."""
+    sizes = [texel_size(shape.mesh(), shape.material.texture) for shape in scene.shapes
+             if isinstance(shape.material, AssetMaterial) and shape.material.texture is not None]
+    sizes = [s for s in sizes if s is not None and s > 0]
+    if not sizes:
+        return scene
+    current = scene.needs.finest_texture_period
+    period = min(sizes + ([current] if current is not None else []))
+    return dataclasses.replace(scene, needs=dataclasses.replace(scene.needs, finest_texture_period=float(period)))
 
 
 def _bounds(points):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 from nerfgauge.scenes import library
-from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, read_asset
+from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, read_asset, with_texture_period
 from nerfgauge.scenes.envmap import EnvironmentMap, read_envmap
 from nerfgauge.scenes.description import Scene, build_scene
 from nerfgauge.scenes.hard import HARD_RECIPES
@@ -81,9 +81,10 @@ def mesh_scene(path: Path, seed: int, units: str = "normalise") -> Scene:
     were parsed: `scene_inputs` gives them."""
     asset = read_asset(path)
     shapes, to_scene = place_objects(asset.objects, str(path), units)
-    return build_scene(f"{MESH_PREFIX}{path}", seed, shapes, [library.SOFT_SKY],
-                       params={"path": str(path), "sha256": asset.inputs[str(path)], "inputs": asset.inputs,
-                               "units": units, "to_scene": to_scene, "objects": [s.name for s in shapes]})
+    return with_texture_period(build_scene(
+        f"{MESH_PREFIX}{path}", seed, shapes, [library.SOFT_SKY],
+        params={"path": str(path), "sha256": asset.inputs[str(path)], "inputs": asset.inputs, "units": units,
+                "to_scene": to_scene, "objects": [s.name for s in shapes]}))
 
 
 def scene_inputs(scene: Scene) -> dict:

@@ -25,6 +25,7 @@ from nerfgauge.scenes.assets import (
     place_objects,
     read_asset,
     unique_names,
+    with_texture_period,
 )
 from nerfgauge.scenes.description import (
     BACKGROUNDS,
@@ -153,7 +154,8 @@ def scene_from_file(path: Path, seed: int, units: str = "normalise") -> Scene:
     if background not in BACKGROUNDS:
         raise where.error("background", f"expected one of {', '.join(BACKGROUNDS)}, got {background!r}")
     cameras = _camera(where, document["camera"], scale, shift) if "camera" in document else None
-    return build_scene(str(path), seed, shapes, lights, background=background, params=params, cameras=cameras)
+    return with_texture_period(build_scene(str(path), seed, shapes, lights, background=background, params=params,
+                                           cameras=cameras))
 
 
 def _list(where: _Where, value, key: str) -> list:

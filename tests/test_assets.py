@@ -121,6 +121,8 @@ def test_glb_base_colour_texture_is_rendered_texel_for_texel(tmp_path, mi):
     images, points = render_from_above(mi, scene, tmp_path)
     expected = {name: srgb_to_linear(np.asarray(rgb) / 255) for name, rgb in QUADRANTS.items()}
     assert_quadrants_match(images, points, expected, spp=64)
+    # 16 texels across the 2-unit plane: the finest texture detail a field must resolve.
+    assert scene.needs.finest_texture_period == pytest.approx(2 / 16)
 
 
 def test_glb_base_colour_factor_multiplies_the_texture(tmp_path, mi):
