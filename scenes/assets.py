@@ -17,9 +17,12 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import io
+import json
 import math
 import re
+import struct
 import sys
+import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -275,7 +278,34 @@ class RecordingResolver(trimesh.resolvers.FilePathResolver):
         return data
 
 
+def gltf_json(suffix: str, content: bytes) -> dict:
+    """The JSON document of a .gltf, or of a .glb's first chunk; {} if there is none."""
+    try:
+        if suffix == ".gltf":
+            document = json.loads(content.decode("utf-8"))
+        else:
+            length, kind = struct.unpack_from("<I4s", content, 12)
+            document = json.loads(content[20:20 + length].decode("utf-8")) if kind == b"JSON" else {}
+    except (ValueError, struct.error):
+        return {}  # not readable as glTF: trimesh's own error names the problem
+    return document if isinstance(document, dict) else {}
+
+
+def check_gltf_images(path: Path, suffix: str, content: bytes) -> None:
+    """A glTF image file that exists but does not decode is an error (trimesh would drop
+    the texture silently). Missing ones are left to the resolver's warning."""
+    images = gltf_json(suffix, content).get("images")
+    for image in images if isinstance(images, list) else []:
+        uri = image.get("uri") if isinstance(image, dict) else None
+        if isinstance(uri, str) and not uri.startswith("data:"):
+            image_path = path.parent / urllib.parse.unquote(uri)
+            if image_path.is_file():
+                _read_image(image_path, image_path.read_bytes())
+
+
 def _read_with_trimesh(path, suffix, content, inputs, warnings) -> list:
+    if suffix in (".gltf", ".glb"):
+        check_gltf_images(path, suffix, content)
     resolver = RecordingResolver(path)
     try:
         loaded = trimesh.load(io.BytesIO(content), file_type=suffix[1:], resolver=resolver, process=False)
@@ -393,7 +423,8 @@ def _read_image(path: Path, data: bytes):
         image.load()
         return image
     except Exception as error:  # PIL raises several types for bad images
-        detail = str(error).splitlines()[0] if str(error).strip() else type(error).__name__
+        detail = ("unknown image format" if type(error).__name__ == "UnidentifiedImageError"
+                  else str(error).splitlines()[0] if str(error).strip() else type(error).__name__)
         raise InputError(f"cannot read texture {path}: not an image ({detail})") from None
 
 

@@ -314,6 +314,50 @@ def test_bad_obj_material_is_one_line_and_exit_2(tmp_path, capsys, mtl, texture,
     assert not (tmp_path / "out").exists()
 
 
+def panel_gltf(folder, image_uri="wood.png"):
+    """A hand-written .gltf: one quad named 'panel' whose material 'wood' takes its
+    base-colour texture from an image file beside it."""
+    import base64
+
+    positions = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)
+    data = positions.tobytes() + uv.tobytes() + np.array([0, 1, 2, 0, 2, 3], np.uint16).tobytes()
+    document = {
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "panel"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0}]}],
+        "materials": [{"name": "wood", "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0}], "images": [{"uri": image_uri}],
+        "buffers": [{"uri": "data:application/octet-stream;base64," + base64.b64encode(data).decode(),
+                     "byteLength": len(data)}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+                        {"buffer": 0, "byteOffset": 80, "byteLength": 12}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [-1, -1, 0],
+                       "max": [1, 1, 0]},
+                      {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+                      {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}]}
+    path = folder / "panel.gltf"
+    path.write_text(json.dumps(document))
+    return path
+
+
+def test_gltf_texture_beside_the_file_missing_or_unreadable(tmp_path, capsys):
+    gltf = panel_gltf(tmp_path)
+    scene = make_scene(f"mesh:{gltf}", 0)  # wood.png is missing: one warning, base colour
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning:") and "wood.png" in err[0]
+    assert scene.shapes[0].name == "panel" and scene.shapes[0].material.texture is None
+
+    Image.fromarray(quadrant_texture()).save(tmp_path / "wood.png")
+    scene = make_scene(f"mesh:{gltf}", 0)
+    assert scene.shapes[0].material.texture.width == 16
+    assert str(tmp_path / "wood.png") in scene.params["inputs"]
+
+    (tmp_path / "wood.png").write_bytes(b"not an image")
+    code, err = run_cli(capsys, "generate", f"mesh:{gltf}", "--out", tmp_path / "out", *CLI_TINY)
+    assert code == 2 and len(err) == 1 and "cannot read texture" in err[0] and "wood.png" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
 def test_transparent_glb_material_is_refused(tmp_path, capsys):
     glb = textured_plane_glb(tmp_path / "glass.glb", quadrant_texture(), alphaMode="BLEND")
     code, err = run_cli(capsys, "generate", f"mesh:{glb}", "--out", tmp_path / "out", *CLI_TINY)
