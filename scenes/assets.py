@@ -304,8 +304,10 @@ def check_gltf_images(path: Path, suffix: str, content: bytes) -> None:
 
 
 def _read_with_trimesh(path, suffix, content, inputs, warnings) -> list:
+    exact_factors = {}
     if suffix in (".gltf", ".glb"):
         check_gltf_images(path, suffix, content)
+        exact_factors = gltf_base_color_factors(gltf_json(suffix, content))
     resolver = RecordingResolver(path)
     try:
         loaded = trimesh.load(io.BytesIO(content), file_type=suffix[1:], resolver=resolver, process=False)
@@ -329,14 +331,35 @@ def _read_with_trimesh(path, suffix, content, inputs, warnings) -> list:
             matrix, geometry_name = loaded.graph[node]
             geometry = loaded.geometry[geometry_name]
             if isinstance(geometry, trimesh.Trimesh):
-                objects.append(_trimesh_object(path, str(node), geometry, np.asarray(matrix, np.float64)))
+                objects.append(_trimesh_object(path, str(node), geometry, np.asarray(matrix, np.float64),
+                                              exact_factors))
         return objects
     if isinstance(loaded, trimesh.Trimesh):
         return [_trimesh_object(path, UNNAMED, loaded, np.eye(4))]
     return []
 
 
-def _trimesh_object(path, name, geometry: trimesh.Trimesh, matrix: np.ndarray) -> AssetObject:
+def gltf_base_color_factors(document: dict) -> dict:
+    """{material name: baseColorFactor [4]} as the glTF file states it (trimesh keeps the
+    factor as 8-bit, 0.5 -> 128/255); only names that occur once."""
+    materials = document.get("materials")
+    factors, seen = {}, set()
+    for material in materials if isinstance(materials, list) else []:
+        if not isinstance(material, dict) or not isinstance(material.get("name"), str):
+            continue
+        name = material["name"]
+        factor = (material.get("pbrMetallicRoughness") or {}).get("baseColorFactor") \
+            if isinstance(material.get("pbrMetallicRoughness"), dict) else None
+        if name in seen:
+            factors.pop(name, None)
+        elif isinstance(factor, list) and len(factor) == 4 and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and 0 <= x <= 1 for x in factor):
+            factors[name] = [float(x) for x in factor]
+        seen.add(name)
+    return factors
+
+
+def _trimesh_object(path, name, geometry: trimesh.Trimesh, matrix: np.ndarray, exact_factors=None) -> AssetObject:
     vertices = np.asarray(geometry.vertices, np.float64)
     faces = np.asarray(geometry.faces, np.int64)
     # The file's normals: trimesh keeps normals it was given in its cache (it would
@@ -358,7 +381,8 @@ def _trimesh_object(path, name, geometry: trimesh.Trimesh, matrix: np.ndarray) -
     mesh = apply_matrix(mesh, matrix)
     material, emission = None, None
     if visual.kind == "texture" and getattr(visual, "material", None) is not None:
-        material, emission = _gltf_material(path, visual.material, has_uv=uv is not None)
+        material, emission = _gltf_material(path, visual.material, has_uv=uv is not None,
+                                            exact_factors=exact_factors or {})
     if colors is not None:
         material = AssetMaterial("vertex_colors", (1.0, 1.0, 1.0), vertex_colors=True)
     return AssetObject(name, mesh, material, emission)
@@ -379,13 +403,20 @@ def apply_matrix(mesh: MeshData, matrix: np.ndarray) -> MeshData:
     return MeshData(vertices, np.ascontiguousarray(faces), normals, mesh.uv, mesh.colors)
 
 
-def _gltf_material(path, material, has_uv: bool):
-    """(AssetMaterial, emission or None) from a trimesh PBRMaterial or SimpleMaterial."""
+def _gltf_material(path, material, has_uv: bool, exact_factors: dict):
+    """(AssetMaterial, emission or None) from a trimesh PBRMaterial or SimpleMaterial;
+    the base colour factor as the file states it where `exact_factors` has it."""
     name = str(getattr(material, "name", None) or "material")
     if isinstance(material, trimesh.visual.material.SimpleMaterial):
         material = material.to_pbr()
-    factor = np.asarray(material.baseColorFactor if material.baseColorFactor is not None else [255] * 4, np.float64)
-    factor = factor / 255 if factor.dtype.kind in "iu" or factor.max() > 1 else factor
+    stored = material.baseColorFactor
+    if name in exact_factors:
+        factor = np.asarray(exact_factors[name], np.float64)
+    elif stored is None:
+        factor = np.ones(4)
+    else:
+        factor = np.asarray(stored, np.float64)
+        factor = factor / 255 if np.asarray(stored).dtype.kind in "iu" or factor.max() > 1 else factor
     alpha_mode = str(getattr(material, "alphaMode", None) or "OPAQUE").upper()
     if alpha_mode in ("BLEND", "MASK"):
         raise InputError(f"mesh {path}: material {name!r} is transparent (alphaMode {alpha_mode}), "

@@ -33,7 +33,7 @@ import trimesh
 from nerfgauge.generate.mitsuba_scene import scene_dict, write_meshes
 from nerfgauge.generate.render import render_view
 from nerfgauge.scenes import make_scene
-from nerfgauge.scenes.assets import srgb_to_linear
+from nerfgauge.scenes.assets import gltf_json, srgb_to_linear
 from nerfgauge.scenes.envmap import read_envmap
 from PIL import Image
 
@@ -139,9 +139,10 @@ def test_glb_base_colour_factor_multiplies_the_texture(tmp_path, mi):
     glb = textured_plane_glb(tmp_path / "sign.glb", quadrant_texture(), baseColorFactor=factor)
     scene = make_scene(f"mesh:{glb}", 0, envmap=ones_envmap(tmp_path / "ones.exr"))
     images, points = render_from_above(mi, scene, tmp_path)
-    # trimesh stores the factor as 8-bit (0.25 -> 64/255): that is what the file now holds.
-    stored = np.round(np.asarray(factor[:3]) * 255) / 255
-    expected = {name: srgb_to_linear(np.asarray(rgb) / 255) * stored for name, rgb in QUADRANTS.items()}
+    # The factor as the file states it (trimesh's exporter writes it 8-bit: 0.25 -> 64/255).
+    stated = gltf_json(".glb", glb.read_bytes())["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"]
+    np.testing.assert_allclose(stated[:3], factor[:3], atol=0.5 / 255)
+    expected = {name: srgb_to_linear(np.asarray(rgb) / 255) * np.asarray(stated[:3]) for name, rgb in QUADRANTS.items()}
     assert_quadrants_match(images, points, expected, spp=64)
 
 
@@ -325,7 +326,8 @@ def panel_gltf(folder, image_uri="wood.png"):
     document = {
         "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "panel"}],
         "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0}]}],
-        "materials": [{"name": "wood", "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "materials": [{"name": "wood", "pbrMetallicRoughness": {"baseColorTexture": {"index": 0},
+                                                                "baseColorFactor": [0.5, 0.4, 0.3, 1.0]}}],
         "textures": [{"source": 0}], "images": [{"uri": image_uri}],
         "buffers": [{"uri": "data:application/octet-stream;base64," + base64.b64encode(data).decode(),
                      "byteLength": len(data)}],
@@ -346,6 +348,7 @@ def test_gltf_texture_beside_the_file_missing_or_unreadable(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("warning:") and "wood.png" in err[0]
     assert scene.shapes[0].name == "panel" and scene.shapes[0].material.texture is None
+    assert scene.shapes[0].material.base_color == (0.5, 0.4, 0.3)  # as the file states it, not 8-bit
 
     Image.fromarray(quadrant_texture()).save(tmp_path / "wood.png")
     scene = make_scene(f"mesh:{gltf}", 0)
