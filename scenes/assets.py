@@ -511,6 +511,11 @@ def _read_obj(path: Path, content: bytes, inputs: dict, warnings: list) -> list:
     normal_array = np.asarray(normals, np.float64).reshape(-1, 3)
     has_colors = bool(colors) and all(c is not None for c in colors)
     color_array = np.asarray(colors if has_colors else [], np.float64).reshape(-1, 3)
+    undefined = sorted({mtl for _, mtl in chunks if mtl is not None and mtl not in materials})
+    if undefined and len(materials) + len(libraries) > 0 and all((path.parent / lib).is_file() for lib in libraries):
+        message = f"{path} uses material(s) {', '.join(map(repr, undefined))} that its .mtl does not define: grey"
+        warn(message)
+        warnings.append(message)
     groups_with = {}
     for key in chunks:
         groups_with.setdefault(key[0], []).append(key[1])

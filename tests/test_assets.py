@@ -442,3 +442,11 @@ def test_radiance_hdr_reader_decodes_flat_and_run_length_scanlines(tmp_path):
 def _write(path, data):
     path.write_bytes(data)
     return path
+
+
+def test_obj_material_missing_from_its_mtl_is_grey_with_one_warning(tmp_path, capsys):
+    obj = write_obj_plane(tmp_path, "newmtl other\nKd 1 0 0\n")
+    scene = make_scene(f"mesh:{obj}", 0)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning:") and "'paint'" in err[0]
+    assert scene.shapes[0].material.color == (0.6, 0.6, 0.6)

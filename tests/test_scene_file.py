@@ -166,3 +166,23 @@ def test_a_pose_matrix_with_uniform_scale_is_accepted(tmp_path):
     np.testing.assert_allclose(shape.mesh().bounds(), [[0, -1, 3], [2, 1, 3]], atol=1e-12)
     with pytest.raises(InputError, match="unknown scene"):
         make_scene(str(tmp_path / "scene.yaml"), 0)
+
+
+def test_scene_file_envmap_is_recorded_and_the_command_line_one_replaces_it(tmp_path):
+    from nerfgauge.core.images import write_exr
+    from nerfgauge.scenes.envmap import EnvironmentMap
+
+    ones = np.ones((4, 8), np.float32)
+    write_exr(tmp_path / "sky.exr", {"R": ones, "G": ones, "B": ones})
+    write_exr(tmp_path / "other.exr", {"R": ones * 2, "G": ones, "B": ones})
+    text = TWO_TILES.split("[[light]]")[0] + '[envmap]\npath = "sky.exr"\nrotation = 45.0\n'
+    path = two_tiles(tmp_path, text)
+    scene = make_scene(str(path), 0)
+    digest = hashlib.sha256((tmp_path / "sky.exr").read_bytes()).hexdigest()
+    assert scene.params["envmap"] == {"path": str(tmp_path / "sky.exr"), "sha256": digest, "rotation": 45.0}
+    assert scene.params["inputs"][str(tmp_path / "sky.exr")] == digest
+    (light,) = scene.lights
+    assert isinstance(light, EnvironmentMap) and light.rotation == 45.0
+    replaced = make_scene(str(path), 0, envmap=tmp_path / "other.exr")
+    (light,) = replaced.lights
+    assert light.path == str(tmp_path / "other.exr") and light.rotation == 0.0
