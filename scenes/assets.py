@@ -168,6 +168,12 @@ def checked_mesh(path: Path, vertices, faces, normals=None, uv=None, colors=None
     if non_finite.any():
         raise InputError(f"mesh {path} has {int(non_finite.sum())} vertices with NaN or inf coordinates "
                          f"used by its triangles")
+    if normals is not None and np.asarray(normals).size != vertices.size:
+        normals = None  # not one per vertex: flat shading rather than misaligned normals
+    if colors is not None and np.asarray(colors).size != vertices.size:
+        colors = None
+    if uv is not None and np.asarray(uv).size != 2 * len(vertices):
+        uv = None
     if normals is not None:
         normals = np.asarray(normals, np.float64).reshape(-1, 3)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
@@ -371,6 +377,7 @@ def _trimesh_object(path, name, geometry: trimesh.Trimesh, matrix: np.ndarray, e
     if visual.kind == "vertex":
         colors = np.asarray(visual.vertex_colors, np.float64)[:, :3] / 255
     elif visual.kind == "face":  # one colour per face: every corner its own vertex
+        checked_mesh(path, vertices, faces)  # faces index existing vertices before they are unshared
         corners = faces.reshape(-1)
         vertices, faces = vertices[corners], np.arange(len(corners)).reshape(-1, 3)
         normals = None if normals is None else np.asarray(normals)[corners]
