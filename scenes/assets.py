@@ -486,6 +486,7 @@ def _read_obj(path: Path, content: bytes, inputs: dict, warnings: list) -> list:
     positions, colors, texcoords, normals = [], [], [], []
     chunks: dict = {}  # (group, material) -> list of corner triples (v, vt, vn), -1 when absent
     group, material_name, libraries, named = None, None, [], False
+    parsed: dict = {}  # corner token -> (v, vt, vn): a vertex is shared by ~6 faces of a closed mesh
     for number, raw in enumerate(text.splitlines(), 1):
         parts = raw.split("#", 1)[0].split()
         if not parts:
@@ -499,7 +500,14 @@ def _read_obj(path: Path, content: bytes, inputs: dict, warnings: list) -> list:
         elif key == "vn":
             normals.append(_floats(rest, 3, path, number))
         elif key == "f":
-            corners = [_corner(token, (len(positions), len(texcoords), len(normals)), path, number) for token in rest]
+            corners = []
+            for token in rest:
+                corner = parsed.get(token)
+                if corner is None:
+                    corner = _corner(token, (len(positions), len(texcoords), len(normals)), path, number)
+                    if "-" not in token:  # relative indices mean another vertex on another line
+                        parsed[token] = corner
+                corners.append(corner)
             if len(corners) < 3:
                 raise InputError(f"cannot read mesh {path}: not a valid .obj mesh (line {number}: a face needs 3 corners)")
             fan = [(corners[0], corners[i], corners[i + 1]) for i in range(1, len(corners) - 1)]
@@ -529,7 +537,7 @@ def _read_obj(path: Path, content: bytes, inputs: dict, warnings: list) -> list:
     objects = []
     for (group_name, mtl), triangles in chunks.items():
         corners = np.asarray(triangles, np.int64).reshape(-1, 3)  # [3F, (v, vt, vn)]
-        table, inverse = np.unique(corners, axis=0, return_inverse=True)
+        table, inverse = unique_rows(corners)
         faces = inverse.reshape(-1, 3)
         vertices = position_array[table[:, 0]]
         uv = texcoord_array[table[:, 1]] if (table[:, 1] >= 0).all() and len(texcoord_array) else None
@@ -554,6 +562,19 @@ def _read_obj(path: Path, content: bytes, inputs: dict, warnings: list) -> list:
                                      None if material is None else material.metallic)
         objects.append(AssetObject(name, mesh, material, emission))
     return objects
+
+
+def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(rows, axis=0, return_inverse=True) for [N, 3] indices >= -1, through one
+    int64 key per row when the index ranges allow (several times faster)."""
+    span = rows.max(axis=0).astype(object) + 2  # Python ints: the product must not overflow
+    if len(rows) and span[0] * span[1] * span[2] < 2**62:
+        shifted = rows + 1
+        keys = (shifted[:, 0] * int(span[1]) + shifted[:, 1]) * int(span[2]) + shifted[:, 2]
+        unique_keys, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        return rows[first], inverse.reshape(-1)
+    table, inverse = np.unique(rows, axis=0, return_inverse=True)
+    return table, inverse.reshape(-1)
 
 
 def _corner(token: str, counts, path, line_number) -> tuple:
