@@ -112,8 +112,16 @@ def asset_bsdf_dict(mi, material: AssetMaterial) -> dict:
         albedo = _rgb(mi, material.base_color)
     if not material.view_dependent:
         return {"type": "diffuse", "reflectance": albedo}
-    return {"type": "principled", "base_color": albedo, "roughness": float(material.roughness),
-            "metallic": float(material.metallic)}
+
+    def scalar_or_texture(value, texture):  # one-channel textures, rows bottom first as above
+        if texture is None:
+            return float(value)
+        return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texture.pixels[::-1])), "raw": True,
+                "wrap_mode": "repeat"}
+
+    return {"type": "principled", "base_color": albedo,
+            "roughness": scalar_or_texture(material.roughness, material.roughness_texture),
+            "metallic": scalar_or_texture(material.metallic, material.metallic_texture)}
 
 
 def envmap_bitmap(light: GradientEnvironment, width: int = ENVMAP_WIDTH) -> np.ndarray:

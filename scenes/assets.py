@@ -80,6 +80,8 @@ class AssetMaterial:
     vertex_colors: bool = False
     roughness: Optional[float] = None
     metallic: Optional[float] = None
+    roughness_texture: Optional[TextureImage] = None  # [H, W, 1], already times `roughness`
+    metallic_texture: Optional[TextureImage] = None  # [H, W, 1], already times `metallic`
 
     @property
     def view_dependent(self) -> bool:
@@ -442,9 +444,17 @@ def _gltf_material(path, material, has_uv: bool, exact_factors: dict):
         texture = texture_from_image(f"{path}#{name}", image, base)
     roughness = None if material.roughnessFactor is None else float(material.roughnessFactor)
     metallic = None if material.metallicFactor is None else float(material.metallicFactor)
+    packed = getattr(material, "metallicRoughnessTexture", None)
+    roughness_texture = metallic_texture = None
+    if packed is not None and has_uv:  # the factors (default 1) scale the texture's G and B
+        roughness = 1.0 if roughness is None else roughness
+        metallic = 1.0 if metallic is None else metallic
+        channels = np.asarray(packed.convert("RGB"), np.float64) / 255  # linear, not sRGB
+        roughness_texture = TextureImage.from_pixels(f"{path}#{name}/roughness", channels[..., 1:2] * roughness)
+        metallic_texture = TextureImage.from_pixels(f"{path}#{name}/metallic", channels[..., 2:3] * metallic)
     if (roughness is None) != (metallic is None):  # glTF's default for the one not given is 1
         roughness, metallic = (1.0 if roughness is None else roughness), (1.0 if metallic is None else metallic)
-    return AssetMaterial(name, base, texture, False, roughness, metallic), emission
+    return AssetMaterial(name, base, texture, False, roughness, metallic, roughness_texture, metallic_texture), emission
 
 
 def texture_from_image(source: str, image, base_color) -> TextureImage:

@@ -209,6 +209,31 @@ def test_roughness_and_metallic_use_the_principled_bsdf(tmp_path, mi):
     assert np.isfinite(images.rgba).all() and images.hit[4:12, 4:12].all()
 
 
+def test_metallic_roughness_texture_scales_by_the_factors(tmp_path, mi):
+    """glTF packs roughness in G and metallic in B (linear); the factors multiply them.
+    A texture saying 'not metal' must win over metallicFactor 1 (no chrome by default)."""
+    packed = np.zeros((4, 4, 3), np.uint8)
+    packed[..., 1], packed[..., 2] = 204, 0  # roughness 0.8, metallic 0
+    packed[0, 0, 2] = 255  # one metal texel
+    mesh = plane()
+    pbr = trimesh.visual.material.PBRMaterial(name="painted", baseColorFactor=(1.0, 1.0, 1.0, 1.0),
+                                              metallicRoughnessTexture=Image.fromarray(packed),
+                                              roughnessFactor=0.5, metallicFactor=1.0)
+    mesh.visual = trimesh.visual.TextureVisuals(uv=PLANE_UV, material=pbr)
+    trimesh.Scene(mesh).export(tmp_path / "painted.glb")
+    material = make_scene(f"mesh:{tmp_path / 'painted.glb'}", 0).shapes[0].material
+    np.testing.assert_allclose(material.roughness_texture.pixels[..., 0], 0.8 * 0.5, atol=1e-6)
+    expected_metal = np.zeros((4, 4))
+    expected_metal[0, 0] = 1.0
+    np.testing.assert_allclose(material.metallic_texture.pixels[..., 0], expected_metal, atol=1e-6)
+    scene = make_scene(f"mesh:{tmp_path / 'painted.glb'}", 0)
+    entry = scene_dict(mi, scene, write_meshes(scene, tmp_path / "meshes"), max_depth=4)
+    bsdf = entry[scene.shapes[0].name]["bsdf"]["bsdf"]
+    assert bsdf["type"] == "principled" and bsdf["metallic"]["type"] == "bitmap"
+    images, _ = render_from_above(mi, scene, tmp_path, res=16, spp=4)
+    assert np.isfinite(images.rgba).all() and images.hit[4:12, 4:12].all()
+
+
 def two_object_glb(path):
     """A 1-unit box 'crate' at the origin and a ball 'ball' (radius 0.5) whose node sits
     at (2, 0, 1): the scene graph's transforms place them."""
