@@ -43,8 +43,9 @@ UNNAMED = "user_mesh"  # the name of the one object of a file that names none (P
 
 def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
     """sRGB transfer function inverted; encoded in [0, 1]. Same shape out."""
-    encoded = np.asarray(encoded, np.float64)
-    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4)
+    encoded = np.asarray(encoded)
+    encoded = encoded if encoded.dtype in (np.float32, np.float64) else encoded.astype(np.float64)
+    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4).astype(encoded.dtype)
 
 
 @dataclass(frozen=True)
@@ -459,8 +460,9 @@ def _gltf_material(path, material, has_uv: bool, exact_factors: dict):
 
 def texture_from_image(source: str, image, base_color) -> TextureImage:
     """A PIL image (sRGB) times the linear `base_color` as a TextureImage."""
-    rgb = np.asarray(image.convert("RGB"), np.float64) / 255  # [H, W, 3]
-    return TextureImage.from_pixels(source, srgb_to_linear(rgb) * np.asarray(base_color, np.float64))
+    # float32 throughout: a 4k texture is 200 MB as float32 (what Mitsuba holds anyway).
+    rgb = np.asarray(image.convert("RGB"), np.float32) / np.float32(255)  # [H, W, 3]
+    return TextureImage.from_pixels(source, srgb_to_linear(rgb) * np.asarray(base_color, np.float32))
 
 
 def _read_image(path: Path, data: bytes):
