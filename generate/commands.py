@@ -26,7 +26,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser("generate", help="render a scene into a NeRF dataset",
                                    description="Render posed views of a procedural scene with Mitsuba 3, with "
                                                "exact depth, normals and masks, into a NeRF-synthetic + nerfstudio dataset.")
-    parser.add_argument("scene", help="scene name (see `nerfgauge scenes`) or mesh:PATH")
+    parser.add_argument("scene", help="scene name (see `nerfgauge scenes`), mesh:PATH or a scene file (.toml/.json)")
     parser.add_argument("--out", required=True, type=arguments.path, help="dataset folder (created; resumed if it holds the same recipe)")
     options.add_generate_arguments(parser)
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",

@@ -23,6 +23,8 @@ from nerfgauge.scenes.description import (
     Sphere,
     Textured,
 )
+from nerfgauge.scenes.assets import AssetMaterial
+from nerfgauge.scenes.envmap import EnvironmentMap
 from nerfgauge.scenes.meshes import MeshData, pose
 
 ENVMAP_WIDTH = 512  # 0.7 degrees per texel: enough for a 3-degree sun disc
@@ -98,9 +100,38 @@ def bsdf_dict(mi, material, uv_extent) -> dict:
                     "alpha": float(material.roughness)}
     elif isinstance(material, Dielectric):
         return {"type": "dielectric", "int_ior": float(material.ior)}
+    elif isinstance(material, AssetMaterial):
+        bsdf = asset_bsdf_dict(mi, material)
     else:
         raise TypeError(f"no Mitsuba BSDF for material {type(material).__name__}")
     return {"type": "twosided", "bsdf": bsdf}
+
+
+def asset_bsdf_dict(mi, material: AssetMaterial) -> dict:
+    """A user asset's material: diffuse, or principled where the file gives roughness or
+    metallic. The albedo is the texture (already times the base colour), the mesh's
+    `vertex_color` attribute, or the base colour."""
+    if material.texture is not None:
+        # Asset uv has v up (OBJ/trimesh: v = 0 is the image's bottom row); Mitsuba's bitmap
+        # puts v = 0 at row 0, so the rows are handed over bottom first.
+        albedo = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(material.texture.pixels[::-1])),
+                  "raw": True, "wrap_mode": "repeat"}
+    elif material.vertex_colors:
+        albedo = {"type": "mesh_attribute", "name": "vertex_color"}
+    else:
+        albedo = _rgb(mi, material.base_color)
+    if not material.view_dependent:
+        return {"type": "diffuse", "reflectance": albedo}
+
+    def scalar_or_texture(value, texture):  # one-channel textures, rows bottom first as above
+        if texture is None:
+            return float(value)
+        return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texture.pixels[::-1])), "raw": True,
+                "wrap_mode": "repeat"}
+
+    return {"type": "principled", "base_color": albedo,
+            "roughness": scalar_or_texture(material.roughness, material.roughness_texture),
+            "metallic": scalar_or_texture(material.metallic, material.metallic_texture)}
 
 
 def envmap_bitmap(light: GradientEnvironment, width: int = ENVMAP_WIDTH) -> np.ndarray:
@@ -123,7 +154,7 @@ def scene_dict(mi, scene, mesh_paths: dict, max_depth: int) -> dict:
     # A transparent background hides the sky from camera rays; Mitsuba's switch hides every
     # directly seen emitter, so it is only set when there is a sky to hide (a scene without
     # one keeps its lamps visible, and its misses are transparent anyway).
-    has_sky = any(isinstance(light, (ConstantEnvironment, GradientEnvironment)) for light in scene.lights)
+    has_sky = any(isinstance(light, (ConstantEnvironment, GradientEnvironment, EnvironmentMap)) for light in scene.lights)
     out = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth),
                                            "hide_emitters": scene.needs.background == "transparent" and has_sky}}
     for shape in scene.shapes:
@@ -135,13 +166,33 @@ def scene_dict(mi, scene, mesh_paths: dict, max_depth: int) -> dict:
         entry["bsdf"] = bsdf_dict(mi, shape.material, shape.uv_extent())
         if shape.emission is not None:
             entry["emitter"] = {"type": "area", "radiance": _rgb(mi, shape.emission)}
-        out[shape.name] = entry
+        out[shape.name] = with_vertex_colors(mi, entry, shape)
     for index, light in enumerate(scene.lights):
         out[f"light_{index}"] = light_dict(mi, light, mesh_paths.get(f"light_{index}"))
     return out
 
 
+def with_vertex_colors(mi, entry: dict, shape):
+    """The shape as loaded, with its per-vertex colours as the `vertex_color` attribute
+    the mesh_attribute texture reads; `entry` unchanged for shapes without colours. The PLY
+    on disk keeps the vertex order of the MeshData, so the colours line up."""
+    colors = None if entry["type"] != "ply" else shape.mesh().colors
+    if colors is None:
+        return entry
+    loaded = mi.load_dict(entry)
+    loaded.add_attribute("vertex_color", 3, np.asarray(colors, np.float32).ravel().tolist())
+    return loaded
+
+
+def envmap_to_world(rotation_degrees: float) -> np.ndarray:
+    """Mitsuba envmap frame -> world: +Y up to +Z up, then `rotation_degrees` about +Z."""
+    return pose((0, 0, 0), (0, 0, rotation_degrees)) @ ENVMAP_TO_WORLD
+
+
 def light_dict(mi, light, mesh_path=None) -> dict:
+    if isinstance(light, EnvironmentMap):
+        return {"type": "envmap", "bitmap": mi.Bitmap(light.pixels),
+                "to_world": mi.ScalarTransform4f(envmap_to_world(light.rotation).tolist())}
     if isinstance(light, ConstantEnvironment):
         return {"type": "constant", "radiance": _rgb(mi, light.radiance)}
     if isinstance(light, GradientEnvironment):

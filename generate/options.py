@@ -15,7 +15,8 @@ from nerfgauge.core import arguments
 
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
-                  "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits")
+                  "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits",
+                  "units", "envmap", "envmap_rotation")
 
 
 def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
@@ -63,6 +64,13 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
                         help="thin-lens aperture radius in scene units (default 0: pinhole); needs --focus-distance")
     parser.add_argument("--focus-distance", type=arguments.finite_float, default=d.focus_distance, metavar="D",
                         help="distance of the plane in focus along the optical axis, scene units")
+    parser.add_argument("--units", choices=("normalise", "keep"), default=d.units,
+                        help="user assets: normalise into [-1, 1]^3 (default; the transform is in scene.json) or "
+                             "keep the files' coordinates, so depth and meshes/ are in the asset's units")
+    parser.add_argument("--envmap", type=arguments.path, default=d.envmap, metavar="FILE",
+                        help="light the scene with an equirectangular .exr/.hdr instead of its own lights")
+    parser.add_argument("--envmap-rotation", type=arguments.finite_float, default=d.envmap_rotation, metavar="DEG",
+                        help="turn the --envmap about +Z by DEG degrees (default 0)")
     parser.add_argument("--lens-splits", choices=("test", "all"), default=d.lens_splits,
                         help="views rendered through the lens: test (default) or all splits; depth, normals and "
                              "masks stay those of the pinhole pixel-centre rays")
@@ -76,4 +84,7 @@ def generate_fields(args: argparse.Namespace) -> dict:
     from nerfgauge.generate.commands import parse_resolution
 
     width, height = parse_resolution(args.res)
-    return {"width": width, "height": height, **{name: getattr(args, name) for name in CONFIG_OPTIONS}}
+    fields = {name: getattr(args, name) for name in CONFIG_OPTIONS}
+    if fields["envmap"] is not None:
+        fields["envmap"] = str(fields["envmap"])
+    return {"width": width, "height": height, **fields}

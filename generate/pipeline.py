@@ -91,6 +91,9 @@ class GenerateConfig:
     aperture: float = 0.0
     focus_distance: Optional[float] = None
     lens_splits: str = "test"
+    units: str = "normalise"  # "keep": user assets stay in their files' units
+    envmap: Optional[str] = None  # an equirectangular .exr/.hdr lighting the scene instead of its lights
+    envmap_rotation: float = 0.0  # degrees about +Z
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
@@ -155,12 +158,15 @@ class GenerateConfig:
         return ThinLens(self.aperture, self.focus_distance)
 
     def to_json(self) -> dict:
-        """The recipe's config. The lens fields only when a lens is asked for, so a pinhole
-        dataset keeps the recipe (and hash) it had before lenses existed."""
+        """The recipe's config. The lens, units and envmap fields only when they differ from
+        the defaults, so a dataset keeps the recipe (and hash) it had before they existed."""
         out = dataclasses.asdict(self) | {"elevation": None if self.elevation is None else list(self.elevation)}
         if self.lens() is None and self.lens_splits == "test":
             for key in ("aperture", "focus_distance", "lens_splits"):
                 del out[key]
+        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0)):
+            if out[name] == default:
+                del out[name]
         return out
 
 
@@ -197,7 +203,8 @@ class Plan:
 def plan(config: GenerateConfig) -> Plan:
     """Validate and resolve everything without writing anything."""
     config.validate()
-    scene = make_scene(config.scene, config.seed)
+    scene = make_scene(config.scene, config.seed, units=config.units, envmap=config.envmap,
+                       envmap_rotation=config.envmap_rotation)
     intrinsics = Intrinsics.from_fov(config.width, config.height, config.fov)
     spec = layout_spec(config, scene)
     rng = np.random.default_rng(config.seed)

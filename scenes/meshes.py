@@ -18,12 +18,14 @@ import trimesh
 @dataclass(frozen=True, eq=False)
 class MeshData:
     """vertices [V, 3], faces [F, 3] int, normals [V, 3] unit or None (flat shading),
-    uv [V, 2] in scene units (float64)."""
+    uv [V, 2] in scene units (float64; a user asset's texture coordinates instead),
+    colors [V, 3] linear RGB per vertex or None."""
 
     vertices: np.ndarray
     faces: np.ndarray
     normals: Optional[np.ndarray]
     uv: np.ndarray
+    colors: Optional[np.ndarray] = None
 
     def __post_init__(self):
         v, f = np.asarray(self.vertices), np.asarray(self.faces)
@@ -36,7 +38,19 @@ class MeshData:
         """Apply a 4x4 rigid transform (rotation + translation) to points and normals."""
         rot, shift = matrix[:3, :3], matrix[:3, 3]
         normals = None if self.normals is None else self.normals @ rot.T
-        return MeshData(self.vertices @ rot.T + shift, self.faces, normals, self.uv)
+        return MeshData(self.vertices @ rot.T + shift, self.faces, normals, self.uv, self.colors)
+
+    def scaled(self, scale: float, shift) -> "MeshData":
+        """Points mapped to scale * p + shift (uniform scale > 0: normals unchanged)."""
+        return MeshData(self.vertices * scale + np.asarray(shift, np.float64), self.faces, self.normals, self.uv,
+                        self.colors)
+
+    def subset(self, keep_faces: np.ndarray) -> "MeshData":
+        """The faces selected by the boolean mask [F], without the vertices none of them uses."""
+        used, faces = np.unique(self.faces[keep_faces], return_inverse=True)
+        pick = (lambda a: None if a is None else a[used])
+        return MeshData(self.vertices[used], faces.reshape(-1, 3), pick(self.normals), self.uv[used],
+                        pick(self.colors))
 
     def bounds(self) -> np.ndarray:
         """[2, 3] min and max corner."""
