@@ -25,7 +25,7 @@ def mitsuba_render_seconds(config: GenerateConfig) -> dict:
     mi = use_variant(the_plan.variant)
     with tempfile.TemporaryDirectory() as folder:
         paths = write_meshes(the_plan.scene, Path(folder))
-        scene = mi.load_dict(scene_dict(mi, the_plan.scene, paths, config.max_depth))
+        scene = mi.load_dict(scene_dict(mi, the_plan.scene, paths, config.max_depth), optimize=False)  # as workers.py
         views = [(split, i) for split in SPLIT_SEED_OFFSET for i in range(len(the_plan.poses[split]))]
         first = views[0]
         render_rgba(mi, scene, the_plan.poses[first[0]][first[1]], the_plan.intrinsics, config.spp, 0)

@@ -31,7 +31,10 @@ def load_mitsuba_scene(out, the_plan):
     """Set the variant and load the scene from the meshes already on disk. Returns (mi, scene)."""
     mi = use_variant(the_plan.variant)
     mesh_paths = {path.stem: path for path in (out / "meshes").glob("*.ply")}
-    return mi, mi.load_dict(scene_dict(mi, the_plan.scene, mesh_paths, the_plan.config.max_depth))
+    # optimize=False: Mitsuba would otherwise merge shapes that share a BSDF into one mesh
+    # (two untextured objects of a GLB become "ball.ply + crate.ply"), and every pixel of
+    # both would get one instance id.
+    return mi, mi.load_dict(scene_dict(mi, the_plan.scene, mesh_paths, the_plan.config.max_depth), optimize=False)
 
 
 def _render_one(mi, scene, out, the_plan, split, index):

@@ -286,6 +286,34 @@ def test_dataset_carries_object_names_and_units(tmp_path, make_dataset):
     assert sorted(s["name"] for s in doc["scene"]["shapes"]) == ["ball", "crate"]
 
 
+def test_instance_ids_follow_the_objects(tmp_path, make_dataset):
+    """Each object of the file is one shape, so it has its own instance id, named in the
+    legend; every pixel of an id back-projects (exact depth) onto that object's mesh."""
+    from nerfgauge.core.camera import pixel_rays
+    from nerfgauge.core.dataset import Dataset
+
+    glb = two_object_glb(tmp_path / "pair.glb")
+    root = make_dataset(tmp_path / "ds", scene=f"mesh:{glb}", views=1, val_views=0, test_views=3, width=24,
+                        height=24, spp=2, units="keep", layout="sphere")
+    ds = Dataset(root)
+    names = ds.instance_names()
+    assert sorted(names.values()) == ["ball", "crate"]
+    meshes = {name: trimesh.load(root / "meshes" / f"{name}.ply", process=False) for name in names.values()}
+    seen = set()
+    for index, c2w in enumerate(ds.c2w("test")):
+        ids, depth = ds.instance("test", index), ds.depth("test", index)
+        origins, directions = pixel_rays(c2w, ds.intrinsics("test"))
+        for number in np.unique(ids[ids > 0]):
+            name = names[int(number)]
+            pick = ids == number
+            points = origins[pick] + depth[pick][:, None] * directions[pick]
+            _, distance, _ = trimesh.proximity.closest_point(meshes[name], points)
+            # exact depth in float32 on unit-sized objects: float rounding, far below a pixel
+            assert distance.max() < 1e-4, (name, distance.max())
+            seen.add(name)
+    assert seen == {"ball", "crate"}
+
+
 def test_units_keep_depth_is_the_analytic_distance_in_file_units(tmp_path, mi):
     """A 100-unit square at z = 5 seen from z = 35: every pixel-centre ray that meets the
     square inside (by 1 unit) hits it at t = 30 / |d_z|, to float32 precision."""
