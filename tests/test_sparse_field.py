@@ -47,6 +47,28 @@ def test_lookup_equals_dense_trilinear_interpolation_inside_and_beyond_the_box()
     assert torch.allclose(weights.sum(dim=1), torch.ones(len(positions)), atol=1e-6)
 
 
+def test_rendering_without_gradients_reads_the_same_values_and_follows_updates():
+    """No-grad calls read a cached dense copy through grid_sample: the same sigma and
+    colour as the sparse gather, and a changed table (an Adam step, in place) is seen."""
+    field = random_field(10, view_dependent=True)
+    generator = torch.Generator().manual_seed(5)
+    positions = torch.rand((3000, 3), generator=generator) * (AABB[1] - AABB[0]) + AABB[0]
+    directions = F.normalize(torch.randn((3000, 3), generator=generator), dim=-1)
+    for _ in range(2):
+        with torch.no_grad():
+            fast = field(positions, directions)
+        slow = [t.detach() for t in field(positions, directions)]
+        assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-5) for a, b in zip(fast, slow))
+        with torch.no_grad():
+            field.density_table.add_(0.5)  # in place, as Adam updates
+            field.features.mul_(0.5)
+    field.keep_rows(field.index > 0)  # new tables: the copy is rebuilt, not reused
+    with torch.no_grad():
+        fast = field(positions, directions)
+    slow = [t.detach() for t in field(positions, directions)]
+    assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-5) for a, b in zip(fast, slow))
+
+
 def test_blend_gradients_match_autograd_of_the_gather_and_skip_row_zero():
     field = random_field(6)
     generator = torch.Generator().manual_seed(2)
