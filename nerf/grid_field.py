@@ -98,11 +98,32 @@ def node_cells(nodes: int, cells_before: int) -> torch.Tensor:
     return position.floor().long().clamp(0, cells_before - 1)
 
 
+def any_within(mask: torch.Tensor, low: int, high: int) -> torch.Tensor:
+    """out[i, j, k] = any of mask[i - low .. i + high, j - low .. j + high, k - low .. k + high]
+    (outside the grid counts as False). mask [nz, ny, nx] bool -> the same shape.
+    A separable box max on bools: 3 (low + high) logical ors, where max_pool3d on floats
+    took 0.6 s at 218^3, every 16 training steps."""
+    for dim in range(3):
+        out = mask.clone()
+        n = mask.shape[dim]
+        for shift in range(1, min(high, n - 1) + 1):  # out[i] |= mask[i + shift]
+            out.narrow(dim, 0, n - shift).logical_or_(mask.narrow(dim, shift, n - shift))
+        for shift in range(1, min(low, n - 1) + 1):  # out[i] |= mask[i - shift]
+            out.narrow(dim, shift, n - shift).logical_or_(mask.narrow(dim, 0, n - shift))
+        mask = out
+    return mask
+
+
+def cells_touching(nodes: torch.Tensor) -> torch.Tensor:
+    """Cells with at least one of their 8 corner nodes set. nodes [nz, ny, nx] bool ->
+    [nz-1, ny-1, nx-1] bool."""
+    return any_within(nodes, 0, 1)[:-1, :-1, :-1]
+
+
 def node_mask(occupancy: torch.Tensor) -> torch.Tensor:
     """Grid nodes that are a corner of an occupied cell. occupancy [nz-1, ny-1, nx-1] ->
     [nz, ny, nx] bool."""
-    padded = F.pad(occupancy[None, None].float(), (1, 1, 1, 1, 1, 1))
-    return F.max_pool3d(padded, kernel_size=2, stride=1)[0, 0] > 0
+    return any_within(F.pad(occupancy, (0, 1, 0, 1, 0, 1), value=False), 1, 0)
 
 
 class VoxelGridField(nn.Module):
@@ -307,7 +328,7 @@ class VoxelGridField(nn.Module):
         if keep_cells is None:
             mask = torch.ones(shape, dtype=torch.bool)
         else:
-            grown = F.max_pool3d(keep_cells[None, None].float(), 3, stride=1, padding=1)[0, 0].cpu() > 0
+            grown = any_within(keep_cells, 1, 1).cpu()
             cz, cy, cx = (node_cells(new, old) for new, old in zip(shape, grown.shape))
             mask = grown[cz[:, None, None], cy[None, :, None], cx[None, None, :]]
         nodes = mask.nonzero().to(self.aabb.device)  # [n, 3] zyx
@@ -331,12 +352,10 @@ class VoxelGridField(nn.Module):
         cell whose corners are all below the threshold is below it everywhere.
         Returns [nz-1, ny-1, nx-1] bool."""
         sigma = self.density_from_raw(self.density_table[:, 0])
-        alpha = -torch.expm1(-sigma * self.marching_step)[self.index.long()]  # [nz, ny, nx]
-        corner_max = F.max_pool3d(alpha[None, None], kernel_size=2, stride=1)[0, 0]  # [nz-1, ny-1, nx-1]
-        occupied = corner_max > OCCUPANCY_ALPHA
+        hot_rows = -torch.expm1(-sigma * self.marching_step) > OCCUPANCY_ALPHA  # [rows] bool
+        occupied = cells_touching(hot_rows[self.index.long()])  # [nz-1, ny-1, nx-1]
         if dilate:
-            size = 2 * dilate + 1
-            occupied = F.max_pool3d(occupied[None, None].float(), size, stride=1, padding=dilate)[0, 0] > 0
+            occupied = any_within(occupied, dilate, dilate)
         return occupied
 
     def total_variation(self) -> torch.Tensor:

@@ -158,11 +158,13 @@ def march_space(origins: torch.Tensor, directions: torch.Tensor, space, box: tor
     return MarchedSamples(t[kept], rays[kept], deltas[kept], near, far)
 
 
-def cell_of(grid_positions: torch.Tensor, box: torch.Tensor, shape) -> torch.Tensor:
+def cell_of(grid_positions: torch.Tensor, box: torch.Tensor, shape, block: int = 1) -> torch.Tensor:
     """Flat cell index [n] of grid-coordinate positions [n, 3] in a grid of `shape`
-    (nz, ny, nx) cells over `box` [2, 3], clamped to the grid."""
+    (nz, ny, nx) cells over `box` [2, 3], clamped to the grid; with block > 1, the index
+    of the block of block^3 cells that holds it, in a grid of ceil(shape / block) blocks."""
     nz, ny, nx = shape
     size = torch.tensor([nx, ny, nz], device=grid_positions.device)
     index = ((grid_positions - box[0]) / ((box[1] - box[0]) / size)).floor().long()
-    index = torch.minimum(index.clamp_min(0), size - 1)
-    return (index[:, 2] * ny + index[:, 1]) * nx + index[:, 0]
+    index = torch.minimum(index.clamp_min(0), size - 1) // block
+    blocks_y, blocks_x = -(-ny // block), -(-nx // block)
+    return (index[:, 2] * blocks_y + index[:, 1]) * blocks_x + index[:, 0]

@@ -98,6 +98,30 @@ def _depth(weighted_t, opacity, near, far):
     return torch.where(opacity > 0, depth, torch.zeros_like(depth))
 
 
+def front_to_back_windows(ray_index: torch.Tensor, transmittance: torch.Tensor, window: int,
+                          min_transmittance: float):
+    """Walk packed samples front to back, `window` samples per ray at a time, for early ray
+    termination. Yields the sample indices [m] of the next window of every live ray; the
+    caller multiplies `transmittance` [n_rays] in place by what the window absorbed, and a
+    ray whose transmittance is then below `min_transmittance` yields no further samples.
+    ray_index: [n_samples] sorted by ray, then t."""
+    n_rays = transmittance.shape[0]
+    counts = torch.bincount(ray_index, minlength=n_rays)  # samples per ray
+    rank = torch.arange(ray_index.numel(), device=ray_index.device) - (torch.cumsum(counts, 0) - counts)[ray_index]
+    remaining = torch.arange(ray_index.numel(), device=ray_index.device)  # samples not yet taken
+    start = 0
+    while remaining.numel():
+        in_window = rank[remaining] < start + window
+        chosen, remaining = remaining[in_window], remaining[~in_window]
+        yield chosen
+        remaining = remaining[transmittance[ray_index[remaining]] >= min_transmittance]  # rays that stopped
+        start += window
+
+
+def _window_deltas(step, chosen: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return step.index_select(0, chosen) if isinstance(step, torch.Tensor) else torch.full_like(like, step)
+
+
 @torch.no_grad()
 def packed_render_early_stop(field_fn, t_mid, ray_index, step, near, far, window: int = 8,
                              min_transmittance: float = 1e-3):
@@ -114,27 +138,43 @@ def packed_render_early_stop(field_fn, t_mid, ray_index, step, near, far, window
     Returns rgb [n_rays, 3], opacity [n_rays], depth [n_rays], samples evaluated (int).
     """
     n_rays = near.shape[0]
-    counts = torch.bincount(ray_index, minlength=n_rays)  # samples per ray
-    rank = torch.arange(ray_index.numel(), device=ray_index.device) - (torch.cumsum(counts, 0) - counts)[ray_index]
     transmittance = torch.ones(n_rays, dtype=t_mid.dtype, device=t_mid.device)
     rgb = torch.zeros((n_rays, 3), dtype=t_mid.dtype, device=t_mid.device)
     weighted_t = torch.zeros(n_rays, dtype=t_mid.dtype, device=t_mid.device)
     evaluated = 0
-    remaining = torch.arange(ray_index.numel(), device=ray_index.device)  # samples not yet taken
-    start = 0
-    while remaining.numel():
-        in_window = rank[remaining] < start + window
-        chosen, remaining = remaining[in_window], remaining[~in_window]
+    for chosen in front_to_back_windows(ray_index, transmittance, window, min_transmittance):
         rays = ray_index[chosen]
         sigma, colour = field_fn(chosen)
-        deltas = step.index_select(0, chosen) if isinstance(step, torch.Tensor) else torch.full_like(sigma, step)
-        local = packed_weights(sigma, deltas, rays, n_rays)  # as if T = 1 at the window
+        local = packed_weights(sigma, _window_deltas(step, chosen, sigma), rays, n_rays)  # as if T = 1 at the window
         weights = transmittance[rays] * local
         rgb += packed_sum(weights[:, None] * colour, rays, n_rays)
         weighted_t += packed_sum(weights * t_mid[chosen], rays, n_rays)
-        transmittance = transmittance * (1 - packed_sum(local, rays, n_rays)).clamp_min(0)
+        transmittance.mul_((1 - packed_sum(local, rays, n_rays)).clamp_min(0))
         evaluated += chosen.numel()
-        remaining = remaining[transmittance[ray_index[remaining]] >= min_transmittance]  # rays that stopped
-        start += window
     opacity = 1 - transmittance
     return rgb, opacity, _depth(weighted_t, opacity, near, far), evaluated
+
+
+@torch.no_grad()
+def packed_transmittance_early_stop(density_fn, ray_index, step, n_rays: int, window: int = 16,
+                                    min_transmittance: float = 1e-3):
+    """Transmittance T_i at packed samples, front to back, stopping each ray once T falls
+    below `min_transmittance` (what `measure_visibility` needs: where rays still see).
+    Not differentiable.
+
+    density_fn(sample_index [m]) -> sigma [m]; ray_index: [n_samples] sorted by ray then
+    t; step: a float or per-sample lengths [n_samples].
+    Returns (sample indices [k], their T [k]): every sample with T >= min_transmittance
+    is among them (the samples of a ray's last window may fall below it)."""
+    transmittance = torch.ones(n_rays, device=ray_index.device)
+    indices, values = [], []
+    for chosen in front_to_back_windows(ray_index, transmittance, window, min_transmittance):
+        rays = ray_index[chosen]
+        sigma = density_fn(chosen)
+        local, tau = packed_transmittance(sigma, _window_deltas(step, chosen, sigma), rays, n_rays)
+        indices.append(chosen), values.append(transmittance[rays] * local)
+        absorbed = packed_sum(tau, rays, n_rays)
+        transmittance.mul_(torch.exp(-absorbed))
+    if not indices:
+        return ray_index.new_zeros(0), torch.zeros(0, device=ray_index.device)
+    return torch.cat(indices), torch.cat(values)

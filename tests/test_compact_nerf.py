@@ -137,6 +137,30 @@ def test_marching_an_empty_grid_and_rays_that_miss():
     torch.testing.assert_close(full.t_mid, 1.0 + (torch.arange(16) + 0.5) / 16)
 
 
+def test_transmittance_with_early_stop_equals_the_full_pass_where_rays_still_see():
+    """Visibility's front-to-back pass returns every sample whose transmittance is at least
+    the threshold, with the full pass's value (exact up to float64 rounding across windows),
+    and skips only samples the full pass puts below the threshold."""
+    from nerfgauge.nerf.packed import packed_transmittance, packed_transmittance_early_stop
+
+    counts, sigma, _, _, keep = ragged_case(seed=5, n_rays=50, max_samples=70, dtype=torch.float64)
+    sigma = sigma * 10
+    sigma[::4] = 0.01
+    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
+    s = sigma[keep]
+    step = torch.rand(s.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(6)) * 0.2
+    full, _ = packed_transmittance(s, step, rays, len(counts))
+    index, early = packed_transmittance_early_stop(lambda i: s[i], rays, step, len(counts), window=4,
+                                                   min_transmittance=1e-3)
+    assert index.numel() < s.numel()  # it did stop rays
+    assert len(set(index.tolist())) == index.numel()
+    torch.testing.assert_close(early.double(), full[index], rtol=1e-6, atol=1e-9)
+    skipped = torch.ones(s.numel(), dtype=torch.bool)
+    skipped[index] = False
+    assert (full[skipped] < 1e-3).all()
+    assert torch.equal(index[early >= 1e-3].sort().values, (full >= 1e-3).nonzero()[:, 0])
+
+
 def test_early_termination_leaves_out_at_most_the_remaining_transmittance():
     """Stopping a ray once T < 1e-3 drops only what lies behind: colour and opacity change
     by at most T_stop (colours are in [0, 1]); rays that never get opaque are untouched."""

@@ -141,6 +141,63 @@ def test_free_unoccupied_moves_adam_moments_with_their_rows():
     assert state["exp_avg"].shape == field.density_table.shape
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.tuples(*[st.integers(1, 7)] * 3), st.integers(0, 2), st.integers(0, 2), st.integers(0, 2**31 - 1))
+def test_any_within_is_a_box_max_and_node_mask_is_its_transpose(shape, low, high, seed):
+    """The separable boolean box max equals max_pool3d over the same window (out of range
+    counting as empty); a cell touches a set node exactly when the node is a corner of it."""
+    from nerfgauge.nerf.grid_field import any_within, cells_touching
+
+    mask = torch.rand(shape, generator=torch.Generator().manual_seed(seed)) < 0.2
+    padded = F.pad(mask[None, None].float(), (low, high) * 3)  # window i - low .. i + high
+    expected = F.max_pool3d(padded, low + high + 1, stride=1)[0, 0] > 0
+    assert torch.equal(any_within(mask, low, high), expected)
+    if min(shape) > 1:
+        cells = mask[:-1, :-1, :-1]
+        corners = F.max_pool3d(mask[None, None].float(), 2, stride=1)[0, 0] > 0
+        assert torch.equal(cells_touching(mask), corners)
+        nodes = node_mask(cells)
+        touched = F.max_pool3d(F.pad(cells[None, None].float(), (1, 1) * 3), 2, stride=1)[0, 0] > 0
+        assert torch.equal(nodes, touched)
+
+
+def two_walls_model(resolution=16) -> CompactNeRF:
+    """A unit box with two opaque slabs, 0.25 <= z < 0.35 and 0.7 <= z < 0.8; empty elsewhere."""
+    field = VoxelGridField(torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]), resolution, resolution, False)
+    grid = field.to_dense()
+    z = torch.linspace(0, 1, field.shape[0])
+    grid[0] = EMPTY_RAW
+    grid[0, ((z >= 0.25) & (z < 0.35)) | ((z >= 0.7) & (z < 0.8))] = 10.0
+    field.load_dense(grid)
+    model = CompactNeRF(field)
+    model.update_occupancy()
+    return model
+
+
+def test_visibility_hides_what_an_opaque_wall_covers_and_blocks_only_loosen_it():
+    """Rays from z < 0 looking along +z see the front wall's near face; the back wall is
+    hidden (empty cells are never marched, so visibility is about occupied ones). Measured
+    per block of 2^3 cells, the visible set contains the per-cell one and still hides the
+    back wall."""
+    generator = torch.Generator().manual_seed(0)
+    n = 4000
+    origins = torch.cat([torch.rand(n, 2, generator=generator), torch.full((n, 1), -0.5)], dim=1)
+    directions = torch.tensor([0.0, 0.0, 1.0]).expand(n, 3).contiguous()
+    per_cell = two_walls_model()
+    occupied = per_cell.occupancy.clone()
+    cells_z = (torch.arange(occupied.shape[0]) + 0.5) / occupied.shape[0]  # cell centres
+    front = occupied.any(dim=(1, 2)).nonzero()[0, 0]  # first occupied layer
+    per_cell.measure_visibility(origins, directions)
+    assert per_cell.visible[front].all() and per_cell.occupancy[front].all()
+    back = cells_z > 0.6
+    assert occupied[back].any() and not per_cell.visible[back].any() and not per_cell.occupancy[back].any()
+    blocked = two_walls_model()
+    blocked.measure_visibility(origins, directions, block=2)
+    assert (blocked.visible | ~per_cell.visible).all()  # per-cell visible => block visible
+    assert blocked.visible.sum() > per_cell.visible.sum()
+    assert not blocked.occupancy[back].any()
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.integers(1, 9), min_size=1, max_size=4), st.floats(0.0, 1.0), st.integers(0, 2**31 - 1))
 def test_packed_masks_round_trip(shape, density, seed):
