@@ -90,10 +90,12 @@ def audit(out: Path) -> dict:
         found["metrics_error"] = str(error).splitlines()[0]
         return found
     found["mean"] = metrics["mean"]
-    found["undefined"] = sorted(name for name, value in metrics["mean"].items()
-                                if value is None and metrics["count"].get(name, 0) != 0)
-    found["no_pixels"] = sorted(name for name, value in metrics["mean"].items()
-                                if value is None and metrics["count"].get(name, 0) == 0)
+    # metrics with a note (LPIPS without its weights) are not measured here, not empty
+    absent = set(metrics.get("notes") or {})
+    nulls = [name for name, value in metrics["mean"].items() if value is None and name not in absent]
+    found["undefined"] = sorted(name for name in nulls if metrics["count"].get(name, 0) != 0)
+    found["no_pixels"] = sorted(name for name in nulls if metrics["count"].get(name, 0) == 0)
+    found["not_measured"] = sorted(absent)
     return found
 
 
@@ -137,6 +139,7 @@ def table_markdown(rows: list, command: str) -> str:
                  _cell(mean.get("ssim"), 4), _cell(mean.get("psnr_foreground")), _cell(mean.get("depth_absrel"), 4),
                  _cell(mean.get("depth_delta1"), 3), _cell(mean.get("opacity_iou"), 3),
                  _cell(r.get("steps_per_second"), 1), str(r.get("resolution", "–")),
-                 ", ".join(r.get("no_pixels", [])) or "–"]
+                 (", ".join(r.get("no_pixels", [])) or "–")
+                 + (f" (not measured: {', '.join(r['not_measured'])})" if r.get("not_measured") else "")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -36,7 +36,9 @@ CHECKPOINT_VERSION = 2  # version 1 was a float16 model payload inside a "nerfga
 FORMATS = {"model": (FORMAT, VERSION), "checkpoint": (CHECKPOINT_FORMAT, CHECKPOINT_VERSION)}
 # The training loop's counters, all restored on resume (see train.py for their meaning).
 LOOP_STATE = {"step": int, "seconds": float, "next_eval": float, "visibility_done": int, "stage": int,
-              "stage_steps": int, "logged_step": int}
+              "stage_steps": int, "logged_step": int, "stage_seconds": float, "last_stage": int}
+# counters added after checkpoint version 2 first shipped, and their value in older files
+LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3}
 
 
 def save_atomic(obj, path) -> int:
@@ -252,7 +254,7 @@ def load_training_checkpoint(path, recipe: dict) -> dict:
         problem = "no loop state"
     else:
         for name, kind in LOOP_STATE.items():
-            value = loop.get(name)
+            value = loop.setdefault(name, LOOP_DEFAULTS[name]) if name in LOOP_DEFAULTS else loop.get(name)
             if not isinstance(value, (int, float) if kind is float else int) or isinstance(value, bool):
                 problem = f"loop value {name} is {value!r}"
                 break

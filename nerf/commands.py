@@ -125,7 +125,8 @@ def _run_train(args) -> int:
                          checkpoint_every=args.checkpoint_every)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
-          f"model {summary['model_bytes'] / 1e6:.2f} MB")
+          f"model {summary['model_bytes'] / 1e6:.2f} MB"
+          + (f", grid {summary['resolution']}" if summary.get("resolution") else ""))
     return 0
 
 

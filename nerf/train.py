@@ -38,6 +38,11 @@ from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remov
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows ...
 MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
+# A time budget takes a finer grid only if it can still give it this many steps (projected
+# from the current stage's step rate, scaled by the resolution ratio: samples per ray grow
+# with it). Measured on primitives, 120 s, 2 CPU cores (BENCHMARKS.md): at 256 px the 218
+# grid got ~640 steps and scored 37.5 dB, the 137 grid it skipped to ~1500 steps and 38.7.
+MIN_STEPS_AT_FINER = 1000
 VISIBILITY_AT = (0.4, 0.7, 1.0)  # fractions where hidden cells are measured and skipped
 VISIBILITY_RAY_STRIDE = 4  # every 4th training ray is enough to see every visible cell ...
 # ... up to this many rays (100 views of 128 px). Beyond it, measuring costs more than the
@@ -100,6 +105,18 @@ def psnr_on_white(model, rays, device, max_rays: int) -> float:
     target = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:])
     per_view = ((pred - target) ** 2).view(rays.n_views, -1).mean(dim=1).clamp_min(1e-10)
     return float((-10 * torch.log10(per_view)).mean())
+
+
+def projected_steps_at_finer(config: TrainConfig, state: dict) -> float | None:
+    """Steps a time budget would still give the next stage's finer grid: the current
+    stage's step rate, slowed by the resolution ratio, times the seconds left. None for a
+    --steps run (its schedule is fixed by the step count, so it stays reproducible) and
+    for the vanilla model."""
+    if config.budget_seconds is None or config.model != "compact" or state["stage_seconds"] <= 0:
+        return None
+    current, finer = resolution_at(config, state["stage"]), resolution_at(config, state["stage"] + 1)
+    rate = state["stage_steps"] / state["stage_seconds"] * current / finer
+    return rate * max(config.budget_seconds - state["seconds"], 0.0)
 
 
 def visibility_sampling(n_rays: int) -> tuple[int, int]:
@@ -255,8 +272,10 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     # Loop state (all in checkpoint.pt): steps and training seconds done, the training
     # second of the next val PSNR point, visibility measurements and upsamplings done,
     # steps at this resolution, and the step of the last log entry.
+    # stage_seconds: training seconds at this resolution; last_stage: the finest stage the
+    # run will take (a time budget stops growing when a finer grid could not be trained).
     state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0, "stage": 0, "stage_steps": 0,
-             "logged_step": -1}
+             "logged_step": -1, "stage_seconds": 0.0, "last_stage": len(UPSAMPLE_AT)}
     if saved is not None:
         path = run_dir / CHECKPOINT
         model = checkpoint.restore_model(saved, config, aabb, path, space=space).to(device)
@@ -310,7 +329,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                          "loss": sum(losses) / len(losses) if losses else None}
                 losses.clear()
                 if hasattr(model, "occupancy"):
-                    entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean())}
+                    entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean()),
+                              "final_resolution": resolution_at(config, state["last_stage"])}
                 log.write(json.dumps(entry) + "\n"), log.flush()
                 state["next_eval"] = state["seconds"] + config.eval_every_seconds
                 state["logged_step"] = state["step"]
@@ -325,10 +345,18 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
             if done >= 1:
                 break
             start = time.perf_counter()
-            if state["stage"] < len(UPSAMPLE_AT) and done >= UPSAMPLE_AT[state["stage"]] \
+            if state["stage"] < state["last_stage"] and done >= UPSAMPLE_AT[state["stage"]] \
                     and state["stage_steps"] >= MIN_STAGE_STEPS:
-                state["stage"] += 1
-                state["stage_steps"] = 0
+                projected = projected_steps_at_finer(config, state)
+                if projected is not None and projected < MIN_STEPS_AT_FINER:
+                    state["last_stage"] = state["stage"]
+                    if progress:
+                        tqdm.write(f"keeping the {model.field.resolution}-voxel grid: the budget would give a "
+                                   f"{resolution_at(config, state['stage'] + 1)}-voxel one about {projected:.0f} "
+                                   f"steps (< {MIN_STEPS_AT_FINER})")
+                else:
+                    state["stage"] += 1
+                    state["stage_steps"], state["stage_seconds"] = 0, 0.0
             loss, gradients_finite = _train_step(model, optimizer, config, train_rays, n_rays, generator, device,
                                                  done, state)
             if not (math.isfinite(loss) and gradients_finite):
@@ -340,13 +368,15 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
             elapsed = time.perf_counter() - start
             state["step"] += 1
             state["stage_steps"] += 1
+            state["stage_seconds"] += elapsed
             state["seconds"] += elapsed
             bar.update(1 if config.steps else min(elapsed, total - bar.n))
     finally:
         bar.close()
         log.close()
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
-    return {"steps": state["step"], "seconds": state["seconds"], "val_psnr": last_psnr, "model_bytes": size}
+    return {"steps": state["step"], "seconds": state["seconds"], "val_psnr": last_psnr, "model_bytes": size,
+            "resolution": getattr(getattr(model, "field", None), "resolution", None)}
 
 
 def _train_step(model, optimizer, config, rays, n_rays, generator, device, progress, state):

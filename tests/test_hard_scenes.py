@@ -170,6 +170,9 @@ def test_hard_scene_survives_generate_train_render_evaluate(tmp_path, scene):
     metrics = json.loads((out / "eval" / "compact" / "metrics.json").read_text(),
                          parse_constant=lambda c: pytest.fail(f"metrics.json holds {c}"))
     assert metrics["mean"]["psnr"] is not None and math.isfinite(metrics["mean"]["psnr"])
+    # a metric that was not measured (LPIPS without its weights) is not one with no pixels
+    assert found["not_measured"] == sorted(metrics.get("notes") or {})
+    assert not set(found["no_pixels"]) & set(found["not_measured"])
     if scene == "empty":
         assert found["no_pixels"], "an empty scene has no hit pixel to score depth on"
         assert metrics["count"]["depth_absrel"] == 0

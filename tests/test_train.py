@@ -199,3 +199,32 @@ def test_resume_refuses_another_parametrisation(small_dataset, tmp_path, capsys)
                              "--parametrisation", "contracted"], "parametrisation")
     one_line_exit_2(capsys, ["train", str(small_dataset), "--out", str(tmp_path / "r6"), "--steps", "4",
                              "--parametrisation", "ndcx"], "unknown parametrisation 'ndcx'")
+
+
+def test_projected_steps_at_the_finer_grid_follow_rate_resolution_and_time_left():
+    """A budget run projects the next stage's steps as the current stage's rate, slowed by
+    the resolution ratio (samples per ray grow with it), times the seconds left; a --steps
+    run never projects (its schedule stays reproducible)."""
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.train import projected_steps_at_finer, resolution_at
+
+    config = TrainConfig("d", budget_seconds=120.0, final_resolution=216, start_resolution=27)
+    state = {"stage": 2, "stage_steps": 200, "stage_seconds": 10.0, "seconds": 36.0}
+    current, finer = resolution_at(config, 2), resolution_at(config, 3)
+    assert (current, finer) == (108, 216)
+    assert projected_steps_at_finer(config, state) == pytest.approx(20.0 * current / finer * 84.0)
+    steps_run = TrainConfig("d", steps=500, final_resolution=216, start_resolution=27)
+    assert projected_steps_at_finer(steps_run, state) is None
+
+
+def test_a_tiny_budget_keeps_the_grid_it_can_train(small_dataset, tmp_path):
+    """Three seconds cannot give a finer grid 1000 steps (that would take > 370 steps/s on
+    these 32 px views), so the run stays at its start resolution and says so in its log."""
+    run = tmp_path / "tiny-budget"
+    assert main(["train", str(small_dataset), "--out", str(run), "--budget-seconds", "3", "--quiet"]) == 0
+    config = json.loads((run / "config.json").read_text())
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert config["final_resolution"] > config["start_resolution"]
+    assert {entry["resolution"] for entry in log} == {config["start_resolution"]}
+    assert log[-1]["final_resolution"] == config["start_resolution"]
+    assert torch.load(run / "model.pt", weights_only=True)["resolution"] == config["start_resolution"]
