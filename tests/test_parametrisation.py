@@ -287,13 +287,14 @@ def test_march_space_keeps_exactly_the_samples_in_occupied_cells(kind):
             torch.cat([(torch.rand(300, 1, generator=g) - 0.5) * 0.6, torch.ones(300, 1),
                        (torch.rand(300, 1, generator=g) - 0.5) * 0.6], dim=1), dim=-1)
     box = torch.tensor(space.box, dtype=torch.float32)
-    res = 40
+    res = 42  # not a multiple of the pooled blocks
     nodes = torch.stack(torch.meshgrid(*[torch.linspace(0, 1, res)] * 3, indexing="ij"), -1)
     shell = ((nodes - 0.5).norm(dim=-1) - 0.3).abs() < 0.03  # a thin spherical shell of cells
     dense = torch.rand((res,) * 3, generator=g) < 0.3
+    scattered = torch.rand((res,) * 3, generator=g) < 0.003  # isolated cells: the coarse test's hardest case
     step = 0.5 * float((box[1] - box[0]).max()) / res
     jitter = torch.rand(300, generator=g)
-    for occupancy in (shell, dense):
+    for occupancy in (shell, dense, scattered):
         got = march_space(origins, directions, space, box, occupancy, step, jitter=jitter)
         edges = space.ray_edges(origins, directions, step)
         lengths = edges[:, 1:] - edges[:, :-1]
