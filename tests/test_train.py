@@ -217,14 +217,25 @@ def test_projected_steps_at_the_finer_grid_follow_rate_resolution_and_time_left(
     assert projected_steps_at_finer(steps_run, state) is None
 
 
-def test_a_tiny_budget_keeps_the_grid_it_can_train(small_dataset, tmp_path):
-    """Three seconds cannot give a finer grid 1000 steps (that would take > 370 steps/s on
-    these 32 px views), so the run stays at its start resolution and says so in its log."""
-    run = tmp_path / "tiny-budget"
-    assert main(["train", str(small_dataset), "--out", str(run), "--budget-seconds", "3", "--quiet"]) == 0
+@pytest.mark.parametrize("min_steps, grows", [(10**9, False), (0, True)])
+def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small_dataset, tmp_path, monkeypatch,
+                                                                          min_steps, grows):
+    """With the projection's bar out of reach the run keeps its start grid and its log says
+    so; with no bar it grows as a --steps run does. (The bar and the steps a stage needs are
+    patched so the decision does not depend on this machine's speed.)"""
+    import nerfgauge.nerf.train as train_module
+
+    monkeypatch.setattr(train_module, "MIN_STEPS_AT_FINER", min_steps)
+    monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 3)
+    run = tmp_path / "budget"
+    assert main(["train", str(small_dataset), "--out", str(run), "--budget-seconds", "4", "--quiet"]) == 0
     config = json.loads((run / "config.json").read_text())
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    saved = torch.load(run / "model.pt", weights_only=True)["resolution"]
     assert config["final_resolution"] > config["start_resolution"]
-    assert {entry["resolution"] for entry in log} == {config["start_resolution"]}
-    assert log[-1]["final_resolution"] == config["start_resolution"]
-    assert torch.load(run / "model.pt", weights_only=True)["resolution"] == config["start_resolution"]
+    if grows:
+        assert saved > config["start_resolution"]
+        assert log[-1]["final_resolution"] == config["final_resolution"]
+    else:
+        assert {entry["resolution"] for entry in log} == {config["start_resolution"]} == {saved}
+        assert log[-1]["final_resolution"] == config["start_resolution"]
