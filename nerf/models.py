@@ -116,6 +116,11 @@ class CompactNeRF(nn.Module):
         self.update_occupancy()
         return float(self.visible.float().mean())
 
+    @torch.no_grad()
+    def samples_per_ray(self, origins: torch.Tensor, directions: torch.Tensor) -> float:
+        """Mean number of samples marching keeps per ray [n, 3] (what a pass over them costs)."""
+        return self._march(origins, directions).t_mid.numel() / max(1, origins.shape[0])
+
     def _march(self, origins, directions, jitter=None):
         if self.field.space is not None:
             return march_space(origins, directions, self.field.space, self.field.aabb, self.occupancy,

@@ -49,6 +49,10 @@ VISIBILITY_RAY_STRIDE = 4  # every 4th training ray is enough to see every visib
 # steps it saves (25 s a measurement at 256 px, of a 120 s budget): the stride grows and
 # visibility is measured per block of cells, so each block still gets as many rays per view.
 VISIBILITY_RAYS = 409_600
+# ... and up to this many marched samples (those rays at 16 samples each): a contracted
+# grid keeps ~126 samples per ray on far-reaching, where a measurement took 30-50 s
+VISIBILITY_SAMPLES = 16 * VISIBILITY_RAYS
+VISIBILITY_PROBE_RAYS = 4096  # rays marched first to count samples per ray
 LR_FINAL_FRACTION = 0.1  # learning rate decays exponentially to this fraction
 # checkpoint.pt (grid + Adam state: ~0.5 GB at 220^3) is rewritten, without
 # --checkpoint-every, only when this much wall time has passed since the last one, and
@@ -119,13 +123,15 @@ def projected_steps_at_finer(config: TrainConfig, state: dict) -> float | None:
     return rate * max(config.budget_seconds - state["seconds"], 0.0)
 
 
-def visibility_sampling(n_rays: int) -> tuple[int, int]:
-    """(ray stride, cell block) for a visibility measurement over `n_rays` training rays:
-    every VISIBILITY_RAY_STRIDE-th ray per cell while that is at most VISIBILITY_RAYS rays;
+def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int, int]:
+    """(ray stride, cell block) for a visibility measurement over `n_rays` training rays
+    that march about `samples_per_ray` samples each: every VISIBILITY_RAY_STRIDE-th ray
+    per cell while that stays within VISIBILITY_RAYS rays and VISIBILITY_SAMPLES samples;
     beyond, an odd stride (a lattice across each image, not whole columns) and blocks of
     b^3 cells with b^2 = stride / VISIBILITY_RAY_STRIDE, so rays per block per view stay
     as they were per cell."""
-    stride = max(VISIBILITY_RAY_STRIDE, -(-n_rays // VISIBILITY_RAYS))
+    affordable = min(VISIBILITY_RAYS, VISIBILITY_SAMPLES / max(samples_per_ray, 1.0))
+    stride = max(VISIBILITY_RAY_STRIDE, math.ceil(n_rays / affordable))
     if stride == VISIBILITY_RAY_STRIDE:
         return stride, 1
     return stride | 1, max(1, round(math.sqrt(stride / VISIBILITY_RAY_STRIDE)))
@@ -312,7 +318,10 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
             if hasattr(model, "measure_visibility") and state["visibility_done"] < len(VISIBILITY_AT) \
                     and done >= VISIBILITY_AT[state["visibility_done"]]:
                 start = time.perf_counter()
-                stride, block = visibility_sampling(train_rays.origins.shape[0])
+                probe = max(1, train_rays.origins.shape[0] // VISIBILITY_PROBE_RAYS)
+                samples_per_ray = model.samples_per_ray(train_rays.origins[::probe].to(device),
+                                                        train_rays.directions[::probe].to(device))
+                stride, block = visibility_sampling(train_rays.origins.shape[0], samples_per_ray)
                 model.measure_visibility(train_rays.origins[::stride].to(device),
                                          train_rays.directions[::stride].to(device), block=block)
                 if model.sparse:

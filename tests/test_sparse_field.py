@@ -238,3 +238,17 @@ def test_training_at_256_px_stores_a_fraction_of_the_dense_grid(tmp_path):
     with torch.no_grad():
         out = model.render(torch.tensor([[0.0, -4.0, 0.5]]), F.normalize(torch.tensor([[0.0, 1.0, -0.1]]), dim=-1))
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
+
+
+def test_visibility_sampling_keeps_its_ray_and_sample_budgets():
+    """Small captures use every 4th ray per cell; past 409,600 rays or 16 x that many
+    marched samples the stride grows (odd) and blocks grow so that block^2 ~ stride / 4."""
+    from nerfgauge.nerf.train import VISIBILITY_RAYS, VISIBILITY_SAMPLES, visibility_sampling
+
+    assert visibility_sampling(100 * 128 * 128, 12.0) == (4, 1)
+    for n_rays, samples in [(100 * 256 * 256, 20.0), (100 * 128 * 128, 126.0), (100 * 512 * 512, 8.0)]:
+        stride, block = visibility_sampling(n_rays, samples)
+        assert stride % 2 == 1 and stride > 4
+        assert -(-n_rays // stride) <= VISIBILITY_RAYS
+        assert -(-n_rays // stride) * samples <= VISIBILITY_SAMPLES * 1.01
+        assert block == max(1, round(math.sqrt(stride / 4)))
