@@ -400,7 +400,8 @@ def _train_step(model, optimizer, config, rays, n_rays, generator, device, progr
             optimizer.__init__(make_optimizer(model, config).param_groups, **optimizer.defaults)
             for group, lr in zip(optimizer.param_groups, lrs):
                 group["lr"] = lr
-        if state["step"] % OCCUPANCY_EVERY == 0 and state["stage"] >= 1:  # all cells live while coarse
+        # all cells live while coarse, unless the budget keeps the start grid to the end
+        if state["step"] % OCCUPANCY_EVERY == 0 and (state["stage"] >= 1 or state["last_stage"] == 0):
             model.update_occupancy()
     for group in optimizer.param_groups:
         group["lr"] = group["base_lr"] * LR_FINAL_FRACTION ** progress
