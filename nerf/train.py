@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 from nerfgauge.nerf import checkpoint
-from nerfgauge.nerf.config import TrainConfig, resolve
+from nerfgauge.nerf.config import TrainConfig, resolve, upsample_count
 from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite
@@ -36,7 +36,7 @@ from nerfgauge.core.files import read_json, sha256_file, write_bytes_atomic, wri
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
-UPSAMPLE_AT = (0.1, 0.2, 0.3)  # fractions of the budget where the grid resolution grows ...
+LAST_UPSAMPLE_AT = 0.3  # the grid grows at evenly spaced fractions of the budget up to this ...
 MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
 # A time budget takes a finer grid only if it can still give it this many steps (projected
 # from the current stage's step rate, scaled by the resolution ratio: samples per ray grow
@@ -137,10 +137,18 @@ def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int,
     return stride | 1, max(1, round(math.sqrt(stride / VISIBILITY_RAY_STRIDE)))
 
 
+def upsample_at(config: TrainConfig, stage: int) -> float:
+    """Fraction of the budget where the grid grows from `stage` to the next: evenly spaced
+    up to LAST_UPSAMPLE_AT (0.1, 0.2, 0.3 for three stages), so the final grid always
+    trains for the last 70%."""
+    return LAST_UPSAMPLE_AT * (stage + 1) / upsample_count(config.start_resolution, config.final_resolution)
+
+
 def resolution_at(config: TrainConfig, stage: int) -> int:
     """Coarse to fine: geometric steps from start (stage 0) to final resolution."""
     ratio = config.final_resolution / config.start_resolution
-    return int(round(config.start_resolution * ratio ** (stage / len(UPSAMPLE_AT))))
+    stages = upsample_count(config.start_resolution, config.final_resolution)
+    return int(round(config.start_resolution * ratio ** (stage / stages)))
 
 
 def make_optimizer(model, config: TrainConfig):
@@ -281,7 +289,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     # stage_seconds: training seconds at this resolution; last_stage: the finest stage the
     # run will take (a time budget stops growing when a finer grid could not be trained).
     state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0, "stage": 0, "stage_steps": 0,
-             "logged_step": -1, "stage_seconds": 0.0, "last_stage": len(UPSAMPLE_AT)}
+             "logged_step": -1, "stage_seconds": 0.0,
+             "last_stage": upsample_count(config.start_resolution, config.final_resolution)}
     if saved is not None:
         path = run_dir / CHECKPOINT
         model = checkpoint.restore_model(saved, config, aabb, path, space=space).to(device)
@@ -354,7 +363,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
             if done >= 1:
                 break
             start = time.perf_counter()
-            if state["stage"] < state["last_stage"] and done >= UPSAMPLE_AT[state["stage"]] \
+            if state["stage"] < state["last_stage"] and done >= upsample_at(config, state["stage"]) \
                     and state["stage_steps"] >= MIN_STAGE_STEPS:
                 projected = projected_steps_at_finer(config, state)
                 if projected is not None and projected < MIN_STEPS_AT_FINER:

@@ -9,9 +9,12 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from cli_errors import one_line_exit_2
 
 from nerfgauge.cli import main
+from nerfgauge.nerf.config import TrainConfig
 from nerfgauge.core import dataset
 
 TRAIN_STEPS = 150
@@ -208,12 +211,12 @@ def test_projected_steps_at_the_finer_grid_follow_rate_resolution_and_time_left(
     from nerfgauge.nerf.config import TrainConfig
     from nerfgauge.nerf.train import projected_steps_at_finer, resolution_at
 
-    config = TrainConfig("d", budget_seconds=120.0, final_resolution=216, start_resolution=27)
+    config = TrainConfig("d", budget_seconds=120.0, final_resolution=108, start_resolution=27)
     state = {"stage": 2, "stage_steps": 200, "stage_seconds": 10.0, "seconds": 36.0}
     current, finer = resolution_at(config, 2), resolution_at(config, 3)
-    assert (current, finer) == (108, 216)
+    assert (current, finer) == (68, 108)  # 27 * 4^(2/3) = 68.03
     assert projected_steps_at_finer(config, state) == pytest.approx(20.0 * current / finer * 84.0)
-    steps_run = TrainConfig("d", steps=500, final_resolution=216, start_resolution=27)
+    steps_run = TrainConfig("d", steps=500, final_resolution=108, start_resolution=27)
     assert projected_steps_at_finer(steps_run, state) is None
 
 
@@ -239,3 +242,31 @@ def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small
     else:
         assert {entry["resolution"] for entry in log} == {config["start_resolution"]} == {saved}
         assert log[-1]["final_resolution"] == config["start_resolution"]
+
+
+@settings(max_examples=300, deadline=None)
+@given(final=st.integers(4, 1024))
+def test_the_coarse_to_fine_ladder_starts_near_32_voxels_and_grows_geometrically(final):
+    """The default ladder: start grid near START_VOXELS (never above it by more than one
+    half-stage, never under 16), stages of about STAGE_RATIO each ending exactly at the
+    final grid, and growth at evenly spaced budget fractions ending at LAST_UPSAMPLE_AT.
+    Final grids up to 160 voxels keep the three-stage quarter-start ladder (32 * 4^(3.5/3)
+    = 161 is where a fourth stage lands nearer 32)."""
+    from nerfgauge.nerf.config import MIN_UPSAMPLES, STAGE_RATIO, START_VOXELS, start_resolution_for, upsample_count
+    from nerfgauge.nerf.train import LAST_UPSAMPLE_AT, resolution_at, upsample_at
+
+    start = start_resolution_for(final)
+    config = TrainConfig("d", steps=1, final_resolution=final, start_resolution=start)
+    stages = upsample_count(start, final)
+    ladder = [resolution_at(config, k) for k in range(stages + 1)]
+    assert ladder[0] == start and ladder[-1] == final
+    assert all(a <= b for a, b in zip(ladder, ladder[1:]))
+    assert min(16, final) <= start <= max(16, START_VOXELS * STAGE_RATIO ** 0.5 + 1)
+    if final >= 4 * 16:  # no clamp at 16: each stage is about STAGE_RATIO (half a stage of slack each way)
+        step = (final / start) ** (1 / stages)
+        assert STAGE_RATIO ** 0.5 <= step <= STAGE_RATIO ** 1.5
+    if final <= 160:
+        assert stages == MIN_UPSAMPLES and start == min(final, max(16, round(final / 4)))
+    fractions = [upsample_at(config, k) for k in range(stages)]
+    assert all(0 < a < b for a, b in zip(fractions, fractions[1:]))
+    assert fractions[-1] == pytest.approx(LAST_UPSAMPLE_AT)
