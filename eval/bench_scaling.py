@@ -159,6 +159,10 @@ def nerf_case(config: ScalingConfig, out: Path, resolution: int, views: int, axe
     if code != 0:
         return row | {"error": f"render exit {code}"}
     metrics = evaluate(data, run / "renders", "test", run / "metrics.json")
+    common = min(config.resolutions)
+    if resolution % common == 0:  # the ladder's coarsest pixels (see psnr_at_common_resolution)
+        row |= {"common_resolution": common,
+                "psnr_at_common": psnr_at_common_resolution(data, run / "renders", resolution // common)}
     return row | {"time_to_target_s": first_time_reaching(log, config.target_psnr),
                   "val_psnr": _finite(log[-1]["val_psnr"]), "psnr": _finite(metrics["mean"]["psnr"]),
                   "ssim": _finite(metrics["mean"]["ssim"]), "depth_absrel": _finite(metrics["mean"]["depth_absrel"]),
@@ -167,6 +171,29 @@ def nerf_case(config: ScalingConfig, out: Path, resolution: int, views: int, axe
                   "render_ms_per_frame": _finite(metrics["timing"].get("ms_per_frame")),
                   "model_mb": (run / "model.pt").stat().st_size / 1e6, "peak_memory_mb": peak_mb,
                   "log": str(run / "log.jsonl")}
+
+
+def psnr_at_common_resolution(data: Path, pred_dir: Path, factor: int, split: str = "test") -> float:
+    """Mean PSNR of a nerfgauge renders folder against its dataset with both area-averaged
+    by `factor` (composited on white first): every case of a resolution ladder scored on the
+    same coarse pixels, so a finer capture is compared on what both resolve, not penalised
+    for the detail only its own ground truth holds."""
+    from nerfgauge.core import dataset
+    from nerfgauge.eval.evaluate import find_nerfgauge_predictions, read_colour
+    from nerfgauge.eval.metrics import area_average, composite, psnr
+
+    ds = dataset.Dataset(data)
+    cameras = ds.cameras(split)
+    white = np.ones(3)
+    scores = []
+    for stem, files in find_nerfgauge_predictions(pred_dir, split, cameras.stems, "distance").items():
+        if files is None:
+            raise InputError(f"no prediction for frame {stem} in {pred_dir}")
+        rgb, alpha = read_colour(files.colour, cameras.intrinsics)
+        pred = rgb if alpha is None else composite(np.concatenate([rgb, alpha[..., None]], -1), white)
+        gt = composite(dataset.read_rgba(ds, stem, cameras.intrinsics), white)
+        scores.append(psnr(area_average(pred, factor), area_average(gt, factor)))
+    return float(np.mean(scores))
 
 
 def generation_case(scene: str, views: int, spp: int, resolution: int, axes: tuple, scratch: Path) -> dict:
@@ -287,8 +314,10 @@ def growth_line(rows: list, axis: str, metrics: tuple, size_key: str, target: fl
 
 
 def nerf_table(rows: list, target: float, budget: float) -> str:
-    head = ("res", "views", f"time to {target:g} dB (s)", "val PSNR", "test PSNR", "SSIM", "depth AbsRel", "steps/s",
-            "render ms/frame", "model MB", "peak MB", "generation s (child wall)")
+    common = next((r["common_resolution"] for r in rows if r.get("common_resolution")), None)
+    head = ("res", "views", f"time to {target:g} dB (s)", "val PSNR", "test PSNR",
+            f"test PSNR at {common} px" if common else "test PSNR at the coarsest res", "SSIM", "depth AbsRel",
+            "steps/s", "render ms/frame", "model MB", "peak MB", "generation s (child wall)")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         size = f"{r['resolution']}x{r['resolution']}"
@@ -301,10 +330,25 @@ def nerf_table(rows: list, target: float, budget: float) -> str:
 
         reached = f"not reached in {budget:g} s" if r["time_to_target_s"] is None else f"{r['time_to_target_s']:.1f}"
         cells = [size, str(r["views"]), reached, cell("val_psnr", "{:.2f}"), cell("psnr", "{:.2f}"),
-                 cell("ssim", "{:.4f}"), cell("depth_absrel", "{:.4f}"), cell("steps_per_second", "{:.1f}"), cell("render_ms_per_frame", "{:.1f}"),
+                 cell("psnr_at_common", "{:.2f}"), cell("ssim", "{:.4f}"), cell("depth_absrel", "{:.4f}"), cell("steps_per_second", "{:.1f}"), cell("render_ms_per_frame", "{:.1f}"),
                  cell("model_mb", "{:.2f}"), cell("peak_memory_mb", "{:.0f}"), cell("generation_seconds", "{:.1f}")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def finer_never_worse_line(rows: list) -> str:
+    """Whether each finer capture scores at least as well as the coarser ones on their
+    common pixels (test PSNR at the coarsest resolution, area-averaged)."""
+    scored = sorted((r for r in rows if r.get("psnr_at_common") is not None and "error" not in r),
+                    key=lambda r: r["resolution"])
+    if len(scored) < 2:
+        return "Finer captures against coarser ones: fewer than two resolutions scored at a common resolution."
+    worse = [f"{b['resolution']} px ({b['psnr_at_common']:.2f} dB) < {a['resolution']} px ({a['psnr_at_common']:.2f})"
+             for a, b in zip(scored, scored[1:]) if b["psnr_at_common"] < a["psnr_at_common"]]
+    common = scored[0]["common_resolution"]
+    figures = ", ".join(f"{r['resolution']} px {r['psnr_at_common']:.2f}" for r in scored)
+    verdict = "a finer capture never scored worse" if not worse else "a finer capture scored worse: " + "; ".join(worse)
+    return f"Scored on common {common} px pixels (renders and ground truth area-averaged): {figures} dB; {verdict}."
 
 
 def generation_table(rows: list) -> str:
@@ -342,6 +386,7 @@ def report_markdown(document: dict) -> str:
              f"{document['eval_every_seconds']:g} s) reaches it. Generation s: the `nerfgauge generate` child's wall "
              "time (process start, train + 10 val + 20 test views). Render ms/frame on the test views.", "",
              f"### Against resolution ({config['views']} train views)", "", nerf_table(by_res, target, budget), "",
+             finer_never_worse_line(by_res), "",
              f"### Against train views ({config['view_counts_res']}x{config['view_counts_res']})", "",
              nerf_table(by_views, target, budget), "",
              "Growth from the smallest to the largest value (and that growth over the growth of the problem size):", "",

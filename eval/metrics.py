@@ -145,6 +145,26 @@ def composite(rgba, background) -> np.ndarray:
     return np.clip(rgb, 0.0, 1.0)
 
 
+def area_average(image, factor: int) -> np.ndarray:
+    """Box-filter an image down by an integer factor: each output pixel is the mean of a
+    factor x factor block, as a sensor pixel of that size would integrate (the ground
+    truth's own pixel filter is a box, so this takes a 2N px image to N px).
+
+    Args:
+        image: [H, W, C] with H and W divisible by `factor`.
+        factor: positive integer.
+    Returns:
+        [H / factor, W / factor, C] float64.
+    """
+    values = np.asarray(image, dtype=np.float64)
+    if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
+        raise InputError(f"area-average factor must be a positive integer, got {factor!r}")
+    if values.ndim != 3 or values.shape[0] % factor or values.shape[1] % factor:
+        raise InputError(f"area average by {factor} needs [H, W, C] with H and W divisible by it, got {_describe(values)}")
+    height, width, channels = values.shape
+    return values.reshape(height // factor, factor, width // factor, factor, channels).mean(axis=(1, 3))
+
+
 def psnr(pred, gt) -> float:
     """Peak signal-to-noise ratio in dB on [0, 1] images: 10 log10(1 / max(MSE, MSE_FLOOR)).
 

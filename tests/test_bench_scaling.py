@@ -6,6 +6,7 @@ import math
 import shlex
 from dataclasses import asdict
 
+import numpy as np
 import pytest
 from nerfgauge.eval.bench import first_time_reaching
 from nerfgauge.eval.bench_scaling import (
@@ -145,7 +146,7 @@ def test_tables_say_when_the_target_was_not_reached_and_show_errors():
 def test_tiny_scaling_run_writes_json_markdown_and_plot(tmp_path):
     out = tmp_path / "scaling"
     # Two NeRF cases, (16, 6) on both axes: each is three child processes, mostly imports.
-    argv = ["bench", "scaling", "--resolutions", "16,24", "--views", "6", "--view-counts", "6",
+    argv = ["bench", "scaling", "--resolutions", "16,32", "--views", "6", "--view-counts", "6",
             "--view-counts-res", "16", "--budget-seconds", "2", "--target-psnr", "10", "--gen-views", "2,3",
             "--gen-views-spp", "2", "--gen-spp", "1,2", "--gen-spp-views", "3", "--gen-res", "16", "--out", str(out)]
     assert main(argv) == 0
@@ -155,7 +156,11 @@ def test_tiny_scaling_run_writes_json_markdown_and_plot(tmp_path):
     nerf_keys = {"resolution", "views", "time_to_target_s", "val_psnr", "psnr", "ssim", "steps_per_second",
                  "render_ms_per_frame", "model_mb", "peak_memory_mb", "generation_seconds"}
     assert [(r["resolution"], r["views"], r["axes"]) for r in document["nerf"]] == \
-        [(16, 6, ["resolution", "views"]), (24, 6, ["resolution"])]
+        [(16, 6, ["resolution", "views"]), (32, 6, ["resolution"])]
+    # both scored on the common 16 px pixels (32 px area-averaged by 2), and the verdict says how they compare
+    assert [r["common_resolution"] for r in document["nerf"]] == [16, 16]
+    assert all(math.isfinite(r["psnr_at_common"]) for r in document["nerf"])
+    assert "Scored on common 16 px pixels" in (out / "scaling.md").read_text()
     for row in document["nerf"]:
         assert "error" not in row and nerf_keys <= set(row)
         assert all(math.isfinite(row[key]) for key in nerf_keys), row  # 10 dB: reached by the first log point
@@ -163,3 +168,44 @@ def test_tiny_scaling_run_writes_json_markdown_and_plot(tmp_path):
     for row in document["generation"]:
         assert all(math.isfinite(row[key]) and row[key] > 0 for key in ("seconds", "seconds_per_view", "render_seconds"))
     assert all(math.isfinite(value) for fit in document["fits"].values() for value in fit.values())
+
+
+def test_detail_finer_than_the_common_resolution_does_not_count(tiny_dataset, tmp_path):
+    """Renders equal to the ground truth except for a +d/-d pattern inside each 2x2 block of
+    opaque pixels (block sums unchanged, in 8-bit integers): natively their PSNR is finite,
+    on the 2x coarser common pixels they match exactly (the 100 dB cap)."""
+    from nerfgauge.core import dataset
+    from nerfgauge.core.images import read_png, write_png
+    from nerfgauge.eval.bench_scaling import psnr_at_common_resolution
+    from nerfgauge.eval.evaluate import evaluate
+    from nerfgauge.eval.metrics import PSNR_CAP_DB
+
+    d = 20
+    pattern = np.array([[d, -d], [-d, d]])
+    perturbed = 0
+    for stem in dataset.Dataset(tiny_dataset).cameras("test").stems:
+        rgba = np.round(read_png(tiny_dataset / f"{stem}.png") * 255).astype(np.int32)  # [32, 32, 4] 8-bit values
+        for i in range(0, rgba.shape[0], 2):
+            for j in range(0, rgba.shape[1], 2):
+                block = rgba[i:i + 2, j:j + 2]
+                if (block[..., 3] == 255).all() and (block[..., :3] >= d).all() and (block[..., :3] <= 255 - d).all():
+                    block[..., :3] += pattern[..., None]
+                    perturbed += 1
+        (tmp_path / stem).parent.mkdir(parents=True, exist_ok=True)
+        write_png(tmp_path / f"{stem}.png", rgba.astype(np.uint8))
+    assert perturbed >= 4  # the pattern touched enough pixels to matter natively
+    native = evaluate(tiny_dataset, tmp_path, "test", tmp_path / "metrics.json")["mean"]["psnr"]
+    assert native < 60
+    assert psnr_at_common_resolution(tiny_dataset, tmp_path, 2) == pytest.approx(PSNR_CAP_DB)
+
+
+def test_the_verdict_line_names_each_finer_capture_that_scored_worse():
+    from nerfgauge.eval.bench_scaling import finer_never_worse_line
+
+    def row(resolution, score):
+        return {"resolution": resolution, "common_resolution": 64, "psnr_at_common": score}
+
+    assert "never scored worse" in finer_never_worse_line([row(64, 30.0), row(128, 31.0), row(256, 31.0)])
+    line = finer_never_worse_line([row(256, 30.5), row(64, 30.0), row(128, 31.0)])
+    assert "256 px (30.50 dB) < 128 px (31.00)" in line and "128 px (31.00 dB) <" not in line
+    assert "fewer than two" in finer_never_worse_line([row(64, 30.0), {"resolution": 128, "error": "x"}])

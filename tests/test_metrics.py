@@ -1,9 +1,12 @@
 """eval.metrics: exact values on hand-computed cases, SSIM against a plain re-implementation."""
 
 import math
+import re
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from nerfgauge.eval.metrics import (
     PSNR_CAP_DB,
     NonFiniteError,
@@ -304,3 +307,29 @@ def test_foreground_psnr_sees_what_the_whole_image_averages_away():
     assert psnr(pred, gt) == pytest.approx(10 * np.log10(10000 / 4), rel=1e-12)
     assert psnr_foreground(pred, gt, np.zeros((100, 100), bool)) is None
     assert psnr_foreground(gt, gt, foreground) == pytest.approx(100.0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(factor=st.integers(1, 4), height=st.integers(1, 5), width=st.integers(1, 5), seed=st.integers(0, 2**31 - 1))
+def test_area_average_inverts_pixel_replication_and_keeps_each_block_mean(factor, height, width, seed):
+    """Replicating every pixel into a factor x factor block and area-averaging gives the image
+    back; any image's block means are what it returns (checked against an explicit loop)."""
+    from nerfgauge.eval.metrics import area_average
+
+    rng = np.random.default_rng(seed)
+    small = rng.random((height, width, 3))
+    assert np.allclose(area_average(np.kron(small, np.ones((factor, factor, 1))), factor), small, atol=1e-15)
+    big = rng.random((height * factor, width * factor, 2))
+    expected = np.array([[big[i * factor:(i + 1) * factor, j * factor:(j + 1) * factor].mean(axis=(0, 1))
+                          for j in range(width)] for i in range(height)])
+    assert np.allclose(area_average(big, factor), expected, atol=1e-15)
+
+
+@pytest.mark.parametrize("shape, factor, message", [
+    ((4, 6, 3), 4, "divisible"), ((4, 4), 2, "[H, W, C]"), ((4, 4, 3), 0, "positive integer"),
+    ((4, 4, 3), 1.5, "positive integer"), ((4, 4, 3), True, "positive integer")])
+def test_area_average_refuses_what_it_cannot_split_into_blocks(shape, factor, message):
+    from nerfgauge.eval.metrics import area_average
+
+    with pytest.raises(InputError, match=re.escape(message)):
+        area_average(np.zeros(shape), factor)
