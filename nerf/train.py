@@ -41,8 +41,15 @@ MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short bu
 # A time budget takes a finer grid only if it can still give it this many steps (projected
 # from the current stage's step rate, scaled by the resolution ratio: samples per ray grow
 # with it). Measured on primitives, 120 s, 2 CPU cores (BENCHMARKS.md): at 256 px the 218
-# grid got ~640 steps and scored 37.5 dB, the 137 grid it skipped to ~1500 steps and 38.7.
-MIN_STEPS_AT_FINER = 1000
+# grid got ~640 steps and scored 37.5 dB, the 137 grid it skipped to ~1300-1500 steps and
+# 38.7. The projection is pessimistic from the 86 grid (it said ~930 for the 137 grid's
+# 1300: part of a step does not grow with the resolution) and close from 137 (~690 for 640),
+# so the bar sits between: at 1000 the four-stage ladder stopped at 86 (36.7 dB).
+MIN_STEPS_AT_FINER = 800
+# ... and only for the last growth: earlier stages are cheap (a 76-voxel grid costs a
+# fraction of a 218 one), and a bar set on primitives' rates kept far-reaching's
+# contracted grid at its 30-voxel start (20.8 dB, against 22.8 at 48 voxels).
+BUDGET_DECIDES_LAST_GROWTHS = 1
 VISIBILITY_AT = (0.4, 0.7, 1.0)  # fractions where hidden cells are measured and skipped
 VISIBILITY_RAY_STRIDE = 4  # every 4th training ray is enough to see every visible cell ...
 # ... up to this many rays (100 views of 128 px). Beyond it, measuring costs more than the
@@ -115,8 +122,11 @@ def projected_steps_at_finer(config: TrainConfig, state: dict) -> float | None:
     """Steps a time budget would still give the next stage's finer grid: the current
     stage's step rate, slowed by the resolution ratio, times the seconds left. None for a
     --steps run (its schedule is fixed by the step count, so it stays reproducible) and
-    for the vanilla model."""
+    for the vanilla model; None too for growths before the last BUDGET_DECIDES_LAST_GROWTHS
+    (those always happen)."""
     if config.budget_seconds is None or config.model != "compact" or state["stage_seconds"] <= 0:
+        return None
+    if state["stage"] < upsample_count(config.start_resolution, config.final_resolution) - BUDGET_DECIDES_LAST_GROWTHS:
         return None
     current, finer = resolution_at(config, state["stage"]), resolution_at(config, state["stage"] + 1)
     rate = state["stage_steps"] / state["stage_seconds"] * current / finer

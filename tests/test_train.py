@@ -218,15 +218,21 @@ def test_projected_steps_at_the_finer_grid_follow_rate_resolution_and_time_left(
     assert projected_steps_at_finer(config, state) == pytest.approx(20.0 * current / finer * 84.0)
     steps_run = TrainConfig("d", steps=500, final_resolution=108, start_resolution=27)
     assert projected_steps_at_finer(steps_run, state) is None
+    # Growths before the last BUDGET_DECIDES_LAST_GROWTHS are not the budget's to decide.
+    from nerfgauge.nerf.train import BUDGET_DECIDES_LAST_GROWTHS
+    earlier = {**state, "stage": 2 - BUDGET_DECIDES_LAST_GROWTHS}
+    assert projected_steps_at_finer(config, earlier) is None
 
 
 @pytest.mark.parametrize("min_steps, grows", [(10**9, False), (0, True)])
 def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small_dataset, tmp_path, monkeypatch,
                                                                           min_steps, grows):
-    """With the projection's bar out of reach the run keeps its start grid and its log says
-    so; with no bar it grows as a --steps run does. (The bar and the steps a stage needs are
-    patched so the decision does not depend on this machine's speed.)"""
+    """With the projection's bar out of reach the run still takes the growths the budget
+    does not decide, keeps the grid before the last one and its log says so; with no bar it
+    grows as a --steps run does. (The bar and the steps a stage needs are patched so the
+    decision does not depend on this machine's speed.)"""
     import nerfgauge.nerf.train as train_module
+    from nerfgauge.nerf.config import TrainConfig, upsample_count
 
     monkeypatch.setattr(train_module, "MIN_STEPS_AT_FINER", min_steps)
     monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 3)
@@ -235,13 +241,18 @@ def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small
     config = json.loads((run / "config.json").read_text())
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     saved = torch.load(run / "model.pt", weights_only=True)["resolution"]
-    assert config["final_resolution"] > config["start_resolution"]
+    start, final = config["start_resolution"], config["final_resolution"]
+    assert final > start
     if grows:
-        assert saved > config["start_resolution"]
-        assert log[-1]["final_resolution"] == config["final_resolution"]
+        assert saved == final
+        assert log[-1]["final_resolution"] == final
     else:
-        assert {entry["resolution"] for entry in log} == {config["start_resolution"]} == {saved}
-        assert log[-1]["final_resolution"] == config["start_resolution"]
+        ladder = TrainConfig("d", steps=1, start_resolution=start, final_resolution=final)
+        kept = train_module.resolution_at(ladder, upsample_count(start, final)
+                                          - train_module.BUDGET_DECIDES_LAST_GROWTHS)
+        assert start <= kept < final
+        assert max(entry["resolution"] for entry in log) == kept == saved
+        assert log[-1]["final_resolution"] == kept
 
 
 @settings(max_examples=300, deadline=None)
