@@ -28,19 +28,21 @@ class MarchedSamples:
     far: torch.Tensor
 
 
-def cell_lookup(positions: torch.Tensor, padded: torch.Tensor, origin: torch.Tensor,
-                cell: torch.Tensor) -> torch.Tensor:
-    """Occupancy at world positions. positions [..., 3]; padded [nz + 2, ny + 2, nx + 2]
-    bool: an occupancy grid whose cell (i, j, k) spans origin + [i, j, k] * cell (cell: [3]
-    world size, x y z order), framed by one empty cell on every side (`pad_grid`).
-    Positions must lie within one cell of the grid (march only asks about points inside
-    the box, up to rounding): those just outside land in the empty frame, with no clamp
-    on this hot path. Returns [...] bool."""
+def cell_lookup(voxel_positions: torch.Tensor, padded: torch.Tensor, size: int) -> torch.Tensor:
+    """Occupancy at positions in voxel units (0 at the box's min corner, x y z order)
+    [m, 3]; padded [nz + 2, ny + 2, nx + 2] bool: a grid of cells `size` voxels wide framed
+    by one empty cell on every side (`pad_grid`). Positions must lie within one cell of the
+    grid (march only asks about points inside the box, up to rounding): those just outside
+    land in the empty frame, with no clamp on this hot path. Returns [m] bool.
+
+    The flat index is one matrix-vector product of the floored cells, in float32 while
+    every index is an exact float32 integer (< 2^24) and float64 beyond."""
     depth, height, width = padded.shape
-    scale = 1.0 / cell  # [3]
-    index = torch.addcmul(1.0 - origin * scale, positions, scale).floor_().long()  # [..., 3], +1 for the frame
-    strides = torch.tensor([1, width, width * height], device=positions.device)
-    return padded.reshape(-1)[(index * strides).sum(-1)]
+    dtype = voxel_positions.dtype if padded.numel() < 2 ** 24 else torch.float64
+    cell = (voxel_positions * (1.0 / size)).floor_().to(dtype)  # [m, 3]
+    strides = torch.tensor([1.0, width, width * height], dtype=dtype, device=cell.device)
+    frame = 1 + width + width * height  # +1 cell along every axis
+    return padded.reshape(-1)[torch.mv(cell, strides).add_(frame).long()]
 
 
 def pad_grid(occupancy: torch.Tensor) -> torch.Tensor:
@@ -94,7 +96,9 @@ def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, o
     candidate = (seg_start < far[:, None]) & hit[:, None]
     rays, cols = candidate.nonzero(as_tuple=True)  # row-major: sorted by ray, then t
     starts = seg_start[rays, cols]  # [n_segments_total]
-    per_ray = torch.cat([origins, directions, far[:, None]], dim=1)  # [n_rays, 7]: one gather per level
+    # Rays in voxel units from the box's corner, so a level's cell is a floor away:
+    # [n_rays, 7] origin, direction (per unit of t), far; one gather per level.
+    per_ray = torch.cat([(origins - aabb[0]) / voxel, directions / voxel, far[:, None]], dim=1)
     for index, (grid, size) in enumerate(levels):
         length = size * voxel_steps * step
         if index > 0:  # split the previous level's segments into this level's
@@ -104,10 +108,12 @@ def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, o
             rays = rays.repeat_interleave(parts)
         ray = per_ray.index_select(0, rays)  # [n_segments, 7]
         # the midpoint of the part inside the box: a segment hanging out of the box must
-        # not be tested (and dropped) at a point outside it
-        # (segments starting past `far` are dropped below; their midpoint is pinned at far)
-        mid = 0.5 * (torch.minimum(starts, ray[:, 6]) + torch.minimum(starts + length, ray[:, 6]))
-        keep = (starts < ray[:, 6]) & cell_lookup(ray[:, :3] + mid[:, None] * ray[:, 3:6], grid, aabb[0], voxel * size)
+        # not be tested (and dropped) at a point outside it. For starts < far that is
+        # min(starts + length / 2, (starts + far) / 2); segments starting past `far` are
+        # dropped below, but their lookup must stay in the grid: pinned at far.
+        far_of = ray[:, 6]
+        mid = torch.minimum(torch.minimum(starts + 0.5 * length, (starts + far_of).mul_(0.5)), far_of)
+        keep = (starts < far_of) & cell_lookup(torch.addcmul(ray[:, :3], ray[:, 3:6], mid[:, None]), grid, size)
         kept = keep.nonzero(as_tuple=True)[0]
         starts, rays = starts.index_select(0, kept), rays.index_select(0, kept)
     # the voxel level's 1-voxel segments hold `voxel_steps` samples each

@@ -107,15 +107,18 @@ def front_to_back_windows(ray_index: torch.Tensor, transmittance: torch.Tensor, 
     ray_index: [n_samples] sorted by ray, then t."""
     n_rays = transmittance.shape[0]
     counts = torch.bincount(ray_index, minlength=n_rays)  # samples per ray
-    rank = torch.arange(ray_index.numel(), device=ray_index.device) - (torch.cumsum(counts, 0) - counts)[ray_index]
-    remaining = torch.arange(ray_index.numel(), device=ray_index.device)  # samples not yet taken
+    first = torch.cumsum(counts, 0) - counts  # each ray's first sample
+    lane = torch.arange(window, device=ray_index.device)
+    # Work per window follows the rays still live, not the samples left behind them.
+    live = (counts > 0).nonzero(as_tuple=True)[0]
     start = 0
-    while remaining.numel():
-        in_window = rank[remaining] < start + window
-        chosen, remaining = remaining[in_window], remaining[~in_window]
+    while live.numel():
+        rank = start + lane  # [window]
+        live_counts = counts.index_select(0, live)[:, None]
+        chosen = (first.index_select(0, live)[:, None] + rank)[rank < live_counts]  # row-major: by ray, then t
         yield chosen
-        remaining = remaining[transmittance[ray_index[remaining]] >= min_transmittance]  # rays that stopped
         start += window
+        live = live[(live_counts[:, 0] > start) & (transmittance.index_select(0, live) >= min_transmittance)]
 
 
 def _window_deltas(step, chosen: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
