@@ -64,6 +64,104 @@ def occupancy_pyramid(occupancy: torch.Tensor, block: int = 16) -> list:
     return levels
 
 
+@dataclass(frozen=True)
+class MarchedSegments:
+    """Ray segments the occupancy pyramid kept down to some level, packed (sorted by ray,
+    then t): starts, ray_index [m]; and what cutting them into samples needs: the finer
+    levels still to test, the segment size in voxels, the rays in voxel units
+    (`per_ray` [n_rays, 7]: origin, direction, far), samples per voxel, the sample step,
+    near and far [n_rays] and the jitter [n_rays] or None."""
+
+    starts: torch.Tensor
+    ray_index: torch.Tensor
+    levels: list
+    size: int
+    per_ray: torch.Tensor
+    voxel_steps: int
+    step: float
+    near: torch.Tensor
+    far: torch.Tensor
+    jitter: torch.Tensor | None
+
+
+def _keep_occupied(starts, rays, per_ray, grid, size: int, length: float):
+    """The segments (starts, rays) [m] of `length` whose midpoint lies in an occupied cell
+    of `grid` (cells `size` voxels wide), and that start before their ray's far."""
+    ray = per_ray.index_select(0, rays)  # [m, 7]
+    # the midpoint of the part inside the box: a segment hanging out of the box must not
+    # be tested (and dropped) at a point outside it. For starts < far that is
+    # min(starts + length / 2, (starts + far) / 2); segments starting past `far` are
+    # dropped, but their lookup must stay in the grid: pinned at far.
+    far_of = ray[:, 6]
+    mid = torch.minimum(torch.minimum(starts + 0.5 * length, (starts + far_of).mul_(0.5)), far_of)
+    keep = (starts < far_of) & cell_lookup(torch.addcmul(ray[:, :3], ray[:, 3:6], mid[:, None]), grid, size)
+    kept = keep.nonzero(as_tuple=True)[0]
+    return starts.index_select(0, kept), rays.index_select(0, kept)
+
+
+@torch.no_grad()
+def march_segments(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, occupancy: torch.Tensor,
+                   step: float, jitter: torch.Tensor | None = None, levels: list | None = None,
+                   keep_levels: int = 0) -> MarchedSegments:
+    """The coarse-to-fine part of `march`: segments tested against every level of the
+    pyramid but the last `keep_levels` (0: down to the voxel grid). Rendering takes the
+    segments above the voxel level so that it cuts into samples only those a ray reaches
+    before it turns opaque (`segment_samples` on a subset). Arguments as for `march`."""
+    levels = occupancy_pyramid(occupancy) if levels is None else levels
+    n_rays = origins.shape[0]
+    nz, ny, nx = occupancy.shape
+    voxel = (aabb[1] - aabb[0]) / torch.tensor([nx, ny, nz], dtype=aabb.dtype, device=aabb.device)  # [3]
+    near, far, hit = ray_aabb(origins, directions, aabb)  # [n_rays] each
+    voxel_steps = max(1, round(float(voxel.max()) / step))  # samples per voxel segment
+    # level 0: every ray cut into coarse segments
+    size = levels[0][1]
+    length = size * voxel_steps * step
+    n_segments = max(math.ceil(float((far - near).max()) / length), 1) if n_rays else 1
+    k = torch.arange(n_segments, dtype=origins.dtype, device=origins.device)
+    seg_start = near[:, None] + k * length  # [n_rays, S]
+    candidate = (seg_start < far[:, None]) & hit[:, None]
+    rays, cols = candidate.nonzero(as_tuple=True)  # row-major: sorted by ray, then t
+    starts = seg_start[rays, cols]  # [n_segments_total]
+    # Rays in voxel units from the box's corner, so a level's cell is a floor away:
+    # [n_rays, 7] origin, direction (per unit of t), far; one gather per level.
+    per_ray = torch.cat([(origins - aabb[0]) / voxel, directions / voxel, far[:, None]], dim=1)
+    starts, rays = _keep_occupied(starts, rays, per_ray, *levels[0], length)
+    segments = MarchedSegments(starts, rays, levels[1:], size, per_ray, voxel_steps, step, near, far, jitter)
+    return _refine(segments, max(0, len(levels) - 1 - keep_levels))
+
+
+def _refine(segments: MarchedSegments, n_levels: int) -> MarchedSegments:
+    """`segments` split and tested through their next `n_levels` levels."""
+    starts, rays, size = segments.starts, segments.ray_index, segments.size
+    for grid, finer in segments.levels[:n_levels]:
+        parts = size // finer
+        length = finer * segments.voxel_steps * segments.step
+        offsets = torch.arange(parts, dtype=starts.dtype, device=starts.device) * length
+        starts = (starts[:, None] + offsets).reshape(-1)
+        rays = rays.repeat_interleave(parts)
+        starts, rays = _keep_occupied(starts, rays, segments.per_ray, grid, finer, length)
+        size = finer
+    return MarchedSegments(starts, rays, segments.levels[n_levels:], size, segments.per_ray, segments.voxel_steps,
+                           segments.step, segments.near, segments.far, segments.jitter)
+
+
+def segment_samples(segments: MarchedSegments, chosen: torch.Tensor | None = None) -> MarchedSamples:
+    """Packed samples of the segments `chosen` [m] (sorted; None: all): split and tested
+    down to the voxel grid, each 1-voxel segment cut into `voxel_steps` samples."""
+    if chosen is not None:
+        segments = MarchedSegments(segments.starts.index_select(0, chosen), segments.ray_index.index_select(0, chosen),
+                                   segments.levels, segments.size, segments.per_ray, segments.voxel_steps,
+                                   segments.step, segments.near, segments.far, segments.jitter)
+    segments = _refine(segments, len(segments.levels))
+    starts, rays, step, far = segments.starts, segments.ray_index, segments.step, segments.far
+    offset = 0.5 if segments.jitter is None else segments.jitter[rays][:, None]
+    j = torch.arange(segments.voxel_steps, dtype=starts.dtype, device=starts.device)
+    t_mid = starts[:, None] + (j + offset) * step  # [n_kept, voxel_steps]
+    ray_index = rays[:, None].expand(-1, segments.voxel_steps)
+    keep = t_mid < far.index_select(0, rays)[:, None]
+    return MarchedSamples(t_mid[keep], ray_index[keep], step, segments.near, far)
+
+
 @torch.no_grad()
 def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, occupancy: torch.Tensor,
           step: float, jitter: torch.Tensor | None = None, levels: list | None = None) -> MarchedSamples:
@@ -81,48 +179,7 @@ def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, o
     shifts every sample of a ray by jitter * step (training); None: step centres.
     levels: `occupancy_pyramid(occupancy)`, passed in to reuse it across calls.
     """
-    levels = occupancy_pyramid(occupancy) if levels is None else levels
-    n_rays = origins.shape[0]
-    nz, ny, nx = occupancy.shape
-    voxel = (aabb[1] - aabb[0]) / torch.tensor([nx, ny, nz], dtype=aabb.dtype, device=aabb.device)  # [3]
-    near, far, hit = ray_aabb(origins, directions, aabb)  # [n_rays] each
-    voxel_steps = max(1, round(float(voxel.max()) / step))  # samples per voxel segment
-    # level 0: every ray cut into coarse segments
-    grid, size = levels[0]
-    length = size * voxel_steps * step
-    n_segments = max(math.ceil(float((far - near).max()) / length), 1) if n_rays else 1
-    k = torch.arange(n_segments, dtype=origins.dtype, device=origins.device)
-    seg_start = near[:, None] + k * length  # [n_rays, S]
-    candidate = (seg_start < far[:, None]) & hit[:, None]
-    rays, cols = candidate.nonzero(as_tuple=True)  # row-major: sorted by ray, then t
-    starts = seg_start[rays, cols]  # [n_segments_total]
-    # Rays in voxel units from the box's corner, so a level's cell is a floor away:
-    # [n_rays, 7] origin, direction (per unit of t), far; one gather per level.
-    per_ray = torch.cat([(origins - aabb[0]) / voxel, directions / voxel, far[:, None]], dim=1)
-    for index, (grid, size) in enumerate(levels):
-        length = size * voxel_steps * step
-        if index > 0:  # split the previous level's segments into this level's
-            parts = levels[index - 1][1] // size
-            offsets = torch.arange(parts, dtype=origins.dtype, device=origins.device) * length
-            starts = (starts[:, None] + offsets).reshape(-1)
-            rays = rays.repeat_interleave(parts)
-        ray = per_ray.index_select(0, rays)  # [n_segments, 7]
-        # the midpoint of the part inside the box: a segment hanging out of the box must
-        # not be tested (and dropped) at a point outside it. For starts < far that is
-        # min(starts + length / 2, (starts + far) / 2); segments starting past `far` are
-        # dropped below, but their lookup must stay in the grid: pinned at far.
-        far_of = ray[:, 6]
-        mid = torch.minimum(torch.minimum(starts + 0.5 * length, (starts + far_of).mul_(0.5)), far_of)
-        keep = (starts < far_of) & cell_lookup(torch.addcmul(ray[:, :3], ray[:, 3:6], mid[:, None]), grid, size)
-        kept = keep.nonzero(as_tuple=True)[0]
-        starts, rays = starts.index_select(0, kept), rays.index_select(0, kept)
-    # the voxel level's 1-voxel segments hold `voxel_steps` samples each
-    offset = 0.5 if jitter is None else jitter[rays][:, None]
-    j = torch.arange(voxel_steps, dtype=origins.dtype, device=origins.device)
-    t_mid = starts[:, None] + (j + offset) * step  # [n_kept, voxel_steps]
-    ray_index = rays[:, None].expand(-1, voxel_steps)
-    keep = t_mid < far.index_select(0, rays)[:, None]
-    return MarchedSamples(t_mid[keep], ray_index[keep], step, near, far)
+    return segment_samples(march_segments(origins, directions, aabb, occupancy, step, jitter, levels))
 
 
 def sample_deltas(samples: MarchedSamples) -> torch.Tensor:

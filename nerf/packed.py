@@ -140,20 +140,36 @@ def packed_render_early_stop(field_fn, t_mid, ray_index, step, near, far, window
     lengths [n_samples]; near, far: [n_rays].
     Returns rgb [n_rays, 3], opacity [n_rays], depth [n_rays], samples evaluated (int).
     """
-    n_rays = near.shape[0]
-    transmittance = torch.ones(n_rays, dtype=t_mid.dtype, device=t_mid.device)
-    rgb = torch.zeros((n_rays, 3), dtype=t_mid.dtype, device=t_mid.device)
-    weighted_t = torch.zeros(n_rays, dtype=t_mid.dtype, device=t_mid.device)
-    evaluated = 0
-    for chosen in front_to_back_windows(ray_index, transmittance, window, min_transmittance):
-        rays = ray_index[chosen]
+    def window_samples(chosen):
         sigma, colour = field_fn(chosen)
-        local = packed_weights(sigma, _window_deltas(step, chosen, sigma), rays, n_rays)  # as if T = 1 at the window
+        return ray_index[chosen], t_mid[chosen], _window_deltas(step, chosen, sigma), sigma, colour
+
+    return render_front_to_back(window_samples, ray_index, near, far, window, min_transmittance)
+
+
+@torch.no_grad()
+def render_front_to_back(window_samples, unit_ray_index, near, far, window: int, min_transmittance: float = 1e-3):
+    """Early-terminated volume rendering over packed units (samples, or ray segments that
+    hold samples): `window` units per live ray at a time, nearest first, until each ray's
+    transmittance falls below `min_transmittance`. Not differentiable.
+
+    window_samples(unit_index [m]) -> (ray_index, t, deltas, sigma [k], rgb [k, 3]): the
+    samples of those units, sorted by ray then t. unit_ray_index: [n_units] sorted by
+    ray then t; near, far: [n_rays].
+    Returns rgb [n_rays, 3], opacity [n_rays], depth [n_rays], samples evaluated (int)."""
+    n_rays = near.shape[0]
+    transmittance = torch.ones(n_rays, dtype=near.dtype, device=near.device)
+    rgb = torch.zeros((n_rays, 3), dtype=near.dtype, device=near.device)
+    weighted_t = torch.zeros(n_rays, dtype=near.dtype, device=near.device)
+    evaluated = 0
+    for chosen in front_to_back_windows(unit_ray_index, transmittance, window, min_transmittance):
+        rays, t, deltas, sigma, colour = window_samples(chosen)
+        local = packed_weights(sigma, deltas, rays, n_rays)  # as if T = 1 at the window
         weights = transmittance[rays] * local
         rgb += packed_sum(weights[:, None] * colour, rays, n_rays)
-        weighted_t += packed_sum(weights * t_mid[chosen], rays, n_rays)
+        weighted_t += packed_sum(weights * t, rays, n_rays)
         transmittance.mul_((1 - packed_sum(local, rays, n_rays)).clamp_min(0))
-        evaluated += chosen.numel()
+        evaluated += rays.numel()
     opacity = 1 - transmittance
     return rgb, opacity, _depth(weighted_t, opacity, near, far), evaluated
 

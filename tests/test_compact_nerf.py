@@ -183,3 +183,46 @@ def test_early_termination_leaves_out_at_most_the_remaining_transmittance():
     assert (early[1] - full[1]).abs().max() <= 1e-3 + 1e-12
     transparent = full[1] < 0.5
     torch.testing.assert_close(early[0][transparent], full[0][transparent], rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("step_ratio", [0.5, 1.0])
+def test_inference_cuts_only_the_segments_rays_reach_and_matches_the_full_pass(step_ratio, monkeypatch):
+    """Rendering without gradients marches a level above the voxel grid and cuts segments
+    into samples only until a ray is opaque: its colour and opacity stay within the early
+    stop's min_transmittance (1e-3) of the full pass over every marched sample, and its
+    depth within what that missing weight can move it (1e-3 (far - near) / opacity).
+    (One 4-voxel segment per window, so this 24-voxel box takes several.)"""
+    import nerfgauge.nerf.models as models_module
+    monkeypatch.setattr(models_module, "EARLY_STOP_SEGMENTS", 1)
+    import torch.nn.functional as F
+    from nerfgauge.nerf.grid_field import VoxelGridField
+    from nerfgauge.nerf.models import CompactNeRF
+    from nerfgauge.nerf.rendering import ray_aabb
+
+    aabb = torch.tensor([[-1.0, -0.5, -0.75], [1.0, 0.5, 0.75]])
+    field = VoxelGridField(aabb, 24, 24, False)
+    g = torch.Generator().manual_seed(3)
+    grid = field.to_dense().normal_(generator=g)
+    blobs = F.avg_pool3d(torch.rand(grid.shape[1:], generator=g)[None, None], 5, stride=1, padding=2)[0, 0]
+    # blobs in empty air, denser towards their cores (softplus(raw + shift), shift ~ -9.2)
+    grid[0] = torch.where(blobs > 0.50, 6.0 + 200.0 * (blobs - 0.50) + grid[0], -30.0)
+    field.load_dense(grid)
+    field.step_ratio = step_ratio
+    model = CompactNeRF(field).eval()
+    model.update_occupancy()
+    n = 3000
+    origins = torch.randn((n, 3), generator=g) * 0.2 + torch.tensor([0.0, 0.0, 3.0])
+    targets = aabb[0] + torch.rand((n, 3), generator=g) * (aabb[1] - aabb[0]) * 1.3 - 0.15 * (aabb[1] - aabb[0])
+    directions = F.normalize(targets - origins, dim=-1)
+    with torch.no_grad():
+        fast = model.render(origins, directions)
+    with torch.enable_grad():  # training=False with gradients: the full pass, every sample
+        full = model.render(origins, directions)
+    near, far, hit = ray_aabb(origins, directions, aabb)
+    assert (full.opacity > 0.999).sum() > 100 and ((full.opacity > 0.05) & (full.opacity < 0.9)).sum() > 20
+    assert not hit.all() and fast.n_samples < full.n_samples
+    assert (fast.rgb - full.rgb.detach()).abs().max() <= 1e-3 + 1e-5
+    assert (fast.opacity - full.opacity.detach()).abs().max() <= 1e-3 + 1e-5
+    seen = full.opacity.detach() > 0.5
+    bound = 1e-3 * (far - near)[seen] / (full.opacity.detach()[seen] - 1e-3) + 1e-4
+    assert ((fast.depth - full.depth.detach())[seen].abs() <= bound).all()
