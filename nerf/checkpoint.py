@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from nerfgauge.nerf.config import TrainConfig
+from nerfgauge.nerf.config import TrainConfig, step_ratio_of
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.parametrisation import Space
 
@@ -155,7 +155,7 @@ def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None 
         if space is not None and space.kind != "bounded":
             aabb = torch.tensor(space.box, dtype=torch.float32)
         field = VoxelGridField(aabb, resolution or config.start_resolution, config.final_resolution,
-                               config.view_dependent, config.feature_channels, config.step_ratio, space=space,
+                               config.view_dependent, config.feature_channels, step_ratio_of(config), space=space,
                                allocate=allocate)
         return CompactNeRF(field, use_occupancy=config.occupancy, sparse=config.prune)
 

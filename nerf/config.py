@@ -25,6 +25,11 @@ BACKGROUNDS = ("random", "white", "black")
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing
 # captures) ask for an unbounded resolution: they get this cap.
 MAX_AUTO_RESOLUTION = 256
+# Marching step in voxels while training, by parametrisation. Contracted space takes a
+# whole voxel: its rays cross the inner ball and the disparity-uniform shell, ~126 samples
+# at half a voxel on far-reaching, and at 120 s on 2 cores twice the steps beat the finer
+# step (128 px: 26.22 dB at 1.0 voxel, 24.71 at 0.5, 25.34 at 2.0; BENCHMARKS.md).
+STEP_RATIOS = {"bounded": 0.5, "contracted": 1.0, "forward": 0.5}
 UNBOUNDED_MAX_RESOLUTION = 192  # contracted / forward grids (every cell of them is in view)
 # Coarse to fine: each stage grows the grid by this factor, from a start grid of about
 # START_VOXELS, in at least MIN_UPSAMPLES stages. A start of a quarter of the final grid
@@ -58,7 +63,7 @@ class TrainConfig:
     occupancy: bool = True  # empty-space skipping
     tv_weight: float = 0.0
     distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
-    step_ratio: float = 0.5  # ray-marching step in voxels
+    step_ratio: Optional[float] = None  # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
     # vanilla (the lecture's NeRF)
     n_coarse: int = 64
@@ -108,7 +113,7 @@ class TrainConfig:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
         for name in ("eval_every_seconds", "step_ratio", "lr", "lr_mlp"):
             value = getattr(self, name)
-            if not (_is_finite(value) and value > 0):
+            if not (name == "step_ratio" and value is None) and not (_is_finite(value) and value > 0):
                 raise InputError(f"{_flag(name)} must be a positive finite number, got {value!r}")
         for name in ("tv_weight", "distortion_weight"):
             value = getattr(self, name)
@@ -198,12 +203,25 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["final_resolution"] = why
     else:
         reasons["final_resolution"] = "set on the command line"
+    if config.step_ratio is None:
+        updates["step_ratio"] = STEP_RATIOS[kind]
+        reasons["step_ratio"] = f"{kind} space: marching steps of {STEP_RATIOS[kind]} voxel"
+    else:
+        reasons["step_ratio"] = "set in the config"
     final = updates.get("final_resolution", config.final_resolution)
     if config.start_resolution is None:
         updates["start_resolution"] = start_resolution_for(final)
         reasons["start_resolution"] = (f"coarse to fine: {upsample_count(updates['start_resolution'], final)} "
                                        f"stages of about x{STAGE_RATIO:.2f} from about {START_VOXELS} voxels")
     return dataclasses.replace(config, **updates), reasons
+
+
+def step_ratio_of(config: TrainConfig) -> float:
+    """The marching step in voxels: the config's, or its parametrisation's default
+    (bounded when that is not chosen yet)."""
+    if config.step_ratio is not None:
+        return config.step_ratio
+    return STEP_RATIOS[config.parametrisation or "bounded"]
 
 
 def start_resolution_for(final: int) -> int:

@@ -321,3 +321,22 @@ def test_auto_choice_on_the_planned_cameras_of_real_scenes(scene, expected):
     the_plan = plan(GenerateConfig(scene=scene, views=12, val_views=0, test_views=2, width=16, height=16, spp=1))
     kind, reason = choose_parametrisation(None, np.asarray(the_plan.scene.aabb), the_plan.poses["train"])
     assert kind == expected, reason
+
+
+@pytest.mark.parametrize("kind", ["bounded", "contracted", "forward"])
+def test_the_marching_step_follows_the_parametrisation_unless_set(kind):
+    """Unset, the training step is the parametrisation's (a whole voxel in contracted
+    space, half a voxel elsewhere) and the reason says so; set, it is kept."""
+    import numpy as np
+
+    from nerfgauge.nerf.config import STEP_RATIOS, resolve, step_ratio_of
+
+    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    c2w = np.tile(np.eye(4), (4, 1, 1))
+    c2w[:, :3, 3] = [[0, 0, 4], [4, 0, 0], [0, 4, 0], [-4, 0, 0]]
+    auto, reasons = resolve(TrainConfig(dataset="d", steps=1, parametrisation=kind), None, aabb, c2w, 100.0, 64)
+    assert auto.step_ratio == STEP_RATIOS[kind] == step_ratio_of(auto)
+    assert (auto.step_ratio == 1.0) == (kind == "contracted") and kind in reasons["step_ratio"]
+    fixed, reasons = resolve(TrainConfig(dataset="d", steps=1, parametrisation=kind, step_ratio=0.25), None, aabb,
+                             c2w, 100.0, 64)
+    assert fixed.step_ratio == 0.25 and reasons["step_ratio"] == "set in the config"
