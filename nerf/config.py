@@ -39,6 +39,8 @@ UNBOUNDED_MAX_RESOLUTION = 192  # contracted / forward grids (every cell of them
 STAGE_RATIO = 4 ** (1 / 3)
 START_VOXELS = 32
 MIN_UPSAMPLES = 3
+LAST_UPSAMPLE_AT = 0.3  # the grid grows at evenly spaced fractions of the budget up to this ...
+MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
 
 
 @dataclass(frozen=True)
@@ -210,7 +212,7 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["step_ratio"] = "set in the config"
     final = updates.get("final_resolution", config.final_resolution)
     if config.start_resolution is None:
-        updates["start_resolution"] = start_resolution_for(final)
+        updates["start_resolution"] = start_resolution_for(final, config.steps)
         reasons["start_resolution"] = (f"coarse to fine: {upsample_count(updates['start_resolution'], final)} "
                                        f"stages of about x{STAGE_RATIO:.2f} from about {START_VOXELS} voxels")
     return dataclasses.replace(config, **updates), reasons
@@ -224,11 +226,17 @@ def step_ratio_of(config: TrainConfig) -> float:
     return STEP_RATIOS[config.parametrisation or "bounded"]
 
 
-def start_resolution_for(final: int) -> int:
+def start_resolution_for(final: int, steps: Optional[int] = None) -> int:
     """The start grid of a coarse-to-fine ladder to `final` voxels: final / STAGE_RATIO^n
     for the n that lands nearest START_VOXELS (n >= MIN_UPSAMPLES), at least 16 and at most
-    the final grid (a final grid under 16 trains at one size; it used to start at 16 and shrink)."""
+    the final grid (a final grid under 16 trains at one size; it used to start at 16 and shrink).
+    A run of a fixed number of `steps` takes at most max(MIN_UPSAMPLES, steps / 2 /
+    MIN_STAGE_STEPS) stages: each waits for MIN_STAGE_STEPS steps, so more would leave the
+    final grid less than half the run (bench hard's 400 steps: three stages, as before the
+    longer ladder, not five that never reached a 256 grid)."""
     stages = max(MIN_UPSAMPLES, round(math.log(final / START_VOXELS) / math.log(STAGE_RATIO)))
+    if steps is not None:
+        stages = min(stages, max(MIN_UPSAMPLES, steps // (2 * MIN_STAGE_STEPS)))
     return min(final, max(16, round(final / 4 ** (stages / 3))))  # = STAGE_RATIO ** stages, exact at 3
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 from nerfgauge.nerf import checkpoint
-from nerfgauge.nerf.config import TrainConfig, resolve, upsample_count
+from nerfgauge.nerf.config import LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TrainConfig, resolve, upsample_count
 from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite
@@ -36,8 +36,6 @@ from nerfgauge.core.files import read_json, sha256_file, write_bytes_atomic, wri
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
-LAST_UPSAMPLE_AT = 0.3  # the grid grows at evenly spaced fractions of the budget up to this ...
-MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
 # A time budget takes a finer grid only if it can still give it this many steps (projected
 # from the current stage's step rate, scaled by the resolution ratio: samples per ray grow
 # with it). Measured on primitives, 120 s, 2 CPU cores (BENCHMARKS.md): at 256 px the 218

@@ -281,3 +281,27 @@ def test_the_coarse_to_fine_ladder_starts_near_32_voxels_and_grows_geometrically
     fractions = [upsample_at(config, k) for k in range(stages)]
     assert all(0 < a < b for a, b in zip(fractions, fractions[1:]))
     assert fractions[-1] == pytest.approx(LAST_UPSAMPLE_AT)
+
+
+@settings(max_examples=300, deadline=None)
+@given(final=st.integers(16, 1024), steps=st.integers(1, 5000))
+def test_a_fixed_step_run_takes_only_the_stages_it_can_train(final, steps):
+    """Each stage waits for MIN_STAGE_STEPS steps, so a --steps run's ladder has at most
+    max(MIN_UPSAMPLES, steps / 2 / MIN_STAGE_STEPS) stages (its final grid gets at least
+    half the run once that is over MIN_UPSAMPLES stages), never more than the budget
+    ladder, and still ends at the final grid; resolve picks that start."""
+    import numpy as np
+
+    from nerfgauge.nerf.config import MIN_STAGE_STEPS, MIN_UPSAMPLES, resolve, start_resolution_for, upsample_count
+
+    start = start_resolution_for(final, steps)
+    stages = upsample_count(start, final)
+    assert stages <= max(MIN_UPSAMPLES, steps // (2 * MIN_STAGE_STEPS))
+    assert stages <= upsample_count(start_resolution_for(final), final)
+    assert start <= final
+    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    c2w = np.tile(np.eye(4), (2, 1, 1))
+    c2w[:, :3, 3] = [[0, 0, 4], [4, 0, 0]]
+    resolved, _ = resolve(TrainConfig("d", steps=steps, final_resolution=final, parametrisation="bounded"), None,
+                          aabb, c2w, 100.0, 64)
+    assert resolved.start_resolution == start
