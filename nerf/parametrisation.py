@@ -153,16 +153,27 @@ class Space:
             o = (origins - centre) / radius  # unit-ball frame; t in units of radius
             b = (o * directions).sum(-1)
             disc = b * b - ((o * o).sum(-1) - 1)
-            t_exit = torch.where(disc > 0, -b + disc.clamp_min(0).sqrt(), (-b).clamp_min(0)).clamp_min(0)
-            inner = max(1, math.ceil(float(t_exit.max()) / grid_step)) if len(o) else 1
+            root = disc.clamp_min(0).sqrt()
+            crosses = disc > 0
+            t_exit = torch.where(crosses, -b + root, (-b).clamp_min(0)).clamp_min(0)
+            # where the ray enters the ball: 0 from inside it; for a ray that misses it, its
+            # closest approach (no inner part)
+            t_enter = torch.where(crosses, (-b - root).clamp_min(0), t_exit)
+            # before the ball (a camera outside it): disparity-uniform towards the ball, the
+            # mirror of the shell beyond it, u = 1 / (1 + t_enter - t) from 1 / (1 + t_enter) to 1
+            far_start = float(t_enter.max()) if len(o) else 0.0
+            n_pre = max(0, math.ceil((1 - 1 / (1 + far_start)) / grid_step))
+            u = (1 - torch.arange(n_pre, -1, -1, dtype=o.dtype, device=o.device) * grid_step).clamp_min(grid_step)
+            pre_edges = (t_enter[:, None] - (1 / u[None, :] - 1)).clamp_min(0)  # ends at t_enter
+            inner = max(1, math.ceil(float((t_exit - t_enter).max()) / grid_step)) if len(o) else 1
             k = torch.arange(inner + 1, dtype=o.dtype, device=o.device) * grid_step
-            inner_edges = torch.minimum(k[None, :], t_exit[:, None])
+            inner_edges = torch.minimum(t_enter[:, None] + k[None, :], t_exit[:, None])
             # disparity-uniform beyond: u = 1 / (1 + t - t_exit) from 1 to grid_step
             n_outer = max(1, math.ceil((1 - grid_step) / grid_step))
             u = 1 - torch.arange(1, n_outer + 1, dtype=o.dtype, device=o.device) * grid_step
             u = u.clamp_min(grid_step)
             outer_edges = t_exit[:, None] + (1 / u[None, :] - 1)
-            return torch.cat([inner_edges, outer_edges], dim=1) * radius
+            return torch.cat([pre_edges, inner_edges, outer_edges], dim=1) * radius
         origin, frame = self._tensors(origins)
         oz = (origins - origin) @ frame[2]
         dz = directions @ frame[2]
@@ -222,6 +233,11 @@ def check_targets(aabb: np.ndarray, c2w: np.ndarray) -> None:
                          "looks into them (check scene.json bounds against the cameras)")
 
 
+# An orbit's inner ball: this many times the half-width of the view at the centre, so
+# content a little off the focus plane stays in it. far-reaching 128 px, 120 s, by the
+# ball's radius (half-width 1.2, cameras at 3.2): 1.2 -> 26.17 dB, 2.0 -> 26.99, the
+# cameras' 3.5 -> 26.22 (BENCHMARKS.md).
+VIEW_BALL_FACTOR = 1.5
 NEAR_AABB_FACTOR = 8.0  # an AABB reaching at most this many camera radii is all near content
 
 
@@ -237,7 +253,7 @@ def axes_focus(c2w: np.ndarray) -> np.ndarray | None:
     return np.linalg.solve(a, (projectors @ positions[:, :, None]).sum(axis=0))[:, 0]
 
 
-def contraction_frame(aabb: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, float]:
+def contraction_frame(aabb: np.ndarray, c2w: np.ndarray, tan_half_fov: float | None = None) -> tuple[np.ndarray, float]:
     """(centre [3], inner radius) of the contraction for cameras among the content.
 
     Centre: where the optical axes meet (an orbit's target; outward-looking cameras: about
@@ -246,18 +262,30 @@ def contraction_frame(aabb: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, fl
     Radius: the inner (linear, finest) ball holds the cameras (1.1 x the farthest); when the
     whole AABB lies within NEAR_AABB_FACTOR of that, it is all near content and the ball
     also reaches the AABB's faces (a room), else content beyond the cameras is contracted (an
-    AABB of far terrain would otherwise spread the grid over it)."""
+    AABB of far terrain would otherwise spread the grid over it). An orbit around that far
+    content (every camera looks at the centre, `tan_half_fov` given: the narrower half
+    angle of the view) gets the ball every view holds around the centre, nearest camera
+    distance x tan_half_fov x VIEW_BALL_FACTOR: the cameras then sit in the contracted shell, and the grid's
+    finest cells go to what the orbit looks at, not to the air the cameras fly through."""
     aabb = np.asarray(aabb, dtype=float)
     focus = axes_focus(c2w)
     centre = np.clip(c2w[:, :3, 3].mean(axis=0) if focus is None else focus, aabb[0], aabb[1])
-    cams = 1.1 * float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).max())
+    offsets = c2w[:, :3, 3] - centre
+    distances = np.linalg.norm(offsets, axis=1)
+    cams = 1.1 * float(distances.max())
     reach = float(np.maximum(aabb[1] - centre, centre - aabb[0]).max())
-    radius = max(reach, cams) if reach <= NEAR_AABB_FACTOR * cams else cams
-    return centre, max(radius, 1e-3)
+    if reach <= NEAR_AABB_FACTOR * cams:
+        return centre, max(reach, cams, 1e-3)
+    if focus is not None and tan_half_fov is not None and tan_half_fov > 0:
+        forward = -c2w[:, :3, 2] / np.linalg.norm(c2w[:, :3, 2], axis=1, keepdims=True)
+        towards = -(offsets * forward).sum(axis=1) / np.maximum(distances, 1e-12)  # cos(axis, to centre)
+        if bool((towards >= 1 / math.sqrt(1 + tan_half_fov ** 2)).all()):  # the centre is in every view
+            return centre, max(min(cams, VIEW_BALL_FACTOR * float(distances.min()) * tan_half_fov), 1e-3)
+    return centre, max(cams, 1e-3)
 
 
 def make_space(kind: str, aabb: np.ndarray, c2w: np.ndarray, origins: torch.Tensor | None = None,
-               directions: torch.Tensor | None = None) -> Space:
+               directions: torch.Tensor | None = None, tan_half_fov: float | None = None) -> Space:
     """The numbers of a parametrisation for this dataset. aabb [2, 3]; c2w [n, 4, 4];
     origins, directions [m, 3]: (a subset of) the training rays (forward: the frustum's extent)."""
     if kind == "bounded":
@@ -265,7 +293,7 @@ def make_space(kind: str, aabb: np.ndarray, c2w: np.ndarray, origins: torch.Tens
     positions = c2w[:, :3, 3]
     box = [[-CONTRACTED_EXTENT] * 3, [CONTRACTED_EXTENT] * 3]
     if kind == "contracted":
-        centre, radius = contraction_frame(aabb, c2w)
+        centre, radius = contraction_frame(aabb, c2w, tan_half_fov)
         return Space("contracted", box, centre=centre.tolist(), radius=radius)
     origin = positions.mean(axis=0)
     f = (-c2w[:, :3, 2]).mean(axis=0)

@@ -211,8 +211,10 @@ def prepare_run(config: TrainConfig):
     recipe = run_recipe(config, sha256_file(root / MANIFEST))
     _, train_rays = load_split_rays(root, "train")
     stride = max(1, train_rays.origins.shape[0] // 65536)
+    intrinsics = train_cams.intrinsics
+    tan_half_fov = min(0.5 * intrinsics.width / intrinsics.fx, 0.5 * intrinsics.height / intrinsics.fy)
     space = make_space(config.parametrisation, aabb, train_cams.c2w, train_rays.origins[::stride],
-                       train_rays.directions[::stride])
+                       train_rays.directions[::stride], tan_half_fov)
     val_split = "val" if read_split(root, "val").stems else "test"
     _, val_rays = load_split_rays(root, val_split, limit=config.eval_views)
     return config, reasons, (torch.tensor(aabb, dtype=torch.float32), space), train_rays, val_rays, device, recipe

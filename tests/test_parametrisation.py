@@ -340,3 +340,79 @@ def test_the_marching_step_follows_the_parametrisation_unless_set(kind):
     fixed, reasons = resolve(TrainConfig(dataset="d", steps=1, parametrisation=kind, step_ratio=0.25), None, aabb,
                              c2w, 100.0, 64)
     assert fixed.step_ratio == 0.25 and reasons["step_ratio"] == "set in the config"
+
+
+def test_an_orbit_around_far_content_gets_the_ball_its_views_hold():
+    """Orbit cameras looking at a target among far terrain: with the view's half angle the
+    inner ball is VIEW_BALL_FACTOR x the view's half-width at the target (the cameras sit in
+    the shell); without it, or when a camera does not have the target in view, or when the
+    cameras look outward, the ball holds the cameras as before."""
+    from nerfgauge.nerf.parametrisation import VIEW_BALL_FACTOR, contraction_frame
+
+    target = np.array([0.0, 0.0, 0.3])
+    orbit = np.stack([_camera(target + 3.2 * np.array([math.cos(a), math.sin(a), 0.2]), target)
+                      for a in np.linspace(0, 6, 12)])
+    terrain = np.array([[-100.0, -100.0, -1.0], [100.0, 100.0, 30.0]])
+    distance = 3.2 * math.sqrt(1 + 0.2 ** 2)
+    tan_half = math.tan(math.radians(20))
+    centre, radius = contraction_frame(terrain, orbit, tan_half)
+    assert np.allclose(centre, target, atol=1e-6)
+    assert radius == pytest.approx(VIEW_BALL_FACTOR * distance * tan_half) and radius < distance
+    assert contraction_frame(terrain, orbit)[1] == pytest.approx(1.1 * distance)
+    # one camera turned 30 degrees away: the target leaves its 20-degree half view
+    turned = orbit.copy()
+    turn = np.array([[math.cos(0.52), -math.sin(0.52), 0], [math.sin(0.52), math.cos(0.52), 0], [0, 0, 1]])
+    turned[0, :3, :3] = turn @ turned[0, :3, :3]
+    assert contraction_frame(terrain, turned, tan_half)[1] == pytest.approx(
+        1.1 * float(np.linalg.norm(turned[:, :3, 3] - contraction_frame(terrain, turned)[0], axis=1).max()))
+    outward = np.stack([_camera((0.4 * math.cos(a), 0.4 * math.sin(a), 0.3),
+                                (2 * math.cos(a), 2 * math.sin(a), 0.3)) for a in np.linspace(0, 6, 12)])
+    assert contraction_frame(terrain, outward, tan_half)[1] == pytest.approx(contraction_frame(terrain, outward)[1])
+
+
+def _edges_with_the_ball_from_zero(o, d, grid_step):
+    """The interval edges before cameras could sit outside the ball (the oracle for rays
+    that start inside it): uniform from 0 to the exit, disparity-uniform beyond. Unit ball."""
+    b = (o * d).sum(-1)
+    disc = b * b - ((o * o).sum(-1) - 1)
+    t_exit = torch.where(disc > 0, -b + disc.clamp_min(0).sqrt(), (-b).clamp_min(0)).clamp_min(0)
+    k = torch.arange(max(1, math.ceil(float(t_exit.max()) / grid_step)) + 1, dtype=o.dtype) * grid_step
+    n_outer = max(1, math.ceil((1 - grid_step) / grid_step))
+    u = (1 - torch.arange(1, n_outer + 1, dtype=o.dtype) * grid_step).clamp_min(grid_step)
+    return torch.cat([torch.minimum(k[None, :], t_exit[:, None]), t_exit[:, None] + (1 / u[None, :] - 1)], dim=1)
+
+
+def _positive_intervals(edges):
+    lengths = edges[:, 1:] - edges[:, :-1]
+    rays, cols = (lengths > 0).nonzero(as_tuple=True)
+    return rays, edges[rays, cols], lengths[rays, cols]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.02, 0.05, 0.1]))
+def test_contracted_edges_from_inside_the_ball_are_unchanged_and_from_outside_disparity_spaced(seed, grid_step):
+    """Rays starting in the ball get exactly the intervals they always had. A camera
+    outside it marches towards it in steps of one grid_step of contracted radius (exact
+    on radial rays: u = 1 / r from 1 / r0 to 1), not in the ball's fine steps, and its
+    edges still start at 0, never decrease and stay finite."""
+    g = torch.Generator().manual_seed(seed)
+    space = Space("contracted", [[-2.0] * 3, [2.0] * 3], centre=[0.0, 0.0, 0.0], radius=1.0)
+    inside = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1) \
+        * torch.rand(64, 1, generator=g, dtype=torch.float64) * 0.99
+    directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
+    got, want = _positive_intervals(space.ray_edges(inside, directions, grid_step)), \
+        _positive_intervals(_edges_with_the_ball_from_zero(inside, directions, grid_step))
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    # radial rays from 1.5 to 6 radii out, pointing at the centre
+    r0 = 1.5 + 4.5 * torch.rand(32, 1, generator=g, dtype=torch.float64)
+    towards = torch.nn.functional.normalize(torch.randn(32, 3, generator=g, dtype=torch.float64), dim=-1)
+    edges = space.ray_edges(-towards * r0, towards, grid_step)
+    assert torch.isfinite(edges).all() and (edges[:, 0] == 0).all() and (edges[:, 1:] >= edges[:, :-1]).all()
+    rays, start, length = _positive_intervals(edges)
+    before = start + length <= (r0[rays, 0] - 1) + 1e-9  # intervals before the ball's surface
+    far_end, near_end = r0[rays, 0] - start, r0[rays, 0] - start - length  # radii; contracted: 2 - 1 / r
+    step = (2 - 1 / far_end[before]) - (2 - 1 / near_end[before])
+    assert (step <= grid_step * (1 + 1e-9)).all()
+    per_ray = torch.bincount(rays[before], minlength=32)
+    assert (per_ray <= torch.ceil((1 - 1 / r0[:, 0]) / grid_step) + 1).all()
