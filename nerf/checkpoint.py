@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from nerfgauge.nerf.config import TrainConfig, step_ratio_of
+from nerfgauge.nerf.config import FLAGS, TrainConfig, step_ratio_of
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.parametrisation import Space
 
@@ -228,7 +228,8 @@ def recipe_difference(saved: dict, current: dict) -> str:
                 parts.append(f"another dataset (manifest.json sha256 {str(saved.get(key))[:12]}..., "
                              f"this dataset's is {str(current.get(key))[:12]}...)")
             else:
-                parts.append(f"{key} {saved.get(key)!r} (this command: {current.get(key)!r})")
+                hint = f"; {FLAGS[key]} sets it" if key in FLAGS else ""
+                parts.append(f"{key} {saved.get(key)!r} (this command: {current.get(key)!r}{hint})")
     return "; ".join(parts[:3]) + ("; ..." if len(parts) > 3 else "")
 
 

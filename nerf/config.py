@@ -117,6 +117,9 @@ class TrainConfig:
             value = getattr(self, name)
             if not (name == "step_ratio" and value is None) and not (_is_finite(value) and value > 0):
                 raise InputError(f"{_flag(name)} must be a positive finite number, got {value!r}")
+        if self.step_ratio is not None and _is_finite(self.step_ratio) and self.step_ratio > 2:
+            raise InputError(f"--step-ratio must be in (0, 2] voxels (a coarser step skips whole cells), "
+                             f"got {self.step_ratio!r}")
         for name in ("tv_weight", "distortion_weight"):
             value = getattr(self, name)
             if not (_is_finite(value) and value >= 0):
@@ -138,7 +141,8 @@ class TrainConfig:
 
 # CLI flag of a config field, for messages that name what the user typed
 FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
-         "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation"}
+         "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation",
+         "step_ratio": "--step-ratio"}
 
 
 def _flag(name: str) -> str:
@@ -209,7 +213,7 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         updates["step_ratio"] = STEP_RATIOS[kind]
         reasons["step_ratio"] = f"{kind} space: marching steps of {STEP_RATIOS[kind]} voxel"
     else:
-        reasons["step_ratio"] = "set in the config"
+        reasons["step_ratio"] = "set on the command line"
     final = updates.get("final_resolution", config.final_resolution)
     if config.start_resolution is None:
         updates["start_resolution"] = start_resolution_for(final, config.steps)

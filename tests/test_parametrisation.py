@@ -339,7 +339,7 @@ def test_the_marching_step_follows_the_parametrisation_unless_set(kind):
     assert (auto.step_ratio == 1.0) == (kind == "contracted") and kind in reasons["step_ratio"]
     fixed, reasons = resolve(TrainConfig(dataset="d", steps=1, parametrisation=kind, step_ratio=0.25), None, aabb,
                              c2w, 100.0, 64)
-    assert fixed.step_ratio == 0.25 and reasons["step_ratio"] == "set in the config"
+    assert fixed.step_ratio == 0.25 and reasons["step_ratio"] == "set on the command line"
 
 
 def test_an_orbit_around_far_content_gets_the_ball_its_views_hold():

@@ -248,7 +248,8 @@ def test_cuda_without_a_gpu_is_one_line(tiny_dataset, tmp_path, capsys):
 
 @pytest.mark.parametrize("field, value", [
     ("tv_weight", math.nan), ("tv_weight", math.inf), ("distortion_weight", math.nan), ("lr", math.inf),
-    ("lr_mlp", math.nan), ("step_ratio", math.nan), ("eval_every_seconds", math.inf), ("budget_seconds", math.nan),
+    ("lr_mlp", math.nan), ("step_ratio", math.nan), ("step_ratio", 2.5), ("eval_every_seconds", math.inf),
+    ("budget_seconds", math.nan),
     ("threads", True), ("checkpoint_every", 0), ("dataset", ""), ("device", "cuda:x"), ("prune", "yes"),
 ])
 def test_the_api_refuses_what_the_flags_refuse(field, value):
@@ -300,6 +301,10 @@ def test_a_run_of_another_dataset_or_resolution_is_not_resumed(tiny_dataset, fin
     one_line_exit_2(capsys, resume_argv(tiny_dataset, finished_run, "--resolution", "20"), "final_resolution")
     one_line_exit_2(capsys, resume_argv(tiny_dataset, finished_run, "--model", "vanilla"), "model")
     one_line_exit_2(capsys, resume_argv(tiny_dataset, finished_run, "--view-dependent", "on"), "view_dependent")
+    # a run made with another marching step (older runs in contracted space took half a
+    # voxel): the message names the flag that resumes it
+    one_line_exit_2(capsys, resume_argv(tiny_dataset, finished_run, "--step-ratio", "0.7"),
+                    "step_ratio 0.5 (this command: 0.7; --step-ratio sets it)")
 
 
 def test_a_checkpoint_copied_from_another_run_is_refused(tiny_dataset, finished_run, tmp_path, capsys):
