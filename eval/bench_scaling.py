@@ -179,19 +179,16 @@ def psnr_at_common_resolution(data: Path, pred_dir: Path, factor: int, split: st
     same coarse pixels, so a finer capture is compared on what both resolve, not penalised
     for the detail only its own ground truth holds."""
     from nerfgauge.core import dataset
-    from nerfgauge.eval.evaluate import find_nerfgauge_predictions, read_colour
-    from nerfgauge.eval.metrics import area_average, composite, psnr
+    from nerfgauge.eval.evaluate import BACKGROUNDS, composited_pair, find_nerfgauge_predictions
+    from nerfgauge.eval.metrics import area_average, psnr
 
     ds = dataset.Dataset(data)
     cameras = ds.cameras(split)
-    white = np.ones(3)
     scores = []
     for stem, files in find_nerfgauge_predictions(pred_dir, split, cameras.stems, "distance").items():
         if files is None:
             raise InputError(f"no prediction for frame {stem} in {pred_dir}")
-        rgb, alpha = read_colour(files.colour, cameras.intrinsics)
-        pred = rgb if alpha is None else composite(np.concatenate([rgb, alpha[..., None]], -1), white)
-        gt = composite(dataset.read_rgba(ds, stem, cameras.intrinsics), white)
+        pred, gt, _, _ = composited_pair(ds, stem, cameras.intrinsics, files, BACKGROUNDS["white"])
         scores.append(psnr(area_average(pred, factor), area_average(gt, factor)))
     return float(np.mean(scores))
 

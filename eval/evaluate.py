@@ -211,16 +211,23 @@ def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.n
 # --- scoring ----------------------------------------------------------------------------
 
 
-def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
-                lpips_batch=None):
-    """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
-    None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any."""
+def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background) -> tuple:
+    """One frame's prediction and ground truth composited onto `background` [3]:
+    pred, gt [H, W, 3], the ground truth's RGBA [H, W, 4] and the prediction's alpha
+    [H, W] (its opacity plane when it has one; None for an opaque RGB prediction)."""
     rgb, alpha = read_colour(files.colour, intrinsics)
     if files.opacity is not None:
         alpha = _finite(read_plane(files.opacity, intrinsics), files.opacity)
     pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
     gt_rgba = dataset.read_rgba(ds, stem, intrinsics)  # [H, W, 4]
-    gt = composite(gt_rgba, background)  # [H, W, 3]
+    return pred, composite(gt_rgba, background), gt_rgba, alpha
+
+
+def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
+                lpips_batch=None):
+    """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
+    None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any."""
+    pred, gt, gt_rgba, alpha = composited_pair(ds, stem, intrinsics, files, background)
     mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)

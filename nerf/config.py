@@ -113,12 +113,12 @@ class TrainConfig:
                 raise InputError(f"{_flag(name)} must be an integer in [4, 1024], got {value!r}")
         if not _is_int(self.seed) or self.seed < 0:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
-        for name in ("eval_every_seconds", "step_ratio", "lr", "lr_mlp"):
+        for name in ("eval_every_seconds", "lr", "lr_mlp"):
             value = getattr(self, name)
-            if not (name == "step_ratio" and value is None) and not (_is_finite(value) and value > 0):
+            if not (_is_finite(value) and value > 0):
                 raise InputError(f"{_flag(name)} must be a positive finite number, got {value!r}")
-        if self.step_ratio is not None and _is_finite(self.step_ratio) and self.step_ratio > 2:
-            raise InputError(f"--step-ratio must be in (0, 2] voxels (a coarser step skips whole cells), "
+        if self.step_ratio is not None and not (_is_finite(self.step_ratio) and 0 < self.step_ratio <= 2):
+            raise InputError(f"--step-ratio must be a number in (0, 2] voxels (a coarser step skips whole cells), "
                              f"got {self.step_ratio!r}")
         for name in ("tv_weight", "distortion_weight"):
             value = getattr(self, name)

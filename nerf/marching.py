@@ -8,6 +8,7 @@ skipped empty space has transmittance 1, as it should.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -141,17 +142,15 @@ def _refine(segments: MarchedSegments, n_levels: int) -> MarchedSegments:
         rays = rays.repeat_interleave(parts)
         starts, rays = _keep_occupied(starts, rays, segments.per_ray, grid, finer, length)
         size = finer
-    return MarchedSegments(starts, rays, segments.levels[n_levels:], size, segments.per_ray, segments.voxel_steps,
-                           segments.step, segments.near, segments.far, segments.jitter)
+    return dataclasses.replace(segments, starts=starts, ray_index=rays, levels=segments.levels[n_levels:], size=size)
 
 
 def segment_samples(segments: MarchedSegments, chosen: torch.Tensor | None = None) -> MarchedSamples:
     """Packed samples of the segments `chosen` [m] (sorted; None: all): split and tested
     down to the voxel grid, each 1-voxel segment cut into `voxel_steps` samples."""
     if chosen is not None:
-        segments = MarchedSegments(segments.starts.index_select(0, chosen), segments.ray_index.index_select(0, chosen),
-                                   segments.levels, segments.size, segments.per_ray, segments.voxel_steps,
-                                   segments.step, segments.near, segments.far, segments.jitter)
+        segments = dataclasses.replace(segments, starts=segments.starts.index_select(0, chosen),
+                                       ray_index=segments.ray_index.index_select(0, chosen))
     segments = _refine(segments, len(segments.levels))
     starts, rays, step, far = segments.starts, segments.ray_index, segments.step, segments.far
     offset = 0.5 if segments.jitter is None else segments.jitter[rays][:, None]
