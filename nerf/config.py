@@ -164,18 +164,21 @@ def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquis
     Returns (resolution, reason)."""
     centre = (aabb[0] + aabb[1]) / 2
     bound = float(np.linalg.norm(aabb[1] - aabb[0])) / 2
-    nearest = max(float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).min()) - bound, 1e-6)
-    footprint = nearest / focal  # scene units per pixel at the nearest content
+    nearest = float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).min()) - bound
     longest = float((aabb[1] - aabb[0]).max())
-    voxel = footprint
-    reason = f"pixel footprint {footprint:.4g} at distance {nearest:.3g}"
+    if nearest <= 0:  # content may sit at any distance from such a camera: no footprint bounds it
+        voxel, reason = 0.0, "a camera stands within the AABB's bounding sphere"
+    else:
+        voxel = nearest / focal  # scene units per pixel at the nearest content
+        reason = f"pixel footprint {voxel:.4g} at distance {nearest:.3g}"
     if nyquist_period is not None and nyquist_period / 2 < voxel:
         voxel = nyquist_period / 2
         reason = f"half the finest texture period {nyquist_period:.4g}"
-    wanted = math.ceil(longest / voxel)
+    wanted = math.ceil(longest / voxel) if voxel > 0 else math.inf
     resolution = int(min(max(wanted, 16), MAX_AUTO_RESOLUTION))
     if wanted > MAX_AUTO_RESOLUTION:
-        reason += f" asks for {wanted} voxels; capped at {MAX_AUTO_RESOLUTION} (node index and samples per ray)"
+        reason += (f" asks for {wanted} voxels" if voxel > 0 else "") + \
+            f"; capped at {MAX_AUTO_RESOLUTION} (node index and samples per ray)"
     return resolution, reason
 
 

@@ -285,8 +285,7 @@ class VoxelGridField(nn.Module):
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
         """sigma (per world unit) at world positions [M, 3], differentiable w.r.t. them. Returns [M]."""
-        rows, weights = self.corners(self._to_box(positions))
-        return self._world_density(self._blend(self.density_table, rows, weights)[:, 0], positions)
+        return self.density_at_stencil(self.stencil(positions), positions)
 
     def _dense_for_rendering(self) -> torch.Tensor | None:
         """The grid as [1, 1 + C, nz, ny, nx] for grid_sample, rebuilt when a table changed
@@ -302,15 +301,33 @@ class VoxelGridField(nn.Module):
     def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """positions, directions: [M, 3] (world, unit). Returns sigma [M], rgb [M, 3] in [0, 1]."""
         dense = None if torch.is_grad_enabled() else self._dense_for_rendering()
-        if dense is not None:  # the same trilinear values (tests/test_sparse_field.py), one fused kernel
-            box = self._to_box(positions)
-            normalised = 2 * (box - self.aabb[0]) / (self.aabb[1] - self.aabb[0]) - 1
-            values = F.grid_sample(dense, normalised.view(1, 1, 1, -1, 3), mode="bilinear", align_corners=True,
-                                   padding_mode="border").view(dense.shape[1], -1).t()
-            raw, features = values[:, 0], values[:, 1:]
-        else:
-            rows, weights = self.corners(self._to_box(positions))
-            raw, features = self._blend(self.density_table, rows, weights)[:, 0], self._blend(self.features, rows, weights)
+        if dense is None:
+            return self.at_stencil(self.stencil(positions), positions, directions)
+        # the same trilinear values (tests/test_sparse_field.py), one fused kernel
+        box = self._to_box(positions)
+        normalised = 2 * (box - self.aabb[0]) / (self.aabb[1] - self.aabb[0]) - 1
+        values = F.grid_sample(dense, normalised.view(1, 1, 1, -1, 3), mode="bilinear", align_corners=True,
+                               padding_mode="border").view(dense.shape[1], -1).t()
+        return self._activate(values[:, 0], values[:, 1:], positions, directions)
+
+    def stencil(self, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The trilinear stencil (rows [M, 8], weights [M, 8]) of world positions [M, 3]:
+        computed once, it serves a cheap density pass and the full pass on a subset."""
+        return self.corners(self._to_box(positions))
+
+    def density_at_stencil(self, stencil: tuple[torch.Tensor, torch.Tensor], positions: torch.Tensor) -> torch.Tensor:
+        """sigma [M] (per world unit) from a `stencil` of world positions [M, 3]."""
+        rows, weights = stencil
+        return self._world_density(self._blend(self.density_table, rows, weights)[:, 0], positions)
+
+    def at_stencil(self, stencil: tuple[torch.Tensor, torch.Tensor], positions: torch.Tensor,
+                   directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What `forward` returns, from a `stencil` of the positions: sigma [M], rgb [M, 3]."""
+        rows, weights = stencil
+        raw, features = self._blend(self.density_table, rows, weights)[:, 0], self._blend(self.features, rows, weights)
+        return self._activate(raw, features, positions, directions)
+
+    def _activate(self, raw, features, positions, directions):
         sigma = self._world_density(raw, positions)
         if self.head is None:
             return sigma, torch.sigmoid(features)

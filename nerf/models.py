@@ -29,6 +29,7 @@ from nerfgauge.nerf.packed import (
     packed_distortion,
     packed_render,
     packed_render_early_stop,
+    packed_transmittance,
     packed_transmittance_early_stop,
     render_front_to_back,
 )
@@ -37,6 +38,9 @@ from torch import nn
 
 EARLY_STOP_WINDOW = 16  # samples per ray between early-termination checks (measured: 8-32 similar)
 EARLY_STOP_SEGMENTS = 8  # 4-voxel segments per ray between checks (measured at 256 px: 3-8 best at 8)
+# Training differentiates only the samples a ray reaches with at least this transmittance:
+# what it drops moves a ray's colour by less than this (the ground truth's noise is ~2.5e-3).
+TRAIN_MIN_TRANSMITTANCE = 1e-4
 
 
 @dataclass
@@ -165,13 +169,32 @@ class CompactNeRF(nn.Module):
             colour, opacity, depth, evaluated = packed_render_early_stop(
                 field_at, samples.t_mid, rays, samples.step, samples.near, samples.far, window=EARLY_STOP_WINDOW)
             return RayOutput(colour, opacity, depth, evaluated)
-        sigma, rgb = field_at(None)
-        deltas = sample_deltas(samples)
-        colour, opacity, depth, weights = packed_render(sigma, rgb, deltas, samples.t_mid, rays, samples.near,
-                                                        samples.far)
-        distortion = None
         if training:
-            distortion = packed_distortion(weights, samples.t_mid, deltas, rays, origins.shape[0])
+            return self._render_in_front(samples, origins, directions)
+        sigma, rgb = field_at(None)
+        colour, opacity, depth, _ = packed_render(sigma, rgb, sample_deltas(samples), samples.t_mid, rays,
+                                                  samples.near, samples.far)
+        return RayOutput(colour, opacity, depth, int(rays.numel()))
+
+    def _render_in_front(self, samples, origins, directions) -> RayOutput:
+        """Training: a density pass over every marched sample finds where each ray's
+        transmittance falls below TRAIN_MIN_TRANSMITTANCE, and the differentiable pass
+        (density, colour, their gradients) runs only on the samples in front of that. A
+        ray's colour and opacity move by less than TRAIN_MIN_TRANSMITTANCE; the step costs
+        what the visible samples cost (57% of primitives' samples lie behind surfaces)."""
+        rays = samples.ray_index
+        d = directions.index_select(0, rays)
+        positions = torch.addcmul(origins.index_select(0, rays), samples.t_mid[:, None], d)
+        stencil = self.field.stencil(positions)  # the positions need no gradient: shared by both passes
+        deltas = sample_deltas(samples)
+        with torch.no_grad():
+            sigma = self.field.density_at_stencil(stencil, positions)
+            transmittance, _ = packed_transmittance(sigma, deltas, rays, origins.shape[0])
+            front = (transmittance > TRAIN_MIN_TRANSMITTANCE).nonzero()[:, 0]
+        rays, t_mid, deltas = rays[front], samples.t_mid[front], deltas[front]
+        sigma, rgb = self.field.at_stencil(tuple(part[front] for part in stencil), positions[front], d[front])
+        colour, opacity, depth, weights = packed_render(sigma, rgb, deltas, t_mid, rays, samples.near, samples.far)
+        distortion = packed_distortion(weights, t_mid, deltas, rays, origins.shape[0])
         return RayOutput(colour, opacity, depth, int(rays.numel()), distortion=distortion)
 
     def _render_front_to_back(self, origins, directions) -> RayOutput:

@@ -226,3 +226,48 @@ def test_inference_cuts_only_the_segments_rays_reach_and_matches_the_full_pass(s
     seen = full.opacity.detach() > 0.5
     bound = 1e-3 * (far - near)[seen] / (full.opacity.detach()[seen] - 1e-3) + 1e-4
     assert ((fast.depth - full.depth.detach())[seen].abs() <= bound).all()
+
+
+def test_training_differentiates_only_what_rays_reach_and_matches_the_full_pass(monkeypatch):
+    """Training renders every marched sample's density without gradients, then the full
+    differentiable pass only in front of where transmittance falls below
+    TRAIN_MIN_TRANSMITTANCE (1e-4). Colour and opacity stay within 1e-4 of the pass over
+    every sample (what is dropped weighs T < 1e-4 in all, colours in [0, 1]); the loss
+    gradient on the density table moves by at most what the dropped samples carry:
+    each a factor T < 1e-4 of its ray, so by at most 1e-4 x samples-per-ray x the full
+    gradient's largest entry."""
+    import nerfgauge.nerf.models as models_module
+    import torch.nn.functional as F
+    from nerfgauge.nerf.grid_field import VoxelGridField
+    from nerfgauge.nerf.models import CompactNeRF
+
+    aabb = torch.tensor([[-1.0, -0.5, -0.75], [1.0, 0.5, 0.75]])
+    field = VoxelGridField(aabb, 24, 24, False)
+    g = torch.Generator().manual_seed(5)
+    grid = field.to_dense().normal_(generator=g)
+    blobs = F.avg_pool3d(torch.rand(grid.shape[1:], generator=g)[None, None], 5, stride=1, padding=2)[0, 0]
+    grid[0] = torch.where(blobs > 0.50, 6.0 + 200.0 * (blobs - 0.50) + grid[0], -30.0)
+    field.load_dense(grid)
+    model = CompactNeRF(field)
+    model.update_occupancy()
+    n = 2000
+    origins = torch.randn((n, 3), generator=g) * 0.2 + torch.tensor([0.0, 0.0, 3.0])
+    targets = aabb[0] + torch.rand((n, 3), generator=g) * (aabb[1] - aabb[0])
+    directions = F.normalize(targets - origins, dim=-1)
+
+    def pass_with(threshold):
+        monkeypatch.setattr(models_module, "TRAIN_MIN_TRANSMITTANCE", threshold)
+        field.density_table.grad = None
+        out = model.render(origins, directions, generator=torch.Generator().manual_seed(0), training=True)
+        (out.rgb.sum() + out.opacity.sum()).backward()
+        return out, field.density_table.grad.clone()
+
+    full, full_grad = pass_with(-1.0)  # every sample
+    front, front_grad = pass_with(1e-4)
+    assert (full.opacity > 0.9999).sum() > 200  # rays that do turn opaque, so samples are dropped
+    assert front.n_samples < 0.8 * full.n_samples
+    assert (front.rgb - full.rgb).abs().max() <= 1e-4 + 1e-6
+    assert (front.opacity - full.opacity).abs().max() <= 1e-4 + 1e-6
+    samples_per_ray = full.n_samples / n
+    assert (front_grad - full_grad).abs().max() <= 1e-4 * samples_per_ray * full_grad.abs().max()
+    assert torch.isfinite(front.distortion).all()
