@@ -185,6 +185,25 @@ def test_early_termination_leaves_out_at_most_the_remaining_transmittance():
     torch.testing.assert_close(early[0][transparent], full[0][transparent], rtol=1e-12, atol=1e-12)
 
 
+def blob_model(g: torch.Generator, step_ratio: float = 0.5):
+    """A CompactNeRF on a 24-voxel grid of blobs in empty air, denser towards their cores
+    (softplus(raw + shift), shift ~ -9.2), occupancy updated. Returns (model, aabb)."""
+    import torch.nn.functional as F
+    from nerfgauge.nerf.grid_field import VoxelGridField
+    from nerfgauge.nerf.models import CompactNeRF
+
+    aabb = torch.tensor([[-1.0, -0.5, -0.75], [1.0, 0.5, 0.75]])
+    field = VoxelGridField(aabb, 24, 24, False)
+    grid = field.to_dense().normal_(generator=g)
+    blobs = F.avg_pool3d(torch.rand(grid.shape[1:], generator=g)[None, None], 5, stride=1, padding=2)[0, 0]
+    grid[0] = torch.where(blobs > 0.50, 6.0 + 200.0 * (blobs - 0.50) + grid[0], -30.0)
+    field.load_dense(grid)
+    field.step_ratio = step_ratio
+    model = CompactNeRF(field)
+    model.update_occupancy()
+    return model, aabb
+
+
 @pytest.mark.parametrize("step_ratio", [0.5, 1.0])
 def test_inference_cuts_only_the_segments_rays_reach_and_matches_the_full_pass(step_ratio, monkeypatch):
     """Rendering without gradients marches a level above the voxel grid and cuts segments
@@ -195,21 +214,11 @@ def test_inference_cuts_only_the_segments_rays_reach_and_matches_the_full_pass(s
     import nerfgauge.nerf.models as models_module
     monkeypatch.setattr(models_module, "EARLY_STOP_SEGMENTS", 1)
     import torch.nn.functional as F
-    from nerfgauge.nerf.grid_field import VoxelGridField
-    from nerfgauge.nerf.models import CompactNeRF
     from nerfgauge.nerf.rendering import ray_aabb
 
-    aabb = torch.tensor([[-1.0, -0.5, -0.75], [1.0, 0.5, 0.75]])
-    field = VoxelGridField(aabb, 24, 24, False)
     g = torch.Generator().manual_seed(3)
-    grid = field.to_dense().normal_(generator=g)
-    blobs = F.avg_pool3d(torch.rand(grid.shape[1:], generator=g)[None, None], 5, stride=1, padding=2)[0, 0]
-    # blobs in empty air, denser towards their cores (softplus(raw + shift), shift ~ -9.2)
-    grid[0] = torch.where(blobs > 0.50, 6.0 + 200.0 * (blobs - 0.50) + grid[0], -30.0)
-    field.load_dense(grid)
-    field.step_ratio = step_ratio
-    model = CompactNeRF(field).eval()
-    model.update_occupancy()
+    model, aabb = blob_model(g, step_ratio)
+    model.eval()
     n = 3000
     origins = torch.randn((n, 3), generator=g) * 0.2 + torch.tensor([0.0, 0.0, 3.0])
     targets = aabb[0] + torch.rand((n, 3), generator=g) * (aabb[1] - aabb[0]) * 1.3 - 0.15 * (aabb[1] - aabb[0])
@@ -238,18 +247,10 @@ def test_training_differentiates_only_what_rays_reach_and_matches_the_full_pass(
     gradient's largest entry."""
     import nerfgauge.nerf.models as models_module
     import torch.nn.functional as F
-    from nerfgauge.nerf.grid_field import VoxelGridField
-    from nerfgauge.nerf.models import CompactNeRF
 
-    aabb = torch.tensor([[-1.0, -0.5, -0.75], [1.0, 0.5, 0.75]])
-    field = VoxelGridField(aabb, 24, 24, False)
     g = torch.Generator().manual_seed(5)
-    grid = field.to_dense().normal_(generator=g)
-    blobs = F.avg_pool3d(torch.rand(grid.shape[1:], generator=g)[None, None], 5, stride=1, padding=2)[0, 0]
-    grid[0] = torch.where(blobs > 0.50, 6.0 + 200.0 * (blobs - 0.50) + grid[0], -30.0)
-    field.load_dense(grid)
-    model = CompactNeRF(field)
-    model.update_occupancy()
+    model, aabb = blob_model(g)
+    field = model.field
     n = 2000
     origins = torch.randn((n, 3), generator=g) * 0.2 + torch.tensor([0.0, 0.0, 3.0])
     targets = aabb[0] + torch.rand((n, 3), generator=g) * (aabb[1] - aabb[0])
