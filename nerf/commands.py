@@ -97,6 +97,8 @@ def _add_train(subparsers) -> None:
                         help="final grid resolution (auto: pixel footprint)")
     parser.add_argument("--step-ratio", type=positive_float, default=None, metavar="VOXELS",
                         help="ray-marching step while training, in voxels (auto: 0.5, 1 in contracted space)")
+    parser.add_argument("--batch-rays", type=positive_int, default=None, metavar="N",
+                        help="rays per training step (auto: 4096, 2048 in contracted space)")
     parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
                         help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
     parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "
@@ -124,7 +126,8 @@ def _run_train(args) -> int:
                          prune=not args.no_prune, quantise=args.quantise, occupancy=not args.no_occupancy, tv_weight=args.tv_weight,
                          threads=args.threads, device=args.device, eval_every_seconds=args.eval_every,
                          parametrisation=None if args.parametrisation == "auto" else args.parametrisation,
-                         checkpoint_every=args.checkpoint_every, step_ratio=args.step_ratio)
+                         checkpoint_every=args.checkpoint_every, step_ratio=args.step_ratio,
+                         batch_rays=args.batch_rays)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
           f"model {summary['model_bytes'] / 1e6:.2f} MB"

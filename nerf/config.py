@@ -25,11 +25,17 @@ BACKGROUNDS = ("random", "white", "black")
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing
 # captures) ask for an unbounded resolution: they get this cap.
 MAX_AUTO_RESOLUTION = 256
+MAX_BATCH_RAYS = 1 << 20  # a batch's samples must fit in memory: ~126 per contracted ray
 # Marching step in voxels while training, by parametrisation. Contracted space takes a
 # whole voxel: its rays cross the inner ball and the disparity-uniform shell, ~126 samples
 # at half a voxel on far-reaching, and at 120 s on 2 cores twice the steps beat the finer
 # step (128 px: 26.22 dB at 1.0 voxel, 24.71 at 0.5, 25.34 at 2.0; BENCHMARKS.md).
 STEP_RATIOS = {"bounded": 0.5, "contracted": 1.0, "forward": 0.5}
+# Rays per training step, by parametrisation. Contracted rays keep ~126 samples (bounded
+# ~12): at 4096 rays a far-reaching step took 0.37 s at the 192 grid, and 2048 rays buy
+# 2.6x the steps in 120 s: 28.45 dB against 27.01 (1024: 28.34). Bounded space keeps
+# 4096: primitives 128 px scored 38.66 dB with 2048 against 38.85 (BENCHMARKS.md part 6).
+BATCH_RAYS = {"bounded": 4096, "contracted": 2048, "forward": 4096}
 UNBOUNDED_MAX_RESOLUTION = 192  # contracted / forward grids (every cell of them is in view)
 # Coarse to fine: each stage grows the grid by this factor, from a start grid of about
 # START_VOXELS, in at least MIN_UPSAMPLES stages. A start of a quarter of the final grid
@@ -50,7 +56,7 @@ class TrainConfig:
     seed: int = 0
     steps: Optional[int] = None  # stop after this many steps ...
     budget_seconds: Optional[float] = None  # ... or after this much training time
-    batch_rays: int = 4096
+    batch_rays: Optional[int] = None  # rays per compact step; None: BATCH_RAYS[parametrisation]
     lr: float = 0.1  # voxel grids (DVGO-style large steps); MLP heads use lr_mlp
     lr_mlp: float = 5e-3
     background: str = "random"  # training background per ray: random makes alpha learnable
@@ -100,7 +106,9 @@ class TrainConfig:
             raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
-        for name in ("batch_rays", "n_coarse", "n_fine", "width", "depth", "vanilla_batch_rays", "threads",
+        if self.batch_rays is not None and not (_is_int(self.batch_rays) and 0 < self.batch_rays <= MAX_BATCH_RAYS):
+            raise InputError(f"--batch-rays must be an integer in [1, {MAX_BATCH_RAYS}], got {self.batch_rays!r}")
+        for name in ("n_coarse", "n_fine", "width", "depth", "vanilla_batch_rays", "threads",
                      "feature_channels", "eval_views", "eval_rays"):
             value = getattr(self, name)
             if not _is_int(value) or value <= 0:
@@ -142,7 +150,7 @@ class TrainConfig:
 # CLI flag of a config field, for messages that name what the user typed
 FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
          "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation",
-         "step_ratio": "--step-ratio"}
+         "step_ratio": "--step-ratio", "batch_rays": "--batch-rays"}
 
 
 def _flag(name: str) -> str:
@@ -217,6 +225,11 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["step_ratio"] = f"{kind} space: marching steps of {STEP_RATIOS[kind]} voxel"
     else:
         reasons["step_ratio"] = "set on the command line"
+    if config.batch_rays is None:
+        updates["batch_rays"] = BATCH_RAYS[kind]
+        reasons["batch_rays"] = f"{kind} space: {BATCH_RAYS[kind]} rays a step"
+    else:
+        reasons["batch_rays"] = "set on the command line"
     final = updates.get("final_resolution", config.final_resolution)
     if config.start_resolution is None:
         updates["start_resolution"] = start_resolution_for(final, config.steps)

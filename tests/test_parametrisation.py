@@ -342,6 +342,25 @@ def test_the_marching_step_follows_the_parametrisation_unless_set(kind):
     assert fixed.step_ratio == 0.25 and reasons["step_ratio"] == "set on the command line"
 
 
+@pytest.mark.parametrize("kind", ["bounded", "contracted", "forward"])
+def test_the_batch_follows_the_parametrisation_unless_set(kind):
+    """Unset, a step's rays are the parametrisation's (2048 in contracted space, whose rays
+    keep ten times the samples, 4096 elsewhere) and the reason says so; set, it is kept."""
+    import numpy as np
+
+    from nerfgauge.nerf.config import BATCH_RAYS, resolve
+
+    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    c2w = np.tile(np.eye(4), (4, 1, 1))
+    c2w[:, :3, 3] = [[0, 0, 4], [4, 0, 0], [0, 4, 0], [-4, 0, 0]]
+    auto, reasons = resolve(TrainConfig(dataset="d", steps=1, parametrisation=kind), None, aabb, c2w, 100.0, 64)
+    assert auto.batch_rays == BATCH_RAYS[kind] == (2048 if kind == "contracted" else 4096)
+    assert kind in reasons["batch_rays"] and str(auto.batch_rays) in reasons["batch_rays"]
+    fixed, reasons = resolve(TrainConfig(dataset="d", steps=1, parametrisation=kind, batch_rays=512), None, aabb,
+                             c2w, 100.0, 64)
+    assert fixed.batch_rays == 512 and reasons["batch_rays"] == "set on the command line"
+
+
 def test_an_orbit_around_far_content_gets_the_ball_its_views_hold():
     """Orbit cameras looking at a target among far terrain: with the view's half angle the
     inner ball is VIEW_BALL_FACTOR x the view's half-width at the target (the cameras sit in

@@ -226,6 +226,8 @@ def test_a_folder_nerfgauge_did_not_make_is_never_used(tiny_dataset, tmp_path, c
     (["--steps", "5", "--resolution", "nan"], "--resolution"),
     (["--steps", "5", "--resolution", "2"], "--resolution"),
     (["--steps", "5", "--seed", "-1"], "--seed"),
+    (["--steps", "5", "--batch-rays", "0"], "--batch-rays"),
+    (["--steps", "5", "--batch-rays", "1.5"], "--batch-rays"),
     (["--steps", "5", "--device", "tpu"], "tpu"),
     (["--steps", "5", "--out", ""], "--out"),
 ])
@@ -249,7 +251,7 @@ def test_cuda_without_a_gpu_is_one_line(tiny_dataset, tmp_path, capsys):
 @pytest.mark.parametrize("field, value", [
     ("tv_weight", math.nan), ("tv_weight", math.inf), ("distortion_weight", math.nan), ("lr", math.inf),
     ("lr_mlp", math.nan), ("step_ratio", math.nan), ("step_ratio", 2.5), ("eval_every_seconds", math.inf),
-    ("budget_seconds", math.nan),
+    ("budget_seconds", math.nan), ("batch_rays", 0), ("batch_rays", 2.0), ("batch_rays", (1 << 20) + 1),
     ("threads", True), ("checkpoint_every", 0), ("dataset", ""), ("device", "cuda:x"), ("prune", "yes"),
 ])
 def test_the_api_refuses_what_the_flags_refuse(field, value):
@@ -305,6 +307,8 @@ def test_a_run_of_another_dataset_or_resolution_is_not_resumed(tiny_dataset, fin
     # voxel): the message names the flag that resumes it
     one_line_exit_2(capsys, resume_argv(tiny_dataset, finished_run, "--step-ratio", "0.7"),
                     "step_ratio 0.5 (this command: 0.7; --step-ratio sets it)")
+    one_line_exit_2(capsys, resume_argv(tiny_dataset, finished_run, "--batch-rays", "1000"),
+                    "batch_rays 4096 (this command: 1000; --batch-rays sets it)")
 
 
 def test_a_checkpoint_copied_from_another_run_is_refused(tiny_dataset, finished_run, tmp_path, capsys):
