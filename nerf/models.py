@@ -190,7 +190,8 @@ class CompactNeRF(nn.Module):
         with torch.no_grad():
             sigma = self.field.density_at_stencil(stencil, positions)
             transmittance, _ = packed_transmittance(sigma, deltas, rays, origins.shape[0])
-            front = (transmittance > TRAIN_MIN_TRANSMITTANCE).nonzero()[:, 0]
+            # NaN compares false: a non-finite field stays in the pass and reaches the loss
+            front = (~(transmittance <= TRAIN_MIN_TRANSMITTANCE)).nonzero()[:, 0]
         rays, t_mid, deltas = rays[front], samples.t_mid[front], deltas[front]
         sigma, rgb = self.field.at_stencil(tuple(part[front] for part in stencil), positions[front], d[front])
         colour, opacity, depth, weights = packed_render(sigma, rgb, deltas, t_mid, rays, samples.near, samples.far)

@@ -272,3 +272,20 @@ def test_training_differentiates_only_what_rays_reach_and_matches_the_full_pass(
     samples_per_ray = full.n_samples / n
     assert (front_grad - full_grad).abs().max() <= 1e-4 * samples_per_ray * full_grad.abs().max()
     assert torch.isfinite(front.distortion).all()
+
+
+def test_a_non_finite_field_reaches_the_training_loss():
+    """Dropping samples behind surfaces must not hide a NaN: a ray whose field turns NaN
+    keeps its samples in the differentiable pass, so the loss is NaN and training stops
+    with its one-line error instead of going on with a broken table."""
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(6)
+    model, aabb = blob_model(g)
+    with torch.no_grad():
+        model.field.density_table[1:] = float("nan")  # every allocated node
+    n = 64
+    origins = torch.zeros((n, 3)) + torch.tensor([0.0, 0.0, 3.0])
+    directions = F.normalize(aabb[0] + torch.rand((n, 3), generator=g) * (aabb[1] - aabb[0]) - origins, dim=-1)
+    out = model.render(origins, directions, generator=torch.Generator().manual_seed(0), training=True)
+    assert not torch.isfinite(out.rgb).all()
