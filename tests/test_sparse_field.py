@@ -252,3 +252,37 @@ def test_visibility_sampling_keeps_its_ray_and_sample_budgets():
         assert -(-n_rays // stride) <= VISIBILITY_RAYS
         assert -(-n_rays // stride) * samples <= VISIBILITY_SAMPLES * 1.01
         assert block == max(1, round(math.sqrt(stride / 4)))
+
+
+def sparse_random_field(seed: int) -> tuple[VoxelGridField, torch.Tensor]:
+    """A 14-voxel random field with a random half of its nodes freed. Returns (field, the
+    kept node mask [nz, ny, nx])."""
+    field = random_field(14, seed=seed)
+    keep = torch.rand(field.shape, generator=torch.Generator().manual_seed(seed + 1)) < 0.5
+    field.keep_rows(keep)
+    return field, keep
+
+
+def exact_total_variation(raw: torch.Tensor, keep: torch.Tensor) -> float:
+    """Sum over the axes of the mean squared difference of neighbouring kept nodes'
+    raw densities [nz, ny, nx], by plain slicing of the dense grid."""
+    total = 0.0
+    for dim in range(3):
+        n = raw.shape[dim]
+        both = keep.narrow(dim, 1, n - 1) & keep.narrow(dim, 0, n - 1)
+        difference = raw.narrow(dim, 1, n - 1) - raw.narrow(dim, 0, n - 1)
+        total += float((difference[both] ** 2).mean())
+    return total
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_total_variation_is_the_mean_over_allocated_neighbour_pairs(seed):
+    """`--tv-weight`'s prior: along each axis the mean squared difference of raw density
+    over the neighbour pairs whose nodes are both allocated (freed nodes read EMPTY_RAW
+    and must not count), summed over the axes; and its gradient never reaches row 0."""
+    field, keep = sparse_random_field(seed)
+    exact = exact_total_variation(field.to_dense()[0], keep)
+    total = field.total_variation()
+    assert float(total.detach()) == pytest.approx(exact, rel=1e-5)
+    total.backward()
+    assert field.density_table.grad[0] == 0 and int((field.density_table.grad != 0).sum()) > 100
