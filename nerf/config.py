@@ -36,6 +36,9 @@ STEP_RATIOS = {"bounded": 0.5, "contracted": 1.0, "forward": 0.5}
 # 2.6x the steps in 120 s: 28.45 dB against 27.01 (1024: 28.34). Bounded space keeps
 # 4096: primitives 128 px scored 38.66 dB with 2048 against 38.85 (BENCHMARKS.md part 6).
 BATCH_RAYS = {"bounded": 4096, "contracted": 2048, "forward": 4096}
+# The settings whose auto value is the parametrisation's: {field: (value by kind, reason)}
+BY_PARAMETRISATION = {"step_ratio": (STEP_RATIOS, "marching steps of {} voxel"),
+                      "batch_rays": (BATCH_RAYS, "{} rays a step")}
 UNBOUNDED_MAX_RESOLUTION = 192  # contracted / forward grids (every cell of them is in view)
 # Coarse to fine: each stage grows the grid by this factor, from a start grid of about
 # START_VOXELS, in at least MIN_UPSAMPLES stages. A start of a quarter of the final grid
@@ -220,16 +223,12 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["final_resolution"] = why
     else:
         reasons["final_resolution"] = "set on the command line"
-    if config.step_ratio is None:
-        updates["step_ratio"] = STEP_RATIOS[kind]
-        reasons["step_ratio"] = f"{kind} space: marching steps of {STEP_RATIOS[kind]} voxel"
-    else:
-        reasons["step_ratio"] = "set on the command line"
-    if config.batch_rays is None:
-        updates["batch_rays"] = BATCH_RAYS[kind]
-        reasons["batch_rays"] = f"{kind} space: {BATCH_RAYS[kind]} rays a step"
-    else:
-        reasons["batch_rays"] = "set on the command line"
+    for name, (by_kind, reason) in BY_PARAMETRISATION.items():
+        if getattr(config, name) is None:
+            updates[name] = by_kind[kind]
+            reasons[name] = f"{kind} space: {reason.format(by_kind[kind])}"
+        else:
+            reasons[name] = "set on the command line"
     final = updates.get("final_resolution", config.final_resolution)
     if config.start_resolution is None:
         updates["start_resolution"] = start_resolution_for(final, config.steps)
