@@ -32,7 +32,10 @@ PSNR on the foreground (pixels with ground-truth coverage or visible predicted o
 null when a view has none); depth on ground-truth hit pixels (read_mask), null when a view
 hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty);
 LPIPS-Alex (eval.lpips) on the composited pair, null with a reason in metrics.json's `notes`
-when its weights are not installed or the images are under 31 px.
+when its weights are not installed or the images are under 31 px. `psnr_covisible` and
+`ssim_covisible` (DyCheck's mPSNR, mSSIM) on the pixels some train view saw, and
+`covisible_fraction`, the share of such pixels (eval.covisibility; null with a note when
+the scored split is train itself).
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
@@ -64,14 +67,16 @@ from nerfgauge.eval.error_maps import (
     depth_relative_error,
     write_error_maps,
 )
+from nerfgauge.eval.covisibility import REFERENCE_SPLIT, covisible_masks
 from nerfgauge.eval.metrics import (
     METRIC_NAMES,
     composite,
     depth_metrics,
     opacity_iou,
     psnr,
-    psnr_foreground,
+    psnr_masked,
     ssim,
+    ssim_masked,
     summarize,
 )
 
@@ -83,6 +88,7 @@ from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
 SCHEMA = 1
 NOISE_FLOOR_DB = 1.0  # a mean PSNR this close to the mean ceiling is at the noise floor
 EMPTY_WARNING_FRACTION = 0.25
+COVISIBLE_NONE = f"split {{split}} is not held out from {REFERENCE_SPLIT}: no co-visibility mask"
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 DEPTH_SUFFIXES = {"distance": ("_depth", "_distance"), "z": ("_depth", "_zdepth")}
 DEPTH_HEADER = {"distance": "ray_distance", "z": "z_depth"}
@@ -224,14 +230,19 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
 
 
 def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
-                lpips_batch=None):
+                lpips_batch=None, covisible: Optional[np.ndarray] = None):
     """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
-    None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any."""
+    None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any.
+    covisible: the frame's co-visibility mask [H, W] bool (eval.covisibility), or None."""
     pred, gt, gt_rgba, alpha = composited_pair(ds, stem, intrinsics, files, background)
     mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
-    values["psnr_foreground"] = psnr_foreground(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
+    if covisible is not None:
+        values["psnr_covisible"], values["ssim_covisible"] = psnr_masked(pred, gt, covisible), \
+            ssim_masked(pred, gt, covisible)
+        values["covisible_fraction"] = float(covisible.mean())
+    values["psnr_foreground"] = psnr_masked(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
     if lpips_batch is not None:
         lpips_batch.add(pred, gt)
     values["psnr_objects"] = object_psnrs(ds, stem, intrinsics, pred, gt)
@@ -266,7 +277,7 @@ def object_psnrs(ds: dataset.Dataset, stem: str, intrinsics, pred, gt) -> Option
     if stem + dataset.FRAME_SUFFIXES["instance"] not in ds.manifest_files:
         return None
     ids, names = dataset.read_instance(ds, stem, intrinsics), ds.instance_names()
-    return {names.get(int(number), f"instance {int(number)}"): psnr_foreground(pred, gt, ids == number)
+    return {names.get(int(number), f"instance {int(number)}"): psnr_masked(pred, gt, ids == number)
             for number in np.unique(ids) if number != 0}
 
 
@@ -365,11 +376,13 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     # against that defocused truth like any other frame)
     lens_of = {stem: {"lens": cameras.lens(i).to_json()} for i, stem in enumerate(cameras.stems) if cameras.lens(i)}
     lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
+    covisible = covisible_masks(ds, split)
     frames, maps = [], []
     for stem, files in found.items():
         try:
             values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
-                                                        BACKGROUNDS[background], depth_kind, lpips_batch)
+                                                        BACKGROUNDS[background], depth_kind, lpips_batch,
+                                                        None if covisible is None else covisible[stem])
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
@@ -390,7 +403,8 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
     document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
-                "notes": {} if lpips_note is None else {"lpips": lpips_note},
+                "notes": {**({} if lpips_note is None else {"lpips": lpips_note}),
+                          **({} if covisible is not None else {"covisible": COVISIBLE_NONE.format(split=split)})},
                 "noise": noise_summary(frames), "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
                 "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}

@@ -220,9 +220,12 @@ def point_set(surface: Surface, count: int, rng: np.random.Generator, name: str)
 # --- visibility ----------------------------------------------------------------------
 
 
-def visible_in_views(points: np.ndarray, normals: np.ndarray, ds: Dataset, split: str) -> np.ndarray:
+def visible_in_views(points: np.ndarray, normals: np.ndarray, ds: Dataset, split: str,
+                     depth_maps: Optional[list] = None) -> np.ndarray:
     """Ground-truth samples [n, 3] (unit normals [n, 3]) visible in some view of `split`,
-    by the exact depth test of the module docstring. Returns [n] bool.
+    by the exact depth test of the module docstring. Returns [n] bool. depth_maps: the
+    split's ray-distance depth [H, W] per view, for callers that test many point sets
+    (read from the dataset when None).
 
     Samples no view sees are tested against every view, so the cost is about
     n_hidden x n_views: coordinates are kept as rows (x, y, z each contiguous), samples
@@ -250,7 +253,8 @@ def visible_in_views(points: np.ndarray, normals: np.ndarray, ds: Dataset, split
             pixel = np.where(inside, v.astype(np.int64) * intrinsics.width + u.astype(np.int64), 0)  # [m] flat
         if not inside.any():
             continue
-        depth = ds.depth(split, index, kind="distance").astype(np.float64).ravel()  # [H * W]
+        depth = (ds.depth(split, index, kind="distance") if depth_maps is None else depth_maps[index])
+        depth = depth.astype(np.float64).ravel()  # [H * W]
         recorded = depth[pixel]
         distance = np.sqrt(local[0] ** 2 + local[1] ** 2 + local[2] ** 2)
         gap = np.abs(recorded - distance)

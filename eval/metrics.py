@@ -34,6 +34,9 @@ METRIC_NAMES = (
     "psnr",
     "ssim",
     "psnr_foreground",
+    "psnr_covisible",  # eval.covisibility: on the pixels some training view saw (DyCheck's mPSNR)
+    "ssim_covisible",  # DyCheck's mSSIM on the same pixels
+    "covisible_fraction",  # the share of pixels in that mask
     "depth_absrel",
     "depth_rmse",
     "depth_mae",
@@ -180,24 +183,25 @@ def psnr(pred, gt) -> float:
     return 10.0 * math.log10(1.0 / max(mse, MSE_FLOOR))
 
 
-def psnr_foreground(pred, gt, foreground) -> Optional[float]:
-    """PSNR over the foreground pixels only: 10 log10(1 / max(MSE_fg, MSE_FLOOR)).
+def psnr_masked(pred, gt, mask) -> Optional[float]:
+    """PSNR over the pixels of `mask` only: 10 log10(1 / max(MSE_mask, MSE_FLOOR)).
 
-    An object covering a few pixels barely moves the whole-image PSNR (a view that is 99%
-    background scores 40 dB with the object missing); restricted to the pixels where
-    either image shows something, the miss is plain.
+    On the foreground (pixels where either image shows something): an object covering a
+    few pixels barely moves the whole-image PSNR (a view that is 99% background scores
+    40 dB with the object missing); restricted to the foreground, the miss is plain. On
+    the co-visible pixels (eval.covisibility): DyCheck's mPSNR.
 
     Args:
         pred, gt: [H, W, 3] in [0, 1], as for `psnr`.
-        foreground: [H, W] bool, the pixels to score.
+        mask: [H, W] bool, the pixels to score.
     Returns:
-        dB, or None when no pixel is foreground (nothing to score).
+        dB, or None when the mask is empty (nothing to score).
     """
     pred, gt = _image_pair(pred, gt)
-    foreground = _mask(foreground, "foreground", pred.shape[:2])
-    if not foreground.any():
+    mask = _mask(mask, "mask", pred.shape[:2])
+    if not mask.any():
         return None
-    mse = float(np.mean((pred[foreground] - gt[foreground]) ** 2))
+    mse = float(np.mean((pred[mask] - gt[mask]) ** 2))
     return 10.0 * math.log10(1.0 / max(mse, MSE_FLOOR))
 
 
@@ -231,17 +235,45 @@ def ssim(pred, gt) -> float:
         pred: [H, W, 3] prediction in [0, 1]; NaN or inf raise `NonFiniteError`.
         gt: [H, W, 3] ground truth in [0, 1].
     """
+    value, _, _ = _ssim_with_map(pred, gt)
+    return value
+
+
+def ssim_masked(pred, gt, mask) -> Optional[float]:
+    """SSIM averaged over the pixels of `mask` (DyCheck's mSSIM on the co-visible pixels):
+    the SSIM map of `ssim` (each value from its pixel's Gaussian neighbourhood, which may
+    reach outside the mask) averaged over channels and over the masked pixels inside the
+    same cropped border. An all-True mask gives `ssim`.
+
+    Args:
+        pred, gt: [H, W, 3] in [0, 1], as for `ssim`.
+        mask: [H, W] bool, the pixels to score.
+    Returns:
+        The mean, or None when no masked pixel lies inside the cropped border.
+    """
+    _, ssim_map, crop = _ssim_with_map(pred, gt)  # [H, W, 3]
+    mask = _mask(mask, "mask", ssim_map.shape[:2])
+    height, width = mask.shape
+    inner = (slice(crop, height - crop), slice(crop, width - crop))
+    kept = mask[inner]
+    if not kept.any():
+        return None
+    return float(ssim_map[inner].mean(axis=-1)[kept].mean())
+
+
+def _ssim_with_map(pred, gt) -> tuple[float, np.ndarray, int]:
+    """(mean SSIM, the SSIM map [H, W, 3], the border crop in pixels) of one pair."""
     from skimage.metrics import structural_similarity
 
     pred, gt = _image_pair(pred, gt)
     window = ssim_window(pred.shape[0], pred.shape[1])
-    value = structural_similarity(
+    value, ssim_map = structural_similarity(
         pred, gt,
         gaussian_weights=True, sigma=SSIM_SIGMA, use_sample_covariance=False,
-        data_range=1.0, channel_axis=-1,
+        data_range=1.0, channel_axis=-1, full=True,
         win_size=None if window == SSIM_WINDOW else window,
     )
-    return float(value)
+    return float(value), ssim_map, (window - 1) // 2
 
 
 # --- depth and opacity ------------------------------------------------------------------

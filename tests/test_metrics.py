@@ -296,17 +296,17 @@ def test_foreground_psnr_sees_what_the_whole_image_averages_away():
     """A 2x2 object missing from a 100x100 white view: the whole-image MSE is 4/10000 of
     the object's, so whole-image PSNR is 10 log10(10000/4) = 33.98 dB above the
     foreground's; over the 4 foreground pixels the miss (black vs white, MSE 1) is 0 dB."""
-    from nerfgauge.eval.metrics import psnr_foreground
+    from nerfgauge.eval.metrics import psnr_masked
 
     gt = np.ones((100, 100, 3))
     gt[10:12, 20:22] = 0.0
     pred = np.ones((100, 100, 3))
     foreground = np.zeros((100, 100), bool)
     foreground[10:12, 20:22] = True
-    assert psnr_foreground(pred, gt, foreground) == pytest.approx(0.0, abs=1e-12)
+    assert psnr_masked(pred, gt, foreground) == pytest.approx(0.0, abs=1e-12)
     assert psnr(pred, gt) == pytest.approx(10 * np.log10(10000 / 4), rel=1e-12)
-    assert psnr_foreground(pred, gt, np.zeros((100, 100), bool)) is None
-    assert psnr_foreground(gt, gt, foreground) == pytest.approx(100.0)
+    assert psnr_masked(pred, gt, np.zeros((100, 100), bool)) is None
+    assert psnr_masked(gt, gt, foreground) == pytest.approx(100.0)
 
 
 @settings(max_examples=50, deadline=None)

@@ -1,0 +1,120 @@
+"""Co-visibility masks (eval.covisibility) and the masked metrics evaluate reports with them
+(psnr_covisible, ssim_covisible: DyCheck's mPSNR and mSSIM)."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from nerfgauge.eval.covisibility import covisible_mask, covisible_masks, reference_depths
+from nerfgauge.eval.metrics import PSNR_CAP_DB, psnr, ssim, ssim_masked
+from test_geometry import _visible_sample_by_sample
+
+from nerfgauge.cli import main
+from nerfgauge.core import dataset
+from nerfgauge.core.camera import pixel_rays
+from nerfgauge.core.images import write_png
+from PIL import Image
+
+
+@pytest.fixture(scope="module")
+def ds_root(tmp_path_factory, make_dataset):
+    """primitives, 4 train / 1 val / 4 test views at 24x24: few train views, so some test
+    pixels show surfaces no train view sees."""
+    return make_dataset(tmp_path_factory.mktemp("covisibility") / "primitives", views=4, val_views=1,
+                        test_views=4, width=24, height=24)
+
+
+@pytest.fixture(scope="module")
+def ds(ds_root):
+    return dataset.Dataset(ds_root)
+
+
+@pytest.fixture(scope="module")
+def test_masks(ds):
+    return covisible_masks(ds, "test")
+
+
+def test_a_view_sees_everything_it_hits(ds):
+    """Each train frame against the train split: its own exact depth confirms every hit
+    pixel's back-projected point (the depth test's tolerance holds the pixel centre)."""
+    depths = reference_depths(ds)
+    for index in range(len(ds.cameras("train").c2w)):
+        assert covisible_mask(ds, "train", index, depths).all()
+
+
+def test_mask_matches_the_sample_by_sample_depth_test(ds, test_masks):
+    """Hit pixels: the written-out depth test of tests/test_geometry on the back-projected
+    points; misses: always co-visible."""
+    cameras = ds.cameras("test")
+    unseen = 0
+    for index, stem in enumerate(cameras.stems):
+        distance = ds.depth("test", index).astype(np.float64)
+        hit = ds.mask("test", index) & (distance > 0)
+        origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)
+        points = origins[hit] + directions[hit] * distance[hit][:, None]
+        expected = np.ones(hit.shape, bool)
+        expected[hit] = _visible_sample_by_sample(points, ds.normals("test", index)[hit].astype(np.float64), ds, "train")
+        np.testing.assert_array_equal(test_masks[stem], expected)
+        unseen += int((~expected).sum())
+    assert unseen > 0  # the fixture must exercise both outcomes
+
+
+def test_no_mask_for_the_reference_split_itself(ds):
+    assert covisible_masks(ds, "train") is None
+
+
+def test_ssim_masked_is_the_mean_of_the_ssim_map_over_the_mask():
+    from skimage.metrics import structural_similarity
+
+    rng = np.random.default_rng(3)
+    gt = rng.random((40, 40, 3))
+    pred = np.clip(gt + rng.normal(0, 0.1, gt.shape), 0, 1)
+    assert ssim_masked(pred, gt, np.ones((40, 40), bool)) == pytest.approx(ssim(pred, gt), abs=1e-12)
+    mask = rng.random((40, 40)) < 0.3
+    _, full = structural_similarity(pred, gt, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                    data_range=1.0, channel_axis=-1, full=True)
+    inner = np.zeros_like(mask)
+    inner[5:-5, 5:-5] = True  # skimage's border crop for its 11-tap window
+    assert ssim_masked(pred, gt, mask) == pytest.approx(full.mean(axis=-1)[mask & inner].mean(), abs=1e-12)
+    border_only = ~inner
+    assert ssim_masked(pred, gt, border_only) is None
+
+
+def test_errors_where_no_train_view_looked_leave_the_covisible_scores_perfect(ds_root, ds, test_masks, tmp_path,
+                                                                              capsys):
+    """The ground truth as the prediction, with every non-co-visible pixel painted magenta:
+    PSNR drops by the painted error, psnr_covisible stays at the cap, covisible_fraction
+    is the mask's share."""
+    pred = tmp_path / "pred" / "test"
+    pred.mkdir(parents=True)
+    cameras = ds.cameras("test")
+    expected_psnr = []
+    for stem in cameras.stems:
+        gt = np.asarray(Image.open(ds_root / (stem + ".png")).convert("RGBA"))  # [H, W, 4] uint8
+        painted = gt.copy()
+        painted[~test_masks[stem]] = (255, 0, 255, 255)
+        write_png(pred / (stem.split("/")[1] + ".png"), painted)
+        on_white = [rgba[..., :3] / 255 * (rgba[..., 3:] / 255) + 1 - rgba[..., 3:] / 255 for rgba in (painted, gt)]
+        expected_psnr.append(psnr(*on_white))
+    out = tmp_path / "metrics.json"
+    assert main(["evaluate", str(ds_root), "--pred", str(tmp_path / "pred"), "--out", str(out)]) == 0
+    capsys.readouterr()
+    doc = json.loads(out.read_text())
+    for frame, stem, value in zip(doc["frames"], cameras.stems, expected_psnr):
+        assert frame["covisible_fraction"] == pytest.approx(test_masks[stem].mean(), abs=1e-12)
+        assert frame["psnr_covisible"] == PSNR_CAP_DB  # the co-visible pixels are the ground truth's bytes
+        assert frame["psnr"] == pytest.approx(value, abs=1e-5)  # the reader decodes to float32 (6e-8 relative)
+    assert doc["mean"]["psnr"] < 40 < doc["mean"]["psnr_covisible"]
+    assert "covisible" not in doc["notes"]
+
+
+def test_scoring_the_train_split_says_why_there_is_no_mask(ds_root, tmp_path, capsys):
+    out = tmp_path / "metrics.json"
+    pred = tmp_path / "pred"
+    shutil.copytree(ds_root / "train", pred / "train", ignore=shutil.ignore_patterns("r_*_*"))  # colour PNGs only
+    assert main(["evaluate", str(ds_root), "--pred", str(pred), "--split", "train", "--out", str(out)]) == 0
+    capsys.readouterr()
+    doc = json.loads(out.read_text())
+    assert doc["mean"]["psnr_covisible"] is None and doc["count"]["covisible_fraction"] == 0
+    assert doc["notes"]["covisible"] == "split train is not held out from train: no co-visibility mask"
