@@ -27,7 +27,8 @@ from nerfgauge.eval.report import read_log
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 
-COLUMNS = ("psnr", "ssim", "psnr_foreground", "psnr_covisible", "depth_absrel", "depth_delta1", "opacity_iou")
+COLUMNS = ("psnr", "ssim", "psnr_foreground", "psnr_covisible", "depth_absrel", "depth_absrel_resolved", "depth_delta1",
+           "opacity_iou")
 
 
 @dataclass(frozen=True)
@@ -130,7 +131,8 @@ def _cell(value, digits=2):
 
 
 def table_markdown(rows: list, command: str) -> str:
-    head = ("scene", "exit", "all finite", "test PSNR", "SSIM", "fg PSNR", "co-visible PSNR", "depth AbsRel", "δ<1.25", "IoU",
+    head = ("scene", "exit", "all finite", "test PSNR", "SSIM", "fg PSNR", "co-visible PSNR", "depth AbsRel",
+            "resolved AbsRel", "δ<1.25", "IoU",
             "steps/s", "grid", "no pixels to score")
     lines = [f"`{command}`", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
@@ -138,6 +140,7 @@ def table_markdown(rows: list, command: str) -> str:
         cells = [r["scene"], str(r["exit"]), "yes" if r["finite"] else "**no**", _cell(mean.get("psnr")),
                  _cell(mean.get("ssim"), 4), _cell(mean.get("psnr_foreground")),
                  _cell(mean.get("psnr_covisible")), _cell(mean.get("depth_absrel"), 4),
+                 _cell(mean.get("depth_absrel_resolved"), 4),
                  _cell(mean.get("depth_delta1"), 3), _cell(mean.get("opacity_iou"), 3),
                  _cell(r.get("steps_per_second"), 1), str(r.get("resolution", "–")),
                  (", ".join(r.get("no_pixels", [])) or "–")

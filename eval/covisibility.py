@@ -16,19 +16,47 @@ training views saw. DyCheck estimates the mask with optical flow; here it is exa
 
 The reference split is `train`: the views a method is trained on. Scoring the train split
 itself has no held-out pixels, so it has no mask.
+
+Depth has a second condition: two train views must see the point from far enough apart
+for its depth to show. If two views that see point P subtend the angle theta at P, moving
+P along one view's ray by a fraction r of its distance moves its image in the other by
+about f r sin(theta) pixels (f the focal length in pixels; views at similar distances).
+A hit pixel's depth is **resolved** when some pair of train views that see its point has
+
+    f sin(min(theta, 90 deg)) >= RESOLVED_SHIFT_PX / RESOLVED_RELATIVE_DEPTH = 10 px,
+
+so a 5% depth error shifts the point by at least half a pixel between them (half a pixel:
+the rounding of a position to the pixel grid, and the depth test's own tolerance). A forward-facing
+capture's far content fails this: depth-range's boulder 50 away moves 0.07 px across the
+whole camera cluster, and no method can measure its depth from the images; its pebble
+0.2 away moves 8 px for a 50% depth change, 0.8 px for 5%.
+`depth_absrel_resolved` scores depth on the resolved pixels only. The largest angle is
+found by two sweeps (the seeing view farthest from the first seeing view, then the
+farthest from that one): never more than the true largest angle, at least half of it.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
 from nerfgauge.core.camera import pixel_rays
 from nerfgauge.core.dataset import Dataset
-from nerfgauge.eval.geometry import visible_in_views
+from nerfgauge.eval.geometry import seen_in_view
 
 REFERENCE_SPLIT = "train"
+RESOLVED_RELATIVE_DEPTH = 0.05  # this relative depth change of a resolved pixel's point ...
+RESOLVED_SHIFT_PX = 0.5  # ... moves it at least this far between two train views that see it
+
+
+@dataclass(frozen=True)
+class HeldOutPixels:
+    """What the reference views saw of one held-out frame: both [H, W] bool."""
+
+    covisible: np.ndarray  # a miss, or the surface point seen by some reference view
+    resolved: np.ndarray  # a hit whose depth shows between two reference views (module docstring)
 
 
 def reference_depths(ds: Dataset, reference: str = REFERENCE_SPLIT) -> list:
@@ -36,26 +64,69 @@ def reference_depths(ds: Dataset, reference: str = REFERENCE_SPLIT) -> list:
     return [ds.depth(reference, index, kind="distance") for index in range(len(ds.cameras(reference).c2w))]
 
 
-def covisible_mask(ds: Dataset, split: str, index: int, depths: list,
-                   reference: str = REFERENCE_SPLIT) -> np.ndarray:
-    """[H, W] bool: the pixels of frame `index` of `split` that the reference views saw
-    (misses count as seen, see the module docstring). depths: reference_depths(ds)."""
+def views_seeing(points: np.ndarray, normals: np.ndarray, ds: Dataset, depths: list,
+                 reference: str = REFERENCE_SPLIT) -> np.ndarray:
+    """[views, n] bool: which reference views see each point [n, 3] (unit normals [n, 3]),
+    by eval.geometry's depth test. depths: reference_depths(ds, reference)."""
+    cameras = ds.cameras(reference)
+    xyz, nrm = np.ascontiguousarray(points.T), np.ascontiguousarray(normals.T)  # [3, n]
+    seen = np.zeros((len(cameras.c2w), len(points)), bool)
+    for index, pose in enumerate(cameras.c2w):
+        seen[index, seen_in_view(xyz, nrm, pose, cameras.intrinsics, depths[index])] = True
+    return seen
+
+
+def parallax_pixels(points: np.ndarray, seen: np.ndarray, centres: np.ndarray, focal: float) -> np.ndarray:
+    """focal * sin(min(theta, 90 deg)) for each point [n, 3], theta the largest angle at the
+    point between two cameras (centres [views, 3]) that see it (seen [views, n] bool),
+    found by two sweeps (module docstring); 0 where fewer than two see it. Returns [n]."""
+
+    def towards(index):  # unit directions [n, 3] from the points to camera `index`
+        offset = centres[index] - points
+        return offset / np.linalg.norm(offset, axis=1, keepdims=True)
+
+    def farthest_from(anchor):  # (cos of the widest angle to `anchor` [n, 3], that view's direction)
+        best_cos, best = np.full(len(points), 2.0), anchor.copy()
+        for index in range(len(centres)):
+            direction = towards(index)
+            cos = np.einsum("ij,ij->i", direction, anchor)
+            wider = seen[index] & (cos < best_cos)
+            best_cos[wider], best[wider] = cos[wider], direction[wider]
+        return best_cos, best
+
+    first = np.zeros((len(points), 3))
+    for index in range(len(centres) - 1, -1, -1):  # the first seeing view is written last
+        first[seen[index]] = towards(index)[seen[index]]
+    _, widest_from_first = farthest_from(first)
+    cos, _ = farthest_from(widest_from_first)
+    sine = np.sin(np.minimum(np.arccos(np.clip(cos, -1.0, 1.0)), np.pi / 2))
+    return np.where(seen.sum(axis=0) >= 2, focal * sine, 0.0)
+
+
+def held_out_pixels(ds: Dataset, split: str, index: int, depths: list,
+                    reference: str = REFERENCE_SPLIT) -> HeldOutPixels:
+    """The co-visible and depth-resolved pixels of frame `index` of `split` (module
+    docstring). depths: reference_depths(ds, reference)."""
     cameras = ds.cameras(split)
     distance = ds.depth(split, index, kind="distance").astype(np.float64)  # [H, W]
     hit = ds.mask(split, index) & (distance > 0)  # [H, W]
     origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)  # [H, W, 3] each
     points = origins[hit] + directions[hit] * distance[hit][:, None]  # [n, 3]
-    normals = ds.normals(split, index)[hit].astype(np.float64)  # [n, 3]
-    seen = np.ones(hit.shape, bool)
-    seen[hit] = visible_in_views(points, normals, ds, reference, depth_maps=depths)
-    return seen
+    seen = views_seeing(points, ds.normals(split, index)[hit].astype(np.float64), ds, depths, reference)
+    reference_cameras = ds.cameras(reference)
+    parallax = parallax_pixels(points, seen, reference_cameras.c2w[:, :3, 3],
+                               max(reference_cameras.intrinsics.fx, reference_cameras.intrinsics.fy))
+    covisible, resolved = np.ones(hit.shape, bool), np.zeros(hit.shape, bool)
+    covisible[hit] = seen.any(axis=0)
+    resolved[hit] = parallax >= RESOLVED_SHIFT_PX / RESOLVED_RELATIVE_DEPTH
+    return HeldOutPixels(covisible, resolved)
 
 
-def covisible_masks(ds: Dataset, split: str, reference: str = REFERENCE_SPLIT) -> Optional[dict]:
-    """{frame stem: [H, W] bool} for every frame of `split`; None when `split` is the
+def held_out_masks(ds: Dataset, split: str, reference: str = REFERENCE_SPLIT) -> Optional[dict]:
+    """{frame stem: HeldOutPixels} for every frame of `split`; None when `split` is the
     reference itself (nothing is held out) or the dataset has no reference split."""
     if split == reference or reference not in ds.splits:
         return None
     depths = reference_depths(ds, reference)
     stems = ds.cameras(split).stems
-    return {stem: covisible_mask(ds, split, index, depths, reference) for index, stem in enumerate(stems)}
+    return {stem: held_out_pixels(ds, split, index, depths, reference) for index, stem in enumerate(stems)}

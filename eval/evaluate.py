@@ -34,8 +34,10 @@ hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes
 LPIPS-Alex (eval.lpips) on the composited pair, null with a reason in metrics.json's `notes`
 when its weights are not installed or the images are under 31 px. `psnr_covisible` and
 `ssim_covisible` (DyCheck's mPSNR, mSSIM) on the pixels some train view saw, and
-`covisible_fraction`, the share of such pixels (eval.covisibility; null with a note when
-the scored split is train itself).
+`covisible_fraction`, the share of such pixels; `depth_absrel_resolved` on the hit pixels
+whose depth two train views resolve (5% at half a pixel), and `resolved_fraction`, their
+share of the hit pixels (eval.covisibility; all null with a note when the scored split is
+train itself).
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
@@ -67,7 +69,7 @@ from nerfgauge.eval.error_maps import (
     depth_relative_error,
     write_error_maps,
 )
-from nerfgauge.eval.covisibility import REFERENCE_SPLIT, covisible_masks
+from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_masks
 from nerfgauge.eval.metrics import (
     METRIC_NAMES,
     composite,
@@ -230,18 +232,20 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
 
 
 def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
-                lpips_batch=None, covisible: Optional[np.ndarray] = None):
+                lpips_batch=None, held_out: Optional[HeldOutPixels] = None):
     """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
     None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any.
-    covisible: the frame's co-visibility mask [H, W] bool (eval.covisibility), or None."""
+    held_out: the frame's co-visible and depth-resolved pixels (eval.covisibility), or None."""
     pred, gt, gt_rgba, alpha = composited_pair(ds, stem, intrinsics, files, background)
     mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
-    if covisible is not None:
+    if held_out is not None:
+        covisible = held_out.covisible
         values["psnr_covisible"], values["ssim_covisible"] = psnr_masked(pred, gt, covisible), \
             ssim_masked(pred, gt, covisible)
         values["covisible_fraction"] = float(covisible.mean())
+        values["resolved_fraction"] = float(held_out.resolved.sum() / mask.sum()) if mask.any() else None
     values["psnr_foreground"] = psnr_masked(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
     if lpips_batch is not None:
         lpips_batch.add(pred, gt)
@@ -257,6 +261,8 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
             gt_file = ds.root / (stem + dataset.FRAME_SUFFIXES["distance" if depth_kind == "distance" else "z_depth"])
             raise InputError(f"{files.depth} against {gt_file}: {error}") from None
         values.update({f"depth_{key}": value for key, value in scores.items()})
+        if held_out is not None:
+            values["depth_absrel_resolved"] = depth_metrics(depth, gt_depth, mask & held_out.resolved)["absrel"]
         depth_err = depth_relative_error(depth, gt_depth, mask)
     if alpha is not None:
         values["opacity_iou"] = opacity_iou(alpha, mask)
@@ -376,13 +382,13 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     # against that defocused truth like any other frame)
     lens_of = {stem: {"lens": cameras.lens(i).to_json()} for i, stem in enumerate(cameras.stems) if cameras.lens(i)}
     lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
-    covisible = covisible_masks(ds, split)
+    held_out = held_out_masks(ds, split)
     frames, maps = [], []
     for stem, files in found.items():
         try:
             values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
                                                         BACKGROUNDS[background], depth_kind, lpips_batch,
-                                                        None if covisible is None else covisible[stem])
+                                                        None if held_out is None else held_out[stem])
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
@@ -404,7 +410,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
                 "notes": {**({} if lpips_note is None else {"lpips": lpips_note}),
-                          **({} if covisible is not None else {"covisible": COVISIBLE_NONE.format(split=split)})},
+                          **({} if held_out is not None else {"covisible": COVISIBLE_NONE.format(split=split)})},
                 "noise": noise_summary(frames), "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
                 "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}

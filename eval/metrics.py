@@ -41,6 +41,8 @@ METRIC_NAMES = (
     "depth_rmse",
     "depth_mae",
     "depth_delta1",
+    "depth_absrel_resolved",  # eval.covisibility: on the hit pixels whose depth two train views resolve
+    "resolved_fraction",  # the share of hit pixels they are
     "opacity_iou",
     "lpips",  # eval.lpips: LPIPS-Alex v0.1; null (n/a) where its weights are not installed
 )

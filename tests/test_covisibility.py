@@ -1,12 +1,14 @@
-"""Co-visibility masks (eval.covisibility) and the masked metrics evaluate reports with them
-(psnr_covisible, ssim_covisible: DyCheck's mPSNR and mSSIM)."""
+"""Held-out pixels (eval.covisibility): the co-visible ones, scored by psnr_covisible and
+ssim_covisible (DyCheck's mPSNR and mSSIM), and the depth-resolved ones, scored by
+depth_absrel_resolved."""
 
 import json
 import shutil
 
 import numpy as np
 import pytest
-from nerfgauge.eval.covisibility import covisible_mask, covisible_masks, reference_depths
+from nerfgauge.eval.covisibility import (RESOLVED_RELATIVE_DEPTH, RESOLVED_SHIFT_PX, held_out_masks, held_out_pixels,
+                                         parallax_pixels, reference_depths)
 from nerfgauge.eval.metrics import PSNR_CAP_DB, psnr, ssim, ssim_masked
 from test_geometry import _visible_sample_by_sample
 
@@ -31,8 +33,13 @@ def ds(ds_root):
 
 
 @pytest.fixture(scope="module")
-def test_masks(ds):
-    return covisible_masks(ds, "test")
+def held_out(ds):
+    return held_out_masks(ds, "test")
+
+
+@pytest.fixture(scope="module")
+def test_masks(held_out):
+    return {stem: pixels.covisible for stem, pixels in held_out.items()}
 
 
 def test_a_view_sees_everything_it_hits(ds):
@@ -40,7 +47,7 @@ def test_a_view_sees_everything_it_hits(ds):
     pixel's back-projected point (the depth test's tolerance holds the pixel centre)."""
     depths = reference_depths(ds)
     for index in range(len(ds.cameras("train").c2w)):
-        assert covisible_mask(ds, "train", index, depths).all()
+        assert held_out_pixels(ds, "train", index, depths).covisible.all()
 
 
 def test_mask_matches_the_sample_by_sample_depth_test(ds, test_masks):
@@ -61,7 +68,7 @@ def test_mask_matches_the_sample_by_sample_depth_test(ds, test_masks):
 
 
 def test_no_mask_for_the_reference_split_itself(ds):
-    assert covisible_masks(ds, "train") is None
+    assert held_out_masks(ds, "train") is None
 
 
 def test_ssim_masked_is_the_mean_of_the_ssim_map_over_the_mask():
@@ -117,4 +124,67 @@ def test_scoring_the_train_split_says_why_there_is_no_mask(ds_root, tmp_path, ca
     capsys.readouterr()
     doc = json.loads(out.read_text())
     assert doc["mean"]["psnr_covisible"] is None and doc["count"]["covisible_fraction"] == 0
+    assert doc["count"]["depth_absrel_resolved"] == 0 and doc["count"]["resolved_fraction"] == 0
     assert doc["notes"]["covisible"] == "split train is not held out from train: no co-visibility mask"
+
+
+# --- depth-resolved pixels ------------------------------------------------------------------
+
+
+def _widest_angle_by_brute_force(points, seen, centres):
+    """The largest angle at each point over every pair of seeing cameras (0 below two)."""
+    best = np.zeros(len(points))
+    for a in range(len(centres)):
+        for b in range(a + 1, len(centres)):
+            da = (centres[a] - points) / np.linalg.norm(centres[a] - points, axis=1, keepdims=True)
+            db = (centres[b] - points) / np.linalg.norm(centres[b] - points, axis=1, keepdims=True)
+            angle = np.arccos(np.clip(np.einsum("ij,ij->i", da, db), -1, 1))
+            best = np.where(seen[a] & seen[b], np.maximum(best, angle), best)
+    return best
+
+
+def test_parallax_is_within_half_of_the_widest_pair_and_exact_on_a_line():
+    """Two sweeps never overestimate the widest angle and find at least half of it (the
+    triangle inequality on the sphere); cameras on a line through nothing, seen by all,
+    give the exact widest pair. focal * sin(min(theta, 90 deg)), 0 below two views."""
+    rng = np.random.default_rng(11)
+    points = rng.normal(size=(500, 3))
+    centres = rng.normal(size=(9, 3)) * 4
+    seen = rng.random((9, 500)) < 0.5
+    focal = 50.0
+    widest = _widest_angle_by_brute_force(points, seen, centres)
+    got = parallax_pixels(points, seen, centres, focal)
+    expected_high = focal * np.sin(np.minimum(widest, np.pi / 2))
+    expected_low = focal * np.sin(np.minimum(widest / 2, np.pi / 2))
+    assert (got <= expected_high + 1e-9).all() and (got >= expected_low - 1e-9).all()
+    assert (got[seen.sum(axis=0) < 2] == 0).all()
+    # a row of cameras at x = -2..2 on the line y = 0, z = 10 and a point at the origin:
+    # the widest pair is the two ends, angle 2 atan(2 / 10)
+    line = np.array([[x, 0.0, 10.0] for x in (0.5, -2.0, 1.0, 2.0, -0.5)])
+    value = parallax_pixels(np.zeros((1, 3)), np.ones((5, 1), bool), line, focal)
+    assert value[0] == pytest.approx(focal * np.sin(2 * np.arctan(0.2)), rel=1e-12)
+
+
+def test_resolved_pixels_are_covisible_hits_with_enough_parallax(ds, held_out):
+    """A resolved pixel hits, some train view sees its point, and its parallax by the brute
+    force pairs reaches the threshold (the sweeps may only miss pairs, never invent one)."""
+    from test_geometry import _visible_sample_by_sample
+
+    cameras, train = ds.cameras("test"), ds.cameras("train")
+    focal = max(train.intrinsics.fx, train.intrinsics.fy)
+    threshold = RESOLVED_SHIFT_PX / RESOLVED_RELATIVE_DEPTH
+    resolved_total = 0
+    for index, stem in enumerate(cameras.stems):
+        pixels = held_out[stem]
+        distance = ds.depth("test", index).astype(np.float64)
+        hit = ds.mask("test", index) & (distance > 0)
+        assert not (pixels.resolved & ~hit).any() and not (pixels.resolved & ~pixels.covisible).any()
+        origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)
+        points = origins[pixels.resolved] + directions[pixels.resolved] * distance[pixels.resolved][:, None]
+        normals = ds.normals("test", index)[pixels.resolved].astype(np.float64)
+        seen = np.stack([_visible_sample_by_sample(points, normals, ds, "train", only=view)
+                         for view in range(len(train.c2w))])
+        widest = _widest_angle_by_brute_force(points, seen, train.c2w[:, :3, 3])
+        assert (focal * np.sin(np.minimum(widest, np.pi / 2)) >= threshold - 1e-9).all()
+        resolved_total += int(pixels.resolved.sum())
+    assert resolved_total > 0

@@ -68,6 +68,7 @@ def test_ground_truth_scores_perfectly(ds, test_split, tmp_path, capsys, depth_k
     assert doc["mean"]["psnr"] == PSNR_CAP_DB  # identical images: MSE floored, PSNR capped
     assert doc["mean"]["ssim"] == 1.0  # identical inputs give identical numerator and denominator
     assert doc["mean"]["depth_absrel"] == 0.0 and doc["mean"]["depth_delta1"] == 1.0
+    assert doc["mean"]["depth_absrel_resolved"] == 0.0 and doc["mean"]["psnr_covisible"] == PSNR_CAP_DB
     # LPIPS-Alex needs 31 px: at 24 px it is n/a, whether or not its weights are installed
     assert all(doc["count"][m] == 3 for m in METRIC_NAMES if m != "lpips") and doc["count"]["lpips"] == 0
     assert doc["mean"]["lpips"] is None and doc["notes"]["lpips"].startswith("n/a")

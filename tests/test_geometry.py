@@ -149,15 +149,18 @@ def test_visibility_from_exact_depth(tiny_dataset):
     assert not (visible & ~hit_somewhere).any()
 
 
-def _visible_sample_by_sample(points, normals, ds, split):
+def _visible_sample_by_sample(points, normals, ds, split, only=None):
     """The depth test of eval.geometry's docstring, written out per view for every sample
-    (no working set, no pre-test): the reference the fast version must reproduce."""
+    (no working set, no pre-test): the reference the fast version must reproduce.
+    only: test that one view of the split (all of them when None)."""
     from nerfgauge.nerf.mesh import project
 
     cameras = ds.cameras(split)
     focal = max(cameras.intrinsics.fx, cameras.intrinsics.fy)
     visible = np.zeros(len(points), bool)
     for index, pose in enumerate(cameras.c2w):
+        if only is not None and index != only:
+            continue
         u, v, distance = project(points, pose, cameras.intrinsics)
         with np.errstate(invalid="ignore"):
             inside = (u >= 0) & (u < cameras.intrinsics.width) & (v >= 0) & (v < cameras.intrinsics.height)
