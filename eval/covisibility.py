@@ -38,7 +38,6 @@ farthest from that one): never more than the true largest angle, at least half o
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 
@@ -122,11 +121,7 @@ def held_out_pixels(ds: Dataset, split: str, index: int, depths: list,
     return HeldOutPixels(covisible, resolved)
 
 
-def held_out_masks(ds: Dataset, split: str, reference: str = REFERENCE_SPLIT) -> Optional[dict]:
-    """{frame stem: HeldOutPixels} for every frame of `split`; None when `split` is the
-    reference itself (nothing is held out) or the dataset has no reference split."""
-    if split == reference or reference not in ds.splits:
-        return None
-    depths = reference_depths(ds, reference)
-    stems = ds.cameras(split).stems
-    return {stem: held_out_pixels(ds, split, index, depths, reference) for index, stem in enumerate(stems)}
+def holds_out(ds: Dataset, split: str, reference: str = REFERENCE_SPLIT) -> bool:
+    """Whether `split` has pixels to hold against `reference`: not when it is the
+    reference itself, or the dataset has no reference split."""
+    return split != reference and reference in ds.splits

@@ -64,12 +64,13 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from tqdm import tqdm
 from nerfgauge.eval.error_maps import (
     colour_error,
     depth_relative_error,
     write_error_maps,
 )
-from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_masks
+from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.metrics import (
     METRIC_NAMES,
     composite,
@@ -382,13 +383,15 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     # against that defocused truth like any other frame)
     lens_of = {stem: {"lens": cameras.lens(i).to_json()} for i, stem in enumerate(cameras.stems) if cameras.lens(i)}
     lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
-    held_out = held_out_masks(ds, split)
+    depths = reference_depths(ds) if holds_out(ds, split) else None  # the train views', read once
+    index_of = {stem: index for index, stem in enumerate(cameras.stems)}
     frames, maps = [], []
-    for stem, files in found.items():
+    for stem, files in tqdm(found.items(), desc=f"evaluate {split}", unit="frame", disable=None, leave=False):
         try:
             values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
                                                         BACKGROUNDS[background], depth_kind, lpips_batch,
-                                                        None if held_out is None else held_out[stem])
+                                                        None if depths is None else
+                                                        held_out_pixels(ds, split, index_of[stem], depths))
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
@@ -410,7 +413,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
                 "notes": {**({} if lpips_note is None else {"lpips": lpips_note}),
-                          **({} if held_out is not None else {"covisible": COVISIBLE_NONE.format(split=split)})},
+                          **({} if depths is not None else {"covisible": COVISIBLE_NONE.format(split=split)})},
                 "noise": noise_summary(frames), "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
                 "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}

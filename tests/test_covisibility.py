@@ -7,7 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
-from nerfgauge.eval.covisibility import (RESOLVED_RELATIVE_DEPTH, RESOLVED_SHIFT_PX, held_out_masks, held_out_pixels,
+from nerfgauge.eval.covisibility import (RESOLVED_RELATIVE_DEPTH, RESOLVED_SHIFT_PX, held_out_pixels, holds_out,
                                          parallax_pixels, reference_depths)
 from nerfgauge.eval.metrics import PSNR_CAP_DB, psnr, ssim, ssim_masked
 from test_geometry import _visible_sample_by_sample
@@ -34,7 +34,8 @@ def ds(ds_root):
 
 @pytest.fixture(scope="module")
 def held_out(ds):
-    return held_out_masks(ds, "test")
+    depths = reference_depths(ds)
+    return {stem: held_out_pixels(ds, "test", index, depths) for index, stem in enumerate(ds.cameras("test").stems)}
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +69,7 @@ def test_mask_matches_the_sample_by_sample_depth_test(ds, test_masks):
 
 
 def test_no_mask_for_the_reference_split_itself(ds):
-    assert held_out_masks(ds, "train") is None
+    assert not holds_out(ds, "train") and holds_out(ds, "test") and holds_out(ds, "val")
 
 
 def test_ssim_masked_is_the_mean_of_the_ssim_map_over_the_mask():
