@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from nerfgauge.eval.covisibility import held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.error_maps import colour_error, depth_relative_error
 
 from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
@@ -108,7 +109,23 @@ def plot_curves(curves: dict, out, baselines: dict | None = None, finals: dict |
 
 GRID_COLUMNS = (("ground truth", None, None), ("prediction", None, None),
                 ("colour error |Δ| (mean over RGB)", "magma", 0.2), ("predicted depth (ray distance)", "viridis", None),
-                ("depth relative error |Δ|/d", "viridis", 0.1))
+                ("depth relative error |Δ|/d", "viridis", 0.1),
+                ("train views saw it: magenta none,\norange not its depth", None, None))
+UNSEEN_RGB = (1.0, 0.0, 1.0)  # held-out pixels no train view saw
+UNRESOLVED_RGB = (1.0, 0.6, 0.0)  # seen, but no two train views resolve their depth
+
+
+def held_out_overlay(gt: np.ndarray, held_out, hit: np.ndarray) -> np.ndarray:
+    """What the train views saw of a held-out frame, over its ground truth in gray:
+    pixels no train view saw in UNSEEN_RGB, hit pixels whose depth they do not resolve
+    tinted UNRESOLVED_RGB (eval.covisibility). gt [H, W, 3], hit [H, W] bool,
+    held_out: HeldOutPixels. Returns [H, W, 3] in [0, 1]."""
+    gray = np.repeat(0.35 + 0.65 * gt.mean(axis=-1, keepdims=True), 3, axis=-1)  # [H, W, 3], light: the marks show
+    out = gray.copy()
+    unresolved = hit & held_out.covisible & ~held_out.resolved
+    out[unresolved] = 0.4 * gray[unresolved] + 0.6 * np.asarray(UNRESOLVED_RGB)
+    out[~held_out.covisible] = UNSEEN_RGB
+    return out
 
 
 def _pred_rgb(pred_dir: Path, stem: str, intrinsics, background) -> np.ndarray:
@@ -125,7 +142,8 @@ def _pred_rgb(pred_dir: Path, stem: str, intrinsics, background) -> np.ndarray:
 
 def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3, background=(1.0, 1.0, 1.0)) -> None:
     """PNG: one row per frame; labelled columns ground truth, prediction, colour error,
-    predicted depth, depth error, each map with its colour bar (scale in the label)."""
+    predicted depth, depth error, each map with its colour bar (scale in the label), and
+    what the train views saw of the frame (held_out_overlay)."""
     from nerfgauge.eval.evaluate import composite
 
     ds = open_dataset(dataset_root)
@@ -135,6 +153,7 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
     figure = _figure(2.1 * len(GRID_COLUMNS), 2.0 * max(len(stems), 1) + 1.0)
     grid = figure.subplots(max(len(stems), 1), len(GRID_COLUMNS), squeeze=False)
     images = {}
+    depths = reference_depths(ds) if holds_out(ds, split) else None
     for row, stem in enumerate(stems):
         gt = composite(read_rgba(ds, stem, cameras.intrinsics).astype(np.float64), bg)
         pred = _pred_rgb(Path(pred_dir), stem, cameras.intrinsics, bg)
@@ -145,7 +164,8 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
         far = float(gt_depth[mask].max()) if mask.any() else 1.0
         tiles = [gt, pred, colour_error(pred, gt),
                  np.where(pred_depth > 0, pred_depth, np.nan) if pred_depth is not None else None,
-                 depth_relative_error(pred_depth, gt_depth, mask) if pred_depth is not None else None]
+                 depth_relative_error(pred_depth, gt_depth, mask) if pred_depth is not None else None,
+                 None if depths is None else held_out_overlay(gt, held_out_pixels(ds, split, row, depths), mask)]
         for col, ((label, cmap, vmax), tile) in enumerate(zip(GRID_COLUMNS, tiles)):
             axes = grid[row, col]
             axes.set_xticks([])
@@ -155,7 +175,8 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
             if col == 0:
                 axes.set_ylabel(stem, fontsize=7)
             if tile is None:
-                axes.text(0.5, 0.5, "no depth", ha="center", va="center", fontsize=7, transform=axes.transAxes)
+                axes.text(0.5, 0.5, "no depth" if col < len(GRID_COLUMNS) - 1 else f"{split}: not held out",
+                          ha="center", va="center", fontsize=7, transform=axes.transAxes)
                 continue
             if cmap is None:
                 axes.imshow(np.clip(tile, 0, 1), interpolation="nearest")

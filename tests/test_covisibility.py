@@ -189,3 +189,23 @@ def test_resolved_pixels_are_covisible_hits_with_enough_parallax(ds, held_out):
         assert (focal * np.sin(np.minimum(widest, np.pi / 2)) >= threshold - 1e-9).all()
         resolved_total += int(pixels.resolved.sum())
     assert resolved_total > 0
+
+
+def test_report_overlay_marks_what_no_train_view_saw():
+    from nerfgauge.eval.covisibility import HeldOutPixels
+    from nerfgauge.eval.report import UNRESOLVED_RGB, UNSEEN_RGB, held_out_overlay
+
+    rng = np.random.default_rng(4)
+    gt = rng.random((6, 5, 3))
+    hit = rng.random((6, 5)) < 0.7
+    covisible = ~hit | (rng.random((6, 5)) < 0.6)
+    resolved = hit & covisible & (rng.random((6, 5)) < 0.5)
+    out = held_out_overlay(gt, HeldOutPixels(covisible, resolved), hit)
+    gray = 0.35 + 0.65 * gt.mean(axis=-1)
+    np.testing.assert_array_equal(out[~covisible], np.broadcast_to(UNSEEN_RGB, out[~covisible].shape))
+    unresolved = hit & covisible & ~resolved
+    np.testing.assert_allclose(out[unresolved], 0.4 * gray[unresolved][:, None] + 0.6 * np.asarray(UNRESOLVED_RGB),
+                               rtol=1e-12)
+    plain = covisible & ~unresolved  # misses and resolved hits: the gray ground truth
+    np.testing.assert_allclose(out[plain], np.repeat(gray[plain][:, None], 3, axis=1), rtol=1e-12)
+    assert (~covisible).any() and unresolved.any() and plain.any()
