@@ -60,8 +60,9 @@ from __future__ import annotations
 import re
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 from tqdm import tqdm
@@ -233,12 +234,14 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
 
 
 def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
-                lpips_batch=None, held_out: Optional[HeldOutPixels] = None):
+                lpips_batch=None, held_out_of: Optional[Callable[[], HeldOutPixels]] = None):
     """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
     None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any.
-    held_out: the frame's co-visible and depth-resolved pixels (eval.covisibility), or None."""
+    held_out_of: gives the frame's co-visible and depth-resolved pixels (eval.covisibility),
+    or None; called after the frame's images are read, so a bad frame is named by them."""
     pred, gt, gt_rgba, alpha = composited_pair(ds, stem, intrinsics, files, background)
     mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
+    held_out = None if held_out_of is None else held_out_of()
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
     if held_out is not None:
@@ -391,7 +394,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
             values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
                                                         BACKGROUNDS[background], depth_kind, lpips_batch,
                                                         None if depths is None else
-                                                        held_out_pixels(ds, split, index_of[stem], depths))
+                                                        partial(held_out_pixels, ds, split, index_of[stem], depths))
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
