@@ -26,10 +26,10 @@ A hit pixel's depth is **resolved** when some pair of train views that see its p
     f sin(min(theta, 90 deg)) >= RESOLVED_SHIFT_PX / RESOLVED_RELATIVE_DEPTH = 10 px,
 
 so a 5% depth error shifts the point by at least half a pixel between them (half a pixel:
-the rounding of a position to the pixel grid, and the depth test's own tolerance). A forward-facing
-capture's far content fails this: depth-range's boulder 50 away moves 0.07 px across the
-whole camera cluster, and no method can measure its depth from the images; its pebble
-0.2 away moves 8 px for a 50% depth change, 0.8 px for 5%.
+the rounding of a position to the pixel grid, and the depth test's own tolerance). A
+forward-facing capture's far content fails this: depth-range's boulder 50 away moves
+0.07 px across the whole camera cluster, and no method can measure its depth from the
+images; its pebble 0.2 away moves 0.8 px for a 5% depth change, and is resolved.
 `depth_absrel_resolved` scores depth on the resolved pixels only. The largest angle is
 found by two sweeps (the seeing view farthest from the first seeing view, then the
 farthest from that one): never more than the true largest angle, at least half of it.
