@@ -37,7 +37,7 @@ when its weights are not installed or the images are under 31 px. `psnr_covisibl
 `covisible_fraction`, the share of such pixels; `depth_absrel_resolved` on the hit pixels
 whose depth two train views resolve (5% at half a pixel), and `resolved_fraction`, their
 share of the hit pixels (eval.covisibility; all null with a note when the scored split is
-train itself).
+train itself, or with --no-held-out).
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
@@ -93,6 +93,7 @@ SCHEMA = 1
 NOISE_FLOOR_DB = 1.0  # a mean PSNR this close to the mean ceiling is at the noise floor
 EMPTY_WARNING_FRACTION = 0.25
 COVISIBLE_NONE = f"split {{split}} is not held out from {REFERENCE_SPLIT}: no co-visibility mask"
+COVISIBLE_SKIPPED = "not computed (--no-held-out)"
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 DEPTH_SUFFIXES = {"distance": ("_depth", "_distance"), "z": ("_depth", "_zdepth")}
 DEPTH_HEADER = {"distance": "ray_distance", "z": "z_depth"}
@@ -350,14 +351,17 @@ def read_timing(pred_dir: Path) -> dict:
 
 
 def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
-             depth_kind: str = "distance", pred_format: str = "auto") -> dict:
+             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True) -> dict:
     """Score every frame of `split`; write metrics.json and error maps. Returns the document.
-    pred_format: how `pred_dir` names its files (eval.foreign.FORMATS; "auto" detects it)."""
+    pred_format: how `pred_dir` names its files (eval.foreign.FORMATS; "auto" detects it).
+    held_out=False skips the co-visible and depth-resolved scores (eval.covisibility)."""
     from nerfgauge.eval import foreign
 
     start = time.perf_counter()
     if background not in BACKGROUNDS:
         raise InputError(f"unknown background {background!r}; choose white or black")
+    if not isinstance(held_out, bool):
+        raise InputError(f"held_out must be True or False, got {held_out!r}")
     if depth_kind not in DEPTH_SUFFIXES:
         raise InputError(f"unknown depth kind {depth_kind!r}; choose distance or z")
     ds, pred_dir = dataset.Dataset(root), Path(pred_dir)
@@ -386,7 +390,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     # against that defocused truth like any other frame)
     lens_of = {stem: {"lens": cameras.lens(i).to_json()} for i, stem in enumerate(cameras.stems) if cameras.lens(i)}
     lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
-    depths = reference_depths(ds) if holds_out(ds, split) else None  # the train views', read once
+    depths = reference_depths(ds) if held_out and holds_out(ds, split) else None  # the train views', read once
     index_of = {stem: index for index, stem in enumerate(cameras.stems)}
     frames, maps = [], []
     for stem, files in tqdm(found.items(), desc=f"evaluate {split}", unit="frame", disable=None, leave=False):
@@ -416,7 +420,8 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
                 "notes": {**({} if lpips_note is None else {"lpips": lpips_note}),
-                          **({} if depths is not None else {"covisible": COVISIBLE_NONE.format(split=split)})},
+                          **({} if depths is not None else
+                             {"covisible": COVISIBLE_NONE.format(split=split) if held_out else COVISIBLE_SKIPPED})},
                 "noise": noise_summary(frames), "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
                 "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}

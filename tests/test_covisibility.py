@@ -209,3 +209,19 @@ def test_report_overlay_marks_what_no_train_view_saw():
     plain = covisible & ~unresolved  # misses and resolved hits: the gray ground truth
     np.testing.assert_allclose(out[plain], np.repeat(gray[plain][:, None], 3, axis=1), rtol=1e-12)
     assert (~covisible).any() and unresolved.any() and plain.any()
+
+
+def test_no_held_out_skips_the_pass_and_says_so(ds_root, tmp_path, capsys):
+    out = tmp_path / "metrics.json"
+    assert main(["evaluate", str(ds_root), "--pred", str(ds_root), "--out", str(out), "--no-held-out"]) == 0
+    capsys.readouterr()
+    doc = json.loads(out.read_text())
+    assert doc["notes"]["covisible"] == "not computed (--no-held-out)"
+    for name in ("psnr_covisible", "ssim_covisible", "covisible_fraction", "depth_absrel_resolved", "resolved_fraction"):
+        assert doc["mean"][name] is None and doc["count"][name] == 0
+    assert doc["mean"]["psnr"] == PSNR_CAP_DB  # the rest is scored as usual
+    from nerfgauge.api import evaluate
+    from nerfgauge.core.errors import InputError
+
+    with pytest.raises(InputError, match="held_out must be True or False, got 'no'"):
+        evaluate(ds_root, ds_root, out=tmp_path / "other.json", held_out="no")
