@@ -103,13 +103,14 @@ def parallax_pixels(points: np.ndarray, seen: np.ndarray, centres: np.ndarray, f
     return np.where(seen.sum(axis=0) >= 2, focal * sine, 0.0)
 
 
-def held_out_pixels(ds: Dataset, split: str, index: int, depths: list,
+def held_out_pixels(ds: Dataset, split: str, index: int, depths: list, mask: np.ndarray, distance: np.ndarray,
                     reference: str = REFERENCE_SPLIT) -> HeldOutPixels:
     """The co-visible and depth-resolved pixels of frame `index` of `split` (module
-    docstring). depths: reference_depths(ds, reference)."""
+    docstring), from the frame's ground-truth mask [H, W] bool and ray distance [H, W],
+    which the caller has read. depths: reference_depths(ds, reference)."""
     cameras = ds.cameras(split)
-    distance = ds.depth(split, index, kind="distance").astype(np.float64)  # [H, W]
-    hit = ds.mask(split, index) & (distance > 0)  # [H, W]
+    distance = distance.astype(np.float64)
+    hit = mask & (distance > 0)  # [H, W]
     origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)  # [H, W, 3] each
     points = origins[hit] + directions[hit] * distance[hit][:, None]  # [n, 3]
     seen = views_seeing(points, ds.normals(split, index)[hit].astype(np.float64), ds, depths, reference)

@@ -235,14 +235,17 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
 
 
 def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
-                lpips_batch=None, held_out_of: Optional[Callable[[], HeldOutPixels]] = None):
+                lpips_batch=None,
+                held_out_of: Optional[Callable[[np.ndarray, np.ndarray], HeldOutPixels]] = None):
     """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
     None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any.
-    held_out_of: gives the frame's co-visible and depth-resolved pixels (eval.covisibility),
-    or None; called after the frame's images are read, so a bad frame is named by them."""
+    held_out_of(mask, ray distance): the frame's co-visible and depth-resolved pixels
+    (eval.covisibility), or None; called after the frame's images are read, so a bad frame
+    is named by them. Each ground-truth file is read once."""
     pred, gt, gt_rgba, alpha = composited_pair(ds, stem, intrinsics, files, background)
     mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
-    held_out = None if held_out_of is None else held_out_of()
+    distance = None if held_out_of is None else dataset.read_depth(ds, stem, intrinsics, "distance")  # [H, W]
+    held_out = None if held_out_of is None else held_out_of(mask, distance)
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
     if held_out is not None:
@@ -259,7 +262,8 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     depth_err = None
     if files.depth is not None:
         depth = read_plane(files.depth, intrinsics, depth_kind)
-        gt_depth = dataset.read_depth(ds, stem, intrinsics, depth_kind)
+        gt_depth = distance if depth_kind == "distance" and distance is not None else \
+            dataset.read_depth(ds, stem, intrinsics, depth_kind)
         try:
             scores = depth_metrics(depth, gt_depth, mask)
         except InputError as error:  # the prediction's fault or (a corrupt dataset) the ground truth's

@@ -165,7 +165,8 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
         tiles = [gt, pred, colour_error(pred, gt),
                  np.where(pred_depth > 0, pred_depth, np.nan) if pred_depth is not None else None,
                  depth_relative_error(pred_depth, gt_depth, mask) if pred_depth is not None else None,
-                 None if depths is None else held_out_overlay(gt, held_out_pixels(ds, split, row, depths), mask)]
+                 None if depths is None else
+                 held_out_overlay(gt, held_out_pixels(ds, split, row, depths, mask, gt_depth), mask)]
         for col, ((label, cmap, vmax), tile) in enumerate(zip(GRID_COLUMNS, tiles)):
             axes = grid[row, col]
             axes.set_xticks([])

@@ -35,7 +35,8 @@ def ds(ds_root):
 @pytest.fixture(scope="module")
 def held_out(ds):
     depths = reference_depths(ds)
-    return {stem: held_out_pixels(ds, "test", index, depths) for index, stem in enumerate(ds.cameras("test").stems)}
+    return {stem: held_out_pixels(ds, "test", index, depths, ds.mask("test", index), ds.depth("test", index))
+            for index, stem in enumerate(ds.cameras("test").stems)}
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +49,8 @@ def test_a_view_sees_everything_it_hits(ds):
     pixel's back-projected point (the depth test's tolerance holds the pixel centre)."""
     depths = reference_depths(ds)
     for index in range(len(ds.cameras("train").c2w)):
-        assert held_out_pixels(ds, "train", index, depths).covisible.all()
+        pixels = held_out_pixels(ds, "train", index, depths, ds.mask("train", index), ds.depth("train", index))
+        assert pixels.covisible.all()
 
 
 def test_mask_matches_the_sample_by_sample_depth_test(ds, test_masks):
