@@ -27,9 +27,6 @@ from nerfgauge.eval.report import read_log
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 
-COLUMNS = ("psnr", "ssim", "psnr_foreground", "psnr_covisible", "depth_absrel", "depth_absrel_resolved", "depth_delta1",
-           "opacity_iou")
-
 
 @dataclass(frozen=True)
 class HardConfig:
