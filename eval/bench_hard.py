@@ -128,7 +128,7 @@ def _cell(value, digits=2):
 
 
 def table_markdown(rows: list, command: str) -> str:
-    head = ("scene", "exit", "all finite", "test PSNR", "SSIM", "fg PSNR", "co-visible PSNR", "depth AbsRel",
+    head = ("scene", "exit", "all finite", "test PSNR", "SSIM", "fg PSNR", "co-visible PSNR", "capture bound", "depth AbsRel",
             "resolved AbsRel", "δ<1.25", "IoU",
             "steps/s", "grid", "no pixels to score")
     lines = [f"`{command}`", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -136,7 +136,8 @@ def table_markdown(rows: list, command: str) -> str:
         mean = r.get("mean", {})
         cells = [r["scene"], str(r["exit"]), "yes" if r["finite"] else "**no**", _cell(mean.get("psnr")),
                  _cell(mean.get("ssim"), 4), _cell(mean.get("psnr_foreground")),
-                 _cell(mean.get("psnr_covisible")), _cell(mean.get("depth_absrel"), 4),
+                 _cell(mean.get("psnr_covisible")), _cell(mean.get("psnr_capture_bound")),
+                 _cell(mean.get("depth_absrel"), 4),
                  _cell(mean.get("depth_absrel_resolved"), 4),
                  _cell(mean.get("depth_delta1"), 3), _cell(mean.get("opacity_iou"), 3),
                  _cell(r.get("steps_per_second"), 1), str(r.get("resolution", "–")),

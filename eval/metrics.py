@@ -37,6 +37,7 @@ METRIC_NAMES = (
     "psnr_covisible",  # eval.covisibility: on the pixels some training view saw (DyCheck's mPSNR)
     "ssim_covisible",  # DyCheck's mSSIM on the same pixels
     "covisible_fraction",  # the share of pixels in that mask
+    "psnr_capture_bound",  # what a method exact on those pixels and right on average elsewhere scores
     "depth_absrel",
     "depth_rmse",
     "depth_mae",
@@ -204,6 +205,32 @@ def psnr_masked(pred, gt, mask) -> Optional[float]:
     if not mask.any():
         return None
     mse = float(np.mean((pred[mask] - gt[mask]) ** 2))
+    return 10.0 * math.log10(1.0 / max(mse, MSE_FLOOR))
+
+
+def psnr_capture_bound(gt, seen, ceiling_db: Optional[float]) -> float:
+    """The PSNR a prediction scores when it is the noise-free image wherever `seen` and
+    the mean ground-truth colour of the unseen pixels everywhere else: the most a method
+    can be expected to reach from what the training views show, without guessing content
+    none of them saw.
+
+    MSE = (n_seen * 3 * noise_mse + sum over unseen pixels of |gt - their mean|^2) / (H W 3),
+    with noise_mse = 10^(-ceiling_db / 10) the ground truth's own noise (its psnr_ceiling;
+    None: no estimate, counted as 0). Unseen pixels keep their noise in their spread.
+
+    Args:
+        gt: [H, W, 3] ground truth in [0, 1].
+        seen: [H, W] bool, the co-visible pixels (eval.covisibility).
+        ceiling_db: the frame's psnr_ceiling in dB, or None.
+    Returns:
+        dB: `ceiling_db` when everything is seen (PSNR_CAP_DB without a noise estimate).
+    """
+    gt = _image(gt, "gt", 3)
+    seen = _mask(seen, "seen", gt.shape[:2])
+    unseen = gt[~seen]  # [k, 3]
+    spread = float(((unseen - unseen.mean(axis=0)) ** 2).sum()) if unseen.size else 0.0
+    noise_mse = 0.0 if ceiling_db is None else 10.0 ** (-ceiling_db / 10.0)
+    mse = (int(seen.sum()) * 3 * noise_mse + spread) / gt.size
     return 10.0 * math.log10(1.0 / max(mse, MSE_FLOOR))
 
 

@@ -24,6 +24,7 @@ from nerfgauge.core.images import read_exr_single
 
 TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_foreground", "foreground PSNR dB", "{:.2f}"),
                  ("psnr_covisible", "co-visible PSNR dB", "{:.2f}"),
+                 ("psnr_capture_bound", "capture bound PSNR dB", "{:.2f}"),
                  ("depth_absrel", "depth AbsRel", "{:.4f}"),
                  ("depth_absrel_resolved", "resolved depth AbsRel", "{:.4f}"),
                  ("depth_rmse", "depth RMSE", "{:.4f}"), ("depth_delta1", "depth δ<1.25", "{:.4f}"),

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from nerfgauge.eval.covisibility import (RESOLVED_RELATIVE_DEPTH, RESOLVED_SHIFT_PX, held_out_pixels, holds_out,
                                          parallax_pixels, reference_depths)
-from nerfgauge.eval.metrics import PSNR_CAP_DB, psnr, ssim, ssim_masked
+from nerfgauge.eval.metrics import PSNR_CAP_DB, psnr, psnr_capture_bound, ssim, ssim_masked
 from test_geometry import _visible_sample_by_sample
 
 from nerfgauge.cli import main
@@ -99,7 +99,7 @@ def test_errors_where_no_train_view_looked_leave_the_covisible_scores_perfect(ds
     pred = tmp_path / "pred" / "test"
     pred.mkdir(parents=True)
     cameras = ds.cameras("test")
-    expected_psnr = []
+    expected_psnr, expected_bound = [], []
     for stem in cameras.stems:
         gt = np.asarray(Image.open(ds_root / (stem + ".png")).convert("RGBA"))  # [H, W, 4] uint8
         painted = gt.copy()
@@ -107,12 +107,16 @@ def test_errors_where_no_train_view_looked_leave_the_covisible_scores_perfect(ds
         write_png(pred / (stem.split("/")[1] + ".png"), painted)
         on_white = [rgba[..., :3] / 255 * (rgba[..., 3:] / 255) + 1 - rgba[..., 3:] / 255 for rgba in (painted, gt)]
         expected_psnr.append(psnr(*on_white))
+        expected_bound.append(lambda ceiling, gt_on_white=on_white[1], seen=test_masks[stem]:
+                              psnr_capture_bound(gt_on_white, seen, ceiling))
     out = tmp_path / "metrics.json"
     assert main(["evaluate", str(ds_root), "--pred", str(tmp_path / "pred"), "--out", str(out)]) == 0
     capsys.readouterr()
     doc = json.loads(out.read_text())
-    for frame, stem, value in zip(doc["frames"], cameras.stems, expected_psnr):
+    for frame, stem, value, bound in zip(doc["frames"], cameras.stems, expected_psnr, expected_bound):
         assert frame["covisible_fraction"] == pytest.approx(test_masks[stem].mean(), abs=1e-12)
+        assert frame["psnr_ceiling"] is not None  # the bound charges the ground truth's own noise
+        assert frame["psnr_capture_bound"] == pytest.approx(bound(frame["psnr_ceiling"]), abs=1e-5)
         assert frame["psnr_covisible"] == PSNR_CAP_DB  # the co-visible pixels are the ground truth's bytes
         assert frame["psnr"] == pytest.approx(value, abs=1e-5)  # the reader decodes to float32 (6e-8 relative)
     assert doc["mean"]["psnr"] < 40 < doc["mean"]["psnr_covisible"]
@@ -129,6 +133,26 @@ def test_scoring_the_train_split_says_why_there_is_no_mask(ds_root, tmp_path, ca
     assert doc["mean"]["psnr_covisible"] is None and doc["count"]["covisible_fraction"] == 0
     assert doc["count"]["depth_absrel_resolved"] == 0 and doc["count"]["resolved_fraction"] == 0
     assert doc["notes"]["covisible"] == "split train is not held out from train: no co-visibility mask"
+
+
+def test_capture_bound_is_the_psnr_of_the_oracle_that_guesses_the_unseen_mean():
+    """Without a noise estimate the bound is the PSNR of the ground truth with its unseen
+    pixels replaced by their mean colour; with one, the seen pixels add its MSE: everything
+    seen gives the ceiling itself, and nothing seen gives the unseen spread plus nothing."""
+    rng = np.random.default_rng(7)
+    gt = rng.uniform(0, 1, (16, 20, 3))
+    seen = rng.uniform(size=(16, 20)) < 0.7
+    oracle = gt.copy()
+    oracle[~seen] = gt[~seen].mean(axis=0)
+    assert psnr_capture_bound(gt, seen, None) == pytest.approx(psnr(oracle, gt), abs=1e-9)
+    everything = np.ones((16, 20), bool)
+    assert psnr_capture_bound(gt, everything, 35.0) == pytest.approx(35.0, abs=1e-9)
+    assert psnr_capture_bound(gt, everything, None) == PSNR_CAP_DB
+    assert psnr_capture_bound(gt, ~everything, 35.0) == pytest.approx(psnr_capture_bound(gt, ~everything, None), abs=1e-12)
+    # the mixture: MSE is the area-weighted sum of the two parts
+    noise_mse = 10 ** (-3.5)
+    mixed = 10 ** (-psnr_capture_bound(gt, seen, 35.0) / 10)
+    assert mixed == pytest.approx(seen.mean() * noise_mse + 10 ** (-psnr(oracle, gt) / 10), rel=1e-9)
 
 
 # --- depth-resolved pixels ------------------------------------------------------------------
@@ -219,7 +243,8 @@ def test_no_held_out_skips_the_pass_and_says_so(ds_root, tmp_path, capsys):
     capsys.readouterr()
     doc = json.loads(out.read_text())
     assert doc["notes"]["covisible"] == "not computed (--no-held-out)"
-    for name in ("psnr_covisible", "ssim_covisible", "covisible_fraction", "depth_absrel_resolved", "resolved_fraction"):
+    for name in ("psnr_covisible", "ssim_covisible", "covisible_fraction", "psnr_capture_bound",
+                 "depth_absrel_resolved", "resolved_fraction"):
         assert doc["mean"][name] is None and doc["count"][name] == 0
     assert doc["mean"]["psnr"] == PSNR_CAP_DB  # the rest is scored as usual
     from nerfgauge.api import evaluate
