@@ -80,23 +80,22 @@ def parallax_pixels(points: np.ndarray, seen: np.ndarray, centres: np.ndarray, f
     point between two cameras (centres [views, 3]) that see it (seen [views, n] bool),
     found by two sweeps (module docstring); 0 where fewer than two see it. Returns [n]."""
     columns = [np.flatnonzero(row) for row in seen]  # per camera: the points it sees
-
-    def towards(index):  # unit directions [k, 3] from the points camera `index` sees to it
-        offset = centres[index] - points[columns[index]]
-        return offset / np.sqrt(np.einsum("ij,ij->i", offset, offset))[:, None]
+    # per camera: unit directions [k, 3] from the points it sees to it, computed once for
+    # the three passes below (24 B per seen point and view)
+    offsets = (centres[index] - points[these] for index, these in enumerate(columns))
+    towards = [offset / np.sqrt(np.einsum("ij,ij->i", offset, offset))[:, None] for offset in offsets]
 
     def farthest_from(anchor):  # (cos of the widest angle to `anchor` [n, 3], that view's direction)
         best_cos, best = np.full(len(points), 2.0), anchor.copy()
-        for index, these in enumerate(columns):
-            direction = towards(index)
+        for these, direction in zip(columns, towards):
             cos = np.einsum("ij,ij->i", direction, anchor[these])
             wider = cos < best_cos[these]
             best_cos[these[wider]], best[these[wider]] = cos[wider], direction[wider]
         return best_cos, best
 
     first = np.zeros((len(points), 3))
-    for index in range(len(centres) - 1, -1, -1):  # the first seeing view is written last
-        first[columns[index]] = towards(index)
+    for these, direction in zip(reversed(columns), reversed(towards)):  # the first seeing view is written last
+        first[these] = direction
     _, widest_from_first = farthest_from(first)
     cos, _ = farthest_from(widest_from_first)
     sine = np.sin(np.minimum(np.arccos(np.clip(cos, -1.0, 1.0)), np.pi / 2))
