@@ -128,9 +128,8 @@ def _cell(value, digits=2):
 
 
 def table_markdown(rows: list, command: str) -> str:
-    head = ("scene", "exit", "all finite", "test PSNR", "SSIM", "fg PSNR", "co-visible PSNR", "capture bound", "depth AbsRel",
-            "resolved AbsRel", "δ<1.25", "IoU",
-            "steps/s", "grid", "no pixels to score")
+    head = ("scene", "exit", "all finite", "test PSNR", "SSIM", "fg PSNR", "co-visible PSNR", "capture bound",
+            "depth AbsRel", "resolved AbsRel", "δ<1.25", "IoU", "steps/s", "grid", "no pixels to score")
     lines = [f"`{command}`", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         mean = r.get("mean", {})

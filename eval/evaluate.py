@@ -33,11 +33,11 @@ null when a view has none); depth on ground-truth hit pixels (read_mask), null w
 hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty);
 LPIPS-Alex (eval.lpips) on the composited pair, null with a reason in metrics.json's `notes`
 when its weights are not installed or the images are under 31 px. `psnr_covisible` and
-`ssim_covisible` (DyCheck's mPSNR, mSSIM) on the pixels some train view saw, and
-`covisible_fraction`, the share of such pixels, with `psnr_capture_bound`, the PSNR of a
-method exact (to the noise) on them and right on average elsewhere; `depth_absrel_resolved` on the hit pixels
-whose depth two train views resolve (5% at half a pixel), and `resolved_fraction`, their
-share of the hit pixels (eval.covisibility; all null with a note when the scored split is
+`ssim_covisible` (DyCheck's mPSNR, mSSIM) on the pixels some train view saw,
+`covisible_fraction`, the share of such pixels, and `psnr_capture_bound`, the PSNR of a
+method exact (to the noise) on them and right on average elsewhere; `depth_absrel_resolved`
+on the hit pixels whose depth two train views resolve (5% at half a pixel), and
+`resolved_fraction`, their share of the hit pixels (eval.covisibility; all null with a note when the scored split is
 train itself, or with --no-held-out).
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.

@@ -107,16 +107,16 @@ def test_errors_where_no_train_view_looked_leave_the_covisible_scores_perfect(ds
         write_png(pred / (stem.split("/")[1] + ".png"), painted)
         on_white = [rgba[..., :3] / 255 * (rgba[..., 3:] / 255) + 1 - rgba[..., 3:] / 255 for rgba in (painted, gt)]
         expected_psnr.append(psnr(*on_white))
-        expected_bound.append(lambda ceiling, gt_on_white=on_white[1], seen=test_masks[stem]:
-                              psnr_capture_bound(gt_on_white, seen, ceiling))
+        expected_bound.append((on_white[1], test_masks[stem]))  # the bound's ground truth and mask
     out = tmp_path / "metrics.json"
     assert main(["evaluate", str(ds_root), "--pred", str(tmp_path / "pred"), "--out", str(out)]) == 0
     capsys.readouterr()
     doc = json.loads(out.read_text())
-    for frame, stem, value, bound in zip(doc["frames"], cameras.stems, expected_psnr, expected_bound):
+    for frame, stem, value, (gt, seen) in zip(doc["frames"], cameras.stems, expected_psnr, expected_bound):
         assert frame["covisible_fraction"] == pytest.approx(test_masks[stem].mean(), abs=1e-12)
         assert frame["psnr_ceiling"] is not None  # the bound charges the ground truth's own noise
-        assert frame["psnr_capture_bound"] == pytest.approx(bound(frame["psnr_ceiling"]), abs=1e-5)
+        assert frame["psnr_capture_bound"] == pytest.approx(psnr_capture_bound(gt, seen, frame["psnr_ceiling"]),
+                                                            abs=1e-5)
         assert frame["psnr_covisible"] == PSNR_CAP_DB  # the co-visible pixels are the ground truth's bytes
         assert frame["psnr"] == pytest.approx(value, abs=1e-5)  # the reader decodes to float32 (6e-8 relative)
     assert doc["mean"]["psnr"] < 40 < doc["mean"]["psnr_covisible"]
