@@ -239,25 +239,26 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
 def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
                 lpips_batch=None,
                 held_out_of: Optional[Callable[[np.ndarray, np.ndarray], HeldOutPixels]] = None,
-                ceiling_db: Optional[float] = None):
+                ceiling_of: Optional[Callable[[], Optional[float]]] = None):
     """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
     None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any.
     held_out_of(mask, ray distance): the frame's co-visible and depth-resolved pixels
     (eval.covisibility), or None; called after the frame's images are read, so a bad frame
-    is named by them. ceiling_db: the frame's psnr_ceiling (for psnr_capture_bound). Each
-    ground-truth file is read once."""
+    is named by them. ceiling_of(): the frame's psnr_ceiling (frame_ceiling), read after
+    them too, or None. Each ground-truth file is read once."""
     pred, gt, gt_rgba, alpha = composited_pair(ds, stem, intrinsics, files, background)
     mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
     distance = None if held_out_of is None else dataset.read_depth(ds, stem, intrinsics, "distance")  # [H, W]
     held_out = None if held_out_of is None else held_out_of(mask, distance)
     values = dict.fromkeys(METRIC_NAMES)
+    values["psnr_ceiling"] = None if ceiling_of is None else ceiling_of()
     values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
     if held_out is not None:
         covisible = held_out.covisible
         values["psnr_covisible"], values["ssim_covisible"] = psnr_masked(pred, gt, covisible), \
             ssim_masked(pred, gt, covisible)
         values["covisible_fraction"] = float(covisible.mean())
-        values["psnr_capture_bound"] = psnr_capture_bound(gt, covisible, ceiling_db)
+        values["psnr_capture_bound"] = psnr_capture_bound(gt, covisible, values["psnr_ceiling"])
         values["resolved_fraction"] = float(held_out.resolved.sum() / mask.sum()) if mask.any() else None
     values["psnr_foreground"] = psnr_masked(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
     if lpips_batch is not None:
@@ -403,17 +404,15 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     index_of = {stem: index for index, stem in enumerate(cameras.stems)}
     frames, maps = [], []
     for stem, files in tqdm(found.items(), desc=f"evaluate {split}", unit="frame", disable=None, leave=False):
-        ceiling = frame_ceiling(ds, stem, background)
         try:
             values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
                                                         BACKGROUNDS[background], depth_kind, lpips_batch,
                                                         None if depths is None else
                                                         partial(held_out_pixels, ds, split, index_of[stem], depths),
-                                                        ceiling)
+                                                        partial(frame_ceiling, ds, stem, background))
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
-        values["psnr_ceiling"] = ceiling
         frames.append({"name": stem, "file": files.colour.relative_to(pred_dir).as_posix(), **values,
                        **lens_of.get(stem, {})})
         maps.append((stem, colour_err, depth_err))
