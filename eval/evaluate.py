@@ -37,8 +37,8 @@ when its weights are not installed or the images are under 31 px. `psnr_covisibl
 `covisible_fraction`, the share of such pixels, and `psnr_capture_bound`, the PSNR of a
 method exact (to the noise) on them and right on average elsewhere; `depth_absrel_resolved`
 on the hit pixels whose depth two train views resolve (5% at half a pixel), and
-`resolved_fraction`, their share of the hit pixels (eval.covisibility; all null with a note when the scored split is
-train itself, or with --no-held-out).
+`resolved_fraction`, their share of the hit pixels (eval.covisibility; all null with a
+note when the scored split is train itself, or with --no-held-out).
 NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the whole
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
