@@ -10,7 +10,7 @@ through the lens focused at --focus-distance, default the camera distance: the s
 centre plane). The compact NeRF trains once, on the pinhole dataset's training views (the
 same pixels as every lens dataset's), for --budget-seconds; then for every aperture:
 
-- nerf: `nerfgauge render RUN --dataset DS --aperture-samples N` (the field integrates the lens);
+- nerf: `nerfgauge render RUN --dataset DS --other-dataset --aperture-samples N` (the field integrates the lens);
 - refocus: `nerfgauge baseline DS --method refocus` (shift and add over the camera grid);
 - lightfield-quadrilinear: the two-plane light field, which has no lens (a pinhole view);
 - nearest: the nearest training view, unchanged (sharp everywhere);
@@ -70,8 +70,8 @@ def run_lens_bench(out, *, scene: str = "primitives", views: int = 64, test_view
             for method in METHODS:
                 pred = out / "pred" / f"aperture_{aperture:g}" / method
                 if method == "nerf":
-                    _cli(["render", run, "--dataset", root, "--out", pred, "--aperture-samples", aperture_samples,
-                          "--threads", threads, "--quiet", "--overwrite"])
+                    _cli(["render", run, "--dataset", root, "--other-dataset", "--out", pred,
+                          "--aperture-samples", aperture_samples, "--threads", threads, "--quiet", "--overwrite"])
                 else:
                     _cli(["baseline", root, "--method", method, "--out", pred, "--overwrite"])
                 _cli(["evaluate", root, "--pred", pred])

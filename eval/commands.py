@@ -180,11 +180,10 @@ def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = Fal
     recipe is the method, the split and the dataset's content (manifest.json's hash), so a
     rerun on the same dataset continues and another one needs overwrite."""
     from nerfgauge.core import dataset
-    from nerfgauge.core.files import sha256_file
     from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
 
     root, out = dataset.require_complete(root), Path(out)
-    recipe = recipe_hash({"method": method, "split": split, "dataset": sha256_file(root / dataset.MANIFEST)}
+    recipe = recipe_hash({"method": method, "split": split, "dataset": dataset.manifest_sha256(root)}
                          | ({"options": options} if options else {}))
     made = [folder for folder in (out, *out.parents) if not folder.exists()]  # what claiming creates
     state = None
@@ -429,7 +428,8 @@ def register_geometry(subparsers) -> None:
                           help="score all ground truth, not only what the reference cameras see")
     geometry.add_argument("--split", default="test", help="views of --pred-depth and of --run's normals (default test)")
     geometry.add_argument("--run", type=arguments.path, metavar="RUN_DIR",
-                          help="also score this run's field normals on the --split views")
+                          help="also score this run's field normals on the --split views (DATASET must be the "
+                               "dataset the run was trained on: its manifest.json hash is checked)")
     geometry.set_defaults(func=run_geometry)
 
 
@@ -469,16 +469,21 @@ def run_geometry(args) -> int:
 
     out = Path(args.out)
     recipe = {"geometry": str(args.dataset), "mesh": str(args.pred_mesh), "depth": str(args.pred_depth)}
+    run = None
+    if args.run is not None:  # the run and its dataset checked before any work (nerf.runs)
+        from nerfgauge.nerf.checkpoint import load_model
+        from nerfgauge.nerf.runs import open_run_dataset
+
+        model, config = load_model(Path(args.run) / "model.pt")
+        run = model, open_run_dataset(args.run, config, args.dataset)
     with _output_file(out, recipe):
         document, _ = score_geometry(args.dataset, args.pred_mesh, args.pred_depth, split=args.split,
                                      taus=tuple(args.tau), samples=args.samples, seed=args.seed,
                                      whole_surface=args.whole_surface)
-        if args.run is not None:
+        if run is not None:
             from nerfgauge.eval.normals import score_normals
-            from nerfgauge.nerf.checkpoint import load_model
 
-            model, _ = load_model(Path(args.run) / "model.pt")
-            document["normals"] = score_normals(model, args.dataset, args.split)
+            document["normals"] = score_normals(*run, args.split)
         write_json(out, document)
     print(format_geometry(document))
     print(f"-> {out}")

@@ -24,7 +24,9 @@ Accepted prediction files, for the dataset frame "test/r_007" (r_007 below):
 Everything in DIR/test/ and in DIR whose name looks like a frame (`r_<digits>` with an
 optional `_suffix` and .png/.exr/.npy) must belong to a frame of the split: anything else
 is reported as an extra frame. DIR/timing.json (a JSON object, e.g. ms per frame from the
-renderer), if present, is copied into metrics.json's `timing`.
+renderer), if present, is copied into metrics.json's `timing`; when it records the manifest
+sha256 of the dataset it was rendered from (`nerfgauge render` does), DATASET must have that
+manifest (nerf.runs.check_renders_dataset), else one line naming both.
 
 Metrics (eval.metrics): PSNR and SSIM on colour composited onto the background (prediction
 and the straight-alpha ground-truth PNG alike; RGB predictions are taken as composited);
@@ -73,6 +75,7 @@ from nerfgauge.eval.error_maps import (
     write_error_maps,
 )
 from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_pixels, holds_out, reference_depths
+from nerfgauge.nerf.runs import check_renders_dataset
 from nerfgauge.eval.metrics import (
     METRIC_NAMES,
     composite,
@@ -378,6 +381,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")
     out = check_writable_target(pred_dir / "metrics.json" if out is None else Path(out))  # before the work
+    check_renders_dataset(pred_dir, read_timing(pred_dir), ds)  # renders of our runs say what they show
     cameras = ds.cameras(split)
     scene = ds.scene.get("recipe")
     if not isinstance(scene, str) or not scene:

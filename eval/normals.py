@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from nerfgauge.core.camera import pixel_rays
-from nerfgauge.core.dataset import Dataset
+from nerfgauge.core.dataset import open_dataset
 from nerfgauge.core.errors import InputError
 
 WITHIN_DEGREES = (11.25, 22.5, 30.0)
@@ -70,7 +70,7 @@ def score_normals(model, root, split: str = "test", views: int | None = None, de
 
     if not hasattr(model, "density"):
         raise InputError(f"a {type(model).__name__} has no density query (model.density); normals need one")
-    ds = Dataset(root)
+    ds = open_dataset(root)  # a path or an open (e.g. checked, nerf.runs) Dataset
     cameras = ds.cameras(split)
     count = len(cameras.stems) if views is None else min(views, len(cameras.stems))
     if not count:

@@ -145,7 +145,9 @@ def _add_render(subparsers) -> None:
         description="Render every view of a split with RUN/model.pt, named after the dataset's frames: "
                     "<frame>.png (RGBA, alpha = opacity), <frame>_depth.exr (ray distance) and timing.json "
                     "(milliseconds per frame). DIR is a nerfgauge renders folder: one made from another "
-                    "model or step ratio is replaced only with --overwrite.")
+                    "model or step ratio is replaced only with --overwrite. The dataset must be the one the run "
+                    "was trained on: its manifest.json hash is compared with the one the run recorded, and a "
+                    "dataset regenerated or edited since training is refused (exit 2).")
     parser.add_argument("run", type=path, metavar="RUN", help="a run folder made by nerfgauge train")
     parser.add_argument("--split", choices=("train", "val", "test"), default="test")
     parser.add_argument("--out", type=path, default=None, metavar="DIR", help="output folder (default RUN/renders)")
@@ -159,8 +161,13 @@ def _add_render(subparsers) -> None:
                              "entry has \"lens\"): stratified on the lens disc, seeded (default 16)")
     parser.add_argument("--lens-seed", type=nonnegative_int, default=0, help="seed of the lens samples (default 0)")
     parser.add_argument("--dataset", type=path, default=None, metavar="DATASET",
-                        help="render the views of this dataset of the same scene (e.g. the test cameras through "
-                             "a lens) instead of those of the dataset the run was trained on")
+                        help="render the views of this dataset instead of those of the dataset the run was "
+                             "trained on: it must hold the manifest.json the run recorded (the same dataset, "
+                             "e.g. moved), unless --other-dataset")
+    parser.add_argument("--other-dataset", action="store_true",
+                        help="with --dataset: accept another dataset of the same scene (e.g. the test cameras "
+                             "through a lens); the run's own dataset must still match its record, and DATASET "
+                             "must show its scene (scene.json recipe, seed and bounds)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_render)
 
@@ -170,7 +177,7 @@ def _run_render(args) -> int:
 
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
                           overwrite=args.overwrite, progress=not args.quiet, aperture_samples=args.aperture_samples,
-                          lens_seed=args.lens_seed, dataset=args.dataset)
+                          lens_seed=args.lens_seed, dataset=args.dataset, other_dataset=args.other_dataset)
     if timing.get("lens_frames"):
         print(f"{timing['lens_frames']} frames through their thin lens at {timing['aperture_samples']} lens samples: "
               f"{timing['ms_per_lens_frame']:.1f} ms per frame")

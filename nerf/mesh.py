@@ -247,19 +247,20 @@ def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
 
 
 def mesh_from_run(run_dir, resolution: int = 256, cull: bool = True, level: float | None = None) -> ExtractedMesh:
-    """Load RUN/model.pt (weights only) and its dataset's bounds and training cameras; extract."""
+    """Load RUN/model.pt (weights only) and its dataset's bounds and training cameras
+    (the dataset checked against the run's record, nerf.runs.open_run_dataset); extract."""
     from pathlib import Path
 
     from nerfgauge.nerf.checkpoint import load_model
 
-    from nerfgauge.core.dataset import Dataset
+    from nerfgauge.nerf.runs import open_run_dataset
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(f"run folder not found: {run_dir}")
     model, config = load_model(run_dir / "model.pt")
     model.eval()
-    ds = Dataset(config.dataset)
+    ds = open_run_dataset(run_dir, config)
     cameras = ds.cameras("train")
     box = extraction_box(ds.bounds, model)
     if not cull and level is None:  # the cameras still set the level

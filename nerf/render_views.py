@@ -3,7 +3,13 @@
 For frame "test/r_007" it writes OUT/test/r_007.png (RGBA, sRGB, straight alpha =
 opacity) and OUT/test/r_007_depth.exr (expected ray distance, 0 where opacity is 0),
 plus OUT/timing.json with milliseconds per frame (model time only, after one warm-up
-frame) and the render settings, which `nerfgauge evaluate` copies into its metrics.
+frame), the render settings and the dataset whose cameras were rendered (path and
+manifest sha256), which `nerfgauge evaluate` copies into its metrics (and checks: it
+refuses to score these renders against another dataset).
+
+The dataset is the run's own, checked against the manifest hash the run recorded
+(nerf.runs.open_run_dataset): a dataset folder regenerated or edited since training is
+refused, naming both hashes.
 
 A frame whose transforms entry has a thin lens ("lens": aperture_radius, focus_distance;
 see docs/conventions.md) is rendered through it: its colour is the mean of
@@ -28,11 +34,11 @@ import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
 from nerfgauge.nerf.data import split_rays
+from nerfgauge.nerf.runs import open_run_dataset
 from nerfgauge.nerf.train import pick_device, render_rays_chunked
 from tqdm import tqdm
 
 from nerfgauge.core.camera import lens_samples, thin_lens_rays
-from nerfgauge.core.dataset import open_dataset, read_split
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash
@@ -90,23 +96,17 @@ def lens_frame(model, cameras, index: int, samples: int, seed: int, pool, parts:
     return rgb, opacity, depth
 
 
-def check_same_scene(trained_on, other) -> None:
-    """InputError unless dataset `other` shows the scene (recipe and seed) `trained_on` does."""
-    a, b = open_dataset(trained_on).scene, open_dataset(other).scene
-    key = lambda scene: (scene.get("recipe"), scene.get("seed"), scene.get("bounds"))  # noqa: E731
-    if key(a) != key(b):
-        raise InputError(f"--dataset {other} shows scene {key(b)[:2]}, but the run was trained on "
-                         f"{trained_on} showing {key(a)[:2]}")
-
-
 def render_split(run_dir, split: str = "test", out=None, *, threads: int | None = None,
                  step_ratio: float | None = RENDER_STEP_RATIO, overwrite: bool = False, progress: bool = True,
-                 aperture_samples: int = APERTURE_SAMPLES, lens_seed: int = 0, dataset=None) -> dict:
+                 aperture_samples: int = APERTURE_SAMPLES, lens_seed: int = 0, dataset=None,
+                 other_dataset: bool = False) -> dict:
     """Render every view of `split` into `out` (default RUN/renders). step_ratio: marching
     step in voxels for the compact model (None: the training step, half a voxel).
     aperture_samples, lens_seed: lens samples per pixel and their seed for frames with a
-    thin lens. dataset: render this dataset's views (of the scene the run was trained on;
-    e.g. the same cameras through a lens) instead of the training dataset's."""
+    thin lens. dataset: render this dataset's views instead of the training dataset's: one
+    with the manifest the run recorded (a moved copy), or with other_dataset=True another
+    dataset of the scene the run was trained on (e.g. the same cameras through a lens);
+    see nerf.runs.open_run_dataset, which refuses any other."""
     if isinstance(run_dir, str) and not run_dir.strip() or isinstance(out, str) and not out.strip():
         raise InputError("the run folder and --out must be non-empty paths")
     run_dir = Path(run_dir)
@@ -123,9 +123,10 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     model, config = load_model(run_dir / "model.pt")
     threads = threads or config.threads
     device = pick_device(config.device)
-    if dataset is not None:
-        check_same_scene(config.dataset, dataset)
-    cameras = read_split(config.dataset if dataset is None else dataset, split)
+    if other_dataset and dataset is None:
+        raise InputError("--other-dataset goes with --dataset DATASET (the dataset whose cameras to render)")
+    source = open_run_dataset(run_dir, config, dataset, other_dataset=other_dataset)
+    cameras = source.cameras(split)
     lens = {"aperture_samples": aperture_samples, "lens_seed": lens_seed} if cameras.lenses else None
     out = Path(out) if out is not None else run_dir / "renders"
     # The lens settings and another dataset are part of the recipe only when used, so a
@@ -133,10 +134,12 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     recipe = recipe_hash({"model_sha256": sha256_file(run_dir / "model.pt"), "step_ratio": step_ratio}
                          | ({"lens": lens} if lens else {}) | ({"dataset": str(dataset)} if dataset is not None else {}))
     with claim_folder(out, "renders", recipe, overwrite=overwrite):
-        return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress, lens)
+        return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress, lens,
+                            source)
 
 
-def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress, lens=None) -> dict:
+def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress, lens=None,
+                 source=None) -> dict:
     model = model.to(device).eval()
     if hasattr(model, "field") and step_ratio is not None:
         model.field.step_ratio = step_ratio
@@ -176,6 +179,8 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     timing = {"ms_per_frame": 1000 * float(np.mean(all_seconds)) if all_seconds else None, "frames": len(all_seconds),
               "resolution": [width, height], "device": device.type, "threads": threads,
               "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None)}
+    if source is not None:  # the cameras' dataset, which `evaluate` checks it scores against
+        timing |= {"dataset": str(source.root), "dataset_manifest_sha256": source.manifest_sha256}
     if lens is not None:  # the thin-lens frames' own cost, beside the pinhole frames'
         timing |= {"aperture_samples": lens["aperture_samples"], "lens_seed": lens["lens_seed"],
                    "lens_frames": len(lens_seconds),

@@ -30,9 +30,9 @@ from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite
 from tqdm import tqdm
 
-from nerfgauge.core.dataset import MANIFEST, read_split, require_complete
+from nerfgauge.core.dataset import manifest_sha256, read_split, require_complete
 from nerfgauge.core.errors import InputError, NumericalError
-from nerfgauge.core.files import read_json, sha256_file, write_bytes_atomic, write_json
+from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
@@ -215,7 +215,7 @@ def prepare_run(config: TrainConfig):
     check_targets(aabb, train_cams.c2w)
     config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
                               train_cams.intrinsics.width)
-    recipe = run_recipe(config, sha256_file(root / MANIFEST))
+    recipe = run_recipe(config, manifest_sha256(root))
     _, train_rays = load_split_rays(root, "train")
     stride = max(1, train_rays.origins.shape[0] // 65536)
     intrinsics = train_cams.intrinsics

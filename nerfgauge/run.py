@@ -219,14 +219,15 @@ def geometry_step(dataset_root: Path, run_dir: Path, eval_dir: Path) -> tuple[di
     from nerfgauge.eval.normals import score_normals
     from nerfgauge.nerf.checkpoint import load_model
     from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
+    from nerfgauge.nerf.runs import open_run_dataset
 
     mesh = mesh_from_run(run_dir, GEOMETRY_RESOLUTION)
     write_bytes_atomic(eval_dir / "mesh.ply", ply_bytes(mesh.vertices, mesh.faces))
     document, distances = score_geometry(dataset_root, eval_dir / "mesh.ply", samples=GEOMETRY_SAMPLES)
     document["mesh"] = {"resolution": mesh.resolution, "level": mesh.level, "level_source": mesh.level_source,
                         "faces": int(len(mesh.faces)), "seconds": mesh.seconds}
-    model, _ = load_model(run_dir / "model.pt")
-    document["normals"] = score_normals(model, dataset_root, "test")
+    model, config = load_model(run_dir / "model.pt")
+    document["normals"] = score_normals(model, open_run_dataset(run_dir, config, dataset_root), "test")
     write_json(eval_dir / "geometry.json", document)
     print(format_geometry(document))
     return document, distances

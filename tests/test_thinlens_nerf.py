@@ -132,11 +132,14 @@ def test_trained_model_renders_lens_views_of_another_dataset(make_dataset, tmp_p
                         focus_distance=4.0)
     run = tmp_path / "run"
     assert main(["train", str(pinhole), "--out", str(run), "--steps", "60", "--quiet"]) == 0
-    assert main(["render", str(run), "--dataset", str(lens), "--out", str(tmp_path / "r"), "--aperture-samples",
-                 "4", "--quiet"]) == 0
+    # another dataset (another manifest) needs the explicit flag
+    one_line_exit_2(capsys, ["render", run, "--dataset", lens, "--out", tmp_path / "r", "--quiet"], "--other-dataset")
+    assert main(["render", str(run), "--dataset", str(lens), "--other-dataset", "--out", str(tmp_path / "r"),
+                 "--aperture-samples", "4", "--quiet"]) == 0
     timing = json.loads((tmp_path / "r" / "timing.json").read_text())
     assert timing["lens_frames"] == 2 and timing["aperture_samples"] == 4
     assert main(["evaluate", str(lens), "--pred", str(tmp_path / "r")]) == 0
     other = make_dataset(tmp_path / "other", scene="tiny", views=4, test_views=1, width=16, height=16)
     capsys.readouterr()
-    one_line_exit_2(capsys, ["render", run, "--dataset", other, "--out", tmp_path / "r2"], "--dataset")
+    one_line_exit_2(capsys, ["render", run, "--dataset", other, "--other-dataset", "--out", tmp_path / "r2"],
+                    "--dataset", "shows scene")

@@ -142,6 +142,13 @@ def verify_manifest(root) -> list[str]:
     return changed
 
 
+def manifest_sha256(root) -> str:
+    """sha256 of the dataset's manifest.json: the dataset's identity by content (the
+    manifest lists every file's sha256). A run records it (its recipe's dataset_sha256)
+    and everything that reads a run with a dataset compares it (nerf.runs)."""
+    return sha256_file(Path(root) / MANIFEST)
+
+
 def read_manifest(root) -> dict:
     """manifest.json -> {relative path: validate.ManifestEntry}; InputError if garbled."""
     root = Path(root)
@@ -222,6 +229,8 @@ class Dataset:
                 self._cameras[split] = self._read_transforms(split, name)
         if not self._cameras:
             raise InputError(f"dataset {self.root} has no transforms_<split>.json for any of {', '.join(SPLITS)}")
+        validate.distinct_frames({split: cameras.stems for split, cameras in self._cameras.items()}, self.root)
+        self.manifest_sha256 = manifest_sha256(self.root)
         has_scene = "scene.json" in self._manifest or (self.root / "scene.json").exists()
         self.scene = self._read_json("scene.json", finite=True) if has_scene else {}
         bounds = self.scene.get("bounds")

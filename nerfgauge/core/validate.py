@@ -11,6 +11,9 @@ asks the file system where a path really leads.
   object (finest_texture_period finite > 0 or null, view_dependent a boolean).
 - Poses: 4x4 finite; rotation orthonormal (max |R^T R - I| <= POSE_TOLERANCE) with
   |det R - 1| <= POSE_TOLERANCE (no scale, shear or mirror); bottom row exactly 0 0 0 1.
+- Frames: every frame file_path appears once in the whole dataset (normalised: "./a" is
+  "a"): a frame listed twice in a split would be trained on (or scored) twice, and a frame
+  in two splits (a test view that is also a training view) makes the scores meaningless.
 - Images: the magic bytes match the extension (PNG 89 50 4E 47 0D 0A 1A 0A, EXR 76 2F 31 01),
   so JPEG bytes in a .png are refused. The size is read from the header (a PNG's IHDR via
   Pillow's lazy open, an EXR's dataWindow) and refused BEFORE any pixel is decoded when a
@@ -164,6 +167,24 @@ def pose(matrix, frame: str, where: str) -> np.ndarray:
         raise InputError(f"{where}: transform_matrix is not a rigid camera-to-world for frame {frame} "
                          f"(max |R^T R - I| = {error:.3g}, det R = {det:.6g}; need <= {POSE_TOLERANCE} and 1)")
     return array
+
+
+def distinct_frames(split_stems: dict, root) -> None:
+    """Refuse a frame listed more than once: twice in one split or in two splits.
+    split_stems: {split: normalised stems in file order}; root: the dataset, named in errors."""
+    seen = {}
+    for split, stems in split_stems.items():
+        for index, stem in enumerate(stems):
+            if stem in seen:
+                first_split, first_index = seen[stem]
+                where = (f"twice in transforms_{split}.json (frames {first_index} and {index})" if first_split == split
+                         else f"in transforms_{first_split}.json (frame {first_index}) and in transforms_{split}.json "
+                              f"(frame {index})")
+                why = ("would be trained on or scored twice" if first_split == split
+                       else "would be both a training and a held-out view, which makes the scores meaningless"
+                       if "train" in (first_split, split) else "would be scored in two splits")
+                raise InputError(f"dataset {root}: frame {stem} is listed {where}; it {why}; list each frame once")
+            seen[stem] = (split, index)
 
 
 # --- image headers -----------------------------------------------------------------------
