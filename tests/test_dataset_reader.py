@@ -107,3 +107,52 @@ def test_bad_requests(ds, tmp_path):
     (tmp_path / "unfinished").mkdir()
     with pytest.raises(InputError, match="incomplete"):
         Dataset(tmp_path / "unfinished")
+
+
+# --------------------------------------------------------------------------------------
+# duplicate frames (issue 31): refused on open, so every command that reads a dataset refuses them
+
+
+def with_frames(tiny_dataset, tmp_path, edit) -> "Path":
+    """A copy of the tiny dataset whose transforms_<split>.json were changed by
+    edit({split: document}), manifest rehashed to vouch for the edit."""
+    import shutil
+
+    root = tmp_path / "data"
+    shutil.copytree(tiny_dataset, root)
+    documents = {split: json.loads((root / f"transforms_{split}.json").read_text()) for split in dataset.SPLITS}
+    edit(documents)
+    for split, document in documents.items():
+        (root / f"transforms_{split}.json").write_text(json.dumps(document))
+    dataset.write_manifest(root, dataset.read_manifest(root))
+    return root
+
+
+def test_a_frame_listed_twice_in_a_split_is_refused(tiny_dataset, tmp_path):
+    root = with_frames(tiny_dataset, tmp_path, lambda d: d["train"]["frames"].append(dict(d["train"]["frames"][1])))
+    with pytest.raises(InputError, match=r"frame train/r_001 is listed twice in transforms_train\.json "
+                                         r"\(frames 1 and 4\); it would be trained on or scored twice"):
+        Dataset(root)
+
+
+def test_a_test_frame_that_is_also_a_training_frame_is_refused(tiny_dataset, tmp_path):
+    def edit(documents):  # "./train/r_000" and "train/r_000" are the same file
+        documents["test"]["frames"][1]["file_path"] = "train/r_000"
+
+    root = with_frames(tiny_dataset, tmp_path, edit)
+    with pytest.raises(InputError, match=r"frame train/r_000 is listed in transforms_train\.json \(frame 0\) and in "
+                                         r"transforms_test\.json \(frame 1\).*makes the scores meaningless"):
+        Dataset(root)
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_every_command_refuses_duplicate_frames_in_one_line(tiny_dataset, tmp_path, capsys, command):
+    from cli_errors import one_line_exit_2
+    from test_cli_reliability import snapshot
+
+    root = with_frames(tiny_dataset, tmp_path, lambda d: d["val"]["frames"].append(dict(d["test"]["frames"][0])))
+    before = snapshot(tmp_path)
+    argv = {"train": ["train", root, "--out", tmp_path / "run", "--steps", "1"],
+            "evaluate": ["evaluate", root, "--pred", root, "--out", tmp_path / "m.json"]}[command]
+    one_line_exit_2(capsys, argv, "test/r_000", "transforms_val.json", "transforms_test.json", "list each frame once")
+    assert snapshot(tmp_path) == before
