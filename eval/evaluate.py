@@ -24,9 +24,9 @@ Accepted prediction files, for the dataset frame "test/r_007" (r_007 below):
 Everything in DIR/test/ and in DIR whose name looks like a frame (`r_<digits>` with an
 optional `_suffix` and .png/.exr/.npy) must belong to a frame of the split: anything else
 is reported as an extra frame. DIR/timing.json (a JSON object, e.g. ms per frame from the
-renderer), if present, is copied into metrics.json's `timing`; when it records the manifest
-sha256 of the dataset it was rendered from (`nerfgauge render` does), DATASET must have that
-manifest (nerf.runs.check_renders_dataset), else one line naming both.
+renderer), if present, is copied into metrics.json's `timing`; when it records the sha256
+of the transforms and scene.json the frames were rendered from (`nerfgauge render` does),
+DATASET must list the same (nerf.runs.check_renders_dataset), else one line naming both.
 
 Metrics (eval.metrics): PSNR and SSIM on colour composited onto the background (prediction
 and the straight-alpha ground-truth PNG alike; RGB predictions are taken as composited);

@@ -3,9 +3,10 @@
 For frame "test/r_007" it writes OUT/test/r_007.png (RGBA, sRGB, straight alpha =
 opacity) and OUT/test/r_007_depth.exr (expected ray distance, 0 where opacity is 0),
 plus OUT/timing.json with milliseconds per frame (model time only, after one warm-up
-frame), the render settings and the dataset whose cameras were rendered (path and
-manifest sha256), which `nerfgauge evaluate` copies into its metrics (and checks: it
-refuses to score these renders against another dataset).
+frame), the render settings and what the frames show: the dataset's path and the sha256
+of its transforms_<split>.json and scene.json (the cameras and the scene), which
+`nerfgauge evaluate` copies into its metrics and checks (it refuses to score these
+renders against a dataset with other cameras or another scene).
 
 The dataset is the run's own, checked against the manifest hash the run recorded
 (nerf.runs.open_run_dataset): a dataset folder regenerated or edited since training is
@@ -34,7 +35,7 @@ import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
 from nerfgauge.nerf.data import split_rays
-from nerfgauge.nerf.runs import open_run_dataset
+from nerfgauge.nerf.runs import open_run_dataset, renders_record
 from nerfgauge.nerf.train import pick_device, render_rays_chunked
 from tqdm import tqdm
 
@@ -179,8 +180,8 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     timing = {"ms_per_frame": 1000 * float(np.mean(all_seconds)) if all_seconds else None, "frames": len(all_seconds),
               "resolution": [width, height], "device": device.type, "threads": threads,
               "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None)}
-    if source is not None:  # the cameras' dataset, which `evaluate` checks it scores against
-        timing |= {"dataset": str(source.root), "dataset_manifest_sha256": source.manifest_sha256}
+    if source is not None:  # what the frames show, which `evaluate` checks (nerf.runs.check_renders_dataset)
+        timing |= {"dataset": str(source.root), "dataset_files": renders_record(source, split)}
     if lens is not None:  # the thin-lens frames' own cost, beside the pinhole frames'
         timing |= {"aperture_samples": lens["aperture_samples"], "lens_seed": lens["lens_seed"],
                    "lens_frames": len(lens_seconds),

@@ -11,9 +11,10 @@ edited, is a different dataset.
 Every command that reads a run with a dataset (render, render --dataset, mesh, geometry
 --run, the pipeline's and the suite's geometry) opens the dataset through `open_run_dataset`,
 which refuses a dataset whose manifest differs from the record with one line naming both
-hashes and both paths. The run itself is only read, never changed. `render` writes the
-hash of the dataset it rendered into timing.json, and `evaluate` refuses to score those
-renders against a dataset with another manifest (`check_renders_dataset`).
+hashes and both paths. The run itself is only read, never changed. `render` writes what
+its frames show into timing.json (the sha256 of transforms_<split>.json and scene.json),
+and `evaluate` refuses to score them against a dataset whose cameras or scene differ
+(`check_renders_dataset`).
 
 - `render RUN --dataset OTHER` renders a run on other cameras of the SAME scene (e.g. the
   same training views and test cameras through a thin lens, `bench lens`). OTHER must hold
@@ -113,14 +114,26 @@ def open_run_dataset(run_dir, config, dataset=None, *, other_dataset: bool = Fal
     return wanted
 
 
+
+def renders_record(source: Dataset, split: str) -> dict:
+    """What renders of `split` show: {rel: sha256} of the dataset's transforms_<split>.json
+    (the cameras) and scene.json (the scene), as its manifest lists them."""
+    names = (f"transforms_{split}.json", "scene.json")
+    return {rel: source.file_sha256(rel) for rel in names if source.file_sha256(rel) is not None}
+
+
 def check_renders_dataset(pred_dir, timing: dict, ds: Dataset) -> None:
-    """Renders of `nerfgauge render` state in timing.json the manifest sha256 of the dataset
-    whose cameras they show: refuse to score them against a dataset with another manifest
-    (one line, both hashes and both paths). Folders without that record (other methods,
-    older renders) are not checked."""
-    recorded = timing.get("dataset_manifest_sha256")
-    if isinstance(recorded, str) and recorded != ds.manifest_sha256:
-        raise InputError(f"{pred_dir} was rendered on the cameras of a dataset with manifest sha256 "
-                         f"{_short(recorded)} ({timing.get('dataset', 'path not recorded')}), but "
-                         f"{ds.root / 'manifest.json'} has {_short(ds.manifest_sha256)}: the renders show another "
-                         "dataset; render the run again on this one")
+    """Renders of `nerfgauge render` state in timing.json the cameras and the scene they
+    show (`renders_record`): refuse to score them against a dataset whose transforms or
+    scene.json differ (one line, both hashes and both paths). Only the cameras and the
+    scene count: ground truth rendered again at more spp still scores the same renders.
+    Folders without that record (other methods, older renders) are not checked."""
+    recorded = timing.get("dataset_files")
+    if not isinstance(recorded, dict):
+        return
+    for rel, digest in sorted(recorded.items()):
+        now = ds.file_sha256(rel)
+        if now != digest:
+            raise InputError(f"{pred_dir} shows the {rel} with sha256 {_short(digest)} of "
+                             f"{timing.get('dataset', 'a dataset')}, but {ds.root / rel} has {_short(now)}: the "
+                             "renders show other cameras or another scene; render the run again on this dataset")

@@ -2,9 +2,9 @@
 
 A run records the sha256 of its dataset's manifest.json (config.json's recipe, whose hash
 the run's marker holds); every command that reads a run with a dataset (render, render
---dataset, mesh, geometry --run) and `evaluate` of a run's renders refuse a dataset with
-another manifest: exit 2, one line naming both hashes (12 hex digits) and both paths,
-nothing changed. Changing a dataset here means rewriting its manifest.json with another
+--dataset, mesh, geometry --run) refuse a dataset with another manifest: exit 2, one line
+naming both hashes (12 hex digits) and both paths, nothing changed; `evaluate` refuses a
+run's renders against a dataset with other cameras or another scene. Changing a dataset here means rewriting its manifest.json with another
 indent: the same frames, another hash, as far as a hash knows another dataset (fast); the
 slow test regenerates the folder as another scene, as the issue found it.
 """
@@ -61,10 +61,11 @@ def test_the_run_records_the_hash_resume_compares(trained):
     recipe = json.loads((run / "config.json").read_text())["recipe"]
     assert recipe["dataset_sha256"] == sha(data / "manifest.json")
     timing = json.loads((run / "renders" / "timing.json").read_text())
-    assert timing["dataset_manifest_sha256"] == sha(data / "manifest.json") and timing["dataset"] == str(data)
+    assert timing["dataset"] == str(data)
+    assert timing["dataset_files"] == {name: sha(data / name) for name in ("transforms_test.json", "scene.json")}
 
 
-@pytest.mark.parametrize("command", ["render", "render --dataset", "mesh", "geometry --run", "evaluate renders"])
+@pytest.mark.parametrize("command", ["render", "render --dataset", "mesh", "geometry --run"])
 def test_every_reader_of_a_run_refuses_a_changed_dataset(changed, tmp_path, capsys, command):
     data, run, recorded, now = changed
     before_run, before_data = snapshot(run), snapshot(data)
@@ -72,10 +73,8 @@ def test_every_reader_of_a_run_refuses_a_changed_dataset(changed, tmp_path, caps
             "render --dataset": ["render", run, "--dataset", data, "--out", tmp_path / "r", "--quiet"],
             "mesh": ["mesh", run, "-o", tmp_path / "m.ply", "--resolution", "16"],
             "geometry --run": ["geometry", data, "--pred-depth", run / "renders", "--run", run,
-                               "-o", tmp_path / "g.json", "--samples", "1000"],
-            "evaluate renders": ["evaluate", data, "--pred", run / "renders", "--out", tmp_path / "m.json"]}[command]
-    line = one_line_exit_2(capsys, argv, recorded[:12], now[:12], str(data / "manifest.json"))
-    assert str(run if command != "evaluate renders" else run / "renders") in line
+                               "-o", tmp_path / "g.json", "--samples", "1000"]}[command]
+    one_line_exit_2(capsys, argv, recorded[:12], now[:12], str(data / "manifest.json"), f"({data})", str(run))
     assert snapshot(run) == before_run and snapshot(data) == before_data
     assert sorted(p.name for p in tmp_path.iterdir()) == []  # no output made
 
@@ -86,7 +85,7 @@ def test_the_same_dataset_moved_renders_and_other_scenes_need_the_flag(trained, 
     shutil.copytree(data, moved)  # the same manifest at another path
     assert main(["render", str(run), "--dataset", str(moved), "--out", str(tmp_path / "r"), "--quiet"]) == 0
     timing = json.loads((tmp_path / "r" / "timing.json").read_text())
-    assert timing["dataset"] == str(moved) and timing["dataset_manifest_sha256"] == sha(data / "manifest.json")
+    assert timing["dataset"] == str(moved) and timing["dataset_files"]["scene.json"] == sha(data / "scene.json")
     reindent_manifest(moved)  # another dataset of the same scene
     one_line_exit_2(capsys, ["render", run, "--dataset", moved, "--out", tmp_path / "r2"], "--other-dataset",
                     sha(moved / "manifest.json")[:12])
@@ -102,6 +101,38 @@ def test_the_same_dataset_moved_renders_and_other_scenes_need_the_flag(trained, 
                     "shows scene")
     one_line_exit_2(capsys, ["render", run, "--other-dataset", "--out", tmp_path / "r4"], "--other-dataset goes with")
     assert not (tmp_path / "r3").exists() and not (tmp_path / "r4").exists()
+
+
+def moved_camera(transforms: dict) -> dict:
+    """The first frame's camera half a unit along its x axis."""
+    transforms["frames"][0]["transform_matrix"][0][3] += 0.5
+    return transforms
+
+
+def test_evaluate_refuses_renders_of_other_cameras_or_another_scene(trained, tmp_path, capsys):
+    """timing.json of a run's renders names the sha256 of the transforms and scene.json they
+    show: evaluate scores them against a dataset with those (another manifest is fine:
+    ground truth rendered again shows the same cameras), not against other ones."""
+    from nerfgauge.core.dataset import read_manifest, write_manifest
+
+    data, run = trained
+    copy = tmp_path / "copy"
+    shutil.copytree(data, copy)
+    reindent_manifest(copy)
+    assert main(["evaluate", str(copy), "--pred", str(run / "renders"), "--out", str(tmp_path / "ok.json")]) == 0
+    before = snapshot(tmp_path)
+    for name, edit in (("scene.json", lambda doc: doc | {"seed": doc["seed"] + 1}),
+                       ("transforms_test.json", moved_camera)):
+        original = (copy / name).read_bytes()
+        (copy / name).write_text(json.dumps(edit(json.loads(original))))
+        write_manifest(copy, read_manifest(copy).keys())
+        edited = snapshot(tmp_path)
+        line = one_line_exit_2(capsys, ["evaluate", copy, "--pred", run / "renders", "--out", tmp_path / "m.json"],
+                               name, sha(data / name)[:12], sha(copy / name)[:12], str(copy / name), str(data))
+        assert str(run / "renders") in line and snapshot(tmp_path) == edited
+        (copy / name).write_bytes(original)
+        write_manifest(copy, read_manifest(copy).keys())
+    assert snapshot(tmp_path).keys() == before.keys()
 
 
 def test_other_dataset_still_needs_the_runs_own_dataset_unchanged(changed, tmp_path, capsys):
@@ -150,6 +181,7 @@ def test_a_dataset_folder_regenerated_as_another_scene_is_refused(tmp_path, caps
     small = ["--res", "16", "--views", "4", "--test-views", "1", "--val-views", "1", "--spp", "4", "--quiet"]
     assert main(["generate", "primitives", "--out", str(data), *small]) == 0
     assert main(["train", str(data), "--out", str(run), "--steps", "5", "--quiet"]) == 0
+    assert main(["render", str(run), "--quiet"]) == 0
     recorded = sha(data / "manifest.json")
     assert main(["generate", "tiny", "--out", str(data), "--overwrite", *small]) == 0
     now = sha(data / "manifest.json")
@@ -159,4 +191,7 @@ def test_a_dataset_folder_regenerated_as_another_scene_is_refused(tmp_path, caps
                            str(data / "manifest.json"))
     assert "changed since training" in line
     one_line_exit_2(capsys, ["render", run, "--dataset", data, "--quiet"], recorded[:12], now[:12])
-    assert snapshot(run) == before and not (run / "renders").exists()
+    # the renders made before: evaluate scored them against the new scene's truth (69.96 dB)
+    one_line_exit_2(capsys, ["evaluate", data, "--pred", run / "renders", "--out", tmp_path / "m.json"],
+                    "scene.json", "another scene")
+    assert snapshot(run) == before and not (tmp_path / "m.json").exists()

@@ -185,6 +185,7 @@ class Dataset:
         ds.intrinsics("test"), ds.K("test"), ds.c2w("test"), ds.bounds, ds.scene
         ds.image("test", 0)            # and image_linear, depth, normals, mask
         ds.instance("test", 0), ds.instance_names(), ds.albedo("test", 0), ds.noise("test", 0)
+        ds.manifest_sha256             # sha256 of manifest.json: the dataset's identity (runs record it)
 
     Conventions (those of nerfgauge.core.camera and of the generator):
     - c2w: [n, 4, 4] float64 camera-to-world, OpenGL/NeRF axes: +X right, +Y up, the camera
@@ -204,6 +205,10 @@ class Dataset:
     - noise: the frame's Monte Carlo noise estimate (docs/conventions.md, "Noise").
     Datasets made before instance ids, albedo and noise lack those files
     (`manifest_files` says which are there; reading a missing one is an InputError).
+
+    A frame (file_path) may appear only once in the whole dataset: twice in a split, or in
+    two splits (a test view that is also a training view), is refused on open
+    (validate.distinct_frames).
 
     Every file is read through one path: its name is confined to the root (no absolute
     paths or `..`; symlinks resolved and required to stay inside), it must be listed in
@@ -366,6 +371,11 @@ class Dataset:
         """Relative paths manifest.json lists (older datasets have no instance, albedo or
         noise files: ask before reading them)."""
         return frozenset(self._manifest)
+
+    def file_sha256(self, rel: str) -> Optional[str]:
+        """The sha256 manifest.json records for the dataset file `rel` (None: not listed)."""
+        entry = self._manifest.get(rel)
+        return None if entry is None else entry.sha256
 
     def has_frame_file(self, split: str, index: int, kind: str) -> bool:
         """Whether the manifest lists the frame's file of `kind` (a FRAME_SUFFIXES key)."""
