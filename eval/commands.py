@@ -396,7 +396,8 @@ def register_geometry(subparsers) -> None:
         "mesh", help="a mesh (PLY) from a trained run's density by marching cubes",
         description="Marching cubes on the field's density over the scene bounds, at the density where the model "
                     "renders its surface on training rays; triangles no training camera sees are dropped "
-                    "(nerf/mesh.py).")
+                    "(nerf/mesh.py). The bounds and cameras come from the dataset the run was trained on, checked "
+                    "against the manifest.json hash the run recorded (a changed dataset is refused, exit 2).")
     mesh.add_argument("run", type=arguments.path, metavar="RUN_DIR", help="a finished training run (model.pt)")
     mesh.add_argument("-o", "--out", type=arguments.path, required=True, metavar="OUT.ply", help="mesh file to write")
     mesh.add_argument("--resolution", type=arguments.positive_int, default=256,
