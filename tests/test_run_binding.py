@@ -4,9 +4,10 @@ A run records the sha256 of its dataset's manifest.json (config.json's recipe, w
 the run's marker holds); every command that reads a run with a dataset (render, render
 --dataset, mesh, geometry --run) refuse a dataset with another manifest: exit 2, one line
 naming both hashes (12 hex digits) and both paths, nothing changed; `evaluate` refuses a
-run's renders against a dataset with other cameras or another scene. Changing a dataset here means rewriting its manifest.json with another
-indent: the same frames, another hash, as far as a hash knows another dataset (fast); the
-slow test regenerates the folder as another scene, as the issue found it.
+run's renders against a dataset with other cameras or another scene. Changing a dataset
+here means rewriting its manifest.json with another indent: the same frames, another hash,
+as far as a hash knows another dataset (fast); the slow test regenerates the folder as
+another scene, as the issue found it.
 """
 
 from __future__ import annotations
