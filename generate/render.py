@@ -270,7 +270,9 @@ class _Pass:
 def aov_integrator(mi):
     """Mitsuba's `aov` integrator alone: the albedo of the first surface each camera
     sample hits, [H, W, 3] (0 where the sample misses)."""
-    return mi.load_dict({"type": "aov", "aovs": AOVS})
+    from nerfgauge.generate.mitsuba_scene import SCALAR_BLOCK_SIZE
+
+    return mi.load_dict({"type": "aov", "aovs": AOVS, "block_size": SCALAR_BLOCK_SIZE})
 
 
 def render_albedo(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
