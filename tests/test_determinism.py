@@ -10,7 +10,7 @@ scalar_rgb keeps mi.render with a fixed image-block size (its seeds follow the b
   sha256 equal (the lock file, which names a PID, excepted), for the issue's 64 px, 64 spp
   dataset with 15 views (scalar: `slow`; its fast case has two views);
 - in-process: one view rendered repeatedly gives one image, and the same image with 1, 2
-  and 5 render threads (colour and albedo);
+  and 5 render threads (colour and albedo); --spp auto adds the same samples again;
 - render_samples is mi.render's estimator: with the same seed it is mi.render's image up to
   float32 rounding (pinhole, thin lens, the albedo AOV); banded (a wave too large for one),
   its mean and its noise agree with mi.render's within Monte Carlo error.
@@ -191,3 +191,19 @@ def test_banded_render_samples_agrees_with_mi_render_within_noise(mi, primitives
     standard_error = np.sqrt(noise_ref / res**2)  # of one image's pixel mean
     difference = (b1 + b2).mean(axis=(0, 1)) / 2 - (a1 + a2).mean(axis=(0, 1)) / 2
     assert np.all(np.abs(difference) <= 4 * standard_error), (difference, standard_error)
+
+
+def test_spp_auto_adds_the_same_samples_again(mi, primitives):
+    """--spp auto decides from the noise of what it rendered so far: a last bit that
+    followed thread scheduling could change how many samples it adds."""
+    from nerfgauge.generate.render import NoiseTarget, render_passes
+
+    scene, the_plan = primitives
+    c2w, intrinsics = the_plan.poses["test"][0], sized(the_plan, 64 if not mi.variant().startswith("scalar") else 24)
+    target = NoiseTarget(noise_psnr=40.0, start_spp=8, max_spp=128)
+    runs = []
+    for _ in range(2):
+        a, b = render_passes(mi, scene, c2w, intrinsics, "auto", 17, target)
+        runs.append((a.spp, b.spp, digest(a.mean), digest(b.mean)))
+    assert runs[0][0] > 4, f"the target was met by the first passes ({runs[0][0]} spp each): nothing was added"
+    assert runs[0] == runs[1]
