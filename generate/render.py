@@ -23,13 +23,15 @@ the last bit of the sum, depends on thread scheduling. Measured on `primitives` 
 2 at 64 px, 4 at 128 px; with `dr.set_thread_count(1)` 1 at 128 px. One differing ulp then
 changes the noise JSON, the EXR's sha256 and the manifest. `render_samples` instead evaluates
 the same samples (the sampler seeded and laid out as Mitsuba's SamplingIntegrator::render
-does, drawn in its order: pixel position, aperture, time, wavelength) into one value per
-sample and sums each pixel's samples in numpy in a fixed order (float64): the same image as
-`mi.render` with the same seed to float32 rounding (relative 6e-7), at 1.0-1.13x its time per
-view (primitives, 64 px 64 spp and 128 px 72 spp, on a shared 2-core machine).
-scalar_rgb keeps `mi.render`: each pixel there belongs to one image block rendered by one
-thread with a sampler seeded from the block's number, so it is already byte-identical
-(tests/test_determinism.py).
+does, drawn in its order: pixel position, aperture, time; RGB variants draw no wavelength)
+into one value per sample and sums each pixel's samples in numpy in a fixed order (float64):
+the same image as `mi.render` with the same seed to float32 rounding (relative 6e-7), at
+1.0-1.13x its time per view (primitives, 64 px 64 spp and 128 px 72 spp, on a shared 2-core
+machine). scalar_rgb keeps `mi.render`: each pixel there belongs to one image block rendered
+by one thread with a sampler seeded from the block's number, so it is byte-identical from
+run to run; the block size is fixed (mitsuba_scene.SCALAR_BLOCK_SIZE) because Mitsuba would
+otherwise shrink the blocks with more threads (8 threads gave other bytes than 1 or 2).
+tests/test_determinism.py holds all of this.
 """
 
 from __future__ import annotations

@@ -106,7 +106,8 @@ def test_one_view_rendered_again_is_the_same_image(mi, primitives):
     res, spp = (128, 36) if not mi.variant().startswith("scalar") else (32, 16)
     c2w, intrinsics = the_plan.poses["train"][0], sized(the_plan, res)
     images = {digest(render_chunk(mi, scene, None, c2w, intrinsics, spp, 5)) for _ in range(5)}
-    assert len(images) == 1, f"{len(images)} distinct images in 5 renders of one view ({mi.variant()}, {res} px, {spp} spp)"
+    assert len(images) == 1, f"{len(images)} distinct images in 5 renders of one view " \
+                             f"({mi.variant()}, {res} px, {spp} spp)"
 
 
 def test_the_image_does_not_depend_on_the_render_thread_count(mi, primitives):
