@@ -149,6 +149,12 @@ def envmap_bitmap(light: GradientEnvironment, width: int = ENVMAP_WIDTH) -> np.n
     return light.radiance(world)
 
 
+# scalar_rgb seeds each pixel's sampler from its image block's number, and Mitsuba shrinks the
+# blocks until every render thread has one: a fixed size keeps a view's noise independent of
+# the thread count (the machine's cores, or a dask worker's share of them). 32 is Mitsuba's own.
+SCALAR_BLOCK_SIZE = 32
+
+
 def scene_dict(mi, scene, mesh_paths: dict, max_depth: int) -> dict:
     """The whole Mitsuba scene (without sensor: each view brings its own)."""
     # A transparent background hides the sky from camera rays; Mitsuba's switch hides every
@@ -156,7 +162,8 @@ def scene_dict(mi, scene, mesh_paths: dict, max_depth: int) -> dict:
     # one keeps its lamps visible, and its misses are transparent anyway).
     has_sky = any(isinstance(light, (ConstantEnvironment, GradientEnvironment, EnvironmentMap)) for light in scene.lights)
     out = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth),
-                                           "hide_emitters": scene.needs.background == "transparent" and has_sky}}
+                                           "hide_emitters": scene.needs.background == "transparent" and has_sky,
+                                           "block_size": SCALAR_BLOCK_SIZE}}
     for shape in scene.shapes:
         if isinstance(shape, Sphere):
             entry = {"type": "sphere", "center": [float(x) for x in shape.center], "radius": float(shape.radius)}

@@ -13,6 +13,25 @@ passes A and B of spp/2 samples with different seeds; the stored image is their 
 A and B are independent and identically distributed, so Var(M) = Var(A) / 2 and
 E[(A - B)^2] = 2 Var(A): a quarter of the mean squared difference estimates the mean's
 variance without a reference. With spp 1 there is one pass and no estimate.
+
+Determinism (issue 31): on the JIT variants (llvm_*, cuda_*) the colour and albedo are not
+made by `mi.render`. Its film adds every sample into its pixel with an atomic scatter-add
+(ImageBlock::put, box filter: `dr::scatter_reduce(ReduceOp::Add, ...)`) from all of Dr.Jit's
+worker threads at once, so the order in which a pixel's float32 samples are summed, and so
+the last bit of the sum, depends on thread scheduling. Measured on `primitives` (llvm_ad_rgb,
+2 threads, one process, the same view and seed 8 times, 36 spp): 1 distinct image at 48 px,
+2 at 64 px, 4 at 128 px; with `dr.set_thread_count(1)` 1 at 128 px. One differing ulp then
+changes the noise JSON, the EXR's sha256 and the manifest. `render_samples` instead evaluates
+the same samples (the sampler seeded and laid out as Mitsuba's SamplingIntegrator::render
+does, drawn in its order: pixel position, aperture, time; RGB variants draw no wavelength)
+into one value per sample and sums each pixel's samples in numpy in a fixed order (float64):
+the same image as `mi.render` with the same seed to float32 rounding (relative 6e-7), at
+1.0-1.13x its time per view (primitives, 64 px 64 spp and 128 px 72 spp, on a shared 2-core
+machine). scalar_rgb keeps `mi.render`: each pixel there belongs to one image block rendered
+by one thread with a sampler seeded from the block's number, so it is byte-identical from
+run to run; the block size is fixed (mitsuba_scene.SCALAR_BLOCK_SIZE) because Mitsuba would
+otherwise shrink the blocks with more threads (8 threads gave other bytes than 1 or 2).
+tests/test_determinism.py holds all of this.
 """
 
 from __future__ import annotations
@@ -141,12 +160,91 @@ def chunk_seed(view_seed: int, chunk: int) -> int:
 
 def render_chunk(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int,
                  lens: Optional[ThinLens] = None) -> np.ndarray:
-    """One mi.render call (through `lens` if given). Returns [H, W, C] float32: RGBA, then
-    the integrator's AOVs."""
+    """`spp` samples per pixel of one view (through `lens` if given) with `seed`: with
+    render_samples on the JIT variants (byte-identical from run to run), with mi.render on
+    scalar ones. Returns [H, W, C] float32 whose last channels are the integrator's AOVs (the
+    first four RGBA, except from mi.render with the AOV integrator, which gives the AOVs
+    only)."""
     sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp, lens))
-    image = mi.render(scene, sensor=sensor, integrator=integrator, spp=int(spp), seed=int(seed))
-    array = np.array(image, dtype=np.float32)
+    if mi.variant().startswith("scalar"):
+        image = mi.render(scene, sensor=sensor, integrator=integrator, spp=int(spp), seed=int(seed))
+        array = np.array(image, dtype=np.float32)
+    else:
+        array = render_samples(mi, scene, integrator, sensor, int(spp), int(seed))
     return array.reshape(intrinsics.height, intrinsics.width, -1)
+
+
+MAX_WAVE_SAMPLES = 1 << 22  # samples evaluated at once by render_samples (a band of rows per wave)
+BAND_SEED_STRIDE = 0x85EBCA6B  # odd: band b > 0 of a render_samples call is seeded seed + b * stride
+
+
+def band_rows(width: int, spp: int) -> int:
+    """Rows of pixels per wave of render_samples: as many as keep a wave within
+    MAX_WAVE_SAMPLES samples, at least one. A constant of the image size and spp only (never
+    of the machine), so the bands and their seeds, and so the image, are too."""
+    return max(1, MAX_WAVE_SAMPLES // (int(width) * int(spp)))
+
+
+def band_seed(seed: int, band: int) -> int:
+    """The sampler seed of band `band`; band 0 keeps `seed`, so an image that fits one wave
+    has exactly mi.render's samples."""
+    return (int(seed) + int(band) * BAND_SEED_STRIDE) % (2**32)
+
+
+def render_samples(mi, scene, integrator, sensor, spp: int, seed: int) -> np.ndarray:
+    """mi.render's estimator, summed in a fixed order (the module's "Determinism").
+
+    Each pixel's value is the mean of its `spp` samples, each box-filtered over the pixel's
+    area (a uniform position in it, as Mitsuba's box filter puts a sample only into the pixel
+    it was drawn in), with the sensor's ray weight; alpha is the share of samples whose ray
+    hit something (the integrator's `valid`), as the film's A channel. The sampler is
+    Mitsuba's own (multijitter stratifies each pixel's consecutive samples) and draws its
+    dimensions in SamplingIntegrator::render_sample's order; ray differentials are scaled by
+    1/sqrt(spp) as there. Rows are evaluated in bands of band_rows() (band b seeded
+    band_seed(seed, b)), so no wave holds more than MAX_WAVE_SAMPLES samples (x 4 floats and
+    the AOVs). Returns [H, W, 4 + AOVs] float32."""
+    import drjit as dr
+
+    if mi.is_spectral or mi.is_monochromatic:
+        raise ValueError(f"render_samples handles the RGB variants nerfgauge uses, not {mi.variant()}")
+    integrator = integrator if integrator is not None else scene.integrator()
+    film = sensor.film()
+    width, height = (int(v) for v in film.crop_size())
+    sampler_template = sensor.sampler()
+    sampler_template.set_sample_count(int(spp))
+    if sampler_template.sample_count() != spp:
+        raise ValueError(f"the sampler lays out {sampler_template.sample_count()} samples, not {spp}")
+    rows = band_rows(width, spp)
+    scale = mi.ScalarVector2f(1.0 / width, 1.0 / height)
+    bands = []
+    for band, top in enumerate(range(0, height, rows)):
+        bottom = min(height, top + rows)
+        count = (bottom - top) * width * spp
+        sampler = sampler_template.clone()
+        sampler.set_samples_per_wavefront(int(spp))
+        sampler.seed(dr.opaque(mi.UInt32, band_seed(seed, band)), count)
+        pixel = dr.arange(mi.UInt32, count) // dr.opaque(mi.UInt32, spp)
+        row = pixel // width
+        position = mi.Vector2f(mi.Float(pixel - row * width), mi.Float(row + dr.opaque(mi.UInt32, top)))
+        position = position + sampler.next_2d()
+        aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+        time = mi.Float(sensor.shutter_open())
+        if sensor.shutter_open_time() > 0:
+            time = time + sampler.next_1d() * sensor.shutter_open_time()
+        wavelength = mi.Float(0.0)  # RGB variants draw no wavelength sample
+        ray, weight = sensor.sample_ray_differential(time, wavelength, position * scale, aperture)
+        if ray.has_differentials:
+            ray.scale_differential(1.0 / math.sqrt(spp))
+        radiance, valid, aovs = integrator.sample(scene, sampler, ray, sensor.get_medium())
+        rgb = mi.unpolarized_spectrum(weight * radiance)
+        channels = [rgb[0], rgb[1], rgb[2], dr.select(valid, mi.Float(1.0), mi.Float(0.0))] + list(aovs)
+        dr.eval(*channels)
+        sums = np.empty(((bottom - top) * width, len(channels)))
+        for k, channel in enumerate(channels):
+            values = np.broadcast_to(channel.numpy(), (count,))  # a literal (an AOV that is 0) has width 1
+            np.sum(values.reshape(-1, spp), axis=1, dtype=np.float64, out=sums[:, k])  # fixed order
+        bands.append(sums / spp)
+    return np.concatenate(bands).reshape(height, width, -1).astype(np.float32)
 
 
 def render_rgba(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
@@ -175,7 +273,9 @@ class _Pass:
 def aov_integrator(mi):
     """Mitsuba's `aov` integrator alone: the albedo of the first surface each camera
     sample hits, [H, W, 3] (0 where the sample misses)."""
-    return mi.load_dict({"type": "aov", "aovs": AOVS})
+    from nerfgauge.generate.mitsuba_scene import SCALAR_BLOCK_SIZE
+
+    return mi.load_dict({"type": "aov", "aovs": AOVS, "block_size": SCALAR_BLOCK_SIZE})
 
 
 def render_albedo(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
