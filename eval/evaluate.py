@@ -43,8 +43,9 @@ NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
 file confined to it and checked against its manifest as it is read (one read per file).
-Outputs: FILE (default DIR/metrics.json, schema 1, written atomically) and error maps in
-`error_maps/` beside it (eval.error_maps).
+Outputs: FILE (default DIR/metrics.json, schema 1, `"tool": "nerfgauge"`, `"kind": "metrics"`,
+written atomically; FILE must be a new path or a metrics file nerfgauge wrote, core.outputs)
+and error maps in `error_maps/` beside it (eval.error_maps).
 
 Beside the metrics (docs/conventions.md, "Noise"): each frame's `psnr_ceiling`, the PSNR the
 noise-free image would score against the ground truth (from the dataset's noise estimate,
@@ -88,10 +89,12 @@ from nerfgauge.eval.metrics import (
 
 from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import check_writable_target, json_from_bytes, read_json, write_json
+from nerfgauge.core.files import json_from_bytes, read_json, write_json
+from nerfgauge.core.outputs import TOOL, check_output_file
 from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
 
 SCHEMA = 1
+METRICS_KIND = "metrics"  # metrics.json's "kind" (core.outputs: what a rerun may replace)
 NOISE_FLOOR_DB = 1.0  # a mean PSNR this close to the mean ceiling is at the noise floor
 EMPTY_WARNING_FRACTION = 0.25
 COVISIBLE_NONE = f"split {{split}} is not held out from {REFERENCE_SPLIT}: no co-visibility mask"
@@ -361,10 +364,13 @@ def read_timing(pred_dir: Path) -> dict:
 
 
 def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
-             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True) -> dict:
+             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True,
+             overwrite: bool = False) -> dict:
     """Score every frame of `split`; write metrics.json and error maps. Returns the document.
     pred_format: how `pred_dir` names its files (eval.foreign.FORMATS; "auto" detects it).
-    held_out=False skips the co-visible and depth-resolved scores (eval.covisibility)."""
+    held_out=False skips the co-visible and depth-resolved scores (eval.covisibility).
+    `out` goes through core.outputs.check_output_file before any work: a new path or a
+    metrics file nerfgauge wrote; overwrite=True also replaces another nerfgauge file."""
     from nerfgauge.eval import foreign
 
     start = time.perf_counter()
@@ -377,7 +383,8 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     ds, pred_dir = dataset.Dataset(root), Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")
-    out = check_writable_target(pred_dir / "metrics.json" if out is None else Path(out))  # before the work
+    out = check_output_file(pred_dir / "metrics.json" if out is None else Path(out), METRICS_KIND,
+                            overwrite=overwrite)  # before the work
     cameras = ds.cameras(split)
     scene = ds.scene.get("recipe")
     if not isinstance(scene, str) or not scene:
@@ -427,7 +434,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     out.parent.mkdir(parents=True, exist_ok=True)
     for stem, colour_err, depth_err in maps:
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
-    document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
+    document = {"tool": TOOL, "kind": METRICS_KIND, "schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
                 "notes": {**({} if lpips_note is None else {"lpips": lpips_note}),
                           **({} if depths is not None else
