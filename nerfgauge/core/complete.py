@@ -60,6 +60,8 @@ def check_complete(path, shown=None) -> None:
         if size == 0:
             _refuse(shown, "the file is empty")
         head = handle.read(8)
+        if len(head) < 8 and (PNG_SIGNATURE.startswith(head) or EXR_MAGIC.startswith(head[:4])):
+            _refuse(shown, f"the file ends after {len(head)} bytes, inside an image signature")
         if head == PNG_SIGNATURE:
             _png_complete(handle, size, shown)
         elif head[:4] == EXR_MAGIC:
