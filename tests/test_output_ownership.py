@@ -233,6 +233,17 @@ class TestMeshGeometryToyPe:
         assert (identify(out / "toy_pe.png"), identify(out / "toy_pe.json")) == ("toy-pe", "toy-pe")
 
 
+class TestFoldersInsideADataset:
+    def test_no_command_makes_a_folder_inside_a_dataset(self, tiny_dataset, run_folder, tmp_path, unchanged, capsys):
+        other = shutil.copytree(tiny_dataset, tmp_path / "DS2")
+        for argv in (["render", run_folder, "--quiet", "--out", other / "renders"],
+                     ["baseline", tiny_dataset, "--method", "nearest", "--out", other / "nearest"],
+                     ["train", tiny_dataset, "--steps", "2", "--quiet", "--out", other / "test" / "run"],
+                     ["generate", "primitives", "--res", "16", "--views", "2", "--quiet", "--out", other / "inner"]):
+            unchanged(capsys, argv, f"refusing to write into {argv[-1]}",
+                      f"inside the nerfgauge dataset folder {other}")
+
+
 class TestRecognition:
     def test_each_mark_is_recognised_and_nothing_else_is(self, tmp_path):
         cases = {
