@@ -143,7 +143,7 @@ def run_evaluate(args) -> int:
             check_output_file(target, OUTPUT_KINDS[name], overwrite=overwrite)
     document = evaluate(args.dataset, args.pred, split=args.split, out=out, background=args.background,
                         depth_kind=args.depth_kind, pred_format=getattr(args, "pred_format", "auto"),
-                        held_out=getattr(args, "held_out", True), overwrite=overwrite)
+                        held_out=getattr(args, "held_out", True))
     print(f"scene {document['scene']}, split {document['split']}, {len(document['frames'])} frames, "
           f"background {document['background']}, depth {document['depth_kind']} -> {out}")
     print(format_means(document))

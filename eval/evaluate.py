@@ -44,7 +44,8 @@ evaluation naming the frame: no mean is computed over the other frames, nothing 
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
 file confined to it and checked against its manifest as it is read (one read per file).
 Outputs: FILE (default DIR/metrics.json, schema 1, `"tool": "nerfgauge"`, `"kind": "metrics"`,
-written atomically; FILE must be a new path or a metrics file nerfgauge wrote, core.outputs)
+written atomically; at the CLI and in nerfgauge.evaluate, FILE must be a new path or a
+metrics file nerfgauge wrote, core.outputs)
 and error maps in `error_maps/` beside it (eval.error_maps).
 
 Beside the metrics (docs/conventions.md, "Noise"): each frame's `psnr_ceiling`, the PSNR the
@@ -89,8 +90,8 @@ from nerfgauge.eval.metrics import (
 
 from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import json_from_bytes, read_json, write_json
-from nerfgauge.core.outputs import TOOL, check_output_file
+from nerfgauge.core.files import check_writable_target, json_from_bytes, read_json, write_json
+from nerfgauge.core.outputs import TOOL
 from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
 
 SCHEMA = 1
@@ -364,13 +365,12 @@ def read_timing(pred_dir: Path) -> dict:
 
 
 def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
-             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True,
-             overwrite: bool = False) -> dict:
+             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True) -> dict:
     """Score every frame of `split`; write metrics.json and error maps. Returns the document.
     pred_format: how `pred_dir` names its files (eval.foreign.FORMATS; "auto" detects it).
     held_out=False skips the co-visible and depth-resolved scores (eval.covisibility).
-    `out` goes through core.outputs.check_output_file before any work: a new path or a
-    metrics file nerfgauge wrote; overwrite=True also replaces another nerfgauge file."""
+    A user's `out` is checked by the caller (core.outputs.check_output_file: the CLI and
+    nerfgauge.evaluate); `run` and `suite` write here into folders they claimed."""
     from nerfgauge.eval import foreign
 
     start = time.perf_counter()
@@ -383,8 +383,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     ds, pred_dir = dataset.Dataset(root), Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")
-    out = check_output_file(pred_dir / "metrics.json" if out is None else Path(out), METRICS_KIND,
-                            overwrite=overwrite)  # before the work
+    out = check_writable_target(pred_dir / "metrics.json" if out is None else Path(out))  # before the work
     cameras = ds.cameras(split)
     scene = ds.scene.get("recipe")
     if not isinstance(scene, str) or not scene:

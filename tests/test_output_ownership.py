@@ -133,6 +133,18 @@ class TestEvaluateOut:
         assert cli(evaluate_argv(tiny_dataset, predictions, "--out", geometry, "--overwrite")) == 0
         assert identify(geometry) == "metrics"
 
+    def test_the_python_api_keeps_the_same_rule(self, tiny_dataset, predictions, tmp_path):
+        import nerfgauge
+
+        notes = tmp_path / "notes.txt"
+        notes.write_text("mine")
+        other = shutil.copytree(tiny_dataset, tmp_path / "DS2")
+        for target, expected in ((notes, "a file nerfgauge did not write"), (other / "manifest.json", "dataset")):
+            before = snapshot([tmp_path])
+            with pytest.raises(nerfgauge.InputError, match=expected):
+                nerfgauge.evaluate(tiny_dataset, predictions, out=target, held_out=False)
+            assert not snapshot_changes(before, snapshot([tmp_path]))
+
     def test_a_folders_marker_is_never_a_target(self, tiny_dataset, predictions, unchanged, capsys):
         for extra in ([], ["--overwrite"]):
             unchanged(capsys, evaluate_argv(tiny_dataset, predictions, "--out", predictions / MARKER, *extra),
