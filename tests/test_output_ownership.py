@@ -123,6 +123,16 @@ class TestEvaluateOut:
                 unchanged(capsys, evaluate_argv(tiny_dataset, predictions, "--out", run_folder / name, *extra),
                           f"refusing to replace {run_folder / name}: it is one of its own files in the run folder")
         assert snapshot([run_folder]) == before
+        scores = run_folder / "geometry.json"  # an output beside the run, not the run's own: --overwrite may
+        scores.write_bytes(json.dumps(stamp({"schema": 1}, "geometry")).encode())
+        try:
+            line = one_line_exit_2(capsys, evaluate_argv(tiny_dataset, predictions, "--out", scores),
+                                   "it is a nerfgauge geometry file, not a metrics file", "pass --overwrite")
+            assert cli(evaluate_argv(tiny_dataset, predictions, "--out", scores, "--overwrite")) == 0, line
+            assert identify(scores) == "metrics"
+        finally:
+            scores.unlink()
+            shutil.rmtree(run_folder / "error_maps", ignore_errors=True)
 
     def test_another_nerfgauge_kind_needs_overwrite(self, tiny_dataset, predictions, tmp_path, unchanged, capsys):
         geometry = tmp_path / "geometry.json"

@@ -13,10 +13,11 @@ is done. The rule, in order:
 3. A path where nothing is: written.
 4. A file of the same kind nerfgauge wrote (recognised by content, `identify`): replaced.
    Reruns of the same command onto its own output need no flag.
-5. A nerfgauge file of another kind, or a file without our mark inside a renders, baseline,
-   evaluation or pipeline folder: replaced only with `--overwrite`.
+5. A nerfgauge file of another kind (its mark says so), or a file without our mark inside a
+   renders, baseline, evaluation or pipeline folder: replaced only with `--overwrite`.
 6. Anything else is refused, `--overwrite` or not: a file without our mark outside our
-   folders is the user's, and one inside a run folder is the run's (model.pt, config.json ...).
+   folders is the user's, and one inside a run folder is the run's (model.pt, config.json ...;
+   the run writes no marked files, so its own files never carry a mark).
 
 Refusals are `InputError`s (one line, exit 2) naming the path and what was found there.
 
@@ -162,15 +163,17 @@ def check_output_file(path, kind: str, *, overwrite: bool = False, flag: str = "
     if found == kind:
         return path  # our own output of this kind: a rerun replaces it
     how = f"pass {flag} to replace it" if flag else "delete it first if it should go"
-    kept = owner is not None and owner[1] in KEEP_OTHERS
-    if kept:  # a run's own files (model.pt, config.json, ...) and other outputs in it stay
-        what = f"a nerfgauge {found} file" if found is not None else "one of its own files"
-        raise InputError(f"refusing to replace {path}: it is {what} in the {owner[1]} folder {owner[0]}, "
-                         f"not a {kind} file; choose another path")
-    if found is not None or owner is not None:
+    if found is not None:  # a nerfgauge output of another kind
         if overwrite:
             return path
-        what = f"a nerfgauge {found} file" if found is not None else f"a file of the nerfgauge {owner[1]} folder {owner[0]}"
-        raise InputError(f"refusing to replace {path}: it is {what}, not a {kind} file; {how}")
+        raise InputError(f"refusing to replace {path}: it is a nerfgauge {found} file, not a {kind} file; {how}")
+    if owner is not None and owner[1] in KEEP_OTHERS:  # a run's own files: model.pt, config.json, ...
+        raise InputError(f"refusing to replace {path}: it is one of its own files in the {owner[1]} folder {owner[0]}, "
+                         f"not a {kind} file; choose another path")
+    if owner is not None:
+        if overwrite:
+            return path
+        raise InputError(f"refusing to replace {path}: it is a file of the nerfgauge {owner[1]} folder {owner[0]}, "
+                         f"not a {kind} file; {how}")
     raise InputError(f"refusing to replace {path}: it is a file nerfgauge did not write (no nerfgauge {kind} mark in it); "
                      "choose another path (overwriting replaces only nerfgauge's own files)")
