@@ -116,9 +116,15 @@ def write_exr(path, channels: dict, attributes: dict | None = None) -> None:
     header.update(attributes or {})
     arrays = {name: np.ascontiguousarray(value, dtype=np.float32) for name, value in channels.items()}
     height, width = next(iter(arrays.values())).shape[:2]
-    names = set()
-    for name, value in arrays.items():  # "RGBA" [H, W, 4] is stored as channels R, G, B, A
-        names |= set(name) if value.ndim == 3 and value.shape[2] == len(name) else {name}
+    names = set()  # the channels the header must list: "RGBA" [H, W, 4] is stored as R, G, B, A
+    for name, value in arrays.items():
+        if value.ndim == 2:
+            names.add(name)
+        elif name in ("RGB", "RGBA") and value.shape[2] == len(name):
+            names |= set(name)
+        else:  # other grouped names are named by the binding's own rules: size checked only
+            names = None
+            break
     with atomic_path(path, verify=_verified_image(width, height, names)) as tmp:
         with OpenEXR.File(header, arrays) as exr:
             exr.write(str(tmp))
