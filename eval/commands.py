@@ -5,8 +5,10 @@
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Output
 folders are claimed with `core.folders.claim_folder` (marker and lock): `baseline --out
-DIR` as a "baseline", bench folders as "bench"; `evaluate --out FILE` refuses a FILE that
-is not a regular file before computing anything.
+DIR` as a "baseline", bench folders as "bench". Output files (`evaluate --out`, `--ns-eval`,
+`--nerfbaselines`, `check --junit`, `mesh -o`, `geometry -o`) go through
+`core.outputs.check_output_file` before anything is computed: a new path or a nerfgauge file
+of the same kind; `--overwrite` also replaces a nerfgauge file of another kind.
 """
 
 import argparse
