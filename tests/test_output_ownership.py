@@ -84,6 +84,16 @@ class TestEvaluateOut:
             unchanged(capsys, evaluate_argv(tiny_dataset, predictions, "--out", target),
                       f"refusing to write {target}", f"inside the nerfgauge dataset folder {other}")
 
+    def test_dot_dot_and_symlinked_folders_are_judged_where_they_lead(self, tiny_dataset, predictions, tmp_path,
+                                                                       unchanged, capsys):
+        other = shutil.copytree(tiny_dataset, tmp_path / "DS2")
+        (tmp_path / "link").symlink_to(other)
+        unchanged(capsys, evaluate_argv(tiny_dataset, predictions, "--out", tmp_path / "link" / "manifest.json"),
+                  "another dataset's manifest.json", f"dataset folder {other}")
+        beside = other / ".." / "beside.json"  # outside the dataset, though the path names it
+        assert cli(evaluate_argv(tiny_dataset, predictions, "--out", beside)) == 0
+        assert identify(tmp_path / "beside.json") == "metrics"
+
     def test_a_users_file_is_refused_even_with_overwrite(self, tiny_dataset, predictions, tmp_path, unchanged,
                                                          capsys):
         notes = tmp_path / "notes.txt"

@@ -107,7 +107,7 @@ def _refuse_inside_a_dataset(folder: Path) -> None:
     """No command makes a folder inside a dataset (only `generate` writes there, into the
     dataset folder itself): the nearest folder above `folder` with a marker must not be a
     dataset's (`render RUN --out DATASET/renders` would change that dataset)."""
-    for parent in folder.absolute().parents:
+    for parent in Path(os.path.realpath(folder.absolute())).parents:  # "..", symlinks resolved
         if (parent / MARKER).is_file():
             try:
                 kind = (read_marker(parent) or {}).get("kind")

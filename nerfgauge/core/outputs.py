@@ -32,6 +32,7 @@ Only the first MAX_IDENTIFY_BYTES of a file are read to recognise it.
 from __future__ import annotations
 
 import json
+import os
 import re
 import struct
 from pathlib import Path
@@ -123,7 +124,7 @@ def owning_folder(path) -> tuple[Path, str] | None:
     A marker that cannot be read counts as kind "unknown" (and is not written into)."""
     from nerfgauge.core.folders import MARKER, read_marker
 
-    folder = Path(path).absolute().parent
+    folder = Path(os.path.realpath(Path(path).absolute().parent))  # "..", symlinked folders resolved
     for candidate in (folder, *folder.parents):
         if (candidate / MARKER).is_file():
             try:
@@ -152,7 +153,7 @@ def check_output_file(path, kind: str, *, overwrite: bool = False, flag: str = "
         folder, folder_kind = owner
         where = f"{folder_kind} folder {folder}"
         if exists:
-            relative = path.absolute().relative_to(folder)
+            relative = Path(os.path.realpath(path)).relative_to(folder)
             raise InputError(f"refusing to write {path}: it is another {folder_kind}'s {relative} ({where}); "
                              f"this command never writes into a nerfgauge {folder_kind}")
         raise InputError(f"refusing to write {path}: it is inside the nerfgauge {where}, which this command "
