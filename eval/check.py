@@ -77,7 +77,8 @@ from nerfgauge.eval.geometry import SUMMARY_NAMES
 from nerfgauge.eval.metrics import METRIC_NAMES as IMAGE_METRIC_NAMES
 
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import check_writable_target, write_bytes_atomic
+from nerfgauge.core.files import write_bytes_atomic
+from nerfgauge.core.outputs import check_output_file, xml_mark
 
 METRICS_SCHEMA = 1
 # image metrics (metrics.json `mean`) and geometry figures (metrics.json `geometry`, written
@@ -86,6 +87,7 @@ METRIC_NAMES = IMAGE_METRIC_NAMES + SUMMARY_NAMES
 DEFAULT_TABLE = "*"
 BOUND_KEYS = ("min", "max")
 MESH_PREFIX = "mesh:"
+JUNIT_KIND = "junit"  # the JUnit file's mark, `<!-- nerfgauge-kind: junit -->` (core.outputs)
 
 
 @dataclass(frozen=True)
@@ -362,7 +364,7 @@ def junit_xml(results: list[CheckResult], properties: Optional[dict[str, str]] =
             failure.text = (f"scene {r.scene}: {r.metric} = {'null' if r.value is None else f'{r.value:.6g}'}, "
                             f"required {r.relation} {r.bound:.6g}")
     ET.indent(suite)
-    return ET.tostring(suite, encoding="utf-8", xml_declaration=True)
+    return xml_mark(ET.tostring(suite, encoding="utf-8", xml_declaration=True), JUNIT_KIND)
 
 
 def write_junit(results: list[CheckResult], path, properties: Optional[dict[str, str]] = None) -> None:
@@ -374,11 +376,14 @@ def write_junit(results: list[CheckResult], path, properties: Optional[dict[str,
     write_bytes_atomic(path, junit_xml(results, properties))
 
 
-def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[str] = None, out=None) -> int:
-    """Load, check, print the table (and write JUnit). Returns 0 all pass, 1 any fails."""
+def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[str] = None, out=None,
+              overwrite: bool = False) -> int:
+    """Load, check, print the table (and write JUnit). Returns 0 all pass, 1 any fails.
+    junit_path: a new path or a JUnit file nerfgauge wrote (core.outputs.check_output_file);
+    overwrite=True also replaces another nerfgauge file."""
     out = sys.stdout if out is None else out
     if junit_path is not None:  # refused before the table is printed, not after
-        check_writable_target(junit_path)
+        check_output_file(junit_path, JUNIT_KIND, overwrite=overwrite)
         if not Path(junit_path).parent.is_dir():
             raise InputError(f"cannot write JUnit file {junit_path}: directory {Path(junit_path).parent} does not exist")
     metrics = load_metrics(metrics_path)

@@ -5,8 +5,10 @@
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Output
 folders are claimed with `core.folders.claim_folder` (marker and lock): `baseline --out
-DIR` as a "baseline", bench folders as "bench"; `evaluate --out FILE` refuses a FILE that
-is not a regular file before computing anything.
+DIR` as a "baseline", bench folders as "bench". Output files (`evaluate --out`, `--ns-eval`,
+`--nerfbaselines`, `check --junit`, `mesh -o`, `geometry -o`) go through
+`core.outputs.check_output_file` before anything is computed: a new path or a nerfgauge file
+of the same kind; `--overwrite` also replaces a nerfgauge file of another kind.
 """
 
 import argparse
@@ -70,7 +72,12 @@ def register_check(subparsers) -> None:
                         help="metrics file written by `nerfgauge evaluate`")
     parser.add_argument("--thresholds", type=arguments.path, required=True, metavar="FILE",
                         help="TOML: [scene] tables of metric = { min = ..., max = ... }; [\"*\"] applies to all scenes")
-    parser.add_argument("--junit", type=arguments.path, metavar="FILE", help="also write the checks as JUnit XML")
+    parser.add_argument("--junit", type=arguments.path, metavar="FILE",
+                        help="also write the checks as JUnit XML; FILE must be new or a JUnit file nerfgauge wrote "
+                             "(a rerun replaces it), never a user's file or a file in a dataset folder")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="let --junit replace a nerfgauge file of another kind (never a file nerfgauge did not "
+                             "write)")
     parser.add_argument("--scene", metavar="NAME",
                         help="use the bounds of scene NAME instead of the scene named in the metrics file")
     parser.set_defaults(func=run_check)
@@ -79,7 +86,8 @@ def register_check(subparsers) -> None:
 def run_check(args) -> int:
     from nerfgauge.eval.check import run_check as check
 
-    return check(args.metrics, args.thresholds, junit_path=args.junit, scene=args.scene)
+    return check(args.metrics, args.thresholds, junit_path=args.junit, scene=args.scene,
+                 overwrite=getattr(args, "overwrite", False))
 
 
 def register_evaluate(subparsers) -> None:
@@ -94,7 +102,8 @@ def register_evaluate(subparsers) -> None:
     parser.add_argument("--pred", type=arguments.path, required=True, metavar="DIR", help="folder of predicted frames")
     parser.add_argument("--split", default="test", help="split to score (default test)")
     parser.add_argument("--out", type=arguments.path, metavar="FILE", help="metrics file (default DIR/metrics.json); "
-                        "error maps go to error_maps/ beside it")
+                        "error maps go to error_maps/ beside it. FILE must be new or a metrics file nerfgauge "
+                        "wrote (a rerun replaces it); never a user's file or a file in a dataset folder")
     parser.add_argument("--background", choices=("white", "black"), default="white",
                         help="composite RGBA onto this colour before PSNR/SSIM (default white)")
     parser.add_argument("--depth-kind", choices=("distance", "z"), default="distance",
@@ -107,22 +116,33 @@ def register_evaluate(subparsers) -> None:
                              "depth_absrel_resolved): "
                              "their pass costs about 0.12 us per hit test pixel and train view")
     parser.add_argument("--ns-eval", type=arguments.path, metavar="FILE",
-                        help="also write nerfstudio's ns-eval JSON (checkpoint: RUN/model.pt for RUN/renders)")
+                        help="also write nerfstudio's ns-eval JSON (checkpoint: RUN/model.pt for RUN/renders); "
+                             "new, or one nerfgauge wrote, as for --out")
     parser.add_argument("--nerfbaselines", type=arguments.path, metavar="FILE",
-                        help="also write the scores as NerfBaselines' results.json")
+                        help="also write the scores as NerfBaselines' results.json; new, or one nerfgauge wrote")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="let --out, --ns-eval, --nerfbaselines replace a nerfgauge file of another kind "
+                             "(never a file nerfgauge did not write, nor a run's or a dataset's files)")
     parser.add_argument("--method-name", default=None, metavar="NAME",
                         help="method named in --ns-eval / --nerfbaselines output (default: DIR's name)")
     parser.set_defaults(func=run_evaluate)
 
 
+OUTPUT_KINDS = {"ns-eval": "ns-eval", "nerfbaselines": "nerfbaselines-results"}  # core.outputs kinds
+
+
 def run_evaluate(args) -> int:
-    from nerfgauge.core.files import check_writable_target, write_json
-    from nerfgauge.eval.evaluate import evaluate, format_means
+    from nerfgauge.core.files import write_json
+    from nerfgauge.core.outputs import check_output_file, stamp
+    from nerfgauge.eval.evaluate import METRICS_KIND, evaluate, format_means
 
     out = args.out if args.out is not None else args.pred / "metrics.json"
     extra = {"ns-eval": getattr(args, "ns_eval", None), "nerfbaselines": getattr(args, "nerfbaselines", None)}
-    for target in (out, *(path for path in extra.values() if path is not None)):
-        check_writable_target(target)  # a device, FIFO, folder or symlink is refused before anything is written
+    overwrite = getattr(args, "overwrite", False)
+    check_output_file(out, METRICS_KIND, overwrite=overwrite)  # refused before anything is computed or written
+    for name, target in extra.items():
+        if target is not None:
+            check_output_file(target, OUTPUT_KINDS[name], overwrite=overwrite)
     document = evaluate(args.dataset, args.pred, split=args.split, out=out, background=args.background,
                         depth_kind=args.depth_kind, pred_format=getattr(args, "pred_format", "auto"),
                         held_out=getattr(args, "held_out", True))
@@ -136,12 +156,14 @@ def run_evaluate(args) -> int:
         model = Path(args.pred).resolve().parent / "model.pt"  # RUN/renders of `nerfgauge render`
         checkpoint = str(model) if model.is_file() else str(args.pred)
         if extra["ns-eval"] is not None:
-            write_json(extra["ns-eval"], ns_eval_document(document, experiment_name=document["scene"],
-                                                          method_name=method, checkpoint=checkpoint))
+            write_json(extra["ns-eval"], stamp(ns_eval_document(document, experiment_name=document["scene"],
+                                                                method_name=method, checkpoint=checkpoint),
+                                               OUTPUT_KINDS["ns-eval"]))
             print(f"ns-eval results -> {extra['ns-eval']}")
         if extra["nerfbaselines"] is not None:
-            write_json(extra["nerfbaselines"], nerfbaselines_document(document, dataset_root=args.dataset,
-                                                                      pred_dir=args.pred, method_name=method))
+            write_json(extra["nerfbaselines"], stamp(nerfbaselines_document(document, dataset_root=args.dataset,
+                                                                            pred_dir=args.pred, method_name=method),
+                                                     OUTPUT_KINDS["nerfbaselines"]))
             print(f"NerfBaselines results -> {extra['nerfbaselines']}")
     return 0
 
@@ -399,13 +421,17 @@ def register_geometry(subparsers) -> None:
                     "(nerf/mesh.py). The bounds and cameras come from the dataset the run was trained on, checked "
                     "against the manifest.json hash the run recorded (a changed dataset is refused, exit 2).")
     mesh.add_argument("run", type=arguments.path, metavar="RUN_DIR", help="a finished training run (model.pt)")
-    mesh.add_argument("-o", "--out", type=arguments.path, required=True, metavar="OUT.ply", help="mesh file to write")
+    mesh.add_argument("-o", "--out", type=arguments.path, required=True, metavar="OUT.ply",
+                      help="mesh file to write: a new path or a mesh nerfgauge wrote (a rerun replaces it), never "
+                           "a user's file or a file in a dataset folder")
     mesh.add_argument("--resolution", type=arguments.positive_int, default=256,
                       help="grid cells along the scene's longest side (default 256)")
     mesh.add_argument("--no-cull", action="store_true", help="keep triangles no training camera sees")
     mesh.add_argument("--level", type=arguments.positive_float, metavar="SIGMA",
                       help="density of the surface (default: the median density where the model renders its "
                            "surface on training rays)")
+    mesh.add_argument("--overwrite", action="store_true",
+                      help="let -o replace a nerfgauge file of another kind (never a file nerfgauge did not write)")
     mesh.set_defaults(func=run_mesh)
     geometry = subparsers.add_parser(
         "geometry", help="score a mesh, point cloud or rendered depth against the dataset's exact meshes",
@@ -418,7 +444,10 @@ def register_geometry(subparsers) -> None:
     source.add_argument("--pred-depth", type=arguments.path, metavar="DIR",
                         help="folder of rendered ray-distance depth (r_000_depth.exr) of the --split views")
     geometry.add_argument("-o", "--out", type=arguments.path, default=Path("geometry.json"), metavar="FILE",
-                          help="scores (default geometry.json)")
+                          help="scores (default geometry.json): a new path or a geometry file nerfgauge wrote "
+                               "(a rerun replaces it), never a user's file or a file in a dataset folder")
+    geometry.add_argument("--overwrite", action="store_true",
+                          help="let -o replace a nerfgauge file of another kind (never a file nerfgauge did not write)")
     geometry.add_argument("--tau", type=arguments.positive_float, action="append", default=[], metavar="T",
                           help="also score F-score at this distance in world units (repeatable); 0.5%% and 1%% of the "
                                "ground truth's bounding-box diagonal always")
@@ -434,13 +463,13 @@ def register_geometry(subparsers) -> None:
     geometry.set_defaults(func=run_geometry)
 
 
-def _output_file(out: Path, recipe: dict):
-    """Refuse a target that is not a regular file; claim a parent folder this command
-    creates as an "evaluation" folder (marker and lock)."""
-    from nerfgauge.core.files import check_writable_target
+def _output_file(out: Path, recipe: dict, kind: str, overwrite: bool):
+    """Refuse a target that is not new nor a `kind` file nerfgauge wrote (core.outputs);
+    claim a parent folder this command creates as an "evaluation" folder (marker and lock)."""
     from nerfgauge.core.folders import claim_folder, recipe_hash
+    from nerfgauge.core.outputs import check_output_file
 
-    check_writable_target(out)
+    check_output_file(out, kind, overwrite=overwrite)
     if out.parent.exists():
         return contextlib.nullcontext()
     return claim_folder(out.parent, "evaluation", recipe_hash(recipe))
@@ -455,7 +484,8 @@ def run_mesh(args) -> int:
         from nerfgauge.core.errors import InputError
 
         raise InputError(f"-o {out}: the mesh is written as PLY; name it *.ply")
-    with _output_file(out, {"mesh": str(args.run), "resolution": args.resolution}):
+    with _output_file(out, {"mesh": str(args.run), "resolution": args.resolution}, "mesh",
+                      getattr(args, "overwrite", False)):
         mesh = mesh_from_run(args.run, args.resolution, cull=not args.no_cull, level=args.level)
         write_bytes_atomic(out, ply_bytes(mesh.vertices, mesh.faces))
     print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces ({mesh.faces_culled} unseen dropped), "
@@ -477,7 +507,7 @@ def run_geometry(args) -> int:
 
         model, config = load_model(Path(args.run) / "model.pt")
         run = model, open_run_dataset(args.run, config, args.dataset)
-    with _output_file(out, recipe):
+    with _output_file(out, recipe, "geometry", getattr(args, "overwrite", False)):
         document, _ = score_geometry(args.dataset, args.pred_mesh, args.pred_depth, split=args.split,
                                      taus=tuple(args.tau), samples=args.samples, seed=args.seed,
                                      whole_surface=args.whole_surface)

@@ -45,8 +45,10 @@ NaN or inf in colour or opacity (anywhere) or in depth (on hit pixels) fails the
 evaluation naming the frame: no mean is computed over the other frames, nothing is written.
 The dataset is opened as a nerfgauge.core.dataset.Dataset: validated, each ground-truth
 file confined to it and checked against its manifest as it is read (one read per file).
-Outputs: FILE (default DIR/metrics.json, schema 1, written atomically) and error maps in
-`error_maps/` beside it (eval.error_maps).
+Outputs: FILE (default DIR/metrics.json, schema 1, `"tool": "nerfgauge"`, `"kind": "metrics"`,
+written atomically; at the CLI and in nerfgauge.evaluate, FILE must be a new path or a
+metrics file nerfgauge wrote, core.outputs)
+and error maps in `error_maps/` beside it (eval.error_maps).
 
 Beside the metrics (docs/conventions.md, "Noise"): each frame's `psnr_ceiling`, the PSNR the
 noise-free image would score against the ground truth (from the dataset's noise estimate,
@@ -92,9 +94,11 @@ from nerfgauge.eval.metrics import (
 from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import check_writable_target, json_from_bytes, read_json, write_json
+from nerfgauge.core.outputs import TOOL
 from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
 
 SCHEMA = 1
+METRICS_KIND = "metrics"  # metrics.json's "kind" (core.outputs: what a rerun may replace)
 NOISE_FLOOR_DB = 1.0  # a mean PSNR this close to the mean ceiling is at the noise floor
 EMPTY_WARNING_FRACTION = 0.25
 COVISIBLE_NONE = f"split {{split}} is not held out from {REFERENCE_SPLIT}: no co-visibility mask"
@@ -367,7 +371,9 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
              depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True) -> dict:
     """Score every frame of `split`; write metrics.json and error maps. Returns the document.
     pred_format: how `pred_dir` names its files (eval.foreign.FORMATS; "auto" detects it).
-    held_out=False skips the co-visible and depth-resolved scores (eval.covisibility)."""
+    held_out=False skips the co-visible and depth-resolved scores (eval.covisibility).
+    A user's `out` is checked by the caller (core.outputs.check_output_file: the CLI and
+    nerfgauge.evaluate); `run` and `suite` write here into folders they claimed."""
     from nerfgauge.eval import foreign
 
     start = time.perf_counter()
@@ -431,7 +437,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     out.parent.mkdir(parents=True, exist_ok=True)
     for stem, colour_err, depth_err in maps:
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
-    document = {"schema": SCHEMA, "scene": scene, "split": split, "background": background,
+    document = {"tool": TOOL, "kind": METRICS_KIND, "schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
                 "notes": {**({} if lpips_note is None else {"lpips": lpips_note}),
                           **({} if depths is not None else

@@ -59,6 +59,7 @@ import numpy as np
 from nerfgauge.core.camera import pixel_rays
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.outputs import stamp
 
 SCHEMA = 1
 DEFAULT_TAU_FRACTIONS = (0.005, 0.01)
@@ -450,7 +451,7 @@ def score_geometry(root, pred_mesh=None, pred_depth=None, *, split: str = "test"
                                  "visibility_split": None if whole_surface else reference},
                 "samples": samples, "seed": seed, **scores,
                 "seconds": time.perf_counter() - start}
-    return document, distances
+    return stamp(document, "geometry"), distances
 
 
 def summary(document: Optional[dict]) -> dict:

@@ -27,7 +27,9 @@ def _add_toy_pe(subparsers) -> None:
                     "once on their positional encoding; print both PSNRs and the gap, and with --out write "
                     "toy_pe.png (target | no PE | PE) and toy_pe.json.",
     )
-    parser.add_argument("--out", type=path, default=None, metavar="DIR", help="directory for toy_pe.png and toy_pe.json")
+    parser.add_argument("--out", type=path, default=None, metavar="DIR",
+                        help="directory for toy_pe.png and toy_pe.json (each new, or written by an earlier toy-pe: "
+                             "a rerun replaces them; never a user's files, never inside a dataset folder)")
     # plain int: these are checked in _run_toy_pe, whose messages name the flag
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="Adam steps per fit (default 200)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the image and the initial weights (default 0)")
@@ -42,7 +44,13 @@ def _run_toy_pe(args) -> int:
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise InputError(f"--out must be a directory, but {args.out} is a file")
 
-    from nerfgauge.nerf.toy_pe import ToyPEConfig, run_toy_pe
+    from nerfgauge.nerf.toy_pe import TOY_PE_KIND, ToyPEConfig, run_toy_pe
+
+    if args.out is not None:  # before the fits: both files new or our own (core.outputs)
+        from nerfgauge.core.outputs import check_output_file
+
+        for name in ("toy_pe.png", "toy_pe.json"):
+            check_output_file(args.out / name, TOY_PE_KIND, flag=None)
 
     overrides = {"seed": args.seed} | ({} if args.steps is None else {"steps": args.steps})
     config = ToyPEConfig(**overrides)

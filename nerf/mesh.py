@@ -240,10 +240,13 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
 
 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
-    """A binary PLY of a triangle mesh (trimesh's writer)."""
+    """A binary PLY of a triangle mesh (trimesh's writer), marked as ours with the header
+    line `comment nerfgauge-kind: mesh` (core.outputs: a rerun may replace it)."""
     import trimesh
 
-    return trimesh.Trimesh(vertices, faces, process=False).export(file_type="ply")
+    from nerfgauge.core.outputs import ply_mark
+
+    return ply_mark(trimesh.Trimesh(vertices, faces, process=False).export(file_type="ply"), "mesh")
 
 
 def mesh_from_run(run_dir, resolution: int = 256, cull: bool = True, level: float | None = None) -> ExtractedMesh:

@@ -25,6 +25,9 @@ from nerfgauge.nerf.encoding import encoded_size, positional_encoding
 from torch import nn
 
 from nerfgauge.core.files import atomic_path, write_json
+from nerfgauge.core.outputs import png_kind_info
+
+TOY_PE_KIND = "toy-pe"  # toy_pe.png's and toy_pe.json's kind (core.outputs)
 
 
 @dataclass(frozen=True)
@@ -192,7 +195,8 @@ def save_comparison(result: ToyPEResult, path: Path) -> None:
         return value if math.isfinite(value) else None
 
     summary = {"config": asdict(result.config), "psnr_no_pe": finite(result.psnr_no_pe),
-               "psnr_pe": finite(result.psnr_pe), "gap_db": finite(result.gap), "png": path.name}
-    with atomic_path(path) as temporary:
-        Image.fromarray(comparison_image(result)).save(temporary, format="PNG")
+               "psnr_pe": finite(result.psnr_pe), "gap_db": finite(result.gap), "png": path.name,
+               "tool": "nerfgauge", "kind": TOY_PE_KIND}
+    with atomic_path(path) as temporary:  # marked as ours: a rerun may replace it (core.outputs)
+        Image.fromarray(comparison_image(result)).save(temporary, format="PNG", pnginfo=png_kind_info(TOY_PE_KIND))
     write_json(path.with_suffix(".json"), summary)

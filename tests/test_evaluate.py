@@ -16,7 +16,7 @@ from nerfgauge.core import dataset
 from nerfgauge.core.images import read_exr, read_png, write_exr, write_png
 
 TOP_KEYS = {"schema", "scene", "split", "background", "depth_kind", "mean", "std", "count", "notes", "frames", "timing",
-            "noise", "psnr_objects", "empty_views"}
+            "noise", "psnr_objects", "empty_views", "tool", "kind"}
 
 
 @pytest.fixture(scope="module")

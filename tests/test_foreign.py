@@ -183,7 +183,9 @@ def test_ns_eval_and_nerfbaselines_outputs(ds, stems, reference, tmp_path, capsy
                        "--nerfbaselines", tmp_path / "results.json", "--method-name", "mine")
     assert code == 0, err
     ns = json.loads((tmp_path / "ns.json").read_text())
-    assert set(ns) == {"experiment_name", "method_name", "checkpoint", "results"} and ns["method_name"] == "mine"
+    # ns-eval's four keys, plus the mark that makes the file ours to replace (core.outputs)
+    assert set(ns) == {"experiment_name", "method_name", "checkpoint", "results", "tool", "kind"}
+    assert ns["method_name"] == "mine" and (ns["tool"], ns["kind"]) == ("nerfgauge", "ns-eval")
     psnrs = per_frame(reference)
     assert ns["results"]["psnr"] == pytest.approx(statistics.fmean(psnrs), rel=1e-15)
     assert ns["results"]["psnr_std"] == pytest.approx(statistics.stdev(psnrs), rel=1e-12)  # torch.std: ddof 1

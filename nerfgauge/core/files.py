@@ -1,7 +1,10 @@
 """Files as every stage writes and reads them: atomic writes, canonical JSON, hashes.
 
-Every write goes to a temporary name in the same folder and is renamed into place, so a
-file that exists is complete.
+Every write goes to a temporary name in the same folder, is flushed to disk, checked, and
+only then renamed into place, so a file that exists is complete: bytes we wrote must all be
+on disk (`check_size`), and a file a library wrote must not be empty and, for PNG and EXR,
+must read back whole (`nerfgauge.core.complete`), since OpenEXR does not report a failed
+final flush on a full disk. A failed check leaves nothing at the target and no temporary.
 """
 
 from __future__ import annotations
@@ -30,16 +33,25 @@ def check_writable_target(path) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_path(path):
+def atomic_path(path, verify=None):
     """Yield a temporary sibling of `path`; when the block succeeds, flush it to disk
-    (fsync) and rename it to `path`, so a file that exists is complete even after a
-    power cut. The temporary is removed if the block fails."""
+    (fsync), check it, and rename it to `path`, so a file that exists is complete even
+    after a power cut or on a full disk. The temporary is removed if anything fails.
+
+    verify(tmp, path): the check (raising `complete.IncompleteWrite`); default
+    `complete.check_complete` (not empty; PNG and EXR structurally whole)."""
+    from nerfgauge.core import complete
+
     path = check_writable_target(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         yield tmp
         with open(tmp, "rb") as handle:
             os.fsync(handle.fileno())
+        if verify is None:
+            complete.check_complete(tmp, shown=path)
+        else:
+            verify(tmp, path)
         os.replace(tmp, path)
     except OSError as error:
         if error.filename is None:  # write() on a full disk names no file: name the target
@@ -51,7 +63,10 @@ def atomic_path(path):
 
 
 def write_bytes_atomic(path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
+    """Write `data` to `path` atomically; every byte must be on disk before the rename."""
+    from nerfgauge.core import complete
+
+    with atomic_path(path, verify=lambda tmp, shown: complete.check_size(tmp, len(data), shown)) as tmp:
         tmp.write_bytes(data)
 
 

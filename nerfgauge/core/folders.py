@@ -103,6 +103,22 @@ def _check_claimable(folder: Path, kind: str, recipe: str | None, overwrite: boo
     return "replace"
 
 
+def _refuse_inside_a_dataset(folder: Path) -> None:
+    """No command makes a folder inside a dataset (only `generate` writes there, into the
+    dataset folder itself): the nearest folder above `folder` with a marker must not be a
+    dataset's (`render RUN --out DATASET/renders` would change that dataset)."""
+    for parent in Path(os.path.realpath(folder.absolute())).parents:  # "..", symlinks resolved
+        if (parent / MARKER).is_file():
+            try:
+                kind = (read_marker(parent) or {}).get("kind")
+            except InputError:
+                kind = None
+            if kind == "dataset":
+                raise InputError(f"refusing to write into {folder}: it is inside the nerfgauge dataset folder "
+                                 f"{parent}, which only `generate` writes; choose a folder outside it")
+            return
+
+
 def _ours_in_flight(name: str) -> bool:
     """The lock, or a marker being written: what a concurrent claimer leaves in a folder
     before it is recognisably ours (seen unlocked, it must not read as the user's)."""
@@ -126,10 +142,11 @@ def claim_folder(folder, kind: str, recipe: str | None, *, overwrite: bool = Fal
     """Make `folder` ready for a command that writes a `kind` made from `recipe` (a hash),
     and hold its write lock for the block. Yields "new", "resume" or "replaced".
 
-    Checked before anything is written (a folder that is not ours is refused untouched),
-    then again under the lock. Stale temporaries of killed writers are removed under the
+    Checked before anything is written (a folder that is not ours is refused untouched, and
+    so is any folder inside a dataset folder), then again under the lock. Stale temporaries of killed writers are removed under the
     lock. Nothing is deleted from a folder without our marker of the same kind."""
     folder = Path(folder)
+    _refuse_inside_a_dataset(folder)
     _check_claimable(folder, kind, recipe, overwrite)
     try:
         folder.mkdir(parents=True, exist_ok=True)

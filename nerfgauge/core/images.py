@@ -1,7 +1,10 @@
 """Image files as the project writes and reads them: 8-bit sRGB PNG, float32 EXR.
 
-Every write is atomic (nerfgauge.core.files.atomic_path). PNG colour is straight (not premultiplied) alpha, as in
-NeRF-synthetic; EXR colour is linear and premultiplied, as EXR expects.
+Every write is atomic (nerfgauge.core.files.atomic_path) and read back before the rename: the
+file must be whole and its header must state the size (and EXR channels) written
+(nerfgauge.core.complete), as OpenEXR does not report a write that failed on a full disk.
+PNG colour is straight (not premultiplied) alpha, as in NeRF-synthetic; EXR colour is linear
+and premultiplied, as EXR expects.
 
 Reading checks before decoding (nerfgauge.core.validate): the file's signature matches its
 extension, and the header's size is at most MAX_IMAGE_SIDE pixels a side (and, when given,
@@ -19,7 +22,7 @@ import numpy as np
 import OpenEXR
 from PIL import Image, PngImagePlugin
 
-from nerfgauge.core import validate
+from nerfgauge.core import complete, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path
 
@@ -40,12 +43,27 @@ def premultiplied_to_png_rgba(rgba_linear: np.ndarray) -> np.ndarray:
     return np.round(out * 255.0).astype(np.uint8)
 
 
-def write_png(path, image: np.ndarray) -> None:
-    """uint8 [H, W], [H, W, 3] or [H, W, 4]."""
+def _verified_image(width: int, height: int, channels=None):
+    """atomic_path's check for an image: structurally whole, and the header read back from
+    the temporary states the size (and EXR channels) that were written."""
+    def verify(tmp, shown):
+        complete.check_complete(tmp, shown=shown)
+        complete.check_image_header(tmp, width, height, channels, shown=shown)
+    return verify
+
+
+def write_png(path, image: np.ndarray, kind: str | None = None) -> None:
+    """uint8 [H, W], [H, W, 3] or [H, W, 4]. kind: a nerfgauge output kind stored as a text
+    chunk (core.outputs.PNG_KEY), for images written at a path the user chose."""
     if image.dtype != np.uint8:
         raise ValueError(f"write_png needs uint8, got {image.dtype}")
-    with atomic_path(path) as tmp:
-        Image.fromarray(image).save(tmp, format="PNG")
+    info = None
+    if kind is not None:
+        from nerfgauge.core.outputs import png_kind_info
+
+        info = png_kind_info(kind)
+    with atomic_path(path, verify=_verified_image(image.shape[1], image.shape[0])) as tmp:
+        Image.fromarray(image).save(tmp, format="PNG", pnginfo=info)
 
 
 def _file_bytes(path) -> bytes:
@@ -97,7 +115,17 @@ def write_exr(path, channels: dict, attributes: dict | None = None) -> None:
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update(attributes or {})
     arrays = {name: np.ascontiguousarray(value, dtype=np.float32) for name, value in channels.items()}
-    with atomic_path(path) as tmp:
+    height, width = next(iter(arrays.values())).shape[:2]
+    names = set()  # the channels the header must list: "RGBA" [H, W, 4] is stored as R, G, B, A
+    for name, value in arrays.items():
+        if value.ndim == 2:
+            names.add(name)
+        elif name in ("RGB", "RGBA") and value.shape[2] == len(name):
+            names |= set(name)
+        else:  # other grouped names are named by the binding's own rules: size checked only
+            names = None
+            break
+    with atomic_path(path, verify=_verified_image(width, height, names)) as tmp:
         with OpenEXR.File(header, arrays) as exr:
             exr.write(str(tmp))
 
