@@ -68,7 +68,7 @@ def score_normals(model, root, split: str = "test", views: int | None = None, de
     first `views` views if given), scored against the dataset's normal EXRs."""
     from nerfgauge.nerf.train import render_rays_chunked
 
-    if not hasattr(model, "density"):
+    if not model.has_density:
         raise InputError(f"a {type(model).__name__} has no density query (model.density); normals need one")
     ds = open_dataset(root)  # a path or an open (e.g. checked, nerf.runs) Dataset
     cameras = ds.cameras(split)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import zlib
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +35,39 @@ VERSION = 2  # version 1 stored a dense grid or byte-per-node masks
 CHECKPOINT_FORMAT = "nerfgauge-checkpoint"
 CHECKPOINT_VERSION = 2  # version 1 was a float16 model payload inside a "nerfgauge-model"
 FORMATS = {"model": (FORMAT, VERSION), "checkpoint": (CHECKPOINT_FORMAT, CHECKPOINT_VERSION)}
-# The training loop's counters, all restored on resume (see train.py for their meaning).
-LOOP_STATE = {"step": int, "seconds": float, "next_eval": float, "visibility_done": int, "stage": int,
-              "stage_steps": int, "logged_step": int, "stage_seconds": float, "last_stage": int}
+
+
+@dataclass
+class LoopState:
+    """The training loop's counters and schedules, all saved in checkpoint.pt and restored
+    on resume, so a resumed run continues exactly.
+
+    step, seconds: steps and training seconds done (validation and checkpointing excluded);
+    next_eval: the training second of the next val PSNR point; logged_step: the step of the
+    last log entry; visibility_done: visibility measurements done (of train.VISIBILITY_AT);
+    stage: coarse-to-fine growths done; stage_steps, stage_seconds: steps and seconds at
+    this resolution; last_stage: the finest stage the run will take (a time budget stops
+    growing when a finer grid could not be trained)."""
+
+    step: int = 0
+    seconds: float = 0.0
+    next_eval: float = 0.0
+    visibility_done: int = 0
+    stage: int = 0
+    stage_steps: int = 0
+    logged_step: int = -1
+    stage_seconds: float = 0.0
+    last_stage: int = 0
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_saved(cls, saved: dict) -> "LoopState":
+        """From a checkpoint's "loop" entry, checked by load_training_checkpoint."""
+        return cls(**{item.name: saved[item.name] for item in fields(cls)})
+
+
 # counters added after checkpoint version 2 first shipped, and their value in older files
 LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3}
 
@@ -207,7 +238,7 @@ def model_from_payload(payload: dict):
 
 
 def training_checkpoint(model, optimizer, generator: torch.Generator, config: TrainConfig, recipe: dict,
-                        loop: dict) -> dict:
+                        loop: LoopState) -> dict:
     """Everything a resumed run needs to continue exactly where this one is."""
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     field = getattr(model, "field", None)
@@ -216,7 +247,7 @@ def training_checkpoint(model, optimizer, generator: torch.Generator, config: Tr
                                         "state": state,
                                         "space": field.space.to_json() if getattr(field, "space", None) else None},
             "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
-            "loop": {name: loop[name] for name in LOOP_STATE}}
+            "loop": loop.to_json()}
 
 
 def recipe_difference(saved: dict, current: dict) -> str:
@@ -254,9 +285,10 @@ def load_training_checkpoint(path, recipe: dict) -> dict:
     elif not isinstance(loop, dict):
         problem = "no loop state"
     else:
-        for name, kind in LOOP_STATE.items():
+        for item in fields(LoopState):
+            name, real = item.name, isinstance(item.default, float)  # a float counter also takes an int
             value = loop.setdefault(name, LOOP_DEFAULTS[name]) if name in LOOP_DEFAULTS else loop.get(name)
-            if not isinstance(value, (int, float) if kind is float else int) or isinstance(value, bool):
+            if not isinstance(value, (int, float) if real else int) or isinstance(value, bool):
                 problem = f"loop value {name} is {value!r}"
                 break
     if problem is not None:

@@ -198,7 +198,7 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
     keep all, no calibration). InputError when the field has no surface there."""
     from skimage.measure import marching_cubes
 
-    if not hasattr(model, "density"):
+    if not model.has_density:
         raise InputError(f"a {type(model).__name__} has no density query (model.density); "
                          "meshes need a model that has one (the compact model)")
     if not (isinstance(resolution, int) and 8 <= resolution <= 1024):

@@ -56,7 +56,43 @@ class RayOutput:
     distortion: Optional[torch.Tensor] = None  # [n] (compact, training only)
 
 
-class CompactNeRF(nn.Module):
+class RadianceModel(nn.Module):
+    """What the training loop, the renderers and the geometry tools ask of every model.
+
+    Every model renders rays (`render`), adds its own regulariser to the loss
+    (`regularisation`) and names its optimiser's parameter groups (`parameter_groups`).
+    Two capabilities are declared rather than probed for:
+    - has_grid: a coarse-to-fine voxel grid with an occupancy mask and a visibility mask
+      (`update_occupancy`, `measure_visibility`, `samples_per_ray`, `upsample`, `field`,
+      `sparse`); the loop grows, prunes and logs it.
+    - has_density: a density field that can be queried at points (`density`), which
+      normals and meshes are computed from.
+    """
+
+    has_grid = False
+    has_density = False
+    adam_options: dict = {}  # keyword arguments of torch.optim.Adam beyond the groups
+
+    def render(self, origins: torch.Tensor, directions: torch.Tensor, generator: torch.Generator | None = None,
+               training: bool = False) -> RayOutput:
+        raise NotImplementedError
+
+    def regularisation(self, tv_weight: float) -> torch.Tensor:
+        raise NotImplementedError
+
+    def parameter_groups(self, lr: float, lr_mlp: float) -> list[dict]:
+        """Adam's parameter groups, each with its "lr" and the "base_lr" the schedule decays
+        from. lr, lr_mlp: the run's grid and MLP learning rates (TrainConfig)."""
+        raise NotImplementedError
+
+
+class CompactNeRF(RadianceModel):
+    has_grid = True
+    has_density = True
+    # beta2 0.99 and a tiny eps, as Instant-NGP trains its grids: a voxel's gradient is
+    # sparse, and the default 0.999 / 1e-8 let rarely hit voxels move too slowly
+    adam_options = {"betas": (0.9, 0.99), "eps": 1e-15}
+
     def __init__(self, field: VoxelGridField, use_occupancy: bool = True, sparse: bool = True):
         """use_occupancy: skip empty space when marching. sparse: allocate finer grids only
         in occupied, visible cells and free rows no occupied cell touches (with
@@ -220,6 +256,13 @@ class CompactNeRF(nn.Module):
     def regularisation(self, tv_weight: float) -> torch.Tensor:
         return tv_weight * self.field.total_variation() if tv_weight > 0 else self.field.aabb.new_zeros(())
 
+    def parameter_groups(self, lr: float, lr_mlp: float) -> list[dict]:
+        """The grid's values at `lr`; the view-dependent colour head, when there is one, at `lr_mlp`."""
+        groups = [{"params": self.field.grid_parameters(), "lr": lr, "base_lr": lr}]
+        if self.field.head is not None:
+            groups.append({"params": self.field.head.parameters(), "lr": lr_mlp, "base_lr": lr_mlp})
+        return groups
+
 
 class NeRFMLP(nn.Module):
     """The lecture's MLP: gamma(x) -> 8 x width ReLU (skip into layer 5) -> sigma and a
@@ -253,7 +296,10 @@ class NeRFMLP(nn.Module):
         return sigma, rgb
 
 
-class VanillaNeRF(nn.Module):
+class VanillaNeRF(RadianceModel):
+    # The original NeRF's learning rate (Mildenhall et al. 2020), whatever the run's config says.
+    LEARNING_RATE = 5e-4
+
     def __init__(self, aabb: torch.Tensor, n_coarse: int = 64, n_fine: int = 128, width: int = 256, depth: int = 8):
         super().__init__()
         self.register_buffer("aabb", aabb.clone().float())
@@ -281,3 +327,7 @@ class VanillaNeRF(nn.Module):
 
     def regularisation(self, tv_weight: float) -> torch.Tensor:
         return self.aabb.new_zeros(())
+
+    def parameter_groups(self, lr: float, lr_mlp: float) -> list[dict]:
+        """Every weight at the original NeRF's rate (lr and lr_mlp are the compact model's)."""
+        return [{"params": self.parameters(), "lr": self.LEARNING_RATE, "base_lr": self.LEARNING_RATE}]

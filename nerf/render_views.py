@@ -142,7 +142,7 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
 def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress, lens=None,
                  source=None) -> dict:
     model = model.to(device).eval()
-    if hasattr(model, "field") and step_ratio is not None:
+    if model.has_grid and step_ratio is not None:
         model.field.step_ratio = step_ratio
     pool = ThreadPoolExecutor(threads) if device.type == "cpu" and threads > 1 else None
     parts = threads * PARTS_PER_THREAD

@@ -20,12 +20,16 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from nerfgauge.nerf import checkpoint
+from nerfgauge.nerf.checkpoint import LoopState
 from nerfgauge.nerf.config import LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TrainConfig, resolve, upsample_count
 from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
+from nerfgauge.nerf.grid_field import node_mask
+from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite
 from tqdm import tqdm
@@ -121,21 +125,21 @@ def psnr_on_white(model, rays, device, max_rays: int) -> float:
     return float((-10 * torch.log10(per_view)).mean())
 
 
-def projected_steps_at_finer(config: TrainConfig, state: dict) -> float | None:
+def projected_steps_at_finer(config: TrainConfig, state: LoopState) -> float | None:
     """Steps a time budget would still give the next stage's finer grid: the current
     stage's step rate, slowed by the resolution ratio, times the seconds left. None for a
     --steps run (its schedule is fixed by the step count, so it stays reproducible) and
     for the vanilla model; None too for growths before the last BUDGET_DECIDES_LAST_GROWTHS
     and outside BUDGET_DECIDES_IN (those always happen)."""
-    if config.budget_seconds is None or config.model != "compact" or state["stage_seconds"] <= 0:
+    if config.budget_seconds is None or config.model != "compact" or state.stage_seconds <= 0:
         return None
     if config.parametrisation not in BUDGET_DECIDES_IN:
         return None
-    if state["stage"] < upsample_count(config.start_resolution, config.final_resolution) - BUDGET_DECIDES_LAST_GROWTHS:
+    if state.stage < upsample_count(config.start_resolution, config.final_resolution) - BUDGET_DECIDES_LAST_GROWTHS:
         return None
-    current, finer = resolution_at(config, state["stage"]), resolution_at(config, state["stage"] + 1)
-    rate = state["stage_steps"] / state["stage_seconds"] * current / finer
-    return rate * max(config.budget_seconds - state["seconds"], 0.0)
+    current, finer = resolution_at(config, state.stage), resolution_at(config, state.stage + 1)
+    rate = state.stage_steps / state.stage_seconds * current / finer
+    return rate * max(config.budget_seconds - state.seconds, 0.0)
 
 
 def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int, int]:
@@ -166,22 +170,14 @@ def resolution_at(config: TrainConfig, stage: int) -> int:
     return int(round(config.start_resolution * ratio ** (stage / stages)))
 
 
-def make_optimizer(model, config: TrainConfig):
-    from nerfgauge.nerf.models import CompactNeRF
-
-    if isinstance(model, CompactNeRF):
-        groups = [{"params": model.field.grid_parameters(), "lr": config.lr, "base_lr": config.lr}]
-        if model.field.head is not None:
-            groups.append({"params": model.field.head.parameters(), "lr": config.lr_mlp, "base_lr": config.lr_mlp})
-        return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
-    return torch.optim.Adam([{"params": model.parameters(), "lr": 5e-4, "base_lr": 5e-4}])
+def make_optimizer(model: RadianceModel, config: TrainConfig) -> torch.optim.Adam:
+    """Adam over the model's parameter groups, each starting at its base learning rate."""
+    return torch.optim.Adam(model.parameter_groups(config.lr, config.lr_mlp), **model.adam_options)
 
 
-def free_unoccupied(model, optimizer) -> None:
+def free_unoccupied(model: CompactNeRF, optimizer: torch.optim.Adam) -> None:
     """Free the grid rows of nodes that no occupied (and visible) cell touches, so storage
     and each Adam step shrink with the scene; Adam's moments move along with their rows."""
-    from nerfgauge.nerf.grid_field import node_mask
-
     old = model.field.grid_parameters()
     rows = model.field.keep_rows(node_mask(model.occupancy))
     new = {id(before): after for before, after in zip(old, model.field.grid_parameters())}
@@ -294,33 +290,60 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, overwrite: bool
         return _train_in(run_dir, config, reasons, recipe, aabb, train_rays, val_rays, device, saved, progress)
 
 
-def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, aabb, train_rays, val_rays, device,
-              saved: dict | None, progress: bool) -> dict:
-    """The loop, in a claimed run folder; from `saved` (a checked checkpoint) when given."""
-    torch.set_num_threads(config.threads)
-    aabb, space = aabb
+@dataclass
+class Training:
+    """What one training step reads and updates: the model, its optimiser (replaced when
+    the grid grows), the ray-sampling generator and the loop's counters. All of it is in
+    checkpoint.pt, so a resumed run continues exactly."""
+
+    model: RadianceModel
+    optimizer: torch.optim.Adam
+    generator: torch.Generator
+    loop: LoopState
+
+
+def _start_training(run_dir: Path, config: TrainConfig, aabb, space, device, saved: dict | None) -> Training:
+    """A new run's model, optimiser and generator from the config's seeds, or a resumed
+    run's from its checked checkpoint `saved`."""
     generator = torch.Generator(device="cpu").manual_seed(config.seed)
-    # Loop state (all in checkpoint.pt): steps and training seconds done, the training
-    # second of the next val PSNR point, visibility measurements and upsamplings done,
-    # steps at this resolution, and the step of the last log entry.
-    # stage_seconds: training seconds at this resolution; last_stage: the finest stage the
-    # run will take (a time budget stops growing when a finer grid could not be trained).
-    state = {"step": 0, "seconds": 0.0, "next_eval": 0.0, "visibility_done": 0, "stage": 0, "stage_steps": 0,
-             "logged_step": -1, "stage_seconds": 0.0,
-             "last_stage": upsample_count(config.start_resolution, config.final_resolution)}
+    loop = LoopState(last_stage=upsample_count(config.start_resolution, config.final_resolution))
     if saved is not None:
         path = run_dir / CHECKPOINT
         model = checkpoint.restore_model(saved, config, aabb, path, space=space).to(device)
         optimizer = make_optimizer(model, config)
         checkpoint.restore_optimizer(optimizer, saved["optimizer"], path)
         checkpoint.restore_generator(generator, saved["generator"], path)
-        state.update(saved["loop"])
-        _truncate_log(run_dir / LOG, state["step"])
+        return Training(model, optimizer, generator, LoopState.from_saved(saved["loop"]))
+    torch_init = torch.Generator().manual_seed(config.seed + 1)
+    init_seed = int(torch.randint(2**31, (1,), generator=torch_init))
+    model = checkpoint.build_model(config, aabb, init_seed=init_seed, space=space).to(device)
+    return Training(model, make_optimizer(model, config), generator, loop)
+
+
+def _measure_visibility(training: Training, train_rays, device) -> None:
+    """Mark the grid cells training rays can see; with a sparse grid, free the rest."""
+    model = training.model
+    probe = max(1, train_rays.origins.shape[0] // VISIBILITY_PROBE_RAYS)
+    samples_per_ray = model.samples_per_ray(train_rays.origins[::probe].to(device),
+                                            train_rays.directions[::probe].to(device))
+    stride, block = visibility_sampling(train_rays.origins.shape[0], samples_per_ray)
+    model.measure_visibility(train_rays.origins[::stride].to(device), train_rays.directions[::stride].to(device),
+                             block=block)
+    if model.sparse:
+        free_unoccupied(model, training.optimizer)
+
+
+def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, aabb, train_rays, val_rays, device,
+              saved: dict | None, progress: bool) -> dict:
+    """The loop, in a claimed run folder; from `saved` (a checked checkpoint) when given.
+    progress: show a progress bar."""
+    torch.set_num_threads(config.threads)
+    aabb, space = aabb
+    training = _start_training(run_dir, config, aabb, space, device, saved)
+    model, state = training.model, training.loop
+    if saved is not None:
+        _truncate_log(run_dir / LOG, state.step)
     else:
-        torch_init = torch.Generator().manual_seed(config.seed + 1)
-        init_seed = int(torch.randint(2**31, (1,), generator=torch_init))
-        model = checkpoint.build_model(config, aabb, init_seed=init_seed, space=space).to(device)
-        optimizer = make_optimizer(model, config)
         write_bytes_atomic(run_dir / LOG, b"")
     # config.json states this attempt's settings (the stopping rule may have changed)
     write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
@@ -331,106 +354,109 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     # A time budget advances the bar in training seconds; steps/s and PSNR ride in the postfix.
     time_format = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
     bar = tqdm(total=total, unit="step" if config.steps else "s", desc=f"train {config.model}",
-               disable=not progress, dynamic_ncols=True, initial=state["step"] if config.steps else 0,
+               disable=not progress, dynamic_ncols=True, initial=state.step if config.steps else 0,
                bar_format=None if config.steps else time_format)
     last_psnr = float("nan")
     losses = []  # since the last log entry
     # the step of the checkpoint on disk, and when (wall clock) it was written
-    checkpointed_step = state["step"] if saved is not None else None
+    checkpointed_step = state.step if saved is not None else None
     last_checkpoint = time.monotonic() if saved is not None else -math.inf
     try:
         while True:
-            done = state["step"] / config.steps if config.steps else state["seconds"] / config.budget_seconds
-            if hasattr(model, "measure_visibility") and state["visibility_done"] < len(VISIBILITY_AT) \
-                    and done >= VISIBILITY_AT[state["visibility_done"]]:
+            fraction_done = state.step / config.steps if config.steps else state.seconds / config.budget_seconds
+            if model.has_grid and state.visibility_done < len(VISIBILITY_AT) \
+                    and fraction_done >= VISIBILITY_AT[state.visibility_done]:
                 start = time.perf_counter()
-                probe = max(1, train_rays.origins.shape[0] // VISIBILITY_PROBE_RAYS)
-                samples_per_ray = model.samples_per_ray(train_rays.origins[::probe].to(device),
-                                                        train_rays.directions[::probe].to(device))
-                stride, block = visibility_sampling(train_rays.origins.shape[0], samples_per_ray)
-                model.measure_visibility(train_rays.origins[::stride].to(device),
-                                         train_rays.directions[::stride].to(device), block=block)
-                if model.sparse:
-                    free_unoccupied(model, optimizer)
-                state["visibility_done"] += 1
-                state["seconds"] += time.perf_counter() - start  # part of training: it speeds it up
+                _measure_visibility(training, train_rays, device)
+                state.visibility_done += 1
+                state.seconds += time.perf_counter() - start  # part of training: it speeds it up
             # Val PSNR points are scheduled on training seconds; they only read the model
             # (no generator, no parameter, no cached state the step uses), so where they
             # fall never changes a steps-run's trajectory.
-            if state["logged_step"] != state["step"] and (state["seconds"] >= state["next_eval"] or done >= 1):
+            if state.logged_step != state.step and (state.seconds >= state.next_eval or fraction_done >= 1):
                 last_psnr = psnr_on_white(model, val_rays, device, config.eval_rays)
-                entry = {"step": state["step"], "seconds": round(state["seconds"], 3), "val_psnr": last_psnr,
-                         "steps_per_second": state["step"] / max(state["seconds"], 1e-9),
+                entry = {"step": state.step, "seconds": round(state.seconds, 3), "val_psnr": last_psnr,
+                         "steps_per_second": state.step / max(state.seconds, 1e-9),
                          "loss": sum(losses) / len(losses) if losses else None}
                 losses.clear()
-                if hasattr(model, "occupancy"):
+                if model.has_grid:
                     entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean()),
-                              "final_resolution": resolution_at(config, state["last_stage"])}
+                              "final_resolution": resolution_at(config, state.last_stage)}
                 log.write(json.dumps(entry) + "\n"), log.flush()
-                state["next_eval"] = state["seconds"] + config.eval_every_seconds
-                state["logged_step"] = state["step"]
+                state.next_eval = state.seconds + config.eval_every_seconds
+                state.logged_step = state.step
                 bar.set_postfix(psnr=f"{last_psnr:.2f}", steps_per_s=f"{entry['steps_per_second']:.1f}", refresh=False)
             if config.checkpoint_every is not None:
-                due = state["step"] % config.checkpoint_every == 0
+                due = state.step % config.checkpoint_every == 0
             else:
                 due = time.monotonic() - last_checkpoint >= CHECKPOINT_EVERY_WALL_SECONDS
-            if (due or done >= 1) and checkpointed_step != state["step"]:
-                _save_checkpoint(run_dir, model, optimizer, config, recipe, generator, state)
-                checkpointed_step, last_checkpoint = state["step"], time.monotonic()
-            if done >= 1:
+            if (due or fraction_done >= 1) and checkpointed_step != state.step:
+                _save_checkpoint(run_dir, training, config, recipe)
+                checkpointed_step, last_checkpoint = state.step, time.monotonic()
+            if fraction_done >= 1:
                 break
             start = time.perf_counter()
-            if state["stage"] < state["last_stage"] and done >= upsample_at(config, state["stage"]) \
-                    and state["stage_steps"] >= MIN_STAGE_STEPS:
+            if state.stage < state.last_stage and fraction_done >= upsample_at(config, state.stage) \
+                    and state.stage_steps >= MIN_STAGE_STEPS:
                 projected = projected_steps_at_finer(config, state)
                 if projected is not None and projected < MIN_STEPS_AT_FINER:
-                    state["last_stage"] = state["stage"]
+                    state.last_stage = state.stage
                     if progress:
                         tqdm.write(f"keeping the {model.field.resolution}-voxel grid: the budget would give a "
-                                   f"{resolution_at(config, state['stage'] + 1)}-voxel one about {projected:.0f} "
+                                   f"{resolution_at(config, state.stage + 1)}-voxel one about {projected:.0f} "
                                    f"steps (< {MIN_STEPS_AT_FINER})")
                 else:
-                    state["stage"] += 1
-                    state["stage_steps"], state["stage_seconds"] = 0, 0.0
-            loss, gradients_finite = _train_step(model, optimizer, config, train_rays, n_rays, generator, device,
-                                                 done, state)
+                    state.stage += 1
+                    state.stage_steps, state.stage_seconds = 0, 0.0
+            loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done)
             if not (math.isfinite(loss) and gradients_finite):
                 raise NumericalError(
-                    f"training diverged at step {state['step']}: loss {loss}, gradients "
+                    f"training diverged at step {state.step}: loss {loss}, gradients "
                     f"{'finite' if gradients_finite else 'not finite'}; the parameters were not updated and "
                     f"{run_dir / CHECKPOINT} holds the last saved state")
             losses.append(loss)
             elapsed = time.perf_counter() - start
-            state["step"] += 1
-            state["stage_steps"] += 1
-            state["stage_seconds"] += elapsed
-            state["seconds"] += elapsed
+            state.step += 1
+            state.stage_steps += 1
+            state.stage_seconds += elapsed
+            state.seconds += elapsed
             bar.update(1 if config.steps else min(elapsed, total - bar.n))
     finally:
         bar.close()
         log.close()
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
-    return {"steps": state["step"], "seconds": state["seconds"], "val_psnr": last_psnr, "model_bytes": size,
-            "resolution": getattr(getattr(model, "field", None), "resolution", None)}
+    return {"steps": state.step, "seconds": state.seconds, "val_psnr": last_psnr, "model_bytes": size,
+            "resolution": model.field.resolution if model.has_grid else None}
 
 
-def _train_step(model, optimizer, config, rays, n_rays, generator, device, progress, state):
-    from nerfgauge.nerf.models import CompactNeRF
+def _grow_grid(training: Training, config: TrainConfig) -> None:
+    """Coarse to fine: upsample the grid to its stage's resolution when it is not there
+    yet, and give Adam the new parameters (fresh moments) at the current learning rates."""
+    model = training.model
+    wanted = resolution_at(config, training.loop.stage)
+    if wanted == model.field.resolution:
+        return
+    model.upsample(wanted)
+    rates = [group["lr"] for group in training.optimizer.param_groups]
+    training.optimizer = make_optimizer(model, config)
+    for group, rate in zip(training.optimizer.param_groups, rates):
+        group["lr"] = rate
 
-    compact = isinstance(model, CompactNeRF)
-    if compact:
-        wanted = resolution_at(config, state["stage"])
-        if wanted != model.field.resolution:
-            model.upsample(wanted)
-            lrs = [group["lr"] for group in optimizer.param_groups]
-            optimizer.__init__(make_optimizer(model, config).param_groups, **optimizer.defaults)
-            for group, lr in zip(optimizer.param_groups, lrs):
-                group["lr"] = lr
+
+def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,
+                fraction_done: float) -> tuple[float, bool]:
+    """One optimiser step on `n_rays` random training rays. fraction_done: of the steps or
+    the budget, in [0, 1), which the learning rate decays with. Returns (loss, whether every
+    gradient was finite); a step with a non-finite gradient leaves the parameters alone."""
+    model, generator, state = training.model, training.generator, training.loop
+    if model.has_grid:
+        _grow_grid(training, config)
         # all cells live while coarse, unless the budget keeps the start grid to the end
-        if state["step"] % OCCUPANCY_EVERY == 0 and (state["stage"] >= 1 or state["last_stage"] == 0):
+        if state.step % OCCUPANCY_EVERY == 0 and (state.stage >= 1 or state.last_stage == 0):
             model.update_occupancy()
+    optimizer = training.optimizer
     for group in optimizer.param_groups:
-        group["lr"] = group["base_lr"] * LR_FINAL_FRACTION ** progress
+        group["lr"] = group["base_lr"] * LR_FINAL_FRACTION ** fraction_done
     index = torch.randint(rays.origins.shape[0], (n_rays,), generator=generator)
     origins, directions, rgba = (t[index].to(device) for t in (rays.origins, rays.directions, rays.rgba))
     if config.background == "random":
@@ -478,6 +504,6 @@ def _truncate_log(path: Path, last_step: int) -> None:
     write_bytes_atomic(path, "".join(line + "\n" for line in kept).encode())
 
 
-def _save_checkpoint(run_dir, model, optimizer, config, recipe, generator, state):
-    checkpoint.save_atomic(checkpoint.training_checkpoint(model, optimizer, generator, config, recipe, state),
-                           run_dir / CHECKPOINT)
+def _save_checkpoint(run_dir: Path, training: Training, config: TrainConfig, recipe: dict) -> None:
+    checkpoint.save_atomic(checkpoint.training_checkpoint(training.model, training.optimizer, training.generator,
+                                                          config, recipe, training.loop), run_dir / CHECKPOINT)

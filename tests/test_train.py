@@ -208,12 +208,15 @@ def test_projected_steps_at_the_finer_grid_follow_rate_resolution_and_time_left(
     """A budget run projects the next stage's steps as the current stage's rate, slowed by
     the resolution ratio (samples per ray grow with it), times the seconds left; a --steps
     run never projects (its schedule stays reproducible)."""
+    import dataclasses
+
+    from nerfgauge.nerf.checkpoint import LoopState
     from nerfgauge.nerf.config import TrainConfig
     from nerfgauge.nerf.train import projected_steps_at_finer, resolution_at
 
     config = TrainConfig("d", budget_seconds=120.0, final_resolution=108, start_resolution=27,
                          parametrisation="bounded")
-    state = {"stage": 2, "stage_steps": 200, "stage_seconds": 10.0, "seconds": 36.0}
+    state = LoopState(stage=2, stage_steps=200, stage_seconds=10.0, seconds=36.0)
     current, finer = resolution_at(config, 2), resolution_at(config, 3)
     assert (current, finer) == (68, 108)  # 27 * 4^(2/3) = 68.03
     assert projected_steps_at_finer(config, state) == pytest.approx(20.0 * current / finer * 84.0)
@@ -221,10 +224,9 @@ def test_projected_steps_at_the_finer_grid_follow_rate_resolution_and_time_left(
     assert projected_steps_at_finer(steps_run, state) is None
     # Growths before the last BUDGET_DECIDES_LAST_GROWTHS are not the budget's to decide.
     from nerfgauge.nerf.train import BUDGET_DECIDES_LAST_GROWTHS
-    earlier = {**state, "stage": 2 - BUDGET_DECIDES_LAST_GROWTHS}
+    earlier = dataclasses.replace(state, stage=2 - BUDGET_DECIDES_LAST_GROWTHS)
     assert projected_steps_at_finer(config, earlier) is None
     # Contracted space always takes its final grid.
-    import dataclasses
     assert projected_steps_at_finer(dataclasses.replace(config, parametrisation="contracted"), state) is None
     assert projected_steps_at_finer(dataclasses.replace(config, parametrisation="forward"), state) is not None
 

@@ -47,9 +47,9 @@ def kill_after_checkpoint(monkeypatch, step: int) -> None:
     """The next training run dies right after writing the checkpoint of `step`."""
     real = train_module._save_checkpoint
 
-    def save(run_dir, model, optimizer, config, recipe, generator, state):
-        real(run_dir, model, optimizer, config, recipe, generator, state)
-        if state["step"] == step:
+    def save(run_dir, training, config, recipe):
+        real(run_dir, training, config, recipe)
+        if training.loop.step == step:
             raise Killed
 
     monkeypatch.setattr(train_module, "_save_checkpoint", save)
