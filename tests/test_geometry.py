@@ -24,6 +24,7 @@ from nerfgauge.eval.geometry import (
     visible_in_views,
 )
 from nerfgauge.nerf.mesh import extract_mesh, seen_by_any
+from nerfgauge.nerf.models import RadianceModel
 
 SAMPLES = 100_000
 
@@ -88,8 +89,10 @@ def test_sampling_is_uniform_by_area_and_seeded():
     assert (small[:, 0] < 0.5).mean() == pytest.approx(0.5, abs=0.01)  # uniform inside a square
 
 
-class Ball(torch.nn.Module):
+class Ball(RadianceModel):
     """An analytic field: a smooth ball of radius 0.5 at the origin."""
+
+    has_density = True
 
     def density(self, points):
         return 100 * torch.sigmoid((0.5 - points.norm(dim=-1)) * 100)

@@ -21,17 +21,19 @@ from nerfgauge.cli import main
 from nerfgauge.core.camera import Intrinsics, ThinLens
 from nerfgauge.core.dataset import SplitCameras
 from nerfgauge.core.images import read_exr_single, read_png
+from nerfgauge.nerf.models import RadianceModel
 from nerfgauge.nerf.render_views import _render_into
 from test_thinlens import blur_radius_px, second_moment
 
 SIDE = 32
 
 
-class TexturedPlane:
+class TexturedPlane(RadianceModel):
     """Opaque plane z = -depth in world space (the test cameras sit at the origin looking
     down -Z); its colour at (x, y) is texture(x, y) [n] -> [n] grey. Nothing else."""
 
     def __init__(self, depth: float, texture):
+        super().__init__()
         self.depth, self.texture = depth, texture
 
     def to(self, device):
