@@ -42,6 +42,7 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 
@@ -50,7 +51,8 @@ import numpy as np
 from nerfgauge.core import dataset
 from nerfgauge.core.camera import ThinLens, camera_directions, lens_samples, pixel_rays, thin_lens_rays
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import write_json
+from nerfgauge.core.files import sha256_file, write_json
+from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
 from nerfgauge.core.images import write_png
 
 METHODS = ("nearest", "lightfield-nearest", "lightfield-quadrilinear", "refocus")
@@ -295,3 +297,25 @@ def write_baseline(root, method: str, out, split: str = "test", *, lens: ThinLen
         timing |= {"lens_samples": samples, "lens_seed": seed, "lens": None if lens is None else lens.to_json()}
     write_json(out / "timing.json", timing)
     return timing
+
+
+@contextlib.contextmanager
+def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = False, options=None):
+    """Claim `out` as a "baseline" folder (core.folders.claim_folder) for the block. Its
+    recipe is the method, the split and the dataset's content (manifest.json's hash), so a
+    rerun on the same dataset continues and another one needs overwrite."""
+    root, out = dataset.require_complete(root), Path(out)
+    recipe = recipe_hash({"method": method, "split": split, "dataset": sha256_file(root / dataset.MANIFEST)}
+                         | ({"options": options} if options else {}))
+    made = [folder for folder in (out, *out.parents) if not folder.exists()]  # what claiming creates
+    state = None
+    try:
+        with claim_folder(out, "baseline", recipe, overwrite=overwrite) as state:
+            yield state
+    except BaseException:
+        if state == "new" and made:  # the baseline failed (bad input, interrupted): leave no folder behind
+            remove_owned(out, "baseline")
+            for parent in made[1:]:
+                with contextlib.suppress(OSError):  # not empty any more: someone else's now
+                    parent.rmdir()
+        raise

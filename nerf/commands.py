@@ -1,4 +1,5 @@
-"""`nerfgauge` subcommands of the nerf stage: one `_add_<name>` and one `_run_<name>` per subcommand.
+"""`nerfgauge` subcommands of the nerf stage (train, render, toy-pe, mesh): one `_add_<name>` and
+one `_run_<name>` per subcommand.
 
 Add a subcommand by writing its pair and listing `_add_<name>` in `register`. torch is
 imported inside the run functions so `nerfgauge --help` stays instant.
@@ -6,12 +7,18 @@ imported inside the run functions so `nerfgauge --help` stays instant.
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from nerfgauge.core import arguments
 from nerfgauge.core.arguments import nonnegative_float, nonnegative_int, path, positive_float, positive_int
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_bytes_atomic
+from nerfgauge.core.folders import claim_output_file
+from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
 
 
 def register(subparsers) -> None:
-    for add in (_add_train, _add_render, _add_toy_pe):
+    for add in (_add_train, _add_render, _add_toy_pe, _add_mesh):
         add(subparsers)
 
 
@@ -176,4 +183,38 @@ def _run_render(args) -> int:
               f"{timing['ms_per_lens_frame']:.1f} ms per frame")
     print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# mesh
+
+
+def _add_mesh(subparsers) -> None:
+    mesh = subparsers.add_parser(
+        "mesh", help="a mesh (PLY) from a trained run's density by marching cubes",
+        description="Marching cubes on the field's density over the scene bounds, at the density where the model "
+                    "renders its surface on training rays; triangles no training camera sees are dropped "
+                    "(nerf/mesh.py).")
+    mesh.add_argument("run", type=arguments.path, metavar="RUN_DIR", help="a finished training run (model.pt)")
+    mesh.add_argument("-o", "--out", type=arguments.path, required=True, metavar="OUT.ply", help="mesh file to write")
+    mesh.add_argument("--resolution", type=arguments.positive_int, default=256,
+                      help="grid cells along the scene's longest side (default 256)")
+    mesh.add_argument("--no-cull", action="store_true", help="keep triangles no training camera sees")
+    mesh.add_argument("--level", type=arguments.positive_float, metavar="SIGMA",
+                      help="density of the surface (default: the median density where the model renders its "
+                           "surface on training rays)")
+    mesh.set_defaults(func=_run_mesh)
+
+
+def _run_mesh(args) -> int:
+    out = Path(args.out)
+    if out.suffix.lower() != ".ply":
+        raise InputError(f"-o {out}: the mesh is written as PLY; name it *.ply")
+    with claim_output_file(out, {"mesh": str(args.run), "resolution": args.resolution}):
+        mesh = mesh_from_run(args.run, args.resolution, cull=not args.no_cull, level=args.level)
+        write_bytes_atomic(out, ply_bytes(mesh.vertices, mesh.faces))
+    print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces ({mesh.faces_culled} unseen dropped), "
+          f"level sigma = {mesh.level:.4g} ({mesh.level_source}), {args.resolution} cells, "
+          f"{mesh.seconds:.1f} s")
     return 0

@@ -135,8 +135,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     from nerfgauge.core.folders import claim_folder
     from nerfgauge.eval.geometry import summary as geometry_summary
     from nerfgauge.nerf.mesh import NoSurface
-    from nerfgauge.eval.baselines import write_baseline
-    from nerfgauge.eval.commands import baseline_folder
+    from nerfgauge.eval.baselines import baseline_folder, write_baseline
     from nerfgauge.eval.evaluate import evaluate, format_means
     from nerfgauge.eval.report import (
         geometry_histogram,

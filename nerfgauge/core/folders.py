@@ -23,7 +23,7 @@ import shutil
 from pathlib import Path
 
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import json_bytes, read_json, write_json
+from nerfgauge.core.files import check_writable_target, json_bytes, read_json, write_json
 
 MARKER = ".nerfgauge.json"
 LOCK = ".nerfgauge.lock"
@@ -184,3 +184,13 @@ def remove_temporaries(folder) -> int:
                 (Path(parent) / name).unlink()
                 removed += 1
     return removed
+
+
+def claim_output_file(out: Path, recipe: dict):
+    """Refuse a target that is not a regular file; claim a parent folder this command
+    creates as an "evaluation" folder (marker and lock). For commands that write one file
+    (`mesh`, `geometry`)."""
+    check_writable_target(out)
+    if out.parent.exists():
+        return contextlib.nullcontext()
+    return claim_folder(out.parent, "evaluation", recipe_hash(recipe))

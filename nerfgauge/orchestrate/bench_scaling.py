@@ -4,7 +4,7 @@ the problem, measured in one run on this machine.
 - NeRF against image resolution (square, at a fixed number of train views) and against the
   number of train views (at a fixed resolution); the shared case runs once. Each case
   generates its dataset, trains `compact` for a time budget and renders and scores the test
-  views, every stage in its own process (`eval.bench.run_child`) so peak memory is its own.
+  views, every stage in its own process (`orchestrate.bench.run_child`) so peak memory is its own.
   Time to the target PSNR is the first training-clock second whose logged val PSNR reaches
   it (logged every `EVAL_EVERY_SECONDS` training seconds, so it is an upper bound within that).
 - Generation against views (at a fixed spp) and against spp (at a fixed number of views),
@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.eval.bench import claim_bench_folder, first_time_reaching, run_child, write_png_figure
+from nerfgauge.orchestrate.bench import claim_bench_folder, first_time_reaching, run_child, write_png_figure
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic, write_json

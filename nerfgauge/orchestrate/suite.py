@@ -103,7 +103,7 @@ class Suite:
 
 def builtin_suites() -> dict:
     """{name: path-like} of the suites shipped with nerfgauge."""
-    folder = importlib.resources.files("nerfgauge.suites")
+    folder = importlib.resources.files("nerfgauge.orchestrate.suites")
     return {item.name[:-5]: item for item in sorted(folder.iterdir(), key=lambda i: i.name) if item.name.endswith(".toml")}
 
 

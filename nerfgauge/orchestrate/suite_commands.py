@@ -1,5 +1,5 @@
-"""`nerfgauge suite`: benchmark suites (eval/suite.py), run (eval/suite_run.py) and the
-leaderboard (eval/suite_report.py).
+"""`nerfgauge suite`: benchmark suites (nerfgauge/orchestrate/suite.py), run (nerfgauge/orchestrate/suite_run.py) and the
+leaderboard (nerfgauge/orchestrate/suite_report.py).
 
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
@@ -52,7 +52,7 @@ def register(subparsers) -> None:
 
 
 def run_list(args) -> int:
-    from nerfgauge.eval.suite import builtin_suites, load_suite
+    from nerfgauge.orchestrate.suite import builtin_suites, load_suite
 
     for name in builtin_suites():
         suite = load_suite(name)
@@ -61,7 +61,7 @@ def run_list(args) -> int:
 
 
 def run_generate(args) -> int:
-    from nerfgauge.eval.suite import generate_suite, load_suite
+    from nerfgauge.orchestrate.suite import generate_suite, load_suite
 
     suite = load_suite(args.suite)
     manifest = generate_suite(suite, args.out, overwrite=args.overwrite, progress=args.progress,
@@ -73,7 +73,7 @@ def run_generate(args) -> int:
 
 
 def run_evaluate(args) -> int:
-    from nerfgauge.eval.suite import evaluate_suite, load_suite
+    from nerfgauge.orchestrate.suite import evaluate_suite, load_suite
 
     suite = load_suite(args.suite)
     result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format)
@@ -82,16 +82,16 @@ def run_evaluate(args) -> int:
 
 
 def run_run(args) -> int:
-    from nerfgauge.eval.suite import load_suite
-    from nerfgauge.eval.suite_run import run_suite
+    from nerfgauge.orchestrate.suite import load_suite
+    from nerfgauge.orchestrate.suite_run import run_suite
 
     run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress)
     return 0
 
 
 def run_report(args) -> int:
-    from nerfgauge.eval.suite import suite_from_folder
-    from nerfgauge.eval.suite_report import write_leaderboard
+    from nerfgauge.orchestrate.suite import suite_from_folder
+    from nerfgauge.orchestrate.suite_report import write_leaderboard
 
     write_leaderboard(suite_from_folder(args.dir), args.dir)
     return 0

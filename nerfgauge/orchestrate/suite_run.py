@@ -2,14 +2,14 @@
 suite, each stage through its public function (generate, nerf train and render, eval
 baselines and evaluate), then the leaderboard.
 
-    DIR/                          the suite folder (eval.suite): datasets, suite manifest
+    DIR/                          the suite folder (orchestrate.suite): datasets, suite manifest
     DIR/runs/<id>/                our NeRF's training run on dataset <id>
     DIR/predictions/<method>/<id>/ renders of every method (ours: renders folder; baselines)
     DIR/predictions/<method>/suite.json  which suite they were made for
-    DIR/results/<method>/         `suite evaluate` of those predictions (eval.suite)
-    DIR/leaderboard.{md,html,json}, DIR/report/<id>/report.html (eval.suite_report)
+    DIR/results/<method>/         `suite evaluate` of those predictions (orchestrate.suite)
+    DIR/leaderboard.{md,html,json}, DIR/report/<id>/report.html (orchestrate.suite_report)
 
-Datasets are resumed (eval.suite.generate_suite); training, renders and baselines are made
+Datasets are resumed (orchestrate.suite.generate_suite); training, renders and baselines are made
 again on every run (their folders are ours and replaced through their markers).
 """
 
@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from nerfgauge.core.files import write_json
-from nerfgauge.eval.suite import SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
+from nerfgauge.orchestrate.suite import SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
 
 OURS = "compact-nerf"
 
@@ -32,9 +32,8 @@ def methods_for(suite: Suite, layout: str) -> list[str]:
 def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print) -> dict:
     """Generate, train, render, baselines, evaluate, leaderboard. Returns the leaderboard."""
     from nerfgauge.core.dataset import read_scene_json
-    from nerfgauge.eval.baselines import write_baseline
-    from nerfgauge.eval.commands import baseline_folder
-    from nerfgauge.eval.suite_report import write_leaderboard
+    from nerfgauge.eval.baselines import baseline_folder, write_baseline
+    from nerfgauge.orchestrate.suite_report import write_leaderboard
     from nerfgauge.nerf.config import TrainConfig
     from nerfgauge.nerf.render_views import render_split
     from nerfgauge.nerf.train import train

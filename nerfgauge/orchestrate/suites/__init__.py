@@ -1,1 +1,1 @@
-"""Benchmark suite definitions (*.toml), shipped as package data: nerfgauge.eval.suite reads them."""
+"""Benchmark suite definitions (*.toml), shipped as package data: nerfgauge.orchestrate.suite reads them."""
