@@ -56,7 +56,7 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.core.camera import pixel_rays
+from nerfgauge.core.camera import pixel_coordinates, pixel_rays
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 
@@ -247,8 +247,6 @@ def seen_in_view(xyz: np.ndarray, nrm: np.ndarray, pose: np.ndarray, intrinsics,
     sees, by the depth test of the module docstring. Returns their indices [k] int64.
     The normal-dependent tolerance is only computed for samples within the widest
     tolerance (the grazing cap) of the recorded depth."""
-    from nerfgauge.nerf.mesh import pixel_coordinates
-
     cap = math.tan(math.radians(GRAZING_CAP_DEGREES))
     half_pixel = math.sqrt(2) / (2 * max(intrinsics.fx, intrinsics.fy))
     widest = half_pixel * cap + 1e-5  # tolerance / distance at the grazing cap

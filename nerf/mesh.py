@@ -17,8 +17,8 @@ reach it (measured: 113 steps on primitives, median 3.0 at the rendered surface,
 sees (behind every camera or outside every image) are dropped: the field there was never
 constrained.
 
-torch is imported inside the functions that use it: `nerfgauge geometry` uses `project`
-and should not pay torch's import.
+torch is imported inside the functions that use it, so `nerfgauge --help` and the `mesh`
+command's argument errors do not pay torch's import.
 
 Faces are oriented with their normals pointing out of the dense region (towards
 decreasing density), as the ground-truth meshes' are.
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.camera import Intrinsics, project
 from nerfgauge.core.errors import InputError
 
 OPACITY_LEVEL = 0.5  # opacity over one voxel of the fixed level, and the least opacity of a calibration ray
@@ -58,28 +58,6 @@ class ExtractedMesh:
     box: np.ndarray
     faces_culled: int
     seconds: float
-
-
-def pixel_coordinates(x: np.ndarray, y: np.ndarray, z: np.ndarray, intrinsics: Intrinsics
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates u, v [n] of points given in camera axes x, y, z [n] (OpenGL: the
-    camera looks down -z; camera.pixel_rays' convention: pixel (row i, col j) covers
-    [j, j + 1) x [i, i + 1) in (u, v)). NaN for points not in front of the camera."""
-    ahead = -z
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inverse = np.where(ahead > 0, 1.0 / ahead, np.nan)
-    return intrinsics.cx + intrinsics.fx * x * inverse, intrinsics.cy - intrinsics.fy * y * inverse
-
-
-def project(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel coordinates of world points in one camera (see pixel_coordinates).
-
-    points [n, 3], c2w [4, 4]. Returns u, v [n] (NaN behind the camera) and the distance
-    from the camera centre [n]."""
-    c2w = np.asarray(c2w, np.float64)
-    local = (np.asarray(points, np.float64) - c2w[:3, 3]) @ c2w[:3, :3]  # [n, 3] camera axes
-    u, v = pixel_coordinates(local[:, 0], local[:, 1], local[:, 2], intrinsics)
-    return u, v, np.linalg.norm(local, axis=1)
 
 
 def seen_by_any(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:

@@ -28,7 +28,8 @@ import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
 from nerfgauge.nerf.data import split_rays
-from nerfgauge.nerf.train import pick_device, render_rays_chunked
+from nerfgauge.nerf.rendering import render_rays_chunked
+from nerfgauge.nerf.train import pick_device
 from tqdm import tqdm
 
 from nerfgauge.core.camera import lens_samples, thin_lens_rays
