@@ -73,7 +73,7 @@ def register_evaluate(subparsers) -> None:
                         help="what predicted depth holds: ray distance (default) or z-depth")
     parser.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
                         default="auto", help="how DIR names its files: ours, ns-render dataset output, NerfBaselines "
-                                             "predictions, or a plain folder of images (default: detect; eval/foreign.py)")
+                                             "predictions, or a plain folder of images (default: detect; eval/predictions.py)")
     parser.add_argument("--no-held-out", dest="held_out", action="store_false",
                         help="skip the co-visible and depth-resolved scores (psnr_covisible, psnr_capture_bound, "
                              "depth_absrel_resolved): "

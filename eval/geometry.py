@@ -59,6 +59,7 @@ import numpy as np
 from nerfgauge.core.camera import pixel_coordinates, pixel_rays
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
+from nerfgauge.eval.predictions import DEPTH_SUFFIXES, read_plane
 
 SCHEMA = 1
 DEFAULT_TAU_FRACTIONS = (0.005, 0.01)
@@ -278,8 +279,6 @@ def depth_points(ds: Dataset, pred_dir, split: str = "test") -> tuple[np.ndarray
     `nerfgauge evaluate` finds them: DIR/<split>/r_007_depth.exr or DIR/r_007_depth.exr,
     .exr or .npy, or _distance). Pixels with depth 0 are misses. Returns points [n, 3]
     and the files read."""
-    from nerfgauge.eval.evaluate import DEPTH_SUFFIXES, read_plane
-
     pred_dir = Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")

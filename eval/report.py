@@ -131,8 +131,9 @@ def held_out_overlay(gt: np.ndarray, held_out, hit: np.ndarray) -> np.ndarray:
 
 def _pred_rgb(pred_dir: Path, stem: str, intrinsics, background) -> np.ndarray:
     """The prediction of `stem` composited onto the background, [H, W, 3], whatever its
-    format (eval.evaluate / eval.foreign find it)."""
-    from nerfgauge.eval.evaluate import composite, find_prediction, read_colour
+    format (eval.predictions finds it)."""
+    from nerfgauge.eval.metrics import composite
+    from nerfgauge.eval.predictions import find_prediction, read_colour
 
     files = find_prediction(pred_dir, stem, "distance")
     if files is None:

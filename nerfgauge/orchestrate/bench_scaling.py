@@ -179,7 +179,8 @@ def psnr_at_common_resolution(data: Path, pred_dir: Path, factor: int, split: st
     same coarse pixels, so a finer capture is compared on what both resolve, not penalised
     for the detail only its own ground truth holds."""
     from nerfgauge.core import dataset
-    from nerfgauge.eval.evaluate import BACKGROUNDS, composited_pair, find_nerfgauge_predictions
+    from nerfgauge.eval.evaluate import BACKGROUNDS, composited_pair
+    from nerfgauge.eval.predictions import find_nerfgauge_predictions
     from nerfgauge.eval.metrics import area_average, psnr
 
     ds = dataset.Dataset(data)

@@ -146,7 +146,8 @@ def _check_fields(values: dict, allowed: set, where: str) -> None:
 
 def parse_suite(data: dict, source: str) -> Suite:
     from nerfgauge.eval.baselines import METHODS
-    from nerfgauge.eval.evaluate import BACKGROUNDS, DEPTH_SUFFIXES
+    from nerfgauge.eval.evaluate import BACKGROUNDS
+    from nerfgauge.eval.predictions import DEPTH_SUFFIXES
     from nerfgauge.generate.pipeline import GenerateConfig
     from nerfgauge.nerf.config import TrainConfig
     from nerfgauge.scenes.registry import RECIPES
