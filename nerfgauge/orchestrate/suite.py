@@ -53,6 +53,7 @@ SUITE_FILE = "suite.json"
 SUITE_MANIFEST = "suite-manifest.json"
 RESULT_FILE = "result.json"
 SCHEMA = 1
+OURS = "compact-nerf"  # our NeRF's name on the leaderboard (suite run)
 REQUIRED = {"dataset": ("width", "height", "views", "test_views", "spp"), "train": ("steps",),
             "protocol": ("split", "background", "depth_kind")}
 PROTOCOL_KEYS = {"split": str, "background": str, "depth_kind": str, "baselines": list, "geometry": dict}

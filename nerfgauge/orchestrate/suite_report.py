@@ -17,7 +17,7 @@ import math
 from pathlib import Path
 
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
-from nerfgauge.orchestrate.suite import Suite, dataset_dir, read_results
+from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results
 
 GEOMETRY_COLUMNS = ("geometry_chamfer_l1", "geometry_fscore_1pct", "normal_angle_mean")
 COST_COLUMNS = ("train_seconds", "model_bytes", "ms_per_frame")
@@ -149,7 +149,6 @@ def scene_report(suite: Suite, out: Path, entry, board: dict):
     """report/<id>/report.html: our NeRF against the baselines on one dataset, when our
     NeRF's renders are in the suite folder (suite run). Returns its path or None."""
     from nerfgauge.eval.report import write_report
-    from nerfgauge.orchestrate.suite_run import OURS
 
     renders = out / "predictions" / OURS / entry.id
     if OURS not in board["methods"] or entry.id not in board["methods"][OURS]["scenes"] or not renders.is_dir():

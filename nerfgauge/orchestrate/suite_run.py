@@ -19,10 +19,7 @@ import time
 from pathlib import Path
 
 from nerfgauge.core.files import write_json
-from nerfgauge.orchestrate.suite import SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
-
-OURS = "compact-nerf"
-
+from nerfgauge.orchestrate.suite import OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
 
 def methods_for(suite: Suite, layout: str) -> list[str]:
     """The suite's baselines that apply to a dataset of `layout`."""
