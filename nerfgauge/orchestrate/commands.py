@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from nerfgauge.core import arguments
-from nerfgauge.generate.commands import parse_resolution
+from nerfgauge.generate.options import parse_resolution
 from nerfgauge.orchestrate import suite_commands
 from nerfgauge.orchestrate.bench import VARIANTS, bench_generate, bench_train, speedups, table_markdown
 from nerfgauge.orchestrate.bench_hard import HardConfig, bench_hard, table_markdown as hard_table_markdown
