@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 from nerfgauge.scenes import library
-from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, read_asset, with_texture_period
+from nerfgauge.scenes.asset_reader import read_asset
+from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, with_texture_period
 from nerfgauge.scenes.envmap import EnvironmentMap, read_envmap
 from nerfgauge.scenes.description import Scene, build_scene
 from nerfgauge.scenes.hard import HARD_RECIPES
