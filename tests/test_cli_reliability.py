@@ -230,12 +230,12 @@ def test_a_real_read_only_folder_is_one_line(tiny_dataset, predictions, tmp_path
 def test_a_huge_allocation_is_one_line(tiny_dataset, predictions, monkeypatch, capsys):
     import numpy as np
 
-    import nerfgauge.eval.evaluate as evaluate_module
+    import nerfgauge.eval.commands as eval_commands  # the `evaluate` command's own reference
 
     def huge(*args, **kwargs):
         return np.ones((1 << 27, 1 << 20))  # 1 PiB: more than any machine's address space holds
 
-    monkeypatch.setattr(evaluate_module, "evaluate", huge)
+    monkeypatch.setattr(eval_commands, "evaluate", huge)
     assert main(["evaluate", str(tiny_dataset), "--pred", str(predictions)]) == 2
     assert "out of memory: Unable to allocate" in one_error_line(capsys, "evaluate")
 
