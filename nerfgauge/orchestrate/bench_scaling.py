@@ -36,6 +36,13 @@ from nerfgauge.orchestrate.bench import claim_bench_folder, first_time_reaching,
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.core.folders import remove_owned
+from nerfgauge.core import dataset
+from nerfgauge.eval.evaluate import BACKGROUNDS, composited_pair, evaluate
+from nerfgauge.eval.metrics import area_average, psnr
+from nerfgauge.eval.predictions import find_nerfgauge_predictions
+from nerfgauge.eval.report import read_log
+from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.scenes import make_scene
 
 EVAL_EVERY_SECONDS = 2.0  # val PSNR log spacing (training seconds): the resolution of time-to-target
 MODEL = "compact"
@@ -78,9 +85,6 @@ class ScalingConfig:
         for flag, value in {"budget-seconds": self.budget_seconds, "target-psnr": self.target_psnr}.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise InputError(f"--{flag} must be a positive number, got {value!r}")
-        from nerfgauge.generate.pipeline import GenerateConfig
-        from nerfgauge.scenes import make_scene
-
         make_scene(self.scene, 0)  # unknown names and unreadable meshes raise InputError
         try:  # the generator's own limits (e.g. image size)
             for resolution, views, _ in self.nerf_cases():
@@ -135,9 +139,6 @@ def _finite(value):
 
 def nerf_case(config: ScalingConfig, out: Path, resolution: int, views: int, axes: tuple) -> dict:
     """Generate, train, render and score one (resolution, views) case; a row (with "error" on failure)."""
-    from nerfgauge.eval.evaluate import evaluate
-    from nerfgauge.eval.report import read_log
-
     name = f"{config.scene.replace('/', '_').replace(':', '_')}-{resolution}x{resolution}-{views}v"
     data, run = out / "datasets" / name, out / "runs" / f"{name}-{config.budget_seconds:g}s"
     # this case's own folders from an earlier run: start fresh, or times would lie (only through their markers)
@@ -178,11 +179,6 @@ def psnr_at_common_resolution(data: Path, pred_dir: Path, factor: int, split: st
     by `factor` (composited on white first): every case of a resolution ladder scored on the
     same coarse pixels, so a finer capture is compared on what both resolve, not penalised
     for the detail only its own ground truth holds."""
-    from nerfgauge.core import dataset
-    from nerfgauge.eval.evaluate import BACKGROUNDS, composited_pair
-    from nerfgauge.eval.predictions import find_nerfgauge_predictions
-    from nerfgauge.eval.metrics import area_average, psnr
-
     ds = dataset.Dataset(data)
     cameras = ds.cameras(split)
     scores = []
@@ -196,8 +192,6 @@ def psnr_at_common_resolution(data: Path, pred_dir: Path, factor: int, split: st
 
 def generation_case(scene: str, views: int, spp: int, resolution: int, axes: tuple, scratch: Path) -> dict:
     """Time `generate.pipeline.generate` of `views` train views (no val/test) into a fresh folder."""
-    from nerfgauge.generate.pipeline import GenerateConfig, generate
-
     config = GenerateConfig(scene=scene, views=views, val_views=0, test_views=0, width=resolution, height=resolution,
                             spp=spp)
     with tempfile.TemporaryDirectory(dir=scratch) as folder:

@@ -19,6 +19,7 @@ from nerfgauge.orchestrate.bench_hard import HardConfig, bench_hard, table_markd
 from nerfgauge.orchestrate.bench_lens import run_lens_bench
 from nerfgauge.orchestrate.bench_read import bench_read, table_markdown as read_table_markdown
 from nerfgauge.orchestrate.bench_scaling import ScalingConfig, bench_scaling, report_markdown
+from nerfgauge.scenes import HARD_SCENES
 
 
 def comma_separated(item_type, *, distinct: bool = False):
@@ -192,8 +193,6 @@ def run_bench_scaling(args) -> int:
 
 
 def run_bench_hard(args) -> int:
-    from nerfgauge.scenes import HARD_SCENES  # loads trimesh: kept off `nerfgauge --help`'s path
-
     width, height = parse_resolution(args.res)
     scenes = tuple(HARD_SCENES) if args.scenes is None else args.scenes
     config = HardConfig(scenes, width, height, args.views, args.test_views, args.spp, args.steps)

@@ -18,8 +18,13 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from nerfgauge.core.files import write_json
+from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.orchestrate.suite import OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
+from nerfgauge.core.dataset import read_scene_json
+from nerfgauge.eval.baselines import baseline_folder, write_baseline
+from nerfgauge.eval.geometry import score_geometry, summary
+from nerfgauge.nerf.mesh import NoSurface, mesh_from_run, ply_bytes
+from nerfgauge.orchestrate.suite_report import write_leaderboard
 
 def methods_for(suite: Suite, layout: str) -> list[str]:
     """The suite's baselines that apply to a dataset of `layout`."""
@@ -28,12 +33,9 @@ def methods_for(suite: Suite, layout: str) -> list[str]:
 
 def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print) -> dict:
     """Generate, train, render, baselines, evaluate, leaderboard. Returns the leaderboard."""
-    from nerfgauge.core.dataset import read_scene_json
-    from nerfgauge.eval.baselines import baseline_folder, write_baseline
-    from nerfgauge.orchestrate.suite_report import write_leaderboard
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.render_views import render_split
-    from nerfgauge.nerf.train import train
+    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
+    from nerfgauge.nerf.render_views import render_split  # torch
+    from nerfgauge.nerf.train import train  # torch
 
     out = Path(out)
     start = time.perf_counter()
@@ -96,10 +98,6 @@ def geometry_of(suite: Suite, data: Path, run_dir: Path, log):
     settings = suite.protocol.get("geometry")
     if not settings:
         return None
-    from nerfgauge.core.files import write_bytes_atomic
-    from nerfgauge.eval.geometry import score_geometry, summary
-    from nerfgauge.nerf.mesh import NoSurface, mesh_from_run, ply_bytes
-
     try:
         mesh = mesh_from_run(run_dir, settings["resolution"])
     except NoSurface as reason:
