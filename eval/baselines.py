@@ -1,4 +1,5 @@
-"""Non-learned baselines from the lecture, rendered into a prediction folder: `nerfgauge baseline`.
+"""Non-learned baselines (nearest view, two-plane light field, refocus), rendered into a
+prediction folder: `nerfgauge baseline`.
 
     nerfgauge baseline DATASET --method METHOD --out DIR [--split test] [--evaluate]
 
@@ -32,8 +33,8 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
   light field along the thin-lens ray from l through the pixel's focus point P (on the
   plane z = -D of the query camera): the ray meets the camera plane at (s, t), and each of
   the 4 grid cameras around (s, t) is read bilinearly at its projection of P, weighted
-  bilinearly in (s, t). For a query on the camera plane this is the lecture's
-  shift-and-add: every grid view shifted so that the plane in focus lines up, averaged
+  bilinearly in (s, t). For a query on the camera plane this is a light field's classic
+  shift-and-add refocusing: every grid view shifted so that the plane in focus lines up, averaged
   with the weight of its cell's overlap with the aperture disc. Points on the plane in
   focus come out sharp, others blur by the thin-lens circle of confusion (sampled by the
   camera grid's spacing). Aperture 0 is view interpolation focused at D; a frame without

@@ -1,6 +1,6 @@
 """Image and depth metrics: pure numpy functions, one definition each.
 
-Conventions (DESIGN.md, "Metrics"):
+Conventions (docs/conventions.md, "Metrics"):
 
 - Images are float RGB on [0, 1], shape [H, W, 3]. RGBA predictions and ground truth are
   composited onto a background first (`composite`, white by default in the callers).

@@ -1,4 +1,4 @@
-"""Volume rendering as pure functions (the maths of the lecture, vectorised over rays).
+"""Volume rendering as pure functions (NeRF's quadrature, Mildenhall et al. 2020, vectorised over rays).
 
 A ray r(t) = o + t d is cut into intervals [t_k, t_{k+1}] by bin edges, the density and
 colour are taken as constant on each interval (the value at its midpoint), and

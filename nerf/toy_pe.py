@@ -1,4 +1,5 @@
-"""The lecture's 2D toy problem: memorise an image with an MLP, with and without positional encoding.
+"""The 2D toy problem of positional encoding (Tancik et al. 2020, "Fourier features"):
+memorise an image with an MLP, with and without positional encoding.
 
 An MLP mapping pixel coordinates (x, y) in [0, 1]^2 to RGB is fitted to one image for a
 fixed number of full-batch Adam steps, once on the raw coordinates and once on their

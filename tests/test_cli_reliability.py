@@ -1,4 +1,4 @@
-"""The CLI boundary (issue 18): every failure the user's environment or input can cause is
+"""The CLI boundary (RELIABILITY.md): every failure the user's environment or input can cause is
 one line on stderr and exit 2 (3 for NaN results, 130 for Ctrl-C), never a traceback;
 numeric flags refuse NaN, inf and non-positive counts; commands write only into folders
 nerfgauge made, and delete only those.
