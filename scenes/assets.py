@@ -3,8 +3,10 @@
 A GLB/glTF scene graph gives one object per node that holds a mesh (trimesh.load without
 force="mesh" returns a trimesh.Scene; `scene.graph[node]` gives the node's world transform
 and geometry). An OBJ gives one object per `o`/`g` group (split further by `usemtl`), read
-by scenes/obj_mtl.py (scenes/asset_reader.py picks the reader by suffix) because trimesh's OBJ loader renames split objects after the first
-one ("first", "first_1", ...). PLY/STL/OFF files hold one unnamed object.
+by scenes/obj_mtl.py because trimesh's OBJ loader renames split objects after the first
+one ("first", "first_1", ...). PLY/STL/OFF files hold one unnamed object. The reader is
+chosen by suffix in scenes/asset_reader.py; this module holds the asset's types and the
+trimesh reader.
 
 Materials follow glTF's metallic-roughness model: a linear base colour, optionally times
 an sRGB base-colour texture (and per-vertex colours, taken as linear like glTF's COLOR_0),

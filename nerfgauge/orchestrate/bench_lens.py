@@ -16,9 +16,10 @@ same pixels as every lens dataset's), for --budget-seconds; then for every apert
 - nearest: the nearest training view, unchanged (sharp everywhere);
 
 each evaluated with `nerfgauge evaluate DS` (each step calls the stage function that command
-calls: nerf.render_views.render_split, eval.baselines.write_baseline, eval.evaluate). Writes OUT/lens.json (every metrics document's
-means, the render costs), OUT/lens.md (PSNR/SSIM against aperture), OUT/lens.png (an image
-row per method at each aperture) and OUT/lens.html. The NeRF's defocus cost is its
+calls: nerf.render_views.render_split, eval.baselines.write_baseline, eval.evaluate).
+Writes OUT/lens.json (every metrics document's means, the render costs), OUT/lens.md
+(PSNR/SSIM against aperture), OUT/lens.png (an image row per method at each aperture) and
+OUT/lens.html. The NeRF's defocus cost is its
 milliseconds per lens frame against per pinhole frame (timing.json). Times are of this
 machine at the time of the run.
 """

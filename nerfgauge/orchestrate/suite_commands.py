@@ -1,5 +1,5 @@
-"""`nerfgauge suite`: benchmark suites (nerfgauge/orchestrate/suite.py), run (nerfgauge/orchestrate/suite_run.py) and the
-leaderboard (nerfgauge/orchestrate/suite_report.py).
+"""`nerfgauge suite`: benchmark suites (nerfgauge/orchestrate/suite.py), run
+(nerfgauge/orchestrate/suite_run.py) and the leaderboard (nerfgauge/orchestrate/suite_report.py).
 
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
