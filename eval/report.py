@@ -16,15 +16,15 @@ from pathlib import Path
 import numpy as np
 from nerfgauge.eval.covisibility import held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.error_maps import colour_error, depth_relative_error
+from nerfgauge.eval.evaluate import NOISE_FLOOR_DB
+from nerfgauge.eval.geometry import summary
+from nerfgauge.eval.metrics import METRIC_NAMES, composite
+from nerfgauge.eval.predictions import find_prediction, read_colour
 
 from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, write_bytes_atomic
 from nerfgauge.core.images import read_exr_single
-from nerfgauge.eval.evaluate import NOISE_FLOOR_DB
-from nerfgauge.eval.geometry import summary
-from nerfgauge.eval.metrics import METRIC_NAMES, composite
-from nerfgauge.eval.predictions import find_prediction, read_colour
 
 TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_foreground", "foreground PSNR dB", "{:.2f}"),
                  ("psnr_covisible", "co-visible PSNR dB", "{:.2f}"),

@@ -27,6 +27,7 @@ import numpy as np
 from nerfgauge.generate import layouts
 from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
 from nerfgauge.generate.mitsuba_scene import instance_names, write_meshes
+from nerfgauge.generate.render import NoiseTarget
 from nerfgauge.generate.variant import CHOICES as VARIANT_CHOICES
 from nerfgauge.generate.variant import resolve_variant
 from nerfgauge.generate.views import pending_views
@@ -39,7 +40,6 @@ from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash
-from nerfgauge.generate.render import NoiseTarget
 
 CONFIG = "config.json"
 DEFAULT_LAYOUT = "hemisphere"

@@ -24,11 +24,11 @@ import torch
 import torch.nn.functional as F
 from nerfgauge.nerf.config import FLAGS, TrainConfig, step_ratio_of
 from nerfgauge.nerf.grid_field import VoxelGridField, node_mask
+from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF
 from nerfgauge.nerf.parametrisation import Space
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
-from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF
 
 FORMAT = "nerfgauge-model"
 VERSION = 2  # version 1 stored a dense grid or byte-per-node masks

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from nerfgauge.core.camera import Intrinsics, pixel_rays, project
-from nerfgauge.core.errors import InputError
 from nerfgauge.core.dataset import Dataset
+from nerfgauge.core.errors import InputError
 
 OPACITY_LEVEL = 0.5  # opacity over one voxel of the fixed level, and the least opacity of a calibration ray
 CALIBRATION_RAYS = 16384  # training rays (strided over every view) that set the level

@@ -26,6 +26,8 @@ import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.config import LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TrainConfig, resolve, upsample_count
 from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
+from nerfgauge.nerf.grid_field import node_mask
+from nerfgauge.nerf.models import CompactNeRF
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, render_rays_chunked
 from tqdm import tqdm
@@ -34,8 +36,6 @@ from nerfgauge.core.dataset import MANIFEST, read_split, require_complete
 from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, sha256_file, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
-from nerfgauge.nerf.grid_field import node_mask
-from nerfgauge.nerf.models import CompactNeRF
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 # A time budget takes a finer grid only if it can still give it this many steps (projected

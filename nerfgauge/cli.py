@@ -22,12 +22,11 @@ import importlib
 import os
 import sys
 
-from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
-
 from nerfgauge import run
+from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
 from nerfgauge.orchestrate import commands as orchestration
 
-STAGES = ("scenes", "generate", "nerf", "eval")
+STAGES = ("scenes", "generate", "nerf", "eval")  # then orchestration (bench, suite), then run
 
 
 class Parser(argparse.ArgumentParser):

@@ -26,8 +26,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from nerfgauge.core.errors import InputError
 from nerfgauge.core import arguments
+from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
 from nerfgauge.eval.baselines import METHODS, baseline_folder, write_baseline

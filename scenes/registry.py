@@ -9,13 +9,13 @@ import numpy as np
 from nerfgauge.scenes import library
 from nerfgauge.scenes.asset_reader import read_asset
 from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, with_texture_period
-from nerfgauge.scenes.envmap import EnvironmentMap, read_envmap
 from nerfgauge.scenes.description import Scene, build_scene
+from nerfgauge.scenes.envmap import EnvironmentMap, read_envmap
 from nerfgauge.scenes.hard import HARD_RECIPES
 from nerfgauge.scenes.meshes import MeshData
+from nerfgauge.scenes.scene_file import scene_from_file
 
 from nerfgauge.core.errors import InputError
-from nerfgauge.scenes.scene_file import scene_from_file
 
 # name -> (recipe(seed) -> Scene, one-line description)
 RECIPES = {

@@ -36,8 +36,8 @@ from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.eval.baselines import baseline_folder, write_baseline
 from nerfgauge.eval.evaluate import evaluate
 from nerfgauge.eval.report import _data_uri, aperture_table, focus_rows, page_html, sortable_table_html
-from nerfgauge.orchestrate.bench import claim_bench_folder
 from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.orchestrate.bench import claim_bench_folder
 
 METHODS = ("nerf", "refocus", "lightfield-quadrilinear", "nearest")
 
