@@ -101,7 +101,7 @@ def _declares_faces(data: bytes) -> bool:
 def surface_from_bytes(data: bytes, name: str, file_type: str) -> Surface:
     """Parse mesh or point-cloud bytes with trimesh; one-line InputError for anything that
     is not a non-empty, finite surface."""
-    import trimesh
+    import trimesh  # trimesh: only when a mesh file is read (eval.check imports this module)
 
     try:
         loaded = trimesh.load(io.BytesIO(data), file_type=file_type, process=False)
@@ -333,7 +333,7 @@ TREE_OPTIONS = {"balanced_tree": False, "compact_nodes": False, "leafsize": 64}
 def spatial_order(points: np.ndarray) -> np.ndarray:
     """A permutation [n] of points [n, 3] that puts neighbours next to each other (the
     leaf order of a k-d tree)."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # scipy: only when distances are computed
 
     return cKDTree(points, **TREE_OPTIONS).indices
 
@@ -353,7 +353,7 @@ class NearestNeighbours:
     thread: 3.9 s in sampling order, 1.0 s with both sets in spatial order)."""
 
     def __init__(self, reference: np.ndarray, order: Optional[np.ndarray] = None):
-        from scipy.spatial import cKDTree
+        from scipy.spatial import cKDTree  # scipy, as above
 
         self.order = spatial_order(reference) if order is None else order  # [n_ref]
         self.tree = cKDTree(reference[self.order], **TREE_OPTIONS)

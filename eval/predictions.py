@@ -306,7 +306,7 @@ def read_info(pred_dir: Path) -> dict:
 
 def read_jpeg(path: Path, intrinsics) -> np.ndarray:
     """A JPEG as sRGB [H, W, 3] float64 in [0, 1]; the header's size checked before decoding."""
-    from PIL import Image, JpegImagePlugin
+    from PIL import Image, JpegImagePlugin  # PIL's JPEG plugin: only for JPEG predictions
 
     try:
         data = Path(path).read_bytes()

@@ -68,13 +68,13 @@ def metrics_table(rows: dict) -> list[list[str]]:
 
 
 def _figure(width: float, height: float):
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # matplotlib: only when a figure is drawn
 
     return Figure(figsize=(width, height), dpi=110)
 
 
 def _save(figure, out) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib
 
     with atomic_path(out) as tmp:
         FigureCanvasAgg(figure).print_png(str(tmp))
@@ -364,8 +364,8 @@ def geometry_table(document: dict) -> str:
 def geometry_histogram(distances: dict, document: dict, out) -> None:
     """Histograms of predicted-to-ground-truth and ground-truth-to-predicted distances, with
     the F-score thresholds marked; PNG."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib: only when a figure is drawn
+    from matplotlib.figure import Figure  # matplotlib
 
     taus = [row["tau"] for row in document["at_tau"]]
     top = max(3 * max(taus), 1e-9)

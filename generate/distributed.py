@@ -68,8 +68,8 @@ def dask_client(scheduler: str):
     only disconnected from. Unreachable addresses fail within CONNECT_TIMEOUT_SECONDS."""
     kind, value = parse_scheduler(scheduler)
     require_dask()
-    import dask
-    from distributed import Client, LocalCluster
+    import dask  # dask: an optional extra (require_dask says so)
+    from distributed import Client, LocalCluster  # dask
 
     # Quiet: the progress bar and our one-line errors are the user's view of the cluster.
     with dask.config.set({"distributed.comm.timeouts.connect": f"{CONNECT_TIMEOUT_SECONDS}s",
@@ -94,7 +94,7 @@ def dask_client(scheduler: str):
 
 def set_render_threads(count: int) -> int:
     """Run on a worker: Dr.Jit's (and so Mitsuba's) render threads in this process."""
-    import drjit
+    import drjit  # drjit: only on a worker that renders
 
     drjit.set_thread_count(count)
     return drjit.thread_count()
@@ -132,7 +132,7 @@ def _the_plan(the_plan):
 def render_on_cluster(client, out, the_plan, todo, bar) -> float:
     """Submit one task per (split, index) in `todo`, advance `bar` as each finishes.
     Returns the render seconds summed over the workers."""
-    from distributed import as_completed
+    from distributed import as_completed  # dask: an optional extra
 
     recipe = recipe_hash(the_plan.recipe())
     # The plan as a task of its own rather than scattered data: the scheduler keeps it (pickled

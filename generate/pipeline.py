@@ -267,9 +267,9 @@ def refuse_stale(out: Path, recipe: dict) -> None:
 
 def finish(out: Path, the_plan: Plan) -> None:
     """Transforms, scene.json, then manifest.json (last: its presence means complete)."""
-    import drjit
-    import mitsuba
-    import trimesh
+    import drjit  # drjit, mitsuba: loaded by the renderer anyway; here for scene.json's versions
+    import mitsuba  # mitsuba, as above
+    import trimesh  # trimesh: scene.json's versions
 
     intrinsics, stems, poses = the_plan.intrinsics, the_plan.stems, the_plan.poses
     for split in dataset.SPLITS:

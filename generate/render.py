@@ -330,7 +330,7 @@ def cast_rays_with_ids(mi, scene, origins: np.ndarray, directions: np.ndarray, s
     distance = np.where(hit, np.array(si.t, dtype=np.float64), np.inf)
     normals = np.stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)], -1)
     # A ShapePtr is an index into Dr.Jit's instance registry: one read, then a lookup table.
-    import drjit as dr
+    import drjit as dr  # drjit: only when a view renders
 
     registry = np.array(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.int64)
     numbers = {name: number for number, name in enumerate(shape_ids, start=1)}

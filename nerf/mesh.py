@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -94,7 +95,7 @@ def extraction_grid(box: np.ndarray, resolution: int) -> tuple[list[np.ndarray],
 def density_volume(model, axes: list[np.ndarray], device: torch.device | str = "cpu") -> np.ndarray:
     """sigma on the grid nodes, [nx, ny, nz] float32 (x-major, as marching cubes' spacing
     expects), queried through `model.density` in chunks of whole x-slabs."""
-    import torch
+    import torch  # torch: nerf.commands imports this module for `mesh`
 
     with torch.no_grad():
         xs, ys, zs = (torch.as_tensor(a, dtype=torch.float32, device=device) for a in axes)
@@ -121,7 +122,7 @@ def model_box(model) -> np.ndarray | None:
     aabb = getattr(field, "aabb", getattr(model, "aabb", None))
     if aabb is None:
         return None
-    import torch
+    import torch  # torch, as above
 
     return np.asarray(torch.as_tensor(aabb).cpu(), np.float64)
 
@@ -147,7 +148,7 @@ def rendered_surface_level(model, c2w: np.ndarray, intrinsics: Intrinsics, rays:
                            device: torch.device | str = "cpu") -> float | None:
     """Median density at the expected-depth points of `rays` training rays (an even stride
     over all views' pixels) whose opacity reaches OPACITY_LEVEL; None if no ray does."""
-    import torch
+    import torch  # torch, as above
 
     with torch.no_grad():
         per_view = max(1, rays // max(len(c2w), 1))
@@ -173,7 +174,7 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
     longest side, at `level` (None: the rendered-surface level over the cameras train_c2w
     [m, 4, 4], else the voxel level); faces no camera of train_c2w sees are dropped (None:
     keep all, no calibration). InputError when the field has no surface there."""
-    from skimage.measure import marching_cubes
+    from skimage.measure import marching_cubes  # scikit-image: only when meshing
 
     if not hasattr(model, "density"):
         raise InputError(f"a {type(model).__name__} has no density query (model.density); "
@@ -218,15 +219,13 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
     """A binary PLY of a triangle mesh (trimesh's writer)."""
-    import trimesh
+    import trimesh  # trimesh: only when meshing
 
     return trimesh.Trimesh(vertices, faces, process=False).export(file_type="ply")
 
 
 def mesh_from_run(run_dir, resolution: int = 256, cull: bool = True, level: float | None = None) -> ExtractedMesh:
     """Load RUN/model.pt (weights only) and its dataset's bounds and training cameras; extract."""
-    from pathlib import Path
-
     from nerfgauge.nerf.checkpoint import load_model  # torch: nerf.commands imports this module for `mesh`
 
     run_dir = Path(run_dir)

@@ -186,7 +186,7 @@ def comparison_image(result: ToyPEResult, scale: int = 4, gap: int = 4) -> np.nd
 
 def save_comparison(result: ToyPEResult, path: Path) -> None:
     """Write the comparison PNG and a JSON of the config and PSNRs (atomically: temporary name, fsync, rename)."""
-    from PIL import Image
+    from PIL import Image  # PIL: only when the figure is written
 
     path.parent.mkdir(parents=True, exist_ok=True)
     def finite(value):  # a perfect fit has infinite PSNR, which JSON cannot hold: null

@@ -443,7 +443,7 @@ def texture_from_image(source: str, image, base_color) -> TextureImage:
 
 
 def read_image(path: Path, data: bytes):
-    from PIL import Image
+    from PIL import Image  # PIL: only when an asset carries an image
 
     try:
         image = Image.open(io.BytesIO(data))

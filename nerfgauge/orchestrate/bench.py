@@ -56,7 +56,7 @@ def claim_bench_folder(out, bench: str):
 
 def write_png_figure(figure, path) -> None:
     """Save a matplotlib Figure as PNG through the atomic writer."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib: only when a figure is drawn
 
     with atomic_path(path) as tmp:
         FigureCanvasAgg(figure).print_png(str(tmp))
@@ -186,7 +186,7 @@ def table_markdown(rows: list) -> str:
 
 def pareto_plots(rows: list, out: Path) -> None:
     """PSNR against training seconds (every run's val curve) and against model MB: OUT/pareto.png."""
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # matplotlib: only when a figure is drawn
 
     figure = Figure(figsize=(11, 4), dpi=110)
     by_time, by_size = figure.add_subplot(1, 2, 1), figure.add_subplot(1, 2, 2)

@@ -397,7 +397,7 @@ def report_markdown(document: dict) -> str:
 def scaling_plots(document: dict, path: Path) -> None:
     """Six panels: time to target and render ms/frame against resolution and views; generation
     seconds against views and spp (with the fitted lines)."""
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # matplotlib: only when a figure is drawn
 
     config = document["config"]
     target, budget = config["target_psnr"], config["budget_seconds"]

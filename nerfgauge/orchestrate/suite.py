@@ -39,6 +39,7 @@ skipped; an interrupted one is resumed by the generator.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib.resources
 import time
 import tomllib
@@ -93,8 +94,6 @@ class Suite:
 
     @property
     def sha256(self) -> str:
-        import hashlib
-
         return hashlib.sha256(json_bytes(self.definition())).hexdigest()
 
     def generate_config(self, entry: SceneEntry):

@@ -15,6 +15,7 @@ again on every run (their folders are ours and replaced through their markers).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -86,8 +87,6 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
 def evaluate_subset(suite: Suite, out, method: str, root, ids: set, extras: dict, log) -> dict:
     """evaluate_suite on the suite's entries in `ids` (a baseline that applies to some
     layouts only); the leaderboard shows the others as not applicable."""
-    import dataclasses
-
     subset = dataclasses.replace(suite, scenes=tuple(e for e in suite.scenes if e.id in ids))
     return evaluate_suite(suite, out, method, root, extras=extras, log=log, entries=subset.scenes)
 
