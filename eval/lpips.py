@@ -95,7 +95,7 @@ def _numpy_reconstruct():
     try:
         from numpy._core.multiarray import _reconstruct  # numpy >= 2
     except ImportError:  # numpy 1.x
-        from numpy.core.multiarray import _reconstruct
+        from numpy.core.multiarray import _reconstruct  # numpy 1.x: the name moved in numpy 2
     return _reconstruct
 
 
