@@ -4,8 +4,8 @@
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Bench output
 folders are claimed with `core.folders.claim_folder` as "bench" folders (marker and lock).
-The bench modules generate datasets and train models (trimesh, torch): they are imported
-inside the run functions so that `nerfgauge --help` stays instant.
+The bench modules generate datasets and train models; they import torch (nerf) inside
+their functions, so importing them here keeps `nerfgauge --help` free of torch and Mitsuba.
 """
 
 import argparse
