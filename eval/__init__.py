@@ -1,1 +1,2 @@
-"""Scoring predictions against a dataset: metrics, baselines, reports, benchmark, CI thresholds."""
+"""Scoring predictions against a dataset: metrics, prediction files, geometry, baselines,
+reports, the CI gate (benchmarks and suites: nerfgauge.orchestrate)."""

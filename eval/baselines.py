@@ -1,4 +1,5 @@
-"""Non-learned baselines from the lecture, rendered into a prediction folder: `nerfgauge baseline`.
+"""Non-learned baselines (nearest view, two-plane light field, refocus), rendered into a
+prediction folder: `nerfgauge baseline`.
 
     nerfgauge baseline DATASET --method METHOD --out DIR [--split test] [--evaluate]
 
@@ -32,8 +33,8 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
   light field along the thin-lens ray from l through the pixel's focus point P (on the
   plane z = -D of the query camera): the ray meets the camera plane at (s, t), and each of
   the 4 grid cameras around (s, t) is read bilinearly at its projection of P, weighted
-  bilinearly in (s, t). For a query on the camera plane this is the lecture's
-  shift-and-add: every grid view shifted so that the plane in focus lines up, averaged
+  bilinearly in (s, t). For a query on the camera plane this is a light field's classic
+  shift-and-add refocusing: every grid view shifted so that the plane in focus lines up, averaged
   with the weight of its cell's overlap with the aperture disc. Points on the plane in
   focus come out sharp, others blur by the thin-lens circle of confusion (sampled by the
   camera grid's spacing). Aperture 0 is view interpolation focused at D; a frame without
@@ -42,6 +43,7 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 
@@ -51,6 +53,7 @@ from nerfgauge.core import dataset
 from nerfgauge.core.camera import ThinLens, camera_directions, lens_samples, pixel_rays, thin_lens_rays
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_json
+from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
 from nerfgauge.core.images import write_png
 
 METHODS = ("nearest", "lightfield-nearest", "lightfield-quadrilinear", "refocus")
@@ -295,3 +298,25 @@ def write_baseline(root, method: str, out, split: str = "test", *, lens: ThinLen
         timing |= {"lens_samples": samples, "lens_seed": seed, "lens": None if lens is None else lens.to_json()}
     write_json(out / "timing.json", timing)
     return timing
+
+
+@contextlib.contextmanager
+def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = False, options=None):
+    """Claim `out` as a "baseline" folder (core.folders.claim_folder) for the block. Its
+    recipe is the method, the split and the dataset's content (manifest.json's hash), so a
+    rerun on the same dataset continues and another one needs overwrite."""
+    root, out = dataset.require_complete(root), Path(out)
+    recipe = recipe_hash({"method": method, "split": split, "dataset": dataset.manifest_sha256(root)}
+                         | ({"options": options} if options else {}))
+    made = [folder for folder in (out, *out.parents) if not folder.exists()]  # what claiming creates
+    state = None
+    try:
+        with claim_folder(out, "baseline", recipe, overwrite=overwrite) as state:
+            yield state
+    except BaseException:
+        if state == "new" and made:  # the baseline failed (bad input, interrupted): leave no folder behind
+            remove_owned(out, "baseline")
+            for parent in made[1:]:
+                with contextlib.suppress(OSError):  # not empty any more: someone else's now
+                    parent.rmdir()
+        raise

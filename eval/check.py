@@ -138,13 +138,13 @@ class CheckResult:
 
 def known_scene(name: str) -> bool:
     """A recipe from `scenes.registry.RECIPES` or a `mesh:PATH` scene."""
-    from nerfgauge.scenes.registry import RECIPES
+    from nerfgauge.scenes.registry import RECIPES  # loads trimesh: only when a scene name is checked
 
     return name in RECIPES or (name.startswith(MESH_PREFIX) and len(name) > len(MESH_PREFIX))
 
 
 def _known_scenes_text() -> str:
-    from nerfgauge.scenes.registry import RECIPES
+    from nerfgauge.scenes.registry import RECIPES  # trimesh, as above
 
     return ", ".join(list(RECIPES) + [MESH_PREFIX + "PATH", repr(DEFAULT_TABLE)])
 

@@ -1,6 +1,7 @@
 """eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`),
-`baseline` (`eval.baselines`), `bench` (`eval.bench`), and `mesh` (`nerf.mesh`) and
-`geometry` (`eval.geometry`, `eval.normals`), and `suite` (`eval.suite_commands`).
+`baseline` (`eval.baselines`), `geometry` (`eval.geometry`, `eval.normals`) and `lpips`
+(`eval.lpips_commands`). `bench` and `suite` are registered by `nerfgauge.orchestrate.commands`,
+`mesh` by `nerf.commands`.
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Output
@@ -11,52 +12,27 @@ DIR` as a "baseline", bench folders as "bench". Output files (`evaluate --out`, 
 of the same kind; `--overwrite` also replaces a nerfgauge file of another kind.
 """
 
-import argparse
-import contextlib
 from pathlib import Path
 
 from nerfgauge.core import arguments
-
-
-def comma_separated(item_type, *, distinct: bool = False):
-    """An argparse type: "a,b,c" -> a tuple of item_type(each), at least one item; with
-    distinct=True a repeated value is refused. Item errors name the item and the list."""
-    def parse(text: str) -> tuple:
-        parts = [part.strip() for part in text.split(",")]
-        if not all(parts):
-            raise argparse.ArgumentTypeError(f"expected comma-separated values, got {text!r}")
-        values = []
-        for part in parts:
-            try:
-                values.append(item_type(part))
-            except argparse.ArgumentTypeError as error:
-                raise argparse.ArgumentTypeError(f"{error} (in {text!r})" if len(parts) > 1 else str(error)) from None
-        if distinct and len(set(values)) < len(values):
-            repeated = next(v for v in values if values.count(v) > 1)
-            raise argparse.ArgumentTypeError(f"{repeated} appears more than once in {text!r}")
-        return tuple(values)
-
-    parse.__name__ = f"comma-separated {item_type.__name__.replace('_', ' ')}s"  # argparse's fallback message
-    return parse
-
-
-def names(text: str) -> tuple:
-    """ "a, b" -> ("a", "b"): comma-separated names, at least one, none empty."""
-    parts = tuple(part.strip() for part in text.split(","))
-    if not all(parts):
-        raise argparse.ArgumentTypeError(f"expected comma-separated names, got {text!r}")
-    return parts
+from nerfgauge.core.camera import ThinLens
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_json
+from nerfgauge.core.outputs import check_output_file, claim_output_file, stamp
+from nerfgauge.eval import lpips_commands
+from nerfgauge.eval.baselines import METHODS, baseline_folder, write_baseline
+from nerfgauge.eval.check import run_check as check
+from nerfgauge.eval.evaluate import METRICS_KIND, evaluate, format_means
+from nerfgauge.eval.foreign_results import nerfbaselines_document, ns_eval_document
+from nerfgauge.eval.geometry import format_geometry, score_geometry
+from nerfgauge.nerf.runs import open_run_dataset
 
 
 def register(subparsers) -> None:
     register_check(subparsers)
     register_evaluate(subparsers)
     register_baseline(subparsers)
-    register_bench(subparsers)
     register_geometry(subparsers)
-    from nerfgauge.eval import lpips_commands, suite_commands
-
-    suite_commands.register(subparsers)
     lpips_commands.register(subparsers)
 
 
@@ -84,8 +60,6 @@ def register_check(subparsers) -> None:
 
 
 def run_check(args) -> int:
-    from nerfgauge.eval.check import run_check as check
-
     return check(args.metrics, args.thresholds, junit_path=args.junit, scene=args.scene,
                  overwrite=getattr(args, "overwrite", False))
 
@@ -110,7 +84,7 @@ def register_evaluate(subparsers) -> None:
                         help="what predicted depth holds: ray distance (default) or z-depth")
     parser.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
                         default="auto", help="how DIR names its files: ours, ns-render dataset output, NerfBaselines "
-                                             "predictions, or a plain folder of images (default: detect; eval/foreign.py)")
+                                             "predictions, or a plain folder of images (default: detect; eval/predictions.py)")
     parser.add_argument("--no-held-out", dest="held_out", action="store_false",
                         help="skip the co-visible and depth-resolved scores (psnr_covisible, psnr_capture_bound, "
                              "depth_absrel_resolved): "
@@ -132,10 +106,6 @@ OUTPUT_KINDS = {"ns-eval": "ns-eval", "nerfbaselines": "nerfbaselines-results"} 
 
 
 def run_evaluate(args) -> int:
-    from nerfgauge.core.files import write_json
-    from nerfgauge.core.outputs import check_output_file, stamp
-    from nerfgauge.eval.evaluate import METRICS_KIND, evaluate, format_means
-
     out = args.out if args.out is not None else args.pred / "metrics.json"
     extra = {"ns-eval": getattr(args, "ns_eval", None), "nerfbaselines": getattr(args, "nerfbaselines", None)}
     overwrite = getattr(args, "overwrite", False)
@@ -150,8 +120,6 @@ def run_evaluate(args) -> int:
           f"background {document['background']}, depth {document['depth_kind']} -> {out}")
     print(format_means(document))
     if any(path is not None for path in extra.values()):
-        from nerfgauge.eval.foreign_results import nerfbaselines_document, ns_eval_document
-
         method = getattr(args, "method_name", None) or Path(args.pred).resolve().name
         model = Path(args.pred).resolve().parent / "model.pt"  # RUN/renders of `nerfgauge render`
         checkpoint = str(model) if model.is_file() else str(args.pred)
@@ -169,8 +137,6 @@ def run_evaluate(args) -> int:
 
 
 def register_baseline(subparsers) -> None:
-    from nerfgauge.eval.baselines import METHODS
-
     parser = subparsers.add_parser(
         "baseline",
         help="render a split with a non-learned baseline (nearest view, two-plane light field)",
@@ -196,37 +162,7 @@ def register_baseline(subparsers) -> None:
     parser.set_defaults(func=run_baseline)
 
 
-@contextlib.contextmanager
-def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = False, options=None):
-    """Claim `out` as a "baseline" folder (core.folders.claim_folder) for the block. Its
-    recipe is the method, the split and the dataset's content (manifest.json's hash), so a
-    rerun on the same dataset continues and another one needs overwrite."""
-    from nerfgauge.core import dataset
-    from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
-
-    root, out = dataset.require_complete(root), Path(out)
-    recipe = recipe_hash({"method": method, "split": split, "dataset": dataset.manifest_sha256(root)}
-                         | ({"options": options} if options else {}))
-    made = [folder for folder in (out, *out.parents) if not folder.exists()]  # what claiming creates
-    state = None
-    try:
-        with claim_folder(out, "baseline", recipe, overwrite=overwrite) as state:
-            yield state
-    except BaseException:
-        if state == "new" and made:  # the baseline failed (bad input, interrupted): leave no folder behind
-            remove_owned(out, "baseline")
-            for parent in made[1:]:
-                with contextlib.suppress(OSError):  # not empty any more: someone else's now
-                    parent.rmdir()
-        raise
-
-
 def run_baseline(args) -> int:
-    from nerfgauge.eval.baselines import write_baseline
-
-    from nerfgauge.core.camera import ThinLens
-    from nerfgauge.core.errors import InputError
-
     lens = None
     if args.aperture is not None or args.focus_distance is not None:
         if args.method != "refocus" or args.aperture is None or args.focus_distance is None:
@@ -243,196 +179,10 @@ def run_baseline(args) -> int:
     return 0
 
 
-def register_bench(subparsers) -> None:
-    positive_ints = comma_separated(arguments.positive_int, distinct=True)
-    parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants, scaling",
-                                   description="Benchmarks measured in one run on this machine (see BENCHMARKS.md). "
-                                               "Each writes into its own --out folder (a nerfgauge bench folder).")
-    kinds = parser.add_subparsers(dest="bench_kind", metavar="KIND", required=True)
-    gen = kinds.add_parser("generate", help="generator time against Mitsuba's own render time")
-    gen.add_argument("--scene", default="primitives")
-    gen.add_argument("--views", type=arguments.positive_int, default=100)
-    gen.add_argument("--res", default="128")
-    gen.add_argument("--spp", type=arguments.positive_int, default=64)
-    gen.add_argument("--repeats", type=arguments.positive_int, default=1,
-                     help="repeat and report each run (the machine is noisy)")
-    gen.set_defaults(func=run_bench_generate)
-    train = kinds.add_parser("train", help="scenes x variants x budgets: PSNR, SSIM, depth, time, size, memory")
-    train.add_argument("--scenes", type=names, default=("primitives",), help="comma-separated scene names")
-    train.add_argument("--variants", type=names, default=("compact", "vanilla"),
-                       help="comma-separated, from: " + ", ".join(_variant_names()))
-    train.add_argument("--budgets", type=comma_separated(arguments.positive_float, distinct=True), default=(30.0, 120.0),
-                       help="comma-separated training seconds (default 30,120)")
-    train.add_argument("--res", default="128")
-    train.add_argument("--views", type=arguments.positive_int, default=100)
-    train.add_argument("--out", type=arguments.path, default=Path("bench-out/train"),
-                       help="bench folder (default bench-out/train): train.json/.md, pareto.png, datasets/, runs/")
-    train.set_defaults(func=run_bench_train)
-    scaling = kinds.add_parser("scaling", help="NeRF time-to-PSNR and render time against resolution and views; "
-                                               "generation time against views and spp")
-    scaling.add_argument("--scene", default="primitives")
-    scaling.add_argument("--resolutions", type=positive_ints, default=(64, 128, 256),
-                         help="comma-separated square resolutions, each at --views views (default 64,128,256)")
-    scaling.add_argument("--views", type=arguments.positive_int, default=100,
-                         help="train views of the --resolutions cases (default 100)")
-    scaling.add_argument("--view-counts", type=positive_ints, default=(25, 50, 100),
-                         help="comma-separated train-view counts, each at --view-counts-res (default 25,50,100)")
-    scaling.add_argument("--view-counts-res", type=arguments.positive_int, default=128,
-                         help="resolution of the --view-counts cases (default 128)")
-    scaling.add_argument("--budget-seconds", type=arguments.positive_float, default=120.0, metavar="T",
-                         help="training seconds per case (default 120)")
-    scaling.add_argument("--target-psnr", type=arguments.positive_float, default=30.0, metavar="DB",
-                         help="report the time to this val PSNR (default 30)")
-    scaling.add_argument("--gen-views", type=positive_ints, default=(25, 50, 100),
-                         help="generation: train-view counts at --gen-views-spp")
-    scaling.add_argument("--gen-views-spp", type=arguments.positive_int, default=64,
-                         help="spp of the --gen-views cases (default 64)")
-    scaling.add_argument("--gen-spp", type=positive_ints, default=(16, 64, 256),
-                         help="generation: spp values at --gen-spp-views views")
-    scaling.add_argument("--gen-spp-views", type=arguments.positive_int, default=50,
-                         help="views of the --gen-spp cases (default 50)")
-    scaling.add_argument("--gen-res", type=arguments.positive_int, default=128,
-                         help="resolution of the generation cases (default 128)")
-    scaling.add_argument("--out", type=arguments.path, default=Path("bench-out/scaling"),
-                         help="writes scaling.json/.md/.png; reruns replace the cases' datasets and runs")
-    scaling.set_defaults(func=run_bench_scaling)
-    hard = kinds.add_parser("hard", help="the hard scenes through generate, brief training and evaluate, "
-                                         "audited for NaN/inf")
-    hard.add_argument("--scenes", type=names, default=None, help="comma-separated scene names (default: every hard scene)")
-    hard.add_argument("--res", default="64")
-    hard.add_argument("--views", type=arguments.positive_int, default=40)
-    hard.add_argument("--test-views", type=arguments.positive_int, default=8)
-    hard.add_argument("--spp", type=arguments.positive_int, default=64)
-    hard.add_argument("--steps", type=arguments.positive_int, default=400, help="training steps per scene (default 400)")
-    hard.add_argument("--out", type=arguments.path, default=Path("bench-out/hard"))
-    hard.set_defaults(func=run_bench_hard)
-    lens = kinds.add_parser("lens", help="defocus: the NeRF through a thin lens against refocused light fields and "
-                                         "the nearest view, at several apertures")
-    lens.add_argument("--scene", default="primitives")
-    lens.add_argument("--views", type=arguments.positive_int, default=64, help="training grid (a square, default 64 = 8x8)")
-    lens.add_argument("--test-views", type=arguments.positive_int, default=6)
-    lens.add_argument("--res", type=arguments.positive_int, default=96)
-    lens.add_argument("--spp", type=arguments.positive_int, default=64)
-    lens.add_argument("--radius", type=arguments.positive_float, default=3.5, help="camera plane's distance from the scene centre")
-    lens.add_argument("--focus-distance", type=arguments.positive_float, default=None, help="default: --radius")
-    lens.add_argument("--apertures", type=positive_floats, default=(0.1, 0.2),
-                      help="comma-separated aperture radii, scene units (default 0.1,0.2)")
-    lens.add_argument("--budget-seconds", type=arguments.positive_float, default=120.0)
-    lens.add_argument("--aperture-samples", type=arguments.positive_int, default=16)
-    lens.add_argument("--threads", type=arguments.positive_int, default=2)
-    lens.add_argument("--out", type=arguments.path, default=Path("bench-out/lens"))
-    lens.set_defaults(func=run_bench_lens)
-    read = kinds.add_parser("read", help="what validating a dataset on load costs: sizes only against sizes + sha256")
-    read.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
-    read.add_argument("--split", default="train", help="split to read (default train)")
-    read.add_argument("--repeats", type=arguments.positive_int, default=15, help="best of this many (default 15)")
-    read.set_defaults(func=run_bench_read)
-
-
-def run_bench_lens(args) -> int:
-    from nerfgauge.eval.bench_lens import run_lens_bench
-
-    run_lens_bench(args.out, scene=args.scene, views=args.views, test_views=args.test_views, res=args.res,
-                   spp=args.spp, radius=args.radius, focus_distance=args.focus_distance, apertures=args.apertures,
-                   budget_seconds=args.budget_seconds, aperture_samples=args.aperture_samples, threads=args.threads)
-    print(f"bench lens: {args.out}")
-    return 0
-
-
-def positive_floats(text: str) -> tuple:
-    """"0.1,0.2" -> (0.1, 0.2): comma-separated positive finite numbers."""
-    return tuple(arguments.positive_float(part) for part in text.split(","))
-
-
-def _variant_names():
-    from nerfgauge.eval.bench import VARIANTS
-
-    return list(VARIANTS)
-
-
-def run_bench_generate(args) -> int:
-    from nerfgauge.eval.bench import bench_generate
-    from nerfgauge.generate.commands import parse_resolution
-
-    width, height = parse_resolution(args.res)
-    print("| run | views | res | spp | variant | s/view (generator) | s/view (Mitsuba render) | overhead ratio |")
-    print("|---|---|---|---|---|---|---|---|")
-    for repeat in range(args.repeats):
-        r = bench_generate(args.scene, args.views, width, height, args.spp)
-        print(f"| {repeat + 1} | {r['views']} | {width}x{height} | {r['spp']} | {r['variant']} | "
-              f"{r['seconds_per_view']:.4f} | {r['mitsuba_seconds_per_view']:.4f} | {r['overhead_ratio']:.3f} |")
-    return 0
-
-
-def run_bench_train(args) -> int:
-    from nerfgauge.eval.bench import bench_train, speedups, table_markdown
-    from nerfgauge.generate.commands import parse_resolution
-
-    width, height = parse_resolution(args.res)
-    rows = bench_train(args.out, list(args.scenes), list(args.variants), list(args.budgets), width, height, args.views)
-    print(table_markdown(rows))
-    print("\n".join(speedups(rows)))
-    print(f"table: {args.out / 'train.md'}; plots: {args.out / 'pareto.png'}")
-    return 0
-
-
-def run_bench_scaling(args) -> int:
-    from nerfgauge.eval.bench_scaling import ScalingConfig, bench_scaling, report_markdown
-
-    config = ScalingConfig(
-        scene=args.scene, resolutions=args.resolutions, views=args.views, view_counts=args.view_counts,
-        view_counts_res=args.view_counts_res, budget_seconds=args.budget_seconds, target_psnr=args.target_psnr,
-        gen_views=args.gen_views, gen_views_spp=args.gen_views_spp, gen_spp=args.gen_spp,
-        gen_spp_views=args.gen_spp_views, gen_res=args.gen_res)
-    document = bench_scaling(config, args.out)
-    print(report_markdown(document))
-    print(f"data: {args.out / 'scaling.json'}; plots: {args.out / 'scaling.png'}")
-    return 0
-
-
-def run_bench_hard(args) -> int:
-    from nerfgauge.eval.bench_hard import HardConfig, bench_hard, table_markdown
-    from nerfgauge.generate.commands import parse_resolution
-    from nerfgauge.scenes import HARD_SCENES
-
-    width, height = parse_resolution(args.res)
-    scenes = tuple(HARD_SCENES) if args.scenes is None else args.scenes
-    config = HardConfig(scenes, width, height, args.views, args.test_views, args.spp, args.steps)
-    rows = bench_hard(config, args.out)
-    print(table_markdown(rows, config.command(args.out)))
-    return 0 if all(row["finite"] for row in rows) else 1
-
-
-def run_bench_read(args) -> int:
-    from nerfgauge.eval.bench_read import bench_read, table_markdown
-
-    print(table_markdown(bench_read(args.dataset, args.split, args.repeats)))
-    return 0
-
-
-# --- geometry: `mesh` and `geometry` (issue 13) -------------------------------------------
+# --- geometry ----------------------------------------------------------------------------
 
 
 def register_geometry(subparsers) -> None:
-    mesh = subparsers.add_parser(
-        "mesh", help="a mesh (PLY) from a trained run's density by marching cubes",
-        description="Marching cubes on the field's density over the scene bounds, at the density where the model "
-                    "renders its surface on training rays; triangles no training camera sees are dropped "
-                    "(nerf/mesh.py). The bounds and cameras come from the dataset the run was trained on, checked "
-                    "against the manifest.json hash the run recorded (a changed dataset is refused, exit 2).")
-    mesh.add_argument("run", type=arguments.path, metavar="RUN_DIR", help="a finished training run (model.pt)")
-    mesh.add_argument("-o", "--out", type=arguments.path, required=True, metavar="OUT.ply",
-                      help="mesh file to write: a new path or a mesh nerfgauge wrote (a rerun replaces it), never "
-                           "a user's file or a file in a dataset folder")
-    mesh.add_argument("--resolution", type=arguments.positive_int, default=256,
-                      help="grid cells along the scene's longest side (default 256)")
-    mesh.add_argument("--no-cull", action="store_true", help="keep triangles no training camera sees")
-    mesh.add_argument("--level", type=arguments.positive_float, metavar="SIGMA",
-                      help="density of the surface (default: the median density where the model renders its "
-                           "surface on training rays)")
-    mesh.add_argument("--overwrite", action="store_true",
-                      help="let -o replace a nerfgauge file of another kind (never a file nerfgauge did not write)")
-    mesh.set_defaults(func=run_mesh)
     geometry = subparsers.add_parser(
         "geometry", help="score a mesh, point cloud or rendered depth against the dataset's exact meshes",
         description="Accuracy, completeness, Chamfer-L1, normal consistency and F-score at distance thresholds "
@@ -463,56 +213,23 @@ def register_geometry(subparsers) -> None:
     geometry.set_defaults(func=run_geometry)
 
 
-def _output_file(out: Path, recipe: dict, kind: str, overwrite: bool):
-    """Refuse a target that is not new nor a `kind` file nerfgauge wrote (core.outputs);
-    claim a parent folder this command creates as an "evaluation" folder (marker and lock)."""
-    from nerfgauge.core.folders import claim_folder, recipe_hash
-    from nerfgauge.core.outputs import check_output_file
-
-    check_output_file(out, kind, overwrite=overwrite)
-    if out.parent.exists():
-        return contextlib.nullcontext()
-    return claim_folder(out.parent, "evaluation", recipe_hash(recipe))
-
-
-def run_mesh(args) -> int:
-    from nerfgauge.core.files import write_bytes_atomic
-    from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
-
-    out = Path(args.out)
-    if out.suffix.lower() != ".ply":
-        from nerfgauge.core.errors import InputError
-
-        raise InputError(f"-o {out}: the mesh is written as PLY; name it *.ply")
-    with _output_file(out, {"mesh": str(args.run), "resolution": args.resolution}, "mesh",
-                      getattr(args, "overwrite", False)):
-        mesh = mesh_from_run(args.run, args.resolution, cull=not args.no_cull, level=args.level)
-        write_bytes_atomic(out, ply_bytes(mesh.vertices, mesh.faces))
-    print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces ({mesh.faces_culled} unseen dropped), "
-          f"level sigma = {mesh.level:.4g} ({mesh.level_source}), {args.resolution} cells, "
-          f"{mesh.seconds:.1f} s")
-    return 0
 
 
 def run_geometry(args) -> int:
-    from nerfgauge.core.files import write_json
-    from nerfgauge.eval.geometry import format_geometry, score_geometry
-
     out = Path(args.out)
     recipe = {"geometry": str(args.dataset), "mesh": str(args.pred_mesh), "depth": str(args.pred_depth)}
     run = None
     if args.run is not None:  # the run and its dataset checked before any work (nerf.runs)
-        from nerfgauge.nerf.checkpoint import load_model
-        from nerfgauge.nerf.runs import open_run_dataset
+        from nerfgauge.nerf.checkpoint import load_model  # torch: kept off `nerfgauge --help`'s import path
 
         model, config = load_model(Path(args.run) / "model.pt")
         run = model, open_run_dataset(args.run, config, args.dataset)
-    with _output_file(out, recipe, "geometry", getattr(args, "overwrite", False)):
+    with claim_output_file(out, recipe, "geometry", getattr(args, "overwrite", False)):
         document, _ = score_geometry(args.dataset, args.pred_mesh, args.pred_depth, split=args.split,
                                      taus=tuple(args.tau), samples=args.samples, seed=args.seed,
                                      whole_surface=args.whole_surface)
         if run is not None:
-            from nerfgauge.eval.normals import score_normals
+            from nerfgauge.eval.normals import score_normals  # torch: kept off `nerfgauge --help`'s import path
 
             document["normals"] = score_normals(*run, args.split)
         write_json(out, document)

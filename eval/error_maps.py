@@ -53,7 +53,7 @@ def colourize(values: np.ndarray, vmax: float, cmap: str) -> np.ndarray:
 
     Returns [H, W, 3] uint8.
     """
-    import matplotlib
+    import matplotlib  # matplotlib: only when error maps are drawn
 
     values = np.asarray(values, np.float64)
     valid = np.isfinite(values)  # [H, W]

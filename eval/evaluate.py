@@ -5,8 +5,8 @@
                        [--pred-format auto|nerfgauge|nerfstudio|nerfbaselines|folder]
 
 Other tools' folders (ns-render dataset output, NerfBaselines predictions, plain folders of
-PNG/JPEG/EXR matched by stem or order) are read as they are: eval/foreign.py. What follows
-is our own naming ("nerfgauge" format).
+PNG/JPEG/EXR matched by stem or order) are read as they are: eval/predictions.py, which
+finds and reads every prediction file. What follows is our own naming ("nerfgauge" format).
 
 Accepted prediction files, for the dataset frame "test/r_007" (r_007 below):
 
@@ -26,7 +26,7 @@ optional `_suffix` and .png/.exr/.npy) must belong to a frame of the split: anyt
 is reported as an extra frame. DIR/timing.json (a JSON object, e.g. ms per frame from the
 renderer), if present, is copied into metrics.json's `timing`; when it records the sha256
 of the transforms and scene.json the frames were rendered from (`nerfgauge render` does),
-DATASET must list the same (nerf.runs.check_renders_dataset), else one line naming both.
+DATASET must list the same (core.provenance.check_renders_dataset), else one line naming both.
 
 Metrics (eval.metrics): PSNR and SSIM on colour composited onto the background (prediction
 and the straight-alpha ground-truth PNG alike; RGB predictions are taken as composited);
@@ -62,9 +62,7 @@ against background) with a warning when more than a quarter of the split is empt
 
 from __future__ import annotations
 
-import re
 import time
-from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Callable, Optional
@@ -77,7 +75,18 @@ from nerfgauge.eval.error_maps import (
     write_error_maps,
 )
 from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_pixels, holds_out, reference_depths
-from nerfgauge.nerf.runs import check_renders_dataset
+from nerfgauge.eval.lpips import MIN_SIDE, NOT_AVAILABLE, LpipsBatch, load_lpips
+from nerfgauge.eval.predictions import (
+    DEPTH_SUFFIXES,
+    FORMATS,
+    PredictionFiles,
+    detect_format,
+    find_nerfgauge_predictions,
+    locate,
+    read_colour,
+    read_plane,
+    require_finite,
+)
 from nerfgauge.eval.metrics import (
     METRIC_NAMES,
     composite,
@@ -95,7 +104,7 @@ from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import check_writable_target, json_from_bytes, read_json, write_json
 from nerfgauge.core.outputs import TOOL
-from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
+from nerfgauge.core.provenance import check_renders_dataset
 
 SCHEMA = 1
 METRICS_KIND = "metrics"  # metrics.json's "kind" (core.outputs: what a rerun may replace)
@@ -104,128 +113,6 @@ EMPTY_WARNING_FRACTION = 0.25
 COVISIBLE_NONE = f"split {{split}} is not held out from {REFERENCE_SPLIT}: no co-visibility mask"
 COVISIBLE_SKIPPED = "not computed (--no-held-out)"
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-DEPTH_SUFFIXES = {"distance": ("_depth", "_distance"), "z": ("_depth", "_zdepth")}
-DEPTH_HEADER = {"distance": "ray_distance", "z": "z_depth"}
-FRAME_FILE = re.compile(r"^(r_\d+)(?:_[A-Za-z]+)?\.(?:png|exr|npy)$")
-
-
-@dataclass(frozen=True)
-class PredictionFiles:
-    """Where one frame's prediction lives; depth and opacity may be absent."""
-
-    colour: Path
-    depth: Optional[Path]
-    opacity: Optional[Path]
-
-
-# --- finding and reading predictions ----------------------------------------------------
-
-
-def find_prediction(pred_dir: Path, stem: str, depth_kind: str) -> Optional[PredictionFiles]:
-    """The files predicting frame `stem` (e.g. "test/r_007"), or None when there are none."""
-    split, name = stem.split("/")[0], Path(stem).name
-    found = {}
-    for folder in (pred_dir / split, pred_dir):
-        colour = next((folder / (name + ext) for ext in (".png", ".exr") if (folder / (name + ext)).is_file()), None)
-        if colour is not None:
-            found[folder] = colour
-    if len(found) > 1:
-        first, second = found.values()
-        raise InputError(f"frame {stem}: predicted twice, as {first} and {second}; keep one")
-    if not found:
-        return None
-    (folder, colour), = found.items()
-    depth_names = [name + suffix + ext for suffix in DEPTH_SUFFIXES[depth_kind] for ext in (".exr", ".npy")]
-    depth = next((folder / n for n in depth_names if (folder / n).is_file()), None)
-    opacity = next((folder / (name + "_opacity" + ext) for ext in (".png", ".npy")
-                    if (folder / (name + "_opacity" + ext)).is_file()), None)
-    return PredictionFiles(colour, depth, opacity)
-
-
-def extra_frames(pred_dir: Path, split: str, names: set) -> list[Path]:
-    """Files in DIR/<split>/ or DIR that look like frames but belong to none of `names`."""
-    extras = []
-    for folder in (pred_dir / split, pred_dir):
-        if folder.is_dir():
-            for path in sorted(folder.iterdir()):
-                match = FRAME_FILE.match(path.name)
-                if path.is_file() and match and match.group(1) not in names:
-                    extras.append(path)
-    return extras
-
-
-def _finite(values: np.ndarray, path: Path) -> np.ndarray:
-    finite = np.isfinite(values)
-    if not finite.all():
-        n_nan = int(np.isnan(values).sum())
-        raise InputError(f"{path} holds {n_nan} NaN and {int((~finite).sum()) - n_nan} inf values "
-                         f"out of {values.size}; no metrics computed")
-    return values
-
-
-def _sized(values: np.ndarray, path: Path, intrinsics) -> np.ndarray:
-    if values.shape[:2] != (intrinsics.height, intrinsics.width):
-        raise InputError(f"prediction {path} is {values.shape[1] if values.ndim > 1 else '?'}x{values.shape[0]}, "
-                         f"the ground truth is {intrinsics.width}x{intrinsics.height}")
-    return values
-
-
-def read_colour(path: Path, intrinsics) -> tuple[np.ndarray, Optional[np.ndarray]]:
-    """(sRGB [H, W, 3] in [0, 1], straight alpha [H, W] or None) from a PNG, JPEG or EXR."""
-    if path.suffix.lower() in (".jpg", ".jpeg"):
-        from nerfgauge.eval.foreign import read_jpeg
-
-        return read_jpeg(path, intrinsics), None
-    if path.suffix == ".exr":
-        channels, _ = read_exr(path)
-        if "RGBA" in channels or "RGB" in channels:
-            image = channels.get("RGBA", channels.get("RGB"))
-        elif {"R", "G", "B"} <= set(channels):
-            image = np.stack([channels[c] for c in "RGBA" if c in channels], axis=-1)
-        else:
-            raise InputError(f"{path} has no R, G, B channels (has {sorted(channels)})")
-        image = _finite(_sized(np.asarray(image, np.float64), path, intrinsics), path)
-        if image.shape[-1] == 3:
-            return linear_to_srgb(image), None
-        alpha = np.clip(image[..., 3], 0.0, 1.0)  # [H, W]
-        straight = np.divide(image[..., :3], image[..., 3:4], out=np.zeros_like(image[..., :3]),
-                             where=image[..., 3:4] > 0)  # [H, W, 3]
-        return linear_to_srgb(straight), alpha
-    image = _sized(read_png(path).astype(np.float64), path, intrinsics)
-    if image.ndim == 2:
-        image = image[..., None]
-    if image.shape[-1] in (1, 2):  # gray (+ alpha)
-        image = np.concatenate([np.repeat(image[..., :1], 3, -1), image[..., 1:]], axis=-1)
-    return image[..., :3], (image[..., 3] if image.shape[-1] == 4 else None)
-
-
-def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.ndarray:
-    """A one-channel EXR, .npy, (opacity) PNG or foreign depth (.npy.gz, .bin) as [H, W] float64."""
-    if path.name.endswith(".npy.gz") or path.suffix == ".bin":
-        from nerfgauge.eval.foreign import read_depth_file
-
-        values = read_depth_file(path)
-    elif path.suffix == ".npy":
-        try:
-            values = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as error:
-            raise InputError(f"cannot read {path}: {error}") from None
-    elif path.suffix == ".exr":
-        channels, header = read_exr(path)
-        if len(channels) != 1:
-            raise InputError(f"{path} should hold one channel, has {sorted(channels)}")
-        (values,) = channels.values()
-        stored = header.get("nerfgauge_depth")
-        if depth_kind and stored is not None and stored != DEPTH_HEADER[depth_kind]:
-            raise InputError(f"{path} holds {stored} but --depth-kind {depth_kind} compares {DEPTH_HEADER[depth_kind]}")
-    else:
-        values = read_png(path)
-    values = np.asarray(values)
-    if values.ndim == 3 and values.shape[-1] == 1:
-        values = values[..., 0]
-    if values.ndim != 2 or not np.issubdtype(values.dtype, np.number):
-        raise InputError(f"{path} must be a numeric [H, W] array, got shape {values.shape} dtype {values.dtype}")
-    return _sized(values.astype(np.float64), path, intrinsics)
 
 
 # --- scoring ----------------------------------------------------------------------------
@@ -237,7 +124,7 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
     [H, W] (its opacity plane when it has one; None for an opaque RGB prediction)."""
     rgb, alpha = read_colour(files.colour, intrinsics)
     if files.opacity is not None:
-        alpha = _finite(read_plane(files.opacity, intrinsics), files.opacity)
+        alpha = require_finite(read_plane(files.opacity, intrinsics), files.opacity)
     pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
     gt_rgba = dataset.read_rgba(ds, stem, intrinsics)  # [H, W, 4]
     return pred, composite(gt_rgba, background), gt_rgba, alpha
@@ -291,14 +178,6 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     return values, colour_error(pred, gt).astype(np.float32), depth_err
 
 
-def find_nerfgauge_predictions(pred_dir: Path, split: str, stems: tuple, depth_kind: str) -> dict:
-    """{stem: PredictionFiles or None} in our own naming; files that look like frames of
-    none of `stems` are an InputError."""
-    extras = extra_frames(pred_dir, split, {Path(stem).name for stem in stems})
-    if extras:
-        raise InputError(f"{len(extras)} extra prediction file(s) not among the {len(stems)} frames of split "
-                         f"{split}: {', '.join(str(p) for p in extras[:4])}{' ...' if len(extras) > 4 else ''}")
-    return {stem: find_prediction(pred_dir, stem, depth_kind) for stem in stems}
 def object_psnrs(ds: dataset.Dataset, stem: str, intrinsics, pred, gt) -> Optional[dict]:
     """{shape name: PSNR on the pixels whose centre ray hits it} for the shapes in view;
     None for a dataset without instance ids."""
@@ -370,12 +249,10 @@ def read_timing(pred_dir: Path) -> dict:
 def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
              depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True) -> dict:
     """Score every frame of `split`; write metrics.json and error maps. Returns the document.
-    pred_format: how `pred_dir` names its files (eval.foreign.FORMATS; "auto" detects it).
+    pred_format: how `pred_dir` names its files (eval.predictions.FORMATS; "auto" detects it).
     held_out=False skips the co-visible and depth-resolved scores (eval.covisibility).
     A user's `out` is checked by the caller (core.outputs.check_output_file: the CLI and
     nerfgauge.evaluate); `run` and `suite` write here into folders they claimed."""
-    from nerfgauge.eval import foreign
-
     start = time.perf_counter()
     if background not in BACKGROUNDS:
         raise InputError(f"unknown background {background!r}; choose white or black")
@@ -392,14 +269,14 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     scene = ds.scene.get("recipe")
     if not isinstance(scene, str) or not scene:
         raise InputError(f"{ds.root / 'scene.json'}: 'recipe' must name the scene, got {scene!r}")
-    if pred_format not in foreign.FORMATS:
-        raise InputError(f"unknown prediction format {pred_format!r}; choose one of {', '.join(foreign.FORMATS)}")
+    if pred_format not in FORMATS:
+        raise InputError(f"unknown prediction format {pred_format!r}; choose one of {', '.join(FORMATS)}")
     if pred_format == "auto":
-        pred_format = foreign.detect_format(pred_dir, split)
+        pred_format = detect_format(pred_dir, split)
     if pred_format == "nerfgauge":
         found = find_nerfgauge_predictions(pred_dir, split, cameras.stems, depth_kind)
     else:
-        found = foreign.locate(pred_dir, pred_format, split, cameras.stems)
+        found = locate(pred_dir, pred_format, split, cameras.stems)
     missing = [stem for stem, files in found.items() if files is None]  # nerfgauge format only
     if missing:
         raise InputError(f"no prediction for {len(missing)} of {len(found)} frames of split {split}: "
@@ -451,8 +328,6 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
 
 def lpips_scorer(intrinsics):
     """(eval.lpips.LpipsBatch, None) when LPIPS can be measured, else (None, why it is n/a)."""
-    from nerfgauge.eval.lpips import MIN_SIDE, NOT_AVAILABLE, LpipsBatch, load_lpips
-
     if min(intrinsics.width, intrinsics.height) < MIN_SIDE:
         return None, f"n/a (LPIPS-Alex needs images of at least {MIN_SIDE} px)"
     model = load_lpips()

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from nerfgauge.eval.metrics import METRIC_NAMES
+from nerfgauge.core.dataset import FRAME_SUFFIXES
 
 PROTOCOL = "nerfgauge-v1"
 PRECISION = 5  # NerfBaselines rounds "metrics" to this many digits
@@ -108,8 +109,6 @@ def files_hash(paths) -> str:
 def nerfbaselines_document(document: dict, *, dataset_root, pred_dir, method_name: str) -> dict:
     """NerfBaselines' results.json for a metrics document of eval.evaluate on `dataset_root`,
     whose frames' "file" entries name the prediction files under `pred_dir`."""
-    from nerfgauge.core.dataset import FRAME_SUFFIXES
-
     metrics_lists = {name: [float(v) for v in column] for name, column in _metric_columns(document).items()
                      if all(v is not None for v in column)}
     predictions = [Path(pred_dir) / frame["file"] for frame in document["frames"]]

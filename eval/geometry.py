@@ -56,10 +56,11 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.core.camera import pixel_rays
+from nerfgauge.core.camera import pixel_coordinates, pixel_rays
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.outputs import stamp
+from nerfgauge.eval.predictions import DEPTH_SUFFIXES, read_plane
 
 SCHEMA = 1
 DEFAULT_TAU_FRACTIONS = (0.005, 0.01)
@@ -101,7 +102,7 @@ def _declares_faces(data: bytes) -> bool:
 def surface_from_bytes(data: bytes, name: str, file_type: str) -> Surface:
     """Parse mesh or point-cloud bytes with trimesh; one-line InputError for anything that
     is not a non-empty, finite surface."""
-    import trimesh
+    import trimesh  # trimesh: only when a mesh file is read (eval.check imports this module)
 
     try:
         loaded = trimesh.load(io.BytesIO(data), file_type=file_type, process=False)
@@ -248,8 +249,6 @@ def seen_in_view(xyz: np.ndarray, nrm: np.ndarray, pose: np.ndarray, intrinsics,
     sees, by the depth test of the module docstring. Returns their indices [k] int64.
     The normal-dependent tolerance is only computed for samples within the widest
     tolerance (the grazing cap) of the recorded depth."""
-    from nerfgauge.nerf.mesh import pixel_coordinates
-
     cap = math.tan(math.radians(GRAZING_CAP_DEGREES))
     half_pixel = math.sqrt(2) / (2 * max(intrinsics.fx, intrinsics.fy))
     widest = half_pixel * cap + 1e-5  # tolerance / distance at the grazing cap
@@ -281,8 +280,6 @@ def depth_points(ds: Dataset, pred_dir, split: str = "test") -> tuple[np.ndarray
     `nerfgauge evaluate` finds them: DIR/<split>/r_007_depth.exr or DIR/r_007_depth.exr,
     .exr or .npy, or _distance). Pixels with depth 0 are misses. Returns points [n, 3]
     and the files read."""
-    from nerfgauge.eval.evaluate import DEPTH_SUFFIXES, read_plane
-
     pred_dir = Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")
@@ -337,7 +334,7 @@ TREE_OPTIONS = {"balanced_tree": False, "compact_nodes": False, "leafsize": 64}
 def spatial_order(points: np.ndarray) -> np.ndarray:
     """A permutation [n] of points [n, 3] that puts neighbours next to each other (the
     leaf order of a k-d tree)."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # scipy: only when distances are computed
 
     return cKDTree(points, **TREE_OPTIONS).indices
 
@@ -357,7 +354,7 @@ class NearestNeighbours:
     thread: 3.9 s in sampling order, 1.0 s with both sets in spatial order)."""
 
     def __init__(self, reference: np.ndarray, order: Optional[np.ndarray] = None):
-        from scipy.spatial import cKDTree
+        from scipy.spatial import cKDTree  # scipy, as above
 
         self.order = spatial_order(reference) if order is None else order  # [n_ref]
         self.tree = cKDTree(reference[self.order], **TREE_OPTIONS)

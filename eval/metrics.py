@@ -1,6 +1,6 @@
 """Image and depth metrics: pure numpy functions, one definition each.
 
-Conventions (DESIGN.md, "Metrics"):
+Conventions (docs/conventions.md, "Metrics"):
 
 - Images are float RGB on [0, 1], shape [H, W, 3]. RGBA predictions and ground truth are
   composited onto a background first (`composite`, white by default in the callers).
@@ -292,7 +292,7 @@ def ssim_masked(pred, gt, mask) -> Optional[float]:
 
 def _ssim_with_map(pred, gt) -> tuple[float, np.ndarray, int]:
     """(mean SSIM, the SSIM map [H, W, 3], the border crop in pixels) of one pair."""
-    from skimage.metrics import structural_similarity
+    from skimage.metrics import structural_similarity  # scikit-image: only when SSIM is computed
 
     pred, gt = _image_pair(pred, gt)
     window = ssim_window(pred.shape[0], pred.shape[1])

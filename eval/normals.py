@@ -23,6 +23,7 @@ import torch
 from nerfgauge.core.camera import pixel_rays
 from nerfgauge.core.dataset import open_dataset
 from nerfgauge.core.errors import InputError
+from nerfgauge.nerf.rendering import render_rays_chunked  # the field renders its depth: eval -> nerf by design
 
 WITHIN_DEGREES = (11.25, 22.5, 30.0)
 UNDEFINED_DEGREES = 90.0
@@ -66,8 +67,6 @@ def normal_scores(errors: np.ndarray) -> dict:
 def score_normals(model, root, split: str = "test", views: int | None = None, device="cpu") -> dict:
     """The field's normals at its expected depth on every GT-hit pixel of `split` (the
     first `views` views if given), scored against the dataset's normal EXRs."""
-    from nerfgauge.nerf.train import render_rays_chunked
-
     if not model.has_density:
         raise InputError(f"a {type(model).__name__} has no density query (model.density); normals need one")
     ds = open_dataset(root)  # a path or an open (e.g. checked, nerf.runs) Dataset

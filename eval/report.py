@@ -16,6 +16,10 @@ from pathlib import Path
 import numpy as np
 from nerfgauge.eval.covisibility import held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.error_maps import colour_error, depth_relative_error
+from nerfgauge.eval.evaluate import NOISE_FLOOR_DB
+from nerfgauge.eval.geometry import summary
+from nerfgauge.eval.metrics import METRIC_NAMES, composite
+from nerfgauge.eval.predictions import find_prediction, read_colour
 
 from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
 from nerfgauge.core.errors import InputError
@@ -39,8 +43,6 @@ def read_log(path) -> list[dict]:
 def ceiling_cell(psnr, ceiling) -> str:
     """The dataset's noise ceiling (evaluate's noise.psnr_ceiling), marked when the PSNR is
     within NOISE_FLOOR_DB of it."""
-    from nerfgauge.eval.evaluate import NOISE_FLOOR_DB
-
     if ceiling is None:
         return "–"
     at_floor = psnr is not None and psnr >= ceiling - NOISE_FLOOR_DB
@@ -66,13 +68,13 @@ def metrics_table(rows: dict) -> list[list[str]]:
 
 
 def _figure(width: float, height: float):
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # matplotlib: only when a figure is drawn
 
     return Figure(figsize=(width, height), dpi=110)
 
 
 def _save(figure, out) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib
 
     with atomic_path(out) as tmp:
         FigureCanvasAgg(figure).print_png(str(tmp))
@@ -131,9 +133,7 @@ def held_out_overlay(gt: np.ndarray, held_out, hit: np.ndarray) -> np.ndarray:
 
 def _pred_rgb(pred_dir: Path, stem: str, intrinsics, background) -> np.ndarray:
     """The prediction of `stem` composited onto the background, [H, W, 3], whatever its
-    format (eval.evaluate / eval.foreign find it)."""
-    from nerfgauge.eval.evaluate import composite, find_prediction, read_colour
-
+    format (eval.predictions finds it)."""
     files = find_prediction(pred_dir, stem, "distance")
     if files is None:
         raise InputError(f"no prediction for frame {stem} in {pred_dir}")
@@ -145,8 +145,6 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
     """PNG: one row per frame; labelled columns ground truth, prediction, colour error,
     predicted depth, depth error, each map with its colour bar (scale in the label), and
     what the train views saw of the frame (held_out_overlay)."""
-    from nerfgauge.eval.evaluate import composite
-
     ds = open_dataset(dataset_root)
     cameras = ds.cameras(split)
     stems = cameras.stems[:frames]
@@ -314,8 +312,6 @@ def write_html(out, title: str, table: list, images: dict, notes: list[str], ext
 def per_view_table(documents: dict) -> list[list[str]]:
     """One row per (frame, method) of the metrics documents ({method: document}): the
     frame, the method and every metric of eval.metrics.METRIC_NAMES defined anywhere."""
-    from nerfgauge.eval.metrics import METRIC_NAMES
-
     names = [m for m in METRIC_NAMES if any(f.get(m) is not None for d in documents.values() for f in d["frames"])]
     table = [["frame", "method"] + [dict((k, label) for k, label, _ in TABLE_METRICS).get(m, m) for m in names]]
     formats = {k: fmt for k, _, fmt in TABLE_METRICS}
@@ -354,8 +350,6 @@ def write_report(out, title: str, dataset_root, renders, documents: dict, *, log
 
 def geometry_table(document: dict) -> str:
     """One line of the geometry scores (eval.geometry's document) for the report's notes."""
-    from nerfgauge.eval.geometry import summary
-
     labels = {"geometry_chamfer_l1": "Chamfer-L1", "geometry_accuracy": "accuracy",
               "geometry_completeness": "completeness", "geometry_fscore_0p5pct": "F-score@0.5%",
               "geometry_fscore_1pct": "F-score@1%", "geometry_normal_consistency": "normal consistency",
@@ -370,8 +364,8 @@ def geometry_table(document: dict) -> str:
 def geometry_histogram(distances: dict, document: dict, out) -> None:
     """Histograms of predicted-to-ground-truth and ground-truth-to-predicted distances, with
     the F-score thresholds marked; PNG."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib: only when a figure is drawn
+    from matplotlib.figure import Figure  # matplotlib
 
     taus = [row["tau"] for row in document["at_tau"]]
     top = max(3 * max(taus), 1e-9)
@@ -414,8 +408,6 @@ def focus_rows(datasets: dict, preds: dict, stem: str, out, background=(1.0, 1.0
     `stem` composited on the background: how each method's focus plane stays sharp and the
     rest blurs as the aperture grows. datasets: {aperture: dataset root}; preds: {method:
     {aperture: prediction folder}}; crop: (row0, row1, col0, col1) of the image or None."""
-    from nerfgauge.eval.evaluate import composite
-
     bg = np.asarray(background, np.float64)
     apertures = list(datasets)
     rows = ["ground truth"] + list(preds)

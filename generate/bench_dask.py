@@ -20,7 +20,7 @@ from nerfgauge.generate.pipeline import GenerateConfig, generate
 
 def views_per_second(config: GenerateConfig, workers: int, folder: Path) -> float:
     """generate `config` on a fresh LocalCluster of `workers` single-threaded workers."""
-    from distributed import LocalCluster
+    from distributed import LocalCluster  # dask: an optional extra
 
     with LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=":0", silence_logs=50) as cluster:
         with dask_client(cluster.scheduler_address) as client:

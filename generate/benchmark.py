@@ -8,12 +8,8 @@ import time
 from pathlib import Path
 
 from nerfgauge.generate.mitsuba_scene import scene_dict, write_meshes
-from nerfgauge.generate.pipeline import (
-    SPLIT_SEED_OFFSET,
-    GenerateConfig,
-    plan,
-    view_seed,
-)
+from nerfgauge.generate.pipeline import GenerateConfig, plan
+from nerfgauge.generate.views import SPLIT_SEED_OFFSET, view_seed
 from nerfgauge.generate.render import render_rgba
 from nerfgauge.generate.variant import use_variant
 

@@ -2,27 +2,12 @@
 
 from __future__ import annotations
 
-import re
-
 from nerfgauge.core import arguments
-from nerfgauge.core.errors import InputError
-
-
-def parse_resolution(text: str) -> tuple[int, int]:
-    """"128" -> (128, 128); "160x120" -> (160, 120) as (width, height)."""
-    match = re.fullmatch(r"\s*(-?\d+)\s*(?:[xX]\s*(-?\d+)\s*)?", text)
-    if not match:
-        raise InputError(f"--res must be N or WxH (e.g. 128 or 160x120), got {text!r}")
-    width = int(match.group(1))
-    height = int(match.group(2)) if match.group(2) is not None else width
-    if width <= 0 or height <= 0:
-        raise InputError(f"--res must be positive, got {text!r}")
-    return width, height
+from nerfgauge.generate import options
+from nerfgauge.generate.pipeline import GenerateConfig, generate
 
 
 def register(subparsers) -> None:
-    from nerfgauge.generate import options
-
     parser = subparsers.add_parser("generate", help="render a scene into a NeRF dataset",
                                    description="Render posed views of a procedural scene with Mitsuba 3, with "
                                                "exact depth, normals and masks, into a NeRF-synthetic + nerfstudio dataset.")
@@ -39,9 +24,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from nerfgauge.generate import options
-    from nerfgauge.generate.pipeline import GenerateConfig, generate
-
     config = GenerateConfig(scene=args.scene, **options.generate_fields(args))
     result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet,
                       scheduler=args.scheduler)

@@ -24,8 +24,11 @@ import os
 import re
 import threading
 import time
+from pathlib import Path
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.folders import recipe_hash
+from nerfgauge.generate.views import load_mitsuba_scene, render_one, view_complete, write_view
 
 RETRIES = 2  # a task that raises runs up to 3 times
 CONNECT_TIMEOUT_SECONDS = 5.0
@@ -65,8 +68,8 @@ def dask_client(scheduler: str):
     only disconnected from. Unreachable addresses fail within CONNECT_TIMEOUT_SECONDS."""
     kind, value = parse_scheduler(scheduler)
     require_dask()
-    import dask
-    from distributed import Client, LocalCluster
+    import dask  # dask: an optional extra (require_dask says so)
+    from distributed import Client, LocalCluster  # dask
 
     # Quiet: the progress bar and our one-line errors are the user's view of the cluster.
     with dask.config.set({"distributed.comm.timeouts.connect": f"{CONNECT_TIMEOUT_SECONDS}s",
@@ -91,7 +94,7 @@ def dask_client(scheduler: str):
 
 def set_render_threads(count: int) -> int:
     """Run on a worker: Dr.Jit's (and so Mitsuba's) render threads in this process."""
-    import drjit
+    import drjit  # drjit: only on a worker that renders
 
     drjit.set_thread_count(count)
     return drjit.thread_count()
@@ -105,11 +108,6 @@ _LOCK = threading.Lock()  # one load or render at a time per process (workers ma
 
 def render_task(out: str, the_plan, recipe: str, split: str, index: int) -> float:
     """Render and write one view unless it is already complete. Returns render seconds (0 if skipped)."""
-    from pathlib import Path
-
-    from nerfgauge.generate.pipeline import view_complete
-    from nerfgauge.generate.workers import _render_one, dataset_write, load_mitsuba_scene
-
     out = Path(out)
     stem = the_plan.stems[split][index]
     if view_complete(out, stem):  # a retried or repeated task: the files are there, bytes the same
@@ -119,8 +117,8 @@ def render_task(out: str, the_plan, recipe: str, split: str, index: int) -> floa
             _SCENES.clear()  # one dataset per worker process at a time
             _SCENES[(str(out), recipe)] = load_mitsuba_scene(out, the_plan)
         mi, scene = _SCENES[(str(out), recipe)]
-        images, seconds = _render_one(mi, scene, out, the_plan, split, index)
-    dataset_write(out, stem, images)
+        images, seconds = render_one(mi, scene, out, the_plan, split, index)
+    write_view(out, stem, images)
     return seconds
 
 
@@ -134,9 +132,7 @@ def _the_plan(the_plan):
 def render_on_cluster(client, out, the_plan, todo, bar) -> float:
     """Submit one task per (split, index) in `todo`, advance `bar` as each finishes.
     Returns the render seconds summed over the workers."""
-    from distributed import as_completed
-
-    from nerfgauge.core.folders import recipe_hash
+    from distributed import as_completed  # dask: an optional extra
 
     recipe = recipe_hash(the_plan.recipe())
     # The plan as a task of its own rather than scattered data: the scheduler keeps it (pickled

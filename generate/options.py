@@ -10,8 +10,13 @@ Everything but the scene, the output folder and the commands' own switches (--ou
 from __future__ import annotations
 
 import argparse
+import re
 
 from nerfgauge.core import arguments
+from nerfgauge.core.errors import InputError
+from nerfgauge.generate.layouts import LAYOUTS
+from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, GenerateConfig
+from nerfgauge.generate.variant import CHOICES
 
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
@@ -19,15 +24,23 @@ CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov",
                   "units", "envmap", "envmap_rotation")
 
 
+def parse_resolution(text: str) -> tuple[int, int]:
+    """"128" -> (128, 128); "160x120" -> (160, 120) as (width, height)."""
+    match = re.fullmatch(r"\s*(-?\d+)\s*(?:[xX]\s*(-?\d+)\s*)?", text)
+    if not match:
+        raise InputError(f"--res must be N or WxH (e.g. 128 or 160x120), got {text!r}")
+    width = int(match.group(1))
+    height = int(match.group(2)) if match.group(2) is not None else width
+    if width <= 0 or height <= 0:
+        raise InputError(f"--res must be positive, got {text!r}")
+    return width, height
+
+
 def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
                            need_test_views: bool = False) -> argparse.ArgumentParser:
     """Add the generator's options to `parser`. defaults: a GenerateConfig whose values
     are the defaults (a command may default to fewer views), else GenerateConfig().
     need_test_views: --test-views must be positive (a command that evaluates on them)."""
-    from nerfgauge.generate.layouts import LAYOUTS
-    from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, GenerateConfig
-    from nerfgauge.generate.variant import CHOICES
-
     d = GenerateConfig() if defaults is None else defaults
     arguments.allow_negative_values(parser)
     parser.add_argument("--views", type=arguments.positive_int, default=d.views, help=f"training views (default {d.views})")
@@ -81,8 +94,6 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
 def generate_fields(args: argparse.Namespace) -> dict:
     """The GenerateConfig fields (all but scene) from arguments added by
     add_generate_arguments."""
-    from nerfgauge.generate.commands import parse_resolution
-
     width, height = parse_resolution(args.res)
     fields = {name: getattr(args, name) for name in CONFIG_OPTIONS}
     if fields["envmap"] is not None:

@@ -25,9 +25,13 @@ from typing import Optional
 
 import numpy as np
 from nerfgauge.generate import layouts
-from nerfgauge.generate.mitsuba_scene import write_meshes
+from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
+from nerfgauge.generate.mitsuba_scene import instance_names, write_meshes
+from nerfgauge.generate.render import NoiseTarget
 from nerfgauge.generate.variant import CHOICES as VARIANT_CHOICES
 from nerfgauge.generate.variant import resolve_variant
+from nerfgauge.generate.views import pending_views
+from nerfgauge.generate.workers import render_views
 from nerfgauge.scenes import make_scene
 from nerfgauge.scenes.registry import scene_inputs
 
@@ -36,7 +40,6 @@ from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash
-from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
 
 CONFIG = "config.json"
 DEFAULT_LAYOUT = "hemisphere"
@@ -46,7 +49,6 @@ DEFAULT_ELEVATION = (10.0, 75.0)
 DEFAULT_ELEVATION_BY_LAYOUT = {"inside": (-20.0, 20.0)}
 MAX_NOISE_PSNR = 80.0  # dB; beyond it the 8-bit PNG's own rounding (about 59 dB) dominates anyway
 DEFAULT_MAX_SPP = 4096
-SPLIT_SEED_OFFSET = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 LENS_SPLITS = {"test": ("test",), "all": ("train", "val", "test")}  # --lens-splits -> splits with the lens
 RENDERER_PACKAGES = ("mitsuba", "drjit", "nerfgauge")  # their versions are part of a dataset's recipe
 
@@ -139,8 +141,6 @@ class GenerateConfig:
     @property
     def noise_target(self):
         """The render's NoiseTarget with --spp auto, else None."""
-        from nerfgauge.generate.render import NoiseTarget
-
         return NoiseTarget(float(self.noise_psnr), max_spp=int(self.max_spp)) if self.spp == "auto" else None
 
     def _validate_lens(self) -> None:
@@ -232,12 +232,6 @@ def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
                               eye=hint and hint.eye, target=hint and hint.target, spread=hint and hint.spread)
 
 
-def view_seed(config_seed: int, split: str, index: int) -> int:
-    """The renderer's seed for one view: a function of (seed, split, index) only, so the
-    same view gets the same noise however views are ordered or spread over workers."""
-    return (config_seed * 7_919_993 + SPLIT_SEED_OFFSET[split] + index) % (2**32)
-
-
 def stale_inputs(old: dict, new: dict) -> str | None:
     """What changed between two recipes' inputs or renderer versions, as "another version
     of bunny.obj (sha256 ...)"; None when those agree (the rest of the recipe may not)."""
@@ -271,38 +265,11 @@ def refuse_stale(out: Path, recipe: dict) -> None:
         raise InputError(f"{out} was made from {change}; pass --overwrite to re-render it")
 
 
-def view_complete(out: Path, stem: str) -> bool:
-    return all((out / rel).is_file() for rel in dataset.frame_files(stem).values())
-
-
-def write_view(out: Path, stem: str, images) -> None:
-    """Write one view's nine files; the PNG last is no marker: completeness is all nine."""
-    files = {kind: out / rel for kind, rel in dataset.frame_files(stem).items()}
-    files["png"].parent.mkdir(parents=True, exist_ok=True)
-    write_exr(files["exr"], {"RGBA": images.rgba}, {"nerfgauge": "linear RGBA, premultiplied alpha = coverage"})
-    write_exr(files["distance"], {"Z": images.distance}, {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
-    write_exr(files["z_depth"], {"Z": images.z_depth}, {"nerfgauge_depth": "z_depth", "nerfgauge_miss": "0"})
-    write_exr(files["normals"], {"X": images.normals[..., 0], "Y": images.normals[..., 1], "Z": images.normals[..., 2]},
-              {"nerfgauge": "world-space shading normals, 0 on misses"})
-    write_png(files["mask"], (images.hit * 255).astype(np.uint8))
-    dataset.write_instance_png(files["instance"], images.instance)
-    write_exr(files["albedo"], {"R": images.albedo[..., 0], "G": images.albedo[..., 1], "B": images.albedo[..., 2]},
-              {"nerfgauge": "linear albedo of the first surface (Mitsuba aov integrator), box-filtered, 0 on misses"})
-    write_json(files["noise"], images.noise)
-    write_png(files["png"], premultiplied_to_png_rgba(images.rgba))
-
-
-def pending_views(out: Path, the_plan: Plan) -> list:
-    """(split, index) of every view whose files are not all on disk."""
-    return [(split, i) for split in dataset.SPLITS for i, stem in enumerate(the_plan.stems[split])
-            if not view_complete(out, stem)]
-
-
 def finish(out: Path, the_plan: Plan) -> None:
     """Transforms, scene.json, then manifest.json (last: its presence means complete)."""
-    import drjit
-    import mitsuba
-    import trimesh
+    import drjit  # drjit, mitsuba: loaded by the renderer anyway; here for scene.json's versions
+    import mitsuba  # mitsuba, as above
+    import trimesh  # trimesh: scene.json's versions
 
     intrinsics, stems, poses = the_plan.intrinsics, the_plan.stems, the_plan.poses
     for split in dataset.SPLITS:
@@ -311,8 +278,6 @@ def finish(out: Path, the_plan: Plan) -> None:
     lenses = {split: the_plan.lens(split) for split in dataset.SPLITS}
     write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses))
     scene = the_plan.scene
-    from nerfgauge.generate.mitsuba_scene import instance_names
-
     scene_json = {
         "schema": 1,
         "recipe": scene.name, "seed": scene.seed, "scene": scene.to_json(),
@@ -384,8 +349,6 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
     if not isinstance(workers, int) or workers < 1:
         raise InputError(f"--workers must be a positive integer, got {workers!r}")
     if scheduler is not None:
-        from nerfgauge.generate.distributed import parse_scheduler, require_dask
-
         parse_scheduler(scheduler)
         require_dask()
         if workers != 1:
@@ -398,8 +361,6 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
         refuse_stale(out, recipe)
     cluster = contextlib.nullcontext()
     if scheduler is not None:
-        from nerfgauge.generate.distributed import dask_client
-
         cluster = dask_client(scheduler)  # connected before the folder is touched: an unreachable one writes nothing
     with cluster as client, claim_folder(out, "dataset", recipe_hash(recipe), overwrite=overwrite):
         return _generate_claimed(out, the_plan, recipe, workers, progress, client)
@@ -413,8 +374,6 @@ def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, pro
     todo = pending_views(out, the_plan)
     if todo and (out / dataset.MANIFEST).is_file():
         (out / dataset.MANIFEST).unlink()  # views are missing: the dataset is not complete
-    from nerfgauge.generate.workers import render_views  # imports mitsuba
-
     render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress, client=client)
     if todo or not (out / dataset.MANIFEST).is_file():
         finish(out, the_plan)

@@ -51,6 +51,7 @@ from nerfgauge.core.camera import (
 )
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.images import linear_to_srgb, premultiplied_to_png_rgba
+from nerfgauge.generate.mitsuba_scene import SCALAR_BLOCK_SIZE
 
 NEAR_CLIP = 1e-3  # scene units; only clips what is closer than this to the camera
 SEED_STRIDE = 0x9E3779B9  # odd, ~0.62 * 2^32: sub-pass k of a view renders with seed + k * stride
@@ -203,7 +204,7 @@ def render_samples(mi, scene, integrator, sensor, spp: int, seed: int) -> np.nda
     1/sqrt(spp) as there. Rows are evaluated in bands of band_rows() (band b seeded
     band_seed(seed, b)), so no wave holds more than MAX_WAVE_SAMPLES samples (x 4 floats and
     the AOVs). Returns [H, W, 4 + AOVs] float32."""
-    import drjit as dr
+    import drjit as dr  # drjit: loaded with the Mitsuba variant, only when rendering
 
     if mi.is_spectral or mi.is_monochromatic:
         raise ValueError(f"render_samples handles the RGB variants nerfgauge uses, not {mi.variant()}")
@@ -273,8 +274,6 @@ class _Pass:
 def aov_integrator(mi):
     """Mitsuba's `aov` integrator alone: the albedo of the first surface each camera
     sample hits, [H, W, 3] (0 where the sample misses)."""
-    from nerfgauge.generate.mitsuba_scene import SCALAR_BLOCK_SIZE
-
     return mi.load_dict({"type": "aov", "aovs": AOVS, "block_size": SCALAR_BLOCK_SIZE})
 
 
@@ -430,7 +429,7 @@ def cast_rays_with_ids(mi, scene, origins: np.ndarray, directions: np.ndarray, s
     distance = np.where(hit, np.array(si.t, dtype=np.float64), np.inf)
     normals = np.stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)], -1)
     # A ShapePtr is an index into Dr.Jit's instance registry: one read, then a lookup table.
-    import drjit as dr
+    import drjit as dr  # drjit: only when a view renders
 
     registry = np.array(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.int64)
     numbers = {name: number for number, name in enumerate(shape_ids, start=1)}

@@ -113,7 +113,7 @@ def use_variant(name: str):
         raise InputError(f"unknown Mitsuba variant {name!r}; expected one of {', '.join(VARIANTS.values())}")
     if name != VARIANTS["scalar"]:
         prepare_llvm_path()
-    import mitsuba as mi
+    import mitsuba as mi  # mitsuba: only when the variant is set
 
     if name not in mi.variants():
         raise InputError(f"this Mitsuba build lacks variant {name}; it has {', '.join(mi.variants())}")

@@ -19,33 +19,11 @@ import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 
-from nerfgauge.generate.mitsuba_scene import scene_dict
-from nerfgauge.generate.render import render_view
-from nerfgauge.generate.variant import use_variant
+from nerfgauge.generate.distributed import render_on_cluster
+from nerfgauge.generate.views import load_mitsuba_scene, render_one, write_view
 from tqdm import tqdm
 
 _WORKER = {}  # per worker process: the loaded scene (set once by the pool initializer)
-
-
-def load_mitsuba_scene(out, the_plan):
-    """Set the variant and load the scene from the meshes already on disk. Returns (mi, scene)."""
-    mi = use_variant(the_plan.variant)
-    mesh_paths = {path.stem: path for path in (out / "meshes").glob("*.ply")}
-    # optimize=False: Mitsuba would otherwise merge shapes that share a BSDF into one mesh
-    # (two untextured objects of a GLB become "ball.ply + crate.ply"), and every pixel of
-    # both would get one instance id.
-    return mi, mi.load_dict(scene_dict(mi, the_plan.scene, mesh_paths, the_plan.config.max_depth), optimize=False)
-
-
-def _render_one(mi, scene, out, the_plan, split, index):
-    from nerfgauge.generate.pipeline import view_seed
-
-    config = the_plan.config
-    start = time.perf_counter()
-    images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
-                         view_seed(config.seed, split, index), target=config.noise_target,
-                         lens=the_plan.lens(split))
-    return images, time.perf_counter() - start
 
 
 def render_views(out, the_plan, todo, *, workers: int = 1, progress: bool = True, client=None) -> float:
@@ -57,8 +35,6 @@ def render_views(out, the_plan, todo, *, workers: int = 1, progress: bool = True
                dynamic_ncols=True)
     try:
         if client is not None and todo:
-            from nerfgauge.generate.distributed import render_on_cluster
-
             return render_on_cluster(client, out, the_plan, todo, bar)
         if workers == 1 or len(todo) < 2:
             return _render_here(out, the_plan, todo, bar)
@@ -73,22 +49,16 @@ def _render_here(out, the_plan, todo, bar) -> float:
     with ThreadPoolExecutor(max_workers=1) as writer:
         pending = None
         for split, index in todo:
-            images, seconds = _render_one(mi, scene, out, the_plan, split, index)
+            images, seconds = render_one(mi, scene, out, the_plan, split, index)
             render_seconds += seconds
             if pending is not None:
                 pending.result()  # at most one view waits for the disk
                 bar.update(1)
-            pending = writer.submit(dataset_write, out, the_plan.stems[split][index], images)
+            pending = writer.submit(write_view, out, the_plan.stems[split][index], images)
         if pending is not None:
             pending.result()
             bar.update(1)
     return render_seconds
-
-
-def dataset_write(out, stem, images):
-    from nerfgauge.generate.pipeline import write_view
-
-    write_view(out, stem, images)
 
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -127,8 +97,8 @@ def _init_worker(out, the_plan, parent_pid):
 
 
 def _work(split, index) -> float:
-    images, seconds = _render_one(_WORKER["mi"], _WORKER["scene"], _WORKER["out"], _WORKER["plan"], split, index)
-    dataset_write(_WORKER["out"], _WORKER["plan"].stems[split][index], images)
+    images, seconds = render_one(_WORKER["mi"], _WORKER["scene"], _WORKER["out"], _WORKER["plan"], split, index)
+    write_view(_WORKER["out"], _WORKER["plan"].stems[split][index], images)
     return seconds
 
 

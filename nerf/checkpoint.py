@@ -24,7 +24,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from nerfgauge.nerf.config import FLAGS, TrainConfig, step_ratio_of
-from nerfgauge.nerf.grid_field import node_mask
+from nerfgauge.nerf.grid_field import VoxelGridField, node_mask
+from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF
 from nerfgauge.nerf.parametrisation import Space
 
 from nerfgauge.core.errors import InputError
@@ -141,8 +142,6 @@ def dequantise_per_channel(codes: torch.Tensor, offset: torch.Tensor, scale: tor
 
 def model_payload(model, config: TrainConfig, prune: bool) -> dict:
     """Everything needed to rebuild `model` for rendering, pruned if asked."""
-    from nerfgauge.nerf.models import CompactNeRF
-
     payload = {"format": FORMAT, "version": VERSION, "model": config.model, "config": config.to_json()}
     if isinstance(model, CompactNeRF):
         field = model.field
@@ -176,9 +175,6 @@ def build_model(config: TrainConfig, aabb: torch.Tensor, resolution: int | None 
     grid with no node allocated yet (its values are loaded next).
     nn.Linear draws its initial weights from torch's global generator: it is seeded with
     `init_seed` inside fork_rng, so building a model never changes the caller's global RNG."""
-    from nerfgauge.nerf.grid_field import VoxelGridField
-    from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF
-
     with torch.random.fork_rng(devices=[]):
         torch.random.manual_seed(init_seed)
         if config.model == "vanilla":

@@ -1,4 +1,5 @@
-"""`nerfgauge` subcommands of the nerf stage: one `_add_<name>` and one `_run_<name>` per subcommand.
+"""`nerfgauge` subcommands of the nerf stage (train, render, toy-pe, mesh): one `_add_<name>` and
+one `_run_<name>` per subcommand.
 
 Add a subcommand by writing its pair and listing `_add_<name>` in `register`. torch is
 imported inside the run functions so `nerfgauge --help` stays instant.
@@ -6,12 +7,18 @@ imported inside the run functions so `nerfgauge --help` stays instant.
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from nerfgauge.core import arguments
 from nerfgauge.core.arguments import nonnegative_float, nonnegative_int, path, positive_float, positive_int
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import write_bytes_atomic
+from nerfgauge.core.outputs import check_output_file, claim_output_file
+from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
 
 
 def register(subparsers) -> None:
-    for add in (_add_train, _add_render, _add_toy_pe):
+    for add in (_add_train, _add_render, _add_toy_pe, _add_mesh):
         add(subparsers)
 
 
@@ -44,11 +51,9 @@ def _run_toy_pe(args) -> int:
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise InputError(f"--out must be a directory, but {args.out} is a file")
 
-    from nerfgauge.nerf.toy_pe import TOY_PE_KIND, ToyPEConfig, run_toy_pe
+    from nerfgauge.nerf.toy_pe import TOY_PE_KIND, ToyPEConfig, run_toy_pe  # torch: kept off `nerfgauge --help`'s import path
 
     if args.out is not None:  # before the fits: both files new or our own (core.outputs)
-        from nerfgauge.core.outputs import check_output_file
-
         for name in ("toy_pe.png", "toy_pe.json"):
             check_output_file(args.out / name, TOY_PE_KIND, flag=None)
 
@@ -122,8 +127,8 @@ def _add_train(subparsers) -> None:
 
 
 def _run_train(args) -> int:
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.train import train
+    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
+    from nerfgauge.nerf.train import train  # torch
 
     budget = args.budget_seconds
     if budget is None and args.steps is None:
@@ -181,7 +186,7 @@ def _add_render(subparsers) -> None:
 
 
 def _run_render(args) -> int:
-    from nerfgauge.nerf.render_views import render_split
+    from nerfgauge.nerf.render_views import render_split  # torch: kept off `nerfgauge --help`'s import path
 
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
                           overwrite=args.overwrite, progress=not args.quiet, aperture_samples=args.aperture_samples,
@@ -191,4 +196,44 @@ def _run_render(args) -> int:
               f"{timing['ms_per_lens_frame']:.1f} ms per frame")
     print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# mesh
+
+
+def _add_mesh(subparsers) -> None:
+    mesh = subparsers.add_parser(
+        "mesh", help="a mesh (PLY) from a trained run's density by marching cubes",
+        description="Marching cubes on the field's density over the scene bounds, at the density where the model "
+                    "renders its surface on training rays; triangles no training camera sees are dropped "
+                    "(nerf/mesh.py). The bounds and cameras come from the dataset the run was trained on, checked "
+                    "against the manifest.json hash the run recorded (a changed dataset is refused, exit 2).")
+    mesh.add_argument("run", type=arguments.path, metavar="RUN_DIR", help="a finished training run (model.pt)")
+    mesh.add_argument("-o", "--out", type=arguments.path, required=True, metavar="OUT.ply",
+                      help="mesh file to write: a new path or a mesh nerfgauge wrote (a rerun replaces it), never "
+                           "a user's file or a file in a dataset folder")
+    mesh.add_argument("--resolution", type=arguments.positive_int, default=256,
+                      help="grid cells along the scene's longest side (default 256)")
+    mesh.add_argument("--no-cull", action="store_true", help="keep triangles no training camera sees")
+    mesh.add_argument("--level", type=arguments.positive_float, metavar="SIGMA",
+                      help="density of the surface (default: the median density where the model renders its "
+                           "surface on training rays)")
+    mesh.add_argument("--overwrite", action="store_true",
+                      help="let -o replace a nerfgauge file of another kind (never a file nerfgauge did not write)")
+    mesh.set_defaults(func=_run_mesh)
+
+
+def _run_mesh(args) -> int:
+    out = Path(args.out)
+    if out.suffix.lower() != ".ply":
+        raise InputError(f"-o {out}: the mesh is written as PLY; name it *.ply")
+    with claim_output_file(out, {"mesh": str(args.run), "resolution": args.resolution}, "mesh",
+                           getattr(args, "overwrite", False)):
+        mesh = mesh_from_run(args.run, args.resolution, cull=not args.no_cull, level=args.level)
+        write_bytes_atomic(out, ply_bytes(mesh.vertices, mesh.faces))
+    print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces ({mesh.faces_culled} unseen dropped), "
+          f"level sigma = {mesh.level:.4g} ({mesh.level_source}), {args.resolution} cells, "
+          f"{mesh.seconds:.1f} s")
     return 0

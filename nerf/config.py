@@ -76,7 +76,7 @@ class TrainConfig:
     distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
     step_ratio: Optional[float] = None  # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
-    # vanilla (the lecture's NeRF)
+    # vanilla (the original NeRF, Mildenhall et al. 2020)
     n_coarse: int = 64
     n_fine: int = 128
     width: int = 256

@@ -1,6 +1,6 @@
 """The compact field: a sparse voxel grid (DVGO-style values, stored only where needed).
 
-Chosen by measurement on 2 CPU cores (DESIGN.md, BENCHMARKS.md): a voxel grid with
+Chosen by measurement on 2 CPU cores (BENCHMARKS.md): a voxel grid with
 occupancy skipping beat a plain-PyTorch hash grid and a positional-encoding MLP in PSNR
 per second. Its values live in a table with one row per *allocated* grid node, and a
 dense int32 `index` maps each node to its row (0: not allocated, read as empty space).

@@ -17,8 +17,8 @@ reach it (measured: 113 steps on primitives, median 3.0 at the rendered surface,
 sees (behind every camera or outside every image) are dropped: the field there was never
 constrained.
 
-torch is imported inside the functions that use it: `nerfgauge geometry` uses `project`
-and should not pay torch's import.
+torch is imported inside the functions that use it, so `nerfgauge --help` and the `mesh`
+command's argument errors do not pay torch's import.
 
 Faces are oriented with their normals pointing out of the dense region (towards
 decreasing density), as the ground-truth meshes' are.
@@ -29,11 +29,14 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.camera import Intrinsics, pixel_rays, project
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.outputs import ply_mark
+from nerfgauge.nerf.runs import open_run_dataset
 
 OPACITY_LEVEL = 0.5  # opacity over one voxel of the fixed level, and the least opacity of a calibration ray
 CALIBRATION_RAYS = 16384  # training rays (strided over every view) that set the level
@@ -58,28 +61,6 @@ class ExtractedMesh:
     box: np.ndarray
     faces_culled: int
     seconds: float
-
-
-def pixel_coordinates(x: np.ndarray, y: np.ndarray, z: np.ndarray, intrinsics: Intrinsics
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates u, v [n] of points given in camera axes x, y, z [n] (OpenGL: the
-    camera looks down -z; camera.pixel_rays' convention: pixel (row i, col j) covers
-    [j, j + 1) x [i, i + 1) in (u, v)). NaN for points not in front of the camera."""
-    ahead = -z
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inverse = np.where(ahead > 0, 1.0 / ahead, np.nan)
-    return intrinsics.cx + intrinsics.fx * x * inverse, intrinsics.cy - intrinsics.fy * y * inverse
-
-
-def project(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel coordinates of world points in one camera (see pixel_coordinates).
-
-    points [n, 3], c2w [4, 4]. Returns u, v [n] (NaN behind the camera) and the distance
-    from the camera centre [n]."""
-    c2w = np.asarray(c2w, np.float64)
-    local = (np.asarray(points, np.float64) - c2w[:3, 3]) @ c2w[:3, :3]  # [n, 3] camera axes
-    u, v = pixel_coordinates(local[:, 0], local[:, 1], local[:, 2], intrinsics)
-    return u, v, np.linalg.norm(local, axis=1)
 
 
 def seen_by_any(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
@@ -115,7 +96,7 @@ def extraction_grid(box: np.ndarray, resolution: int) -> tuple[list[np.ndarray],
 def density_volume(model, axes: list[np.ndarray], device: torch.device | str = "cpu") -> np.ndarray:
     """sigma on the grid nodes, [nx, ny, nz] float32 (x-major, as marching cubes' spacing
     expects), queried through `model.density` in chunks of whole x-slabs."""
-    import torch
+    import torch  # torch: nerf.commands imports this module for `mesh`
 
     with torch.no_grad():
         xs, ys, zs = (torch.as_tensor(a, dtype=torch.float32, device=device) for a in axes)
@@ -142,7 +123,7 @@ def model_box(model) -> np.ndarray | None:
     aabb = getattr(field, "aabb", getattr(model, "aabb", None))
     if aabb is None:
         return None
-    import torch
+    import torch  # torch, as above
 
     return np.asarray(torch.as_tensor(aabb).cpu(), np.float64)
 
@@ -168,9 +149,7 @@ def rendered_surface_level(model, c2w: np.ndarray, intrinsics: Intrinsics, rays:
                            device: torch.device | str = "cpu") -> float | None:
     """Median density at the expected-depth points of `rays` training rays (an even stride
     over all views' pixels) whose opacity reaches OPACITY_LEVEL; None if no ray does."""
-    import torch
-
-    from nerfgauge.core.camera import pixel_rays
+    import torch  # torch, as above
 
     with torch.no_grad():
         per_view = max(1, rays // max(len(c2w), 1))
@@ -196,7 +175,7 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
     longest side, at `level` (None: the rendered-surface level over the cameras train_c2w
     [m, 4, 4], else the voxel level); faces no camera of train_c2w sees are dropped (None:
     keep all, no calibration). InputError when the field has no surface there."""
-    from skimage.measure import marching_cubes
+    from skimage.measure import marching_cubes  # scikit-image: only when meshing
 
     if not model.has_density:
         raise InputError(f"a {type(model).__name__} has no density query (model.density); "
@@ -242,9 +221,7 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
     """A binary PLY of a triangle mesh (trimesh's writer), marked as ours with the header
     line `comment nerfgauge-kind: mesh` (core.outputs: a rerun may replace it)."""
-    import trimesh
-
-    from nerfgauge.core.outputs import ply_mark
+    import trimesh  # trimesh: only when meshing
 
     return ply_mark(trimesh.Trimesh(vertices, faces, process=False).export(file_type="ply"), "mesh")
 
@@ -252,11 +229,7 @@ def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
 def mesh_from_run(run_dir, resolution: int = 256, cull: bool = True, level: float | None = None) -> ExtractedMesh:
     """Load RUN/model.pt (weights only) and its dataset's bounds and training cameras
     (the dataset checked against the run's record, nerf.runs.open_run_dataset); extract."""
-    from pathlib import Path
-
-    from nerfgauge.nerf.checkpoint import load_model
-
-    from nerfgauge.nerf.runs import open_run_dataset
+    from nerfgauge.nerf.checkpoint import load_model  # torch: nerf.commands imports this module for `mesh`
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():

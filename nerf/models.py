@@ -2,7 +2,7 @@
 
 - `CompactNeRF`: a voxel grid field, ray marching that skips empty space, coarse-to-fine
   resolution. Only what the scene needs: no view direction for diffuse scenes.
-- `VanillaNeRF`: the lecture's NeRF (positional encoding with 10 and 4 frequencies,
+- `VanillaNeRF`: the original NeRF of Mildenhall et al. 2020 (positional encoding with 10 and 4 frequencies,
   8 x 256 MLP with a skip, view direction input, coarse and fine networks).
 Both return premultiplied colour, opacity and expected ray distance per ray.
 """
@@ -265,7 +265,7 @@ class CompactNeRF(RadianceModel):
 
 
 class NeRFMLP(nn.Module):
-    """The lecture's MLP: gamma(x) -> 8 x width ReLU (skip into layer 5) -> sigma and a
+    """The original NeRF's MLP: gamma(x) -> 8 x width ReLU (skip into layer 5) -> sigma and a
     feature; feature + gamma(d) -> width/2 -> rgb."""
 
     def __init__(self, width: int = 256, depth: int = 8, pos_frequencies: int = 10, dir_frequencies: int = 4):

@@ -1,7 +1,7 @@
 """A plain per-ray loop of the volume-rendering maths: the test oracle for `nerf.rendering`.
 
 Kept beside the vectorised renderer the way Mitsuba keeps `prb_basic.py` beside `prb.py`:
-one ray at a time, one sample at a time, in the lecture's product form
+one ray at a time, one sample at a time, in NeRF's product form (Mildenhall et al. 2020)
 
     alpha_i = 1 - exp(-sigma_i delta_i),   T_i = prod_{j<i} (1 - alpha_j),   w_i = T_i alpha_i,
 

@@ -35,8 +35,9 @@ import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
 from nerfgauge.nerf.data import split_rays
-from nerfgauge.nerf.runs import open_run_dataset, renders_record
-from nerfgauge.nerf.train import pick_device, render_rays_chunked
+from nerfgauge.nerf.runs import open_run_dataset
+from nerfgauge.nerf.rendering import render_rays_chunked
+from nerfgauge.nerf.train import pick_device
 from tqdm import tqdm
 
 from nerfgauge.core.camera import lens_samples, thin_lens_rays
@@ -44,6 +45,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash
 from nerfgauge.core.images import write_exr, write_png
+from nerfgauge.core.provenance import renders_record
 
 # Marching step at render time, in voxels. Training marches half a voxel with jitter; a
 # whole voxel renders ~1.6x faster for -0.2 dB on primitives (38.29 vs 38.50 dB, measured
@@ -180,7 +182,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     timing = {"ms_per_frame": 1000 * float(np.mean(all_seconds)) if all_seconds else None, "frames": len(all_seconds),
               "resolution": [width, height], "device": device.type, "threads": threads,
               "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None)}
-    if source is not None:  # what the frames show, which `evaluate` checks (nerf.runs.check_renders_dataset)
+    if source is not None:  # what the frames show, which `evaluate` checks (core.provenance.check_renders_dataset)
         timing |= {"dataset": str(source.root), "dataset_files": renders_record(source, split)}
     if lens is not None:  # the thin-lens frames' own cost, beside the pinhole frames'
         timing |= {"aperture_samples": lens["aperture_samples"], "lens_seed": lens["lens_seed"],

@@ -1,4 +1,4 @@
-"""Volume rendering as pure functions (the maths of the lecture, vectorised over rays).
+"""Volume rendering as pure functions (NeRF's quadrature, Mildenhall et al. 2020, vectorised over rays).
 
 A ray r(t) = o + t d is cut into intervals [t_k, t_{k+1}] by bin edges, the density and
 colour are taken as constant on each interval (the value at its midpoint), and
@@ -412,3 +412,15 @@ def render_rays(field_fn: FieldFn, origins: torch.Tensor, directions: torch.Tens
         for out in (output, output.coarse) if output.coarse is not None else (output,):
             out.rgb = composite(out.rgb, out.opacity, background)
     return output
+
+
+@torch.no_grad()
+def render_rays_chunked(model, origins, directions, chunk: int = 16384):
+    """Render many rays in chunks through `model.render(origins, directions)` (a field's
+    renderer: anything returning `.rgb`, `.opacity`, `.depth`). Returns premultiplied
+    rgb [n, 3], opacity [n], depth [n]; no gradients (inference only)."""
+    rgb, opacity, depth = [], [], []
+    for start in range(0, origins.shape[0], chunk):
+        out = model.render(origins[start:start + chunk], directions[start:start + chunk])
+        rgb.append(out.rgb), opacity.append(out.opacity), depth.append(out.depth)
+    return torch.cat(rgb), torch.cat(opacity), torch.cat(depth)

@@ -14,7 +14,7 @@ which refuses a dataset whose manifest differs from the record with one line nam
 hashes and both paths. The run itself is only read, never changed. `render` writes what
 its frames show into timing.json (the sha256 of transforms_<split>.json and scene.json),
 and `evaluate` refuses to score them against a dataset whose cameras or scene differ
-(`check_renders_dataset`).
+(`core.provenance.check_renders_dataset`).
 
 - `render RUN --dataset OTHER` renders a run on other cameras of the SAME scene (e.g. the
   same training views and test cameras through a thin lens, `bench lens`). OTHER must hold
@@ -38,13 +38,9 @@ from nerfgauge.core.dataset import Dataset, open_dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json
 from nerfgauge.core.folders import MARKER, read_marker, recipe_hash
+from nerfgauge.core.provenance import short_hash
 
 CONFIG = "config.json"  # nerf.train.CONFIG (train imports torch; this module does not)
-SHORT = 12  # hex digits of a hash shown in messages
-
-
-def _short(digest) -> str:
-    return f"{str(digest)[:SHORT]}..." if digest else "none"
 
 
 def recorded_manifest(run_dir) -> str | None:
@@ -101,39 +97,14 @@ def open_run_dataset(run_dir, config, dataset=None, *, other_dataset: bool = Fal
         return wanted
     if not other_dataset:
         moved = "" if dataset is None else " (pass --other-dataset to render another dataset of the same scene)"
-        raise InputError(f"{run_dir} was trained on a dataset with manifest sha256 {_short(recorded)} "
-                         f"({trained_path}), but {wanted.root / 'manifest.json'} has {_short(wanted.manifest_sha256)}: "
+        raise InputError(f"{run_dir} was trained on a dataset with manifest sha256 {short_hash(recorded)} "
+                         f"({trained_path}), but {wanted.root / 'manifest.json'} has {short_hash(wanted.manifest_sha256)}: "
                          f"the dataset changed since training{moved}; train again on it, or give the dataset the run "
                          "was trained on")
     trained = open_dataset(trained_path)
     if trained.manifest_sha256 != recorded:
         raise InputError(f"--other-dataset: {run_dir} was trained on a dataset with manifest sha256 "
-                         f"{_short(recorded)} ({trained_path}), but {trained.root / 'manifest.json'} now has "
-                         f"{_short(trained.manifest_sha256)}, so the scene of {wanted.root} cannot be checked")
+                         f"{short_hash(recorded)} ({trained_path}), but {trained.root / 'manifest.json'} now has "
+                         f"{short_hash(trained.manifest_sha256)}, so the scene of {wanted.root} cannot be checked")
     check_same_scene(trained, wanted)
     return wanted
-
-
-
-def renders_record(source: Dataset, split: str) -> dict:
-    """What renders of `split` show: {rel: sha256} of the dataset's transforms_<split>.json
-    (the cameras) and scene.json (the scene), as its manifest lists them."""
-    names = (f"transforms_{split}.json", "scene.json")
-    return {rel: source.file_sha256(rel) for rel in names if source.file_sha256(rel) is not None}
-
-
-def check_renders_dataset(pred_dir, timing: dict, ds: Dataset) -> None:
-    """Renders of `nerfgauge render` state in timing.json the cameras and the scene they
-    show (`renders_record`): refuse to score them against a dataset whose transforms or
-    scene.json differ (one line, both hashes and both paths). Only the cameras and the
-    scene count: ground truth rendered again at more spp still scores the same renders.
-    Folders without that record (other methods, older renders) are not checked."""
-    recorded = timing.get("dataset_files")
-    if not isinstance(recorded, dict):
-        return
-    for rel, digest in sorted(recorded.items()):
-        now = ds.file_sha256(rel)
-        if now != digest:
-            raise InputError(f"{pred_dir} shows the {rel} with sha256 {_short(digest)} of "
-                             f"{timing.get('dataset', 'a dataset')}, but {ds.root / rel} has {_short(now)}: the "
-                             "renders show other cameras or another scene; render the run again on this dataset")

@@ -1,4 +1,5 @@
-"""The lecture's 2D toy problem: memorise an image with an MLP, with and without positional encoding.
+"""The 2D toy problem of positional encoding (Tancik et al. 2020, "Fourier features"):
+memorise an image with an MLP, with and without positional encoding.
 
 An MLP mapping pixel coordinates (x, y) in [0, 1]^2 to RGB is fitted to one image for a
 fixed number of full-batch Adam steps, once on the raw coordinates and once on their
@@ -188,7 +189,7 @@ def comparison_image(result: ToyPEResult, scale: int = 4, gap: int = 4) -> np.nd
 
 def save_comparison(result: ToyPEResult, path: Path) -> None:
     """Write the comparison PNG and a JSON of the config and PSNRs (atomically: temporary name, fsync, rename)."""
-    from PIL import Image
+    from PIL import Image  # PIL: only when the figure is written
 
     path.parent.mkdir(parents=True, exist_ok=True)
     def finite(value):  # a perfect fit has infinite PSNR, which JSON cannot hold: null

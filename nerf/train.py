@@ -31,7 +31,7 @@ from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
-from nerfgauge.nerf.rendering import composite
+from nerfgauge.nerf.rendering import composite, render_rays_chunked
 from tqdm import tqdm
 
 from nerfgauge.core.dataset import manifest_sha256, read_split, require_complete
@@ -97,16 +97,6 @@ def pick_device(name: str) -> torch.device:
     elif device.type != "cpu":
         raise InputError(f"unsupported device {name!r}; choose auto, cpu or cuda")
     return device
-
-
-@torch.no_grad()
-def render_rays_chunked(model, origins, directions, chunk: int = 16384):
-    """Render many rays in chunks. Returns premultiplied rgb [n, 3], opacity [n], depth [n]."""
-    rgb, opacity, depth = [], [], []
-    for start in range(0, origins.shape[0], chunk):
-        out = model.render(origins[start:start + chunk], directions[start:start + chunk])
-        rgb.append(out.rgb), opacity.append(out.opacity), depth.append(out.depth)
-    return torch.cat(rgb), torch.cat(opacity), torch.cat(depth)
 
 
 def psnr_on_white(model, rays, device, max_rays: int) -> float:

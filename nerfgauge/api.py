@@ -24,7 +24,11 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError, os_errors_as_input_errors
+from nerfgauge.core.outputs import check_output_file
+from nerfgauge.eval import check as gate
+from nerfgauge.eval.evaluate import METRICS_KIND, evaluate as evaluate_split
 
 
 def _split_options(function: str, options: dict, config_class, run_settings: dict,
@@ -49,8 +53,6 @@ def _split_options(function: str, options: dict, config_class, run_settings: dic
 
 def _folder(dataset):
     """A dataset argument as a path: a folder, or the root of a `Dataset` already open."""
-    from nerfgauge.core.dataset import Dataset
-
     return dataset.root if isinstance(dataset, Dataset) else dataset
 
 
@@ -62,7 +64,7 @@ def generate_dataset(scene: str, /, out, **options) -> Path:
     max_depth, fov, layout, sampling, elevation, radius, variant) and workers=1,
     overwrite=False, progress=False. Returns the dataset folder.
     """
-    from nerfgauge.generate import pipeline
+    from nerfgauge.generate import pipeline  # trimesh (scenes), mitsuba: each stage loads on first use
 
     fields, settings = _split_options("generate_dataset", options, pipeline.GenerateConfig,
                                       {"workers": 1, "overwrite": False, "progress": False}, first="scene")
@@ -78,8 +80,8 @@ def train(dataset, /, out, **options) -> dict:
     view_dependent, final_resolution, threads, device, ...) and resume=False, progress=False.
     Returns the summary: {"steps", "seconds", "val_psnr", "model_bytes"}.
     """
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.train import train as train_run
+    from nerfgauge.nerf.config import TrainConfig  # torch: each stage loads on first use
+    from nerfgauge.nerf.train import train as train_run  # torch
 
     fields, settings = _split_options("train", options, TrainConfig, {"resume": False, "progress": False},
                                       first="dataset")
@@ -93,7 +95,7 @@ def render(run_dir, split: str = "test", *, out=None, threads=None, progress: bo
     Writes <out>/<split>/r_000.png (straight-alpha sRGB), r_000_depth.exr (ray distance)
     and <out>/timing.json; out defaults to RUN/renders. Returns the renders folder.
     """
-    from nerfgauge.nerf.render_views import render_split
+    from nerfgauge.nerf.render_views import render_split  # torch: each stage loads on first use
 
     render_split(run_dir, split, out, threads=threads, progress=progress)
     return Path(run_dir) / "renders" if out is None else Path(out)
@@ -110,11 +112,7 @@ def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = 
     held_out=False skips the co-visible and depth-resolved scores (their pass costs about
     0.12 us per hit test pixel and train view). `out` must be a new path or a metrics file
     nerfgauge wrote (overwrite=True: also another nerfgauge file), as for `evaluate --out`."""
-    from nerfgauge.core.outputs import check_output_file
-    from nerfgauge.eval.evaluate import METRICS_KIND, evaluate as evaluate_split
-
     check_output_file(Path(pred) / "metrics.json" if out is None else out, METRICS_KIND, overwrite=overwrite)
-
     return evaluate_split(_folder(dataset), pred, split=split, out=out, background=background, depth_kind=depth_kind,
                           pred_format=pred_format, held_out=held_out)
 
@@ -129,12 +127,10 @@ def check(metrics, thresholds, *, scene: str | None = None) -> list:
     `.passed`, `.metric`, `.kind` ("min"/"max"), `.bound`, `.value`, `.margin` and `.reason`;
     the gate passes when `all(result.passed for result in results)`.
     """
-    from nerfgauge.eval import check as gate
-
     document = gate.validate_metrics(metrics) if isinstance(metrics, dict) else gate.load_metrics(metrics)
     tables = gate.parse_thresholds(thresholds) if isinstance(thresholds, dict) else gate.load_thresholds(thresholds)
     if scene is not None and not gate.known_scene(scene):
-        from nerfgauge.scenes.registry import RECIPES
+        from nerfgauge.scenes.registry import RECIPES  # trimesh: only to list the known scenes
 
         known = ", ".join(list(RECIPES) + [gate.MESH_PREFIX + "PATH", repr(gate.DEFAULT_TABLE)])
         raise InputError(f"unknown scene {scene!r} for --scene; known: {known}")
@@ -154,9 +150,9 @@ def run_pipeline(scene: str = "primitives", out="nerfgauge-run", **options) -> d
     generate_dataset) and overwrite=False, progress=False.
     Returns {"metrics": path of metrics.json, "report": path of report.html, "train": summary}.
     """
-    from nerfgauge.generate.pipeline import GenerateConfig
-    from nerfgauge.run import RunConfig
-    from nerfgauge.run import run_pipeline as run_stages
+    from nerfgauge.generate.pipeline import GenerateConfig  # trimesh: each stage loads on first use
+    from nerfgauge.run import RunConfig  # trimesh, and torch when it runs
+    from nerfgauge.run import run_pipeline as run_stages  # (the same module)
 
     run_fields = {field.name for field in dataclasses.fields(RunConfig)}
     generator = {field.name: None for field in dataclasses.fields(GenerateConfig)

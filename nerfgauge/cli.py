@@ -1,9 +1,10 @@
 """`nerfgauge`: one command, subcommands registered by the stage packages.
 
 Each stage package has a `commands.py` with `register(subparsers)`, which adds its
-subcommands and sets `func` (called with the parsed arguments, returns an exit code).
-Heavy imports (mitsuba, torch) happen inside those functions, so `nerfgauge --help` and
-argument errors are instant.
+subcommands and sets `func` (called with the parsed arguments, returns an exit code);
+so do the orchestration layer (`nerfgauge.orchestrate.commands`: bench, suite) and
+`nerfgauge.run` (run). Heavy imports (mitsuba, torch) happen inside those functions, so
+`nerfgauge --help` and argument errors are instant.
 
 Exit codes: 0 done; 2 bad input, one line on stderr: an argument error, an `InputError`,
 an OS error on the user's paths (no space, permission, read-only, not a folder ...,
@@ -21,9 +22,11 @@ import importlib
 import os
 import sys
 
+from nerfgauge import run
 from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
+from nerfgauge.orchestrate import commands as orchestration
 
-STAGES = ("scenes", "generate", "nerf", "eval")
+STAGES = ("scenes", "generate", "nerf", "eval")  # then orchestration (bench, suite), then run
 
 
 class Parser(argparse.ArgumentParser):
@@ -48,8 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue  # a stage without commands yet
         module.register(subparsers)
-    from nerfgauge import run
-
+    orchestration.register(subparsers)
     run.register(subparsers)
     return parser
 

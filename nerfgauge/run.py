@@ -26,7 +26,19 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
+from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
+from nerfgauge.eval.baselines import METHODS, baseline_folder, write_baseline
+from nerfgauge.eval.evaluate import evaluate, format_means
+from nerfgauge.eval.geometry import format_geometry, score_geometry, summary as geometry_summary
+from nerfgauge.eval.report import geometry_histogram, geometry_table, write_report
+from nerfgauge.generate.options import add_generate_arguments, generate_fields
+from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.nerf.mesh import NoSurface, mesh_from_run, ply_bytes
+from nerfgauge.nerf.runs import open_run_dataset
+from nerfgauge.scenes import make_scene
 
 REPORT_FILES = ("report.html", "report/curve.png", "report/grid.png", "report/cameras.png", "report/geometry.png")
 GEOMETRY_RESOLUTION = 256  # marching-cubes cells along the scene's longest side
@@ -56,15 +68,11 @@ class RunConfig:
 
     def recipe(self) -> str:
         """The hash in OUT's marker: every setting but where OUT is and how many workers render."""
-        from nerfgauge.core.folders import recipe_hash
-
         return recipe_hash({key: value for key, value in dataclasses.asdict(self).items()
                             if key not in ("out", "workers")})
 
     def generate_config(self):
         """The dataset's GenerateConfig: this config's shared fields plus generate_options."""
-        from nerfgauge.generate.pipeline import GenerateConfig
-
         if not isinstance(self.generate_options, dict):
             raise InputError(f"generate_options must be a dict of generator settings, got {self.generate_options!r}")
         own = {"scene", "seed", "views", "val_views", "test_views", "width", "height", "spp", "layout", "variant"}
@@ -86,8 +94,6 @@ class RunConfig:
             raise InputError(f"--budget-seconds must be a positive number, got {self.budget_seconds!r}")
         if not str(self.out).strip():
             raise InputError("--out must name a folder, got an empty path")
-        from nerfgauge.scenes import make_scene
-
         make_scene(self.scene, self.seed)  # unknown names and unreadable meshes: InputError, before OUT exists
 
 
@@ -96,9 +102,6 @@ def remove_earlier_outputs(out: Path, model: str) -> None:
     nothing stale sits beside a new run: each stage's folder through its marker, the rest
     by its known file name; folders are removed only once empty (anything the user put
     there stays)."""
-    from nerfgauge.core.folders import remove_owned
-    from nerfgauge.eval.baselines import METHODS
-
     remove_owned(out / "run", "run")
     for method in (model, *METHODS):
         remove_owned(out / "baselines" / method, "baseline")
@@ -131,22 +134,9 @@ def _remove_empty_folder(path: Path) -> None:
 
 
 def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool = True) -> dict:
-    from nerfgauge.core.files import read_json, write_json
-    from nerfgauge.core.folders import claim_folder
-    from nerfgauge.eval.geometry import summary as geometry_summary
-    from nerfgauge.nerf.mesh import NoSurface
-    from nerfgauge.eval.baselines import write_baseline
-    from nerfgauge.eval.commands import baseline_folder
-    from nerfgauge.eval.evaluate import evaluate, format_means
-    from nerfgauge.eval.report import (
-        geometry_histogram,
-        geometry_table,
-        write_report,
-    )
-    from nerfgauge.generate.pipeline import GenerateConfig, generate
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.render_views import render_split
-    from nerfgauge.nerf.train import train
+    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
+    from nerfgauge.nerf.render_views import render_split  # torch
+    from nerfgauge.nerf.train import train  # torch
 
     out = Path(config.out)
     generate_config = config.generate_config()
@@ -214,12 +204,8 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
 def geometry_step(dataset_root: Path, run_dir: Path, eval_dir: Path) -> tuple[dict, dict]:
     """Mesh the field (eval_dir/mesh.ply), score it and the field's test-view normals
     against the exact ground truth (eval_dir/geometry.json). Returns (document, distances)."""
-    from nerfgauge.core.files import write_bytes_atomic, write_json
-    from nerfgauge.eval.geometry import format_geometry, score_geometry
-    from nerfgauge.eval.normals import score_normals
-    from nerfgauge.nerf.checkpoint import load_model
-    from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
-    from nerfgauge.nerf.runs import open_run_dataset
+    from nerfgauge.eval.normals import score_normals  # torch: kept off `nerfgauge --help`'s import path
+    from nerfgauge.nerf.checkpoint import load_model  # torch
 
     mesh = mesh_from_run(run_dir, GEOMETRY_RESOLUTION)
     write_bytes_atomic(eval_dir / "mesh.ply", ply_bytes(mesh.vertices, mesh.faces))
@@ -234,9 +220,6 @@ def geometry_step(dataset_root: Path, run_dir: Path, eval_dir: Path) -> tuple[di
 
 
 def register(subparsers) -> None:
-    from nerfgauge.core import arguments
-    from nerfgauge.generate.options import add_generate_arguments
-
     defaults = RunConfig()
     parser = subparsers.add_parser("run", help="generate, train, render, evaluate, baselines and report in one go",
                                    description="The train-and-evaluate pipeline (about 3 minutes on 2 CPU cores "
@@ -258,8 +241,6 @@ def register(subparsers) -> None:
 
 
 def _run(args) -> int:
-    from nerfgauge.generate.options import generate_fields
-
     fields = generate_fields(args)
     own = {f.name for f in dataclasses.fields(RunConfig)}
     defaults = RunConfig().generate_config()

@@ -4,7 +4,9 @@ A GLB/glTF scene graph gives one object per node that holds a mesh (trimesh.load
 force="mesh" returns a trimesh.Scene; `scene.graph[node]` gives the node's world transform
 and geometry). An OBJ gives one object per `o`/`g` group (split further by `usemtl`), read
 by scenes/obj_mtl.py because trimesh's OBJ loader renames split objects after the first
-one ("first", "first_1", ...). PLY/STL/OFF files hold one unnamed object.
+one ("first", "first_1", ...). PLY/STL/OFF files hold one unnamed object. The reader is
+chosen by suffix in scenes/asset_reader.py; this module holds the asset's types and the
+trimesh reader.
 
 Materials follow glTF's metallic-roughness model: a linear base colour, optionally times
 an sRGB base-colour texture (and per-vertex colours, taken as linear like glTF's COLOR_0),
@@ -114,33 +116,6 @@ class Asset:
 def warn(message: str) -> None:
     """One warning line on stderr (what the run still does despite the problem)."""
     print(f"warning: {message}", file=sys.stderr)
-
-
-def read_asset(path: Path) -> Asset:
-    """Read every object of `path` with its material, in the file's own coordinates.
-    Bad files raise a one-line InputError; a missing texture is a warning (the base colour
-    is used instead). OS errors (permission, I/O) propagate."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"mesh file not found: {path}")
-    suffix = path.suffix.lower()
-    if suffix not in MESH_SUFFIXES:
-        raise InputError(f"mesh {path} has unsupported extension {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
-    content = path.read_bytes()
-    if not content:
-        raise InputError(f"mesh {path} is empty")
-    inputs = {str(path): hashlib.sha256(content).hexdigest()}
-    warnings: list = []
-    if suffix == ".obj":
-        from nerfgauge.scenes.obj_mtl import read_obj  # imports this module's types
-
-        objects = read_obj(path, content, inputs, warnings)
-    else:
-        objects = _read_with_trimesh(path, suffix, content, inputs, warnings)
-    objects = [obj for obj in objects if len(obj.mesh.faces)]
-    if not objects:
-        raise InputError(f"mesh {path} has no triangles")
-    return Asset(path, unique_names(objects), inputs, warnings)
 
 
 def unique_names(objects: list) -> list:
@@ -314,7 +289,7 @@ def check_gltf_images(path: Path, suffix: str, content: bytes) -> None:
                 read_image(image_path, image_path.read_bytes())
 
 
-def _read_with_trimesh(path, suffix, content, inputs, warnings) -> list:
+def read_with_trimesh(path, suffix, content, inputs, warnings) -> list:
     exact_factors = {}
     if suffix in (".gltf", ".glb"):
         check_gltf_images(path, suffix, content)
@@ -468,7 +443,7 @@ def texture_from_image(source: str, image, base_color) -> TextureImage:
 
 
 def read_image(path: Path, data: bytes):
-    from PIL import Image
+    from PIL import Image  # PIL: only when an asset carries an image
 
     try:
         image = Image.open(io.BytesIO(data))

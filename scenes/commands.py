@@ -1,5 +1,6 @@
 """`nerfgauge scenes`: list the scenes, one line each."""
 
+from nerfgauge.scenes.registry import list_scenes
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("scenes", help="list the procedural scenes")
@@ -7,8 +8,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from nerfgauge.scenes.registry import list_scenes
-
     rows = list_scenes()
     width = max(len(name) for name, _ in rows)
     for name, text in rows:

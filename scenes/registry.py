@@ -7,11 +7,13 @@ from pathlib import Path
 
 import numpy as np
 from nerfgauge.scenes import library
-from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, read_asset, with_texture_period
-from nerfgauge.scenes.envmap import EnvironmentMap, read_envmap
+from nerfgauge.scenes.asset_reader import read_asset
+from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, with_texture_period
 from nerfgauge.scenes.description import Scene, build_scene
+from nerfgauge.scenes.envmap import EnvironmentMap, read_envmap
 from nerfgauge.scenes.hard import HARD_RECIPES
 from nerfgauge.scenes.meshes import MeshData
+from nerfgauge.scenes.scene_file import scene_from_file
 
 from nerfgauge.core.errors import InputError
 
@@ -50,8 +52,6 @@ def make_scene(spec: str, seed: int, *, units: str = "normalise", envmap=None, e
     if spec.startswith(MESH_PREFIX):
         scene = mesh_scene(Path(spec[len(MESH_PREFIX):]), int(seed), units)
     elif Path(spec).suffix.lower() in SCENE_FILE_SUFFIXES:
-        from nerfgauge.scenes.scene_file import scene_from_file
-
         scene = scene_from_file(Path(spec), int(seed), units)
     elif spec not in RECIPES:
         known = ", ".join(list(RECIPES) + [MESH_PREFIX + "PATH", "FILE.toml"])

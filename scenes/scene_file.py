@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 from nerfgauge.scenes import library
+from nerfgauge.scenes.asset_reader import read_asset
 from nerfgauge.scenes.assets import (
     UNITS,
     AssetMaterial,
     AssetObject,
     apply_matrix,
     place_objects,
-    read_asset,
     unique_names,
     with_texture_period,
 )

@@ -1,4 +1,4 @@
-"""Shared helpers of the hostile-input suite (issue 18): run a command in-process and judge
+"""Shared helpers of the hostile-input suite (RELIABILITY.md): run a command in-process and judge
 what it did, snapshot a tree to prove nothing outside the target folder was touched, and
 build hostile files (PNG/EXR/JPEG bytes, pickles that would run code).
 

@@ -3,7 +3,7 @@
 import json
 
 import pytest
-from nerfgauge.eval.bench import speedups, table_markdown
+from nerfgauge.orchestrate.bench import speedups, table_markdown
 
 from nerfgauge.cli import main
 
@@ -46,7 +46,7 @@ def test_table_has_a_row_per_run_and_marks_missing_metrics():
 
 
 def test_bench_read_times_both_verification_modes(tiny_dataset):
-    from nerfgauge.eval.bench_read import READS, bench_read, table_markdown
+    from nerfgauge.orchestrate.bench_read import READS, bench_read, table_markdown
 
     rows = bench_read(tiny_dataset, "train", repeats=1)
     assert [row["read"] for row in rows] == list(READS)

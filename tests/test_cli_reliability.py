@@ -1,4 +1,4 @@
-"""The CLI boundary (issue 18): every failure the user's environment or input can cause is
+"""The CLI boundary (RELIABILITY.md): every failure the user's environment or input can cause is
 one line on stderr and exit 2 (3 for NaN results, 130 for Ctrl-C), never a traceback;
 numeric flags refuse NaN, inf and non-positive counts; commands write only into folders
 nerfgauge made, and delete only those.
@@ -230,12 +230,12 @@ def test_a_real_read_only_folder_is_one_line(tiny_dataset, predictions, tmp_path
 def test_a_huge_allocation_is_one_line(tiny_dataset, predictions, monkeypatch, capsys):
     import numpy as np
 
-    import nerfgauge.eval.evaluate as evaluate_module
+    import nerfgauge.eval.commands as eval_commands  # the `evaluate` command's own reference
 
     def huge(*args, **kwargs):
         return np.ones((1 << 27, 1 << 20))  # 1 PiB: more than any machine's address space holds
 
-    monkeypatch.setattr(evaluate_module, "evaluate", huge)
+    monkeypatch.setattr(eval_commands, "evaluate", huge)
     assert main(["evaluate", str(tiny_dataset), "--pred", str(predictions)]) == 2
     assert "out of memory: Unable to allocate" in one_error_line(capsys, "evaluate")
 
@@ -434,7 +434,7 @@ def test_one_bench_does_not_write_into_another_bench_folder(tmp_path, capsys):
     out = tmp_path / "b"
     out.mkdir()
     write_marker(out, "bench", None)
-    from nerfgauge.eval.bench import claim_bench_folder
+    from nerfgauge.orchestrate.bench import claim_bench_folder
 
     with claim_bench_folder(tmp_path / "s", "scaling"):
         pass

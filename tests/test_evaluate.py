@@ -218,7 +218,7 @@ def test_unknown_split_exits_2(ds, tmp_path, capsys):
 
 def test_exr_colour_conversion_matches_png_path(ds, test_split, tmp_path):
     # RGB (no alpha) EXR: linear values become sRGB; the reader must give what the PNG holds.
-    from nerfgauge.eval.evaluate import read_colour
+    from nerfgauge.eval.predictions import read_colour
 
     channels, _ = read_exr(ds / "test/r_000.exr")
     rgba = channels["RGBA"]

@@ -1,5 +1,5 @@
 """nerfgauge.core.folders and files: ownership before deletion, one writer per folder,
-writes only to new paths or regular files (issue 18: nothing lost)."""
+writes only to new paths or regular files (RELIABILITY.md: nothing lost)."""
 
 from __future__ import annotations
 

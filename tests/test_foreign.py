@@ -1,4 +1,4 @@
-"""Other tools' render folders scored as they are (eval/foreign.py) and our scores written in
+"""Other tools' render folders scored as they are (eval/predictions.py) and our scores written in
 their result shapes (eval/foreign_results.py)."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from nerfgauge.cli import main
 from nerfgauge.core import dataset
 from nerfgauge.core.images import read_exr_single, read_png, write_exr, write_png
 from nerfgauge.eval.evaluate import evaluate
-from nerfgauge.eval.foreign import detect_format
+from nerfgauge.eval.predictions import detect_format
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Hostile inputs against every command (issue 18): mutated transforms, scene.json,
+"""Hostile inputs against every command (RELIABILITY.md): mutated transforms, scene.json,
 manifests, images, checkpoints and meshes, and faults on the output side (devices, FIFOs,
 symlinks, read-only folders, a full disk).
 

@@ -1,5 +1,5 @@
 """`nerfgauge generate` loses nothing, never resumes a stale dataset, and leaves no orphan
-workers (issue 18). Each defect as it was reported, shown fixed."""
+workers (RELIABILITY.md). Each defect as it was reported, shown fixed."""
 
 from __future__ import annotations
 

@@ -143,7 +143,7 @@ def test_visibility_from_exact_depth(tiny_dataset):
     # projection lands on a hit pixel
     hit_somewhere = np.zeros(len(samples.points), bool)
     for index, pose in enumerate(cams.c2w):
-        from nerfgauge.nerf.mesh import project
+        from nerfgauge.core.camera import project
 
         u, v, _ = project(samples.points, pose, cams.intrinsics)
         inside = (u >= 0) & (u < cams.intrinsics.width) & (v >= 0) & (v < cams.intrinsics.height)
@@ -156,7 +156,7 @@ def _visible_sample_by_sample(points, normals, ds, split, only=None):
     """The depth test of eval.geometry's docstring, written out per view for every sample
     (no working set, no pre-test): the reference the fast version must reproduce.
     only: test that one view of the split (all of them when None)."""
-    from nerfgauge.nerf.mesh import project
+    from nerfgauge.core.camera import project
 
     cameras = ds.cameras(split)
     focal = max(cameras.intrinsics.fx, cameras.intrinsics.fy)

@@ -1,4 +1,4 @@
-"""kill -9 at seeded moments, then the same command again (issue 18): the result must be
+"""kill -9 at seeded moments, then the same command again (RELIABILITY.md): the result must be
 what an uninterrupted run makes, byte for byte (datasets) or tensor for tensor (models).
 
 - generate, --workers 1 and 2: SIGKILL to the parent only (never its group) after k views

@@ -254,7 +254,7 @@ def test_evaluate_without_weights_reports_na_and_check_fails_on_it(ds32, tmp_pat
 @pytest.mark.slow
 def test_evaluate_with_weights_scores_each_frame(ds32, installed, reference, tmp_path, monkeypatch, capsys):
     from nerfgauge.core import dataset
-    from nerfgauge.eval.evaluate import read_colour
+    from nerfgauge.eval.predictions import read_colour
 
     cache = tmp_path / "cache" / "nerfgauge"
     cache.mkdir(parents=True)

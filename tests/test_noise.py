@@ -14,7 +14,8 @@ import pytest
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.generate import render
-from nerfgauge.generate.pipeline import GenerateConfig, plan, view_seed
+from nerfgauge.generate.pipeline import GenerateConfig, plan
+from nerfgauge.generate.views import view_seed
 
 
 def rgba_with_noise(rng, sigma, shape=(64, 64)):

@@ -1,4 +1,4 @@
-"""Stability on degenerate inputs (issue 5): every case gives a defined value or a one-line
+"""Stability on degenerate inputs: every case gives a defined value or a one-line
 InputError, never a crash, NaN or inf.
 
 What test_metrics / test_evaluate / test_camera / test_generate_pipeline already cover is

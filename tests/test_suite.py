@@ -1,4 +1,4 @@
-"""Benchmark suites (eval/suite.py, suite_run.py, suite_report.py): definitions, the suite
+"""Benchmark suites (nerfgauge/orchestrate/suite.py, suite_run.py, suite_report.py): definitions, the suite
 folder and its manifest, results tied to a suite version, and the leaderboard's numbers."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 
 from nerfgauge.cli import main
 from nerfgauge.core.files import read_json, write_json
-from nerfgauge.eval.suite import SUITE_MANIFEST, load_suite
+from nerfgauge.orchestrate.suite import SUITE_MANIFEST, load_suite
 
 TINY = """
 name = "tiny"

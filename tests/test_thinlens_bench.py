@@ -9,7 +9,7 @@ import pytest
 
 @pytest.mark.slow
 def test_lens_bench_scores_every_method_at_every_aperture(tmp_path):
-    from nerfgauge.eval.bench_lens import METHODS, main
+    from nerfgauge.orchestrate.bench_lens import METHODS, main
 
     out = tmp_path / "lens"
     assert main(["--out", str(out), "--views", "9", "--test-views", "2", "--res", "16", "--spp", "4",

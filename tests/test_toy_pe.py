@@ -1,4 +1,5 @@
-"""The lecture's 2D memorisation experiment, its command, and the positional encoding."""
+"""The 2D memorisation experiment of positional encoding (Tancik et al. 2020), its
+command, and the positional encoding."""
 
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ def test_image_is_seeded_and_high_frequency():
 
 
 def test_positional_encoding_wins_by_at_least_5_db(one_thread):
-    # The lecture's experiment shows a plain MLP learning only a blurred image while the
+    # The experiment shows a plain MLP learning only a blurred image while the
     # encoded one reproduces the stripes. Here the gap measures 10.5-12 dB over seeds 0-2
     # (about 12.8 dB vs 24 dB); 5 dB is half of that, so slower convergence on another
     # CPU or BLAS does not flip the test, while a broken encoding (no gap: both fits ~13 dB)

@@ -74,7 +74,7 @@ def test_pruned_model_renders_like_the_full_one(trained_run):
     )
     from nerfgauge.nerf.config import TrainConfig
     from nerfgauge.nerf.data import load_split_rays
-    from nerfgauge.nerf.train import render_rays_chunked
+    from nerfgauge.nerf.rendering import render_rays_chunked
 
     saved = load_checked(trained_run / "checkpoint.pt", "checkpoint")
     full = restore_model(saved, TrainConfig(**saved["config"]), saved["model"]["state"]["field.aabb"], "checkpoint")

@@ -76,6 +76,28 @@ def pixel_rays(c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.
     return np.broadcast_to(c2w[:3, 3], d.shape).copy(), d
 
 
+def pixel_coordinates(x: np.ndarray, y: np.ndarray, z: np.ndarray, intrinsics: Intrinsics
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates u, v [n] of points given in camera axes x, y, z [n] (OpenGL: the
+    camera looks down -z; pixel_rays' convention: pixel (row i, col j) covers
+    [j, j + 1) x [i, i + 1) in (u, v)). NaN for points not in front of the camera."""
+    ahead = -z
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse = np.where(ahead > 0, 1.0 / ahead, np.nan)
+    return intrinsics.cx + intrinsics.fx * x * inverse, intrinsics.cy - intrinsics.fy * y * inverse
+
+
+def project(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel coordinates of world points in one camera (see pixel_coordinates).
+
+    points [n, 3], c2w [4, 4]. Returns u, v [n] (NaN behind the camera) and the distance
+    from the camera centre [n]."""
+    c2w = np.asarray(c2w, np.float64)
+    local = (np.asarray(points, np.float64) - c2w[:3, 3]) @ c2w[:3, :3]  # [n, 3] camera axes
+    u, v = pixel_coordinates(local[:, 0], local[:, 1], local[:, 2], intrinsics)
+    return u, v, np.linalg.norm(local, axis=1)
+
+
 def z_depth_from_distance(distance: np.ndarray, directions: np.ndarray, c2w: np.ndarray) -> np.ndarray:
     """Depth along the optical axis from distance along unit rays: z = t * cos(angle).
 

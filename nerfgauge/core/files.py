@@ -15,6 +15,7 @@ import json
 import os
 from pathlib import Path
 
+from nerfgauge.core import complete
 from nerfgauge.core.errors import InputError
 
 
@@ -40,8 +41,6 @@ def atomic_path(path, verify=None):
 
     verify(tmp, path): the check (raising `complete.IncompleteWrite`); default
     `complete.check_complete` (not empty; PNG and EXR structurally whole)."""
-    from nerfgauge.core import complete
-
     path = check_writable_target(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
@@ -64,8 +63,6 @@ def atomic_path(path, verify=None):
 
 def write_bytes_atomic(path, data: bytes) -> None:
     """Write `data` to `path` atomically; every byte must be on disk before the rename."""
-    from nerfgauge.core import complete
-
     with atomic_path(path, verify=lambda tmp, shown: complete.check_size(tmp, len(data), shown)) as tmp:
         tmp.write_bytes(data)
 

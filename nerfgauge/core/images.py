@@ -25,6 +25,7 @@ from PIL import Image, PngImagePlugin
 from nerfgauge.core import complete, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path
+from nerfgauge.core.outputs import png_kind_info
 
 SMALL_EXR_BYTES = 1 << 20
 
@@ -59,8 +60,6 @@ def write_png(path, image: np.ndarray, kind: str | None = None) -> None:
         raise ValueError(f"write_png needs uint8, got {image.dtype}")
     info = None
     if kind is not None:
-        from nerfgauge.core.outputs import png_kind_info
-
         info = png_kind_info(kind)
     with atomic_path(path, verify=_verified_image(image.shape[1], image.shape[0])) as tmp:
         Image.fromarray(image).save(tmp, format="PNG", pnginfo=info)

@@ -31,6 +31,7 @@ Only the first MAX_IDENTIFY_BYTES of a file are read to recognise it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -39,6 +40,7 @@ from pathlib import Path
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import check_writable_target
+from nerfgauge.core.folders import LOCK, MARKER, claim_folder, read_marker, recipe_hash
 
 TOOL = "nerfgauge"
 TEXT_MARK = "nerfgauge-kind"  # PLY comment, XML comment, PNG tEXt keyword
@@ -73,7 +75,7 @@ def xml_mark(xml: bytes, kind: str) -> bytes:
 
 def png_kind_info(kind: str):
     """Pillow PngInfo holding the tEXt chunk `nerfgauge-kind` = kind."""
-    from PIL import PngImagePlugin
+    from PIL import PngImagePlugin  # Pillow: only when a PNG is marked
 
     info = PngImagePlugin.PngInfo()
     info.add_text(PNG_KEY, kind)
@@ -122,8 +124,6 @@ def _png_kind(data: bytes) -> str | None:
 def owning_folder(path) -> tuple[Path, str] | None:
     """(folder, kind) of the nearest folder above `path` holding a nerfgauge marker, or None.
     A marker that cannot be read counts as kind "unknown" (and is not written into)."""
-    from nerfgauge.core.folders import MARKER, read_marker
-
     folder = Path(os.path.realpath(Path(path).absolute().parent))  # "..", symlinked folders resolved
     for candidate in (folder, *folder.parents):
         if (candidate / MARKER).is_file():
@@ -141,8 +141,6 @@ def check_output_file(path, kind: str, *, overwrite: bool = False, flag: str = "
 
     flag: how the command spells its overwrite option, named in the refusal (None: the
     command has none)."""
-    from nerfgauge.core.folders import LOCK, MARKER
-
     path = check_writable_target(path)
     if path.name in (MARKER, LOCK):
         raise InputError(f"refusing to write {path}: it is the {'ownership marker' if path.name == MARKER else 'lock'} "
@@ -178,3 +176,14 @@ def check_output_file(path, kind: str, *, overwrite: bool = False, flag: str = "
                          f"not a {kind} file; {how}")
     raise InputError(f"refusing to replace {path}: it is a file nerfgauge did not write (no nerfgauge {kind} mark in it); "
                      "choose another path (overwriting replaces only nerfgauge's own files)")
+
+
+def claim_output_file(out: Path, recipe: dict, kind: str, overwrite: bool = False):
+    """Refuse a target that is not new nor a `kind` file nerfgauge wrote
+    (core.outputs.check_output_file; overwrite: also another nerfgauge kind); claim a parent
+    folder this command creates as an "evaluation" folder (marker and lock). For commands
+    that write one file (`mesh`, `geometry`)."""
+    check_output_file(out, kind, overwrite=overwrite)
+    if out.parent.exists():
+        return contextlib.nullcontext()
+    return claim_folder(out.parent, "evaluation", recipe_hash(recipe))

@@ -1,7 +1,7 @@
 """Defocus bench: NeRF through a thin lens vs the refocused light field vs the nearest view,
 all scored against Mitsuba's thin-lens ground truth, at several aperture radii.
 
-    python -m nerfgauge.eval.bench_lens --out DIR [--apertures 0.1,0.2] [--budget-seconds 120]
+    python -m nerfgauge.orchestrate.bench_lens --out DIR [--apertures 0.1,0.2] [--budget-seconds 120]
 
 One light-field capture of the scene (--layout lightfield: a grid of --views training
 cameras facing +Y, off-grid test cameras on the same plane) is generated once per aperture
@@ -15,9 +15,11 @@ same pixels as every lens dataset's), for --budget-seconds; then for every apert
 - lightfield-quadrilinear: the two-plane light field, which has no lens (a pinhole view);
 - nearest: the nearest training view, unchanged (sharp everywhere);
 
-each evaluated with `nerfgauge evaluate DS`. Writes OUT/lens.json (every metrics document's
-means, the render costs), OUT/lens.md (PSNR/SSIM against aperture), OUT/lens.png (an image
-row per method at each aperture) and OUT/lens.html. The NeRF's defocus cost is its
+each evaluated with `nerfgauge evaluate DS` (each step calls the stage function that command
+calls: nerf.render_views.render_split, eval.baselines.write_baseline, eval.evaluate).
+Writes OUT/lens.json (every metrics document's means, the render costs), OUT/lens.md
+(PSNR/SSIM against aperture), OUT/lens.png (an image row per method at each aperture) and
+OUT/lens.html. The NeRF's defocus cost is its
 milliseconds per lens frame against per pinhole frame (timing.json). Times are of this
 machine at the time of the run.
 """
@@ -31,24 +33,21 @@ from pathlib import Path
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
+from nerfgauge.eval.baselines import baseline_folder, write_baseline
+from nerfgauge.eval.evaluate import evaluate
+from nerfgauge.eval.report import _data_uri, aperture_table, focus_rows, page_html, sortable_table_html
+from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.orchestrate.bench import claim_bench_folder
 
 METHODS = ("nerf", "refocus", "lightfield-quadrilinear", "nearest")
-
-
-def _cli(argv: list) -> None:
-    from nerfgauge.cli import main
-
-    code = main([str(a) for a in argv])
-    if code != 0:
-        raise SystemExit(f"bench_lens: `nerfgauge {' '.join(map(str, argv))}` exited {code}")
 
 
 def run_lens_bench(out, *, scene: str = "primitives", views: int = 64, test_views: int = 6, res: int = 96,
                    spp: int = 64, radius: float = 3.5, focus_distance=None, apertures=(0.1, 0.2),
                    budget_seconds: float = 120.0, aperture_samples: int = 16, threads: int = 2) -> dict:
-    from nerfgauge.eval.bench import claim_bench_folder
-    from nerfgauge.eval.report import aperture_table, focus_rows, page_html, sortable_table_html, _data_uri
-    from nerfgauge.generate.pipeline import GenerateConfig, generate
+    from nerfgauge.nerf.config import TrainConfig  # loads torch
+    from nerfgauge.nerf.render_views import render_split  # torch
+    from nerfgauge.nerf.train import train  # torch
 
     out = Path(out)
     focus = radius if focus_distance is None else focus_distance
@@ -63,18 +62,19 @@ def run_lens_bench(out, *, scene: str = "primitives", views: int = 64, test_view
                      progress=False)
         run = out / "run"
         if not (run / "model.pt").is_file():
-            _cli(["train", datasets[0.0], "--out", run, "--budget-seconds", budget_seconds, "--threads", threads,
-                  "--quiet", "--overwrite"])
+            train(TrainConfig(dataset=str(datasets[0.0]), budget_seconds=budget_seconds, threads=threads), run,
+                  overwrite=True, progress=False)
         preds, scores, costs = {m: {} for m in METHODS}, {m: {} for m in METHODS}, {}
         for aperture, root in datasets.items():
             for method in METHODS:
                 pred = out / "pred" / f"aperture_{aperture:g}" / method
                 if method == "nerf":
-                    _cli(["render", run, "--dataset", root, "--other-dataset", "--out", pred,
-                          "--aperture-samples", aperture_samples, "--threads", threads, "--quiet", "--overwrite"])
+                    render_split(run, "test", pred, threads=threads, overwrite=True, progress=False,
+                                 aperture_samples=aperture_samples, dataset=root, other_dataset=True)
                 else:
-                    _cli(["baseline", root, "--method", method, "--out", pred, "--overwrite"])
-                _cli(["evaluate", root, "--pred", pred])
+                    with baseline_folder(root, method, pred, "test", overwrite=True):
+                        write_baseline(root, method, pred, "test")
+                evaluate(root, pred)
                 preds[method][aperture] = pred
                 scores[method][aperture] = read_json(pred / "metrics.json")
                 costs.setdefault(method, {})[aperture] = read_json(pred / "timing.json")
@@ -119,7 +119,7 @@ def _markdown(table: list, summary: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m nerfgauge.eval.bench_lens", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m nerfgauge.orchestrate.bench_lens", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--scene", default="primitives")
     parser.add_argument("--views", type=int, default=64, help="training grid (a square, default 64 = 8x8)")

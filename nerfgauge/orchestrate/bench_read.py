@@ -1,4 +1,5 @@
-"""`nerfgauge bench read`: what validating a dataset on load costs (issue 18).
+"""`nerfgauge bench read`: what validating a dataset on load costs (RELIABILITY.md;
+BENCHMARKS.md, "Reading a dataset with validation on load").
 
 Every file a command reads is confined to the dataset root, checked against the
 manifest's size and (by default) sha256, and its header checked before decoding. This

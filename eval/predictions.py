@@ -1,5 +1,6 @@
-"""Other tools' render folders, read as they are: `nerfgauge evaluate DATASET --pred DIR
-[--pred-format auto|nerfgauge|nerfstudio|nerfbaselines|folder]`.
+"""Prediction files, found and read: our own naming (`nerfgauge` format, described in
+eval/evaluate.py's docstring) and other tools' render folders, read as they are:
+`nerfgauge evaluate DATASET --pred DIR [--pred-format auto|nerfgauge|nerfstudio|nerfbaselines|folder]`.
 
 Formats (checked against the tools' own writers):
 
@@ -16,7 +17,7 @@ Formats (checked against the tools' own writers):
   not used: ours is read from the dataset, hashes checked), optional depth/<name>.bin
   (int32 height, width, then float16 values: nerfbaselines io.save_depth).
 - `folder`: plain PNG, JPEG or EXR colour images in DIR/<split>/ or DIR.
-- `nerfgauge`: our own naming, r_007.png / r_007_depth.exr (eval/evaluate.py).
+- `nerfgauge`: our own naming, r_007.png / r_007_depth.exr (find_prediction below).
 
 `auto` picks nerfbaselines when DIR has info.json and color/, nerfstudio when it has
 <split>/rgb(a)/ or rgb(a)/, nerfgauge when a file is named like r_<digits>[_kind].png|exr|npy,
@@ -35,18 +36,152 @@ from __future__ import annotations
 import gzip
 import io
 import re
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
 from nerfgauge.core import validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json
+from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
 
 FORMATS = ("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 NERFSTUDIO_COLOUR = ("rgba", "rgb")  # output names, first found wins
 NERFGAUGE_FILE = re.compile(r"^r_\d+(?:_[A-Za-z]+)?\.(?:png|exr|npy)$")
+DEPTH_SUFFIXES = {"distance": ("_depth", "_distance"), "z": ("_depth", "_zdepth")}
+DEPTH_HEADER = {"distance": "ray_distance", "z": "z_depth"}
+FRAME_FILE = re.compile(r"^(r_\d+)(?:_[A-Za-z]+)?\.(?:png|exr|npy)$")
+
+
+@dataclass(frozen=True)
+class PredictionFiles:
+    """Where one frame's prediction lives; depth and opacity may be absent."""
+
+    colour: Path
+    depth: Optional[Path]
+    opacity: Optional[Path]
+
+
+# --- finding and reading predictions ----------------------------------------------------
+
+
+def find_prediction(pred_dir: Path, stem: str, depth_kind: str) -> Optional[PredictionFiles]:
+    """The files predicting frame `stem` (e.g. "test/r_007"), or None when there are none."""
+    split, name = stem.split("/")[0], Path(stem).name
+    found = {}
+    for folder in (pred_dir / split, pred_dir):
+        colour = next((folder / (name + ext) for ext in (".png", ".exr") if (folder / (name + ext)).is_file()), None)
+        if colour is not None:
+            found[folder] = colour
+    if len(found) > 1:
+        first, second = found.values()
+        raise InputError(f"frame {stem}: predicted twice, as {first} and {second}; keep one")
+    if not found:
+        return None
+    (folder, colour), = found.items()
+    depth_names = [name + suffix + ext for suffix in DEPTH_SUFFIXES[depth_kind] for ext in (".exr", ".npy")]
+    depth = next((folder / n for n in depth_names if (folder / n).is_file()), None)
+    opacity = next((folder / (name + "_opacity" + ext) for ext in (".png", ".npy")
+                    if (folder / (name + "_opacity" + ext)).is_file()), None)
+    return PredictionFiles(colour, depth, opacity)
+
+
+def extra_frames(pred_dir: Path, split: str, names: set) -> list[Path]:
+    """Files in DIR/<split>/ or DIR that look like frames but belong to none of `names`."""
+    extras = []
+    for folder in (pred_dir / split, pred_dir):
+        if folder.is_dir():
+            for path in sorted(folder.iterdir()):
+                match = FRAME_FILE.match(path.name)
+                if path.is_file() and match and match.group(1) not in names:
+                    extras.append(path)
+    return extras
+
+
+def require_finite(values: np.ndarray, path: Path) -> np.ndarray:
+    finite = np.isfinite(values)
+    if not finite.all():
+        n_nan = int(np.isnan(values).sum())
+        raise InputError(f"{path} holds {n_nan} NaN and {int((~finite).sum()) - n_nan} inf values "
+                         f"out of {values.size}; no metrics computed")
+    return values
+
+
+def _sized(values: np.ndarray, path: Path, intrinsics) -> np.ndarray:
+    if values.shape[:2] != (intrinsics.height, intrinsics.width):
+        raise InputError(f"prediction {path} is {values.shape[1] if values.ndim > 1 else '?'}x{values.shape[0]}, "
+                         f"the ground truth is {intrinsics.width}x{intrinsics.height}")
+    return values
+
+
+def read_colour(path: Path, intrinsics) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """(sRGB [H, W, 3] in [0, 1], straight alpha [H, W] or None) from a PNG, JPEG or EXR."""
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        return read_jpeg(path, intrinsics), None
+    if path.suffix == ".exr":
+        channels, _ = read_exr(path)
+        if "RGBA" in channels or "RGB" in channels:
+            image = channels.get("RGBA", channels.get("RGB"))
+        elif {"R", "G", "B"} <= set(channels):
+            image = np.stack([channels[c] for c in "RGBA" if c in channels], axis=-1)
+        else:
+            raise InputError(f"{path} has no R, G, B channels (has {sorted(channels)})")
+        image = require_finite(_sized(np.asarray(image, np.float64), path, intrinsics), path)
+        if image.shape[-1] == 3:
+            return linear_to_srgb(image), None
+        alpha = np.clip(image[..., 3], 0.0, 1.0)  # [H, W]
+        straight = np.divide(image[..., :3], image[..., 3:4], out=np.zeros_like(image[..., :3]),
+                             where=image[..., 3:4] > 0)  # [H, W, 3]
+        return linear_to_srgb(straight), alpha
+    image = _sized(read_png(path).astype(np.float64), path, intrinsics)
+    if image.ndim == 2:
+        image = image[..., None]
+    if image.shape[-1] in (1, 2):  # gray (+ alpha)
+        image = np.concatenate([np.repeat(image[..., :1], 3, -1), image[..., 1:]], axis=-1)
+    return image[..., :3], (image[..., 3] if image.shape[-1] == 4 else None)
+
+
+def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.ndarray:
+    """A one-channel EXR, .npy, (opacity) PNG or foreign depth (.npy.gz, .bin) as [H, W] float64."""
+    if path.name.endswith(".npy.gz") or path.suffix == ".bin":
+        values = read_depth_file(path)
+    elif path.suffix == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as error:
+            raise InputError(f"cannot read {path}: {error}") from None
+    elif path.suffix == ".exr":
+        channels, header = read_exr(path)
+        if len(channels) != 1:
+            raise InputError(f"{path} should hold one channel, has {sorted(channels)}")
+        (values,) = channels.values()
+        stored = header.get("nerfgauge_depth")
+        if depth_kind and stored is not None and stored != DEPTH_HEADER[depth_kind]:
+            raise InputError(f"{path} holds {stored} but --depth-kind {depth_kind} compares {DEPTH_HEADER[depth_kind]}")
+    else:
+        values = read_png(path)
+    values = np.asarray(values)
+    if values.ndim == 3 and values.shape[-1] == 1:
+        values = values[..., 0]
+    if values.ndim != 2 or not np.issubdtype(values.dtype, np.number):
+        raise InputError(f"{path} must be a numeric [H, W] array, got shape {values.shape} dtype {values.dtype}")
+    return _sized(values.astype(np.float64), path, intrinsics)
+
+
+def find_nerfgauge_predictions(pred_dir: Path, split: str, stems: tuple, depth_kind: str) -> dict:
+    """{stem: PredictionFiles or None} in our own naming; files that look like frames of
+    none of `stems` are an InputError."""
+    extras = extra_frames(pred_dir, split, {Path(stem).name for stem in stems})
+    if extras:
+        raise InputError(f"{len(extras)} extra prediction file(s) not among the {len(stems)} frames of split "
+                         f"{split}: {', '.join(str(p) for p in extras[:4])}{' ...' if len(extras) > 4 else ''}")
+    return {stem: find_prediction(pred_dir, stem, depth_kind) for stem in stems}
+
+
+# --- other tools' folders -----------------------------------------------------------------
 
 
 def natural_key(text: str) -> list:
@@ -126,8 +261,6 @@ def _split_folder(pred_dir: Path, split: str, has) -> Path:
 
 def locate(pred_dir, fmt: str, split: str, stems: tuple) -> dict:
     """{frame stem: PredictionFiles} for a foreign folder of format `fmt` (not "nerfgauge")."""
-    from nerfgauge.eval.evaluate import PredictionFiles
-
     pred_dir = Path(pred_dir)
     if fmt == "nerfstudio":
         base = _split_folder(pred_dir, split, lambda f: any((f / n).is_dir() for n in NERFSTUDIO_COLOUR))
@@ -173,7 +306,7 @@ def read_info(pred_dir: Path) -> dict:
 
 def read_jpeg(path: Path, intrinsics) -> np.ndarray:
     """A JPEG as sRGB [H, W, 3] float64 in [0, 1]; the header's size checked before decoding."""
-    from PIL import Image, JpegImagePlugin
+    from PIL import Image, JpegImagePlugin  # PIL's JPEG plugin: only for JPEG predictions
 
     try:
         data = Path(path).read_bytes()

@@ -27,6 +27,11 @@ from pathlib import Path
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
+from nerfgauge.eval.evaluate import evaluate
+from nerfgauge.eval.report import ceiling_cell, read_log
+from nerfgauge.generate.benchmark import mitsuba_render_seconds
+from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.scenes import make_scene
 
 # variant name -> (model, extra `nerfgauge train` arguments). The vanilla NeRF logs its
 # curve every 30 s and is not rendered on the test views: at ~0.5 s per ray batch on two
@@ -51,16 +56,13 @@ def claim_bench_folder(out, bench: str):
 
 def write_png_figure(figure, path) -> None:
     """Save a matplotlib Figure as PNG through the atomic writer."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib: only when a figure is drawn
 
     with atomic_path(path) as tmp:
         FigureCanvasAgg(figure).print_png(str(tmp))
 
 
 def bench_generate(scene: str, views: int, width: int, height: int, spp: int) -> dict:
-    from nerfgauge.generate.benchmark import mitsuba_render_seconds
-    from nerfgauge.generate.pipeline import GenerateConfig, generate
-
     config = GenerateConfig(scene=scene, views=views, val_views=0, test_views=0, width=width, height=height, spp=spp)
     mitsuba = mitsuba_render_seconds(config)
     with tempfile.TemporaryDirectory() as folder:
@@ -93,10 +95,6 @@ def first_time_reaching(log: list, psnr: float):
 def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: int, height: int, views: int) -> list:
     """Run every scene x variant x budget into the bench folder `out`; writes train.json
     (after each case), train.md and pareto.png. Returns the rows."""
-    from nerfgauge.eval.evaluate import evaluate
-    from nerfgauge.eval.report import read_log
-    from nerfgauge.scenes import make_scene
-
     unknown = [v for v in variants if v not in VARIANTS]
     if not variants or unknown:
         raise InputError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
@@ -149,8 +147,6 @@ def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: i
 
 def speedups(rows: list) -> list[str]:
     """For each scene and budget: how much sooner compact reaches vanilla's final val PSNR."""
-    from nerfgauge.eval.report import read_log
-
     lines = []
     for row in rows:
         if row.get("variant") != "vanilla" or "error" in row:
@@ -169,8 +165,6 @@ def speedups(rows: list) -> list[str]:
 
 
 def table_markdown(rows: list) -> str:
-    from nerfgauge.eval.report import ceiling_cell
-
     head = ("scene", "variant", "budget s", "val PSNR", "test PSNR", "PSNR ceiling", "SSIM", "LPIPS", "depth AbsRel", "train s",
             "steps/s", "render ms",
             "model MB", "peak MB")
@@ -192,8 +186,7 @@ def table_markdown(rows: list) -> str:
 
 def pareto_plots(rows: list, out: Path) -> None:
     """PSNR against training seconds (every run's val curve) and against model MB: OUT/pareto.png."""
-    from matplotlib.figure import Figure
-    from nerfgauge.eval.report import read_log
+    from matplotlib.figure import Figure  # matplotlib: only when a figure is drawn
 
     figure = Figure(figsize=(11, 4), dpi=110)
     by_time, by_size = figure.add_subplot(1, 2, 1), figure.add_subplot(1, 2, 2)

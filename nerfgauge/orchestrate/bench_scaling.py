@@ -4,7 +4,7 @@ the problem, measured in one run on this machine.
 - NeRF against image resolution (square, at a fixed number of train views) and against the
   number of train views (at a fixed resolution); the shared case runs once. Each case
   generates its dataset, trains `compact` for a time budget and renders and scores the test
-  views, every stage in its own process (`eval.bench.run_child`) so peak memory is its own.
+  views, every stage in its own process (`orchestrate.bench.run_child`) so peak memory is its own.
   Time to the target PSNR is the first training-clock second whose logged val PSNR reaches
   it (logged every `EVAL_EVERY_SECONDS` training seconds, so it is an upper bound within that).
 - Generation against views (at a fixed spp) and against spp (at a fixed number of views),
@@ -31,11 +31,18 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.eval.bench import claim_bench_folder, first_time_reaching, run_child, write_png_figure
+from nerfgauge.orchestrate.bench import claim_bench_folder, first_time_reaching, run_child, write_png_figure
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.core.folders import remove_owned
+from nerfgauge.core import dataset
+from nerfgauge.eval.evaluate import BACKGROUNDS, composited_pair, evaluate
+from nerfgauge.eval.metrics import area_average, psnr
+from nerfgauge.eval.predictions import find_nerfgauge_predictions
+from nerfgauge.eval.report import read_log
+from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.scenes import make_scene
 
 EVAL_EVERY_SECONDS = 2.0  # val PSNR log spacing (training seconds): the resolution of time-to-target
 MODEL = "compact"
@@ -78,9 +85,6 @@ class ScalingConfig:
         for flag, value in {"budget-seconds": self.budget_seconds, "target-psnr": self.target_psnr}.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise InputError(f"--{flag} must be a positive number, got {value!r}")
-        from nerfgauge.generate.pipeline import GenerateConfig
-        from nerfgauge.scenes import make_scene
-
         make_scene(self.scene, 0)  # unknown names and unreadable meshes raise InputError
         try:  # the generator's own limits (e.g. image size)
             for resolution, views, _ in self.nerf_cases():
@@ -135,9 +139,6 @@ def _finite(value):
 
 def nerf_case(config: ScalingConfig, out: Path, resolution: int, views: int, axes: tuple) -> dict:
     """Generate, train, render and score one (resolution, views) case; a row (with "error" on failure)."""
-    from nerfgauge.eval.evaluate import evaluate
-    from nerfgauge.eval.report import read_log
-
     name = f"{config.scene.replace('/', '_').replace(':', '_')}-{resolution}x{resolution}-{views}v"
     data, run = out / "datasets" / name, out / "runs" / f"{name}-{config.budget_seconds:g}s"
     # this case's own folders from an earlier run: start fresh, or times would lie (only through their markers)
@@ -178,10 +179,6 @@ def psnr_at_common_resolution(data: Path, pred_dir: Path, factor: int, split: st
     by `factor` (composited on white first): every case of a resolution ladder scored on the
     same coarse pixels, so a finer capture is compared on what both resolve, not penalised
     for the detail only its own ground truth holds."""
-    from nerfgauge.core import dataset
-    from nerfgauge.eval.evaluate import BACKGROUNDS, composited_pair, find_nerfgauge_predictions
-    from nerfgauge.eval.metrics import area_average, psnr
-
     ds = dataset.Dataset(data)
     cameras = ds.cameras(split)
     scores = []
@@ -195,8 +192,6 @@ def psnr_at_common_resolution(data: Path, pred_dir: Path, factor: int, split: st
 
 def generation_case(scene: str, views: int, spp: int, resolution: int, axes: tuple, scratch: Path) -> dict:
     """Time `generate.pipeline.generate` of `views` train views (no val/test) into a fresh folder."""
-    from nerfgauge.generate.pipeline import GenerateConfig, generate
-
     config = GenerateConfig(scene=scene, views=views, val_views=0, test_views=0, width=resolution, height=resolution,
                             spp=spp)
     with tempfile.TemporaryDirectory(dir=scratch) as folder:
@@ -402,7 +397,7 @@ def report_markdown(document: dict) -> str:
 def scaling_plots(document: dict, path: Path) -> None:
     """Six panels: time to target and render ms/frame against resolution and views; generation
     seconds against views and spp (with the fitted lines)."""
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # matplotlib: only when a figure is drawn
 
     config = document["config"]
     target, budget = config["target_psnr"], config["budget_seconds"]

@@ -17,7 +17,9 @@ import math
 from pathlib import Path
 
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
-from nerfgauge.eval.suite import Suite, dataset_dir, read_results
+from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results
+from nerfgauge.eval.metrics import METRIC_NAMES
+from nerfgauge.eval.report import page_html, sortable_table_html, write_report
 
 GEOMETRY_COLUMNS = ("geometry_chamfer_l1", "geometry_fscore_1pct", "normal_angle_mean")
 COST_COLUMNS = ("train_seconds", "model_bytes", "ms_per_frame")
@@ -32,8 +34,6 @@ LABELS = {"psnr": "PSNR dB", "ssim": "SSIM", "psnr_foreground": "fg PSNR dB", "d
 
 
 def metric_names() -> tuple:
-    from nerfgauge.eval.metrics import METRIC_NAMES
-
     return tuple(METRIC_NAMES)
 
 
@@ -119,8 +119,6 @@ def markdown(board: dict) -> str:
 
 def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> dict:
     """leaderboard.json, .md and .html in `out`, and report/<id>/report.html per dataset."""
-    from nerfgauge.eval.report import page_html, sortable_table_html
-
     out = Path(out)
     board = leaderboard(suite, out)
     links = {}
@@ -148,9 +146,6 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
 def scene_report(suite: Suite, out: Path, entry, board: dict):
     """report/<id>/report.html: our NeRF against the baselines on one dataset, when our
     NeRF's renders are in the suite folder (suite run). Returns its path or None."""
-    from nerfgauge.eval.report import write_report
-    from nerfgauge.eval.suite_run import OURS
-
     renders = out / "predictions" / OURS / entry.id
     if OURS not in board["methods"] or entry.id not in board["methods"][OURS]["scenes"] or not renders.is_dir():
         return None

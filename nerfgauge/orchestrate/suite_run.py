@@ -2,27 +2,30 @@
 suite, each stage through its public function (generate, nerf train and render, eval
 baselines and evaluate), then the leaderboard.
 
-    DIR/                          the suite folder (eval.suite): datasets, suite manifest
+    DIR/                          the suite folder (orchestrate.suite): datasets, suite manifest
     DIR/runs/<id>/                our NeRF's training run on dataset <id>
     DIR/predictions/<method>/<id>/ renders of every method (ours: renders folder; baselines)
     DIR/predictions/<method>/suite.json  which suite they were made for
-    DIR/results/<method>/         `suite evaluate` of those predictions (eval.suite)
-    DIR/leaderboard.{md,html,json}, DIR/report/<id>/report.html (eval.suite_report)
+    DIR/results/<method>/         `suite evaluate` of those predictions (orchestrate.suite)
+    DIR/leaderboard.{md,html,json}, DIR/report/<id>/report.html (orchestrate.suite_report)
 
-Datasets are resumed (eval.suite.generate_suite); training, renders and baselines are made
+Datasets are resumed (orchestrate.suite.generate_suite); training, renders and baselines are made
 again on every run (their folders are ours and replaced through their markers).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
-from nerfgauge.core.files import write_json
-from nerfgauge.eval.suite import SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
-
-OURS = "compact-nerf"
-
+from nerfgauge.core.files import write_bytes_atomic, write_json
+from nerfgauge.orchestrate.suite import OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
+from nerfgauge.core.dataset import read_scene_json
+from nerfgauge.eval.baselines import baseline_folder, write_baseline
+from nerfgauge.eval.geometry import score_geometry, summary
+from nerfgauge.nerf.mesh import NoSurface, mesh_from_run, ply_bytes
+from nerfgauge.orchestrate.suite_report import write_leaderboard
 
 def methods_for(suite: Suite, layout: str) -> list[str]:
     """The suite's baselines that apply to a dataset of `layout`."""
@@ -31,13 +34,9 @@ def methods_for(suite: Suite, layout: str) -> list[str]:
 
 def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print) -> dict:
     """Generate, train, render, baselines, evaluate, leaderboard. Returns the leaderboard."""
-    from nerfgauge.core.dataset import read_scene_json
-    from nerfgauge.eval.baselines import write_baseline
-    from nerfgauge.eval.commands import baseline_folder
-    from nerfgauge.eval.suite_report import write_leaderboard
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.render_views import render_split
-    from nerfgauge.nerf.train import train
+    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
+    from nerfgauge.nerf.render_views import render_split  # torch
+    from nerfgauge.nerf.train import train  # torch
 
     out = Path(out)
     start = time.perf_counter()
@@ -88,8 +87,6 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
 def evaluate_subset(suite: Suite, out, method: str, root, ids: set, extras: dict, log) -> dict:
     """evaluate_suite on the suite's entries in `ids` (a baseline that applies to some
     layouts only); the leaderboard shows the others as not applicable."""
-    import dataclasses
-
     subset = dataclasses.replace(suite, scenes=tuple(e for e in suite.scenes if e.id in ids))
     return evaluate_suite(suite, out, method, root, extras=extras, log=log, entries=subset.scenes)
 
@@ -100,10 +97,6 @@ def geometry_of(suite: Suite, data: Path, run_dir: Path, log):
     settings = suite.protocol.get("geometry")
     if not settings:
         return None
-    from nerfgauge.core.files import write_bytes_atomic
-    from nerfgauge.eval.geometry import score_geometry, summary
-    from nerfgauge.nerf.mesh import NoSurface, mesh_from_run, ply_bytes
-
     try:
         mesh = mesh_from_run(run_dir, settings["resolution"])
     except NoSurface as reason:

@@ -39,6 +39,7 @@ skipped; an interrupted one is resumed by the generator.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib.resources
 import time
 import tomllib
@@ -48,11 +49,19 @@ from pathlib import Path
 from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
+from nerfgauge.core.folders import claim_folder, folder_lock
+from nerfgauge.eval.baselines import METHODS
+from nerfgauge.eval.evaluate import BACKGROUNDS, evaluate
+from nerfgauge.eval.predictions import DEPTH_SUFFIXES
+from nerfgauge.generate.distributed import parse_scheduler
+from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.scenes.registry import RECIPES
 
 SUITE_FILE = "suite.json"
 SUITE_MANIFEST = "suite-manifest.json"
 RESULT_FILE = "result.json"
 SCHEMA = 1
+OURS = "compact-nerf"  # our NeRF's name on the leaderboard (suite run)
 REQUIRED = {"dataset": ("width", "height", "views", "test_views", "spp"), "train": ("steps",),
             "protocol": ("split", "background", "depth_kind")}
 PROTOCOL_KEYS = {"split": str, "background": str, "depth_kind": str, "baselines": list, "geometry": dict}
@@ -85,13 +94,9 @@ class Suite:
 
     @property
     def sha256(self) -> str:
-        import hashlib
-
         return hashlib.sha256(json_bytes(self.definition())).hexdigest()
 
     def generate_config(self, entry: SceneEntry):
-        from nerfgauge.generate.pipeline import GenerateConfig
-
         return GenerateConfig(scene=entry.scene, seed=entry.seed, **entry.dataset)
 
     def identity(self) -> dict:
@@ -103,7 +108,7 @@ class Suite:
 
 def builtin_suites() -> dict:
     """{name: path-like} of the suites shipped with nerfgauge."""
-    folder = importlib.resources.files("nerfgauge.suites")
+    folder = importlib.resources.files("nerfgauge.orchestrate.suites")
     return {item.name[:-5]: item for item in sorted(folder.iterdir(), key=lambda i: i.name) if item.name.endswith(".toml")}
 
 
@@ -145,11 +150,7 @@ def _check_fields(values: dict, allowed: set, where: str) -> None:
 
 
 def parse_suite(data: dict, source: str) -> Suite:
-    from nerfgauge.eval.baselines import METHODS
-    from nerfgauge.eval.evaluate import BACKGROUNDS, DEPTH_SUFFIXES
-    from nerfgauge.generate.pipeline import GenerateConfig
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.scenes.registry import RECIPES
+    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
 
     _check_fields(data, {"name", "version", "description", "dataset", "train", "protocol", "scenes"}, source)
     for field in ("name", "version"):
@@ -233,8 +234,6 @@ def parse_suite(data: dict, source: str) -> Suite:
 def claim_suite_folder(suite: Suite, out, *, overwrite: bool = False):
     """claim_folder(out, "suite", sha256), refusing first with one line when `out` holds
     another suite or another version of this one."""
-    from nerfgauge.core.folders import claim_folder
-
     out = Path(out)
     if (out / SUITE_FILE).is_file() and not overwrite:
         check_same_suite(suite, read_json(out / SUITE_FILE), f"{out / SUITE_FILE}",
@@ -266,12 +265,8 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
     """Every dataset of the suite into out/datasets/<id>/, then suite-manifest.json. Returns it.
     scheduler: tcp://HOST:PORT or local:N renders every dataset's views as tasks on a dask
     cluster (generate.distributed); None renders here."""
-    from nerfgauge.generate.pipeline import generate
-
     out = Path(out)
     if scheduler is not None:
-        from nerfgauge.generate.distributed import parse_scheduler
-
         parse_scheduler(scheduler)  # a malformed address is one line before anything is written
     for entry in suite.scenes:
         suite.generate_config(entry).validate()
@@ -346,9 +341,6 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
     another tool's runs. A PRED_ROOT/suite.json naming another suite or version is refused.
     entries: the suite's SceneEntry to score (default all; `suite run` passes the light-field
     datasets only for the light-field baselines)."""
-    from nerfgauge.core.folders import folder_lock
-    from nerfgauge.eval.evaluate import evaluate
-
     out, pred_root = Path(out), Path(pred_root)
     if not method or "/" in method or method.startswith("."):
         raise InputError(f"--method must be a folder name, got {method!r}")

@@ -21,11 +21,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.eval.bench import claim_bench_folder, run_child
+from nerfgauge.orchestrate.bench import claim_bench_folder, run_child
 from nerfgauge.eval.report import read_log
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
+from nerfgauge.core.images import read_exr
+from nerfgauge.scenes import make_scene
 
 
 @dataclass(frozen=True)
@@ -40,8 +42,6 @@ class HardConfig:
     seed: int = 0
 
     def validate(self) -> None:
-        from nerfgauge.scenes import make_scene
-
         for name in ("width", "height", "views", "test_views", "spp", "steps"):
             value = getattr(self, name)
             if not isinstance(value, int) or value <= 0:
@@ -58,8 +58,6 @@ class HardConfig:
 
 def non_finite_exr_values(folder: Path, pattern: str) -> tuple[int, int]:
     """(files, non-finite values) over the EXRs matching `pattern` under `folder`."""
-    from nerfgauge.core.images import read_exr
-
     files = bad = 0
     for path in sorted(folder.rglob(pattern)):
         channels, _ = read_exr(path)

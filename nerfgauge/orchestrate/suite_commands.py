@@ -1,5 +1,5 @@
-"""`nerfgauge suite`: benchmark suites (eval/suite.py), run (eval/suite_run.py) and the
-leaderboard (eval/suite_report.py).
+"""`nerfgauge suite`: benchmark suites (nerfgauge/orchestrate/suite.py), run
+(nerfgauge/orchestrate/suite_run.py) and the leaderboard (nerfgauge/orchestrate/suite_report.py).
 
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
@@ -13,6 +13,9 @@ SUITE is a built-in name (`suite list`) or a path to a .toml file.
 from __future__ import annotations
 
 from nerfgauge.core import arguments
+from nerfgauge.orchestrate.suite import builtin_suites, evaluate_suite, generate_suite, load_suite, suite_from_folder
+from nerfgauge.orchestrate.suite_report import write_leaderboard
+from nerfgauge.orchestrate.suite_run import run_suite
 
 
 def register(subparsers) -> None:
@@ -52,8 +55,6 @@ def register(subparsers) -> None:
 
 
 def run_list(args) -> int:
-    from nerfgauge.eval.suite import builtin_suites, load_suite
-
     for name in builtin_suites():
         suite = load_suite(name)
         print(f"{name:10s} v{suite.version}  {len(suite.scenes):2d} datasets  {suite.description}")
@@ -61,8 +62,6 @@ def run_list(args) -> int:
 
 
 def run_generate(args) -> int:
-    from nerfgauge.eval.suite import generate_suite, load_suite
-
     suite = load_suite(args.suite)
     manifest = generate_suite(suite, args.out, overwrite=args.overwrite, progress=args.progress,
                               scheduler=args.scheduler)
@@ -73,8 +72,6 @@ def run_generate(args) -> int:
 
 
 def run_evaluate(args) -> int:
-    from nerfgauge.eval.suite import evaluate_suite, load_suite
-
     suite = load_suite(args.suite)
     result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format)
     print(f"{args.method}: {len(result['datasets'])} datasets scored -> {args.dir / 'results' / args.method}")
@@ -82,16 +79,10 @@ def run_evaluate(args) -> int:
 
 
 def run_run(args) -> int:
-    from nerfgauge.eval.suite import load_suite
-    from nerfgauge.eval.suite_run import run_suite
-
     run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress)
     return 0
 
 
 def run_report(args) -> int:
-    from nerfgauge.eval.suite import suite_from_folder
-    from nerfgauge.eval.suite_report import write_leaderboard
-
     write_leaderboard(suite_from_folder(args.dir), args.dir)
     return 0
