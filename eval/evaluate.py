@@ -86,7 +86,7 @@ from nerfgauge.eval.metrics import (
     summarize,
 )
 
-from nerfgauge.core import dataset
+from nerfgauge.core import bounded, dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import check_writable_target, json_from_bytes, read_json, write_json
 from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
@@ -197,12 +197,9 @@ def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.n
     if path.name.endswith(".npy.gz") or path.suffix == ".bin":
         from nerfgauge.eval.foreign import read_depth_file
 
-        values = read_depth_file(path)
-    elif path.suffix == ".npy":
-        try:
-            values = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as error:
-            raise InputError(f"cannot read {path}: {error}") from None
+        values = read_depth_file(path, max_elements=intrinsics.width * intrinsics.height)
+    elif path.suffix == ".npy":  # at most [H, W, 1] values: the header is checked before reading
+        values = bounded.read_npy(path, max_elements=intrinsics.width * intrinsics.height)
     elif path.suffix == ".exr":
         channels, header = read_exr(path)
         if len(channels) != 1:

@@ -32,14 +32,13 @@ InputError with one line.
 
 from __future__ import annotations
 
-import gzip
 import io
 import re
 from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core import validate
+from nerfgauge.core import bounded, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json
 
@@ -188,15 +187,17 @@ def read_jpeg(path: Path, intrinsics) -> np.ndarray:
     return array.astype(np.float64) / 255.0
 
 
-def read_depth_file(path: Path) -> np.ndarray:
+def read_depth_file(path: Path, max_elements: int = validate.MAX_IMAGE_SIDE ** 2) -> np.ndarray:
     """nerfstudio raw-depth (.npy.gz, [H, W] or [H, W, 1]) or NerfBaselines depth (.bin:
-    int32 height, width, float16 values) as a float64 array."""
+    int32 height, width, float16 values) as a float64 array. max_elements: the most depth
+    values the file may hold (the frame's H * W); a .npy.gz is refused while inflating as
+    soon as it passes the bytes of that many float64 values, and a .bin before it is read."""
     try:
         if path.name.endswith(".npy.gz"):
-            with gzip.open(path, "rb") as handle:
-                values = np.load(io.BytesIO(handle.read()), allow_pickle=False)
+            data = bounded.inflate_gzip(path, bounded.npy_bytes_limit(max_elements))
+            values = bounded.read_npy(path, data, max_elements=max_elements)
         else:
-            data = path.read_bytes()
+            data = bounded.read_bytes(path, 8 + 2 * max_elements, "depth file")
             if len(data) < 8:
                 raise ValueError("shorter than its 8-byte header")
             height, width = np.frombuffer(data[:8], "<i4")

@@ -18,6 +18,7 @@ from nerfgauge.eval.covisibility import held_out_pixels, holds_out, reference_de
 from nerfgauge.eval.error_maps import colour_error, depth_relative_error
 
 from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
+from nerfgauge.core import bounded
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, write_bytes_atomic
 from nerfgauge.core.images import read_exr_single
@@ -33,7 +34,7 @@ TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("ps
 
 def read_log(path) -> list[dict]:
     """A run's log.jsonl: one JSON object per line (val PSNR against training seconds)."""
-    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    return [bounded.loads_json(line, path) for line in Path(path).read_text().splitlines() if line.strip()]
 
 
 def ceiling_cell(psnr, ceiling) -> str:

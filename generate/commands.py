@@ -10,13 +10,15 @@ from nerfgauge.core.errors import InputError
 
 def parse_resolution(text: str) -> tuple[int, int]:
     """"128" -> (128, 128); "160x120" -> (160, 120) as (width, height)."""
-    match = re.fullmatch(r"\s*(-?\d+)\s*(?:[xX]\s*(-?\d+)\s*)?", text)
+    match = re.fullmatch(r"\s*(-?\d{1,12})\s*(?:[xX]\s*(-?\d{1,12})\s*)?", text)  # 12 digits: int() never balks
     if not match:
         raise InputError(f"--res must be N or WxH (e.g. 128 or 160x120), got {text!r}")
     width = int(match.group(1))
     height = int(match.group(2)) if match.group(2) is not None else width
     if width <= 0 or height <= 0:
         raise InputError(f"--res must be positive, got {text!r}")
+    if max(width, height) > arguments.IMAGE_SIDE.high:
+        raise InputError(f"--res sides must be {arguments.IMAGE_SIDE.text} pixels, got {text!r}")
     return width, height
 
 

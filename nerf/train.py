@@ -31,6 +31,7 @@ from nerfgauge.nerf.rendering import composite
 from tqdm import tqdm
 
 from nerfgauge.core.dataset import MANIFEST, read_split, require_complete
+from nerfgauge.core import bounded
 from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, sha256_file, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
@@ -466,7 +467,7 @@ def _truncate_log(path: Path, last_step: int) -> None:
     kept = []
     for number, line in enumerate(lines, 1):
         try:
-            entry = json.loads(line)
+            entry = bounded.loads_json(line, path)
         except json.JSONDecodeError:
             if number == len(lines):
                 break  # torn by a kill mid-write

@@ -51,6 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     from nerfgauge import run
 
     run.register(subparsers)
+    from nerfgauge.core.arguments import document_ranges
+
+    document_ranges(parser)  # every numeric flag's range in its --help
     return parser
 
 
