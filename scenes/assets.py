@@ -33,7 +33,7 @@ import trimesh.resolvers
 from nerfgauge.scenes.description import Diffuse, TriangleMesh
 from nerfgauge.scenes.meshes import MeshData
 
-from nerfgauge.core import bounded
+from nerfgauge.core import arguments, bounded
 from nerfgauge.core.errors import InputError
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
@@ -121,7 +121,7 @@ def read_asset(path: Path) -> Asset:
     """Read every object of `path` with its material, in the file's own coordinates.
     Bad files raise a one-line InputError; a missing texture is a warning (the base colour
     is used instead). OS errors (permission, I/O) propagate."""
-    path = Path(path)
+    path = Path(arguments.encodable_path(path, "mesh file"))  # Mitsuba and our JSON need UTF-8 paths
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}")
     suffix = path.suffix.lower()

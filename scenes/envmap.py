@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfgauge.core import arguments, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.images import read_exr
 
@@ -37,7 +38,7 @@ class EnvironmentMap:
 def read_envmap(path, rotation: float = 0.0) -> EnvironmentMap:
     """Read an .exr (R, G, B channels) or Radiance .hdr latitude-longitude map.
     Anything that is not such an image is a one-line InputError."""
-    path = Path(path)
+    path = Path(arguments.encodable_path(path, "envmap"))
     if not math.isfinite(float(rotation)):
         raise InputError(f"envmap rotation must be a finite number of degrees, got {rotation!r}")
     if not path.is_file():
@@ -52,6 +53,7 @@ def read_envmap(path, rotation: float = 0.0) -> EnvironmentMap:
         raise InputError(f"envmap {path} is {width}x{height} pixels; an equirectangular map needs at least 2x1")
     if not np.isfinite(pixels).all() or (pixels < 0).any():
         raise InputError(f"envmap {path} has negative, NaN or inf pixels; radiance must be finite and >= 0")
+    validate.radiance(pixels, f"envmap {path}")
     light = EnvironmentMap(str(path), hashlib.sha256(data).hexdigest(), float(rotation), int(width), int(height))
     object.__setattr__(light, "pixels", np.ascontiguousarray(pixels, np.float32))
     return light
