@@ -204,6 +204,8 @@ def read_depth_file(path: Path, max_elements: int = validate.MAX_IMAGE_SIDE ** 2
             if height <= 0 or width <= 0 or len(data) != 8 + 2 * int(height) * int(width):
                 raise ValueError(f"header says {width}x{height} but holds {len(data) - 8} bytes of float16")
             values = np.frombuffer(data[8:], "<f2").reshape(int(height), int(width))
+    except InputError:
+        raise
     except (OSError, ValueError, EOFError) as error:
         raise InputError(f"cannot read depth {path}: {error}") from None
     return np.asarray(values, np.float64)

@@ -405,7 +405,7 @@ def nerfstudio_prediction(folder: Path, tiny_dataset: Path, pred_run: Path) -> P
     (pred / "test" / "raw-depth").mkdir()
     from nerfgauge.core.images import read_exr_single
 
-    for png in sorted(pred_run.glob("r_*[0-9].png")):
+    for png in sorted(pred_run.rglob("r_*[0-9].png")):
         shutil.copyfile(png, pred / "test" / "rgba" / png.name)
         depth = read_exr_single(png.with_name(png.stem + "_depth.exr"))[..., None]  # [H, W, 1]
         buffer = io.BytesIO()
@@ -428,7 +428,7 @@ def test_a_small_gzip_depth_that_inflates_to_gigabytes_is_refused_while_inflatin
     """The issue's example: a nerfstudio raw-depth .npy.gz of 1 MB inflating to 1 GiB was
     read whole. It is refused as soon as the inflated bytes pass what a 32x32 depth holds."""
     pred = nerfstudio_prediction(tmp_path, tiny_dataset, renders)
-    target = next((pred / "test" / "raw-depth").iterdir())
+    target = pred / "test" / "raw-depth" / "r_000.npy.gz"
     target.write_bytes(gzip_inflating_to(1 << 30))
     assert target.stat().st_size < 2 << 20
     line = refused("evaluate", ["evaluate", tiny_dataset, "--pred", pred, "--out", tmp_path / "out" / "m.json"],
@@ -454,33 +454,40 @@ def test_prediction_files_declaring_more_than_a_frame_are_refused(tmp_path_facto
     before anything that size is allocated or inflated."""
     folder = _folder(tmp_path_factory, "declare")
     pred = copy_tree(renders, folder / "pred")
+    frames = pred / "test"  # r_000.png, r_000_depth.exr, ...
+    assert (frames / "r_000_depth.exr").is_file()
     out = folder / "out"
     if kind.startswith("npy"):
         side = data.draw(st.sampled_from([33, 1000, 100_000, 2**31 - 1]), label="side")
-        dtype = data.draw(st.sampled_from(["<f8", "|O", "<c16", "V8"]), label="dtype") if kind == "npy-dtype" else "<f8"
+        dtype = data.draw(st.sampled_from(["|O", "<c16", "V8", "<U4"]), label="dtype") if kind == "npy-dtype" else "<f8"
         header = io.BytesIO()
         np.lib.format.write_array_header_1_0(header, {"descr": dtype, "fortran_order": False, "shape": (side, side)})
         body = header.getvalue() + bytes(data.draw(st.integers(0, 4096), label="payload"))
-        for png in pred.glob("r_*_depth.exr"):
-            png.unlink()
+        for exr in frames.glob("r_*_depth.exr"):
+            exr.unlink()
         if kind == "npy-gz-shape":
             shutil.rmtree(pred)
             pred = nerfstudio_prediction(folder, tiny_dataset, renders)
-            target = next((pred / "test" / "raw-depth").iterdir())
+            target = pred / "test" / "raw-depth" / "r_000.npy.gz"
+            assert target.is_file()
             target.write_bytes(gzip.compress(body))
         else:
-            (pred / "r_000_depth.npy").write_bytes(body)
-            for other in sorted(pred.glob("r_*[0-9].png"))[1:]:
-                np.save(pred / f"{other.stem}_depth.npy", np.zeros((32, 32)))
+            (frames / "r_000_depth.npy").write_bytes(body)
+            for other in sorted(frames.glob("r_*[0-9].png"))[1:]:
+                np.save(frames / f"{other.stem}_depth.npy", np.zeros((32, 32)))
     elif kind == "exr-channels":
         channels = data.draw(st.integers(5, 40), label="channels")
         exr = exr_bytes({f"c{i:02d}": np.zeros((8, 8), np.float32) for i in range(channels)})
-        write_raw(pred / "r_000_depth.exr", exr_with_data_window(exr, 8192, 8192))
+        write_raw(frames / "r_000_depth.exr", exr_with_data_window(exr, 8192, 8192))
     else:
         side = data.draw(st.sampled_from([8192, 9000, 65535, 2**31 - 1]), label="side")
-        write_raw(pred / "r_000.png", png_declaring(side, side, bytes(data.draw(st.integers(0, 10_000), label="payload"))))
-    refused("evaluate", ["evaluate", tiny_dataset, "--pred", pred, "--out", out / "m.json"], folder, out, kind,
-            shared=(tiny_dataset,))
+        write_raw(frames / "r_000.png", png_declaring(side, side, bytes(data.draw(st.integers(0, 10_000), label="payload"))))
+    line = refused("evaluate", ["evaluate", tiny_dataset, "--pred", pred, "--out", out / "m.json"], folder, out, kind,
+                   shared=(tiny_dataset,))
+    expected = {"npy-shape": ("header declares",), "npy-gz-shape": ("header declares",),
+                "npy-dtype": ("not a plain number type",), "exr-channels": ("channels of 8192x8192",),
+                "png-size": ("header says", "cannot read image")}[kind]
+    assert "r_000" in line and any(text in line for text in expected), line
 
 
 def test_read_npy_checks_the_header_before_reading():
