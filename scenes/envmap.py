@@ -15,11 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core import arguments, validate
+from nerfgauge.core import arguments, bounded, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.images import read_exr
 
 ENVMAP_SUFFIXES = (".exr", ".hdr")
+# An envmap file is read whole before its header is checked: at most float32 RGBA at
+# MAX_IMAGE_SIDE a side uncompressed (what validate bounds decoding to), plus its header.
+MAX_ENVMAP_BYTES = validate.MAX_DECODED_BYTES + (1 << 20)
 
 
 @dataclass(frozen=True)
@@ -46,7 +49,7 @@ def read_envmap(path, rotation: float = 0.0) -> EnvironmentMap:
     if path.suffix.lower() not in ENVMAP_SUFFIXES:
         raise InputError(f"envmap {path} has unsupported extension {path.suffix!r}; use one of "
                          f"{', '.join(ENVMAP_SUFFIXES)} (an equirectangular HDR image)")
-    data = path.read_bytes()
+    data = bounded.read_bytes(path, MAX_ENVMAP_BYTES, "envmap")
     pixels = _read_exr_rgb(path, data) if path.suffix.lower() == ".exr" else read_radiance_hdr(path, data)
     height, width = pixels.shape[:2]
     if width < 2 or height < 1:

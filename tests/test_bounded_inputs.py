@@ -601,3 +601,17 @@ def test_fresh_cases_come_from_the_printed_seed(monkeypatch):
 
     assert fresh(1) == fresh(1) != fresh(2)
     assert run(sample) == run(sample) != fresh(1)
+
+
+def test_found_by_a_fresh_seed_a_three_channel_ground_truth_depth_is_one_line(tmp_path):
+    """Seed 3169015096 of the fresh image family replaced a dataset's r_000_distance.exr
+    with an RGB EXR: OpenEXR groups R, G, B as one "RGB" entry, so the one-channel check
+    passed and covisibility broadcast [32, 32] against [32, 32, 3] (a ValueError traceback)."""
+    from nerfgauge.core.images import read_exr_single
+
+    path = tmp_path / "r_000_distance.exr"
+    write_raw(path, exr_bytes({"RGB": np.ones((4, 4, 3), np.float32)}))
+    with pytest.raises(InputError, match="should hold one channel, has 3"):
+        read_exr_single(path)
+    write_raw(path, exr_bytes({"Z": np.ones((4, 4), np.float32)}))
+    assert read_exr_single(path).shape == (4, 4)

@@ -144,4 +144,6 @@ def read_exr_single(path, data: Optional[bytes] = None, expected_size=None) -> n
     if len(channels) != 1:
         raise InputError(f"{path} should hold one channel, has {sorted(channels)}")
     (values,) = channels.values()
+    if values.ndim != 2:  # OpenEXR groups R, G, B into one [H, W, 3] "RGB" entry
+        raise InputError(f"{path} should hold one channel, has {values.shape[-1]} grouped as {next(iter(channels))!r}")
     return values
