@@ -394,8 +394,8 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
              progress: bool = True, scheduler: Optional[str] = None) -> dict:
     """Render the dataset into `out`. Returns timing: views rendered, seconds, render seconds.
     `scheduler` (tcp://HOST:PORT or local:N) renders on a dask cluster (generate.distributed)."""
-    if not isinstance(workers, int) or workers < 1:
-        raise InputError(f"--workers must be a positive integer, got {workers!r}")
+    arguments.WORKERS.check(workers, "--workers")
+    arguments.encodable_path(out, "--out")  # the API's path too: Mitsuba reads the meshes written under it
     if scheduler is not None:
         from nerfgauge.generate.distributed import parse_scheduler, require_dask
 

@@ -615,3 +615,16 @@ def test_found_by_a_fresh_seed_a_three_channel_ground_truth_depth_is_one_line(tm
         read_exr_single(path)
     write_raw(path, exr_bytes({"Z": np.ones((4, 4), np.float32)}))
     assert read_exr_single(path).shape == (4, 4)
+
+
+def test_found_by_a_fresh_seed_a_png_cut_inside_its_end_chunk_is_refused(tmp_path):
+    """Seed 248928585 of the fresh image family cut a mask PNG to 124 of its 134 bytes
+    (inside IEND): Pillow decoded it and evaluate accepted it (exit 0)."""
+    from nerfgauge.core.images import read_png
+    from fuzzing import image_bytes
+
+    data = image_bytes(np.zeros((4, 4), np.uint8), "PNG")
+    assert read_png(tmp_path / "m.png", data).shape == (4, 4)
+    for cut in (1, 4, 11):
+        with pytest.raises(InputError, match="truncated"):
+            read_png(tmp_path / "m.png", data[:-cut])

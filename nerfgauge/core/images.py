@@ -57,6 +57,17 @@ def _file_bytes(path) -> bytes:
         raise InputError(f"cannot read {path}: {error.strerror or error}") from None
 
 
+def _png_chunks_complete(data: bytes) -> bool:
+    """The chunks after the signature (length, type, data, CRC each) end exactly at the end
+    of `data`, the last one empty (IEND): a file cut anywhere fails. Chunk contents and
+    CRCs are Pillow's to check (and the manifest's hash)."""
+    position, last_length = 8, None
+    while position + 12 <= len(data):
+        last_length = int.from_bytes(data[position:position + 4], "big")
+        position += 12 + last_length
+    return position == len(data) and last_length == 0
+
+
 def read_png(path, data: Optional[bytes] = None, expected_size=None) -> np.ndarray:
     """Returns float32 in [0, 1], [H, W] or [H, W, C] as stored (palette and 1-bit images
     expanded). data: the file's bytes if already read (and verified); expected_size:
@@ -68,6 +79,8 @@ def read_png(path, data: Optional[bytes] = None, expected_size=None) -> np.ndarr
     """
     data = _file_bytes(path) if data is None else data
     validate.image_magic(data, path)
+    if not _png_chunks_complete(data):  # Pillow decodes a file cut inside or before its end chunk
+        raise InputError(f"cannot read image {path}: truncated (its chunks do not end with the empty end chunk)")
     try:
         # The PNG plugin's constructor reads the header only; unlike Image.open it has no
         # decompression-bomb check of its own (ours, stricter, runs before any decoding).
