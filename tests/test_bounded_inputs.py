@@ -628,3 +628,21 @@ def test_found_by_a_fresh_seed_a_png_cut_inside_its_end_chunk_is_refused(tmp_pat
     for cut in (1, 4, 11):
         with pytest.raises(InputError, match="truncated"):
             read_png(tmp_path / "m.png", data[:-cut])
+
+
+@pytest.mark.parametrize("compression", ["NO_COMPRESSION", "ZIP_COMPRESSION", "ZIPS_COMPRESSION", "PIZ_COMPRESSION",
+                                         "PXR24_COMPRESSION", "DWAB_COMPRESSION"])
+def test_found_by_a_fresh_seed_an_exr_cut_anywhere_is_one_line(tmp_path, compression):
+    """Seed 383943042 cut a dataset's r_000_distance.exr to 679 of 1117 bytes: OpenEXR's C
+    library wrote a second stderr line of its own. The offset table is now checked against
+    the file's size first: every cut, in every compression, is one InputError."""
+    import OpenEXR
+
+    from nerfgauge.core.images import read_exr
+
+    data = exr_bytes({"Z": np.random.default_rng(0).random((37, 19), np.float32)},
+                     {"compression": getattr(OpenEXR, compression)})
+    assert read_exr(tmp_path / "d.exr", data)[0]["Z"].shape == (37, 19)
+    for cut in range(9, len(data), max(1, len(data) // 97)):
+        with pytest.raises(InputError, match="truncated|cannot read EXR"):
+            read_exr(tmp_path / "d.exr", data[:cut])

@@ -3,6 +3,12 @@
 argparse's own `float` accepts "nan" and "inf"; these do not. Each raises
 argparse.ArgumentTypeError with what it expected, which the `nerfgauge` command prints as
 one line and exit 2.
+
+Every numeric flag has a `Range` (`bounded(kind, low, high)`): its type on the command
+line, its `check` for the same value given through the Python API or a config's
+validate(), and its text in --help (`document_ranges`, run by `nerfgauge.cli`). The shared
+ranges are named below with the reason for each bound. `path` refuses empty paths, NUL
+bytes and paths that are not UTF-8 (`encodable_path`).
 """
 
 from __future__ import annotations
@@ -220,7 +226,7 @@ def spp(text: str):
     return "auto" if text.strip().lower() == "auto" else SPP(text)
 
 
-spp.range = None  # set below, once SPP exists
+spp.range = SPP  # for --help and the range tests
 
 
 # argparse takes any word starting with "-" for an option unless it looks like a negative
@@ -235,4 +241,3 @@ def allow_negative_values(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     safe while no option name itself looks like a negative number, which ours never do)."""
     parser._negative_number_matcher = NEGATIVE_VALUE
     return parser
-spp.range = SPP
