@@ -76,6 +76,7 @@ import tomllib
 from nerfgauge.eval.geometry import SUMMARY_NAMES
 from nerfgauge.eval.metrics import METRIC_NAMES as IMAGE_METRIC_NAMES
 
+from nerfgauge.core import bounded
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
 from nerfgauge.core.outputs import check_output_file, xml_mark
@@ -151,6 +152,7 @@ def _known_scenes_text() -> str:
 
 def _read_text(path: Path, what: str) -> str:
     try:
+        bounded.check_size(Path(path).stat().st_size, bounded.MAX_JSON_BYTES, path, what)
         return Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError(f"{what} not found: {path}") from None
@@ -205,7 +207,7 @@ def load_thresholds(path) -> dict[str, dict[str, Bound]]:
     """Read and validate a thresholds.toml (format in the module docstring)."""
     text = _read_text(Path(path), "thresholds file")
     try:
-        data = tomllib.loads(text)
+        data = bounded.loads_toml(text, path)
     except tomllib.TOMLDecodeError as error:
         raise InputError(f"malformed TOML in {path}: {error}") from None
     return parse_thresholds(data, str(path))
@@ -240,7 +242,7 @@ def load_metrics(path) -> dict:
     """Read and validate a metrics.json."""
     text = _read_text(Path(path), "metrics file")
     try:
-        data = json.loads(text)
+        data = bounded.loads_json(text, path)
     except json.JSONDecodeError as error:
         raise InputError(f"malformed JSON in {path}: {error}") from None
     return validate_metrics(data, str(path))

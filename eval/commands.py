@@ -153,11 +153,11 @@ def register_baseline(subparsers) -> None:
     parser.add_argument("--evaluate", action="store_true", help="then score the renders (writes DIR/metrics.json)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a baseline folder made from another dataset, method or split")
-    parser.add_argument("--aperture", type=arguments.finite_float, default=None, metavar="RADIUS",
+    parser.add_argument("--aperture", type=arguments.APERTURE, default=None, metavar="RADIUS",
                         help="refocus: lens radius for every frame (default: each frame's own lens)")
-    parser.add_argument("--focus-distance", type=arguments.finite_float, default=None, metavar="D",
+    parser.add_argument("--focus-distance", type=arguments.DISTANCE, default=None, metavar="D",
                         help="refocus: focus distance for every frame (with --aperture)")
-    parser.add_argument("--lens-samples", type=arguments.positive_int, default=64, metavar="N",
+    parser.add_argument("--lens-samples", type=arguments.LENS_SAMPLES, default=64, metavar="N",
                         help="refocus: lens samples per pixel (default 64)")
     parser.set_defaults(func=run_baseline)
 
@@ -198,12 +198,12 @@ def register_geometry(subparsers) -> None:
                                "(a rerun replaces it), never a user's file or a file in a dataset folder")
     geometry.add_argument("--overwrite", action="store_true",
                           help="let -o replace a nerfgauge file of another kind (never a file nerfgauge did not write)")
-    geometry.add_argument("--tau", type=arguments.positive_float, action="append", default=[], metavar="T",
+    geometry.add_argument("--tau", type=arguments.DISTANCE, action="append", default=[], metavar="T",
                           help="also score F-score at this distance in world units (repeatable); 0.5%% and 1%% of the "
                                "ground truth's bounding-box diagonal always")
-    geometry.add_argument("--samples", type=arguments.positive_int, default=1_000_000,
+    geometry.add_argument("--samples", type=arguments.SAMPLES, default=1_000_000,
                           help="points sampled on each surface (default 1000000)")
-    geometry.add_argument("--seed", type=arguments.nonnegative_int, default=0, help="sampling seed (default 0)")
+    geometry.add_argument("--seed", type=arguments.SEED, default=0, help="sampling seed (default 0)")
     geometry.add_argument("--whole-surface", action="store_true",
                           help="score all ground truth, not only what the reference cameras see")
     geometry.add_argument("--split", default="test", help="views of --pred-depth and of --run's normals (default test)")

@@ -33,7 +33,6 @@ InputError with one line.
 
 from __future__ import annotations
 
-import gzip
 import io
 import re
 from dataclasses import dataclass
@@ -42,7 +41,7 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.core import validate
+from nerfgauge.core import bounded, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json
 from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
@@ -147,12 +146,9 @@ def read_colour(path: Path, intrinsics) -> tuple[np.ndarray, Optional[np.ndarray
 def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.ndarray:
     """A one-channel EXR, .npy, (opacity) PNG or foreign depth (.npy.gz, .bin) as [H, W] float64."""
     if path.name.endswith(".npy.gz") or path.suffix == ".bin":
-        values = read_depth_file(path)
-    elif path.suffix == ".npy":
-        try:
-            values = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as error:
-            raise InputError(f"cannot read {path}: {error}") from None
+        values = read_depth_file(path, max_elements=intrinsics.width * intrinsics.height)
+    elif path.suffix == ".npy":  # at most [H, W, 1] values: the header is checked before reading
+        values = bounded.read_npy(path, max_elements=intrinsics.width * intrinsics.height)
     elif path.suffix == ".exr":
         channels, header = read_exr(path)
         if len(channels) != 1:
@@ -321,21 +317,25 @@ def read_jpeg(path: Path, intrinsics) -> np.ndarray:
     return array.astype(np.float64) / 255.0
 
 
-def read_depth_file(path: Path) -> np.ndarray:
+def read_depth_file(path: Path, max_elements: int = validate.MAX_IMAGE_SIDE ** 2) -> np.ndarray:
     """nerfstudio raw-depth (.npy.gz, [H, W] or [H, W, 1]) or NerfBaselines depth (.bin:
-    int32 height, width, float16 values) as a float64 array."""
+    int32 height, width, float16 values) as a float64 array. max_elements: the most depth
+    values the file may hold (the frame's H * W); a .npy.gz is refused while inflating as
+    soon as it passes the bytes of that many float64 values, and a .bin before it is read."""
     try:
         if path.name.endswith(".npy.gz"):
-            with gzip.open(path, "rb") as handle:
-                values = np.load(io.BytesIO(handle.read()), allow_pickle=False)
+            data = bounded.inflate_gzip(path, bounded.npy_bytes_limit(max_elements))
+            values = bounded.read_npy(path, data, max_elements=max_elements)
         else:
-            data = path.read_bytes()
+            data = bounded.read_bytes(path, 8 + 2 * max_elements, "depth file")
             if len(data) < 8:
                 raise ValueError("shorter than its 8-byte header")
             height, width = np.frombuffer(data[:8], "<i4")
             if height <= 0 or width <= 0 or len(data) != 8 + 2 * int(height) * int(width):
                 raise ValueError(f"header says {width}x{height} but holds {len(data) - 8} bytes of float16")
             values = np.frombuffer(data[8:], "<f2").reshape(int(height), int(width))
+    except InputError:
+        raise
     except (OSError, ValueError, EOFError) as error:
         raise InputError(f"cannot read depth {path}: {error}") from None
     return np.asarray(values, np.float64)

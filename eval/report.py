@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +21,7 @@ from nerfgauge.eval.metrics import METRIC_NAMES, composite
 from nerfgauge.eval.predictions import find_prediction, read_colour
 
 from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
+from nerfgauge.core import bounded
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, write_bytes_atomic
 from nerfgauge.core.images import read_exr_single
@@ -37,7 +37,7 @@ TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("ps
 
 def read_log(path) -> list[dict]:
     """A run's log.jsonl: one JSON object per line (val PSNR against training seconds)."""
-    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    return [bounded.loads_json(line, path) for line in Path(path).read_text().splitlines() if line.strip()]
 
 
 def ceiling_cell(psnr, ceiling) -> str:

@@ -15,7 +15,7 @@ import re
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.generate.layouts import LAYOUTS
-from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, GenerateConfig
+from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, NOISE_PSNR, GenerateConfig
 from nerfgauge.generate.variant import CHOICES
 
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
@@ -26,13 +26,15 @@ CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov",
 
 def parse_resolution(text: str) -> tuple[int, int]:
     """"128" -> (128, 128); "160x120" -> (160, 120) as (width, height)."""
-    match = re.fullmatch(r"\s*(-?\d+)\s*(?:[xX]\s*(-?\d+)\s*)?", text)
+    match = re.fullmatch(r"\s*(-?\d{1,12})\s*(?:[xX]\s*(-?\d{1,12})\s*)?", text)  # 12 digits: int() never balks
     if not match:
         raise InputError(f"--res must be N or WxH (e.g. 128 or 160x120), got {text!r}")
     width = int(match.group(1))
     height = int(match.group(2)) if match.group(2) is not None else width
     if width <= 0 or height <= 0:
         raise InputError(f"--res must be positive, got {text!r}")
+    if max(width, height) > arguments.IMAGE_SIDE.high:
+        raise InputError(f"--res sides must be {arguments.IMAGE_SIDE.text} pixels, got {text!r}")
     return width, height
 
 
@@ -43,51 +45,51 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
     need_test_views: --test-views must be positive (a command that evaluates on them)."""
     d = GenerateConfig() if defaults is None else defaults
     arguments.allow_negative_values(parser)
-    parser.add_argument("--views", type=arguments.positive_int, default=d.views, help=f"training views (default {d.views})")
-    parser.add_argument("--val-views", type=arguments.nonnegative_int, default=d.val_views)
-    parser.add_argument("--test-views", type=arguments.positive_int if need_test_views else arguments.nonnegative_int,
+    parser.add_argument("--views", type=arguments.VIEWS, default=d.views, help=f"training views (default {d.views})")
+    parser.add_argument("--val-views", type=arguments.SPLIT_VIEWS, default=d.val_views)
+    parser.add_argument("--test-views", type=arguments.VIEWS if need_test_views else arguments.SPLIT_VIEWS,
                         default=d.test_views)
     parser.add_argument("--res", default=str(d.width) if d.width == d.height else f"{d.width}x{d.height}",
-                        help=f"N or WxH (default {d.width if d.width == d.height else f'{d.width}x{d.height}'})")
+                        help=f"N or WxH, sides {arguments.IMAGE_SIDE.text} (default {d.width if d.width == d.height else f'{d.width}x{d.height}'})")
     parser.add_argument("--spp", type=arguments.spp, default=d.spp,
                         help=f"samples per pixel, rendered as two half passes whose difference estimates the noise "
                              f"(default {d.spp}); or auto with --noise-psnr")
-    parser.add_argument("--noise-psnr", type=arguments.finite_float, default=d.noise_psnr,
+    parser.add_argument("--noise-psnr", type=NOISE_PSNR, default=d.noise_psnr,
                         help=f"with --spp auto: add samples per view until its sRGB noise PSNR reaches this many dB "
                              f"(at most {MAX_NOISE_PSNR:g})")
-    parser.add_argument("--max-spp", type=arguments.positive_int, default=d.max_spp,
+    parser.add_argument("--max-spp", type=arguments.SPP, default=d.max_spp,
                         help=f"with --spp auto: at most this many samples per view (default {d.max_spp})")
-    parser.add_argument("--max-depth", type=arguments.positive_int, default=d.max_depth,
+    parser.add_argument("--max-depth", type=arguments.MAX_PATH_DEPTH, default=d.max_depth,
                         help=f"path tracer's maximum depth (default {d.max_depth})")
-    parser.add_argument("--fov", type=arguments.finite_float, default=d.fov,
+    parser.add_argument("--fov", type=arguments.FOV_DEGREES, default=d.fov,
                         help=f"horizontal field of view, degrees (default {d.fov:g})")
-    parser.add_argument("--seed", type=arguments.nonnegative_int, default=d.seed)
+    parser.add_argument("--seed", type=arguments.SEED, default=d.seed)
     parser.add_argument("--layout", choices=("auto",) + LAYOUTS, default=d.layout,
                         help="camera layout (default auto: the scene's suggestion, else hemisphere)")
     parser.add_argument("--sampling", choices=("fibonacci", "random"), default=d.sampling,
                         help="camera directions on the (hemi)sphere: even or seeded random")
-    parser.add_argument("--elevation", type=arguments.number_pair("--elevation", "10,75 or -15,25"),
+    parser.add_argument("--elevation", type=arguments.number_pair("--elevation", "10,75 or -15,25", arguments.ELEVATION_DEGREES),
                         default=d.elevation,
                         help="MIN,MAX camera elevation in degrees, negative below the horizon (default: the scene's "
                              "suggestion, else 10,75; inside: -20,20)")
-    parser.add_argument("--radius", type=arguments.positive_float, default=d.radius,
+    parser.add_argument("--radius", type=arguments.DISTANCE, default=d.radius,
                         help="camera distance from the AABB centre (default: fit)")
     parser.add_argument("--variant", choices=CHOICES, default=d.variant)
-    parser.add_argument("--aperture", type=arguments.finite_float, default=d.aperture, metavar="RADIUS",
+    parser.add_argument("--aperture", type=arguments.APERTURE, default=d.aperture, metavar="RADIUS",
                         help="thin-lens aperture radius in scene units (default 0: pinhole); needs --focus-distance")
-    parser.add_argument("--focus-distance", type=arguments.finite_float, default=d.focus_distance, metavar="D",
+    parser.add_argument("--focus-distance", type=arguments.DISTANCE, default=d.focus_distance, metavar="D",
                         help="distance of the plane in focus along the optical axis, scene units")
     parser.add_argument("--units", choices=("normalise", "keep"), default=d.units,
                         help="user assets: normalise into [-1, 1]^3 (default; the transform is in scene.json) or "
                              "keep the files' coordinates, so depth and meshes/ are in the asset's units")
     parser.add_argument("--envmap", type=arguments.path, default=d.envmap, metavar="FILE",
                         help="light the scene with an equirectangular .exr/.hdr instead of its own lights")
-    parser.add_argument("--envmap-rotation", type=arguments.finite_float, default=d.envmap_rotation, metavar="DEG",
+    parser.add_argument("--envmap-rotation", type=arguments.ROTATION_DEGREES, default=d.envmap_rotation, metavar="DEG",
                         help="turn the --envmap about +Z by DEG degrees (default 0)")
     parser.add_argument("--lens-splits", choices=("test", "all"), default=d.lens_splits,
                         help="views rendered through the lens: test (default) or all splits; depth, normals and "
                              "masks stay those of the pinhole pixel-centre rays")
-    parser.add_argument("--workers", type=arguments.positive_int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--workers", type=arguments.WORKERS, default=1, help="worker processes (default 1)")
     return parser
 
 

@@ -35,7 +35,7 @@ from nerfgauge.generate.workers import render_views
 from nerfgauge.scenes import make_scene
 from nerfgauge.scenes.registry import scene_inputs
 
-from nerfgauge.core import dataset
+from nerfgauge.core import arguments, dataset
 from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
@@ -48,6 +48,7 @@ DEFAULT_ELEVATION = (10.0, 75.0)
 # band around the horizon (a scene's hint or --elevation still wins).
 DEFAULT_ELEVATION_BY_LAYOUT = {"inside": (-20.0, 20.0)}
 MAX_NOISE_PSNR = 80.0  # dB; beyond it the 8-bit PNG's own rounding (about 59 dB) dominates anyway
+NOISE_PSNR = arguments.bounded(float, 0, MAX_NOISE_PSNR, above=True)
 DEFAULT_MAX_SPP = 4096
 LENS_SPLITS = {"test": ("test",), "all": ("train", "val", "test")}  # --lens-splits -> splits with the lens
 RENDERER_PACKAGES = ("mitsuba", "drjit", "nerfgauge")  # their versions are part of a dataset's recipe
@@ -110,6 +111,18 @@ class GenerateConfig:
                 raise InputError(f"--{name} must be a non-negative integer, got {value!r}")
         if max(self.width, self.height) > 8192:
             raise InputError(f"--res {self.width}x{self.height} is larger than 8192 pixels on a side")
+        # the command line's ranges (core.arguments), for values given through the API
+        for name, value, limits in (("views", self.views, arguments.VIEWS), ("val-views", self.val_views, arguments.SPLIT_VIEWS),
+                                    ("test-views", self.test_views, arguments.SPLIT_VIEWS),
+                                    ("max-spp", self.max_spp, arguments.SPP), ("max-depth", self.max_depth, arguments.MAX_PATH_DEPTH),
+                                    ("seed", self.seed, arguments.SEED),
+                                    ("envmap-rotation", self.envmap_rotation, arguments.ROTATION_DEGREES),
+                                    ("spp", None if self.spp == "auto" else self.spp, arguments.SPP),
+                                    ("radius", self.radius, arguments.DISTANCE)):
+            if value is not None:
+                limits.check(value, f"--{name}")
+        for value in self.elevation or ():
+            arguments.ELEVATION_DEGREES.check(value, "--elevation")
         if not (0 < self.fov < 180) or not math.isfinite(self.fov):
             raise InputError(f"--fov must be in (0, 180) degrees, got {self.fov}")
         if self.radius is not None and not (self.radius > 0 and math.isfinite(self.radius)):
@@ -346,8 +359,8 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
              progress: bool = True, scheduler: Optional[str] = None) -> dict:
     """Render the dataset into `out`. Returns timing: views rendered, seconds, render seconds.
     `scheduler` (tcp://HOST:PORT or local:N) renders on a dask cluster (generate.distributed)."""
-    if not isinstance(workers, int) or workers < 1:
-        raise InputError(f"--workers must be a positive integer, got {workers!r}")
+    arguments.WORKERS.check(workers, "--workers")
+    arguments.encodable_path(out, "--out")  # the API's path too: Mitsuba reads the meshes written under it
     if scheduler is not None:
         parse_scheduler(scheduler)
         require_dask()

@@ -348,6 +348,10 @@ def restore_optimizer(optimizer: torch.optim.Optimizer, saved: dict, path) -> No
                 if key != "step" and (not isinstance(value, torch.Tensor) or value.shape != param.shape):
                     raise ValueError(f"optimizer {key} of parameter {index} has shape "
                                      f"{tuple(getattr(value, 'shape', ()))}, expected {tuple(param.shape)}")
+                if key == "step" and (not isinstance(value, (int, float, torch.Tensor))
+                                      or isinstance(value, torch.Tensor) and value.numel() != 1):
+                    raise ValueError(f"optimizer step of parameter {index} should be one number, "
+                                     f"has shape {tuple(getattr(value, 'shape', ()))}")  # found by a fresh fuzz seed
                 if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
                     raise ValueError(f"optimizer {key} of parameter {index} holds NaN or inf")
         optimizer.load_state_dict(saved)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from nerfgauge.core import arguments
-from nerfgauge.core.arguments import nonnegative_float, nonnegative_int, path, positive_float, positive_int
+from nerfgauge.core.arguments import path
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
 from nerfgauge.core.outputs import check_output_file, claim_output_file
@@ -26,6 +26,12 @@ def register(subparsers) -> None:
 # toy-pe
 
 
+TOY_STEPS = arguments.bounded(int, 1, 1_000_000)  # full-batch steps on a 64x64 image: 10^6 is hours
+# Marching-cubes cells along the longest side: 2048^3 float32 densities are already 32 GiB.
+MESH_RESOLUTION = arguments.bounded(int, 8, 2048)
+DENSITY = arguments.bounded(float, 0, 1e6, above=True)  # sigma per scene unit; 1e6 is opaque within 1e-5
+
+
 def _add_toy_pe(subparsers) -> None:
     parser = subparsers.add_parser(
         "toy-pe",
@@ -37,9 +43,8 @@ def _add_toy_pe(subparsers) -> None:
     parser.add_argument("--out", type=path, default=None, metavar="DIR",
                         help="directory for toy_pe.png and toy_pe.json (each new, or written by an earlier toy-pe: "
                              "a rerun replaces them; never a user's files, never inside a dataset folder)")
-    # plain int: these are checked in _run_toy_pe, whose messages name the flag
-    parser.add_argument("--steps", type=int, default=None, metavar="N", help="Adam steps per fit (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the image and the initial weights (default 0)")
+    parser.add_argument("--steps", type=TOY_STEPS, default=None, metavar="N", help="Adam steps per fit (default 200)")
+    parser.add_argument("--seed", type=arguments.SEED, default=0, help="seed of the image and the initial weights (default 0)")
     parser.set_defaults(func=_run_toy_pe)
 
 
@@ -86,17 +91,17 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--out", type=path, required=True, metavar="RUN", help="run folder")
     parser.add_argument("--model", choices=("compact", "vanilla"), default="compact")
     budget = parser.add_mutually_exclusive_group()
-    budget.add_argument("--budget-seconds", type=positive_float, default=None, metavar="T",
+    budget.add_argument("--budget-seconds", type=arguments.SECONDS, default=None, metavar="T",
                         help="training time (default 120)")
-    budget.add_argument("--steps", type=positive_int, default=None, metavar="N",
+    budget.add_argument("--steps", type=arguments.STEPS, default=None, metavar="N",
                         help="training steps instead of a time budget")
-    parser.add_argument("--seed", type=nonnegative_int, default=0)
+    parser.add_argument("--seed", type=arguments.SEED, default=0)
     again = parser.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue RUN from its checkpoint (with --steps N: bit-identical to an uninterrupted "
                             "N-step run at the same --threads)")
     again.add_argument("--overwrite", action="store_true", help="replace the run in RUN (only a nerfgauge run folder)")
-    parser.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="STEPS",
+    parser.add_argument("--checkpoint-every", type=arguments.STEPS, default=None, metavar="STEPS",
                         help="write RUN/checkpoint.pt every STEPS steps (default: at most once a minute of wall "
                              "time), and always at the end")
     parser.add_argument("--view-dependent", choices=("auto", "on", "off"), default="auto",
@@ -106,21 +111,21 @@ def _add_train(subparsers) -> None:
                              "contraction: unbounded and inside-out scenes) or forward (angles and log-depth: "
                              "forward-facing captures); auto (default) decides from the cameras and bounds and "
                              "says why in RUN/config.json")
-    parser.add_argument("--resolution", type=positive_int, default=None,
+    parser.add_argument("--resolution", type=arguments.GRID_RESOLUTION, default=None,
                         help="final grid resolution (auto: pixel footprint)")
-    parser.add_argument("--step-ratio", type=positive_float, default=None, metavar="VOXELS",
+    parser.add_argument("--step-ratio", type=arguments.STEP_RATIO, default=None, metavar="VOXELS",
                         help="ray-marching step while training, in voxels (auto: 0.5, 1 in contracted space)")
-    parser.add_argument("--batch-rays", type=positive_int, default=None, metavar="N",
+    parser.add_argument("--batch-rays", type=arguments.BATCH_RAYS, default=None, metavar="N",
                         help="rays per training step (auto: 4096, 2048 in contracted space)")
     parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
                         help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
     parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "
                         "(a dense grid: the ablation of sparse storage)")
     parser.add_argument("--no-occupancy", action="store_true", help="disable empty-space skipping")
-    parser.add_argument("--tv-weight", type=nonnegative_float, default=0.0, help="total-variation weight on density")
-    parser.add_argument("--eval-every", type=positive_float, default=10.0, metavar="SECONDS",
+    parser.add_argument("--tv-weight", type=arguments.WEIGHT, default=0.0, help="total-variation weight on density")
+    parser.add_argument("--eval-every", type=arguments.SECONDS, default=10.0, metavar="SECONDS",
                         help="training seconds between val PSNR points in log.jsonl (default 10)")
-    parser.add_argument("--threads", type=positive_int, default=2, help="torch CPU threads (default 2)")
+    parser.add_argument("--threads", type=arguments.THREADS, default=2, help="torch CPU threads (default 2)")
     parser.add_argument("--device", default="auto", help="auto (cuda when present), cpu, cuda or cuda:N")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
@@ -166,13 +171,13 @@ def _add_render(subparsers) -> None:
     parser.add_argument("--out", type=path, default=None, metavar="DIR", help="output folder (default RUN/renders)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace DIR when it holds renders of another model (only a nerfgauge renders folder)")
-    parser.add_argument("--threads", type=positive_int, default=None, help="CPU threads (default: the run's)")
-    parser.add_argument("--step-ratio", type=positive_float, default=1.0, metavar="VOXELS",
+    parser.add_argument("--threads", type=arguments.THREADS, default=None, help="CPU threads (default: the run's)")
+    parser.add_argument("--step-ratio", type=arguments.STEP_RATIO, default=1.0, metavar="VOXELS",
                         help="compact model's marching step in voxels (default 1; 0.5 renders as trained, slower)")
-    parser.add_argument("--aperture-samples", type=positive_int, default=16, metavar="N",
+    parser.add_argument("--aperture-samples", type=arguments.LENS_SAMPLES, default=16, metavar="N",
                         help="lens samples per pixel for frames rendered through a thin lens (their transforms "
                              "entry has \"lens\"): stratified on the lens disc, seeded (default 16)")
-    parser.add_argument("--lens-seed", type=nonnegative_int, default=0, help="seed of the lens samples (default 0)")
+    parser.add_argument("--lens-seed", type=arguments.SEED, default=0, help="seed of the lens samples (default 0)")
     parser.add_argument("--dataset", type=path, default=None, metavar="DATASET",
                         help="render the views of this dataset instead of those of the dataset the run was "
                              "trained on: it must hold the manifest.json the run recorded (the same dataset, "
@@ -214,10 +219,10 @@ def _add_mesh(subparsers) -> None:
     mesh.add_argument("-o", "--out", type=arguments.path, required=True, metavar="OUT.ply",
                       help="mesh file to write: a new path or a mesh nerfgauge wrote (a rerun replaces it), never "
                            "a user's file or a file in a dataset folder")
-    mesh.add_argument("--resolution", type=arguments.positive_int, default=256,
+    mesh.add_argument("--resolution", type=MESH_RESOLUTION, default=256,
                       help="grid cells along the scene's longest side (default 256)")
     mesh.add_argument("--no-cull", action="store_true", help="keep triangles no training camera sees")
-    mesh.add_argument("--level", type=arguments.positive_float, metavar="SIGMA",
+    mesh.add_argument("--level", type=DENSITY, metavar="SIGMA",
                       help="density of the surface (default: the median density where the model renders its "
                            "surface on training rays)")
     mesh.add_argument("--overwrite", action="store_true",

@@ -15,6 +15,7 @@ from typing import Optional
 
 import numpy as np
 
+from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisation
 
@@ -25,7 +26,7 @@ BACKGROUNDS = ("random", "white", "black")
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing
 # captures) ask for an unbounded resolution: they get this cap.
 MAX_AUTO_RESOLUTION = 256
-MAX_BATCH_RAYS = 1 << 20  # a batch's samples must fit in memory: ~126 per contracted ray
+MAX_BATCH_RAYS = arguments.BATCH_RAYS.high  # a batch's samples must fit in memory: ~126 per contracted ray
 # Marching step in voxels while training, by parametrisation. Contracted space takes a
 # whole voxel: its rays cross the inner ball and the disparity-uniform shell, ~126 samples
 # at half a voxel on far-reaching, and at 120 s on 2 cores twice the steps beat the finer
@@ -128,9 +129,15 @@ class TrainConfig:
             value = getattr(self, name)
             if not (_is_finite(value) and value > 0):
                 raise InputError(f"{_flag(name)} must be a positive finite number, got {value!r}")
-        if self.step_ratio is not None and not (_is_finite(self.step_ratio) and 0 < self.step_ratio <= 2):
-            raise InputError(f"--step-ratio must be a number in (0, 2] voxels (a coarser step skips whole cells), "
-                             f"got {self.step_ratio!r}")
+        if self.step_ratio is not None:
+            arguments.STEP_RATIO.check(self.step_ratio, "--step-ratio")
+        # the command line's ranges (core.arguments), for values given through the API or a saved config
+        for name, limits in (("steps", arguments.STEPS), ("budget_seconds", arguments.SECONDS),
+                             ("checkpoint_every", arguments.STEPS), ("seed", arguments.SEED),
+                             ("threads", arguments.THREADS), ("eval_every_seconds", arguments.SECONDS),
+                             ("tv_weight", arguments.WEIGHT), ("final_resolution", arguments.GRID_RESOLUTION)):
+            if getattr(self, name) is not None:
+                limits.check(getattr(self, name), _flag(name) if name in FLAGS else f"--{name.replace('_', '-')}")
         for name in ("tv_weight", "distortion_weight"):
             value = getattr(self, name)
             if not (_is_finite(value) and value >= 0):

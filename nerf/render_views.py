@@ -40,6 +40,7 @@ from nerfgauge.nerf.rendering import render_rays_chunked
 from nerfgauge.nerf.train import pick_device
 from tqdm import tqdm
 
+from nerfgauge.core import arguments
 from nerfgauge.core.camera import lens_samples, thin_lens_rays
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import sha256_file, write_json
@@ -115,14 +116,12 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(f"run folder not found: {run_dir}")
-    if step_ratio is not None and not (isinstance(step_ratio, (int, float)) and 0 < step_ratio <= 2):
-        raise InputError(f"--step-ratio must be in (0, 2] voxels, got {step_ratio}")
-    if threads is not None and not (isinstance(threads, int) and not isinstance(threads, bool) and threads > 0):
-        raise InputError(f"--threads must be a positive integer, got {threads!r}")
-    if not (isinstance(aperture_samples, int) and not isinstance(aperture_samples, bool) and aperture_samples > 0):
-        raise InputError(f"--aperture-samples must be a positive integer, got {aperture_samples!r}")
-    if not (isinstance(lens_seed, int) and not isinstance(lens_seed, bool) and lens_seed >= 0):
-        raise InputError(f"--lens-seed must be a non-negative integer, got {lens_seed!r}")
+    if step_ratio is not None:
+        arguments.STEP_RATIO.check(step_ratio, "--step-ratio")
+    if threads is not None:
+        arguments.THREADS.check(threads, "--threads")
+    arguments.LENS_SAMPLES.check(aperture_samples, "--aperture-samples")
+    arguments.SEED.check(lens_seed, "--lens-seed")
     model, config = load_model(run_dir / "model.pt")
     threads = threads or config.threads
     device = pick_device(config.device)

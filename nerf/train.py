@@ -34,6 +34,7 @@ from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, render_rays_chunked
 from tqdm import tqdm
 
+from nerfgauge.core import bounded
 from nerfgauge.core.dataset import manifest_sha256, read_split, require_complete
 from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
@@ -482,7 +483,7 @@ def _truncate_log(path: Path, last_step: int) -> None:
     kept = []
     for number, line in enumerate(lines, 1):
         try:
-            entry = json.loads(line)
+            entry = bounded.loads_json(line, path)
         except json.JSONDecodeError:
             if number == len(lines):
                 break  # torn by a kill mid-write

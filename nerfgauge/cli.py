@@ -23,6 +23,7 @@ import os
 import sys
 
 from nerfgauge import run
+from nerfgauge.core.arguments import document_ranges
 from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
 from nerfgauge.orchestrate import commands as orchestration
 
@@ -53,6 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
         module.register(subparsers)
     orchestration.register(subparsers)
     run.register(subparsers)
+    document_ranges(parser)  # every numeric flag's range in its --help
     return parser
 
 

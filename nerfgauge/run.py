@@ -229,9 +229,9 @@ def register(subparsers) -> None:
                         help=f"output folder (default {defaults.out})")
     add_generate_arguments(parser, defaults.generate_config(), need_test_views=True)  # every generator option, defined once
     length = parser.add_mutually_exclusive_group()
-    length.add_argument("--budget-seconds", type=arguments.positive_float, default=defaults.budget_seconds,
+    length.add_argument("--budget-seconds", type=arguments.SECONDS, default=defaults.budget_seconds,
                         help="training time (default 90)")
-    length.add_argument("--steps", type=arguments.positive_int, default=None,
+    length.add_argument("--steps", type=arguments.STEPS, default=None,
                         help="training steps instead of time (reproducible)")
     parser.add_argument("--model", default=defaults.model, choices=("compact", "vanilla"))
     parser.add_argument("--overwrite", action="store_true",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.scenes.assets import MESH_SUFFIXES, Asset, read_with_trimesh, unique_names
 from nerfgauge.scenes.obj_mtl import read_obj
@@ -16,7 +17,7 @@ def read_asset(path: Path) -> Asset:
     """Read every object of `path` with its material, in the file's own coordinates.
     Bad files raise a one-line InputError; a missing texture is a warning (the base colour
     is used instead). OS errors (permission, I/O) propagate."""
-    path = Path(path)
+    path = Path(arguments.encodable_path(path, "mesh file"))  # Mitsuba and our JSON need UTF-8 paths
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}")
     suffix = path.suffix.lower()

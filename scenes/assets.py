@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import io
-import json
 import math
 import re
 import struct
@@ -35,6 +34,7 @@ import trimesh.resolvers
 from nerfgauge.scenes.description import Diffuse, TriangleMesh
 from nerfgauge.scenes.meshes import MeshData
 
+from nerfgauge.core import bounded
 from nerfgauge.core.errors import InputError
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
@@ -268,10 +268,10 @@ def gltf_json(suffix: str, content: bytes) -> dict:
     """The JSON document of a .gltf, or of a .glb's first chunk; {} if there is none."""
     try:
         if suffix == ".gltf":
-            document = json.loads(content.decode("utf-8"))
+            document = bounded.loads_json(content, "glTF")
         else:
             length, kind = struct.unpack_from("<I4s", content, 12)
-            document = json.loads(content[20:20 + length].decode("utf-8")) if kind == b"JSON" else {}
+            document = bounded.loads_json(content[20:20 + length], "glTF") if kind == b"JSON" else {}
     except (ValueError, struct.error):
         return {}  # not readable as glTF: trimesh's own error names the problem
     return document if isinstance(document, dict) else {}

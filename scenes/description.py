@@ -15,6 +15,8 @@ from typing import Optional, Union
 import numpy as np
 from nerfgauge.scenes import meshes
 
+from nerfgauge.core import validate
+
 Vec3 = tuple[float, float, float]
 
 BACKGROUNDS = ("transparent", "environment")
@@ -327,6 +329,19 @@ def _shape_json(shape) -> dict:
     return out
 
 
+def check_emitters(name, shapes, lights) -> None:
+    """Every radiance a scene emits (lights, emissive shapes) below validate.MAX_RADIANCE,
+    checked as the scene is built, before anything is rendered (InputError otherwise)."""
+    for light in lights:
+        for key in ("radiance", "intensity", "zenith", "horizon", "nadir", "sun_radiance"):
+            value = getattr(light, key, None)
+            if value is not None and not callable(value):
+                validate.radiance(value, f"scene {name}: {type(light).__name__} {key}")
+    for shape in shapes:
+        if getattr(shape, "emission", None) is not None:
+            validate.radiance(shape.emission, f"scene {name}: shape {shape.name} emission")
+
+
 def build_scene(name, seed, shapes, lights, *, background="transparent", aabb=None,
                 params=None, padding=0.05, cameras: Optional[CameraHint] = None) -> Scene:
     """Assemble a Scene, deriving `needs` from the materials and the AABB from the shapes.
@@ -346,6 +361,7 @@ def build_scene(name, seed, shapes, lights, *, background="transparent", aabb=No
         lo, hi = corners.min(axis=0), corners.max(axis=0)
         pad = padding * float((hi - lo).max())
         aabb = (lo - pad, hi + pad)
+    check_emitters(name, shapes, lights)
     lo, hi = (tuple(float(x) for x in corner) for corner in aabb)
     periods = [s.material.finest_period for s in shapes if isinstance(s.material, Textured)]
     needs = Needs(

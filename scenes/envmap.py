@@ -15,10 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfgauge.core import arguments, bounded, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.images import read_exr
 
 ENVMAP_SUFFIXES = (".exr", ".hdr")
+# An envmap file is read whole before its header is checked: at most float32 RGBA at
+# MAX_IMAGE_SIDE a side uncompressed (what validate bounds decoding to), plus its header.
+MAX_ENVMAP_BYTES = validate.MAX_DECODED_BYTES + (1 << 20)
 
 
 @dataclass(frozen=True)
@@ -37,7 +41,7 @@ class EnvironmentMap:
 def read_envmap(path, rotation: float = 0.0) -> EnvironmentMap:
     """Read an .exr (R, G, B channels) or Radiance .hdr latitude-longitude map.
     Anything that is not such an image is a one-line InputError."""
-    path = Path(path)
+    path = Path(arguments.encodable_path(path, "envmap"))
     if not math.isfinite(float(rotation)):
         raise InputError(f"envmap rotation must be a finite number of degrees, got {rotation!r}")
     if not path.is_file():
@@ -45,13 +49,14 @@ def read_envmap(path, rotation: float = 0.0) -> EnvironmentMap:
     if path.suffix.lower() not in ENVMAP_SUFFIXES:
         raise InputError(f"envmap {path} has unsupported extension {path.suffix!r}; use one of "
                          f"{', '.join(ENVMAP_SUFFIXES)} (an equirectangular HDR image)")
-    data = path.read_bytes()
+    data = bounded.read_bytes(path, MAX_ENVMAP_BYTES, "envmap")
     pixels = _read_exr_rgb(path, data) if path.suffix.lower() == ".exr" else read_radiance_hdr(path, data)
     height, width = pixels.shape[:2]
     if width < 2 or height < 1:
         raise InputError(f"envmap {path} is {width}x{height} pixels; an equirectangular map needs at least 2x1")
     if not np.isfinite(pixels).all() or (pixels < 0).any():
         raise InputError(f"envmap {path} has negative, NaN or inf pixels; radiance must be finite and >= 0")
+    validate.radiance(pixels, f"envmap {path}")
     light = EnvironmentMap(str(path), hashlib.sha256(data).hexdigest(), float(rotation), int(width), int(height))
     object.__setattr__(light, "pixels", np.ascontiguousarray(pixels, np.float32))
     return light

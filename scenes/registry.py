@@ -15,6 +15,7 @@ from nerfgauge.scenes.hard import HARD_RECIPES
 from nerfgauge.scenes.meshes import MeshData
 from nerfgauge.scenes.scene_file import scene_from_file
 
+from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 
 # name -> (recipe(seed) -> Scene, one-line description)
@@ -49,6 +50,7 @@ def make_scene(spec: str, seed: int, *, units: str = "normalise", envmap=None, e
         raise InputError(f"seed must be a non-negative integer, got {seed!r}")
     if units not in UNITS:
         raise InputError(f"--units must be one of {', '.join(UNITS)}, got {units!r}")
+    arguments.encodable_path(spec, "scene")  # mesh:PATH and scene files: Mitsuba needs UTF-8 paths
     if spec.startswith(MESH_PREFIX):
         scene = mesh_scene(Path(spec[len(MESH_PREFIX):]), int(seed), units)
     elif Path(spec).suffix.lower() in SCENE_FILE_SUFFIXES:

@@ -40,6 +40,7 @@ from nerfgauge.scenes.description import (
 from nerfgauge.scenes.envmap import read_envmap
 from nerfgauge.scenes.meshes import rotation_matrix
 
+from nerfgauge.core import bounded
 from nerfgauge.core.errors import InputError
 
 VERSION = 1
@@ -91,12 +92,13 @@ def read_scene_document(path: Path) -> tuple[dict, bytes]:
     """The parsed TOML/JSON of a scene file and its bytes."""
     if not path.is_file():
         raise InputError(f"scene file not found: {path}")
-    content = path.read_bytes()
+    is_toml = path.suffix.lower() == ".toml"
+    content = bounded.read_bytes(path, bounded.MAX_TOML_BYTES if is_toml else bounded.MAX_JSON_BYTES, "scene file")
     try:
-        if path.suffix.lower() == ".toml":
-            document = tomllib.loads(content.decode("utf-8"))
+        if is_toml:
+            document = bounded.loads_toml(content, f"scene file {path}")
         else:
-            document = json.loads(content.decode("utf-8"))
+            document = bounded.loads_json(content, f"scene file {path}")
     except (UnicodeDecodeError, tomllib.TOMLDecodeError, json.JSONDecodeError) as error:
         detail = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise InputError(f"scene file {path}: not valid {path.suffix.lower()[1:].upper()} ({detail})") from None

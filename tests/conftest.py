@@ -34,3 +34,53 @@ def make_dataset():
 def tiny_dataset(tmp_path_factory):
     """primitives, 4/1/2 views at 32x32, 4 spp: enough for format and depth checks."""
     return generate_small(tmp_path_factory.mktemp("datasets") / "primitives")
+
+
+# --------------------------------------------------------------------------------------
+# the fuzz seed: fresh hostile cases every run, reproducible from the printed seed
+
+FUZZ_SEED_ENV = "NERFGAUGE_FUZZ_SEED"
+
+
+def pytest_addoption(parser):
+    parser.addoption("--fuzz-seed", type=int, default=None,
+                     help=f"seed of the fuzz suite's fresh cases (default: ${FUZZ_SEED_ENV}, else a new random "
+                          "seed, printed in the header and the summary)")
+
+
+def pytest_configure(config):
+    """Fix the run's fuzz seed before test modules are imported: --fuzz-seed, else
+    $NERFGAUGE_FUZZ_SEED, else a fresh random one. It is put in the environment, where
+    tests/fuzzing.fuzz_seed() (and any subprocess) reads it."""
+    import os
+    import secrets
+
+    seed = config.getoption("--fuzz-seed")
+    if seed is None:
+        seed = int(os.environ.get(FUZZ_SEED_ENV) or secrets.randbits(32))
+    os.environ[FUZZ_SEED_ENV] = str(seed)
+    config.addinivalue_line("markers", "fuzz_fresh: draws new cases from the run's fuzz seed (printed)")
+
+
+def _seed_line() -> str:
+    import os
+
+    seed = os.environ[FUZZ_SEED_ENV]
+    return f"nerfgauge fuzz seed: {seed} (rerun the same fresh cases: {FUZZ_SEED_ENV}={seed} or --fuzz-seed {seed})"
+
+
+def pytest_report_header(config):
+    return _seed_line()
+
+
+def pytest_terminal_summary(terminalreporter):
+    terminalreporter.write_line(_seed_line())  # also under -q, which hides the header
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A failing fresh fuzz case names the seed that reproduces it."""
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed and item.get_closest_marker("fuzz_fresh"):
+        report.sections.append(("nerfgauge fuzz seed", _seed_line()))

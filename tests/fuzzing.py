@@ -339,3 +339,36 @@ def code_running_checkpoint(canary, *, legacy: bool = False) -> bytes:
     buffer = io.BytesIO()
     torch.save(obj, buffer)
     return buffer.getvalue()
+
+
+# --------------------------------------------------------------------------------------
+# fresh cases from the run's fuzz seed (tests/conftest.py prints it)
+
+
+def fuzz_seed() -> int:
+    """The run's fuzz seed: tests/conftest.py sets $NERFGAUGE_FUZZ_SEED before any test
+    module is imported (from --fuzz-seed, the environment, or a fresh random one)."""
+    return int(os.environ["NERFGAUGE_FUZZ_SEED"])
+
+
+def fresh_twin(test, max_examples: int | None = None):
+    """A twin of the hypothesis test `test` (written `@given(data=st.data())`) that draws
+    new cases from the run's fuzz seed instead of the fixed derandomized ones: same body,
+    same parametrization, settings with derandomize off and `@seed(fuzz_seed())`. Bind it
+    to a module-level `test_..._fresh` name; the original keeps the fixed regression cases."""
+    import types
+
+    import pytest
+    from hypothesis import given, seed, settings
+    from hypothesis import strategies as st
+
+    inner = test.hypothesis.inner_test
+    body = types.FunctionType(inner.__code__, inner.__globals__, f"{inner.__name__}_fresh", inner.__defaults__,
+                              inner.__closure__)
+    body.__qualname__, body.__module__ = f"{inner.__qualname__}_fresh", inner.__module__
+    fixed = test._hypothesis_internal_use_settings
+    fresh = settings(fixed, derandomize=False, database=None,
+                     max_examples=fixed.max_examples if max_examples is None else max_examples)
+    twin = seed(fuzz_seed())(fresh(given(data=st.data())(body)))
+    twin.pytestmark = [*getattr(test, "pytestmark", []), pytest.mark.fuzz_fresh]
+    return twin

@@ -8,8 +8,11 @@ stderr line; no traceback, no other exit code, nothing touched outside the outpu
 A mutation that must be refused (NaN intrinsics, a sheared pose, a path out of the
 dataset, JPEG bytes in a .png, ...) is marked REFUSE and fails the case if accepted.
 
-Mutations are drawn by hypothesis with derandomize=True (the same cases every run); each
-family is parametrized by mutation kind so a failure names the kind. Case counts are in
+Mutations are drawn by hypothesis with derandomize=True (the same cases every run: the
+fixed regression cases); each family is parametrized by mutation kind so a failure names
+the kind. Each drawn family also has a `..._fresh` twin (at the end of the file) that draws
+new cases every run from the run's fuzz seed, printed in pytest's header and summary
+(`nerfgauge fuzz seed: N`); NERFGAUGE_FUZZ_SEED=N or --fuzz-seed N reruns those cases. Case counts are in
 RELIABILITY.md (`pytest tests/test_fuzz_inputs.py -q` runs them all).
 """
 
@@ -39,6 +42,7 @@ from fuzzing import (
     copy_tree,
     exr_bytes,
     exr_with_data_window,
+    fresh_twin,
     image_bytes,
     png_declaring,
     rehash_manifest,
@@ -815,3 +819,16 @@ def test_known_hostile_checkpoints(base, name):
     torch.save(payload, buffer)
     write_raw(path, buffer.getvalue())
     assert_judged(Case(command, argv, folder, out, name, ANY, base["shared"]))
+
+
+# --------------------------------------------------------------------------------------
+# fresh cases: every drawn family again, new inputs each run from the printed fuzz seed
+
+test_transforms_mutations_fresh = fresh_twin(test_transforms_mutations)
+test_transforms_file_bytes_fresh = fresh_twin(test_transforms_file_bytes)
+test_scene_json_mutations_fresh = fresh_twin(test_scene_json_mutations)
+test_manifest_mutations_fresh = fresh_twin(test_manifest_mutations)
+test_image_mutations_evaluate_fresh = fresh_twin(test_image_mutations_evaluate)
+test_image_mutations_train_fresh = fresh_twin(test_image_mutations_train)
+test_checkpoint_mutations_fresh = fresh_twin(test_checkpoint_mutations)
+test_mesh_inputs_to_generate_fresh = fresh_twin(test_mesh_inputs_to_generate)

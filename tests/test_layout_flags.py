@@ -72,9 +72,9 @@ def test_spp_takes_auto_and_a_target():
 @pytest.mark.parametrize("argv, message", [
     (["--spp", "auto"], "--spp auto needs --noise-psnr"),
     (["--spp", "auto", "--noise-psnr", "nan"], "finite"),
-    (["--spp", "auto", "--noise-psnr", "81"], "--noise-psnr must be a finite number of dB in (0, 80]"),
+    (["--spp", "auto", "--noise-psnr", "81"], "argument --noise-psnr: expected a number above 0, up to 80, got '81'"),
     (["--spp", "1", "--noise-psnr", "30"], "--spp 1 renders one pass"),
-    (["--elevation", "-15,25", "--fov", "-3"], "--fov must be in (0, 180)"),
+    (["--elevation", "-15,25", "--fov", "-3"], "argument --fov: expected a number above 0, below 180, got '-3'"),
 ])
 def test_run_refuses_bad_generator_options_in_one_line(tmp_path, capsys, argv, message):
     one_line_exit_2(capsys, ["run", "primitives", "--out", tmp_path / "out", "--steps", "1", *argv], message)

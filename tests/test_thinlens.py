@@ -225,8 +225,8 @@ def test_pinhole_recipe_is_unchanged_by_the_lens_fields():
 
 @pytest.mark.parametrize("flags,expected", [
     (["--aperture", "-0.1", "--focus-distance", "2"], "aperture"),
-    (["--aperture", "0.1", "--focus-distance", "0"], "focus distance"),
-    (["--aperture", "0.1", "--focus-distance", "-3"], "focus distance"),
+    (["--aperture", "0.1", "--focus-distance", "0"], "argument --focus-distance: expected a number above 0"),
+    (["--aperture", "0.1", "--focus-distance", "-3"], "argument --focus-distance: expected a number above 0"),
     (["--aperture", "0.1"], "--focus-distance"),
 ])
 def test_generate_refuses_a_bad_lens_in_one_line(capsys, tmp_path, flags, expected):

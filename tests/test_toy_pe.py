@@ -97,8 +97,8 @@ def test_command_writes_png_and_json(tmp_path, capsys, one_thread):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--steps", "0"], "--steps must be a positive integer, got 0"),
-    (["--seed", "-2"], "--seed must be a non-negative integer, got -2"),
+    (["--steps", "0"], "argument --steps: expected an integer from 1 to 1000000, got '0'"),
+    (["--seed", "-2"], "argument --seed: expected an integer from 0 to 2147483647, got '-2'"),
 ])
 def test_command_rejects_bad_input(argv, message, capsys):
     assert main(["toy-pe", *argv]) == 2

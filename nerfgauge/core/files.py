@@ -15,7 +15,7 @@ import json
 import os
 from pathlib import Path
 
-from nerfgauge.core import complete
+from nerfgauge.core import bounded, complete
 from nerfgauge.core.errors import InputError
 
 
@@ -79,10 +79,7 @@ def write_json(path, obj) -> None:
 def read_json(path, *, finite: bool = False) -> dict:
     """A JSON object from `path` (InputError otherwise). finite=True also refuses the NaN
     and Infinity literals Python's parser accepts (files that promise numbers)."""
-    try:
-        data = Path(path).read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"missing file: {path}") from None
+    data = bounded.read_bytes(path, bounded.MAX_JSON_BYTES, "JSON file")
     return json_from_bytes(data, path, finite=finite)
 
 
@@ -93,7 +90,7 @@ def json_from_bytes(data: bytes, path, *, finite: bool = False) -> dict:
         raise InputError(f"{path} holds {constant}, which is not valid JSON")
 
     try:
-        value = json.loads(data.decode(), parse_constant=refuse if finite else None)
+        value = bounded.loads_json(data, path, parse_constant=refuse if finite else None)
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise InputError(f"{path} is not valid JSON: {error}") from None
     if not isinstance(value, dict):

@@ -45,6 +45,17 @@ from nerfgauge.core.camera import Intrinsics
 from nerfgauge.core.errors import InputError
 
 MAX_IMAGE_SIDE = 8192
+# The largest radiance (emitter radiance, point-light intensity, environment-map pixel)
+# rendered. Mitsuba renders in float32 (largest finite value ~3.4e38 = 2^128): a pixel sums
+# up to 2^16 samples (the --spp limit), an environment map's sampling distribution sums
+# its pixels (up to 8192^2 = 2^26), and a path's weight (BSDF / pdf, MIS) multiplies a
+# radiance by factors we bound at 2^32. 2^(16 + 26 + 32) = 2^74 of headroom leaves
+# 2^54 ~ 1.8e16; a map holding 1e30 rendered NaN and left a partial view. Real HDR skies
+# peak near 1e5 (the sun, in relative units), so no real input is near the bound.
+MAX_RADIANCE = float(np.finfo(np.float32).max) / 2.0**74
+# The most bytes one image decodes to: float32 RGBA at MAX_IMAGE_SIDE a side (1 GiB). An
+# EXR header may declare any number of channels; 1000 channels of 8192^2 would be 256 GiB.
+MAX_DECODED_BYTES = MAX_IMAGE_SIDE * MAX_IMAGE_SIDE * 4 * 4
 POSE_TOLERANCE = 1e-4
 MAGIC = {".png": b"\x89PNG\r\n\x1a\n", ".exr": b"\x76\x2f\x31\x01"}
 _OTHER_FORMATS = {b"\xff\xd8\xff": "JPEG", b"GIF8": "GIF", b"BM": "BMP", b"RIFF": "RIFF/WebP",
@@ -187,6 +198,18 @@ def distinct_frames(split_stems: dict, root) -> None:
             seen[stem] = (split, index)
 
 
+# --- radiance ------------------------------------------------------------------------------
+
+
+def radiance(values, where: str) -> None:
+    """Refuse radiance values above MAX_RADIANCE (they overflow float32 while rendering)."""
+    array = np.asarray(values, dtype=np.float64)
+    peak = float(np.nanmax(array)) if array.size else 0.0
+    if peak > MAX_RADIANCE:
+        raise InputError(f"{where}: radiance {peak:.3g} is above {MAX_RADIANCE:.3g}, where float32 rendering "
+                         "overflows (sums over samples, map pixels and path weights)")
+
+
 # --- image headers -----------------------------------------------------------------------
 
 
@@ -206,6 +229,14 @@ def image_size(width: int, height: int, path) -> None:
     if not (1 <= width <= MAX_IMAGE_SIDE and 1 <= height <= MAX_IMAGE_SIDE):
         raise InputError(f"{path}: header says {width}x{height} pixels; images above {MAX_IMAGE_SIDE} "
                          "pixels on a side are refused before decoding")
+
+
+def decoded_size(width: int, height: int, channels: int, path, bytes_per_value: int = 4) -> None:
+    """Refuse an image whose header declares more than MAX_DECODED_BYTES of pixels."""
+    total = width * height * channels * bytes_per_value
+    if total > MAX_DECODED_BYTES:
+        raise InputError(f"{path}: header declares {channels} channels of {width}x{height} pixels "
+                         f"({total / 2**30:.3g} GiB decoded); at most {MAX_DECODED_BYTES >> 30} GiB are decoded")
 
 
 def header_matches(width: int, height: int, expected, path) -> None:

@@ -41,7 +41,12 @@ def comma_separated(item_type, *, distinct: bool = False):
         return tuple(values)
 
     parse.__name__ = f"comma-separated {item_type.__name__.replace('_', ' ')}s"  # argparse's fallback message
+    parse.range = item_type if isinstance(item_type, arguments.Range) else None  # shown in --help
     return parse
+
+
+# PSNR of float images stops near 150 dB (float32 rounding); 200 is beyond any target.
+TARGET_PSNR = arguments.bounded(float, 0, 200, above=True)
 
 
 def names(text: str) -> tuple:
@@ -58,54 +63,55 @@ def register(subparsers) -> None:
 
 
 def register_bench(subparsers) -> None:
-    positive_ints = comma_separated(arguments.positive_int, distinct=True)
+    sides, view_counts = (comma_separated(arguments.IMAGE_SIDE, distinct=True),
+                          comma_separated(arguments.VIEWS, distinct=True))
     parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants, scaling",
                                    description="Benchmarks measured in one run on this machine (see BENCHMARKS.md). "
                                                "Each writes into its own --out folder (a nerfgauge bench folder).")
     kinds = parser.add_subparsers(dest="bench_kind", metavar="KIND", required=True)
     gen = kinds.add_parser("generate", help="generator time against Mitsuba's own render time")
     gen.add_argument("--scene", default="primitives")
-    gen.add_argument("--views", type=arguments.positive_int, default=100)
+    gen.add_argument("--views", type=arguments.VIEWS, default=100)
     gen.add_argument("--res", default="128")
-    gen.add_argument("--spp", type=arguments.positive_int, default=64)
-    gen.add_argument("--repeats", type=arguments.positive_int, default=1,
+    gen.add_argument("--spp", type=arguments.SPP, default=64)
+    gen.add_argument("--repeats", type=arguments.REPEATS, default=1,
                      help="repeat and report each run (the machine is noisy)")
     gen.set_defaults(func=run_bench_generate)
     train = kinds.add_parser("train", help="scenes x variants x budgets: PSNR, SSIM, depth, time, size, memory")
     train.add_argument("--scenes", type=names, default=("primitives",), help="comma-separated scene names")
     train.add_argument("--variants", type=names, default=("compact", "vanilla"),
                        help="comma-separated, from: " + ", ".join(_variant_names()))
-    train.add_argument("--budgets", type=comma_separated(arguments.positive_float, distinct=True), default=(30.0, 120.0),
+    train.add_argument("--budgets", type=comma_separated(arguments.SECONDS, distinct=True), default=(30.0, 120.0),
                        help="comma-separated training seconds (default 30,120)")
     train.add_argument("--res", default="128")
-    train.add_argument("--views", type=arguments.positive_int, default=100)
+    train.add_argument("--views", type=arguments.VIEWS, default=100)
     train.add_argument("--out", type=arguments.path, default=Path("bench-out/train"),
                        help="bench folder (default bench-out/train): train.json/.md, pareto.png, datasets/, runs/")
     train.set_defaults(func=run_bench_train)
     scaling = kinds.add_parser("scaling", help="NeRF time-to-PSNR and render time against resolution and views; "
                                                "generation time against views and spp")
     scaling.add_argument("--scene", default="primitives")
-    scaling.add_argument("--resolutions", type=positive_ints, default=(64, 128, 256),
+    scaling.add_argument("--resolutions", type=sides, default=(64, 128, 256),
                          help="comma-separated square resolutions, each at --views views (default 64,128,256)")
-    scaling.add_argument("--views", type=arguments.positive_int, default=100,
+    scaling.add_argument("--views", type=arguments.VIEWS, default=100,
                          help="train views of the --resolutions cases (default 100)")
-    scaling.add_argument("--view-counts", type=positive_ints, default=(25, 50, 100),
+    scaling.add_argument("--view-counts", type=view_counts, default=(25, 50, 100),
                          help="comma-separated train-view counts, each at --view-counts-res (default 25,50,100)")
-    scaling.add_argument("--view-counts-res", type=arguments.positive_int, default=128,
+    scaling.add_argument("--view-counts-res", type=arguments.IMAGE_SIDE, default=128,
                          help="resolution of the --view-counts cases (default 128)")
-    scaling.add_argument("--budget-seconds", type=arguments.positive_float, default=120.0, metavar="T",
+    scaling.add_argument("--budget-seconds", type=arguments.SECONDS, default=120.0, metavar="T",
                          help="training seconds per case (default 120)")
-    scaling.add_argument("--target-psnr", type=arguments.positive_float, default=30.0, metavar="DB",
+    scaling.add_argument("--target-psnr", type=TARGET_PSNR, default=30.0, metavar="DB",
                          help="report the time to this val PSNR (default 30)")
-    scaling.add_argument("--gen-views", type=positive_ints, default=(25, 50, 100),
+    scaling.add_argument("--gen-views", type=view_counts, default=(25, 50, 100),
                          help="generation: train-view counts at --gen-views-spp")
-    scaling.add_argument("--gen-views-spp", type=arguments.positive_int, default=64,
+    scaling.add_argument("--gen-views-spp", type=arguments.SPP, default=64,
                          help="spp of the --gen-views cases (default 64)")
-    scaling.add_argument("--gen-spp", type=positive_ints, default=(16, 64, 256),
+    scaling.add_argument("--gen-spp", type=comma_separated(arguments.SPP, distinct=True), default=(16, 64, 256),
                          help="generation: spp values at --gen-spp-views views")
-    scaling.add_argument("--gen-spp-views", type=arguments.positive_int, default=50,
+    scaling.add_argument("--gen-spp-views", type=arguments.VIEWS, default=50,
                          help="views of the --gen-spp cases (default 50)")
-    scaling.add_argument("--gen-res", type=arguments.positive_int, default=128,
+    scaling.add_argument("--gen-res", type=arguments.IMAGE_SIDE, default=128,
                          help="resolution of the generation cases (default 128)")
     scaling.add_argument("--out", type=arguments.path, default=Path("bench-out/scaling"),
                          help="writes scaling.json/.md/.png; reruns replace the cases' datasets and runs")
@@ -114,32 +120,32 @@ def register_bench(subparsers) -> None:
                                          "audited for NaN/inf")
     hard.add_argument("--scenes", type=names, default=None, help="comma-separated scene names (default: every hard scene)")
     hard.add_argument("--res", default="64")
-    hard.add_argument("--views", type=arguments.positive_int, default=40)
-    hard.add_argument("--test-views", type=arguments.positive_int, default=8)
-    hard.add_argument("--spp", type=arguments.positive_int, default=64)
-    hard.add_argument("--steps", type=arguments.positive_int, default=400, help="training steps per scene (default 400)")
+    hard.add_argument("--views", type=arguments.VIEWS, default=40)
+    hard.add_argument("--test-views", type=arguments.VIEWS, default=8)
+    hard.add_argument("--spp", type=arguments.SPP, default=64)
+    hard.add_argument("--steps", type=arguments.STEPS, default=400, help="training steps per scene (default 400)")
     hard.add_argument("--out", type=arguments.path, default=Path("bench-out/hard"))
     hard.set_defaults(func=run_bench_hard)
     lens = kinds.add_parser("lens", help="defocus: the NeRF through a thin lens against refocused light fields and "
                                          "the nearest view, at several apertures")
     lens.add_argument("--scene", default="primitives")
-    lens.add_argument("--views", type=arguments.positive_int, default=64, help="training grid (a square, default 64 = 8x8)")
-    lens.add_argument("--test-views", type=arguments.positive_int, default=6)
-    lens.add_argument("--res", type=arguments.positive_int, default=96)
-    lens.add_argument("--spp", type=arguments.positive_int, default=64)
-    lens.add_argument("--radius", type=arguments.positive_float, default=3.5, help="camera plane's distance from the scene centre")
-    lens.add_argument("--focus-distance", type=arguments.positive_float, default=None, help="default: --radius")
-    lens.add_argument("--apertures", type=positive_floats, default=(0.1, 0.2),
+    lens.add_argument("--views", type=arguments.VIEWS, default=64, help="training grid (a square, default 64 = 8x8)")
+    lens.add_argument("--test-views", type=arguments.VIEWS, default=6)
+    lens.add_argument("--res", type=arguments.IMAGE_SIDE, default=96)
+    lens.add_argument("--spp", type=arguments.SPP, default=64)
+    lens.add_argument("--radius", type=arguments.DISTANCE, default=3.5, help="camera plane's distance from the scene centre")
+    lens.add_argument("--focus-distance", type=arguments.DISTANCE, default=None, help="default: --radius")
+    lens.add_argument("--apertures", type=comma_separated(arguments.DISTANCE), default=(0.1, 0.2),
                       help="comma-separated aperture radii, scene units (default 0.1,0.2)")
-    lens.add_argument("--budget-seconds", type=arguments.positive_float, default=120.0)
-    lens.add_argument("--aperture-samples", type=arguments.positive_int, default=16)
-    lens.add_argument("--threads", type=arguments.positive_int, default=2)
+    lens.add_argument("--budget-seconds", type=arguments.SECONDS, default=120.0)
+    lens.add_argument("--aperture-samples", type=arguments.LENS_SAMPLES, default=16)
+    lens.add_argument("--threads", type=arguments.THREADS, default=2)
     lens.add_argument("--out", type=arguments.path, default=Path("bench-out/lens"))
     lens.set_defaults(func=run_bench_lens)
     read = kinds.add_parser("read", help="what validating a dataset on load costs: sizes only against sizes + sha256")
     read.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
     read.add_argument("--split", default="train", help="split to read (default train)")
-    read.add_argument("--repeats", type=arguments.positive_int, default=15, help="best of this many (default 15)")
+    read.add_argument("--repeats", type=arguments.REPEATS, default=15, help="best of this many (default 15)")
     read.set_defaults(func=run_bench_read)
 
 
@@ -149,11 +155,6 @@ def run_bench_lens(args) -> int:
                    budget_seconds=args.budget_seconds, aperture_samples=args.aperture_samples, threads=args.threads)
     print(f"bench lens: {args.out}")
     return 0
-
-
-def positive_floats(text: str) -> tuple:
-    """"0.1,0.2" -> (0.1, 0.2): comma-separated positive finite numbers."""
-    return tuple(arguments.positive_float(part) for part in text.split(","))
 
 
 def _variant_names():

@@ -46,7 +46,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from nerfgauge.core import dataset
+from nerfgauge.core import bounded, dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, folder_lock
@@ -119,14 +119,14 @@ def load_suite(spec) -> Suite:
         path = Path(spec)
         if not path.is_file():
             raise InputError(f"suite file not found: {path}")
-        text, source = path.read_bytes(), str(path)
+        text, source = bounded.read_bytes(path, bounded.MAX_TOML_BYTES, "suite file"), str(path)
     else:
         known = builtin_suites()
         if spec not in known:
             raise InputError(f"unknown suite {spec!r}; known: {', '.join(known)} (or give a path to a .toml file)")
         text, source = known[spec].read_bytes(), f"suites/{spec}.toml"
     try:
-        data = tomllib.loads(text.decode())
+        data = bounded.loads_toml(text, source)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise InputError(f"{source} is not valid TOML: {error}") from None
     return parse_suite(data, source)
