@@ -102,46 +102,12 @@ class TrainConfig:
             raise InputError(f"unknown model {self.model!r}; choose one of {', '.join(MODELS)}")
         if (self.steps is None) == (self.budget_seconds is None):
             raise InputError("give exactly one of --steps N or --budget-seconds T")
-        if self.steps is not None and not (_is_int(self.steps) and self.steps > 0):
-            raise InputError(f"--steps must be a positive integer, got {self.steps!r}")
-        if self.budget_seconds is not None and not (_is_finite(self.budget_seconds) and self.budget_seconds > 0):
-            raise InputError(f"--budget-seconds must be a positive finite number, got {self.budget_seconds!r}")
         if self.quantise not in ("fp16", "int8"):
             raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
-        if self.batch_rays is not None and not (_is_int(self.batch_rays) and 0 < self.batch_rays <= MAX_BATCH_RAYS):
-            raise InputError(f"--batch-rays must be an integer in [1, {MAX_BATCH_RAYS}], got {self.batch_rays!r}")
-        for name in ("n_coarse", "n_fine", "width", "depth", "vanilla_batch_rays", "threads",
-                     "feature_channels", "eval_views", "eval_rays"):
-            value = getattr(self, name)
-            if not _is_int(value) or value <= 0:
-                raise InputError(f"{_flag(name)} must be a positive integer, got {value!r}")
-        if self.checkpoint_every is not None and not (_is_int(self.checkpoint_every) and self.checkpoint_every > 0):
-            raise InputError(f"--checkpoint-every must be a positive number of steps, got {self.checkpoint_every!r}")
-        for name in ("final_resolution", "start_resolution"):
-            value = getattr(self, name)
-            if value is not None and (not _is_int(value) or not 4 <= value <= 1024):
-                raise InputError(f"{_flag(name)} must be an integer in [4, 1024], got {value!r}")
-        if not _is_int(self.seed) or self.seed < 0:
-            raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
-        for name in ("eval_every_seconds", "lr", "lr_mlp"):
-            value = getattr(self, name)
-            if not (_is_finite(value) and value > 0):
-                raise InputError(f"{_flag(name)} must be a positive finite number, got {value!r}")
-        if self.step_ratio is not None:
-            arguments.STEP_RATIO.check(self.step_ratio, "--step-ratio")
-        # the command line's ranges (core.arguments), for values given through the API or a saved config
-        for name, limits in (("steps", arguments.STEPS), ("budget_seconds", arguments.SECONDS),
-                             ("checkpoint_every", arguments.STEPS), ("seed", arguments.SEED),
-                             ("threads", arguments.THREADS), ("eval_every_seconds", arguments.SECONDS),
-                             ("tv_weight", arguments.WEIGHT), ("final_resolution", arguments.GRID_RESOLUTION)):
-            if getattr(self, name) is not None:
-                limits.check(getattr(self, name), _flag(name) if name in FLAGS else f"--{name.replace('_', '-')}")
-        for name in ("tv_weight", "distortion_weight"):
-            value = getattr(self, name)
-            if not (_is_finite(value) and value >= 0):
-                raise InputError(f"{_flag(name)} must be a finite number >= 0, got {value!r}")
+        # every number through its range: the command line's (core.arguments) where it has a flag
+        arguments.check_fields(self, FIELD_RANGES, flags=FLAGS)
         if self.parametrisation is not None and self.parametrisation not in PARAMETRISATIONS:
             raise InputError(f"unknown parametrisation {self.parametrisation!r}; choose one of "
                              f"{', '.join(PARAMETRISATIONS)}")
@@ -163,16 +129,19 @@ FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution
          "step_ratio": "--step-ratio", "batch_rays": "--batch-rays"}
 
 
-def _flag(name: str) -> str:
-    return FLAGS.get(name, name)
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_finite(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+SAMPLES_PER_RAY = arguments.bounded(int, 1, 4096)  # the vanilla NeRF's coarse and fine samples
+LEARNING_RATE = arguments.bounded(float, 0, 10, above=True)  # Adam's step; 10 overshoots any grid value
+# Every numeric field of TrainConfig and its range (None-valued fields are optional).
+FIELD_RANGES = {
+    "steps": arguments.STEPS, "budget_seconds": arguments.SECONDS, "checkpoint_every": arguments.STEPS,
+    "seed": arguments.SEED, "threads": arguments.THREADS, "eval_every_seconds": arguments.SECONDS,
+    "batch_rays": arguments.BATCH_RAYS, "vanilla_batch_rays": arguments.BATCH_RAYS,
+    "final_resolution": arguments.GRID_RESOLUTION, "start_resolution": arguments.GRID_RESOLUTION,
+    "step_ratio": arguments.STEP_RATIO, "tv_weight": arguments.WEIGHT, "distortion_weight": arguments.WEIGHT,
+    "lr": LEARNING_RATE, "lr_mlp": LEARNING_RATE, "eval_views": arguments.VIEWS, "eval_rays": arguments.BATCH_RAYS,
+    "feature_channels": arguments.bounded(int, 1, 256), "n_coarse": SAMPLES_PER_RAY, "n_fine": SAMPLES_PER_RAY,
+    "width": arguments.bounded(int, 1, 4096), "depth": arguments.bounded(int, 1, 64),
+}
 
 
 def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquist_period: Optional[float]) -> tuple[int, str]:

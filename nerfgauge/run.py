@@ -47,20 +47,23 @@ GEOMETRY_SAMPLES = 200_000  # points per surface (the scoring cost grows with th
 
 @dataclass(frozen=True)
 class RunConfig:
-    scene: str = "primitives"
+    """The pipeline's settings. The capture's fields (scene, width, ... variant) are
+    GenerateConfig's, with its defaults: the generator owns what they mean."""
+
+    scene: str = GenerateConfig.scene
     out: str = "nerfgauge-run"
-    width: int = 128
-    height: int = 128
-    views: int = 100
-    val_views: int = 10
-    test_views: int = 20
-    spp: int = 72  # GenerateConfig's default (two 6x6 multijitter passes)
-    layout: str = "auto"  # the scene's suggested cameras, else the hemisphere
+    width: int = GenerateConfig.width
+    height: int = GenerateConfig.height
+    views: int = GenerateConfig.views
+    val_views: int = GenerateConfig.val_views
+    test_views: int = GenerateConfig.test_views
+    spp: int = GenerateConfig.spp
+    layout: str = GenerateConfig.layout
     model: str = "compact"
     budget_seconds: float = 90.0
     steps: int | None = None  # instead of the time budget: reproducible across machines (CI gates)
-    seed: int = 0
-    variant: str = "auto"
+    seed: int = GenerateConfig.seed
+    variant: str = GenerateConfig.variant
     # Every other GenerateConfig field (fov, elevation, radius, sampling, max_depth,
     # noise_psnr, max_spp, ...), passed to the generator as given.
     generate_options: dict = field(default_factory=dict)
@@ -75,15 +78,13 @@ class RunConfig:
         """The dataset's GenerateConfig: this config's shared fields plus generate_options."""
         if not isinstance(self.generate_options, dict):
             raise InputError(f"generate_options must be a dict of generator settings, got {self.generate_options!r}")
-        own = {"scene", "seed", "views", "val_views", "test_views", "width", "height", "spp", "layout", "variant"}
+        own = CAPTURE_FIELDS
         known = {f.name for f in dataclasses.fields(GenerateConfig)} - own
         unknown = sorted(set(self.generate_options) - known)
         if unknown:
             raise InputError(f"unknown generator option{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}; "
                              f"known: {', '.join(sorted(known))}")
-        return GenerateConfig(scene=self.scene, seed=self.seed, views=self.views, val_views=self.val_views,
-                              test_views=self.test_views, width=self.width, height=self.height, spp=self.spp,
-                              layout=self.layout, variant=self.variant, **self.generate_options)
+        return GenerateConfig(**{name: getattr(self, name) for name in sorted(own)}, **self.generate_options)
 
     def validate(self) -> None:
         """What the stages' own configs do not check (they check the rest, before anything is written)."""
@@ -95,6 +96,12 @@ class RunConfig:
         if not str(self.out).strip():
             raise InputError("--out must name a folder, got an empty path")
         make_scene(self.scene, self.seed)  # unknown names and unreadable meshes: InputError, before OUT exists
+
+
+# RunConfig's fields that are GenerateConfig's (the rest of the generator's go through
+# generate_options): read from the two dataclasses, not listed by hand.
+CAPTURE_FIELDS = frozenset(f.name for f in dataclasses.fields(RunConfig)) & \
+    frozenset(f.name for f in dataclasses.fields(GenerateConfig))
 
 
 def remove_earlier_outputs(out: Path, model: str) -> None:

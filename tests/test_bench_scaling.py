@@ -57,7 +57,7 @@ def test_the_counts_of_a_config_are_checked_like_the_flags():
     """ScalingConfig built in Python (not through argparse) is held to the same rules."""
     with pytest.raises(InputError, match="--resolutions lists 64 more than once"):
         ScalingConfig(resolutions=(64, 64)).validate()
-    with pytest.raises(InputError, match="--budget-seconds must be a positive number"):
+    with pytest.raises(InputError, match="--budget-seconds must be a number above 0"):
         ScalingConfig(budget_seconds=float("nan")).validate()
 
 

@@ -182,8 +182,8 @@ def test_bench_hard_refuses_bad_settings_before_running(tmp_path):
     from nerfgauge.orchestrate.bench_hard import HardConfig, bench_hard
 
     for config, message in [(HardConfig(("thin", "no-such-scene")), "unknown scene 'no-such-scene'"),
-                            (HardConfig(("thin",), steps=0), "--steps must be a positive integer"),
-                            (HardConfig(("thin",), test_views=-1), "--test-views must be a positive integer"),
+                            (HardConfig(("thin",), steps=0), "--steps must be an integer from 1 to"),
+                            (HardConfig(("thin",), test_views=-1), "--test-views must be an integer from 1 to"),
                             (HardConfig(()), "--scenes is empty")]:
         with pytest.raises(InputError, match=message):
             bench_hard(config, tmp_path / "out")

@@ -129,6 +129,17 @@ def bounded(kind, low, high, *, above: bool = False, below: bool = False) -> Ran
     return Range(kind, low, high, above, below)
 
 
+def check_fields(config, ranges: dict, flags: dict | None = None) -> None:
+    """Check a config dataclass's numeric fields against their command-line ranges, for
+    values that come through the Python API or a saved config rather than argparse.
+    ranges: {field: Range}; a field holding None is optional and skipped. flags: {field:
+    flag} where the flag is not --field-with-dashes. InputError naming the flag otherwise."""
+    for name, limits in ranges.items():
+        value = getattr(config, name)
+        if value is not None:
+            limits.check(value, (flags or {}).get(name, f"--{name.replace('_', '-')}"))
+
+
 def document_ranges(parser: argparse.ArgumentParser) -> None:
     """Add each Range-typed option's range to its help ("(1 to 1024)"), in `parser` and
     every subcommand below it, unless the help already states it."""
@@ -174,6 +185,8 @@ SAMPLES = bounded(int, 1, 10**8)  # point samples on a surface (10^8 float64 poi
 # overflowed the sample count (an OverflowError traceback); above 2 whole cells are skipped.
 STEP_RATIO = bounded(float, 0.05, 2)
 GRID_RESOLUTION = bounded(int, 4, 1024)  # voxels a side of the compact model's grid (1024^3 fills memory)
+# PSNR of float images stops near 150 dB (float32 rounding); 200 is beyond any target.
+TARGET_PSNR = bounded(float, 0, 200, above=True)
 BATCH_RAYS = bounded(int, 1, 1 << 20)  # a batch's samples must fit in memory: ~126 per contracted ray
 
 

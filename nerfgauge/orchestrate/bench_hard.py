@@ -24,6 +24,7 @@ import numpy as np
 from nerfgauge.orchestrate.bench import claim_bench_folder, run_child
 from nerfgauge.eval.report import read_log
 
+from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.images import read_exr
@@ -42,10 +43,10 @@ class HardConfig:
     seed: int = 0
 
     def validate(self) -> None:
-        for name in ("width", "height", "views", "test_views", "spp", "steps"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value <= 0:
-                raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {value!r}")
+        arguments.check_fields(self, {"width": arguments.IMAGE_SIDE, "height": arguments.IMAGE_SIDE,
+                                      "views": arguments.VIEWS, "test_views": arguments.VIEWS,
+                                      "spp": arguments.SPP, "steps": arguments.STEPS, "seed": arguments.SEED},
+                               flags={"width": "--res", "height": "--res"})
         if not self.scenes:
             raise InputError("--scenes is empty")
         for scene in self.scenes:

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from nerfgauge.orchestrate.bench import claim_bench_folder, first_time_reaching, run_child, write_png_figure
 
+from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.core.folders import remove_owned
@@ -77,14 +78,10 @@ class ScalingConfig:
                  "gen-spp": self.gen_spp}
         for flag, values in lists.items():
             check_counts(values, flag)
-        for flag, value in {"views": self.views, "view-counts-res": self.view_counts_res,
-                            "gen-views-spp": self.gen_views_spp, "gen-spp-views": self.gen_spp_views,
-                            "gen-res": self.gen_res}.items():
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
-                raise InputError(f"--{flag} must be a positive integer, got {value!r}")
-        for flag, value in {"budget-seconds": self.budget_seconds, "target-psnr": self.target_psnr}.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise InputError(f"--{flag} must be a positive number, got {value!r}")
+        arguments.check_fields(self, {"views": arguments.VIEWS, "view_counts_res": arguments.IMAGE_SIDE,
+                                      "gen_views_spp": arguments.SPP, "gen_spp_views": arguments.VIEWS,
+                                      "gen_res": arguments.IMAGE_SIDE, "budget_seconds": arguments.SECONDS,
+                                      "target_psnr": arguments.TARGET_PSNR})
         make_scene(self.scene, 0)  # unknown names and unreadable meshes raise InputError
         try:  # the generator's own limits (e.g. image size)
             for resolution, views, _ in self.nerf_cases():

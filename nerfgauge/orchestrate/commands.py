@@ -45,8 +45,6 @@ def comma_separated(item_type, *, distinct: bool = False):
     return parse
 
 
-# PSNR of float images stops near 150 dB (float32 rounding); 200 is beyond any target.
-TARGET_PSNR = arguments.bounded(float, 0, 200, above=True)
 
 
 def names(text: str) -> tuple:
@@ -101,7 +99,7 @@ def register_bench(subparsers) -> None:
                          help="resolution of the --view-counts cases (default 128)")
     scaling.add_argument("--budget-seconds", type=arguments.SECONDS, default=120.0, metavar="T",
                          help="training seconds per case (default 120)")
-    scaling.add_argument("--target-psnr", type=TARGET_PSNR, default=30.0, metavar="DB",
+    scaling.add_argument("--target-psnr", type=arguments.TARGET_PSNR, default=30.0, metavar="DB",
                          help="report the time to this val PSNR (default 30)")
     scaling.add_argument("--gen-views", type=view_counts, default=(25, 50, 100),
                          help="generation: train-view counts at --gen-views-spp")
