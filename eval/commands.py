@@ -106,6 +106,10 @@ def register_evaluate(subparsers) -> None:
                         "wrote (a rerun replaces it); never a user's file or a file in a dataset folder")
     parser.add_argument("--background", choices=("white", "black"), default="white",
                         help="composite RGBA onto this colour before PSNR/SSIM (default white)")
+    parser.add_argument("--protocol", default="nerfgauge", metavar="NAME",
+                        help="how renders are scored: nerfgauge (ours, default), nerfbaselines (their Blender 'nerf' "
+                             "protocol: white, uint8, dm_pix SSIM, LPIPS-VGG), ns-eval (nerfstudio's: black, float, "
+                             "torchmetrics SSIM, LPIPS-Alex); eval/protocols.py")
     parser.add_argument("--depth-kind", choices=("distance", "z"), default="distance",
                         help="what predicted depth holds: ray distance (default) or z-depth")
     parser.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
@@ -145,8 +149,9 @@ def run_evaluate(args) -> int:
             check_output_file(target, OUTPUT_KINDS[name], overwrite=overwrite)
     document = evaluate(args.dataset, args.pred, split=args.split, out=out, background=args.background,
                         depth_kind=args.depth_kind, pred_format=getattr(args, "pred_format", "auto"),
-                        held_out=getattr(args, "held_out", True))
+                        held_out=getattr(args, "held_out", True), protocol=getattr(args, "protocol", "nerfgauge"))
     print(f"scene {document['scene']}, split {document['split']}, {len(document['frames'])} frames, "
+          f"protocol {document['protocol']} (LPIPS-{document['lpips_net']}), "
           f"background {document['background']}, depth {document['depth_kind']} -> {out}")
     print(format_means(document))
     if any(path is not None for path in extra.values()):
