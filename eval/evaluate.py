@@ -266,7 +266,8 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
     gt_rgba = dataset.read_rgba(ds, stem, intrinsics)  # [H, W, 4]
     gt = composite(gt_rgba, background)
-    mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
+    # [H, W] bool; None for a foreign folder (no hit mask: foreground, depth, opacity IoU need one)
+    mask = dataset.read_mask(ds, stem, intrinsics) if ds.has("masks") else None
     distance = None if held_out_of is None else dataset.read_depth(ds, stem, intrinsics, "distance")  # [H, W]
     held_out = None if held_out_of is None else held_out_of(mask, distance)
     values = dict.fromkeys(METRIC_NAMES)
@@ -285,14 +286,14 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
             ssim_masked(pred, gt, covisible)
         values["covisible_fraction"] = float(covisible.mean())
         values["psnr_capture_bound"] = psnr_capture_bound(gt, covisible, values["psnr_ceiling"])
-        values["resolved_fraction"] = float(held_out.resolved.sum() / mask.sum()) if mask.any() else None
+        values["resolved_fraction"] = float(held_out.resolved.sum() / mask.sum()) if mask.any() else None  # type: ignore
     values["psnr_foreground"] = psnr_masked(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
     for batch in (lpips_batch.values() if isinstance(lpips_batch, dict) else [lpips_batch] if lpips_batch else []):
         batch.add(*scored)
     values["psnr_objects"] = object_psnrs(ds, stem, intrinsics, pred, gt)
-    values["empty"] = not mask.any()
+    values["empty"] = None if mask is None else not mask.any()
     depth_err = None
-    if files.depth is not None:
+    if files.depth is not None and mask is not None and ds.has("depth"):
         depth = read_plane(files.depth, intrinsics, depth_kind)
         gt_depth = distance if depth_kind == "distance" and distance is not None else \
             dataset.read_depth(ds, stem, intrinsics, depth_kind)
@@ -305,7 +306,7 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
         if held_out is not None:
             values["depth_absrel_resolved"] = depth_metrics(depth, gt_depth, mask & held_out.resolved)["absrel"]
         depth_err = depth_relative_error(depth, gt_depth, mask)
-    if alpha is not None:
+    if alpha is not None and mask is not None:
         values["opacity_iou"] = opacity_iou(alpha, mask)
     return values, colour_error(pred, gt).astype(np.float32), depth_err
 
@@ -414,7 +415,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     out = check_writable_target(pred_dir / "metrics.json" if out is None else Path(out))  # before the work
     check_renders_dataset(pred_dir, read_timing(pred_dir), ds)  # renders of our runs say what they show
     cameras = ds.cameras(split)
-    scene = ds.scene.get("recipe")
+    scene = ds.scene.get("recipe") if ds.foreign is None else ds.root.resolve().name
     if not isinstance(scene, str) or not scene:
         raise InputError(f"{ds.root / 'scene.json'}: 'recipe' must name the scene, got {scene!r}")
     found = locate_predictions(ds, pred_dir, split, pred_format, depth_kind)
@@ -427,7 +428,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         lpips_notes = {} if lpips_note is None else {"lpips": lpips_note}
     else:
         lpips_batch, lpips_notes = protocols_module.lpips_scorers(chosen, cameras.intrinsics)
-    depths = reference_depths(ds) if held_out and holds_out(ds, split) else None  # the train views', read once
+    depths = reference_depths(ds) if held_out and holds_out(ds, split) and ds.has("depth") else None  # the train views', read once
     index_of = {stem: index for index, stem in enumerate(cameras.stems)}
     frames, maps = [], []
     for stem, files in tqdm(found.items(), desc=f"evaluate {split}", unit="frame", disable=None, leave=False):
@@ -465,12 +466,34 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
                 "lpips_net": chosen.lpips_net,
                 "notes": {**lpips_notes,
                           **({} if depths is not None else
-                             {"covisible": COVISIBLE_NONE.format(split=split) if held_out else COVISIBLE_SKIPPED})},
-                "noise": noise_summary(frames), "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
+                             {"covisible": COVISIBLE_NONE.format(split=split) if held_out else COVISIBLE_SKIPPED}),
+                          **unavailable_notes(ds, held_out)},
+                "ground_truth": ds.ground_truth_record(),
+                "noise": noise_summary(frames) if ds.has("noise_ceiling") else
+                {"psnr_ceiling": None, "at_noise_floor": None, "note": ds.unavailable_reason("noise_ceiling")}, "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
                 "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}
     write_json(out, document)
     return document
+
+
+def unavailable_notes(ds: dataset.Dataset, held_out: bool) -> dict:
+    """{metric: "unavailable: why"} for what a foreign ground-truth folder cannot give
+    (depth, hit masks, noise ceiling, co-visibility); {} for our datasets."""
+    if ds.foreign is None:
+        return {}
+    notes = {}
+    for metric in ("depth_absrel", "depth_rmse", "depth_mae", "depth_delta1", "depth_absrel_resolved",
+                   "resolved_fraction"):
+        notes[metric] = "unavailable: " + ds.unavailable_reason("depth")
+    notes["opacity_iou"] = "unavailable: " + ds.unavailable_reason("masks")
+    notes["psnr_ceiling"] = "unavailable: " + ds.unavailable_reason("noise_ceiling")
+    for metric in ("psnr_covisible", "ssim_covisible", "covisible_fraction", "psnr_capture_bound"):
+        notes[metric] = "unavailable: " + ds.unavailable_reason("covisibility")
+    if held_out:
+        notes["covisible"] = "unavailable: " + ds.unavailable_reason("covisibility")
+    notes["psnr_objects"] = "unavailable: " + ds.unavailable_reason("instances")
+    return notes
 
 
 def locate_predictions(ds: dataset.Dataset, pred_dir: Path, split: str, pred_format: str, depth_kind: str) -> dict:
