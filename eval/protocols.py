@@ -23,8 +23,8 @@ written down from its source (docs/conventions.md, "Protocols", cites the files)
   background "last_sample" evaluates against black; the nerfstudio dataparser sets no
   alpha_color), float32, no rounding; PSNR torchmetrics PeakSignalNoiseRatio(data_range=1);
   SSIM torchmetrics structural_similarity_index_measure with its defaults (Gaussian 11,
-  sigma 1.5, reflect padding then the padded border cropped, data_range=None: taken from
-  the images as max(pred range, gt range)); LPIPS torchmetrics
+  sigma 1.5, reflect padding, the whole map averaged as torchmetrics 1.9 does,
+  data_range=None: taken from the images as max(pred range, gt range)); LPIPS torchmetrics
   LearnedPerceptualImagePatchSimilarity(normalize=True): AlexNet, [0, 1] mapped to [-1, 1].
 
 A prediction's own alpha (RGBA render or opacity plane) is composited onto the protocol's
@@ -170,9 +170,10 @@ def ssim_dm_pix(pred, gt) -> float:
 
 def ssim_torchmetrics(pred, gt) -> Optional[float]:
     """torchmetrics.functional.structural_similarity_index_measure(pred, gt) with its
-    defaults, as ns-eval calls it: Gaussian 11 taps, sigma 1.5, reflect padding by 5 and
-    the same 5 pixels cropped after filtering, data_range=None: max(range(pred), range(gt))
-    of the image pair. Images under 6 px a side (reflect padding needs more): None."""
+    defaults, as ns-eval calls it: Gaussian 11 taps, sigma 1.5, reflect padding by 5, the
+    SSIM map averaged over the whole image (padded border included: recent torchmetrics no
+    longer crops it), data_range=None: max(range(pred), range(gt)) of the image pair; the
+    variances clamped at 0. Images under 6 px a side (reflect padding needs more): None."""
     p, g = (np.asarray(x, np.float32).astype(np.float64) for x in (pred, gt))
     if min(p.shape[:2]) < 6:
         return None
@@ -181,10 +182,9 @@ def ssim_torchmetrics(pred, gt) -> Optional[float]:
     taps, pad = _gaussian_taps(), 5
     padded = [np.pad(x, ((pad, pad), (pad, pad), (0, 0)), mode="reflect") for x in (p, g, p * p, g * g, p * g)]
     mu_p, mu_g, pp, gg, pg = (_filter_valid(x, taps) for x in padded)
-    s_p, s_g, s_pg = pp - mu_p ** 2, gg - mu_g ** 2, pg - mu_p * mu_g
+    s_p, s_g, s_pg = np.maximum(pp - mu_p ** 2, 0.0), np.maximum(gg - mu_g ** 2, 0.0), pg - mu_p * mu_g
     ssim_map = ((2 * mu_p * mu_g + c1) * (2 * s_pg + c2)) / ((mu_p ** 2 + mu_g ** 2 + c1) * (s_p + s_g + c2))
-    inner = ssim_map[pad:-pad, pad:-pad]
-    return float(inner.mean()) if inner.size else None
+    return float(ssim_map.mean())  # torchmetrics 1.9 (tested) averages the whole map; NerfBaselines' copy of an older one crops 5 px
 
 
 def psnr32(pred, gt) -> float:
