@@ -171,9 +171,9 @@ def ssim_dm_pix(pred, gt) -> float:
 def ssim_torchmetrics(pred, gt) -> Optional[float]:
     """torchmetrics.functional.structural_similarity_index_measure(pred, gt) with its
     defaults, as ns-eval calls it: Gaussian 11 taps, sigma 1.5, reflect padding by 5, the
-    SSIM map averaged over the whole image (padded border included: recent torchmetrics no
-    longer crops it), data_range=None: max(range(pred), range(gt)) of the image pair; the
-    variances clamped at 0. Images under 6 px a side (reflect padding needs more): None."""
+    SSIM map averaged over the whole image (padded border included, as torchmetrics 1.9
+    does; NerfBaselines' numpy copy of an older torchmetrics crops it), data_range=None:
+    max(range(pred), range(gt)) of the image pair; the variances clamped at 0. Images under 6 px a side (reflect padding needs more): None."""
     p, g = (np.asarray(x, np.float32).astype(np.float64) for x in (pred, gt))
     if min(p.shape[:2]) < 6:
         return None
