@@ -7,7 +7,9 @@
   (ddof=1; NaN for one frame, written as null). Every metric of eval.metrics.METRIC_NAMES
   that has values is included; "fps" and "num_rays_per_sec" come from the renderer's
   ms_per_frame when its timing.json gave one.
-- NerfBaselines (nerfbaselines io.serialize_evaluation_results): {"nb_info",
+- NerfBaselines (nerfbaselines io.serialize_evaluation_results): {"render_dataset_metadata"
+  (id "nerfgauge" or the foreign format, scene, color_space, background_color: what
+  nerfbaselines.results needs to file the scene), "nb_info",
   "evaluate_datetime", "evaluate_version", "metrics" (means rounded to 5 digits),
   "metrics_raw" (per image: base64 of little-endian float32 values, in frame order),
   "metrics_sha256" (their get_metrics_hash), "predictions_sha256", "ground_truth_sha256",
@@ -36,6 +38,7 @@ import numpy as np
 from nerfgauge.eval.metrics import METRIC_NAMES
 
 PROTOCOL = "nerfgauge-v1"
+DATASET_ID = "nerfgauge"  # render_dataset_metadata.id: the dataset family their tooling groups results by
 PRECISION = 5  # NerfBaselines rounds "metrics" to this many digits
 
 
@@ -131,9 +134,17 @@ def nerfbaselines_document(document: dict, *, dataset_root, pred_dir, method_nam
                     "colour": "float sRGB composited onto the background, not quantised to uint8",
                     "ssim": "skimage structural_similarity, gaussian sigma 1.5, data_range 1",
                     "depth": "on pixels whose centre ray hits geometry"})
+    # what their results tooling (nerfbaselines.results) needs to place the file: dataset id and scene
+    metadata = {"id": DATASET_ID if (document.get("ground_truth") or {}).get("format", "nerfgauge") == "nerfgauge"
+                else document["ground_truth"]["format"],
+                "scene": document["scene"], "color_space": "srgb", "evaluation_protocol": protocol,
+                "background_color": [255, 255, 255] if theirs or document["background"] == "white" else [0, 0, 0],
+                "type": "object-centric"}
     return {
+        "render_dataset_metadata": metadata,
         "nb_info": {"method": method_name, "tool": "nerfgauge", "evaluation_protocol": protocol,
-                    "scene": document["scene"], "split": document["split"], "protocol": description},
+                    "scene": document["scene"], "split": document["split"], "protocol": description,
+                    "dataset_metadata": metadata},
         "evaluate_datetime": datetime.datetime.now(datetime.timezone.utc).replace(tzinfo=None).isoformat(timespec="seconds"),
         "evaluate_version": f"nerfgauge {_version()}",
         "metrics": {name: round(sum(values) / len(values), PRECISION) for name, values in metrics_lists.items()},
