@@ -32,8 +32,10 @@ background like the ground truth; an RGB prediction is taken as rendered.
 
 The protocol-sensitivity table (`sensitivity`, `sensitivity_rows`): the same renders under
 every protocol, and the spread (max - min) of each metric across them. The report shows
-it; a suite leaderboard calls `sensitivity(dataset, renders, split)` per method and
-`sensitivity_rows({method: document})` for the table.
+it; a suite leaderboard calls `suite_sensitivity({method: [(dataset, renders), ...]})`
+(each method's datasets combined by `combine`: means per protocol, spread between them)
+and `sensitivity_rows(...)` for the table (`format_rows` for text, or
+eval.report.sortable_table_html for HTML).
 """
 
 from __future__ import annotations
@@ -264,11 +266,45 @@ def sensitivity(root, pred_dir, split: str = "test", *, background: str = "white
         for metric in notes:
             row[metric] = None
         results[p.name] = {**row, "lpips_net": p.lpips_net, "notes": notes}
+    spread = _spread(results)
+    return {"split": split, "frames": len(found), "background": background, "protocols": results, "spread": spread}
+
+
+def _spread(rows: dict) -> dict:
     spread = {}
     for metric in SENSITIVITY_METRICS:
-        values = [r[metric] for r in results.values() if r.get(metric) is not None]
+        values = [r[metric] for r in rows.values() if r.get(metric) is not None]
         spread[metric] = (max(values) - min(values)) if len(values) > 1 else None
-    return {"split": split, "frames": len(found), "background": background, "protocols": results, "spread": spread}
+    return spread
+
+
+def combine(documents: list) -> dict:
+    """One sensitivity document from several (a method over a suite's datasets): each
+    protocol's metrics are the mean over the documents where they are defined, the spread
+    is taken between those means; "datasets" says how many were combined."""
+    from nerfgauge.eval.metrics import summarize
+
+    if not documents:
+        raise InputError("no protocol-sensitivity documents to combine")
+    names = list(documents[0]["protocols"])
+    rows = {}
+    for name in names:
+        row = {metric: summarize([d["protocols"][name].get(metric) for d in documents])[0]
+               for metric in SENSITIVITY_METRICS}
+        notes = {}
+        for d in documents:
+            notes.update(d["protocols"][name].get("notes", {}))
+        rows[name] = {**row, "lpips_net": documents[0]["protocols"][name]["lpips_net"],
+                      "notes": {m: n for m, n in notes.items() if row.get(m) is None}}
+    return {"split": documents[0]["split"], "frames": sum(d["frames"] for d in documents),
+            "datasets": len(documents), "protocols": rows, "spread": _spread(rows)}
+
+
+def suite_sensitivity(entries: dict, split: str = "test", pred_format: str = "auto") -> dict:
+    """For a suite leaderboard: entries {method: [(dataset folder, render folder), ...]} ->
+    {method: combined sensitivity document} (pass it to `sensitivity_rows`)."""
+    return {method: combine([sensitivity(root, pred, split, pred_format=pred_format) for root, pred in pairs])
+            for method, pairs in entries.items() if pairs}
 
 
 def sensitivity_rows(documents: dict) -> list[list[str]]:

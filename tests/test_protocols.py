@@ -152,3 +152,15 @@ def test_sensitivity_table_scores_the_same_renders_under_each_protocol(ds, rende
     assert rows[0][:3] == ["method", "protocol", "PSNR dB"] and len(rows) == 1 + 3 + 1
     assert rows[-1][1] == "spread (max - min)"
     assert "n/a (install: nerfgauge lpips install)" in P.format_rows(rows)
+
+
+def test_suite_sensitivity_combines_datasets(ds, renders, tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "no-weights"))
+    one = P.sensitivity(ds, renders, "test")
+    board = P.suite_sensitivity({"stripe": [(ds, renders), (ds, renders)]})
+    combined = board["stripe"]
+    assert combined["datasets"] == 2 and combined["frames"] == 2 * one["frames"]
+    for name in P.PROTOCOLS:
+        assert combined["protocols"][name]["psnr"] == pytest.approx(one["protocols"][name]["psnr"])
+    assert combined["spread"]["psnr"] == pytest.approx(one["spread"]["psnr"])
+    assert len(P.sensitivity_rows(board)) == 1 + 3 + 1
