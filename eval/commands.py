@@ -152,7 +152,8 @@ def run_evaluate(args) -> int:
                         depth_kind=args.depth_kind, pred_format=getattr(args, "pred_format", "auto"),
                         held_out=getattr(args, "held_out", True), protocol=getattr(args, "protocol", "nerfgauge"))
     print(f"scene {document['scene']}, split {document['split']}, {len(document['frames'])} frames, "
-          f"protocol {document['protocol']} (LPIPS-{document['lpips_net']}), "
+          f"protocol {document['protocol']} (colour on {document['protocol_background']}, "
+          f"LPIPS-{document['lpips_net']}), "
           f"background {document['background']}, depth {document['depth_kind']} -> {out}")
     print(format_means(document))
     if any(path is not None for path in extra.values()):

@@ -463,6 +463,8 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     document = {"tool": TOOL, "kind": METRICS_KIND, "schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
                 "protocol": chosen.name, "evaluation_protocol": chosen.their_name or chosen.name,
+                "protocol_background": background if chosen.background is None else
+                {(1.0, 1.0, 1.0): "white", (0.0, 0.0, 0.0): "black"}[tuple(chosen.background)],
                 "lpips_net": chosen.lpips_net,
                 "notes": {**lpips_notes,
                           **({} if depths is not None else

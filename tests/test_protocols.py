@@ -43,6 +43,8 @@ def test_evaluate_names_the_protocol_and_scores_its_way(ds, renders, tmp_path, m
     ns = evaluate(ds, renders, out=tmp_path / "ns.json", protocol="ns-eval")
     assert (ours["protocol"], theirs["protocol"], ns["protocol"]) == ("nerfgauge", "nerfbaselines", "ns-eval")
     assert theirs["evaluation_protocol"] == "nerf" and theirs["lpips_net"] == "vgg"
+    assert (ours["protocol_background"], theirs["protocol_background"], ns["protocol_background"]) == \
+        ("white", "white", "black")
     assert json.loads((tmp_path / "nb.json").read_text())["protocol"] == "nerfbaselines"
     # without weights every LPIPS is n/a with the line that says what to run
     assert theirs["mean"]["lpips"] is None and "nerfgauge lpips install" in theirs["notes"]["lpips"]
