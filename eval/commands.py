@@ -514,15 +514,28 @@ def run_geometry(args) -> int:
 
         model, config = load_model(Path(args.run) / "model.pt")
         run = model, open_run_dataset(args.run, config, args.dataset)
+    whole_surface, surface_note = args.whole_surface, None
+    if not whole_surface:  # a foreign ground-truth folder has no depth to test visibility against
+        from nerfgauge.core.dataset import Dataset
+
+        probe = Dataset(args.dataset)
+        if not probe.has("depth"):
+            whole_surface = True
+            surface_note = (f"unavailable: the surface the cameras see needs ground-truth depth "
+                            f"({probe.unavailable_reason('depth')}); the whole surface is scored")
     with _output_file(out, recipe, "geometry", getattr(args, "overwrite", False)):
         document, _ = score_geometry(args.dataset, args.pred_mesh, args.pred_depth, split=args.split,
                                      taus=tuple(args.tau), samples=args.samples, seed=args.seed,
-                                     whole_surface=args.whole_surface)
+                                     whole_surface=whole_surface)
+        if surface_note is not None:
+            document.setdefault("notes", {})["visible_surface"] = surface_note
         if run is not None:
             from nerfgauge.eval.normals import score_normals
 
             document["normals"] = score_normals(*run, args.split)
         write_json(out, document)
     print(format_geometry(document))
+    if surface_note is not None:
+        print(f"visible surface {surface_note}")
     print(f"-> {out}")
     return 0

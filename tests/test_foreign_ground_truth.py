@@ -211,3 +211,15 @@ def test_quaternion_round_trip():
         q /= np.linalg.norm(q)
         R = quaternion_to_matrix(q)
         np.testing.assert_allclose(quaternion_to_matrix(matrix_to_quaternion(R)), R, atol=1e-12)
+
+
+def test_geometry_of_a_foreign_folder_with_meshes_scores_the_whole_surface(ours, tmp_path, capsys):
+    """Meshes but no depth: the visible-surface test is unavailable (said so), the whole surface is scored."""
+    folder = synthetic_copy(ours, tmp_path / "blender-meshes")
+    shutil.copytree(ours / "meshes", folder / "meshes")
+    mesh = sorted((folder / "meshes").glob("*.ply"))[0]
+    out = tmp_path / "geometry.json"
+    assert main(["geometry", str(folder), "--pred-mesh", str(mesh), "--samples", "2000", "-o", str(out)]) == 0
+    document = json.loads(out.read_text())
+    assert document["notes"]["visible_surface"].startswith("unavailable: ")
+    assert "no ground-truth depth" in capsys.readouterr().out
