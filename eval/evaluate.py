@@ -286,7 +286,7 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
             ssim_masked(pred, gt, covisible)
         values["covisible_fraction"] = float(covisible.mean())
         values["psnr_capture_bound"] = psnr_capture_bound(gt, covisible, values["psnr_ceiling"])
-        values["resolved_fraction"] = float(held_out.resolved.sum() / mask.sum()) if mask.any() else None  # type: ignore
+        values["resolved_fraction"] = float(held_out.resolved.sum() / mask.sum()) if mask.any() else None
     values["psnr_foreground"] = psnr_masked(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
     for batch in (lpips_batch.values() if isinstance(lpips_batch, dict) else [lpips_batch] if lpips_batch else []):
         batch.add(*scored)
