@@ -3,6 +3,13 @@
     nerfgauge evaluate DATASET --pred DIR [--split test] [--out FILE]
                        [--background white|black] [--depth-kind distance|z]
                        [--pred-format auto|nerfgauge|nerfstudio|nerfbaselines|folder]
+                       [--protocol nerfgauge|nerfbaselines|ns-eval]
+
+--protocol (eval/protocols.py) chooses how psnr, ssim and lpips are scored; the document
+names it ("protocol", "evaluation_protocol", "protocol_background", "lpips_net"). DATASET
+may also be a NeRF-synthetic, nerfstudio or COLMAP text-model folder nerfgauge did not
+write (nerfgauge/core/foreign_dataset.py): "ground_truth" then records the sha256 of every
+file read, and what the folder cannot give is null with "unavailable: <reason>" in notes.
 
 Other tools' folders (ns-render dataset output, NerfBaselines predictions, plain folders of
 PNG/JPEG/EXR matched by stem or order) are read as they are: eval/foreign.py. What follows
