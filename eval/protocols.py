@@ -300,10 +300,12 @@ def combine(documents: list) -> dict:
             "datasets": len(documents), "protocols": rows, "spread": _spread(rows)}
 
 
-def suite_sensitivity(entries: dict, split: str = "test", pred_format: str = "auto") -> dict:
+def suite_sensitivity(entries: dict, split: str = "test", pred_format: str = "auto", background: str = "white") -> dict:
     """For a suite leaderboard: entries {method: [(dataset folder, render folder), ...]} ->
-    {method: combined sensitivity document} (pass it to `sensitivity_rows`)."""
-    return {method: combine([sensitivity(root, pred, split, pred_format=pred_format) for root, pred in pairs])
+    {method: combined sensitivity document} (pass it to `sensitivity_rows`). background:
+    the suite protocol's, for the "nerfgauge" rows (the others fix their own)."""
+    return {method: combine([sensitivity(root, pred, split, pred_format=pred_format, background=background)
+                             for root, pred in pairs])
             for method, pairs in entries.items() if pairs}
 
 
