@@ -16,6 +16,7 @@ from pathlib import Path
 
 from nerfgauge.core import arguments
 from nerfgauge.core.camera import ThinLens
+from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_json
 from nerfgauge.core.outputs import check_output_file, claim_output_file, stamp
@@ -72,7 +73,8 @@ def register_evaluate(subparsers) -> None:
                     "dataset's frames) against a dataset split; write metrics.json and error maps. "
                     "Accepted file names: see eval/evaluate.py.",
     )
-    parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder, or a NeRF-synthetic, nerfstudio or "
+                             "COLMAP text-model folder nerfgauge did not write")
     parser.add_argument("--pred", type=arguments.path, required=True, metavar="DIR", help="folder of predicted frames")
     parser.add_argument("--split", default="test", help="split to score (default test)")
     parser.add_argument("--out", type=arguments.path, metavar="FILE", help="metrics file (default DIR/metrics.json); "
@@ -80,6 +82,10 @@ def register_evaluate(subparsers) -> None:
                         "wrote (a rerun replaces it); never a user's file or a file in a dataset folder")
     parser.add_argument("--background", choices=("white", "black"), default="white",
                         help="composite RGBA onto this colour before PSNR/SSIM (default white)")
+    parser.add_argument("--protocol", default="nerfgauge", metavar="NAME",
+                        help="how renders are scored: nerfgauge (ours, default), nerfbaselines (their Blender 'nerf' "
+                             "protocol: white, uint8, dm_pix SSIM, LPIPS-VGG), ns-eval (nerfstudio's: black, float, "
+                             "torchmetrics SSIM, LPIPS-Alex); eval/protocols.py")
     parser.add_argument("--depth-kind", choices=("distance", "z"), default="distance",
                         help="what predicted depth holds: ray distance (default) or z-depth")
     parser.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
@@ -115,8 +121,10 @@ def run_evaluate(args) -> int:
             check_output_file(target, OUTPUT_KINDS[name], overwrite=overwrite)
     document = evaluate(args.dataset, args.pred, split=args.split, out=out, background=args.background,
                         depth_kind=args.depth_kind, pred_format=getattr(args, "pred_format", "auto"),
-                        held_out=getattr(args, "held_out", True))
+                        held_out=getattr(args, "held_out", True), protocol=getattr(args, "protocol", "nerfgauge"))
     print(f"scene {document['scene']}, split {document['split']}, {len(document['frames'])} frames, "
+          f"protocol {document['protocol']} (colour on {document['protocol_background']}, "
+          f"LPIPS-{document['lpips_net']}), "
           f"background {document['background']}, depth {document['depth_kind']} -> {out}")
     print(format_means(document))
     if any(path is not None for path in extra.values()):
@@ -224,15 +232,26 @@ def run_geometry(args) -> int:
 
         model, config = load_model(Path(args.run) / "model.pt")
         run = model, open_run_dataset(args.run, config, args.dataset)
+    whole_surface, surface_note = args.whole_surface, None
+    if not whole_surface:  # a foreign ground-truth folder has no depth to test visibility against
+        probe = Dataset(args.dataset)
+        if not probe.has("depth"):
+            whole_surface = True
+            surface_note = (f"unavailable: the surface the cameras see needs ground-truth depth "
+                            f"({probe.unavailable_reason('depth')}); the whole surface is scored")
     with claim_output_file(out, recipe, "geometry", getattr(args, "overwrite", False)):
         document, _ = score_geometry(args.dataset, args.pred_mesh, args.pred_depth, split=args.split,
                                      taus=tuple(args.tau), samples=args.samples, seed=args.seed,
-                                     whole_surface=args.whole_surface)
+                                     whole_surface=whole_surface)
+        if surface_note is not None:
+            document.setdefault("notes", {})["visible_surface"] = surface_note
         if run is not None:
             from nerfgauge.eval.normals import score_normals  # torch: kept off `nerfgauge --help`'s import path
 
             document["normals"] = score_normals(*run, args.split)
         write_json(out, document)
     print(format_geometry(document))
+    if surface_note is not None:
+        print(f"visible surface {surface_note}")
     print(f"-> {out}")
     return 0

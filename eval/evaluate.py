@@ -3,6 +3,13 @@
     nerfgauge evaluate DATASET --pred DIR [--split test] [--out FILE]
                        [--background white|black] [--depth-kind distance|z]
                        [--pred-format auto|nerfgauge|nerfstudio|nerfbaselines|folder]
+                       [--protocol nerfgauge|nerfbaselines|ns-eval]
+
+--protocol (eval/protocols.py) chooses how psnr, ssim and lpips are scored; the document
+names it ("protocol", "evaluation_protocol", "protocol_background", "lpips_net"). DATASET
+may also be a NeRF-synthetic, nerfstudio or COLMAP text-model folder nerfgauge did not
+write (nerfgauge/core/foreign_dataset.py): "ground_truth" then records the sha256 of every
+file read, and what the folder cannot give is null with "unavailable: <reason>" in notes.
 
 Other tools' folders (ns-render dataset output, NerfBaselines predictions, plain folders of
 PNG/JPEG/EXR matched by stem or order) are read as they are: eval/predictions.py, which
@@ -76,18 +83,17 @@ from nerfgauge.eval.error_maps import (
 )
 from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.lpips import MIN_SIDE, NOT_AVAILABLE, LpipsBatch, load_lpips
+from nerfgauge.eval import protocols as protocols_module
+from nerfgauge.eval.protocols import image_scores, prepare
 from nerfgauge.eval.predictions import (
     DEPTH_SUFFIXES,
-    FORMATS,
     PredictionFiles,
-    detect_format,
-    find_nerfgauge_predictions,
-    locate,
-    read_colour,
+    locate_predictions,
     read_plane,
-    require_finite,
+    read_prediction,
 )
 from nerfgauge.eval.metrics import (
+    BACKGROUNDS,
     METRIC_NAMES,
     composite,
     depth_metrics,
@@ -112,7 +118,6 @@ NOISE_FLOOR_DB = 1.0  # a mean PSNR this close to the mean ceiling is at the noi
 EMPTY_WARNING_FRACTION = 0.25
 COVISIBLE_NONE = f"split {{split}} is not held out from {REFERENCE_SPLIT}: no co-visibility mask"
 COVISIBLE_SKIPPED = "not computed (--no-held-out)"
-BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 # --- scoring ----------------------------------------------------------------------------
@@ -122,9 +127,7 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
     """One frame's prediction and ground truth composited onto `background` [3]:
     pred, gt [H, W, 3], the ground truth's RGBA [H, W, 4] and the prediction's alpha
     [H, W] (its opacity plane when it has one; None for an opaque RGB prediction)."""
-    rgb, alpha = read_colour(files.colour, intrinsics)
-    if files.opacity is not None:
-        alpha = require_finite(read_plane(files.opacity, intrinsics), files.opacity)
+    rgb, alpha = read_prediction(files, intrinsics)
     pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
     gt_rgba = dataset.read_rgba(ds, stem, intrinsics)  # [H, W, 4]
     return pred, composite(gt_rgba, background), gt_rgba, alpha
@@ -133,20 +136,31 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
 def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
                 lpips_batch=None,
                 held_out_of: Optional[Callable[[np.ndarray, np.ndarray], HeldOutPixels]] = None,
-                ceiling_of: Optional[Callable[[], Optional[float]]] = None):
+                ceiling_of: Optional[Callable[[], Optional[float]]] = None, protocol=None):
     """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
     None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any.
     held_out_of(mask, ray distance): the frame's co-visible and depth-resolved pixels
     (eval.covisibility), or None; called after the frame's images are read, so a bad frame
     is named by them. ceiling_of(): the frame's psnr_ceiling (frame_ceiling), read after
-    them too, or None. Each ground-truth file is read once."""
-    pred, gt, gt_rgba, alpha = composited_pair(ds, stem, intrinsics, files, background)
-    mask = dataset.read_mask(ds, stem, intrinsics)  # [H, W] bool
+    them too, or None. Each ground-truth file is read once. protocol: an
+    eval.protocols.Protocol other than ours scores psnr, ssim and the pairs given to
+    `lpips_batch` ({metric: LpipsBatch} then) its way; everything else stays ours."""
+    rgb, alpha = read_prediction(files, intrinsics)
+    pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
+    gt_rgba = dataset.read_rgba(ds, stem, intrinsics)  # [H, W, 4]
+    gt = composite(gt_rgba, background)
+    # [H, W] bool; None for a foreign folder (no hit mask: foreground, depth, opacity IoU need one)
+    mask = dataset.read_mask(ds, stem, intrinsics) if ds.has("masks") else None
     distance = None if held_out_of is None else dataset.read_depth(ds, stem, intrinsics, "distance")  # [H, W]
     held_out = None if held_out_of is None else held_out_of(mask, distance)
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr_ceiling"] = None if ceiling_of is None else ceiling_of()
-    values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
+    if protocol is None or protocol.background is None:
+        values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
+        scored = (pred, gt)
+    else:
+        scored = prepare(protocol, rgb, alpha, gt_rgba)
+        values.update(image_scores(protocol, *scored))
     if held_out is not None:
         covisible = held_out.covisible
         values["psnr_covisible"], values["ssim_covisible"] = psnr_masked(pred, gt, covisible), \
@@ -155,12 +169,12 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
         values["psnr_capture_bound"] = psnr_capture_bound(gt, covisible, values["psnr_ceiling"])
         values["resolved_fraction"] = float(held_out.resolved.sum() / mask.sum()) if mask.any() else None
     values["psnr_foreground"] = psnr_masked(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
-    if lpips_batch is not None:
-        lpips_batch.add(pred, gt)
+    for batch in (lpips_batch.values() if isinstance(lpips_batch, dict) else [lpips_batch] if lpips_batch else []):
+        batch.add(*scored)
     values["psnr_objects"] = object_psnrs(ds, stem, intrinsics, pred, gt)
-    values["empty"] = not mask.any()
+    values["empty"] = None if mask is None else not mask.any()
     depth_err = None
-    if files.depth is not None:
+    if files.depth is not None and mask is not None and ds.has("depth"):
         depth = read_plane(files.depth, intrinsics, depth_kind)
         gt_depth = distance if depth_kind == "distance" and distance is not None else \
             dataset.read_depth(ds, stem, intrinsics, depth_kind)
@@ -173,7 +187,7 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
         if held_out is not None:
             values["depth_absrel_resolved"] = depth_metrics(depth, gt_depth, mask & held_out.resolved)["absrel"]
         depth_err = depth_relative_error(depth, gt_depth, mask)
-    if alpha is not None:
+    if alpha is not None and mask is not None:
         values["opacity_iou"] = opacity_iou(alpha, mask)
     return values, colour_error(pred, gt).astype(np.float32), depth_err
 
@@ -247,10 +261,13 @@ def read_timing(pred_dir: Path) -> dict:
 
 
 def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
-             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True) -> dict:
+             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True,
+             protocol: str = "nerfgauge") -> dict:
     """Score every frame of `split`; write metrics.json and error maps. Returns the document.
     pred_format: how `pred_dir` names its files (eval.predictions.FORMATS; "auto" detects it).
     held_out=False skips the co-visible and depth-resolved scores (eval.covisibility).
+    protocol: how psnr, ssim and lpips are scored (eval.protocols.PROTOCOLS; the document
+    names it in "protocol", and its own name in "evaluation_protocol").
     A user's `out` is checked by the caller (core.outputs.check_output_file: the CLI and
     nerfgauge.evaluate); `run` and `suite` write here into folders they claimed."""
     start = time.perf_counter()
@@ -260,34 +277,28 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         raise InputError(f"held_out must be True or False, got {held_out!r}")
     if depth_kind not in DEPTH_SUFFIXES:
         raise InputError(f"unknown depth kind {depth_kind!r}; choose distance or z")
+
+    chosen = protocols_module.get(protocol)
     ds, pred_dir = dataset.Dataset(root), Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")
     out = check_writable_target(pred_dir / "metrics.json" if out is None else Path(out))  # before the work
     check_renders_dataset(pred_dir, read_timing(pred_dir), ds)  # renders of our runs say what they show
     cameras = ds.cameras(split)
-    scene = ds.scene.get("recipe")
+    scene = ds.scene.get("recipe") if ds.foreign is None else ds.root.resolve().name
     if not isinstance(scene, str) or not scene:
         raise InputError(f"{ds.root / 'scene.json'}: 'recipe' must name the scene, got {scene!r}")
-    if pred_format not in FORMATS:
-        raise InputError(f"unknown prediction format {pred_format!r}; choose one of {', '.join(FORMATS)}")
-    if pred_format == "auto":
-        pred_format = detect_format(pred_dir, split)
-    if pred_format == "nerfgauge":
-        found = find_nerfgauge_predictions(pred_dir, split, cameras.stems, depth_kind)
-    else:
-        found = locate(pred_dir, pred_format, split, cameras.stems)
-    missing = [stem for stem, files in found.items() if files is None]  # nerfgauge format only
-    if missing:
-        raise InputError(f"no prediction for {len(missing)} of {len(found)} frames of split {split}: "
-                         f"{', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} (looked for "
-                         f"{pred_dir}/{missing[0]}.png|.exr and {pred_dir}/{Path(missing[0]).name}.png|.exr)")
+    found = locate_predictions(ds, pred_dir, split, pred_format, depth_kind)
     timing = read_timing(pred_dir)
     # frames whose ground truth was rendered through a thin lens say so (they are scored
     # against that defocused truth like any other frame)
     lens_of = {stem: {"lens": cameras.lens(i).to_json()} for i, stem in enumerate(cameras.stems) if cameras.lens(i)}
-    lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
-    depths = reference_depths(ds) if held_out and holds_out(ds, split) else None  # the train views', read once
+    if chosen.background is None:
+        lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
+        lpips_notes = {} if lpips_note is None else {"lpips": lpips_note}
+    else:
+        lpips_batch, lpips_notes = protocols_module.lpips_scorers(chosen, cameras.intrinsics)
+    depths = reference_depths(ds) if held_out and holds_out(ds, split) and ds.has("depth") else None  # the train views', read once
     index_of = {stem: index for index, stem in enumerate(cameras.stems)}
     frames, maps = [], []
     for stem, files in tqdm(found.items(), desc=f"evaluate {split}", unit="frame", disable=None, leave=False):
@@ -296,18 +307,23 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
                                                         BACKGROUNDS[background], depth_kind, lpips_batch,
                                                         None if depths is None else
                                                         partial(held_out_pixels, ds, split, index_of[stem], depths),
-                                                        partial(frame_ceiling, ds, stem, background))
+                                                        partial(frame_ceiling, ds, stem, background),
+                                                        None if chosen.background is None else chosen)
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
         frames.append({"name": stem, "file": files.colour.relative_to(pred_dir).as_posix(), **values,
                        **lens_of.get(stem, {})})
         maps.append((stem, colour_err, depth_err))
-    if lpips_batch is not None:
-        for frame, value in zip(frames, lpips_batch.scores()):
-            frame["lpips"] = value
+    batches = lpips_batch if isinstance(lpips_batch, dict) else {} if lpips_batch is None else {"lpips": lpips_batch}
+    extra_metrics = [metric for metric, _ in chosen.extra_lpips]
+    for frame in frames:
+        frame.update(dict.fromkeys(extra_metrics))
+    for metric, batch in batches.items():
+        for frame, value in zip(frames, batch.scores()):
+            frame[metric] = value
     means, stds, counts = {}, {}, {}
-    for metric in METRIC_NAMES:
+    for metric in list(METRIC_NAMES) + extra_metrics:
         column = [frame[metric] for frame in frames]
         means[metric], stds[metric] = summarize(column)
         counts[metric] = sum(value is not None for value in column)
@@ -316,14 +332,40 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
     document = {"tool": TOOL, "kind": METRICS_KIND, "schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
-                "notes": {**({} if lpips_note is None else {"lpips": lpips_note}),
+                "protocol": chosen.name, "evaluation_protocol": chosen.their_name or chosen.name,
+                "protocol_background": background if chosen.background is None else
+                {(1.0, 1.0, 1.0): "white", (0.0, 0.0, 0.0): "black"}[tuple(chosen.background)],
+                "lpips_net": chosen.lpips_net,
+                "notes": {**lpips_notes,
                           **({} if depths is not None else
-                             {"covisible": COVISIBLE_NONE.format(split=split) if held_out else COVISIBLE_SKIPPED})},
-                "noise": noise_summary(frames), "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
+                             {"covisible": COVISIBLE_NONE.format(split=split) if held_out else COVISIBLE_SKIPPED}),
+                          **unavailable_notes(ds, held_out)},
+                "ground_truth": ds.ground_truth_record(),
+                "noise": noise_summary(frames) if ds.has("noise_ceiling") else
+                {"psnr_ceiling": None, "at_noise_floor": None, "note": ds.unavailable_reason("noise_ceiling")}, "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
                 "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}
     write_json(out, document)
     return document
+
+
+def unavailable_notes(ds: dataset.Dataset, held_out: bool) -> dict:
+    """{metric: "unavailable: why"} for what a foreign ground-truth folder cannot give
+    (depth, hit masks, noise ceiling, co-visibility); {} for our datasets."""
+    if ds.foreign is None:
+        return {}
+    notes = {}
+    for metric in ("depth_absrel", "depth_rmse", "depth_mae", "depth_delta1", "depth_absrel_resolved",
+                   "resolved_fraction"):
+        notes[metric] = "unavailable: " + ds.unavailable_reason("depth")
+    notes["opacity_iou"] = "unavailable: " + ds.unavailable_reason("masks")
+    notes["psnr_ceiling"] = "unavailable: " + ds.unavailable_reason("noise_ceiling")
+    for metric in ("psnr_covisible", "ssim_covisible", "covisible_fraction", "psnr_capture_bound"):
+        notes[metric] = "unavailable: " + ds.unavailable_reason("covisibility")
+    if held_out:
+        notes["covisible"] = "unavailable: " + ds.unavailable_reason("covisibility")
+    notes["psnr_objects"] = "unavailable: " + ds.unavailable_reason("instances")
+    return notes
 
 
 def lpips_scorer(intrinsics):
@@ -338,7 +380,7 @@ def format_means(document: dict) -> str:
     """A plain-text table of mean, std and frame count per metric."""
     total = len(document["frames"])
     rows = [("metric", "mean", "std", "frames")]
-    for metric in METRIC_NAMES:
+    for metric in list(METRIC_NAMES) + [m for m in document["mean"] if m not in METRIC_NAMES]:
         mean, std = document["mean"][metric], document["std"][metric]
         note = document.get("notes", {}).get(metric)
         rows.append((metric, (note or "-") if mean is None else f"{mean:.4f}", "-" if std is None else f"{std:.4f}",

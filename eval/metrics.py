@@ -49,6 +49,9 @@ METRIC_NAMES = (
 )
 
 MSE_FLOOR = 1e-10
+# The backgrounds predictions and ground truth are composited onto (white by default, as
+# NeRF papers score NeRF-synthetic); RGB tuples in [0, 1].
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 PSNR_CAP_DB = 10.0 * math.log10(1.0 / MSE_FLOOR)  # 100 dB: the PSNR of identical images
 
 # Images may exceed [0, 1] by this much: float32 compositing rounds 1 up to 1 + 6e-8.

@@ -41,7 +41,7 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.core import bounded, validate
+from nerfgauge.core import bounded, dataset, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json
 from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
@@ -339,3 +339,32 @@ def read_depth_file(path: Path, max_elements: int = validate.MAX_IMAGE_SIDE ** 2
     except (OSError, ValueError, EOFError) as error:
         raise InputError(f"cannot read depth {path}: {error}") from None
     return np.asarray(values, np.float64)
+
+
+def read_prediction(files: PredictionFiles, intrinsics) -> tuple:
+    """A prediction's straight sRGB [H, W, 3] and its alpha [H, W] (the opacity plane when
+    it has one, else the colour's alpha; None for an RGB prediction)."""
+    rgb, alpha = read_colour(files.colour, intrinsics)
+    if files.opacity is not None:
+        alpha = require_finite(read_plane(files.opacity, intrinsics), files.opacity)
+    return rgb, alpha
+
+
+def locate_predictions(ds: dataset.Dataset, pred_dir: Path, split: str, pred_format: str, depth_kind: str) -> dict:
+    """{stem: PredictionFiles} for every frame of `split`, in `pred_format` (FORMATS;
+    "auto" detects it); an InputError naming the frames without a prediction."""
+    stems = ds.cameras(split).stems
+    if pred_format not in FORMATS:
+        raise InputError(f"unknown prediction format {pred_format!r}; choose one of {', '.join(FORMATS)}")
+    if pred_format == "auto":
+        pred_format = detect_format(pred_dir, split)
+    if pred_format == "nerfgauge":
+        found = find_nerfgauge_predictions(pred_dir, split, stems, depth_kind)
+    else:
+        found = locate(pred_dir, pred_format, split, stems)
+    missing = [stem for stem, files in found.items() if files is None]  # nerfgauge format only
+    if missing:
+        raise InputError(f"no prediction for {len(missing)} of {len(found)} frames of split {split}: "
+                         f"{', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} (looked for "
+                         f"{pred_dir}/{missing[0]}.png|.exr and {pred_dir}/{Path(missing[0]).name}.png|.exr)")
+    return found

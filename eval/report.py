@@ -19,6 +19,7 @@ from nerfgauge.eval.evaluate import NOISE_FLOOR_DB
 from nerfgauge.eval.geometry import summary
 from nerfgauge.eval.metrics import METRIC_NAMES, composite
 from nerfgauge.eval.predictions import find_prediction, read_colour
+from nerfgauge.eval.protocols import sensitivity_rows
 
 from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
 from nerfgauge.core import bounded
@@ -324,11 +325,12 @@ def per_view_table(documents: dict) -> list[list[str]]:
 
 def write_report(out, title: str, dataset_root, renders, documents: dict, *, log_path=None, ours: str,
                  train_seconds=None, notes=(), split: str = "test", frames: int = 3, figures=None,
-                 extra_images=None) -> Path:
+                 extra_images=None, protocol_tables: dict | None = None) -> Path:
     """report.html with its figures (in `figures`, default out's folder): the metrics table
     of every method, the labelled image grid of `renders` (our method's), the
     speed-against-error curve with the baselines on it, the camera frusta with the scene
-    bounds, the sortable per-view table, then `extra_images` ({caption: PNG path}).
+    bounds, the sortable per-view table, the protocol-sensitivity table (protocol_tables:
+    {method: eval.protocols.sensitivity document}), then `extra_images` ({caption: PNG path}).
     documents: {method: metrics document}, `ours` among them."""
     out = Path(out)
     folder = out.parent if figures is None else Path(figures)
@@ -343,9 +345,20 @@ def write_report(out, title: str, dataset_root, renders, documents: dict, *, log
     images = {"test views (columns labelled; colour bars give the scales)": folder / "grid.png",
               "speed against error (baselines: no training, at 0 s)": folder / "curve.png",
               "train and test cameras with the scene bounds": folder / "cameras.png", **(extra_images or {})}
-    write_html(out, title, metrics_table(documents), images, list(notes),
-               extra_tables={"per view (click a header to sort)": per_view_table(documents)})
+    extra = {"per view (click a header to sort)": per_view_table(documents)}
+    if protocol_tables:
+        extra = {PROTOCOL_CAPTION: protocol_table(protocol_tables), **extra}
+    write_html(out, title, metrics_table(documents), images, list(notes), extra_tables=extra)
     return out
+
+
+PROTOCOL_CAPTION = ("protocol sensitivity: the same renders scored under each protocol "
+                    "(nerfgauge, NerfBaselines' nerf, nerfstudio's ns-eval; eval/protocols.py), and the spread")
+
+
+def protocol_table(documents: dict) -> list[list[str]]:
+    """The protocol-sensitivity table of eval.protocols.sensitivity documents ({method: doc})."""
+    return sensitivity_rows(documents)
 
 
 def geometry_table(document: dict) -> str:

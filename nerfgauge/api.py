@@ -104,17 +104,19 @@ def render(run_dir, split: str = "test", *, out=None, threads=None, progress: bo
 @os_errors_as_input_errors()
 def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = "white",
              depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True,
-             overwrite: bool = False) -> dict:
+             overwrite: bool = False, protocol: str = "nerfgauge") -> dict:
     """Score the renders in `pred` against `dataset`'s `split`; write metrics.json (to `out`,
     default PRED/metrics.json) and error maps beside it. Returns the metrics document
     ({"schema", "scene", "split", "mean", "std", "count", "frames", "timing", ...}).
     pred_format: auto (detected), nerfgauge, nerfstudio, nerfbaselines or folder.
     held_out=False skips the co-visible and depth-resolved scores (their pass costs about
     0.12 us per hit test pixel and train view). `out` must be a new path or a metrics file
-    nerfgauge wrote (overwrite=True: also another nerfgauge file), as for `evaluate --out`."""
+    nerfgauge wrote (overwrite=True: also another nerfgauge file), as for `evaluate --out`.
+    protocol: nerfgauge, nerfbaselines or ns-eval (eval.protocols), as `evaluate --protocol`.
+    `dataset` may be a NeRF-synthetic, nerfstudio or COLMAP text-model folder."""
     check_output_file(Path(pred) / "metrics.json" if out is None else out, METRICS_KIND, overwrite=overwrite)
     return evaluate_split(_folder(dataset), pred, split=split, out=out, background=background, depth_kind=depth_kind,
-                          pred_format=pred_format, held_out=held_out)
+                          pred_format=pred_format, held_out=held_out, protocol=protocol)
 
 
 @os_errors_as_input_errors()

@@ -33,6 +33,7 @@ from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
 from nerfgauge.eval.baselines import METHODS, baseline_folder, write_baseline
 from nerfgauge.eval.evaluate import evaluate, format_means
 from nerfgauge.eval.geometry import format_geometry, score_geometry, summary as geometry_summary
+from nerfgauge.eval.protocols import format_rows, sensitivity, sensitivity_rows
 from nerfgauge.eval.report import geometry_histogram, geometry_table, write_report
 from nerfgauge.generate.options import add_generate_arguments, generate_fields
 from nerfgauge.generate.pipeline import GenerateConfig, generate
@@ -115,6 +116,7 @@ def remove_earlier_outputs(out: Path, model: str) -> None:
         remove_owned(out / "eval" / method / "error_maps", "evaluation")
         _remove_file(out / "eval" / method / "metrics.json")
         _remove_file(out / "eval" / method / "geometry.json")
+        _remove_file(out / "eval" / method / "protocols.json")
         _remove_file(out / "eval" / method / "mesh.ply")
         _remove_empty_folder(out / "eval" / method)
     for name in REPORT_FILES:
@@ -187,11 +189,17 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                                                         out / "eval" / method / "metrics.json")
         print("[5/5] report")
         (out / "report").mkdir(parents=True, exist_ok=True)
+        ours_name = f"{config.model} NeRF"
+        protocol_tables = {ours_name: sensitivity(out / "dataset", run_dir / "renders", "test")}
+        for method in baselines:
+            protocol_tables[f"baseline: {method}"] = sensitivity(out / "dataset", out / "baselines" / method, "test")
+        write_json(out / "eval" / config.model / "protocols.json", protocol_tables[ours_name])
         notes = [f"scene {config.scene}, {config.width}x{config.height}, {config.views} train / {config.test_views} "
                  f"test views, {config.spp} spp; {config.model} trained {summary['steps']} steps in "
                  f"{summary['seconds']:.1f} s, saved model {summary['model_bytes'] / 1e6:.2f} MB",
                  "PSNR and SSIM on colour composited onto white; depth metrics on pixels whose centre ray hits "
-                 "geometry, on ray distance. LPIPS: AlexNet, v0.1 linear layers (nerfgauge lpips install)."]
+                 "geometry, on ray distance. LPIPS: AlexNet, v0.1 linear layers (nerfgauge lpips install). "
+                 "Protocol sensitivity: the same renders under nerfgauge, NerfBaselines' and ns-eval's scoring."]
         images = {}
         if no_geometry is not None:
             notes.append(no_geometry)
@@ -201,7 +209,8 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
             notes.append(geometry_table(geometry[0]))
         write_report(out / "report.html", f"nerfgauge: {config.scene}", out / "dataset", run_dir / "renders", documents,
                      log_path=run_dir / "log.jsonl", ours=f"{config.model} NeRF", train_seconds=summary["seconds"],
-                     notes=notes, figures=out / "report", extra_images=images)
+                     notes=notes, figures=out / "report", extra_images=images, protocol_tables=protocol_tables)
+        print(format_rows(sensitivity_rows({ours_name: protocol_tables[ours_name]})))
     print(format_means(documents[f"{config.model} NeRF"]))
     print(f"report: {out / 'report.html'}")
     return {"metrics": str(out / "eval" / config.model / "metrics.json"), "report": str(out / "report.html"),

@@ -16,7 +16,8 @@ from nerfgauge.core import dataset
 from nerfgauge.core.images import read_exr, read_png, write_exr, write_png
 
 TOP_KEYS = {"schema", "scene", "split", "background", "depth_kind", "mean", "std", "count", "notes", "frames", "timing",
-            "noise", "psnr_objects", "empty_views", "tool", "kind"}
+            "noise", "psnr_objects", "empty_views", "tool", "kind",
+            "protocol", "evaluation_protocol", "protocol_background", "lpips_net", "ground_truth"}  # eval.protocols; foreign ground truth
 
 
 @pytest.fixture(scope="module")

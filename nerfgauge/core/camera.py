@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -269,3 +270,20 @@ def thin_lens_rays(c2w: np.ndarray, intrinsics: Intrinsics, lens: ThinLens,
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = on_lens @ rotation.T + c2w[:3, 3]  # [S, 3]
     return np.broadcast_to(o[:, None, None, :], d.shape).copy(), d
+
+
+@dataclass(frozen=True)
+class SplitCameras:
+    """One split: frame stems (relative, extension-less), poses [n, 4, 4] (read-only),
+    intrinsics, and per frame the thin lens its colour was rendered through (None: a
+    pinhole frame; an empty tuple when no frame has a lens)."""
+
+    split: str
+    stems: tuple
+    c2w: np.ndarray
+    intrinsics: Intrinsics
+    lenses: tuple = ()
+
+    def lens(self, index: int) -> Optional[ThinLens]:
+        """Frame `index`'s thin lens, None for a pinhole frame."""
+        return self.lenses[index] if self.lenses else None

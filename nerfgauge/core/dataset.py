@@ -31,16 +31,18 @@ and run the same code.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+import io
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from PIL import Image
+from PIL import Image, JpegImagePlugin
 
-from nerfgauge.core import validate
-from nerfgauge.core.camera import Intrinsics, ThinLens
+from nerfgauge.core import foreign_dataset, validate
+from nerfgauge.core.camera import Intrinsics, SplitCameras, ThinLens  # SplitCameras: read here, defined with the cameras
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.folders import MARKER
 from nerfgauge.core.files import atomic_path, json_from_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.images import read_exr, read_exr_single, read_png
 
@@ -159,23 +161,6 @@ def read_manifest(root) -> dict:
 # --- reading, for nerf/ and eval/ ---------------------------------------------------
 
 
-@dataclass(frozen=True)
-class SplitCameras:
-    """One split: frame stems (relative, extension-less), poses [n, 4, 4] (read-only),
-    intrinsics, and per frame the thin lens its colour was rendered through (None: a
-    pinhole frame; an empty tuple when no frame has a lens)."""
-
-    split: str
-    stems: tuple
-    c2w: np.ndarray
-    intrinsics: Intrinsics
-    lenses: tuple = ()
-
-    def lens(self, index: int) -> Optional[ThinLens]:
-        """Frame `index`'s thin lens, None for a pinhole frame."""
-        return self.lenses[index] if self.lenses else None
-
-
 class Dataset:
     """A dataset folder, validated on open, read one verified file at a time.
 
@@ -223,9 +208,22 @@ class Dataset:
         self.verify_hashes = verify_hashes
         if not self.root.is_dir():
             raise InputError(f"dataset folder not found: {self.root}")
-        if not (self.root / MANIFEST).is_file():
-            raise InputError(f"dataset {self.root} is incomplete (no {MANIFEST}); finish it with nerfgauge generate")
         self._real_root = self.root.resolve()
+        self.foreign = None  # a foreign_dataset.ForeignLayout for folders nerfgauge did not write
+        self.files_read = {}  # foreign folders: {relative path: sha256} of every file read
+        if not (self.root / MANIFEST).is_file():
+            fmt = None if (self.root / MARKER).exists() else foreign_dataset.detect(self.root)
+            if fmt is None:
+                raise InputError(f"dataset {self.root} is incomplete (no {MANIFEST}); finish it with nerfgauge generate"
+                                 + ("" if (self.root / MARKER).exists() else
+                                    " (or give a NeRF-synthetic, nerfstudio or COLMAP text-model folder)"))
+            self._manifest = None
+            self.foreign = foreign_dataset.read(self, fmt)
+            self._cameras = {split: cams for split, cams in self.foreign.cameras.items()}
+            validate.distinct_frames({split: cameras.stems for split, cameras in self._cameras.items()}, self.root)
+            self.manifest_sha256 = None
+            self.scene, self.bounds = {}, None
+            return
         self._manifest = read_manifest(self.root)
         self._cameras = {}
         for split in SPLITS:
@@ -250,6 +248,13 @@ class Dataset:
         label = f"{what}: " if what else ""
         rel = validate.relative_path(rel, f"{label}{rel!r} in dataset {self.root}")
         path = validate.confine(self._real_root, rel, what)
+        if self._manifest is None:  # a foreign folder: no manifest to check against; hashed as read
+            try:
+                data = path.read_bytes()
+            except OSError as error:
+                raise InputError(f"{label}cannot read {self.root / rel}: {error.strerror or error}") from None
+            self.files_read[rel] = hashlib.sha256(data).hexdigest()
+            return data
         entry = self._manifest.get(rel)
         if entry is None:
             raise InputError(f"{label}{self.root / rel} is not listed in {self.root / MANIFEST}")
@@ -291,6 +296,11 @@ class Dataset:
         """decode(path, verified bytes) of the frame's file of `kind` (a FRAME_SUFFIXES
         key); errors name the frame."""
         rel = stem + FRAME_SUFFIXES[kind]
+        if self.foreign is not None:
+            rel = self.foreign.images.get(stem) if kind == "png" else None
+            if rel is None:
+                raise InputError(f"frame {stem}: the {self.foreign.format} folder {self.root} has no {kind} file "
+                                 f"({self.unavailable_reason(kind)})")
         data = self.read_bytes(rel, f"frame {stem}")
         try:
             return decode(self.root / rel, data)
@@ -369,17 +379,48 @@ class Dataset:
     @property
     def manifest_files(self) -> frozenset:
         """Relative paths manifest.json lists (older datasets have no instance, albedo or
-        noise files: ask before reading them)."""
+        noise files: ask before reading them). A foreign folder: its frames' images."""
+        if self._manifest is None:
+            return frozenset(self.foreign.images.values())
         return frozenset(self._manifest)
 
     def file_sha256(self, rel: str) -> Optional[str]:
-        """The sha256 manifest.json records for the dataset file `rel` (None: not listed)."""
+        """The sha256 manifest.json records for the dataset file `rel` (None: not listed);
+        in a foreign folder, the sha256 of the file as read (None: not read)."""
+        if self._manifest is None:
+            return self.files_read.get(rel)
         entry = self._manifest.get(rel)
         return None if entry is None else entry.sha256
 
     def has_frame_file(self, split: str, index: int, kind: str) -> bool:
         """Whether the manifest lists the frame's file of `kind` (a FRAME_SUFFIXES key)."""
+        if self._manifest is None:
+            return kind == "png"
         return self._stem(split, index) + FRAME_SUFFIXES[kind] in self._manifest
+
+    def has(self, what: str) -> bool:
+        """Whether the dataset gives `what` ("depth", "masks", "noise_ceiling",
+        "covisibility", "instances", "meshes"): ours do; foreign folders do not
+        (`unavailable_reason`)."""
+        return self.foreign is None or what not in self.foreign.unavailable
+
+    def unavailable_reason(self, what: str) -> str:
+        """Why a foreign folder cannot give `what` (a FRAME_SUFFIXES kind or a `has` key)."""
+        if self.foreign is None:
+            return ""
+        key = {"distance": "depth", "z_depth": "depth", "mask": "masks", "noise": "noise_ceiling",
+               "instance": "instances"}.get(what, what)
+        return self.foreign.unavailable.get(key, f"{self.foreign.format} folders have none")
+
+    def ground_truth_record(self) -> dict:
+        """What the metrics document records of the ground truth: ours, the manifest's
+        sha256; a foreign folder, its format, split rule, and the sha256 of every file read
+        (call after scoring, so the images are among them) with each frame's image."""
+        if self.foreign is None:
+            return {"format": "nerfgauge", "manifest_sha256": self.manifest_sha256}
+        return {"format": self.foreign.format, "split_rule": self.foreign.split_rule,
+                "files": dict(sorted(self.files_read.items())), "frames": dict(self.foreign.images),
+                "unavailable": dict(self.foreign.unavailable)}
 
     def instance(self, split: str, index: int) -> np.ndarray:
         """[H, W] int64 instance ids of the pixel-centre rays' shapes, 0 = miss (the hit
@@ -433,9 +474,25 @@ def read_split(root, split: str) -> SplitCameras:
     return open_dataset(root).cameras(split)
 
 
+def _decode_colour(path, data: bytes, intrinsics: Intrinsics) -> np.ndarray:
+    """A PNG, or (foreign folders) a JPEG, as float32 in [0, 1]; the header's size checked first."""
+    if Path(path).suffix.lower() not in (".jpg", ".jpeg"):
+        return read_png(path, data, intrinsics)  # its signature checked against its extension
+    try:
+        with JpegImagePlugin.JpegImageFile(io.BytesIO(data)) as image:
+            validate.image_size(*image.size, path)
+            validate.header_matches(*image.size, intrinsics, path)
+            return np.asarray(image.convert("RGB")).astype(np.float32) / 255.0
+    except InputError:
+        raise
+    except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as error:
+        raise InputError(f"cannot read image {path}: {error}") from None
+
+
 def read_rgba(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
-    """The frame's PNG as straight-alpha sRGB in [0, 1]. Returns [H, W, 4] float32."""
-    image = open_dataset(root).frame_file(stem, "png", lambda path, data: read_png(path, data, intrinsics))
+    """The frame's PNG (a foreign folder's PNG or JPEG) as straight-alpha sRGB in [0, 1];
+    an image without alpha gets alpha 1. Returns [H, W, 4] float32."""
+    image = open_dataset(root).frame_file(stem, "png", lambda path, data: _decode_colour(path, data, intrinsics))
     if image.ndim == 2:
         image = image[..., None]
     if image.shape[-1] in (1, 2):  # gray (+ alpha)
