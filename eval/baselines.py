@@ -63,7 +63,7 @@ GRID_TOLERANCE = 1e-6  # training cameras must sit on grid nodes to this fractio
 
 def _png_rgba_uint8(ds: dataset.Dataset, stem: str, intrinsics) -> np.ndarray:
     """The frame's PNG as RGBA uint8 [H, W, 4] (exactly as stored, alpha added if absent)."""
-    rgba = dataset.read_rgba(ds, stem, intrinsics)  # checks the size
+    rgba = ds.rgba_of(stem, intrinsics)  # checks the size
     return np.round(rgba * 255.0).astype(np.uint8)
 
 
@@ -305,7 +305,7 @@ def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = Fal
     """Claim `out` as a "baseline" folder (core.folders.claim_folder) for the block. Its
     recipe is the method, the split and the dataset's content (manifest.json's hash), so a
     rerun on the same dataset continues and another one needs overwrite."""
-    root, out = dataset.require_complete(root), Path(out)
+    root, out = dataset.open_dataset(root).root, Path(out)
     recipe = recipe_hash({"method": method, "split": split, "dataset": dataset.manifest_sha256(root)}
                          | ({"options": options} if options else {}))
     made = [folder for folder in (out, *out.parents) if not folder.exists()]  # what claiming creates

@@ -38,7 +38,7 @@ DATASET must list the same (core.provenance.check_renders_dataset), else one lin
 Metrics (eval.metrics): PSNR and SSIM on colour composited onto the background (prediction
 and the straight-alpha ground-truth PNG alike; RGB predictions are taken as composited);
 PSNR on the foreground (pixels with ground-truth coverage or visible predicted opacity;
-null when a view has none); depth on ground-truth hit pixels (read_mask), null when a view
+null when a view has none); depth on ground-truth hit pixels (Dataset.mask_of), null when a view
 hits nothing; opacity IoU when the prediction has alpha (1 when both silhouettes are empty);
 LPIPS-Alex (eval.lpips) on the composited pair, null with a reason in metrics.json's `notes`
 when its weights are not installed or the images are under 31 px. `psnr_covisible` and
@@ -129,7 +129,7 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
     [H, W] (its opacity plane when it has one; None for an opaque RGB prediction)."""
     rgb, alpha = read_prediction(files, intrinsics)
     pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
-    gt_rgba = dataset.read_rgba(ds, stem, intrinsics)  # [H, W, 4]
+    gt_rgba = ds.rgba_of(stem, intrinsics)  # [H, W, 4]
     return pred, composite(gt_rgba, background), gt_rgba, alpha
 
 
@@ -147,11 +147,11 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     `lpips_batch` ({metric: LpipsBatch} then) its way; everything else stays ours."""
     rgb, alpha = read_prediction(files, intrinsics)
     pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
-    gt_rgba = dataset.read_rgba(ds, stem, intrinsics)  # [H, W, 4]
+    gt_rgba = ds.rgba_of(stem, intrinsics)  # [H, W, 4]
     gt = composite(gt_rgba, background)
     # [H, W] bool; None for a foreign folder (no hit mask: foreground, depth, opacity IoU need one)
-    mask = dataset.read_mask(ds, stem, intrinsics) if ds.has("masks") else None
-    distance = None if held_out_of is None else dataset.read_depth(ds, stem, intrinsics, "distance")  # [H, W]
+    mask = ds.mask_of(stem, intrinsics) if ds.has("masks") else None
+    distance = None if held_out_of is None else ds.depth_of(stem, intrinsics, "distance")  # [H, W]
     held_out = None if held_out_of is None else held_out_of(mask, distance)
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr_ceiling"] = None if ceiling_of is None else ceiling_of()
@@ -177,7 +177,7 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     if files.depth is not None and mask is not None and ds.has("depth"):
         depth = read_plane(files.depth, intrinsics, depth_kind)
         gt_depth = distance if depth_kind == "distance" and distance is not None else \
-            dataset.read_depth(ds, stem, intrinsics, depth_kind)
+            ds.depth_of(stem, intrinsics, depth_kind)
         try:
             scores = depth_metrics(depth, gt_depth, mask)
         except InputError as error:  # the prediction's fault or (a corrupt dataset) the ground truth's
@@ -197,7 +197,7 @@ def object_psnrs(ds: dataset.Dataset, stem: str, intrinsics, pred, gt) -> Option
     None for a dataset without instance ids."""
     if stem + dataset.FRAME_SUFFIXES["instance"] not in ds.manifest_files:
         return None
-    ids, names = dataset.read_instance(ds, stem, intrinsics), ds.instance_names()
+    ids, names = ds.instance_of(stem, intrinsics), ds.instance_names()
     return {names.get(int(number), f"instance {int(number)}"): psnr_masked(pred, gt, ids == number)
             for number in np.unique(ids) if number != 0}
 

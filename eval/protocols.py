@@ -243,7 +243,7 @@ def sensitivity(root, pred_dir, split: str = "test", *, background: str = "white
         rgb, alpha = read_colour(files.colour, cameras.intrinsics)
         if files.opacity is not None:
             alpha = read_plane(files.opacity, cameras.intrinsics)
-        gt_rgba = dataset.read_rgba(ds, stem, cameras.intrinsics)
+        gt_rgba = ds.rgba_of(stem, cameras.intrinsics)
         for p in chosen:
             pred, gt = prepare(p, rgb, alpha, gt_rgba, BACKGROUNDS[background])
             for key, value in image_scores(p, pred, gt).items():

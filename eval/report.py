@@ -21,7 +21,7 @@ from nerfgauge.eval.metrics import METRIC_NAMES, composite
 from nerfgauge.eval.predictions import find_prediction, read_colour
 from nerfgauge.eval.protocols import sensitivity_rows
 
-from nerfgauge.core.dataset import open_dataset, read_depth, read_mask, read_rgba
+from nerfgauge.core.dataset import open_dataset
 from nerfgauge.core import bounded
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, write_bytes_atomic
@@ -155,10 +155,10 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
     images = {}
     depths = reference_depths(ds) if holds_out(ds, split) else None
     for row, stem in enumerate(stems):
-        gt = composite(read_rgba(ds, stem, cameras.intrinsics).astype(np.float64), bg)
+        gt = composite(ds.rgba_of(stem, cameras.intrinsics).astype(np.float64), bg)
         pred = _pred_rgb(Path(pred_dir), stem, cameras.intrinsics, bg)
-        gt_depth = read_depth(ds, stem, cameras.intrinsics)
-        mask = read_mask(ds, stem, cameras.intrinsics)
+        gt_depth = ds.depth_of(stem, cameras.intrinsics)
+        mask = ds.mask_of(stem, cameras.intrinsics)
         depth_path = Path(pred_dir) / (stem + "_depth.exr")
         pred_depth = read_exr_single(depth_path) if depth_path.is_file() else None
         far = float(gt_depth[mask].max()) if mask.any() else 1.0
@@ -438,7 +438,7 @@ def focus_rows(datasets: dict, preds: dict, stem: str, out, background=(1.0, 1.0
             if col == 0:
                 axes.set_ylabel(name, fontsize=8)
             if name == "ground truth":
-                tile = composite(read_rgba(ds, stem, intrinsics).astype(np.float64), bg)
+                tile = composite(ds.rgba_of(stem, intrinsics).astype(np.float64), bg)
             elif aperture in preds[name]:
                 tile = _pred_rgb(Path(preds[name][aperture]), stem, intrinsics, bg)
             else:

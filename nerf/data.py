@@ -12,8 +12,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from nerfgauge.core.camera import pixel_rays
-from nerfgauge.core.dataset import SplitCameras, open_dataset, read_rgba
+from nerfgauge.core.camera import SplitCameras, pixel_rays
+from nerfgauge.core.dataset import open_dataset
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ def load_split_rays(root, split: str, limit: Optional[int] = None) -> tuple[Spli
     for index in range(count):
         o, d = split_rays(cameras, index)
         origins.append(o), directions.append(d)
-        colours.append(torch.from_numpy(read_rgba(ds, cameras.stems[index], cameras.intrinsics).reshape(-1, 4)))
+        colours.append(torch.from_numpy(ds.rgba_of(cameras.stems[index], cameras.intrinsics).reshape(-1, 4)))
     if not origins:
         empty = torch.zeros((0, 3))
         return cameras, RayBatch(empty, empty, torch.zeros((0, 4)), 0)

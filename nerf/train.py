@@ -35,7 +35,7 @@ from nerfgauge.nerf.rendering import composite, render_rays_chunked
 from tqdm import tqdm
 
 from nerfgauge.core import bounded
-from nerfgauge.core.dataset import manifest_sha256, read_split, require_complete
+from nerfgauge.core.dataset import manifest_sha256, open_dataset
 from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
@@ -192,8 +192,9 @@ def prepare_run(config: TrainConfig):
     Returns (config, reasons, (aabb, space), train_rays, val_rays, device, recipe)."""
     config.validate()
     device = pick_device(config.device)
-    root = require_complete(config.dataset)
-    train_cams = read_split(root, "train")
+    ds = open_dataset(config.dataset)
+    root = ds.root
+    train_cams = ds.cameras("train")
     if not train_cams.stems:
         raise InputError(f"dataset {root} has no training views")
     needs, aabb = scene_info(root)
@@ -209,7 +210,7 @@ def prepare_run(config: TrainConfig):
     tan_half_fov = min(0.5 * intrinsics.width / intrinsics.fx, 0.5 * intrinsics.height / intrinsics.fy)
     space = make_space(config.parametrisation, aabb, train_cams.c2w, train_rays.origins[::stride],
                        train_rays.directions[::stride], tan_half_fov)
-    val_split = "val" if read_split(root, "val").stems else "test"
+    val_split = "val" if ds.cameras("val").stems else "test"
     _, val_rays = load_split_rays(root, val_split, limit=config.eval_views)
     return config, reasons, (torch.tensor(aabb, dtype=torch.float32), space), train_rays, val_rays, device, recipe
 

@@ -46,11 +46,11 @@ def baseline_scores(root, method, out, capsys, split="test"):
 
 def reference_quadrilinear(root, c2w, row, col):
     """One pixel of the quadrilinear light field, written out ray by ray from scene.json."""
-    plane = dataset.read_scene_json(root)["camera"]["lightfield"]
+    plane = dataset.open_dataset(root).scene["camera"]["lightfield"]
     origin, s_axis, t_axis, view = (np.array(plane[k]) for k in ("camera_plane_origin", "s_axis", "t_axis", "view_axis"))
     ds_, dt_ = plane["spacing"]
     rows, cols = plane["grid"]
-    train = dataset.read_split(root, "train")
+    train = dataset.open_dataset(root).cameras("train")
     k = train.intrinsics
     origins, directions = pixel_rays(c2w, k)
     o, d = origins[row, col], directions[row, col]
@@ -80,7 +80,7 @@ def reference_quadrilinear(root, c2w, row, col):
 
 def test_vectorised_light_field_matches_reference_loop(lightfield_ds):
     field = LightField(lightfield_ds)
-    test = dataset.read_split(lightfield_ds, "test")
+    test = dataset.open_dataset(lightfield_ds).cameras("test")
     rendered = field.render(test.c2w[0], "quadrilinear")  # straight alpha [H, W, 4]
     premultiplied = np.concatenate([rendered[..., :3] * rendered[..., 3:], rendered[..., 3:]], -1)
     for row, col in [(0, 0), (5, 17), (12, 12), (11, 9), (23, 23), (18, 2)]:
@@ -107,15 +107,15 @@ def test_light_field_reproduces_training_views(lightfield_ds, mode):
     # At a grid node the (s, t) weights are 1 and 0, and a pixel's focal point projects back
     # onto its own pixel centre: every sample weight is 1 or 0 up to float64 rounding
     # (~1e-15), far from the 0.5/255 that could change an 8-bit value.
-    train = dataset.read_split(lightfield_ds, "train")
+    train = dataset.open_dataset(lightfield_ds).cameras("train")
     for stem, image in render_lightfield(lightfield_ds, "train", mode).items():
-        expected = np.round(dataset.read_rgba(lightfield_ds, stem, train.intrinsics) * 255).astype(np.uint8)
+        expected = np.round(dataset.open_dataset(lightfield_ds).rgba_of(stem, train.intrinsics) * 255).astype(np.uint8)
         np.testing.assert_array_equal(image, expected, err_msg=stem)
 
 
 def test_nearest_view_on_hemisphere_scores_every_test_view(hemisphere_ds, tmp_path, capsys):
     doc = baseline_scores(hemisphere_ds, "nearest", tmp_path / "nearest", capsys)
-    stems = dataset.read_split(hemisphere_ds, "test").stems
+    stems = dataset.open_dataset(hemisphere_ds).cameras("test").stems
     assert sorted(p.name for p in (tmp_path / "nearest" / "test").iterdir()) == [f"{s[5:]}.png" for s in stems]
     assert [f["name"] for f in doc["frames"]] == list(stems)
     assert all(math.isfinite(doc["mean"][m]) for m in ("psnr", "ssim", "opacity_iou"))
@@ -124,9 +124,9 @@ def test_nearest_view_on_hemisphere_scores_every_test_view(hemisphere_ds, tmp_pa
 
 
 def test_nearest_view_of_a_training_pose_is_itself(hemisphere_ds):
-    train = dataset.read_split(hemisphere_ds, "train")
+    train = dataset.open_dataset(hemisphere_ds).cameras("train")
     for stem, image in render_nearest(hemisphere_ds, "train").items():
-        expected = np.round(dataset.read_rgba(hemisphere_ds, stem, train.intrinsics) * 255).astype(np.uint8)
+        expected = np.round(dataset.open_dataset(hemisphere_ds).rgba_of(stem, train.intrinsics) * 255).astype(np.uint8)
         np.testing.assert_array_equal(image, expected, err_msg=stem)
 
 

@@ -83,15 +83,18 @@ def test_depths_mask_and_normals_agree_with_the_cameras(ds):
         assert np.all(normals[~mask] == 0)
 
 
-def test_module_level_readers_are_the_same_reader(ds, tiny_dataset):
-    cameras = dataset.read_split(tiny_dataset, "test")
+def test_reading_by_stem_and_by_index_is_the_same_reader(ds, tiny_dataset):
+    """A dataset opened from its path reads what the open one reads, by stem or by index,
+    and open_dataset hands an open Dataset back as it is."""
+    opened = dataset.open_dataset(tiny_dataset)
+    cameras = opened.cameras("test")
     assert cameras.stems == ds.frames("test") and np.array_equal(cameras.c2w, ds.c2w("test"))
     assert cameras.intrinsics == ds.intrinsics("test")
     stem = cameras.stems[1]
-    assert np.array_equal(dataset.read_rgba(tiny_dataset, stem, cameras.intrinsics), ds.image("test", 1))
-    assert np.array_equal(dataset.read_depth(tiny_dataset, stem, cameras.intrinsics, "z"), ds.depth("test", 1, "z"))
-    assert np.array_equal(dataset.read_mask(ds, stem, cameras.intrinsics), ds.mask("test", 1))
-    assert dataset.require_complete(tiny_dataset) == tiny_dataset
+    assert np.array_equal(opened.rgba_of(stem, cameras.intrinsics), ds.image("test", 1))
+    assert np.array_equal(opened.depth_of(stem, cameras.intrinsics, "z"), ds.depth("test", 1, "z"))
+    assert np.array_equal(ds.mask_of(stem, cameras.intrinsics), ds.mask("test", 1))
+    assert opened.root == tiny_dataset
     assert dataset.open_dataset(ds) is ds
 
 

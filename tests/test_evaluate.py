@@ -29,7 +29,7 @@ def ds(tmp_path_factory, make_dataset):
 
 @pytest.fixture(scope="module")
 def test_split(ds):
-    return dataset.read_split(ds, "test")
+    return dataset.open_dataset(ds).cameras("test")
 
 
 def strict_json(text):
@@ -74,8 +74,9 @@ def test_ground_truth_scores_perfectly(ds, test_split, tmp_path, capsys, depth_k
     assert all(doc["count"][m] == 3 for m in METRIC_NAMES if m != "lpips") and doc["count"]["lpips"] == 0
     assert doc["mean"]["lpips"] is None and doc["notes"]["lpips"].startswith("n/a")
     # Opacity from the PNG's alpha (coverage) against the pixel-centre mask: not always 1.
-    expected = np.mean([opacity_iou(dataset.read_rgba(ds, s, test_split.intrinsics)[..., 3],
-                                    dataset.read_mask(ds, s, test_split.intrinsics)) for s in test_split.stems])
+    opened = dataset.open_dataset(ds)
+    expected = np.mean([opacity_iou(opened.rgba_of(s, test_split.intrinsics)[..., 3],
+                                    opened.mask_of(s, test_split.intrinsics)) for s in test_split.stems])
     assert doc["mean"]["opacity_iou"] == pytest.approx(expected, abs=1e-12)
     assert "psnr" in printed and "100.0000" in printed
 
@@ -159,7 +160,8 @@ def inf_opacity(folder):
 
 def nan_depth_on_hit(ds):
     def mutate(folder):
-        depth = dataset.read_depth(ds, "test/r_001", dataset.read_split(ds, "test").intrinsics)
+        opened = dataset.open_dataset(ds)
+        depth = opened.depth_of("test/r_001", opened.cameras("test").intrinsics)
         depth[np.unravel_index(np.argmax(depth), depth.shape)] = np.nan  # the largest depth is a hit
         np.save(folder / "r_001_depth.npy", depth)
     return mutate

@@ -32,7 +32,7 @@ def ds(tmp_path_factory, make_dataset):
 
 @pytest.fixture(scope="module")
 def stems(ds):
-    return dataset.read_split(ds, "test").stems
+    return dataset.open_dataset(ds).cameras("test").stems
 
 
 def predicted(ds, stem, k):

@@ -31,7 +31,7 @@ def renders(ours, tmp_path_factory):
     """Predictions for the test split in our naming (test/r_00k.png): the ground truth with a stripe."""
     pred = tmp_path_factory.mktemp("renders")
     (pred / "test").mkdir()
-    for k, stem in enumerate(dataset.read_split(ours, "test").stems):
+    for k, stem in enumerate(dataset.open_dataset(ours).cameras("test").stems):
         image = np.round(read_png(ours / (stem + ".png")) * 255).astype(np.uint8)
         image[5 + 2 * k: 12 + 2 * k, :, :3] = 70
         image[5 + 2 * k: 12 + 2 * k, :, 3] = 255

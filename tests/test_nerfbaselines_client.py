@@ -52,7 +52,7 @@ def test_their_results_tooling_reads_our_results_json(ds, tmp_path, capsys):
 
     pred = tmp_path / "pred"
     (pred / "test").mkdir(parents=True)
-    for k, stem in enumerate(dataset.read_split(ds, "test").stems):
+    for k, stem in enumerate(dataset.open_dataset(ds).cameras("test").stems):
         image = np.round(read_png(ds / (stem + ".png")) * 255).astype(np.uint8)
         image[4 + k: 9 + k, :, :3] = 60
         write_png(pred / (stem + ".png"), image)

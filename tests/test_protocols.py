@@ -28,7 +28,7 @@ def renders(ds, tmp_path_factory):
     """RGBA predictions: the ground truth with a stripe painted in and its alpha kept."""
     pred = tmp_path_factory.mktemp("renders")
     (pred / "test").mkdir()
-    for k, stem in enumerate(dataset.read_split(ds, "test").stems):
+    for k, stem in enumerate(dataset.open_dataset(ds).cameras("test").stems):
         image = np.round(read_png(ds / (stem + ".png")) * 255).astype(np.uint8)
         image[5 + k: 12 + k, :, :3] = 90
         image[5 + k: 12 + k, :, 3] = 255

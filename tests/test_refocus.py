@@ -103,7 +103,7 @@ def test_refocus_baseline_writes_every_test_frame_and_evaluates(lens_lightfield,
     assert main(["baseline", str(lens_lightfield), "--method", "refocus", "--out", str(out)]) == 0
     assert main(["evaluate", str(lens_lightfield), "--pred", str(out)]) == 0
     capsys.readouterr()
-    test = dataset.read_split(lens_lightfield, "test")
+    test = dataset.open_dataset(lens_lightfield).cameras("test")
     for stem in test.stems:
         assert read_png(out / (stem + ".png")).shape == (16, 16, 4)
     metrics = json.loads((out / "metrics.json").read_text())
@@ -143,7 +143,7 @@ def test_refocus_any_lens_overrides_the_frames(lens_lightfield, tmp_path):
     timing = write_baseline(lens_lightfield, "refocus", tmp_path / "r0", lens=ThinLens(0.0, focal), samples=8)
     write_baseline(lens_lightfield, "lightfield-quadrilinear", tmp_path / "quad")
     assert timing["lens"]["aperture_radius"] == 0.0 and timing["lens_samples"] == 8
-    for stem in dataset.read_split(lens_lightfield, "test").stems:
+    for stem in dataset.open_dataset(lens_lightfield).cameras("test").stems:
         # the same sums up to float rounding, which may tip a uint8 step
         np.testing.assert_allclose(read_png(tmp_path / "r0" / (stem + ".png")),
                                    read_png(tmp_path / "quad" / (stem + ".png")), atol=1.01 / 255)

@@ -393,7 +393,7 @@ def test_flat_mesh_with_degenerate_faces_renders_exact_depth(tmp_path, make_data
     half_y = 1 / 3
     hits = 0
     for split in ("train", "test"):
-        cameras = dataset.read_split(root, split)
+        cameras = dataset.open_dataset(root).cameras(split)
         for stem, c2w in zip(cameras.stems, cameras.c2w):
             stored = read_exr_single(root / (stem + "_distance.exr")).astype(np.float64)
             origins, directions = pixel_rays(c2w, cameras.intrinsics)
@@ -560,7 +560,7 @@ def test_transforms_with_nan_pose_name_the_file(tmp_path, make_dataset):
     path.write_text(json.dumps(meta))
     dataset.write_manifest(root, dataset.read_manifest(root))  # vouch for the edit: test the pose check
     with pytest.raises(InputError, match=r"transforms_test.json.*NaN or inf.*r_001"):
-        dataset.read_split(root, "test")
+        dataset.open_dataset(root).cameras("test")
 
 
 def test_run_refuses_zero_test_views(tmp_path):

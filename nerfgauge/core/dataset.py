@@ -25,8 +25,10 @@ Layout of a dataset folder:
 
 Reading goes through `Dataset` (validated on open, every file confined to the root and
 checked against the manifest as it is read; see its docstring for the conventions of the
-arrays). The module-level readers (read_split, read_rgba, ...) take a Dataset or a path
-and run the same code.
+arrays): `ds.cameras(split)`, `ds.rgba_of(stem, intrinsics)`, `ds.depth_of(...)`,
+`ds.mask_of(...)`, `ds.instance_of(...)`, `ds.scene`, or by split and index `ds.image(split,
+i)`, `ds.depth(...)`, .... `open_dataset(x)` gives the Dataset for a caller handed a path
+or an open Dataset.
 """
 
 from __future__ import annotations
@@ -337,14 +339,47 @@ class Dataset:
         """[n, 4, 4] float64 camera-to-world, OpenGL axes (a copy)."""
         return self.cameras(split).c2w.copy()
 
-    # --- frames -------------------------------------------------------------------------
+    # --- frames by stem (the index-based readers below call these) ---------------------
+
+    def rgba_of(self, stem: str, intrinsics: Intrinsics) -> np.ndarray:
+        """The frame's PNG (a foreign folder's PNG or JPEG) as straight-alpha sRGB in [0, 1];
+        an image without alpha gets alpha 1. Returns [H, W, 4] float32."""
+        image = self.frame_file(stem, "png", lambda path, data: _decode_colour(path, data, intrinsics))
+        if image.ndim == 2:
+            image = image[..., None]
+        if image.shape[-1] in (1, 2):  # gray (+ alpha)
+            image = np.concatenate([np.repeat(image[..., :1], 3, axis=-1), image[..., 1:]], axis=-1)
+        if image.shape[-1] == 3:
+            image = np.concatenate([image, np.ones_like(image[..., :1])], axis=-1)
+        return image
+
+    def depth_of(self, stem: str, intrinsics: Intrinsics, kind: str = "distance") -> np.ndarray:
+        """Ground-truth depth: "distance" (along the ray) or "z" (along the optical axis). [H, W]."""
+        if kind not in DEPTH_KINDS:
+            raise InputError(f"unknown depth kind {kind!r}; choose distance or z")
+        return self.frame_file(stem, "distance" if kind == "distance" else "z_depth",
+                               lambda path, data: read_exr_single(path, data, intrinsics))
+
+    def mask_of(self, stem: str, intrinsics: Intrinsics) -> np.ndarray:
+        """Pixels whose centre ray hits geometry. Returns [H, W] bool."""
+        mask = self.frame_file(stem, "mask", lambda path, data: read_png(path, data, intrinsics))
+        return (mask if mask.ndim == 2 else mask[..., 0]) > 0.5
+
+    def instance_of(self, stem: str, intrinsics: Intrinsics) -> np.ndarray:
+        """The frame's 16-bit instance PNG as integer ids. Returns [H, W] int64."""
+        ids = self.frame_file(stem, "instance", lambda path, data: read_png(path, data, intrinsics))
+        if ids.ndim != 2:
+            raise InputError(f"frame {stem}: instance image must be one 16-bit channel, got shape {ids.shape}")
+        return np.rint(ids.astype(np.float64) * 65535.0).astype(np.int64)
+
+    # --- frames by split and index ------------------------------------------------------
 
     def _stem(self, split: str, index: int) -> str:
         return self.frames(split)[index]
 
     def image(self, split: str, index: int) -> np.ndarray:
         """[H, W, 4] float32 straight-alpha sRGB in [0, 1] (the PNG)."""
-        return read_rgba(self, self._stem(split, index), self.intrinsics(split))
+        return self.rgba_of(self._stem(split, index), self.intrinsics(split))
 
     def image_linear(self, split: str, index: int) -> np.ndarray:
         """[H, W, 4] float32 linear premultiplied RGBA (the EXR)."""
@@ -360,7 +395,7 @@ class Dataset:
 
     def depth(self, split: str, index: int, kind: str = "distance") -> np.ndarray:
         """[H, W] float32, 0 = miss; kind "distance" (along the ray) or "z" (optical axis)."""
-        return read_depth(self, self._stem(split, index), self.intrinsics(split), kind)
+        return self.depth_of(self._stem(split, index), self.intrinsics(split), kind)
 
     def normals(self, split: str, index: int) -> np.ndarray:
         """[H, W, 3] float32 world-space normals, 0 on misses."""
@@ -374,7 +409,7 @@ class Dataset:
 
     def mask(self, split: str, index: int) -> np.ndarray:
         """[H, W] bool: the pixel-centre ray hits geometry."""
-        return read_mask(self, self._stem(split, index), self.intrinsics(split))
+        return self.mask_of(self._stem(split, index), self.intrinsics(split))
 
     @property
     def manifest_files(self) -> frozenset:
@@ -425,7 +460,7 @@ class Dataset:
     def instance(self, split: str, index: int) -> np.ndarray:
         """[H, W] int64 instance ids of the pixel-centre rays' shapes, 0 = miss (the hit
         mask is exactly instance > 0); names in instance_names()."""
-        return read_instance(self, self._stem(split, index), self.intrinsics(split))
+        return self.instance_of(self._stem(split, index), self.intrinsics(split))
 
     def instance_names(self) -> dict:
         """{id: shape name} from scene.json's "instances" legend ({} if it has none)."""
@@ -455,23 +490,10 @@ class Dataset:
         return self.frame_file(stem, "noise", lambda path, data: json_from_bytes(data, path, finite=True))
 
 
-# --- the module-level readers: the same code, for callers holding a path ----------------
-
-
 def open_dataset(root) -> Dataset:
-    """`root` itself if it is a Dataset already, else Dataset(root)."""
+    """`root` itself if it is a Dataset already, else Dataset(root): the one adapter for
+    callers that are handed either; everything else reads through Dataset's methods."""
     return root if isinstance(root, Dataset) else Dataset(root)
-
-
-def require_complete(root) -> Path:
-    """The dataset folder, or an InputError if it is missing, unfinished or fails the
-    checks on open (Dataset)."""
-    return open_dataset(root).root
-
-
-def read_split(root, split: str) -> SplitCameras:
-    """Cameras of one split from transforms_<split>.json (NeRF-synthetic, with our extras)."""
-    return open_dataset(root).cameras(split)
 
 
 def _decode_colour(path, data: bytes, intrinsics: Intrinsics) -> np.ndarray:
@@ -487,43 +509,3 @@ def _decode_colour(path, data: bytes, intrinsics: Intrinsics) -> np.ndarray:
         raise
     except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as error:
         raise InputError(f"cannot read image {path}: {error}") from None
-
-
-def read_rgba(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
-    """The frame's PNG (a foreign folder's PNG or JPEG) as straight-alpha sRGB in [0, 1];
-    an image without alpha gets alpha 1. Returns [H, W, 4] float32."""
-    image = open_dataset(root).frame_file(stem, "png", lambda path, data: _decode_colour(path, data, intrinsics))
-    if image.ndim == 2:
-        image = image[..., None]
-    if image.shape[-1] in (1, 2):  # gray (+ alpha)
-        image = np.concatenate([np.repeat(image[..., :1], 3, axis=-1), image[..., 1:]], axis=-1)
-    if image.shape[-1] == 3:
-        image = np.concatenate([image, np.ones_like(image[..., :1])], axis=-1)
-    return image
-
-
-def read_depth(root, stem: str, intrinsics: Intrinsics, kind: str = "distance") -> np.ndarray:
-    """Ground-truth depth: "distance" (along the ray) or "z" (along the optical axis). [H, W]."""
-    if kind not in DEPTH_KINDS:
-        raise InputError(f"unknown depth kind {kind!r}; choose distance or z")
-    return open_dataset(root).frame_file(stem, "distance" if kind == "distance" else "z_depth",
-                                         lambda path, data: read_exr_single(path, data, intrinsics))
-
-
-def read_mask(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
-    """Pixels whose centre ray hits geometry. Returns [H, W] bool."""
-    mask = open_dataset(root).frame_file(stem, "mask", lambda path, data: read_png(path, data, intrinsics))
-    return (mask if mask.ndim == 2 else mask[..., 0]) > 0.5
-
-
-def read_instance(root, stem: str, intrinsics: Intrinsics) -> np.ndarray:
-    """The frame's 16-bit instance PNG as integer ids. Returns [H, W] int64."""
-    ids = open_dataset(root).frame_file(stem, "instance", lambda path, data: read_png(path, data, intrinsics))
-    if ids.ndim != 2:
-        raise InputError(f"frame {stem}: instance image must be one 16-bit channel, got shape {ids.shape}")
-    return np.rint(ids.astype(np.float64) * 65535.0).astype(np.int64)
-
-
-def read_scene_json(root) -> dict:
-    """scene.json as validated on open ({} for a dataset without one)."""
-    return open_dataset(root).scene

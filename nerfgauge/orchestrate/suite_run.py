@@ -21,7 +21,7 @@ from pathlib import Path
 
 from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.orchestrate.suite import OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
-from nerfgauge.core.dataset import read_scene_json
+from nerfgauge.core.dataset import open_dataset
 from nerfgauge.eval.baselines import baseline_folder, write_baseline
 from nerfgauge.eval.geometry import score_geometry, summary
 from nerfgauge.nerf.mesh import NoSurface, mesh_from_run, ply_bytes
@@ -59,7 +59,7 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
         extras[entry.id] = {"train_seconds": summary["seconds"], "model_bytes": summary["model_bytes"],
                             "steps": summary["steps"], "geometry": geometry_of(suite, data, run_dir, log)}
         stages["geometry"], clock = time.perf_counter() - clock, time.perf_counter()
-        layout = read_scene_json(data).get("camera", {}).get("layout")
+        layout = open_dataset(data).scene.get("camera", {}).get("layout")
         for method in methods_for(suite, layout):
             target = predictions / method / entry.id
             with baseline_folder(data, method, target, split, overwrite=True):
