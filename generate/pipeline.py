@@ -378,9 +378,18 @@ def noise_summary(out: Path, stems: dict, config: GenerateConfig) -> dict:
 
 
 def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool = False,
-             progress: bool = True, scheduler: Optional[str] = None) -> dict:
+             progress: bool = True, scheduler: Optional[str] = None, points: str = "surface") -> dict:
     """Render the dataset into `out`. Returns timing: views rendered, seconds, render seconds.
-    `scheduler` (tcp://HOST:PORT or local:N) renders on a dask cluster (generate.distributed)."""
+    `scheduler` (tcp://HOST:PORT or local:N) renders on a dask cluster (generate.distributed).
+    points: the initial points of the COLMAP export (generate.points, KIND[:COUNT]); not part
+    of the recipe: the export is a function of the rendered dataset and this spec."""
+    from nerfgauge.generate.points import parse_spec
+
+    points_spec = parse_spec(points)
+    if points_spec.kind == "sfm":
+        from nerfgauge.generate.export import require_pycolmap
+
+        require_pycolmap("--points sfm")
     if not isinstance(workers, int) or workers < 1:
         raise InputError(f"--workers must be a positive integer, got {workers!r}")
     if scheduler is not None:
@@ -402,10 +411,11 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
 
         cluster = dask_client(scheduler)  # connected before the folder is touched: an unreachable one writes nothing
     with cluster as client, claim_folder(out, "dataset", recipe_hash(recipe), overwrite=overwrite):
-        return _generate_claimed(out, the_plan, recipe, workers, progress, client)
+        return _generate_claimed(out, the_plan, recipe, workers, progress, client, points_spec)
 
 
-def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, progress: bool, client=None) -> dict:
+def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, progress: bool, client=None,
+                      points="surface") -> dict:
     """The run, while this process holds `out`'s write lock."""
     start = time.perf_counter()
     write_json(out / CONFIG, recipe)  # what the folder is made from (the same bytes when resuming)
@@ -416,7 +426,16 @@ def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, pro
     from nerfgauge.generate.workers import render_views  # imports mitsuba
 
     render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress, client=client)
-    if todo or not (out / dataset.MANIFEST).is_file():
+    finished = bool(todo) or not (out / dataset.MANIFEST).is_file()
+    if finished:
         finish(out, the_plan)
+    from nerfgauge.generate.export import export_colmap, export_current
+
+    export = None
+    lens = the_plan.lens("train")
+    if lens is not None and not lens.is_pinhole:
+        pass  # no COLMAP camera model states a thin lens: `nerfgauge export colmap` says so in one line
+    elif finished or not export_current(out, points):  # after finish: the same code as `nerfgauge export colmap`
+        export = export_colmap(out, points)
     return {"views_rendered": len(todo), "seconds": time.perf_counter() - start, "render_seconds": render_seconds,
-            "variant": the_plan.variant}
+            "variant": the_plan.variant, "export": export}
