@@ -54,10 +54,11 @@ def register(subparsers) -> None:
     register_baseline(subparsers)
     register_bench(subparsers)
     register_geometry(subparsers)
-    from nerfgauge.eval import lpips_commands, suite_commands
+    from nerfgauge.eval import lpips_commands, sfm, suite_commands
 
     suite_commands.register(subparsers)
     lpips_commands.register(subparsers)
+    sfm.register(subparsers)
 
 
 def register_check(subparsers) -> None:

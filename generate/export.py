@@ -93,6 +93,8 @@ def require_pycolmap(what: str):
         import pycolmap
     except ImportError:
         raise InputError(f"{what} needs pycolmap, which is not installed; pip install 'nerfgauge[colmap]'") from None
+    if not os.environ.get("NERFGAUGE_DEBUG"):
+        pycolmap.logging.minloglevel = 3  # COLMAP's progress log would bury the command's one line
     return pycolmap
 
 
