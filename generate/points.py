@@ -157,12 +157,15 @@ def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.n
 
 def distance_to_surface(points: np.ndarray, vertices, faces, rng, known_faces=None) -> np.ndarray:
     """Upper bound of each point's distance to the mesh (module docstring). [n].
-    known_faces [n]: a triangle each point is known to be near (its own, for surface
-    samples), added to the candidates."""
-    from scipy.spatial import cKDTree
-
+    known_faces [n]: the triangle each point was sampled on (surface samples): the distance
+    to it, about 1e-16, is the bound, and no search is made."""
     if not len(points):
         return np.zeros(0)
+    if known_faces is not None:  # the point's own triangle: its distance bounds the one to the surface
+        face = faces[known_faces]
+        return point_triangle_distance(points, vertices[face[:, 0]], vertices[face[:, 1]], vertices[face[:, 2]])
+    from scipy.spatial import cKDTree
+
     samples, sample_face = sample_triangles(vertices, faces, DISTANCE_SAMPLES, rng)
     centroids = vertices[faces].mean(axis=1)
     reference = np.concatenate([samples, centroids])
@@ -171,9 +174,6 @@ def distance_to_surface(points: np.ndarray, vertices, faces, rng, known_faces=No
     _, nearest = cKDTree(reference).query(points, k=k)
     nearest = np.asarray(nearest).reshape(len(points), k)
     best = np.full(len(points), np.inf)
-    if known_faces is not None:
-        face = faces[known_faces]
-        best = point_triangle_distance(points, vertices[face[:, 0]], vertices[face[:, 1]], vertices[face[:, 2]])
     for column in range(k):
         face = faces[reference_face[nearest[:, column]]]
         best = np.minimum(best, point_triangle_distance(points, vertices[face[:, 0]], vertices[face[:, 1]],
@@ -191,26 +191,33 @@ def distance_summary(distance: np.ndarray, diagonal: float) -> dict:
 # --- surface points ---------------------------------------------------------------------
 
 
-def _seen(points, normals, pose, intrinsics, depth) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of `points` one view sees (eval/geometry.py's depth test) and their pixels
-    (flat index row * width + col)."""
-    from nerfgauge.core.colmap import project
-
-    uv, _ = project(points, pose, intrinsics)
-    offset = points - pose[:3, 3]
-    distance = np.linalg.norm(offset, axis=1)
-    with np.errstate(invalid="ignore"):
-        inside = ((uv[:, 0] >= 0) & (uv[:, 0] < intrinsics.width) & (uv[:, 1] >= 0) & (uv[:, 1] < intrinsics.height)
-                  & (offset @ -pose[:3, 2] > 0))
-    index = np.flatnonzero(inside)
-    pixel = uv[index, 1].astype(np.int64) * intrinsics.width + uv[index, 0].astype(np.int64)
-    recorded = depth.astype(np.float64).ravel()[pixel]
+def _seen(xyz, nrm, pose, intrinsics, depth) -> tuple[np.ndarray, np.ndarray]:
+    """Columns of xyz [3, m] (unit normals nrm [3, m]) one view sees (eval/geometry.py's depth
+    test) and their pixels (flat index row * width + col). Component-wise arithmetic on
+    contiguous rows: this runs once per train view over every candidate."""
+    dx, dy, dz = xyz[0] - pose[0, 3], xyz[1] - pose[1, 3], xyz[2] - pose[2, 3]
+    r = pose[:3, :3]
+    depth_along = -(r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz)  # OpenGL camera looks along -Z
+    front = np.flatnonzero(depth_along > 1e-12)
+    dx, dy, dz, depth_along = dx[front], dy[front], dz[front], depth_along[front]
+    u = intrinsics.fx * (r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz) / depth_along + intrinsics.cx
+    v = -intrinsics.fy * (r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz) / depth_along + intrinsics.cy
+    inside = np.flatnonzero((u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height))
+    index = front[inside]
+    dx, dy, dz = dx[inside], dy[inside], dz[inside]
+    pixel = v[inside].astype(np.int64) * intrinsics.width + u[inside].astype(np.int64)
+    recorded = depth.ravel()[pixel].astype(np.float64)
+    distance = np.sqrt(dx * dx + dy * dy + dz * dz)
     cap = math.tan(math.radians(GRAZING_CAP_DEGREES))
     half_pixel = math.sqrt(2) / (2 * max(intrinsics.fx, intrinsics.fy))
-    cos = np.clip(np.abs(np.einsum("ij,ij->i", normals[index], offset[index])) / np.maximum(distance[index], 1e-300),
+    gap = np.abs(recorded - distance)
+    near = np.flatnonzero((recorded > 0) & (gap <= distance * (half_pixel * cap + 1e-5)))  # widest tolerance first
+    index, pixel, distance, gap = index[near], pixel[near], distance[near], gap[near]
+    dx, dy, dz = dx[near], dy[near], dz[near]
+    cos = np.clip(np.abs(nrm[0, index] * dx + nrm[1, index] * dy + nrm[2, index] * dz) / np.maximum(distance, 1e-300),
                   1e-12, 1.0)
     tan = np.minimum(np.sqrt(1 - cos ** 2) / cos, cap)
-    ok = (recorded > 0) & (np.abs(recorded - distance[index]) <= distance[index] * (half_pixel * tan + 1e-5))
+    ok = gap <= distance * (half_pixel * tan + 1e-5)
     return index[ok], pixel[ok]
 
 
@@ -224,11 +231,12 @@ def surface_points(ds, count: int, seed: int, vertices, faces) -> InitialPoints:
     for _ in range(8):  # rounds: each draws a fresh batch and keeps what some view sees
         points, face = sample_triangles(vertices, faces, batch, rng)
         normals = normals_of_face[face]
+        xyz_rows, normal_rows = np.ascontiguousarray(points.T), np.ascontiguousarray(normals.T)
         colour_sum = np.zeros((len(points), 3))
         seen_by = np.zeros(len(points), np.int64)
         for index, pose in enumerate(cameras.c2w):
             depth = ds.depth("train", index, kind="distance")
-            which, pixel = _seen(points, normals, pose, cameras.intrinsics, depth)
+            which, pixel = _seen(xyz_rows, normal_rows, pose, cameras.intrinsics, depth)
             if not len(which):
                 continue
             image = ds.image("train", index)[..., :3].reshape(-1, 3)

@@ -241,14 +241,12 @@ def points3D_txt(points: Points) -> bytes:
     head = ["# 3D point list with one line of data per point:",
             "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
             f"# Number of points: {n}, mean track length: {mean:g}"]
-    xyz, rgb, error = points.xyz.tolist(), points.rgb.tolist(), points.error.tolist()
-    lines = []
-    for k in range(n):
-        track = "" if points.tracks is None else "".join(
-            f" {int(i)} {int(j)}" for i, j in np.asarray(points.tracks[k]).reshape(-1, 2))
-        x, y, z = xyz[k]
-        r, g, b = rgb[k]
-        lines.append(f"{points.ids[k]} {x!r} {y!r} {z!r} {r} {g} {b} {error[k]!r}{track}")
+    ids, xyz, rgb, error = points.ids.tolist(), points.xyz.tolist(), points.rgb.tolist(), points.error.tolist()
+    if points.tracks is None:
+        lines = [f"{i} {x!r} {y!r} {z!r} {r} {g} {b} {e!r}" for i, (x, y, z), (r, g, b), e in zip(ids, xyz, rgb, error)]
+    else:
+        lines = [f"{i} {x!r} {y!r} {z!r} {r} {g} {b} {e!r}" + "".join(f" {a} {c}" for a, c in np.asarray(t).reshape(-1, 2).tolist())
+                 for i, (x, y, z), (r, g, b), e, t in zip(ids, xyz, rgb, error, points.tracks)]
     return ("\n".join(head + lines) + "\n").encode()
 
 
