@@ -49,7 +49,7 @@ IMAGES_DIR = "images"
 PLY = f"{MODEL_DIR}/points3D.ply"
 POINTS_NOTE = {
     "surface": "samples of the ground-truth meshes (uniform by area) that some train view sees; colour: mean of the "
-               "train PNG pixels that see each",
+               "8-bit sRGB train PNG pixels of the first 4 train views (in order) that see each",
     "random": "uniform in scene.json bounds, uniform random colours",
     "sfm": "pycolmap SIFT features of the train images, matched exhaustively, triangulated with the exact poses",
     "none": "no points",

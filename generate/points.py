@@ -2,8 +2,8 @@
 
     surface[:N]  N samples of the ground-truth meshes (uniform by area) that some train view
                  sees, by the exact depth test of eval/geometry.py's visibility rule; each
-                 coloured with the mean, over the train views that see it, of the 8-bit sRGB
-                 PNG pixel it falls in. The points are on the triangles up to float64
+                 coloured with the mean, over the first COLOUR_VIEWS (4) train views (in their
+                 order) that see it, of the 8-bit sRGB PNG pixel it falls in. The points are on the triangles up to float64
                  rounding (points3D.bin keeps float64; the PLY float32).
     random[:N]   N points uniform in the scene's bounds (scene.json "bounds"), uniform random
                  colours: what splatting methods start from without SfM.
@@ -43,6 +43,7 @@ DISTANCE_SAMPLES = 200_000
 NEAREST_SAMPLES = 16
 GRAZING_CAP_DEGREES = 80.0  # eval/geometry.py's visibility rule
 MIN_SFM_POINTS = 10
+COLOUR_VIEWS = 4  # a surface point's colour: the mean over the first train views (in order) that see it
 
 
 @dataclass(frozen=True)
@@ -227,21 +228,29 @@ def surface_points(ds, count: int, seed: int, vertices, faces) -> InitialPoints:
     rng = rng_for(seed)
     normals_of_face = face_normals(vertices, faces)
     kept_xyz, kept_rgb, kept_normal, kept_face, total = [], [], [], [], 0
-    batch = max(1024, int(count * 1.5))
+    batch = max(1024, int(count * 1.25))
     for _ in range(8):  # rounds: each draws a fresh batch and keeps what some view sees
         points, face = sample_triangles(vertices, faces, batch, rng)
         normals = normals_of_face[face]
         xyz_rows, normal_rows = np.ascontiguousarray(points.T), np.ascontiguousarray(normals.T)
         colour_sum = np.zeros((len(points), 3))
         seen_by = np.zeros(len(points), np.int64)
+        left = np.arange(len(points))  # samples seen by fewer than COLOUR_VIEWS views so far
         for index, pose in enumerate(cameras.c2w):
+            if not len(left):
+                break
             depth = ds.depth("train", index, kind="distance")
             which, pixel = _seen(xyz_rows, normal_rows, pose, cameras.intrinsics, depth)
             if not len(which):
                 continue
+            which = left[which]
             image = ds.image("train", index)[..., :3].reshape(-1, 3)
             colour_sum[which] += image[pixel]
             seen_by[which] += 1
+            done = seen_by[left] >= COLOUR_VIEWS
+            if done.sum() * 8 >= len(left):  # compact when it pays
+                left = left[~done]
+                xyz_rows, normal_rows = xyz_rows[:, ~done], normal_rows[:, ~done]
         visible = np.flatnonzero(seen_by > 0)
         kept_xyz.append(points[visible])
         kept_rgb.append(colour_sum[visible] / seen_by[visible, None])
