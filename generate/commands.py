@@ -73,8 +73,10 @@ def run(args) -> int:
     config = GenerateConfig(scene=args.scene, **options.generate_fields(args))
     result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet,
                       scheduler=args.scheduler, points=args.points)
-    rendered = result["views_rendered"]
+    rendered, export = result["views_rendered"], result.get("export")
+    exported = (f"; COLMAP model with {export['points']} {export['kind']} points in {export['seconds']:.1f} s"
+                if export else "")
     print(f"{args.out}: {rendered} views rendered in {result['seconds']:.1f} s "
-          f"({result['variant']}; Mitsuba render {result['render_seconds']:.1f} s)"
-          if rendered else f"{args.out}: complete, nothing to render")
+          f"({result['variant']}; Mitsuba render {result['render_seconds']:.1f} s{exported})"
+          if rendered else f"{args.out}: complete, nothing to render{exported}")
     return 0
