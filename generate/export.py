@@ -232,10 +232,8 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
         "requested": spec.count, "seed": seed, "note": POINTS_NOTE[spec.kind],
         "files": [f"{MODEL_DIR}/points3D.bin", f"{MODEL_DIR}/points3D.txt"] + ([PLY] if spec.kind != "none" else []),
         "distance_to_surface": {**points_module.distance_summary(distance, diagonal), "diagonal": diagonal,
-                                "method": "exact point-to-triangle distance to the nearest candidate triangle "
-                                          f"(those of the {points_module.NEAREST_SAMPLES} nearest of "
-                                          f"{points_module.DISTANCE_SAMPLES} area samples and face centroids): "
-                                          "an upper bound, in scene units"},
+                                "method": points_module.DISTANCE_METHOD[
+                                    "surface" if initial.faces is not None else "search"]},
     }
     scene["colmap"] = {
         "model": MODEL_DIR, "formats": ["bin", "txt"], "images": IMAGES_DIR,
