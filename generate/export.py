@@ -23,9 +23,10 @@ byte-deterministic, and `generate --points X` equals `generate` then `export col
 files are written first (atomically each), then manifest.json is removed (the dataset
 reads as incomplete, never as valid with a stale manifest), transforms.json and scene.json
 are replaced, files of an earlier export no longer produced are removed, and manifest.json
-is written last, hashing every file. A kill in between leaves a dataset without a
-manifest, which readers refuse in one line; `nerfgauge generate` with the same recipe
-finishes it.
+is written last, hashing every file. Before removing the manifest, a rollback journal
+(`.nerfgauge-export.json`: the manifest and the JSON files about to be replaced) is written:
+a kill in between leaves a dataset without a manifest, which readers refuse in one line,
+and the next `export colmap` (or `generate` with the same recipe) restores and redoes it.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from nerfgauge.generate import points as points_module
 MODEL_DIR = "sparse/0"
 IMAGES_DIR = "images"
 PLY = f"{MODEL_DIR}/points3D.ply"
+JOURNAL = ".nerfgauge-export.json"  # hidden: not part of the manifest; exists only during an export
 POINTS_NOTE = {
     "surface": "samples of the ground-truth meshes (uniform by area) that some train view sees; colour: mean of the "
                "8-bit sRGB train PNG pixels of the first 4 train views (in order) that see each",
@@ -259,7 +261,10 @@ def _replace_in_dataset(root: Path, files: dict, links: dict, replaced: dict) ->
     for name, source in links.items():
         _link_or_copy(source, root / IMAGES_DIR / name)
     manifest = root / dataset_module.MANIFEST
-    if manifest.is_file():
+    if manifest.is_file():  # a rollback journal first: a killed export can be undone, then redone
+        journal = {"manifest": manifest.read_text(),
+                   "files": {rel: (root / rel).read_text() for rel in replaced if (root / rel).is_file()}}
+        write_bytes_atomic(root / JOURNAL, json_bytes(journal))
         manifest.unlink()
     for rel, data in replaced.items():
         write_bytes_atomic(root / rel, data)
@@ -272,6 +277,23 @@ def _replace_in_dataset(root: Path, files: dict, links: dict, replaced: dict) ->
     listed = [p.relative_to(root).as_posix() for p in sorted(root.rglob("*"))
               if p.is_file() and p.name != dataset_module.MANIFEST and not p.name.startswith(".")]
     dataset_module.write_manifest(root, listed)
+    if (root / JOURNAL).is_file():
+        (root / JOURNAL).unlink()
+
+
+def roll_back(root: Path) -> bool:
+    """Undo an export killed after it removed manifest.json (its journal holds the manifest
+    and the JSON files it replaced): the dataset is again what it was before. Call under
+    the folder's lock. Returns whether there was anything to undo."""
+    journal_path = root / JOURNAL
+    if not journal_path.is_file() or (root / dataset_module.MANIFEST).is_file():
+        return False
+    journal = read_json(journal_path)
+    for rel, text in journal["files"].items():
+        write_bytes_atomic(root / rel, text.encode())
+    write_bytes_atomic(root / dataset_module.MANIFEST, journal["manifest"].encode())
+    journal_path.unlink()
+    return True
 
 
 def export_current(root, spec) -> bool:
@@ -305,6 +327,8 @@ def export_command(root, spec) -> dict:
                          "export writes only into nerfgauge's own datasets")
     if spec.kind == "sfm":
         require_pycolmap("--points sfm")
-    check_exportable(Dataset(root))  # before the lock: bad input writes nothing
+    if not (root / JOURNAL).is_file():
+        check_exportable(Dataset(root))  # before the lock: bad input writes nothing
     with folder_lock(root):
+        roll_back(root)  # an earlier export killed half-way: back to the dataset before it
         return export_colmap(root, spec)

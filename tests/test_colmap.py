@@ -352,3 +352,26 @@ def test_sfm_points_and_the_sfm_command_on_a_textured_dataset(tmp_path, capsys):
                 "reprojection_error_px", "points"):
         assert key in document
     assert pycolmap.Reconstruction(tmp_path / "sfm" / "sparse" / "0").num_reg_images() == document["registered"]
+
+
+def test_an_export_killed_after_removing_the_manifest_is_rolled_back_and_redone(colmap_dataset, tmp_path,
+                                                                                   monkeypatch, capsys):
+    """The moment a kill hurts most: transforms.json and scene.json replaced, no manifest."""
+    from nerfgauge.core import dataset as dataset_module
+    from nerfgauge.generate import export
+
+    copy = tmp_path / "copy"
+    shutil.copytree(colmap_dataset, copy, symlinks=True)
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dataset_module, "write_manifest", killed)
+    with pytest.raises(KeyboardInterrupt):
+        export.export_command(copy, "random:100")
+    monkeypatch.undo()
+    assert not (copy / "manifest.json").exists() and (copy / export.JOURNAL).is_file()
+    assert json.loads((copy / "scene.json").read_text())["points"]["kind"] == "random"
+    one_line_exit_2(capsys, ["evaluate", copy, "--pred", tmp_path / "none", "--out", tmp_path / "m.json"], "incomplete")
+    assert main(["export", "colmap", str(copy), "--points", "surface:2000"]) == 0
+    assert tree_bytes(copy) == tree_bytes(colmap_dataset)
