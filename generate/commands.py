@@ -43,8 +43,8 @@ def register(subparsers) -> None:
 def add_points_argument(parser) -> None:
     parser.add_argument("--points", default="surface", metavar="KIND[:COUNT]",
                         help="initial points of the COLMAP model (sparse/0) and of transforms.json's ply_file_path: "
-                             "surface (default, 100000 mesh samples some train view sees), random (100000 in the "
-                             "scene bounds), sfm (features triangulated with the exact poses; needs pycolmap) or none")
+                             "surface (default: 100000 mesh samples some train view sees, or one per 16 train "
+                             "pixels if fewer), random (as many, in the scene bounds), sfm (features triangulated with the exact poses; needs pycolmap) or none")
 
 
 def register_export(subparsers) -> None:

@@ -79,6 +79,10 @@ def check_exportable(ds: Dataset) -> None:
 
 
 def compute_points(ds: Dataset, spec: points_module.PointsSpec, seed: int, vertices, faces):
+    if spec.kind in ("surface", "random") and spec.count is None:
+        cameras = ds.cameras("train")
+        spec = points_module.PointsSpec(spec.kind, points_module.default_count(
+            len(cameras.stems), cameras.intrinsics.width, cameras.intrinsics.height))
     if spec.kind == "surface":
         return points_module.surface_points(ds, spec.count, seed, vertices, faces)
     if spec.kind == "random":

@@ -1,11 +1,11 @@
 """Initial points for splatting methods, a controlled variable: `--points KIND[:COUNT]`.
 
-    surface[:N]  N samples of the ground-truth meshes (uniform by area) that some train view
+    surface[:N]  N (default: 100,000, or one per 16 train pixels if fewer) samples of the ground-truth meshes (uniform by area) that some train view
                  sees, by the exact depth test of eval/geometry.py's visibility rule; each
                  coloured with the mean, over the first COLOUR_VIEWS (4) train views (in their
                  order) that see it, of the 8-bit sRGB PNG pixel it falls in. The points are on the triangles up to float64
                  rounding (points3D.bin keeps float64; the PLY float32).
-    random[:N]   N points uniform in the scene's bounds (scene.json "bounds"), uniform random
+    random[:N]   N (same default) points uniform in the scene's bounds (scene.json "bounds"), uniform random
                  colours: what splatting methods start from without SfM.
     sfm[:N]      what a real pipeline has: pycolmap extracts SIFT features from the train
                  images, matches them exhaustively and triangulates them with the exact poses
@@ -36,7 +36,9 @@ import numpy as np
 from nerfgauge.core.errors import InputError
 
 KINDS = ("surface", "sfm", "random", "none")
-DEFAULT_COUNT = {"surface": 100_000, "random": 100_000, "sfm": None, "none": 0}
+DEFAULT_COUNT = {"surface": None, "random": None, "sfm": None, "none": 0}  # None: default_count (sfm: all)
+MAX_DEFAULT_COUNT = 100_000
+PIXELS_PER_DEFAULT_POINT = 16
 MAX_COUNT = 10_000_000
 DEFAULT_SPEC = "surface"
 SEED_TAG = 3232  # the points' generator: default_rng([dataset seed, SEED_TAG])
@@ -58,7 +60,7 @@ class PointsSpec:
     count: Optional[int]  # None: every point (sfm)
 
     def to_text(self) -> str:
-        return self.kind if self.count is None or self.count == DEFAULT_COUNT[self.kind] else f"{self.kind}:{self.count}"
+        return self.kind if self.count == DEFAULT_COUNT[self.kind] else f"{self.kind}:{self.count}"
 
 
 def parse_spec(text) -> PointsSpec:
@@ -92,6 +94,13 @@ class InitialPoints:
     tracks: Optional[list] = None
     points2D: Optional[dict] = None
     faces: Optional[np.ndarray] = None  # surface: the triangle each point was sampled on
+
+
+def default_count(train_views: int, width: int, height: int) -> int:
+    """`surface` and `random` without a count: 100,000 points (what 3DGS starts synthetic
+    scenes from), or one per 16 train pixels when the train images hold fewer (a 32 px test
+    dataset gets hundreds, not a hundred thousand)."""
+    return max(1, min(MAX_DEFAULT_COUNT, train_views * width * height // PIXELS_PER_DEFAULT_POINT))
 
 
 def rng_for(seed: int) -> np.random.Generator:
