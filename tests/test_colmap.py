@@ -375,3 +375,16 @@ def test_an_export_killed_after_removing_the_manifest_is_rolled_back_and_redone(
     one_line_exit_2(capsys, ["evaluate", copy, "--pred", tmp_path / "none", "--out", tmp_path / "m.json"], "incomplete")
     assert main(["export", "colmap", str(copy), "--points", "surface:2000"]) == 0
     assert tree_bytes(copy) == tree_bytes(colmap_dataset)
+
+
+def test_sfm_points_with_too_few_matches_are_one_line_and_change_nothing(colmap_dataset, capsys):
+    before = tree_bytes(colmap_dataset)
+    one_line_exit_2(capsys, ["export", "colmap", colmap_dataset, "--points", "sfm"], "too few feature matches")
+    assert tree_bytes(colmap_dataset) == before
+
+
+def test_default_count_follows_the_train_pixels():
+    assert points_module.default_count(100, 128, 128) == 100_000
+    assert points_module.default_count(4, 32, 32) == 256
+    assert points_module.parse_spec("surface").to_text() == "surface"
+    assert points_module.parse_spec("surface:5000").to_text() == "surface:5000"
