@@ -42,7 +42,7 @@ from nerfgauge.core import colmap
 from nerfgauge.core import dataset as dataset_module
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import json_bytes, read_json, write_bytes_atomic
+from nerfgauge.core.files import json_bytes, json_from_bytes, read_json, write_bytes_atomic
 from nerfgauge.generate import points as points_module
 
 MODEL_DIR = "sparse/0"
@@ -211,6 +211,13 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
     check_exportable(ds)
     if spec.kind == "sfm":
         require_pycolmap("--points sfm")
+    # The new manifest must not bless a file changed since it was written; the export's own
+    # files (an earlier export, or one rolled back) are rewritten from verified ones anyway.
+    changed = [rel for rel in dataset_module.verify_manifest(root)
+               if not rel.startswith((f"{MODEL_DIR}/", f"{IMAGES_DIR}/"))]
+    if changed:
+        raise InputError(f"dataset {root}: {len(changed)} file(s) differ from its manifest.json (first: {changed[0]}); "
+                         "regenerate it before exporting")
     seed = int(ds.scene.get("seed", 0)) if isinstance(ds.scene.get("seed", 0), int) else 0
     cameras = ds.cameras("train")
     vertices, faces = points_module.read_meshes(ds)
@@ -228,7 +235,7 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
     files = {f"{MODEL_DIR}/{name}": data for name, data in model.items()}
     if spec.kind != "none":
         files[PLY] = points_module.ply_bytes(initial, spec.kind)
-    transforms = read_json(root / "transforms.json")
+    transforms = json_from_bytes(ds.read_bytes("transforms.json"), root / "transforms.json")
     transforms.pop("ply_file_path", None)
     if spec.kind != "none":
         transforms["ply_file_path"] = PLY
@@ -251,13 +258,15 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
     }
     _replace_in_dataset(root, files, {name: root / stem for name, stem in
                                       zip(names, (s + ".png" for s in cameras.stems))},
-                        {"transforms.json": json_bytes(transforms), "scene.json": json_bytes(scene)})
+                        {"transforms.json": json_bytes(transforms), "scene.json": json_bytes(scene)},
+                        ds.manifest_files)
     return {"points": int(len(initial.xyz)), "kind": spec.kind, "seconds": time.perf_counter() - start,
             "distance_mean": scene["points"]["distance_to_surface"]["mean"]}
 
 
-def _replace_in_dataset(root: Path, files: dict, links: dict, replaced: dict) -> None:
-    """New files, then manifest removed, replaced files, stale export files removed, manifest last."""
+def _replace_in_dataset(root: Path, files: dict, links: dict, replaced: dict, listed_before) -> None:
+    """New files, then manifest removed, replaced files, stale export files removed, manifest
+    last, listing what the old one listed (minus what was removed) and the new files."""
     for rel, data in files.items():
         (root / rel).parent.mkdir(parents=True, exist_ok=True)
         write_bytes_atomic(root / rel, data)
@@ -273,14 +282,15 @@ def _replace_in_dataset(root: Path, files: dict, links: dict, replaced: dict) ->
     for rel, data in replaced.items():
         write_bytes_atomic(root / rel, data)
     keep = set(files) | {f"{IMAGES_DIR}/{name}" for name in links}
+    removed = set()
     for folder in (root / IMAGES_DIR, root / MODEL_DIR):
         for path in sorted(folder.iterdir()):
             rel = path.relative_to(root).as_posix()
             if rel not in keep and not path.name.startswith(".") and (path.is_file() or path.is_symlink()):
                 path.unlink()
-    listed = [p.relative_to(root).as_posix() for p in sorted(root.rglob("*"))
-              if p.is_file() and p.name != dataset_module.MANIFEST and not p.name.startswith(".")]
-    dataset_module.write_manifest(root, listed)
+                removed.add(rel)
+    listed = (set(listed_before) - removed - {dataset_module.MANIFEST}) | keep | set(replaced)
+    dataset_module.write_manifest(root, sorted(listed))
     if (root / JOURNAL).is_file():
         (root / JOURNAL).unlink()
 

@@ -388,3 +388,14 @@ def test_default_count_follows_the_train_pixels():
     assert points_module.default_count(4, 32, 32) == 256
     assert points_module.parse_spec("surface").to_text() == "surface"
     assert points_module.parse_spec("surface:5000").to_text() == "surface:5000"
+
+
+def test_export_refuses_a_dataset_whose_files_changed(colmap_dataset, tmp_path, capsys):
+    """The export rewrites the manifest: it must not bless a file changed since generation."""
+    copy = tmp_path / "copy"
+    shutil.copytree(colmap_dataset, copy, symlinks=True)
+    depth = copy / "train" / "r_001_distance.exr"
+    depth.write_bytes(depth.read_bytes()[:-1] + b"\0")
+    before = tree_bytes(copy)
+    one_line_exit_2(capsys, ["export", "colmap", copy, "--points", "random:10"], "differ from its manifest.json")
+    assert tree_bytes(copy) == before
