@@ -25,6 +25,8 @@ from typing import Optional
 
 import numpy as np
 from nerfgauge.generate import layouts
+from nerfgauge.generate.export import export_colmap, export_current, require_pycolmap
+from nerfgauge.generate.points import parse_spec
 from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
 from nerfgauge.generate.mitsuba_scene import instance_names, write_meshes
 from nerfgauge.generate.render import NoiseTarget
@@ -356,9 +358,14 @@ def noise_summary(out: Path, stems: dict, config: GenerateConfig) -> dict:
 
 
 def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool = False,
-             progress: bool = True, scheduler: Optional[str] = None) -> dict:
+             progress: bool = True, scheduler: Optional[str] = None, points: str = "surface") -> dict:
     """Render the dataset into `out`. Returns timing: views rendered, seconds, render seconds.
-    `scheduler` (tcp://HOST:PORT or local:N) renders on a dask cluster (generate.distributed)."""
+    `scheduler` (tcp://HOST:PORT or local:N) renders on a dask cluster (generate.distributed).
+    points: the initial points of the COLMAP export (generate.points, KIND[:COUNT]); not part
+    of the recipe: the export is a function of the rendered dataset and this spec."""
+    points_spec = parse_spec(points)
+    if points_spec.kind == "sfm":
+        require_pycolmap("--points sfm")
     arguments.WORKERS.check(workers, "--workers")
     arguments.encodable_path(out, "--out")  # the API's path too: Mitsuba reads the meshes written under it
     if scheduler is not None:
@@ -376,10 +383,11 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
     if scheduler is not None:
         cluster = dask_client(scheduler)  # connected before the folder is touched: an unreachable one writes nothing
     with cluster as client, claim_folder(out, "dataset", recipe_hash(recipe), overwrite=overwrite):
-        return _generate_claimed(out, the_plan, recipe, workers, progress, client)
+        return _generate_claimed(out, the_plan, recipe, workers, progress, client, points_spec)
 
 
-def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, progress: bool, client=None) -> dict:
+def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, progress: bool, client=None,
+                      points="surface") -> dict:
     """The run, while this process holds `out`'s write lock."""
     start = time.perf_counter()
     write_json(out / CONFIG, recipe)  # what the folder is made from (the same bytes when resuming)
@@ -388,7 +396,14 @@ def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, pro
     if todo and (out / dataset.MANIFEST).is_file():
         (out / dataset.MANIFEST).unlink()  # views are missing: the dataset is not complete
     render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress, client=client)
-    if todo or not (out / dataset.MANIFEST).is_file():
+    finished = bool(todo) or not (out / dataset.MANIFEST).is_file()
+    if finished:
         finish(out, the_plan)
+    export = None
+    lens = the_plan.lens("train")
+    if lens is not None and not lens.is_pinhole:
+        pass  # no COLMAP camera model states a thin lens: `nerfgauge export colmap` says so in one line
+    elif finished or not export_current(out, points):  # after finish: the same code as `nerfgauge export colmap`
+        export = export_colmap(out, points)
     return {"views_rendered": len(todo), "seconds": time.perf_counter() - start, "render_seconds": render_seconds,
-            "variant": the_plan.variant}
+            "variant": the_plan.variant, "export": export}

@@ -62,12 +62,14 @@ def generate_dataset(scene: str, /, out, **options) -> Path:
 
     options: GenerateConfig fields (seed, views, val_views, test_views, width, height, spp,
     max_depth, fov, layout, sampling, elevation, radius, variant) and workers=1,
-    overwrite=False, progress=False. Returns the dataset folder.
+    overwrite=False, progress=False, points="surface" (the COLMAP export's initial points,
+    KIND[:COUNT]: docs/conventions.md "COLMAP"). Returns the dataset folder.
     """
     from nerfgauge.generate import pipeline  # trimesh (scenes), mitsuba: each stage loads on first use
 
     fields, settings = _split_options("generate_dataset", options, pipeline.GenerateConfig,
-                                      {"workers": 1, "overwrite": False, "progress": False}, first="scene")
+                                      {"workers": 1, "overwrite": False, "progress": False, "points": "surface"},
+                                      first="scene")
     pipeline.generate(pipeline.GenerateConfig(scene=scene, **fields), out, **settings)
     return Path(out)
 

@@ -20,7 +20,8 @@ Layout of a dataset folder:
   transforms_{train,val,test}.json NeRF-synthetic
   transforms.json                  nerfstudio
   scene.json                       recipe, seed, bounds, needs, variant, versions, instance
-                                   legend, noise per frame and per split
+                                   legend, noise per frame and per split, initial points
+  images/, sparse/0/               the COLMAP export of the train views (generate/export.py)
   manifest.json                    sha256 and size of every file above; written last
 
 Reading goes through `Dataset` (validated on open, every file confined to the root and

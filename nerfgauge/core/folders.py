@@ -27,7 +27,7 @@ from nerfgauge.core.files import json_bytes, read_json, write_json
 
 MARKER = ".nerfgauge.json"
 LOCK = ".nerfgauge.lock"
-KINDS = ("dataset", "run", "renders", "baseline", "evaluation", "pipeline", "suite", "bench")
+KINDS = ("dataset", "run", "renders", "baseline", "evaluation", "pipeline", "suite", "bench", "sfm")
 TEMPORARY_GLOB = ".*.tmp*"  # files.atomic_path's temporary names
 
 

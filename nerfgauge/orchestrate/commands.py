@@ -13,7 +13,7 @@ from pathlib import Path
 
 from nerfgauge.core import arguments
 from nerfgauge.generate.options import parse_resolution
-from nerfgauge.orchestrate import suite_commands
+from nerfgauge.orchestrate import sfm, suite_commands
 from nerfgauge.orchestrate.bench import VARIANTS, bench_generate, bench_train, speedups, table_markdown
 from nerfgauge.orchestrate.bench_hard import HardConfig, bench_hard, table_markdown as hard_table_markdown
 from nerfgauge.orchestrate.bench_lens import run_lens_bench
@@ -58,6 +58,7 @@ def names(text: str) -> tuple:
 def register(subparsers) -> None:
     register_bench(subparsers)
     suite_commands.register(subparsers)
+    sfm.register(subparsers)
 
 
 def register_bench(subparsers) -> None:
