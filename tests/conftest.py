@@ -3,6 +3,10 @@ small generated datasets, made once per session and shared read-only."""
 
 from __future__ import annotations
 
+import subprocess
+import uuid
+from pathlib import Path
+
 import pytest
 
 
@@ -84,3 +88,23 @@ def pytest_runtest_makereport(item, call):
     report = outcome.get_result()
     if report.failed and item.get_closest_marker("fuzz_fresh"):
         report.sections.append(("nerfgauge fuzz seed", _seed_line()))
+
+
+@pytest.fixture
+def mount_tmpfs(tmp_path):
+    """mount_tmpfs(options) -> a fresh tmpfs under tmp_path (unmounted afterwards); skips
+    where mounting is not allowed (not root, no CAP_SYS_ADMIN)."""
+    mounted = []
+
+    def mount(options: str) -> Path:
+        point = tmp_path / f"mnt-{uuid.uuid4().hex[:6]}"
+        point.mkdir()
+        result = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(point)], capture_output=True)
+        if result.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {result.stderr.decode().strip()}")
+        mounted.append(point)
+        return point
+
+    yield mount
+    for point in mounted:
+        subprocess.run(["umount", str(point)], check=True)

@@ -17,7 +17,6 @@ import errno
 import os
 import stat
 import subprocess
-import uuid
 from pathlib import Path
 
 import pytest
@@ -143,26 +142,6 @@ def test_evaluate_out_dev_full_and_a_fifo_are_refused_untouched(tiny_dataset, pr
     assert main(["check", str(predictions / "metrics.json"), "--thresholds", str(tmp_path / "t.toml"),
                  "--junit", "/dev/full"]) == 2
     assert "refusing to write /dev/full" in one_error_line(capsys, "check")
-
-
-@pytest.fixture
-def mount_tmpfs(tmp_path):
-    """mount_tmpfs(options) -> a fresh tmpfs under tmp_path (unmounted afterwards); skips
-    where mounting is not allowed (not root, no CAP_SYS_ADMIN)."""
-    mounted = []
-
-    def mount(options: str) -> Path:
-        point = tmp_path / f"mnt-{uuid.uuid4().hex[:6]}"
-        point.mkdir()
-        result = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(point)], capture_output=True)
-        if result.returncode != 0:
-            pytest.skip(f"cannot mount a tmpfs here: {result.stderr.decode().strip()}")
-        mounted.append(point)
-        return point
-
-    yield mount
-    for point in mounted:
-        subprocess.run(["umount", str(point)], check=True)
 
 
 def test_a_real_full_disk_is_one_line(tiny_dataset, predictions, mount_tmpfs, capsys):

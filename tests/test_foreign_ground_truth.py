@@ -14,7 +14,7 @@ from PIL import Image
 
 from nerfgauge.cli import main
 from nerfgauge.core import dataset
-from nerfgauge.core.colmap_text import quaternion_to_matrix
+from nerfgauge.core.colmap import quaternion_to_rotation as quaternion_to_matrix
 from nerfgauge.core.images import read_png, write_png
 from nerfgauge.eval.evaluate import evaluate
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nerfgauge.core.colmap import camera_to_world
 from nerfgauge.core.errors import InputError
 
 # model: (number of parameters, index of fx, fy, cx, cy in them (fy None: = fx), distortion slice)
@@ -63,21 +64,7 @@ class Image:
 
     def c2w_opengl(self) -> np.ndarray:
         """[4, 4] camera-to-world in the OpenGL/NeRF convention (+Y up, looking along -Z)."""
-        w2c = np.eye(4)
-        w2c[:3, :3] = quaternion_to_matrix(self.qvec)
-        w2c[:3, 3] = self.tvec
-        c2w_cv = np.linalg.inv(w2c)
-        return c2w_cv @ np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-def quaternion_to_matrix(q) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) -> [3, 3] rotation (normalised first)."""
-    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+        return camera_to_world(self.qvec, self.tvec)
 
 
 def _lines(text: str):
