@@ -180,6 +180,13 @@ def test_leaderboard_equals_single_run_evaluate(suite_dir, tiny_toml, gt_predict
     markdown = (suite_dir / "leaderboard.md").read_text()
     assert "| other-tool |" in markdown and f"{method['mean']['psnr']:.2f}" in markdown
     assert "<table class='sortable'>" in (suite_dir / "leaderboard.html").read_text()
+    # The protocol-sensitivity table: the same renders under each protocol, and the spread.
+    sensitivity = board["protocol_sensitivity"]["other-tool"]
+    assert set(sensitivity["protocols"]) == {"nerfgauge", "nerfbaselines", "ns-eval"}
+    scored = [row["psnr"] for row in sensitivity["protocols"].values() if row["psnr"] is not None]
+    assert sensitivity["spread"]["psnr"] == pytest.approx(max(scored) - min(scored), abs=1e-12)
+    from nerfgauge.eval.report import PROTOCOL_CAPTION
+    assert PROTOCOL_CAPTION in markdown and PROTOCOL_CAPTION.split(":")[0] in (suite_dir / "leaderboard.html").read_text()
 
 
 def test_results_of_another_version_or_dataset_are_refused(suite_dir, tiny_toml, gt_predictions, tmp_path, capsys):

@@ -8,6 +8,11 @@ every metric of eval.metrics.METRIC_NAMES that has a value somewhere (metrics ad
 show up here), then our NeRF's geometry where scored (eval.geometry.summary), then cost:
 training seconds, model size, render milliseconds per frame. The mean row of a method is
 the mean over the datasets where the value is defined; `scenes` says over how many.
+
+One table is recomputed, on purpose: the protocol-sensitivity table scores the same
+renders under each scoring protocol the field uses (eval.protocols: ours, NerfBaselines',
+nerfstudio's ns-eval) and gives the spread, so a reader sees how much the protocol alone
+moves a number before comparing ours with a published one.
 """
 
 from __future__ import annotations
@@ -19,7 +24,8 @@ from pathlib import Path
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results
 from nerfgauge.eval.metrics import METRIC_NAMES
-from nerfgauge.eval.report import page_html, sortable_table_html, write_report
+from nerfgauge.eval.protocols import suite_sensitivity, sensitivity_rows
+from nerfgauge.eval.report import PROTOCOL_CAPTION, page_html, sortable_table_html, write_report
 
 GEOMETRY_COLUMNS = ("geometry_chamfer_l1", "geometry_fscore_1pct", "normal_angle_mean")
 COST_COLUMNS = ("train_seconds", "model_bytes", "ms_per_frame")
@@ -106,12 +112,31 @@ def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
     return result
 
 
+def protocol_sensitivity(suite: Suite, out) -> dict:
+    """{method: eval.protocols sensitivity document over the suite's datasets}: every
+    method's renders (result.json's pred_root/<dataset id>) under each protocol. Render
+    folders that are gone are left out (the leaderboard's numbers do not need them)."""
+    entries = {}
+    for method, result in read_results(suite, out).items():
+        root = result.get("pred_root")
+        pairs = [(dataset_dir(out, entry), Path(root) / entry.id) for entry in suite.scenes
+                 if root and entry.id in result.get("datasets", {}) and (Path(root) / entry.id).is_dir()]
+        entries[method] = pairs
+    return suite_sensitivity(entries, split=suite.protocol["split"], background=suite.protocol["background"])
+
+
 def markdown(board: dict) -> str:
     lines = [f"# Leaderboard: suite {board['suite']} v{board['version']}", "",
              f"suite sha256 `{board['suite_sha256']}`; ↓ lower is better; – not defined or not applicable; "
              "means are over the datasets where a value is defined (leaderboard.json: scenes_scored).", ""]
     for title, rows in tables(board):
         lines += [f"## {title}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+        lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
+        lines.append("")
+    sensitivity = board.get("protocol_sensitivity")
+    if sensitivity:
+        rows = sensitivity_rows(sensitivity)
+        lines += [f"## {PROTOCOL_CAPTION}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
         lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
         lines.append("")
     return "\n".join(lines)
@@ -121,6 +146,7 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
     """leaderboard.json, .md and .html in `out`, and report/<id>/report.html per dataset."""
     out = Path(out)
     board = leaderboard(suite, out)
+    board["protocol_sensitivity"] = protocol_sensitivity(suite, out)
     links = {}
     if reports:
         for entry in suite.scenes:
@@ -133,6 +159,9 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
     for title, rows in tables(board):
         link = f" (<a href='{html.escape(links[title])}'>report</a>)" if title in links else ""
         sections.append(f"<h2>{html.escape(title)}{link}</h2>" + sortable_table_html(rows))
+    if board["protocol_sensitivity"]:
+        sections.append(f"<h2>{html.escape(PROTOCOL_CAPTION)}</h2>"
+                        + sortable_table_html(sensitivity_rows(board["protocol_sensitivity"])))
     notes = [f"suite sha256 {board['suite_sha256']}", "↓ lower is better; – not defined or not applicable; "
              "means are over the datasets where a value is defined (leaderboard.json: scenes_scored); "
              "click a column header to sort."]
