@@ -18,6 +18,10 @@ path ending in .toml):
     [[scenes]]                     # at least one: scene (a registered recipe) and seed are
     scene = "primitives"           #   required; id (default: the scene) names its folder;
     seed = 0                       #   any [dataset] key overrides the default for it
+    [[scenes]]                     # or ground truth nerfgauge did not write: folder (relative
+    id = "lego"                    #   to the .toml's folder) is a NeRF-synthetic, nerfstudio
+    folder = "nerf_synthetic/lego" #   or COLMAP text-model folder (core.foreign_dataset); id
+                                   #   defaults to its name; no other key
 
 A missing or unknown field, a wrong type, an unknown scene, or two entries with one id is an
 InputError naming the file and the field. The suite's identity is its version and the
@@ -34,6 +38,19 @@ A suite folder (`nerfgauge suite generate SUITE --out DIR`, a nerfgauge "suite" 
                                     dataset's manifest sha256, training time, model size
 Generation is resumable: a dataset whose manifest verifies and whose recipe matches is
 skipped; an interrupted one is resumed by the generator.
+
+A folder entry is not rendered: `suite generate` reads the folder as `evaluate` does
+(core.dataset.Dataset: validated, every file read hashed), reads every frame's image, and
+records its identity in the suite manifest in place of manifest_sha256: format, split rule,
+the sha256 of every file read (`files`) and `ground_truth_sha256`, the sha256 of that
+{file: sha256} table's canonical JSON. `suite evaluate`, `suite report` and read_results
+hash the folder again and refuse it (one line naming both hashes) when it changed; each
+metrics.json's ground_truth.files must agree with the recorded files. The suite's
+definition holds the folder as written (so its sha256 does not depend on where the suite
+folder lives); suite.json's "folders" holds where it was found. Methods that need what such
+a folder lacks (our NeRF's runs are bound to a manifest; the nearest baseline needs scene
+bounds; light-field baselines a camera grid) are skipped there with the reason (result.json
+"skipped", the leaderboard's n/a cells); metrics it cannot give are null ("unavailable").
 """
 
 from __future__ import annotations
@@ -43,8 +60,9 @@ import hashlib
 import importlib.resources
 import time
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
 from nerfgauge.core import bounded, dataset
 from nerfgauge.core.errors import InputError
@@ -71,9 +89,20 @@ GEOMETRY_KEYS = ("resolution", "samples")
 @dataclass(frozen=True)
 class SceneEntry:
     id: str
-    scene: str
+    scene: Optional[str]  # None for a folder entry
     seed: int
     dataset: dict  # GenerateConfig fields (the suite's [dataset] with this entry's overrides)
+    folder: Optional[str] = None  # a foreign ground-truth folder, as written in the suite file
+    path: Optional[str] = field(default=None, compare=False)  # where that folder was found
+
+    @property
+    def foreign(self) -> bool:
+        return self.folder is not None
+
+    def definition(self) -> dict:
+        if self.foreign:
+            return {"id": self.id, "folder": self.folder}
+        return {"id": self.id, "scene": self.scene, "seed": self.seed, "dataset": self.dataset}
 
 
 @dataclass(frozen=True)
@@ -90,7 +119,7 @@ class Suite:
         """Everything that makes results comparable (not where the file lives)."""
         return {"name": self.name, "version": self.version, "description": self.description,
                 "train": self.train, "protocol": self.protocol,
-                "scenes": [dataclasses.asdict(entry) for entry in self.scenes]}
+                "scenes": [entry.definition() for entry in self.scenes]}
 
     @property
     def sha256(self) -> str:
@@ -120,16 +149,18 @@ def load_suite(spec) -> Suite:
         if not path.is_file():
             raise InputError(f"suite file not found: {path}")
         text, source = bounded.read_bytes(path, bounded.MAX_TOML_BYTES, "suite file"), str(path)
+        base = path.parent
     else:
         known = builtin_suites()
         if spec not in known:
             raise InputError(f"unknown suite {spec!r}; known: {', '.join(known)} (or give a path to a .toml file)")
         text, source = known[spec].read_bytes(), f"suites/{spec}.toml"
+        base = Path(str(known[spec])).parent
     try:
         data = bounded.loads_toml(text, source)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise InputError(f"{source} is not valid TOML: {error}") from None
-    return parse_suite(data, source)
+    return parse_suite(data, source, base)
 
 
 def _table(data: dict, key: str, source: str) -> dict:
@@ -149,7 +180,8 @@ def _check_fields(values: dict, allowed: set, where: str) -> None:
         raise InputError(f"{where}: unknown field {unknown[0]!r}; known: {', '.join(sorted(allowed))}")
 
 
-def parse_suite(data: dict, source: str) -> Suite:
+def parse_suite(data: dict, source: str, base=None) -> Suite:
+    """base: the folder relative `folder` entries are resolved against (the .toml's)."""
     from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
 
     _check_fields(data, {"name", "version", "description", "dataset", "train", "protocol", "scenes"}, source)
@@ -198,6 +230,13 @@ def parse_suite(data: dict, source: str) -> Suite:
     entries, ids = [], set()
     for k, raw in enumerate(scenes):
         where = f"{source} scenes[{k}]"
+        if "folder" in raw:
+            entry = _folder_entry(raw, where, base)
+            if entry.id in ids:
+                raise InputError(f"{where}: id {entry.id!r} is used twice; give each entry its own id")
+            ids.add(entry.id)
+            entries.append(entry)
+            continue
         _check_fields(raw, generate_fields | {"id", "scene", "seed"}, where)
         for field in ("scene", "seed"):
             if field not in raw:
@@ -226,6 +265,27 @@ def parse_suite(data: dict, source: str) -> Suite:
             raise InputError(f"{where}: {error}") from None
         entries.append(entry)
     return Suite(name, version, description, train, protocol, tuple(entries), source)
+
+
+def _folder_entry(raw: dict, where: str, base) -> SceneEntry:
+    """A [[scenes]] entry naming a ground-truth folder nerfgauge did not write."""
+    _check_fields(raw, {"id", "folder"}, f"{where} (a folder entry)")
+    folder = raw["folder"]
+    if not isinstance(folder, str) or not folder.strip():
+        raise InputError(f"{where}: folder must be a path, got {folder!r}")
+    path = Path(folder).expanduser()
+    if not path.is_absolute():
+        path = Path(base if base is not None else ".") / path
+    path = path.resolve()
+    if not path.is_dir():
+        raise InputError(f"{where}: folder {folder!r} not found (looked for {path})")
+    if (path / dataset.MANIFEST).is_file() or (path / dataset.MARKER).exists():
+        raise InputError(f"{where}: folder {path} is a nerfgauge dataset; folder entries are for ground truth "
+                         f"nerfgauge did not write (list our scenes by recipe: scene and seed)")
+    entry_id = raw.get("id", path.name)
+    if not isinstance(entry_id, str) or not entry_id or "/" in entry_id or entry_id.startswith("."):
+        raise InputError(f"{where}: id must be a folder name, got {entry_id!r}")
+    return SceneEntry(entry_id, None, 0, {}, folder=folder, path=str(path))
 
 
 # --- the suite folder --------------------------------------------------------------------
@@ -257,7 +317,51 @@ def check_same_suite(suite: Suite, identity: dict, where: str,
 
 
 def dataset_dir(out, entry: SceneEntry) -> Path:
+    """Where the entry's ground truth is: out/datasets/<id>/, or a folder entry's folder."""
+    if entry.foreign:
+        return Path(entry.path)
     return Path(out) / "datasets" / entry.id
+
+
+def identity_key(record: dict) -> str:
+    """The suite-manifest key that identifies an entry's ground truth: manifest_sha256 for
+    our datasets, ground_truth_sha256 for folders nerfgauge did not write."""
+    return "ground_truth_sha256" if "ground_truth_sha256" in record else "manifest_sha256"
+
+
+def files_sha256(files: dict) -> str:
+    """sha256 of a {relative path: sha256} table's canonical JSON."""
+    return hashlib.sha256(json_bytes(dict(sorted(files.items())))).hexdigest()
+
+
+def folder_identity(entry: SceneEntry) -> dict:
+    """A folder entry's record: read as `evaluate` reads it (validated), every frame's image
+    read too, so `files` holds the sha256 of every file any evaluation of it can read."""
+    try:
+        ds = dataset.Dataset(entry.path)
+        if ds.foreign is None:
+            raise InputError(f"{entry.path} is a nerfgauge dataset, not a foreign ground-truth folder")
+        for split in ds.splits:
+            for index in range(len(ds.frames(split))):
+                ds.image(split, index)  # decoded like evaluate decodes it: header and size checked
+    except InputError as error:
+        raise InputError(f"suite entry {entry.id}: {error}") from None
+    record = ds.ground_truth_record()
+    return {"path": entry.path, "folder": entry.folder, "format": record["format"],
+            "split_rule": record["split_rule"], "unavailable": record["unavailable"],
+            "ground_truth_sha256": files_sha256(record["files"]), "files": record["files"]}
+
+
+def check_folder(entry: SceneEntry, record: dict, where: str) -> None:
+    """Refuse (one line naming both hashes) a folder entry whose files changed since `where`."""
+    now = folder_identity(entry)
+    if now["ground_truth_sha256"] != record.get("ground_truth_sha256"):
+        changed = sorted(rel for rel in set(now["files"]) | set(record.get("files", {}))
+                         if now["files"].get(rel) != record.get("files", {}).get(rel))
+        raise InputError(f"ground-truth folder {entry.path} ({entry.id}) changed since suite generate: its files hash "
+                         f"to {now['ground_truth_sha256']}, {where} recorded {record.get('ground_truth_sha256')} "
+                         f"({len(changed)} files differ, e.g. {', '.join(changed[:2])}); "
+                         f"run nerfgauge suite generate --overwrite to record it again")
 
 
 def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print,
@@ -269,15 +373,23 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
     if scheduler is not None:
         parse_scheduler(scheduler)  # a malformed address is one line before anything is written
     for entry in suite.scenes:
-        suite.generate_config(entry).validate()
+        if not entry.foreign:
+            suite.generate_config(entry).validate()
+    foreign = {entry.id: folder_identity(entry) for entry in suite.scenes if entry.foreign}  # refused before writing
     with claim_suite_folder(suite, out, overwrite=overwrite):
-        write_json(out / SUITE_FILE, {**suite.identity(), "schema": SCHEMA, "definition": suite.definition()})
+        folders = {"folders": {entry.id: entry.path for entry in suite.scenes if entry.foreign}} if foreign else {}
+        write_json(out / SUITE_FILE, {**suite.identity(), "schema": SCHEMA, "definition": suite.definition(),
+                                      **folders})
         manifest_path = out / SUITE_MANIFEST
         previous = read_json(manifest_path) if manifest_path.is_file() else {"datasets": {}}
         if manifest_path.is_file():
             manifest_path.unlink()  # rewritten below once every dataset is complete
         for index, entry in enumerate(suite.scenes, 1):
             folder = dataset_dir(out, entry)
+            if entry.foreign:
+                log(f"[{index}/{len(suite.scenes)}] {entry.id}: {foreign[entry.id]['format']} folder {folder}, "
+                    f"{len(foreign[entry.id]['files'])} files hashed (not rendered)")
+                continue
             if _unchanged(folder, previous["datasets"].get(entry.id)):
                 log(f"[{index}/{len(suite.scenes)}] {entry.id}: complete, skipped")
                 continue
@@ -286,7 +398,7 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
             generate(suite.generate_config(entry), folder, overwrite=overwrite, progress=progress, scheduler=scheduler)
             log(f"    {entry.id}: generated in {time.perf_counter() - start:.1f} s")
         document = {**suite.identity(), "schema": SCHEMA, "datasets": {
-            entry.id: dataset_record(out, entry) for entry in suite.scenes}}
+            entry.id: foreign[entry.id] if entry.foreign else dataset_record(out, entry) for entry in suite.scenes}}
         write_json(manifest_path, document)
     return document
 
@@ -322,6 +434,13 @@ def read_suite_folder(suite: Suite, out) -> dict:
         path = dataset_dir(out, entry) / dataset.MANIFEST
         if record is None:
             raise InputError(f"{out / SUITE_MANIFEST} lists no dataset {entry.id!r}")
+        if entry.foreign or "ground_truth_sha256" in record:
+            if not (entry.foreign and "ground_truth_sha256" in record):
+                raise InputError(f"{out / SUITE_MANIFEST}: dataset {entry.id!r} was recorded as "
+                                 f"{'a folder' if 'ground_truth_sha256' in record else 'a recipe'}; regenerate with "
+                                 "nerfgauge suite generate --overwrite")
+            check_folder(entry, record, str(out / SUITE_MANIFEST))
+            continue
         if not path.is_file() or sha256_file(path) != record.get("manifest_sha256"):
             raise InputError(f"dataset {dataset_dir(out, entry)}: its manifest hash differs from the one in "
                              f"{out / SUITE_MANIFEST}; regenerate with nerfgauge suite generate --overwrite")
@@ -332,7 +451,7 @@ def read_suite_folder(suite: Suite, out) -> dict:
 
 
 def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: str = "auto",
-                   extras: dict | None = None, log=print, entries=None) -> dict:
+                   extras: dict | None = None, log=print, entries=None, skipped: dict | None = None) -> dict:
     """Score PRED_ROOT/<id>/ against every dataset of the suite (eval.evaluate, the same
     function as `nerfgauge evaluate`) into out/results/<method>/; result.json last.
 
@@ -340,7 +459,8 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
     PRED_ROOT/<id>/train.json ({"seconds", "model_bytes"}), when present, gives the same for
     another tool's runs. A PRED_ROOT/suite.json naming another suite or version is refused.
     entries: the suite's SceneEntry to score (default all; `suite run` passes the light-field
-    datasets only for the light-field baselines)."""
+    datasets only for the light-field baselines). skipped: {id: why the method does not apply},
+    kept in result.json for the leaderboard."""
     out, pred_root = Path(out), Path(pred_root)
     if not method or "/" in method or method.startswith("."):
         raise InputError(f"--method must be a folder name, got {method!r}")
@@ -366,7 +486,16 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
             document = evaluate(dataset_dir(out, entry), pred_root / entry.id, split=suite.protocol["split"],
                                 out=metrics_path, background=suite.protocol["background"],
                                 depth_kind=suite.protocol["depth_kind"], pred_format=pred_format)
-            row = {"manifest_sha256": manifest["datasets"][entry.id]["manifest_sha256"],
+            record = manifest["datasets"][entry.id]
+            key = identity_key(record)
+            if key == "ground_truth_sha256":  # the files this scoring read are the ones recorded
+                read = document.get("ground_truth", {}).get("files", {})
+                changed = sorted(rel for rel, digest in read.items() if record["files"].get(rel) != digest)
+                if changed:
+                    metrics_path.unlink(missing_ok=True)
+                    raise InputError(f"ground-truth folder {dataset_dir(out, entry)} ({entry.id}): {changed[0]} "
+                                     f"changed while it was scored ({len(changed)} files differ from {SUITE_MANIFEST})")
+            row = {key: record[key],
                    "metrics": metrics_path.relative_to(out).as_posix(),
                    "ms_per_frame": document["timing"].get("ms_per_frame"),
                    "train_seconds": None, "model_bytes": None, "geometry": None}
@@ -377,7 +506,7 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
             row.update(extras.get(entry.id, {}))
             rows[entry.id] = row
         result = {**suite.identity(), "schema": SCHEMA, "method": method, "pred_root": str(pred_root),
-                  "datasets": rows}
+                  "datasets": rows, **({"skipped": dict(skipped)} if skipped else {})}
         write_json(results_dir / RESULT_FILE, result)
     return result
 
@@ -397,8 +526,10 @@ def read_results(suite: Suite, out) -> dict:
             row = result.get("datasets", {}).get(entry.id)
             if row is None:  # a method that does not apply to this dataset (light-field baselines)
                 continue
-            if row.get("manifest_sha256") != manifest["datasets"][entry.id]["manifest_sha256"]:
-                raise InputError(f"{path}: dataset {entry.id} was scored against a dataset whose manifest hash "
+            key = identity_key(manifest["datasets"][entry.id])
+            if row.get(key) != manifest["datasets"][entry.id][key]:
+                what = "ground-truth files hash" if key == "ground_truth_sha256" else "manifest hash"
+                raise InputError(f"{path}: dataset {entry.id} was scored against a dataset whose {what} "
                                  f"differs from {out / SUITE_MANIFEST}; evaluate again")
         results[result["method"]] = result
     if not results:
@@ -418,7 +549,9 @@ def suite_from_folder(out) -> Suite:
         raise InputError(f"{path}: no suite definition")
     scenes = definition.get("scenes", [])
     try:
-        entries = tuple(SceneEntry(s["id"], s["scene"], s["seed"], s["dataset"]) for s in scenes)
+        folders = recorded.get("folders", {})
+        entries = tuple(SceneEntry(s["id"], None, 0, {}, folder=s["folder"], path=folders[s["id"]]) if "folder" in s
+                        else SceneEntry(s["id"], s["scene"], s["seed"], s["dataset"]) for s in scenes)
         suite = Suite(definition["name"], definition["version"], definition.get("description", ""),
                       definition["train"], definition["protocol"], entries, str(path))
     except (KeyError, TypeError) as error:

@@ -62,7 +62,7 @@ def leaderboard(suite: Suite, out) -> dict:
                            "ms_per_frame": row.get("ms_per_frame")})
             scenes[entry.id] = {"values": values, "frames": len(document["frames"]),
                                 "geometry_na": geometry.get("n/a"), "metrics": row["metrics"]}
-        methods[method] = {"scenes": scenes}
+        methods[method] = {"scenes": scenes, **({"skipped": dict(result["skipped"])} if result.get("skipped") else {})}
     columns = [name for name in (*metric_names(), *GEOMETRY_COLUMNS, *COST_COLUMNS)
                if any(isinstance(s["values"].get(name), (int, float)) for m in methods.values() for s in m["scenes"].values())]
     for method in methods.values():
@@ -71,8 +71,26 @@ def leaderboard(suite: Suite, out) -> dict:
             defined = [s["values"][name] for s in method["scenes"].values() if isinstance(s["values"].get(name), (int, float))]
             method["mean"][name] = math.fsum(defined) / len(defined) if defined else None
             method["scenes_scored"][name] = len(defined)
+    unavailable = unavailable_metrics(suite, out, results)
     return {**suite.identity(), "schema": 1, "columns": columns, "scenes": [e.id for e in suite.scenes],
-            "methods": methods}
+            "methods": methods, **({"unavailable": unavailable} if unavailable else {})}
+
+
+def unavailable_metrics(suite: Suite, out: Path, results: dict) -> dict:
+    """{id: {metric: reason}} of folder entries (ground truth nerfgauge did not write): the
+    metrics their metrics.json says are unavailable (shown as not defined)."""
+    unavailable = {}
+    for entry in suite.scenes:
+        if not entry.foreign:
+            continue
+        for result in results.values():
+            row = result["datasets"].get(entry.id)
+            if row is not None:
+                notes = read_json(out / row["metrics"], finite=True).get("notes", {})
+                unavailable[entry.id] = {metric: note.removeprefix("unavailable: ") for metric, note in sorted(notes.items())
+                                         if isinstance(note, str) and note.startswith("unavailable: ")}
+                break
+    return unavailable
 
 
 def _cell(name: str, value) -> str:
@@ -105,7 +123,8 @@ def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
         for method, data in board["methods"].items():
             entry = data["scenes"].get(scene)
             if entry is None:
-                rows.append([method, "n/a"] + ["–"] * len(columns))
+                reason = data.get("skipped", {}).get(scene)
+                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * len(columns))
             else:
                 rows.append([method, str(entry["frames"])] + [_cell(c, entry["values"].get(c)) for c in columns])
         result.append((scene, rows))
@@ -125,6 +144,15 @@ def protocol_sensitivity(suite: Suite, out) -> dict:
     return suite_sensitivity(entries, split=suite.protocol["split"], background=suite.protocol["background"])
 
 
+def unavailable_line(notes: dict) -> str:
+    """One line: which metrics a folder entry cannot give and why (grouped by reason)."""
+    by_reason = {}
+    for metric, reason in notes.items():
+        by_reason.setdefault(reason, []).append(metric)
+    return "Unavailable on this ground truth (not defined, –): " + "; ".join(
+        f"{', '.join(metrics)}: {reason}" for reason, metrics in by_reason.items()) + "."
+
+
 def markdown(board: dict) -> str:
     lines = [f"# Leaderboard: suite {board['suite']} v{board['version']}", "",
              f"suite sha256 `{board['suite_sha256']}`; ↓ lower is better; – not defined or not applicable; "
@@ -133,6 +161,8 @@ def markdown(board: dict) -> str:
         lines += [f"## {title}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
         lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
         lines.append("")
+        if title in board.get("unavailable", {}):
+            lines += [unavailable_line(board["unavailable"][title]), ""]
     sensitivity = board.get("protocol_sensitivity")
     if sensitivity:
         rows = sensitivity_rows(sensitivity)
@@ -159,6 +189,8 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
     for title, rows in tables(board):
         link = f" (<a href='{html.escape(links[title])}'>report</a>)" if title in links else ""
         sections.append(f"<h2>{html.escape(title)}{link}</h2>" + sortable_table_html(rows))
+        if title in board.get("unavailable", {}):
+            sections.append(f"<p>{html.escape(unavailable_line(board['unavailable'][title]))}</p>")
     if board["protocol_sensitivity"]:
         sections.append(f"<h2>{html.escape(PROTOCOL_CAPTION)}</h2>"
                         + sortable_table_html(sensitivity_rows(board["protocol_sensitivity"])))

@@ -32,6 +32,17 @@ def methods_for(suite: Suite, layout: str) -> list[str]:
     return [m for m in suite.protocol.get("baselines", []) if not m.startswith("lightfield") or layout == "lightfield"]
 
 
+def skipped_on_folder(suite: Suite, entry) -> dict:
+    """{method: why it is skipped} on a folder entry (ground truth nerfgauge did not write):
+    every method `suite run` runs needs something such a folder lacks."""
+    reasons = {OURS: "our NeRF's runs are bound to a nerfgauge dataset's manifest (a folder entry has none); "
+                     "score its renders with nerfgauge suite evaluate"}
+    for method in suite.protocol.get("baselines", []):
+        reasons[method] = ("needs a light-field camera grid (scene.json camera.lightfield)" if method.startswith("lightfield")
+                           else "needs the scene's bounds (scene.json), which a folder entry lacks")
+    return reasons
+
+
 def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print) -> dict:
     """Generate, train, render, baselines, evaluate, leaderboard. Returns the leaderboard."""
     from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
@@ -43,9 +54,14 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     generate_suite(suite, out, overwrite=overwrite, progress=progress, log=log)
     split = suite.protocol["split"]
     predictions = out / "predictions"
-    extras, baseline_roots = {}, {}
+    extras, baseline_roots, skipped = {}, {}, {}
     for index, entry in enumerate(suite.scenes, 1):
         data = dataset_dir(out, entry)
+        if entry.foreign:
+            for method, reason in skipped_on_folder(suite, entry).items():
+                skipped.setdefault(method, {})[entry.id] = reason
+                log(f"[{index}/{len(suite.scenes)}] {entry.id}: {method} skipped: {reason}")
+            continue
         run_dir = out / "runs" / entry.id
         log(f"[{index}/{len(suite.scenes)}] {entry.id}: train {suite.train.get('model', 'compact')} "
             f"{suite.train['steps']} steps")
@@ -67,7 +83,7 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
             baseline_roots.setdefault(method, []).append(entry.id)
         stages["baselines"] = time.perf_counter() - clock
         log(f"    {entry.id}: " + ", ".join(f"{name} {seconds:.1f} s" for name, seconds in stages.items()))
-    methods = {OURS: extras}
+    methods = {OURS: extras} if extras else {}
     for method, ids in baseline_roots.items():
         methods[method] = {entry_id: {"train_seconds": 0.0, "model_bytes": None} for entry_id in ids}
     for method, method_extras in methods.items():
@@ -76,7 +92,7 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
         ids = set(method_extras)
         if ids != {entry.id for entry in suite.scenes}:
             log(f"{method}: applies to {len(ids)} of {len(suite.scenes)} datasets; scored on those only")
-            evaluate_subset(suite, out, method, root, ids, method_extras, log)
+            evaluate_subset(suite, out, method, root, ids, method_extras, log, skipped.get(method))
         else:
             evaluate_suite(suite, out, method, root, extras=method_extras, log=log)
     board = write_leaderboard(suite, out, log=log)
@@ -84,11 +100,11 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     return board
 
 
-def evaluate_subset(suite: Suite, out, method: str, root, ids: set, extras: dict, log) -> dict:
+def evaluate_subset(suite: Suite, out, method: str, root, ids: set, extras: dict, log, skipped=None) -> dict:
     """evaluate_suite on the suite's entries in `ids` (a baseline that applies to some
     layouts only); the leaderboard shows the others as not applicable."""
     subset = dataclasses.replace(suite, scenes=tuple(e for e in suite.scenes if e.id in ids))
-    return evaluate_suite(suite, out, method, root, extras=extras, log=log, entries=subset.scenes)
+    return evaluate_suite(suite, out, method, root, extras=extras, log=log, entries=subset.scenes, skipped=skipped)
 
 
 def geometry_of(suite: Suite, data: Path, run_dir: Path, log):
