@@ -201,6 +201,13 @@ def test_changed_folder_is_refused_with_one_line(tmp_path, lego_source, capsys):
     code, _, err = run(capsys, "suite", "report", out)  # read_results checks the folder the same way
     one_line_error(code, err, "changed since suite generate", recorded, now)
     assert not (out / "leaderboard.json").exists()
+    code, _, err = run(capsys, "suite", "generate", toml, "--out", out)  # not re-recorded silently
+    one_line_error(code, err, "changed since suite generate", recorded, now, "--overwrite")
+    code, _, err = run(capsys, "suite", "generate", toml, "--out", out, "--overwrite")
+    assert code == 0, err
+    assert read_json(out / SUITE_MANIFEST)["datasets"]["lego"]["ground_truth_sha256"] == now
+    code, _, err = run(capsys, "suite", "evaluate", toml, out, "--method", "other", "--pred", pred)
+    assert code == 0, err
 
 
 @pytest.mark.parametrize("entry, words", [

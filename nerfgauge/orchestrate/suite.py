@@ -382,6 +382,12 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
                                       **folders})
         manifest_path = out / SUITE_MANIFEST
         previous = read_json(manifest_path) if manifest_path.is_file() else {"datasets": {}}
+        for entry_id, record in foreign.items():  # a folder changed under recorded results: say so
+            before = previous["datasets"].get(entry_id, {}).get("ground_truth_sha256")
+            if before is not None and before != record["ground_truth_sha256"] and not overwrite:
+                raise InputError(f"ground-truth folder {record['path']} ({entry_id}) changed since suite generate: its "
+                                 f"files hash to {record['ground_truth_sha256']}, {manifest_path} recorded {before}; "
+                                 "pass --overwrite to record it again (results scored against it are then refused)")
         if manifest_path.is_file():
             manifest_path.unlink()  # rewritten below once every dataset is complete
         for index, entry in enumerate(suite.scenes, 1):

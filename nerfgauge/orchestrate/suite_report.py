@@ -208,7 +208,8 @@ def scene_report(suite: Suite, out: Path, entry, board: dict):
     """report/<id>/report.html: our NeRF against the baselines on one dataset, when our
     NeRF's renders are in the suite folder (suite run). Returns its path or None."""
     renders = out / "predictions" / OURS / entry.id
-    if OURS not in board["methods"] or entry.id not in board["methods"][OURS]["scenes"] or not renders.is_dir():
+    if (entry.foreign or OURS not in board["methods"] or entry.id not in board["methods"][OURS]["scenes"]
+            or not renders.is_dir()):  # a folder entry: no run of ours (suite_run.skipped_on_folder)
         return None
     documents, baselines = {}, {}
     for method, data in board["methods"].items():
