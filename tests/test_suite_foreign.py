@@ -238,3 +238,25 @@ def test_suite_run_skips_methods_a_folder_cannot_serve_with_the_reason(tmp_path,
     assert "bounds" in board["methods"]["nearest"]["skipped"]["lego"]
     section = (out / "leaderboard.md").read_text().split("## lego", 1)[1].split("\n## ", 1)[0]
     assert "| nearest | n/a: needs the scene's bounds" in section
+
+
+def test_nerfstudio_folder_entry(tmp_path, lego_source, capsys):
+    """A nerfstudio folder (transforms.json, paths with extensions) as a folder entry."""
+    folder = tmp_path / "gt" / "lego"
+    shutil.copytree(lego_source, folder, ignore=shutil.ignore_patterns("*.exr", "*_mask.png", "*_instance.png",
+                                                                       "*.json", ".nerfgauge*", "meshes", "sparse"))
+    shutil.copy(lego_source / "transforms.json", folder / "transforms.json")
+    toml = tmp_path / "tiny-fg.toml"
+    toml.write_text(SUITE.format(procedural=""))
+    out = tmp_path / "suite"
+    code, _, err = run(capsys, "suite", "generate", toml, "--out", out)
+    assert code == 0, err
+    record = read_json(out / SUITE_MANIFEST)["datasets"]["lego"]
+    assert record["format"] == "nerfstudio" and "transforms.json" in record["files"]
+    pred = own_images(out, folder, tmp_path / "pred")
+    code, _, err = run(capsys, "suite", "evaluate", toml, out, "--method", "mirror", "--pred", pred)
+    assert code == 0, err
+    code, _, err = run(capsys, "suite", "report", out)
+    assert code == 0, err
+    values = read_json(out / "leaderboard.json")["methods"]["mirror"]["scenes"]["lego"]["values"]
+    assert values["psnr"] == 100.0 and values["depth_absrel"] is None
