@@ -183,6 +183,8 @@ def ssim_torchmetrics(pred, gt) -> Optional[float]:
     if min(p.shape[:2]) < 6:
         return None
     data_range = max(p.max() - p.min(), g.max() - g.min())
+    if data_range == 0:  # two constant images (an empty scene): their formula is 0/0, undefined
+        return None
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
     taps, pad = _gaussian_taps(), 5
     padded = [np.pad(x, ((pad, pad), (pad, pad), (0, 0)), mode="reflect") for x in (p, g, p * p, g * g, p * g)]
@@ -204,7 +206,9 @@ def image_scores(protocol: Protocol, pred, gt) -> dict:
     if protocol.ssim == "skimage":
         return {"psnr": metrics.psnr(pred, gt), "ssim": metrics.ssim(pred, gt)}
     ssim = ssim_dm_pix(pred, gt) if protocol.ssim == "dm_pix" else ssim_torchmetrics(pred, gt)
-    return {"psnr": psnr32(pred, gt), "ssim": ssim}
+    scores = {"psnr": psnr32(pred, gt), "ssim": ssim}
+    # a value a protocol's own formula leaves undefined (NaN) is not a score: None, as for ours
+    return {key: value if value is None or math.isfinite(value) else None for key, value in scores.items()}
 
 
 def lpips_scorers(protocol: Protocol, intrinsics) -> tuple[dict, dict]:

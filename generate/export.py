@@ -221,11 +221,25 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
                          "regenerate it before exporting")
     seed = int(ds.scene.get("seed", 0)) if isinstance(ds.scene.get("seed", 0), int) else 0
     cameras = ds.cameras("train")
-    vertices, faces = points_module.read_meshes(ds)
+    note = POINTS_NOTE[spec.kind]
+    if points_module.has_meshes(ds):
+        vertices, faces = points_module.read_meshes(ds)
+    else:  # a scene with no geometry (hard scene `empty`): nothing to sample or measure against
+        vertices = faces = None
+        if spec.kind == "surface":
+            spec, note = points_module.parse_spec("none"), "no points: the scene has no geometry to sample"
     initial = compute_points(ds, spec, seed, vertices, faces)
-    diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-    distance = points_module.distance_to_surface(initial.xyz, vertices, faces,
-                                                 np.random.default_rng([seed, points_module.SEED_TAG, 1]), initial.faces)
+    if vertices is None:
+        distance_record = {"mean": None, "p90": None, "max": None,
+                           "method": "none: the scene has no ground-truth meshes"}
+    else:
+        diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+        distance = points_module.distance_to_surface(initial.xyz, vertices, faces,
+                                                     np.random.default_rng([seed, points_module.SEED_TAG, 1]),
+                                                     initial.faces)
+        distance_record = {**points_module.distance_summary(distance, diagonal), "diagonal": diagonal,
+                           "method": points_module.DISTANCE_METHOD[
+                               "surface" if initial.faces is not None else "search"]}
     names = [image_name(stem) for stem in cameras.stems]
     images = colmap.model_images(cameras.c2w, names)
     if initial.points2D is not None:
@@ -243,11 +257,9 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
     scene = dict(ds.scene)
     scene["points"] = {
         "spec": spec.to_text(), "kind": spec.kind, "count": int(len(initial.xyz)),
-        "requested": spec.count, "seed": seed, "note": POINTS_NOTE[spec.kind],
+        "requested": spec.count, "seed": seed, "note": note,
         "files": [f"{MODEL_DIR}/points3D.bin", f"{MODEL_DIR}/points3D.txt"] + ([PLY] if spec.kind != "none" else []),
-        "distance_to_surface": {**points_module.distance_summary(distance, diagonal), "diagonal": diagonal,
-                                "method": points_module.DISTANCE_METHOD[
-                                    "surface" if initial.faces is not None else "search"]},
+        "distance_to_surface": distance_record,
     }
     scene["colmap"] = {
         "model": MODEL_DIR, "formats": ["bin", "txt"], "images": IMAGES_DIR,

@@ -112,6 +112,11 @@ def rng_for(seed: int) -> np.random.Generator:
 # --- meshes -----------------------------------------------------------------------------
 
 
+def has_meshes(ds) -> bool:
+    """Whether the dataset lists ground-truth meshes (a scene with no geometry has none)."""
+    return any(rel.startswith("meshes/") and rel.endswith(".ply") for rel in ds.manifest_files)
+
+
 def read_meshes(ds) -> tuple[np.ndarray, np.ndarray]:
     """The union of the dataset's meshes/*.ply (read through its manifest): vertices [n, 3]
     float64, faces [m, 3] int64."""
