@@ -60,16 +60,16 @@ def room(seed: int):
 
 
 def far_object(seed: int):
-    """A small object (a 0.5-wide cluster: sphere, ring, block) seen from far: hemisphere
-    cameras 5 away, so the object spans about a tenth of the view (6-7 pixels at 64 px)
+    """A small object (a 0.7-wide cluster: sphere, ring, block) seen from far: hemisphere
+    cameras 4 away, so the object spans about a sixth of the view (10-15 pixels at 64 px)
     and the AABB is a small box far from every camera."""
     shapes = [
-        Sphere("bead", (0.0, 0.0, 0.12), 0.12, Diffuse((0.85, 0.2, 0.1))),
-        Torus("ring", (0.0, 0.0, 0.12), 0.2, 0.03, Diffuse((0.1, 0.5, 0.85)), rotation=(60, 0, 30)),
-        Box("block", (0.12, -0.12, 0.05), (0.12, 0.12, 0.1),
-            Textured("checker", (0.9, 0.9, 0.9), (0.1, 0.1, 0.1), period=0.06)),
+        Sphere("bead", (0.0, 0.0, 0.18), 0.18, Diffuse((0.85, 0.2, 0.1))),
+        Torus("ring", (0.0, 0.0, 0.18), 0.3, 0.045, Diffuse((0.1, 0.5, 0.85)), rotation=(60, 0, 30)),
+        Box("block", (0.18, -0.18, 0.075), (0.18, 0.18, 0.15),
+            Textured("checker", (0.9, 0.9, 0.9), (0.1, 0.1, 0.1), period=0.09)),
     ]
-    cameras = CameraHint("hemisphere", radius=5.0, elevation=(10.0, 70.0))
+    cameras = CameraHint("hemisphere", radius=4.0, elevation=(10.0, 70.0))
     return build_scene("far-object", seed, shapes, [SOFT_SKY], cameras=cameras)
 
 
@@ -93,6 +93,6 @@ def forward_near(seed: int):
 # name -> (recipe, one-line description), listed by `nerfgauge scenes`
 CHECK_RECIPES = {
     "room": (room, "rule check, not in bench hard: a closed room seen from inside (no ray leaves it)"),
-    "far-object": (far_object, "rule check, not in bench hard: a 0.5-wide object seen from 5 away"),
+    "far-object": (far_object, "rule check, not in bench hard: a 0.7-wide object seen from 4 away"),
     "forward-near": (forward_near, "rule check, not in bench hard: forward-facing capture of content 0.45-2.5 away"),
 }
