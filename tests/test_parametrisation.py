@@ -521,3 +521,14 @@ def test_bench_hard_picks_do_not_change(scene, expected):
     assert choose_parametrisation(None, aabb, c2w, None)[0] == expected
     if scene in ("inside", "far-reaching"):
         assert opaque < 0.999  # sky in view: open captures
+
+
+def test_opaque_share_counts_rays_whose_alpha_is_one_within_8_bit_rounding():
+    from nerfgauge.nerf.data import RayBatch
+    from nerfgauge.nerf.train import opaque_share
+
+    rgba = torch.zeros((4, 4))
+    rgba[:, 3] = torch.tensor([1.0, 254.6 / 255, 254 / 255, 0.0])  # 8-bit 255 decoded with rounding error; 254
+    rays = RayBatch(torch.zeros((4, 3)), torch.zeros((4, 3)), rgba)
+    assert opaque_share(rays) == 0.5
+    assert opaque_share(RayBatch(torch.zeros((0, 3)), torch.zeros((0, 3)), None)) is None
