@@ -8,25 +8,33 @@ without faces is a point cloud), or a method's rendered depth of a split's views
 (`r_007_depth.exr` ray distance, found as `nerfgauge evaluate` finds it), back-projected
 along the dataset's pixel rays. The ground truth is the union of DATASET/meshes/*.ply.
 
-Both surfaces become point sets: a mesh is sampled uniformly by area (`samples` points,
-an explicit numpy Generator seeded with `seed`), each sample carrying its face's normal;
-a point cloud is used as given (a random subset of `samples` if larger). Distances are
-point-to-point nearest neighbours (scipy cKDTree) between these dense samples, exact, in
-world units:
+Both surfaces are sampled: a mesh uniformly by area (`samples` points, an explicit numpy
+Generator seeded with `seed`), each sample carrying its face's normal; a point cloud is
+used as given (a random subset of `samples` if larger). The samples are the queries (a
+Monte Carlo estimate of a mean over the surface); each is scored by its exact distance,
+in world units, to the other side:
 
-    accuracy      mean over predicted points of the distance to the ground truth
-    completeness  mean over (visible) ground-truth points of the distance to the prediction
+    to a mesh         point to surface: the closest point of any triangle (exact
+                      point-triangle queries, `SurfaceDistance`: Open3D's RaycastingScene,
+                      or trimesh's proximity query when Open3D is not installed)
+    to a point cloud  point to point: the nearest point (scipy cKDTree, exact); a cloud has
+                      no surface between its points
+
+    accuracy      mean over predicted samples of the distance to the ground-truth meshes
+    completeness  mean over (visible) ground-truth samples of the distance to the prediction
     chamfer_l1    (accuracy + completeness) / 2
-    precision(t)  share of predicted points within t of the ground truth
-    recall(t)     share of (visible) ground-truth points within t of the prediction
+    precision(t)  share of predicted samples within t of the ground truth
+    recall(t)     share of (visible) ground-truth samples within t of the prediction
     fscore(t)     2 P R / (P + R)  (0 when both are 0)
-    normal_consistency  mean |n . n_nearest| over both directions (orientation-free;
+    normal_consistency  mean |n . n_closest| over both directions, n_closest the normal of
+                  the closest triangle (or of the nearest point of a cloud; orientation-free;
                   null for a prediction without normals)
 
 t runs over fractions of the ground-truth bounding-box diagonal (0.5% and 1%) and any
-world-unit values given with --tau. Point-to-point distances overestimate point-to-surface
-ones by about s^2 / (2 d) for a sample spacing s; at a million samples on a unit-sized
-scene that is far below the thresholds.
+world-unit values given with --tau. Distances between samples of two meshes (what this
+module did before issue 34) overestimate point-to-surface ones: a mesh displaced by 0.5% of
+the diagonal scored accuracy and completeness about 3% high at 200k samples (BENCHMARKS.md,
+"Exact geometry scores"); a cloud's completeness keeps that sampling bias, as it must.
 
 Visibility. Only ground truth that some camera saw can be asked of a method: by default a
 ground-truth sample counts for completeness and recall only if it is visible in some view
@@ -62,7 +70,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.outputs import stamp
 from nerfgauge.eval.predictions import DEPTH_SUFFIXES, read_plane
 
-SCHEMA = 1
+SCHEMA = 2  # 2: distances to a mesh are exact point to surface (issue 34); "distances" says which
 DEFAULT_TAU_FRACTIONS = (0.005, 0.01)
 DEFAULT_SAMPLES = 1_000_000
 DEFAULT_SEED = 0
@@ -376,25 +384,121 @@ def nearest(reference: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.
     return NearestNeighbours(reference).query(queries)
 
 
-def compare(pred: PointSet, gt_all: PointSet, gt_mask: np.ndarray, taus, diagonal: float) -> tuple[dict, dict]:
+class SurfaceDistance:
+    """Exact distance from query points to a triangle mesh (vertices [n, 3], faces [m, 3]),
+    with the closest triangle of each query.
+
+    Backends, both exact point-triangle queries over a bounding-volume hierarchy:
+    "open3d" (`o3d.t.geometry.RaycastingScene.compute_closest_points`, the `geometry`
+    extra; float32 inside, so coordinates are taken relative to the mesh's centre first:
+    relative error ~1e-7 of the scene's size) or "trimesh" (`trimesh.proximity.
+    closest_point`, float64, needs rtree; several times slower, see BENCHMARKS.md). Neither
+    installed: InputError naming the extra, never a silently biased point-to-point score."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, backend: Optional[str] = None):
+        self.vertices = np.asarray(vertices, np.float64)
+        self.faces = np.asarray(faces, np.int64)
+        self.backend = backend or distance_backend()
+        self.shift = (self.vertices.min(axis=0) + self.vertices.max(axis=0)) / 2
+        if self.backend == "open3d":
+            import open3d as o3d
+
+            self._scene = o3d.t.geometry.RaycastingScene()
+            self._scene.add_triangles(o3d.core.Tensor((self.vertices - self.shift).astype(np.float32)),
+                                      o3d.core.Tensor(self.faces.astype(np.uint32)))
+        elif self.backend == "trimesh":
+            import trimesh
+
+            self._mesh = trimesh.Trimesh(self.vertices - self.shift, self.faces, process=False)
+        else:
+            raise ValueError(f"unknown distance backend {self.backend!r}")
+
+    def query(self, points: np.ndarray, chunk: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
+        """Distance [n] (float64, world units) and closest triangle [n] int64 of points [n, 3]."""
+        local = np.asarray(points, np.float64) - self.shift
+        distance, triangle = np.empty(len(local)), np.empty(len(local), np.int64)
+        for start in range(0, len(local), chunk):
+            part = local[start:start + chunk]
+            if self.backend == "open3d":
+                import open3d as o3d
+
+                found = self._scene.compute_closest_points(o3d.core.Tensor(part.astype(np.float32)))
+                closest = found["points"].numpy().astype(np.float64)
+                triangle[start:start + len(part)] = found["primitive_ids"].numpy().astype(np.int64)
+            else:
+                import trimesh
+
+                closest, _, ids = trimesh.proximity.closest_point(self._mesh, part)
+                triangle[start:start + len(part)] = ids
+            # the distance to the returned closest point, in float64 (the query's own precision)
+            distance[start:start + len(part)] = np.linalg.norm(part - closest, axis=1)
+        return distance, triangle
+
+    @staticmethod
+    def normals_of(mesh: "Surface", faces: np.ndarray) -> np.ndarray:
+        """Unit normals [k, 3] of the triangles `faces` [k] of `mesh`."""
+        tri = mesh.vertices[mesh.faces[faces]]  # [k, 3, 3]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        return cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
+
+
+def distance_backend() -> str:
+    """"open3d" when it imports, else "trimesh" when rtree is installed (trimesh's
+    proximity queries need it); InputError when neither is."""
+    global _BACKEND
+    if _BACKEND is None:
+        try:
+            import open3d  # noqa: F401  (its wheel also needs the system's libusb-1.0)
+
+            _BACKEND = "open3d"
+        except Exception:  # not installed, or a shared library missing
+            import importlib.util
+
+            if importlib.util.find_spec("rtree") is None:
+                raise InputError("exact point-to-surface distances need rtree (pip install rtree) or Open3D "
+                                 "(pip install 'nerfgauge[geometry]')") from None
+            _BACKEND = "trimesh"
+    return _BACKEND
+
+
+_BACKEND = None  # found once per process (an import attempt of open3d costs a second)
+
+
+def compare(pred: PointSet, gt_all: PointSet, gt_mask: np.ndarray, taus, diagonal: float,
+            gt_mesh: Optional[Surface] = None, pred_mesh: Optional[Surface] = None) -> tuple[dict, dict]:
     """Scores of `pred` against ground-truth samples (all of them for accuracy, those in
-    gt_mask [n] for completeness). Returns (scores, {"accuracy": d [n_pred],
+    gt_mask [n] for completeness). gt_mesh / pred_mesh: the meshes the samples were drawn
+    from; given, distances to that side are exact point to surface (`SurfaceDistance`),
+    else point to point (to a cloud). Returns (scores, {"accuracy": d [n_pred],
     "completeness": d [n_visible]} distances)."""
     gt_points = gt_all.points[gt_mask]
     if not len(gt_points):
         raise InputError("no ground-truth surface is visible from the reference cameras; pass --whole-surface")
-    # each point set in spatial order once: as the reference of one direction and the
-    # queries of the other (the visible ground truth keeps the whole set's order)
-    gt_order, pred_order = spatial_order(gt_all.points), spatial_order(pred.points)
-    to_gt, gt_index = NearestNeighbours(gt_all.points, gt_order).query(pred.points, pred_order)
-    visible_rank = np.cumsum(gt_mask) - 1  # index of a visible sample within gt_points
-    to_pred, pred_index = NearestNeighbours(pred.points, pred_order).query(
-        gt_points, visible_rank[gt_order[gt_mask[gt_order]]])
+    gt_order = pred_order = None
+    if gt_mesh is None or pred_mesh is None:
+        # each point set in spatial order once: as the reference of one direction and the
+        # queries of the other (the visible ground truth keeps the whole set's order)
+        gt_order, pred_order = spatial_order(gt_all.points), spatial_order(pred.points)
+    if gt_mesh is not None:
+        to_gt, gt_face = SurfaceDistance(gt_mesh.vertices, gt_mesh.faces).query(pred.points)
+        gt_normal_of_pred = SurfaceDistance.normals_of(gt_mesh, gt_face)
+    else:
+        to_gt, gt_index = NearestNeighbours(gt_all.points, gt_order).query(pred.points, pred_order)
+        gt_normal_of_pred = None if gt_all.normals is None else gt_all.normals[gt_index]
+    if pred_mesh is not None:
+        to_pred, pred_face = SurfaceDistance(pred_mesh.vertices, pred_mesh.faces).query(gt_points)
+        pred_normal_of_gt = SurfaceDistance.normals_of(pred_mesh, pred_face)
+    else:
+        visible_rank = np.cumsum(gt_mask) - 1  # index of a visible sample within gt_points
+        to_pred, pred_index = NearestNeighbours(pred.points, pred_order).query(
+            gt_points, visible_rank[gt_order[gt_mask[gt_order]]])
+        pred_normal_of_gt = None if pred.normals is None else pred.normals[pred_index]
     accuracy, completeness = float(to_gt.mean()), float(to_pred.mean())
     consistency = None
-    if pred.normals is not None and gt_all.normals is not None:
-        forward = np.abs(np.einsum("ij,ij->i", pred.normals, gt_all.normals[gt_index])).mean()
-        backward = np.abs(np.einsum("ij,ij->i", gt_all.normals[gt_mask], pred.normals[pred_index])).mean()
+    if pred.normals is not None and gt_all.normals is not None and gt_normal_of_pred is not None \
+            and pred_normal_of_gt is not None:
+        forward = np.abs(np.einsum("ij,ij->i", pred.normals, gt_normal_of_pred)).mean()
+        backward = np.abs(np.einsum("ij,ij->i", gt_all.normals[gt_mask], pred_normal_of_gt)).mean()
         consistency = float((forward + backward) / 2)
     scores = {"accuracy": accuracy, "completeness": completeness, "chamfer_l1": (accuracy + completeness) / 2,
               "normal_consistency": consistency, "at_tau": fscores(to_gt, to_pred, taus, diagonal)}
@@ -438,7 +542,11 @@ def score_geometry(root, pred_mesh=None, pred_depth=None, *, split: str = "test"
     gt = sample_surface(gt_surface.vertices, gt_surface.faces, samples, rng, "the ground-truth meshes")
     visible = np.ones(len(gt.points), bool) if whole_surface else visible_in_views(gt.points, gt.normals, ds, reference)
     all_taus = sorted({*(f * diagonal for f in DEFAULT_TAU_FRACTIONS), *(float(t) for t in taus)})
-    scores, distances = compare(pred, gt, visible, all_taus, diagonal)
+    scores, distances = compare(pred, gt, visible, all_taus, diagonal, gt_mesh=gt_surface,
+                                pred_mesh=surface if surface.faces is not None else None)
+    to_mesh = f"point to surface (exact, {distance_backend()})"
+    method = {"accuracy": to_mesh, "completeness": to_mesh if surface.faces is not None else
+              "point to point (the prediction is a point cloud)"}
     scene = ds.scene.get("recipe") if isinstance(ds.scene.get("recipe"), str) else ds.root.name
     document = {"schema": SCHEMA, "scene": scene, "prediction": {"source": name, "kind": kind,
                                                                   "points": int(len(pred.points))},
@@ -446,7 +554,7 @@ def score_geometry(root, pred_mesh=None, pred_depth=None, *, split: str = "test"
                                  "scored_samples": int(visible.sum()), "scored_fraction": float(visible.mean()),
                                  "whole_surface": bool(whole_surface),
                                  "visibility_split": None if whole_surface else reference},
-                "samples": samples, "seed": seed, **scores,
+                "samples": samples, "seed": seed, "distances": method, **scores,
                 "seconds": time.perf_counter() - start}
     return stamp(document, "geometry"), distances
 

@@ -170,12 +170,14 @@ def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquis
 
 
 def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_c2w: np.ndarray,
-            focal: float, width: Optional[int] = None) -> tuple[TrainConfig, dict]:
+            focal: float, width: Optional[int] = None, opaque: Optional[float] = None) -> tuple[TrainConfig, dict]:
     """Fill the automatic choices. Returns the resolved config and {choice: reason}.
-    width: the training images' width in pixels (the unbounded grids' resolution follows it)."""
+    width: the training images' width in pixels (the unbounded grids' resolution follows it).
+    opaque: the share of training pixels with alpha 1 (whether the capture is closed; see
+    choose_parametrisation), None when unknown."""
     reasons = {}
     updates = {}
-    kind, reasons["parametrisation"] = choose_parametrisation(config.parametrisation, aabb, train_c2w)
+    kind, reasons["parametrisation"] = choose_parametrisation(config.parametrisation, aabb, train_c2w, opaque)
     updates["parametrisation"] = kind
     if config.view_dependent is None:
         if needs is None:

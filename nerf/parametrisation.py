@@ -186,13 +186,27 @@ class Space:
         return t
 
 
-def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndarray) -> tuple[str, str]:
-    """(kind, reason) from the cameras and bounds, unless `requested` names one.
-    cameras inside an AABB that reaches far beyond them (more than NEAR_AABB_FACTOR camera
-    radii: distant terrain) -> contracted; all cameras on one side of the AABB looking
-    within 30 degrees of one direction -> forward; else bounded, also for cameras inside an
-    AABB of near content (a room: measured on `inside`, bounded led contracted by about
-    2 dB of val PSNR at every step compared)."""
+def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndarray,
+                           opaque: float | None = None) -> tuple[str, str]:
+    """(kind, reason) from what the capture is, unless `requested` names one.
+
+    opaque: the share of training pixels whose alpha is 1 (every ray ends on content), or
+    None when unknown. The reason states the evidence, so a wrong pick can be traced in
+    the run's config.json.
+
+    Cameras inside the AABB:
+    - the capture is closed (CLOSED_SHARE of the pixels opaque: no ray leaves the content)
+      and the cameras look outwards (no common focus ahead of them) -> bounded: everything
+      the cameras can see lies within the box around them (a room), so one grid holds it,
+      however far the walls are from the cameras' cluster. Contraction would give the walls
+      the coarse outer shell: a closed room from inside scored 5.3 dB lower contracted
+      (issue 34; BENCHMARKS.md "Parametrisation by what the capture is").
+    - else an AABB reaching more than NEAR_AABB_FACTOR camera radii beyond them (an open
+      world: distant terrain, sky) -> contracted;
+    - else bounded (near content: measured on `inside`, bounded led contracted by about
+      2 dB of val PSNR at every step compared).
+    Cameras outside it: all on one side looking within 30 degrees of one direction ->
+    forward; else bounded."""
     if requested is not None:
         if requested not in PARAMETRISATIONS:
             raise InputError(f"unknown parametrisation {requested!r}; choose one of {', '.join(PARAMETRISATIONS)}")
@@ -204,9 +218,18 @@ def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndar
         cams = 1.1 * float(np.linalg.norm(positions - centre, axis=1).max())
         reach = float(np.maximum(aabb[1] - centre, centre - aabb[0]).max())
         where = f"{int(inside.sum())} of {len(inside)} cameras stand inside the AABB"
+        outwards, focus_ahead = looks_outwards(c2w)
+        seen = "" if opaque is None else f"{100 * opaque:.2f}% of training pixels opaque"
+        if opaque is not None and opaque >= CLOSED_SHARE and outwards:
+            return "bounded", (f"{where} and look outwards, and the capture is closed ({seen}: no ray leaves the "
+                               f"content): all of it within the box around them, {reach / cams:.1f}x their "
+                               "reach (one grid)")
+        why_open = ("" if opaque is None else f"; {seen}" + (", but the cameras look at a common point "
+                    f"{focus_ahead:.3g} ahead" if opaque >= CLOSED_SHARE else ": the capture is open"))
         if reach > NEAR_AABB_FACTOR * cams:
-            return "contracted", f"{where}, which reaches {reach / cams:.0f}x beyond them (far content)"
-        return "bounded", f"{where}, all of it within {NEAR_AABB_FACTOR:g}x their reach (near content: one grid)"
+            return "contracted", f"{where}, which reaches {reach / cams:.0f}x beyond them (far content){why_open}"
+        return "bounded", (f"{where}, all of it within {NEAR_AABB_FACTOR:g}x their reach (near content: one "
+                           f"grid){why_open}")
     mean = forward.mean(axis=0)
     mean = mean / max(np.linalg.norm(mean), 1e-12)
     spread = float(np.degrees(np.arccos(np.clip(forward @ mean, -1, 1))).max())
@@ -216,6 +239,28 @@ def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndar
         return "forward", (f"forward-facing: viewing directions within {spread:.1f} degrees of their mean and the "
                            f"whole AABB ahead of every camera (nearest corner {ahead:.3g} ahead)")
     return "bounded", "cameras outside the AABB looking at it from several sides"
+
+
+# The share of training pixels that must be opaque for a capture to count as closed: a
+# closed room's renders are opaque everywhere (alpha is exact coverage); 0.1% leaves room
+# for a stray pixel of a foreign dataset. A capture with sky is far below (inside: the sky
+# above the ring; far-reaching: above the hills).
+CLOSED_SHARE = 0.999
+
+
+def looks_outwards(c2w: np.ndarray) -> tuple[bool, float]:
+    """(True when the cameras do not look at a common point ahead of them, the median
+    distance of that point ahead of the cameras along their axes). An orbit's axes meet
+    ahead of every camera at about its radius; cameras in a cluster looking outwards have
+    their least-squares meeting point within the cluster (or none: parallel axes)."""
+    focus = axes_focus(c2w)
+    if focus is None:
+        return True, 0.0
+    positions, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
+    forward = forward / np.linalg.norm(forward, axis=1, keepdims=True)
+    ahead = float(np.median(((focus - positions) * forward).sum(axis=1)))
+    cluster = float(np.linalg.norm(positions - positions.mean(axis=0), axis=1).max())
+    return ahead <= cluster, ahead
 
 
 def check_targets(aabb: np.ndarray, c2w: np.ndarray) -> None:

@@ -187,6 +187,14 @@ def run_recipe(config: TrainConfig, dataset_sha256: str) -> dict:
     return {"dataset_sha256": dataset_sha256} | {k: v for k, v in config.to_json().items() if k not in NOT_RECIPE}
 
 
+def opaque_share(rays) -> float | None:
+    """The share of rays whose target alpha is 1 (within 8-bit rounding): 1.0 for a capture
+    whose every ray ends on content. None without targets."""
+    if rays.rgba is None or not len(rays.rgba):
+        return None
+    return float((rays.rgba[:, 3] >= 1 - 0.5 / 255).float().mean())
+
+
 def prepare_run(config: TrainConfig):
     """Validate input, load data, resolve the config. Nothing is written here.
     Returns (config, reasons, (aabb, space), train_rays, val_rays, device, recipe)."""
@@ -201,10 +209,10 @@ def prepare_run(config: TrainConfig):
     if aabb is None:
         aabb = aabb_from_cameras(train_cams.c2w)
     check_targets(aabb, train_cams.c2w)
-    config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
-                              train_cams.intrinsics.width)
-    recipe = run_recipe(config, manifest_sha256(root))
     _, train_rays = load_split_rays(root, "train")
+    config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
+                              train_cams.intrinsics.width, opaque_share(train_rays))
+    recipe = run_recipe(config, manifest_sha256(root))
     stride = max(1, train_rays.origins.shape[0] // 65536)
     intrinsics = train_cams.intrinsics
     tan_half_fov = min(0.5 * intrinsics.width / intrinsics.fx, 0.5 * intrinsics.height / intrinsics.fy)

@@ -10,6 +10,7 @@ from nerfgauge.scenes import library
 from nerfgauge.scenes.asset_reader import read_asset
 from nerfgauge.scenes.assets import MESH_SUFFIXES, UNITS, place_objects, with_texture_period
 from nerfgauge.scenes.description import Scene, build_scene
+from nerfgauge.scenes.checks import CHECK_RECIPES
 from nerfgauge.scenes.envmap import EnvironmentMap, read_envmap
 from nerfgauge.scenes.hard import HARD_RECIPES
 from nerfgauge.scenes.meshes import MeshData
@@ -24,6 +25,7 @@ RECIPES = {
     "glossy": (library.glossy, "view-dependent: rough plastic, rough gold, near-mirror aluminium under a sky with a sun"),
     "random": (library.random_objects, "3-6 objects whose shapes, materials and poses come from the seed"),
     **HARD_RECIPES,
+    **CHECK_RECIPES,  # for checking rules on captures nobody tuned them on; not in bench hard
 }
 MESH_PREFIX = "mesh:"
 SCENE_FILE_SUFFIXES = (".toml", ".json")

@@ -435,3 +435,100 @@ def test_contracted_edges_from_inside_the_ball_are_unchanged_and_from_outside_di
     assert (step <= grid_step * (1 + 1e-9)).all()
     per_ray = torch.bincount(rays[before], minlength=32)
     assert (per_ray <= torch.ceil((1 - 1 / r0[:, 0]) / grid_step) + 1).all()
+
+
+# --- the rule on captures nobody tuned it on (issue 34) --------------------------------
+
+
+def _planned_capture(scene, views=40, size=16):
+    """(aabb [2, 3], train c2w [n, 4, 4], share of train pixel-centre rays that hit the
+    scene's meshes): the capture `nerfgauge generate SCENE` would make, without rendering
+    (rays cast with trimesh against the ground-truth meshes; alpha 1 is full coverage, the
+    pixel-centre hit share is its no-render stand-in)."""
+    from nerfgauge.core.camera import pixel_rays
+    from nerfgauge.generate.pipeline import GenerateConfig, plan
+
+    the_plan = plan(GenerateConfig(scene=scene, views=views, val_views=0, test_views=2, width=size, height=size,
+                                   spp=1))
+    parts = [shape.mesh() for shape in the_plan.scene.shapes]
+    if not parts:
+        return np.asarray(the_plan.scene.aabb), the_plan.poses["train"], 0.0
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+    mesh = trimesh.Trimesh(np.concatenate([p.vertices for p in parts]),
+                           np.concatenate([p.faces + o for p, o in zip(parts, offsets)]), process=False)
+    rays = [pixel_rays(pose, the_plan.intrinsics) for pose in the_plan.poses["train"]]
+    origins = np.concatenate([o.reshape(-1, 3) for o, _ in rays])
+    directions = np.concatenate([d.reshape(-1, 3) for _, d in rays])
+    try:  # Open3D's BVH casts these in milliseconds; trimesh's rtree fallback takes minutes
+        import open3d as o3d
+    except Exception:  # every 8th ray (a share of 1.0 stays 1.0; 2000+ rays still see sky)
+        hit = mesh.ray.intersects_any(origins[::8], directions[::8])
+    else:
+        caster = o3d.t.geometry.RaycastingScene()
+        caster.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                             o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+        found = caster.cast_rays(o3d.core.Tensor(np.concatenate([origins, directions], 1).astype(np.float32)))
+        hit = np.isfinite(found["t_hit"].numpy())
+    return np.asarray(the_plan.scene.aabb), the_plan.poses["train"], float(hit.mean())
+
+
+import trimesh  # noqa: E402  (used by the helper above; trimesh is a dependency)
+
+
+def test_a_closed_room_seen_from_inside_is_bounded_because_it_is_closed():
+    """The room's walls reach 10x beyond the cameras' cluster, which made the old rule
+    (cameras inside, AABB reaching > 8 camera radii) contract it; every ray ends on a wall
+    or the furniture, and the cameras look outwards: everything seen is in the box, one
+    grid. Without the evidence (opaque unknown) or with sky in view the old rule stands."""
+    aabb, c2w, opaque = _planned_capture("room")
+    assert opaque == 1.0  # closed: no pixel-centre ray leaves the room
+    kind, reason = choose_parametrisation(None, aabb, c2w, opaque)
+    assert kind == "bounded" and "closed" in reason and "100.00% of training pixels opaque" in reason, reason
+    kind, reason = choose_parametrisation(None, aabb, c2w, None)
+    assert kind == "contracted" and "reaches" in reason, reason
+    kind, reason = choose_parametrisation(None, aabb, c2w, 0.8)
+    assert kind == "contracted" and "the capture is open" in reason, reason
+
+
+def test_a_closed_orbit_keeps_contraction():
+    """far-reaching's orbit with no sky in view (opaque 1.0) is still an orbit inside a
+    world 30x its radius: the cameras look at a common point ahead, so closure does not
+    make it a room."""
+    aabb, c2w, _ = _planned_capture("far-reaching", views=12)
+    kind, reason = choose_parametrisation(None, aabb, c2w, 1.0)
+    assert kind == "contracted" and "common point" in reason, reason
+
+
+@pytest.mark.parametrize("scene, expected", [("far-object", "bounded"), ("forward-near", "forward")])
+def test_the_other_check_scenes(scene, expected):
+    """A small object seen from far: cameras outside a small AABB, from every side ->
+    bounded. A forward capture of near content (depth ratio ~5) -> forward (measured at
+    64 px, 400 steps: BENCHMARKS.md)."""
+    aabb, c2w, opaque = _planned_capture(scene)
+    kind, reason = choose_parametrisation(None, aabb, c2w, opaque)
+    assert kind == expected, reason
+
+
+@pytest.mark.parametrize("scene, expected", [
+    ("thin", "bounded"), ("checker-fine", "bounded"), ("mirror", "bounded"), ("depth-range", "forward"),
+    ("hdr", "bounded"), ("glass", "bounded"), ("empty", "bounded"), ("tiny", "bounded"),
+    ("far-reaching", "contracted"), ("inside", "bounded")])
+def test_bench_hard_picks_do_not_change(scene, expected):
+    """bench hard's captures (its 40 views; 16 px rays suffice for the hit share): the
+    same pick as before the closure rule, with and without the capture's opacity."""
+    aabb, c2w, opaque = _planned_capture(scene)
+    assert choose_parametrisation(None, aabb, c2w, opaque)[0] == expected
+    assert choose_parametrisation(None, aabb, c2w, None)[0] == expected
+    if scene in ("inside", "far-reaching"):
+        assert opaque < 0.999  # sky in view: open captures
+
+
+def test_opaque_share_counts_rays_whose_alpha_is_one_within_8_bit_rounding():
+    from nerfgauge.nerf.data import RayBatch
+    from nerfgauge.nerf.train import opaque_share
+
+    rgba = torch.zeros((4, 4))
+    rgba[:, 3] = torch.tensor([1.0, 254.6 / 255, 254 / 255, 0.0])  # 8-bit 255 decoded with rounding error; 254
+    rays = RayBatch(torch.zeros((4, 3)), torch.zeros((4, 3)), rgba)
+    assert opaque_share(rays) == 0.5
+    assert opaque_share(RayBatch(torch.zeros((0, 3)), torch.zeros((0, 3)), None)) is None

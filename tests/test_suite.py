@@ -96,13 +96,13 @@ def gt_predictions(suite_dir, tmp_path_factory):
 
 
 def test_builtin_suites_list_and_standard_covers_every_scene(capsys):
-    from nerfgauge.scenes import HARD_SCENES
+    from nerfgauge.scenes import CHECK_SCENES, HARD_SCENES
     from nerfgauge.scenes.registry import RECIPES
 
     code, out, _ = run(capsys, "suite", "list")
     assert code == 0 and "smoke" in out and "standard" in out
     standard = load_suite("standard")
-    assert {entry.scene for entry in standard.scenes} == set(RECIPES) and set(HARD_SCENES) < set(RECIPES)
+    assert {entry.scene for entry in standard.scenes} == set(RECIPES) - set(CHECK_SCENES) and set(HARD_SCENES) < set(RECIPES)
     smoke = load_suite("smoke")
     assert smoke.version >= 1 and len(smoke.scenes) <= 3
     assert all(entry.dataset["width"] <= 32 for entry in smoke.scenes)
