@@ -11,6 +11,7 @@ COLMAP dataparser imports (tox.ini); where it is not importable these are skippe
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
 import shutil
 from pathlib import Path
@@ -18,18 +19,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(importlib.util.find_spec("nerfstudio") is None,
+                                 reason="nerfstudio is not installed (tox.ini [testenv] commands_pre: "
+                                        "pip install --no-deps nerfstudio and the light packages it imports)")]
 
-def _nerfstudio_missing() -> str | None:
+
+@pytest.fixture(scope="module")
+def nerfstudio_colmap():
+    """Their COLMAP dataparser module, imported only here (not at collection: it imports torch,
+    tensorboard and viser); installed without a package its import chain needs, a skip naming it."""
     try:
-        importlib.import_module("nerfstudio.data.dataparsers.colmap_dataparser")
-    except Exception as error:  # ImportError, or a broken optional dependency
-        return (f"nerfstudio's COLMAP dataparser is not importable ({type(error).__name__}: {error}); "
-                "tox.ini [testenv] commands_pre shows how to install it with --no-deps")
-    return None
+        return importlib.import_module("nerfstudio.data.dataparsers.colmap_dataparser")
+    except ImportError as error:
+        pytest.skip(f"nerfstudio's COLMAP dataparser is not importable ({error}); "
+                    "tox.ini [testenv] commands_pre lists the packages it needs")
 
-
-_MISSING = _nerfstudio_missing()
-pytestmark = [pytest.mark.slow, pytest.mark.skipif(_MISSING is not None, reason=_MISSING or "")]
 
 POINTS = 600
 # Their pipeline is float32: poses and points pass through float32 matrices (and, with their
@@ -57,14 +62,12 @@ def binary_only(ds, tmp_path_factory):
     return folder
 
 
-def parse(ds: Path, colmap_path: Path, settings: str):
-    from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
-
+def parse(nerfstudio_colmap, ds: Path, colmap_path: Path, settings: str):
     keep = dict(orientation_method="none", center_method="none", auto_scale_poses=False,
                 assume_colmap_world_coordinate_convention=False)
-    config = ColmapDataParserConfig(data=ds, colmap_path=colmap_path, images_path=Path("images"),
-                                    scale_factor=1.0, downscale_factor=1, eval_mode="all",
-                                    **(keep if settings == "as-is" else {}))
+    config = nerfstudio_colmap.ColmapDataParserConfig(data=ds, colmap_path=colmap_path, images_path=Path("images"),
+                                                      scale_factor=1.0, downscale_factor=1, eval_mode="all",
+                                                      **(keep if settings == "as-is" else {}))
     return config.setup().get_dataparser_outputs(split="train")
 
 
@@ -80,8 +83,8 @@ def colmap_path(request, binary_only):
 
 
 @pytest.mark.parametrize("settings", ["as-is", "nerfstudio-defaults"])
-def test_their_colmap_dataparser_keeps_our_cameras(ds, colmap_path, settings):
-    out = parse(ds, colmap_path, settings)
+def test_their_colmap_dataparser_keeps_our_cameras(nerfstudio_colmap, ds, colmap_path, settings):
+    out = parse(nerfstudio_colmap, ds, colmap_path, settings)
     ours = json.loads((ds / "transforms_train.json").read_text())
     nerfstudio_json = json.loads((ds / "transforms.json").read_text())
     frames = ours["frames"]
@@ -128,13 +131,13 @@ def test_their_colmap_dataparser_keeps_our_cameras(ds, colmap_path, settings):
     np.testing.assert_allclose(back, ply, rtol=0, atol=ATOL)
 
 
-def test_their_input_dataset_reads_our_images(ds):
+def test_their_input_dataset_reads_our_images(nerfstudio_colmap, ds):
     """Their InputDataset (what their datamanagers train on) opens the images the parser named."""
     from nerfstudio.data.datasets.base_dataset import InputDataset
 
     from nerfgauge.core.images import read_png
 
-    out = parse(ds, Path("sparse/0"), "as-is")
+    out = parse(nerfstudio_colmap, ds, Path("sparse/0"), "as-is")
     data = InputDataset(out)
     frames = json.loads((ds / "transforms_train.json").read_text())["frames"]
     assert len(data) == len(frames)
