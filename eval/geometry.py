@@ -55,6 +55,7 @@ surface is not an error).
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import math
 import time
@@ -401,13 +402,13 @@ class SurfaceDistance:
         self.backend = backend or distance_backend()
         self.shift = (self.vertices.min(axis=0) + self.vertices.max(axis=0)) / 2
         if self.backend == "open3d":
-            import open3d as o3d
+            import open3d as o3d  # open3d: an optional extra, ~900 MB, loaded only to score geometry
 
             self._scene = o3d.t.geometry.RaycastingScene()
             self._scene.add_triangles(o3d.core.Tensor((self.vertices - self.shift).astype(np.float32)),
                                       o3d.core.Tensor(self.faces.astype(np.uint32)))
         elif self.backend == "trimesh":
-            import trimesh
+            import trimesh  # trimesh: only to score geometry
 
             self._mesh = trimesh.Trimesh(self.vertices - self.shift, self.faces, process=False)
         else:
@@ -420,13 +421,13 @@ class SurfaceDistance:
         for start in range(0, len(local), chunk):
             part = local[start:start + chunk]
             if self.backend == "open3d":
-                import open3d as o3d
+                import open3d as o3d  # open3d: as above
 
                 found = self._scene.compute_closest_points(o3d.core.Tensor(part.astype(np.float32)))
                 closest = found["points"].numpy().astype(np.float64)
                 triangle[start:start + len(part)] = found["primitive_ids"].numpy().astype(np.int64)
             else:
-                import trimesh
+                import trimesh  # trimesh: as above
 
                 closest, _, ids = trimesh.proximity.closest_point(self._mesh, part)
                 triangle[start:start + len(part)] = ids
@@ -448,12 +449,10 @@ def distance_backend() -> str:
     global _BACKEND
     if _BACKEND is None:
         try:
-            import open3d  # noqa: F401  (its wheel also needs the system's libusb-1.0)
+            import open3d  # noqa: F401  (open3d: optional; its wheel also needs the system's libusb-1.0)
 
             _BACKEND = "open3d"
         except Exception:  # not installed, or a shared library missing
-            import importlib.util
-
             if importlib.util.find_spec("rtree") is None:
                 raise InputError("exact point-to-surface distances need rtree (pip install rtree) or Open3D "
                                  "(pip install 'nerfgauge[geometry]')") from None
