@@ -57,6 +57,12 @@ written atomically; at the CLI and in nerfgauge.evaluate, FILE must be a new pat
 metrics file nerfgauge wrote, core.outputs)
 and error maps in `error_maps/` beside it (eval.error_maps).
 
+`ci95` beside `mean` and `std`: per metric, [low, high], the 95% percentile bootstrap
+interval of the mean over the views (eval.uncertainty.bootstrap_ci, 10000 resamples of
+the defined frames, a fresh np.random.default_rng(EVALUATE_SEED = 0) per metric, so the
+same scores give the same interval); [mean, mean] with one defined frame (degenerate: no
+spread is known); null when no frame is defined. The means are unchanged by it.
+
 Beside the metrics (docs/conventions.md, "Noise"): each frame's `psnr_ceiling`, the PSNR the
 noise-free image would score against the ground truth (from the dataset's noise estimate,
 for the chosen background; null for datasets without one or rendered at spp 1), and
@@ -105,6 +111,7 @@ from nerfgauge.eval.metrics import (
     ssim_masked,
     summarize,
 )
+from nerfgauge.eval.uncertainty import EVALUATE_SEED, bootstrap_ci
 
 from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
@@ -322,16 +329,19 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     for metric, batch in batches.items():
         for frame, value in zip(frames, batch.scores()):
             frame[metric] = value
-    means, stds, counts = {}, {}, {}
+    means, stds, counts, intervals = {}, {}, {}, {}
     for metric in list(METRIC_NAMES) + extra_metrics:
         column = [frame[metric] for frame in frames]
         means[metric], stds[metric] = summarize(column)
         counts[metric] = sum(value is not None for value in column)
+        # eval.uncertainty: percentile bootstrap over the views, a fresh Generator seeded
+        # EVALUATE_SEED per metric (the same file gives the same interval)
+        intervals[metric] = bootstrap_ci(column, np.random.default_rng(EVALUATE_SEED)).to_json()
     out.parent.mkdir(parents=True, exist_ok=True)
     for stem, colour_err, depth_err in maps:
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
     document = {"tool": TOOL, "kind": METRICS_KIND, "schema": SCHEMA, "scene": scene, "split": split, "background": background,
-                "depth_kind": depth_kind, "mean": means, "std": stds, "count": counts,
+                "depth_kind": depth_kind, "mean": means, "std": stds, "ci95": intervals, "count": counts,
                 "protocol": chosen.name, "evaluation_protocol": chosen.their_name or chosen.name,
                 "protocol_background": background if chosen.background is None else
                 {(1.0, 1.0, 1.0): "white", (0.0, 0.0, 0.0): "black"}[tuple(chosen.background)],

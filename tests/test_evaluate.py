@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 from nerfgauge.eval.error_maps import COLOUR_CMAP
 from nerfgauge.eval.metrics import METRIC_NAMES, PSNR_CAP_DB, opacity_iou
+from nerfgauge.eval.uncertainty import EVALUATE_SEED, bootstrap_ci
 from PIL import Image
 
 from nerfgauge.cli import main
 from nerfgauge.core import dataset
 from nerfgauge.core.images import read_exr, read_png, write_exr, write_png
 
-TOP_KEYS = {"schema", "scene", "split", "background", "depth_kind", "mean", "std", "count", "notes", "frames", "timing",
+TOP_KEYS = {"schema", "scene", "split", "background", "depth_kind", "mean", "std", "ci95", "count", "notes", "frames", "timing",
             "noise", "psnr_objects", "empty_views", "tool", "kind",
             "protocol", "evaluation_protocol", "protocol_background", "lpips_net", "ground_truth"}  # eval.protocols; foreign ground truth
 
@@ -64,6 +65,7 @@ def test_ground_truth_scores_perfectly(ds, test_split, tmp_path, capsys, depth_k
     assert code == 0
     doc = strict_json(out.read_text())
     assert set(doc) == TOP_KEYS and doc["schema"] == 1 and doc["scene"] == "primitives"
+    assert doc["ci95"]["psnr"] == [PSNR_CAP_DB, PSNR_CAP_DB] and doc["ci95"]["lpips"] is None  # all equal; none defined
     assert doc["depth_kind"] == depth_kind and doc["split"] == "test" and doc["background"] == "white"
     assert [f["name"] for f in doc["frames"]] == list(test_split.stems)
     assert doc["mean"]["psnr"] == PSNR_CAP_DB  # identical images: MSE floored, PSNR capped
@@ -114,6 +116,11 @@ def test_corrupted_frame_psnr_matches_hand_computation(ds, test_split, tmp_path,
     assert psnr["test/r_000"] == psnr["test/r_002"] == PSNR_CAP_DB
     assert doc["mean"]["psnr"] == pytest.approx((2 * PSNR_CAP_DB + psnr["test/r_001"]) / 3, rel=1e-12)
     assert doc["std"]["psnr"] > 0 and doc["timing"]["ms_per_frame"] == 12.5
+    # eval.uncertainty: the bootstrap over the 3 views, Generator seeded 0 (EVALUATE_SEED)
+    values = [psnr[f"test/r_00{i}"] for i in range(3)]
+    expected = bootstrap_ci(values, np.random.default_rng(EVALUATE_SEED)).to_json()
+    assert doc["ci95"]["psnr"] == pytest.approx(expected, rel=1e-12)
+    assert doc["ci95"]["psnr"][0] < doc["mean"]["psnr"] < doc["ci95"]["psnr"][1] == PSNR_CAP_DB
     assert doc["timing"]["evaluate_seconds"] > 0
 
     maps = folder / "error_maps"
