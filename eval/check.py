@@ -31,8 +31,15 @@ One table per scene, one entry per metric, each an inline table with `min` and/o
   and the geometry figures `eval.geometry.SUMMARY_NAMES` (geometry_chamfer_l1,
   geometry_fscore_1pct, normal_angle_mean, ...), compared with metrics.json's `geometry`
   table (written by `nerfgauge run` for the compact model).
-- Entry keys: only `min` and `max`, finite numbers, at least one, min <= max. Bounds are
-  inclusive: a value equal to its bound passes.
+- Entry keys: `min` and `max`, finite numbers, at least one, min <= max, and optionally
+  `on`, what the bounds are compared with: "mean" (the default: metrics.json's `mean`) or
+  "ci95" (metrics.json's `ci95`, the 95% bootstrap interval over the views,
+  eval.uncertainty): `min` is then checked against the interval's lower end and `max`
+  against its upper end, so the gate passes only when the whole interval clears the
+  bound: `psnr = { min = 29.0, on = "ci95" }`. Only image metrics have intervals: `on =
+  "ci95"` on a geometry figure is an error, and so is a ci95 bound against a metrics file
+  without a `ci95` table (written before it existed: re-run `nerfgauge evaluate`).
+  Bounds are inclusive: a value equal to its bound passes.
 - The bounds for a scene are the `"*"` table overlaid by the scene's own table (per
   metric, the scene's entry replaces the `"*"` one). The metrics' scene (or `--scene`)
   must end up with at least one bound, otherwise nothing would be checked: an error.
@@ -59,7 +66,8 @@ metrics.json (written by `nerfgauge evaluate`; `nerfgauge run` adds `geometry`),
      "geometry": {"geometry_fscore_1pct": 0.30, "normal_angle_mean": 28.2, ...},
      "std": {...}, "frames": [...], "timing": {...}}
 
-Only `schema`, `scene`, `mean` and `geometry` are read here.
+Only `schema`, `scene`, `mean`, `geometry` and `ci95` ({metric: [low, high] or null},
+`nerfgauge evaluate`) are read here.
 """
 
 from __future__ import annotations
@@ -87,6 +95,8 @@ METRICS_SCHEMA = 1
 METRIC_NAMES = IMAGE_METRIC_NAMES + SUMMARY_NAMES
 DEFAULT_TABLE = "*"
 BOUND_KEYS = ("min", "max")
+ENTRY_KEYS = BOUND_KEYS + ("on",)
+ON_VALUES = ("mean", "ci95")  # what a bound is compared with (module docstring)
 MESH_PREFIX = "mesh:"
 JUNIT_KIND = "junit"  # the JUnit file's mark, `<!-- nerfgauge-kind: junit -->` (core.outputs)
 
@@ -98,6 +108,7 @@ class Bound:
     metric: str
     min: Optional[float] = None
     max: Optional[float] = None
+    on: str = "mean"  # "ci95": min against the interval's lower end, max against its upper end
 
 
 @dataclass(frozen=True)
@@ -120,6 +131,7 @@ class CheckResult:
     passed: bool
     reason: str
     skipped: bool = False
+    on: str = "mean"  # "ci95": value is the interval's lower (min) or upper (max) end
 
     @property
     def status(self) -> str:
@@ -130,8 +142,13 @@ class CheckResult:
         return ">=" if self.kind == "min" else "<="
 
     @property
+    def label(self) -> str:
+        """The metric, and which end of its interval when the bound is on ci95."""
+        return self.metric if self.on == "mean" else f"{self.metric}.ci95_{'low' if self.kind == 'min' else 'high'}"
+
+    @property
     def name(self) -> str:
-        return f"{self.metric} {self.relation} {self.bound:.6g}"
+        return f"{self.label} {self.relation} {self.bound:.6g}"
 
 
 # --- reading the inputs -------------------------------------------------------------
@@ -185,12 +202,20 @@ def parse_thresholds(data: dict, source: str = "thresholds") -> dict[str, dict[s
                 raise InputError(f"{source}: [{scene}] unknown metric {metric!r}; known: {', '.join(METRIC_NAMES)}")
             if not isinstance(entry, dict):
                 raise InputError(f"{where} must be a table like {{ min = ... }} or {{ max = ... }}, got {entry!r}")
-            unknown = [key for key in entry if key not in BOUND_KEYS]
+            unknown = [key for key in entry if key not in ENTRY_KEYS]
             if unknown:
-                raise InputError(f"{where}: unknown key {unknown[0]!r}; only 'min' and 'max' are allowed")
-            if not entry:
+                raise InputError(f"{where}: unknown key {unknown[0]!r}; only 'min', 'max' and 'on' are allowed")
+            on = entry.get("on", "mean")
+            if on not in ON_VALUES:
+                raise InputError(f"{where}.on must be one of {', '.join(map(repr, ON_VALUES))}, got {on!r}")
+            if on == "ci95" and metric in SUMMARY_NAMES:
+                raise InputError(f"{where}: on = \"ci95\" needs per-view values; the geometry figure {metric!r} "
+                                 "has no interval: bound its value (on = \"mean\")")
+            if not any(key in entry for key in BOUND_KEYS):
                 raise InputError(f"{where} has no bound; give min and/or max")
             for key, value in entry.items():
+                if key == "on":
+                    continue
                 if not _is_number(value) or not math.isfinite(value):
                     raise InputError(f"{where}.{key} must be a finite number, got {value!r}")
             low, high = entry.get("min"), entry.get("max")
@@ -198,7 +223,7 @@ def parse_thresholds(data: dict, source: str = "thresholds") -> dict[str, dict[s
                 raise InputError(f"{where}: min {low} is greater than max {high}")
             bounds[metric] = Bound(metric,
                                    None if low is None else float(low),
-                                   None if high is None else float(high))
+                                   None if high is None else float(high), on)
         tables[scene] = bounds
     return tables
 
@@ -235,6 +260,14 @@ def validate_metrics(data, source: str = "metrics") -> dict:
     for metric, value in geometry.items():
         if value is not None and not _is_number(value):
             raise InputError(f"{source}: geometry.{metric} must be a number or null, got {value!r}")
+    intervals = data.get("ci95", {})
+    if not isinstance(intervals, dict):
+        raise InputError(f"{source}: 'ci95' must be an object of [low, high] intervals, got {intervals!r}")
+    for metric, value in intervals.items():
+        if value is not None and not (isinstance(value, list) and len(value) == 2 and all(map(_is_number, value))
+                                      and value[0] <= value[1]):
+            raise InputError(f"{source}: ci95.{metric} must be [low, high] numbers with low <= high or null, "
+                             f"got {value!r}")
     return data
 
 
@@ -265,13 +298,14 @@ SKIPPED_NO_GEOMETRY = "skipped: no geometry in metrics"
 
 
 def evaluate_bounds(scene: str, mean: dict, bounds: list[Bound], geometry: Optional[dict] = None,
-                    notes: Optional[dict] = None) -> list[CheckResult]:
+                    notes: Optional[dict] = None, intervals: Optional[dict] = None) -> list[CheckResult]:
     """One CheckResult per (metric, min/max) bound, in the order of `bounds`.
 
     mean: the image metrics (metrics.json `mean`); geometry: metrics.json's `geometry`
     table, None when it has none (geometry bounds are then skipped, see the module
     docstring); notes: metrics.json's "notes" (e.g. {"lpips": "n/a (install: ...)"}),
-    which explain null values."""
+    which explain null values; intervals: metrics.json's `ci95`, needed by the bounds with
+    on = "ci95" (InputError when it is None and such a bound exists)."""
     values = {**(geometry or {}), **mean}
     results = []
     for bound in bounds:
@@ -282,6 +316,13 @@ def evaluate_bounds(scene: str, mean: dict, bounds: list[Bound], geometry: Optio
             if geometry is None and bound.metric in SUMMARY_NAMES:
                 results.append(CheckResult(scene, bound.metric, kind, limit, None, None, True, SKIPPED_NO_GEOMETRY,
                                            skipped=True))
+            elif bound.on == "ci95":
+                if intervals is None:
+                    raise InputError(f"the bound {bound.metric} on ci95 needs the metrics file's 'ci95' table, which "
+                                     "it does not have (written before intervals existed: re-run nerfgauge evaluate)")
+                ends = {metric: None if interval is None else interval[0 if kind == "min" else 1]
+                        for metric, interval in intervals.items()}  # the lower end for min, the upper for max
+                results.append(_check_one(scene, bound.metric, kind, limit, ends, notes or {}, on="ci95"))
             else:
                 results.append(_check_one(scene, bound.metric, kind, limit, values, notes or {}))
     return results
@@ -291,7 +332,8 @@ def check_metrics(metrics: dict, bounds: list[Bound], source: str = "thresholds"
     """The checks of a validated metrics document against `bounds`; InputError when every
     one would be skipped (nothing would be checked)."""
     notes = metrics.get("notes") if isinstance(metrics.get("notes"), dict) else {}
-    results = evaluate_bounds(metrics["scene"], metrics["mean"], bounds, metrics.get("geometry"), notes)
+    results = evaluate_bounds(metrics["scene"], metrics["mean"], bounds, metrics.get("geometry"), notes,
+                              metrics.get("ci95"))
     if results and all(r.skipped for r in results):
         raise InputError(f"{source}: every bound for scene {metrics['scene']!r} is a geometry figure and the metrics "
                          "have no geometry table (from `nerfgauge evaluate`, not `nerfgauge run`): nothing would be "
@@ -299,26 +341,30 @@ def check_metrics(metrics: dict, bounds: list[Bound], source: str = "thresholds"
     return results
 
 
-def _check_one(scene: str, metric: str, kind: str, limit: float, mean: dict, notes: dict) -> CheckResult:
+def _check_one(scene: str, metric: str, kind: str, limit: float, mean: dict, notes: dict,
+               on: str = "mean") -> CheckResult:
+    """mean: {metric: value}; for on="ci95", {metric: the interval's end for this kind}."""
+    label = CheckResult(scene, metric, kind, limit, None, None, False, "", on=on).label
+
     def fail(value, reason):
-        return CheckResult(scene, metric, kind, limit, value, None, False, reason)
+        return CheckResult(scene, metric, kind, limit, value, None, False, reason, on=on)
 
     if metric not in mean:
-        return fail(None, f"{metric} is missing from the metrics file")
+        return fail(None, f"{label} is missing from the metrics file")
     value = mean[metric]
     if value is None and isinstance(notes.get(metric), str):
-        return fail(None, f"{metric} is {notes[metric]} but has a bound")
+        return fail(None, f"{label} is {notes[metric]} but has a bound")
     if value is None:
-        return fail(None, f"{metric} is null in the metrics file (not measured) but has a bound")
+        return fail(None, f"{label} is null in the metrics file (not measured) but has a bound")
     value = float(value)
     if math.isnan(value):
-        return fail(value, f"{metric} is NaN")
+        return fail(value, f"{label} is NaN")
     margin = value - limit if kind == "min" else limit - value
     passed = margin >= 0
     reason = "" if passed else (
-        f"{metric} = {value:.6g} is {'below the minimum' if kind == 'min' else 'above the maximum'} "
+        f"{label} = {value:.6g} is {'below the minimum' if kind == 'min' else 'above the maximum'} "
         f"{limit:.6g} by {-margin:.6g}")
-    return CheckResult(scene, metric, kind, limit, value, margin, passed, reason)
+    return CheckResult(scene, metric, kind, limit, value, margin, passed, reason, on=on)
 
 
 # --- reporting ----------------------------------------------------------------------
@@ -331,7 +377,7 @@ def format_table(results: list[CheckResult]) -> str:
     for r in results:
         rows.append((
             r.scene,
-            r.metric,
+            r.label,
             "null" if r.value is None else f"{r.value:.6g}",
             f"{r.relation} {r.bound:.6g}",
             "-" if r.margin is None else f"{r.margin:+.6g}",
@@ -363,7 +409,7 @@ def junit_xml(results: list[CheckResult], properties: Optional[dict[str, str]] =
             ET.SubElement(case, "skipped", {"message": r.reason})
         elif not r.passed:
             failure = ET.SubElement(case, "failure", {"message": r.reason, "type": "ThresholdFailure"})
-            failure.text = (f"scene {r.scene}: {r.metric} = {'null' if r.value is None else f'{r.value:.6g}'}, "
+            failure.text = (f"scene {r.scene}: {r.label} = {'null' if r.value is None else f'{r.value:.6g}'}, "
                             f"required {r.relation} {r.bound:.6g}")
     ET.indent(suite)
     return xml_mark(ET.tostring(suite, encoding="utf-8", xml_declaration=True), JUNIT_KIND)

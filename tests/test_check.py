@@ -277,3 +277,55 @@ def test_run_summary_without_a_surface_is_all_null():
     from nerfgauge.eval.geometry import SUMMARY_NAMES, summary
 
     assert summary(None) == dict.fromkeys(SUMMARY_NAMES)
+
+
+# --- bounds on the confidence interval (on = "ci95") --------------------------------------
+
+CI_THRESHOLDS = """
+[primitives]
+psnr = { min = 30.0, on = "ci95" }
+depth_absrel = { max = 0.02, on = "ci95" }
+ssim = { min = 0.9 }
+"""
+
+
+def test_ci95_bounds_check_the_interval_ends(files, capsys):
+    doc = {**metrics_doc(), "ci95": {"psnr": [30.5, 34.5], "depth_absrel": [0.01, 0.025], "ssim": [0.9, 0.99]}}
+    metrics, thresholds = files(doc, CI_THRESHOLDS)
+    code, out, _ = run(capsys, metrics, "--thresholds", thresholds)
+    assert code == 1  # the mean 0.015 passes, the upper end 0.025 does not
+    table = rows(out)
+    assert table[("psnr.ci95_low", ">= 30")][2:6] == ["30.5", ">=", "30", "+0.5"]
+    assert table[("depth_absrel.ci95_high", "<= 0.02")][5:7] == ["-0.005", "FAIL"]
+    assert "depth_absrel.ci95_high = 0.025 is above the maximum 0.02" in out
+    assert table[("ssim", ">= 0.9")][2] == "0.95"  # on = "mean" (the default) reads the mean
+    doc["ci95"]["psnr"] = [29.0, 34.0]  # mean 32.5 passes a plain min of 30, the lower end does not
+    metrics, thresholds = files(doc, CI_THRESHOLDS)
+    assert "psnr.ci95_low = 29 is below the minimum 30" in run(capsys, metrics, "--thresholds", thresholds)[1]
+    doc["ci95"]["psnr"] = None
+    metrics, thresholds = files(doc, CI_THRESHOLDS)
+    assert "psnr.ci95_low is null in the metrics file" in run(capsys, metrics, "--thresholds", thresholds)[1]
+
+
+def test_ci95_junit_names_the_interval_end(files, capsys, tmp_path):
+    doc = {**metrics_doc(), "ci95": {"psnr": [30.5, 34.5], "depth_absrel": [0.01, 0.015]}}
+    metrics, thresholds = files(doc, CI_THRESHOLDS)
+    junit = tmp_path / "junit.xml"
+    assert run(capsys, metrics, "--thresholds", thresholds, "--junit", str(junit))[0] == 0
+    names = [case.get("name") for case in ET.parse(junit).getroot().iter("testcase")]
+    assert "psnr.ci95_low >= 30" in names and "depth_absrel.ci95_high <= 0.02" in names
+
+
+@pytest.mark.parametrize("thresholds, metrics, message", [
+    ('[primitives]\npsnr = { min = 30, on = "ci_low" }\n', None, r"psnr.on must be one of 'mean', 'ci95'"),
+    ('[primitives]\npsnr = { on = "ci95" }\n', None, "psnr has no bound"),
+    ('[primitives]\ngeometry_fscore_1pct = { min = 0.2, on = "ci95" }\n', None, "has no interval"),
+    ('[primitives]\npsnr = { min = 30, on = "ci95" }\n', metrics_doc(), "does not have"),
+    (THRESHOLDS, {**metrics_doc(), "ci95": {"psnr": [31, 30]}}, r"ci95.psnr must be \[low, high\]"),
+    (THRESHOLDS, {**metrics_doc(), "ci95": [30, 31]}, "'ci95' must be an object"),
+])
+def test_bad_ci95_input_exits_2_in_one_line(files, capsys, thresholds, metrics, message):
+    metrics_path, path = files(metrics, thresholds)
+    code, out, err = run(capsys, metrics_path, "--thresholds", path)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1
+    assert re.search(message, err), err
