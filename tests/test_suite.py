@@ -281,3 +281,45 @@ def test_generate_over_another_version_needs_overwrite(suite_dir, tmp_path, caps
     code, _, err = run(capsys, "suite", "generate", v2, "--out", copy, "--overwrite")
     assert code == 0, err
     assert read_json(copy / SUITE_MANIFEST)["version"] == 2 and read_json(copy / "suite.json")["version"] == 2
+
+
+def test_leaderboard_pairs_our_nerf_with_each_method(suite_dir, tiny_toml, gt_predictions, tmp_path, capsys):
+    """The paired table (eval.uncertainty): ours minus each method on the per-frame PSNR of the
+    two metrics.json files, equal to paired_comparison on those values; the per-dataset
+    tables carry the PSNR interval copied from metrics.json's ci95."""
+    import numpy as np
+
+    from nerfgauge.eval.uncertainty import EVALUATE_SEED, paired_comparison
+
+    out = tmp_path / "tiny"
+    shutil.copytree(suite_dir, out, ignore=shutil.ignore_patterns(".nerfgauge.lock", "results", "leaderboard.*",
+                                                                  "report"))
+    exact = tmp_path / "exact"  # "our NeRF": the ground truth itself, by frame name
+    for entry_id in ("primitives", "random-3"):
+        (exact / entry_id / "test").mkdir(parents=True)
+        for png in (out / "datasets" / entry_id / "test").glob("r_???.png"):
+            shutil.copy(png, exact / entry_id / "test" / png.name)
+    for method, pred in (("compact-nerf", exact), ("other-tool", gt_predictions)):
+        code, _, err = run(capsys, "suite", "evaluate", tiny_toml, out, "--method", method, "--pred", pred)
+        assert code == 0, err
+    code, _, err = run(capsys, "suite", "report", out)
+    assert code == 0, err
+    board = json.loads((out / "leaderboard.json").read_text())
+    paired = board["paired"]
+    assert paired["reference"] == "compact-nerf" and paired["alpha"] == 0.05 and paired["metric"] == "psnr"
+    assert [(row["scene"], row["method"]) for row in paired["rows"]] == [("primitives", "other-tool"),
+                                                                       ("random-3", "other-tool")]
+    for row in paired["rows"]:
+        docs = [json.loads((out / board["methods"][m]["scenes"][row["scene"]]["metrics"]).read_text())
+                for m in ("compact-nerf", "other-tool")]
+        theirs = {frame["name"]: frame["psnr"] for frame in docs[1]["frames"]}
+        ours = [frame["psnr"] for frame in docs[0]["frames"]]
+        expected = paired_comparison(ours, [theirs[frame["name"]] for frame in docs[0]["frames"]],
+                                     np.random.default_rng(EVALUATE_SEED))
+        assert row["mean_difference"] == expected["mean_difference"] > 0 and row["ci95"] == expected["ci95"]
+        # two views: the smallest exact two-sided Wilcoxon p is 0.5, never significant
+        assert row["views"] == 2 and row["p_value"] == 0.5 and row["significant"] is False
+        assert board["methods"]["other-tool"]["scenes"][row["scene"]]["psnr_ci95"] == docs[1]["ci95"]["psnr"]
+    markdown = (out / "leaderboard.md").read_text()
+    assert "Paired comparison on PSNR" in markdown and "no (not significant)" in markdown and "PSNR 95% CI" in markdown
+    assert "Paired comparison on PSNR" in (out / "leaderboard.html").read_text()

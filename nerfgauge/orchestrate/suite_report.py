@@ -9,6 +9,16 @@ show up here), then our NeRF's geometry where scored (eval.geometry.summary), th
 training seconds, model size, render milliseconds per frame. The mean row of a method is
 the mean over the datasets where the value is defined; `scenes` says over how many.
 
+Uncertainty (eval.uncertainty, docs/conventions.md "Uncertainty"): each dataset's table
+gives the PSNR's 95% interval copied from metrics.json's `ci95` (bootstrap over the views,
+as `nerfgauge evaluate` wrote it), and the paired table compares our NeRF (OURS) with
+each other method on each dataset both scored, on the per-frame PSNR of their
+metrics.json files matched by frame name: mean difference OURS - method, its 95% paired
+bootstrap interval (the views resampled once for both methods; a fresh
+np.random.default_rng(EVALUATE_SEED) per comparison, 10000 resamples), the two-sided
+Wilcoxon signed-rank p-value and whether it is significant at 0.05. With one seed per run
+(today) the resampling is over views only.
+
 One table is recomputed, on purpose: the protocol-sensitivity table scores the same
 renders under each scoring protocol the field uses (eval.protocols: ours, NerfBaselines',
 nerfstudio's ns-eval) and gives the spread, so a reader sees how much the protocol alone
@@ -19,11 +29,14 @@ from __future__ import annotations
 
 import html
 import math
+
+import numpy as np
 from pathlib import Path
 
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results
 from nerfgauge.eval.metrics import METRIC_NAMES
+from nerfgauge.eval.uncertainty import EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, paired_comparison
 from nerfgauge.eval.protocols import suite_sensitivity, sensitivity_rows
 from nerfgauge.eval.report import PROTOCOL_CAPTION, page_html, sortable_table_html, write_report
 
@@ -47,7 +60,7 @@ def leaderboard(suite: Suite, out) -> dict:
     """The leaderboard document from the suite folder's results (checked by read_results)."""
     out = Path(out)
     results = read_results(suite, out)
-    methods = {}
+    methods, documents = {}, {}
     for method, result in results.items():
         scenes = {}
         for entry in suite.scenes:
@@ -55,12 +68,14 @@ def leaderboard(suite: Suite, out) -> dict:
             if row is None:
                 continue
             document = read_json(out / row["metrics"], finite=True)
+            documents.setdefault(method, {})[entry.id] = document
             values = dict(document["mean"])
             geometry = row.get("geometry") or {}
             values.update({key: geometry.get(key) for key in GEOMETRY_COLUMNS})
             values.update({"train_seconds": row.get("train_seconds"), "model_bytes": row.get("model_bytes"),
                            "ms_per_frame": row.get("ms_per_frame")})
             scenes[entry.id] = {"values": values, "frames": len(document["frames"]),
+                                "psnr_ci95": (document.get("ci95") or {}).get("psnr"),
                                 "geometry_na": geometry.get("n/a"), "metrics": row["metrics"]}
         methods[method] = {"scenes": scenes, **({"skipped": dict(result["skipped"])} if result.get("skipped") else {})}
     columns = [name for name in (*metric_names(), *GEOMETRY_COLUMNS, *COST_COLUMNS)
@@ -72,8 +87,57 @@ def leaderboard(suite: Suite, out) -> dict:
             method["mean"][name] = math.fsum(defined) / len(defined) if defined else None
             method["scenes_scored"][name] = len(defined)
     unavailable = unavailable_metrics(suite, out, results)
+    paired = paired_comparisons(documents, [e.id for e in suite.scenes])
     return {**suite.identity(), "schema": 1, "columns": columns, "scenes": [e.id for e in suite.scenes],
-            "methods": methods, **({"unavailable": unavailable} if unavailable else {})}
+            "methods": methods, **({"unavailable": unavailable} if unavailable else {}),
+            **({"paired": paired} if paired["rows"] else {})}
+
+
+PAIRED_METRIC = "psnr"
+PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views; 95% paired "
+                  f"bootstrap interval over the views; two-sided Wilcoxon signed-rank test at {LEVEL_ALPHA:g})")
+
+
+def paired_comparisons(documents: dict, scenes: list, reference: str = OURS, metric: str = PAIRED_METRIC) -> dict:
+    """{"metric", "reference", "level", "alpha", "test", "resamples", "seed", "rows": [...]}:
+    one row per (dataset, method other than `reference`) that both scored: {"scene",
+    "method", "views", "mean_difference" (reference - method), "ci95", "p_value",
+    "significant", "degenerate"} from eval.uncertainty.paired_comparison on the per-frame
+    values matched by frame name (the reference's order; frames either leaves undefined
+    are left out). documents: {method: {scene id: metrics.json document}}."""
+    rows = []
+    for scene in scenes:
+        ours = documents.get(reference, {}).get(scene)
+        if ours is None:
+            continue
+        for method, by_scene in documents.items():
+            theirs = by_scene.get(scene)
+            if method == reference or theirs is None:
+                continue
+            their_values = {frame["name"]: frame.get(metric) for frame in theirs["frames"]}
+            names = [frame["name"] for frame in ours["frames"] if frame["name"] in their_values]
+            our_values = {frame["name"]: frame.get(metric) for frame in ours["frames"]}
+            result = paired_comparison([our_values[n] for n in names], [their_values[n] for n in names],
+                                       np.random.default_rng(EVALUATE_SEED))
+            rows.append({"scene": scene, "method": method, "views": result["n_views"],
+                         **{key: result[key] for key in ("mean_difference", "ci95", "p_value", "significant",
+                                                         "degenerate")}})
+    return {"metric": metric, "reference": reference, "difference": f"{reference} - method", "level": LEVEL,
+            "alpha": LEVEL_ALPHA, "test": "Wilcoxon signed-rank, two-sided (scipy.stats.wilcoxon, exact for n <= 50)",
+            "resamples": RESAMPLES, "seed": EVALUATE_SEED, "rows": rows}
+
+
+def paired_rows(paired: dict) -> list[list[str]]:
+    """The paired table, a header row first."""
+    rows = [["dataset", "method", "views", "Δ PSNR dB", "95% CI", "Wilcoxon p", f"significant at {paired['alpha']:g}"]]
+    for row in paired["rows"]:
+        ci = row["ci95"]
+        mark = "–" if row["significant"] is None else "yes" if row["significant"] else "no (not significant)"
+        rows.append([row["scene"], row["method"], str(row["views"]),
+                     "–" if row["mean_difference"] is None else f"{row['mean_difference']:+.2f}",
+                     "–" if ci is None else f"[{ci[0]:+.2f}, {ci[1]:+.2f}]" + (" (1 view)" if row["degenerate"] else ""),
+                     "–" if row["p_value"] is None else f"{row['p_value']:.3g}", mark])
+    return rows
 
 
 def unavailable_metrics(suite: Suite, out: Path, results: dict) -> dict:
@@ -119,14 +183,16 @@ def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
                          + [_cell(c, data["mean"].get(c)) for c in columns])
     result = [(f"mean over datasets ({n})", mean_rows)]
     for scene in board["scenes"]:
-        rows = [["method", "frames"] + [_label(c) for c in columns]]
+        rows = [["method", "frames"] + [_label(c) for c in columns] + ["PSNR 95% CI"]]
         for method, data in board["methods"].items():
             entry = data["scenes"].get(scene)
             if entry is None:
                 reason = data.get("skipped", {}).get(scene)
-                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * len(columns))
+                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * (len(columns) + 1))
             else:
-                rows.append([method, str(entry["frames"])] + [_cell(c, entry["values"].get(c)) for c in columns])
+                ci = entry.get("psnr_ci95")
+                rows.append([method, str(entry["frames"])] + [_cell(c, entry["values"].get(c)) for c in columns]
+                            + ["–" if ci is None else f"[{ci[0]:.2f}, {ci[1]:.2f}]"])
         result.append((scene, rows))
     return result
 
@@ -163,6 +229,11 @@ def markdown(board: dict) -> str:
         lines.append("")
         if title in board.get("unavailable", {}):
             lines += [unavailable_line(board["unavailable"][title]), ""]
+    if board.get("paired"):
+        rows = paired_rows(board["paired"])
+        lines += [f"## {PAIRED_CAPTION}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+        lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
+        lines.append("")
     sensitivity = board.get("protocol_sensitivity")
     if sensitivity:
         rows = sensitivity_rows(sensitivity)
@@ -191,6 +262,8 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
         sections.append(f"<h2>{html.escape(title)}{link}</h2>" + sortable_table_html(rows))
         if title in board.get("unavailable", {}):
             sections.append(f"<p>{html.escape(unavailable_line(board['unavailable'][title]))}</p>")
+    if board.get("paired"):
+        sections.append(f"<h2>{html.escape(PAIRED_CAPTION)}</h2>" + sortable_table_html(paired_rows(board["paired"])))
     if board["protocol_sensitivity"]:
         sections.append(f"<h2>{html.escape(PROTOCOL_CAPTION)}</h2>"
                         + sortable_table_html(sensitivity_rows(board["protocol_sensitivity"])))
