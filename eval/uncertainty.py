@@ -122,8 +122,8 @@ def resampled_means(matrix: np.ndarray, seed_index: np.ndarray, view_index: np.n
     defined = ~np.isnan(matrix)
     filled = np.where(defined, matrix, 0.0)
     cs, cv = _counts(seed_index, n_seeds), _counts(view_index, n_views)
-    numerator = np.einsum("bi,ij,bj->b", cs, filled, cv)
-    denominator = np.einsum("bi,ij,bj->b", cs, defined.astype(np.float64), cv)
+    numerator = ((cs @ filled) * cv).sum(axis=1)  # [resamples]
+    denominator = ((cs @ defined.astype(np.float64)) * cv).sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(denominator > 0, numerator / np.where(denominator > 0, denominator, 1.0), np.nan)
 
