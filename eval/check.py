@@ -64,7 +64,7 @@ metrics.json (written by `nerfgauge evaluate`; `nerfgauge run` adds `geometry`),
     {"schema": 1, "scene": "primitives", "split": "test",
      "mean": {"psnr": 31.2, "ssim": 0.95, "depth_absrel": 0.01, ...},
      "geometry": {"geometry_fscore_1pct": 0.30, "normal_angle_mean": 28.2, ...},
-     "std": {...}, "frames": [...], "timing": {...}}
+     "std": {...}, "ci95": {"psnr": [30.6, 31.8], ...}, "frames": [...], "timing": {...}}
 
 Only `schema`, `scene`, `mean`, `geometry` and `ci95` ({metric: [low, high] or null},
 `nerfgauge evaluate`) are read here.

@@ -109,7 +109,7 @@ def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = 
              overwrite: bool = False, protocol: str = "nerfgauge") -> dict:
     """Score the renders in `pred` against `dataset`'s `split`; write metrics.json (to `out`,
     default PRED/metrics.json) and error maps beside it. Returns the metrics document
-    ({"schema", "scene", "split", "mean", "std", "count", "frames", "timing", ...}).
+    ({"schema", "scene", "split", "mean", "std", "ci95", "count", "frames", "timing", ...}).
     pred_format: auto (detected), nerfgauge, nerfstudio, nerfbaselines or folder.
     held_out=False skips the co-visible and depth-resolved scores (their pass costs about
     0.12 us per hit test pixel and train view). `out` must be a new path or a metrics file
