@@ -16,6 +16,7 @@ checked.
 from __future__ import annotations
 
 import io
+import math
 import zlib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -333,6 +334,23 @@ def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path, 
     return model
 
 
+def check_adam_step(value, index: int) -> None:
+    """Adam's step count: one finite number >= 0 (torch keeps it as a float tensor; it
+    adds 1 before the bias correction 1 - beta**step, so a step below 0 divides by zero),
+    as a float or wide integer tensor: bool fails mid-step (found by a fresh fuzz seed), uint8
+    wraps to 0 after 255 steps and the correction divides by zero."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, torch.Tensor)):
+        raise ValueError(f"optimizer step of parameter {index} should be a number, is {type(value).__name__}")
+    if isinstance(value, torch.Tensor):
+        if value.numel() != 1:
+            raise ValueError(f"optimizer step of parameter {index} should be one number, has shape {tuple(value.shape)}")
+        if not (value.is_floating_point() or value.dtype in (torch.int32, torch.int64)):
+            raise ValueError(f"optimizer step of parameter {index} is {value.dtype}, expected a float or a wide integer")
+        value = value.item()
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"optimizer step of parameter {index} is {value}, expected a finite count >= 0")
+
+
 def restore_optimizer(optimizer: torch.optim.Optimizer, saved: dict, path) -> None:
     """Load Adam's state after checking it fits the optimizer's parameters (torch checks
     group sizes, not the moments' shapes: a wrong shape would fail later, mid-step)."""
@@ -348,10 +366,10 @@ def restore_optimizer(optimizer: torch.optim.Optimizer, saved: dict, path) -> No
                 if key != "step" and (not isinstance(value, torch.Tensor) or value.shape != param.shape):
                     raise ValueError(f"optimizer {key} of parameter {index} has shape "
                                      f"{tuple(getattr(value, 'shape', ()))}, expected {tuple(param.shape)}")
-                if key == "step" and (not isinstance(value, (int, float, torch.Tensor))
-                                      or isinstance(value, torch.Tensor) and value.numel() != 1):
-                    raise ValueError(f"optimizer step of parameter {index} should be one number, "
-                                     f"has shape {tuple(getattr(value, 'shape', ()))}")  # found by a fresh fuzz seed
+                if key != "step" and value.dtype != param.dtype:
+                    raise ValueError(f"optimizer {key} of parameter {index} is {value.dtype}, expected {param.dtype}")
+                if key == "step":
+                    check_adam_step(value, index)
                 if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
                     raise ValueError(f"optimizer {key} of parameter {index} holds NaN or inf")
         optimizer.load_state_dict(saved)

@@ -339,6 +339,10 @@ class RunsCode:
     ("grid shape", "field.index is"),
     ("index range", "addresses rows outside"),
     ("adam moment shape", "exp_avg"),
+    ("adam moment dtype", "expected torch.float32"),
+    ("adam step as bool", "expected a float or a wide integer"),
+    ("adam step as uint8", "expected a float or a wide integer"),
+    ("adam step below 0", "expected a finite count >= 0"),
     ("no loop", "no loop state"),
     ("generator", "generator"),
     ("old format", "not a nerfgauge checkpoint"),
@@ -357,6 +361,12 @@ def test_damaged_checkpoints_are_one_line(tiny_dataset, finished_run, tmp_path, 
         damage(run, lambda p: p["model"]["state"]["field.index"].view(-1)[0:1].fill_(1 << 30))
     elif case == "adam moment shape":
         damage(run, lambda p: p["optimizer"]["state"][0].update({"exp_avg": torch.zeros(3)}))
+    elif case == "adam moment dtype":
+        damage(run, lambda p: p["optimizer"]["state"][0].update(exp_avg=p["optimizer"]["state"][0]["exp_avg"].double()))
+    elif case.startswith("adam step"):
+        step = {"adam step as bool": torch.tensor(True), "adam step as uint8": torch.tensor(5, dtype=torch.uint8),
+                "adam step below 0": torch.tensor(-1.0)}[case]
+        damage(run, lambda p: p["optimizer"]["state"][0].update(step=step))
     elif case == "no loop":
         damage(run, lambda p: p.pop("loop"))
     elif case == "generator":
