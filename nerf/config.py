@@ -21,6 +21,9 @@ from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisat
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
+# TrainConfig.pixel_filter -> training rays per pixel, averaged before the loss (nerf.train)
+TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1}
+PIXEL_FILTERS = tuple(TRAIN_PIXEL_SAMPLES)
 # The sparse grid stores values only where cells are occupied, but its node index (4 bytes
 # a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing
@@ -76,6 +79,10 @@ class TrainConfig:
     tv_weight: float = 0.0
     distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
     step_ratio: Optional[float] = None  # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
+    # What a training pixel's colour is compared as: "box", the mean of 2 x 2 stratified rays
+    # through the pixel, as the ground truth's box filter averages its area; "jitter", one
+    # ray through a random point of it; "centre", its centre ray (runs before issue 34).
+    pixel_filter: str = "box"
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
     # vanilla (the original NeRF, Mildenhall et al. 2020)
     n_coarse: int = 64
@@ -104,6 +111,8 @@ class TrainConfig:
             raise InputError("give exactly one of --steps N or --budget-seconds T")
         if self.quantise not in ("fp16", "int8"):
             raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
+        if self.pixel_filter not in PIXEL_FILTERS:
+            raise InputError(f"unknown pixel filter {self.pixel_filter!r}; choose {', '.join(PIXEL_FILTERS)}")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
         # every number through its range: the command line's (core.arguments) where it has a flag
@@ -126,7 +135,7 @@ class TrainConfig:
 # CLI flag of a config field, for messages that name what the user typed
 FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
          "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation",
-         "step_ratio": "--step-ratio", "batch_rays": "--batch-rays"}
+         "step_ratio": "--step-ratio", "batch_rays": "--batch-rays", "pixel_filter": "--pixel-filter"}
 
 
 SAMPLES_PER_RAY = arguments.bounded(int, 1, 4096)  # the vanilla NeRF's coarse and fine samples
