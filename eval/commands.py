@@ -26,6 +26,7 @@ from nerfgauge.eval.check import run_check as check
 from nerfgauge.eval.evaluate import METRICS_KIND, evaluate, format_means
 from nerfgauge.eval.foreign_results import nerfbaselines_document, ns_eval_document
 from nerfgauge.eval.geometry import format_geometry, score_geometry
+from nerfgauge.eval.pose_scores import KIND as POSES_KIND, format_pose_scores, score_poses
 from nerfgauge.nerf.runs import open_run_dataset
 
 
@@ -124,12 +125,10 @@ def run_evaluate(args) -> int:
     if args.pred is None and poses is None:
         raise InputError("the following arguments are required: --pred (or --poses POSES.json)")
     if poses is not None:
-        from nerfgauge.eval.pose_scores import KIND, format_pose_scores, score_poses
-
         poses_out = getattr(args, "poses_out", None) or Path(poses).parent / "pose_errors.json"
-        check_output_file(poses_out, KIND, overwrite=getattr(args, "overwrite", False))
+        check_output_file(poses_out, POSES_KIND, overwrite=getattr(args, "overwrite", False))
         pose_document = score_poses(args.dataset, poses)  # before --pred's work: bad poses write nothing
-        write_json(poses_out, stamp(pose_document, KIND))
+        write_json(poses_out, stamp(pose_document, POSES_KIND))
         print(f"{format_pose_scores(pose_document)} -> {poses_out}")
         if args.pred is None:
             return 0
