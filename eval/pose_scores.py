@@ -29,7 +29,7 @@ import numpy as np
 from nerfgauge.core import validate
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import json_from_bytes, read_json
+from nerfgauge.core.files import read_json
 from nerfgauge.eval import poses
 
 KIND = "pose-errors"
@@ -41,12 +41,7 @@ def exact_train_poses(ds: Dataset) -> tuple[tuple, np.ndarray, np.ndarray]:
     cameras = ds.cameras("train")
     if not cameras.stems:
         raise InputError(f"dataset {ds.root} has no train views to score poses against")
-    meta = json_from_bytes(ds.read_bytes("transforms_train.json"), ds.root / "transforms_train.json")
-    exact = []
-    for k, frame in enumerate(meta["frames"]):
-        matrix = frame.get("exact_transform_matrix", frame["transform_matrix"])
-        exact.append(validate.pose(matrix, cameras.stems[k], str(ds.root / "transforms_train.json")))
-    return cameras.stems, np.stack(exact), cameras.c2w.copy()
+    return cameras.stems, ds.exact_cameras("train").c2w.copy(), cameras.c2w.copy()
 
 
 def _stem(file_path, train: tuple, where: str) -> str:

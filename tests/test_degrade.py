@@ -246,3 +246,28 @@ def test_cli_flags_reach_the_config(tmp_path, capsys):
                               "0.25", "--white-balance", "0.1", "--vignetting", "0.2", "--degrade-seed", "4"])
     config = GenerateConfig(**options.generate_fields(args))
     assert config.degradations() == Degradations(1.5, 0.1, 0.25, 0.1, 0.2, 4)
+
+
+def test_ground_truth_geometry_uses_the_exact_poses(datasets):
+    """Depth maps were rendered from the exact poses, so visibility and co-visibility pair
+    them with those (Dataset.exact_cameras): the held-out pixels of every test view, and the
+    COLMAP export's surface points (mesh samples some train view sees), are the clean
+    dataset's exactly."""
+    pycolmap = pytest.importorskip("pycolmap")
+    from nerfgauge.eval.covisibility import held_out_pixels, reference_depths
+
+    clean, degraded = dataset.Dataset(datasets["clean"]), dataset.Dataset(datasets["all"])
+    np.testing.assert_array_equal(degraded.exact_cameras("train").c2w, clean.c2w("train"))
+    assert not np.array_equal(degraded.c2w("train"), clean.c2w("train"))
+    assert degraded.exact_cameras("test") is degraded.cameras("test")
+    for index in range(len(clean.frames("test"))):
+        masks = []
+        for ds in (clean, degraded):
+            pixels = held_out_pixels(ds, "test", index, reference_depths(ds), ds.mask("test", index),
+                                     ds.depth("test", index, kind="distance"))
+            masks.append((pixels.covisible, pixels.resolved))
+        np.testing.assert_array_equal(masks[0][0], masks[1][0])
+        np.testing.assert_array_equal(masks[0][1], masks[1][1])
+    xyz = [np.array(sorted(p.xyz.tolist() for p in pycolmap.Reconstruction(ds.root / "sparse" / "0").points3D.values()))
+           for ds in (clean, degraded)]
+    np.testing.assert_array_equal(xyz[0], xyz[1])
