@@ -78,10 +78,6 @@ class Photometric:
     wb_gains: tuple
     vignetting: float
 
-    @property
-    def is_identity(self) -> bool:
-        return self.exposure_ev == 0 and self.wb_gains == (1.0, 1.0, 1.0) and self.vignetting == 0
-
     def to_json(self) -> dict:
         return {"exposure_ev": self.exposure_ev, "gain": 2.0 ** self.exposure_ev, "wb_gains": list(self.wb_gains),
                 "vignetting_k": self.vignetting}
