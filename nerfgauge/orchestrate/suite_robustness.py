@@ -49,7 +49,7 @@ def robustness(suite, board: dict) -> dict | None:
         if entry.foreign:
             continue
         key, levels = _split(entry)
-        group = groups.setdefault(key, {"clean": None, "points": {}})
+        group = groups.setdefault(key, {"clean": None, "points": {}, "label": f"{entry.scene} seed {entry.seed}"})
         if not levels:
             group["clean"] = group["clean"] or entry.id
         elif len(levels) == 1:
@@ -69,7 +69,7 @@ def robustness(suite, board: dict) -> dict | None:
                 rows = [data["scenes"].get(entry_id) for entry_id in ids]
                 scores[method] = {metric: [None if row is None else row["values"].get(metric) for row in rows]
                                   for metric in METRICS}
-            curves.append({"group": ids[0], "field": name, "unit": UNITS[name],
+            curves.append({"group": group["label"], "field": name, "unit": UNITS[name],
                            "levels": [level for level, _ in points], "entries": ids, "scores": scores})
     if not curves:
         return None
