@@ -271,3 +271,17 @@ def test_ground_truth_geometry_uses_the_exact_poses(datasets):
     xyz = [np.array(sorted(p.xyz.tolist() for p in pycolmap.Reconstruction(ds.root / "sparse" / "0").points3D.values()))
            for ds in (clean, degraded)]
     np.testing.assert_array_equal(xyz[0], xyz[1])
+
+
+def test_the_api_takes_the_degradations(tmp_path):
+    import nerfgauge
+
+    out = nerfgauge.generate_dataset("primitives", tmp_path / "api", views=3, val_views=0, test_views=1, width=16,
+                                     height=16, spp=2, vignetting=0.25, degrade_seed=9)
+    scene = read_json(out / "scene.json")["degradations"]
+    assert scene["vignetting"] == 0.25 and scene["seed_used"] == 9
+    frames = read_json(out / "transforms_train.json")["frames"]
+    assert all(f["photometric"]["vignetting_k"] == 0.25 and "exact_transform_matrix" not in f for f in frames)
+    with pytest.raises(InputError, match="--vignetting"):
+        nerfgauge.generate_dataset("primitives", tmp_path / "bad", views=3, vignetting=-0.5)
+    assert not (tmp_path / "bad").exists()
