@@ -285,3 +285,13 @@ def test_the_api_takes_the_degradations(tmp_path):
     with pytest.raises(InputError, match="--vignetting"):
         nerfgauge.generate_dataset("primitives", tmp_path / "bad", views=3, vignetting=-0.5)
     assert not (tmp_path / "bad").exists()
+
+
+def test_degraded_dataset_is_the_same_bytes_with_two_workers(datasets, tmp_path):
+    """Each view's draws depend on (seed, index) only: rendering on two worker processes
+    gives the same files, so the same manifest.json (which hashes every file)."""
+    from nerfgauge.generate.pipeline import generate
+
+    out = tmp_path / "workers"
+    generate(GenerateConfig(scene="primitives", **SETTINGS, **ALL), out, workers=2, progress=False)
+    assert (out / "manifest.json").read_bytes() == (datasets["all"] / "manifest.json").read_bytes()
