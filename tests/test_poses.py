@@ -172,3 +172,18 @@ def test_rms_of_the_scored_noise_matches_the_request_loosely(noisy, tmp_path):
     document = read_json(tmp_path / "pose_errors.json")
     ms = np.mean([c["rotation_error_degrees_unaligned"] ** 2 for c in document["cameras"]])
     assert abs(ms / 9.0 - 1) < 3 * math.sqrt(2 / (3 * 8))
+
+
+def test_poses_out_never_replaces_a_users_file(noisy, tmp_path, capsys):
+    frames = read_json(noisy / "transforms_train.json")["frames"]
+    given = write_poses(tmp_path / "given.json", [{"file_path": f["file_path"], "transform_matrix": f["transform_matrix"]}
+                                                  for f in frames])
+    mine = tmp_path / "pose_errors.json"
+    mine.write_text('{"mine": true}')
+    assert main(["evaluate", str(noisy), "--poses", str(given)]) == 2
+    assert "refusing to replace" in capsys.readouterr().err and mine.read_text() == '{"mine": true}'
+    out = tmp_path / "scores.json"
+    assert main(["evaluate", str(noisy), "--poses", str(given), "--poses-out", str(out)]) == 0
+    assert main(["evaluate", str(noisy), "--poses", str(given), "--poses-out", str(out)]) == 0  # our own: replaced
+    assert main(["evaluate", str(noisy), "--poses", str(given), "--poses-out", str(noisy / "x.json")]) == 2
+    assert "dataset" in capsys.readouterr().err
