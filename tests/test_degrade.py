@@ -107,6 +107,23 @@ def test_draws_are_seeded_per_kind_and_scale_with_the_level():
     assert b.exposure_ev == pytest.approx(2 * a.exposure_ev, rel=1e-15) and a.wb_gains == (1.0, 1.0, 1.0)
 
 
+def test_photometric_draws_follow_the_stated_distributions():
+    """Over n views: EV ~ N(0, s_ev^2), log2 of the R and B gains ~ N(0, s_wb^2), G = 1, k
+    fixed. Sample mean within 5 sd (s / sqrt n) of 0; sample variance within 5 sd
+    (s^2 sqrt(2 / (n - 1))) of s^2; the three independent (|corr| < 5 / sqrt n)."""
+    n = 20000
+    degradations = Degradations(exposure_ev=0.7, white_balance=0.3, vignetting=0.1)
+    draws = [degradations.view_photometric(1, i) for i in range(n)]
+    ev = np.array([d.exposure_ev for d in draws])
+    wb = np.log2(np.array([d.wb_gains for d in draws]))
+    assert np.all(wb[:, 1] == 0) and all(d.vignetting == 0.1 for d in draws)
+    for values, sigma in ((ev, 0.7), (wb[:, 0], 0.3), (wb[:, 2], 0.3)):
+        assert abs(values.mean()) < 5 * sigma / math.sqrt(n)
+        assert abs(values.var(ddof=1) - sigma ** 2) < 5 * sigma ** 2 * math.sqrt(2 / (n - 1))
+    corr = np.corrcoef(np.stack([ev, wb[:, 0], wb[:, 2]]))
+    assert np.all(np.abs(corr[np.triu_indices(3, 1)]) < 5 / math.sqrt(n))
+
+
 def test_vignetting_map_is_one_at_the_centre_and_one_minus_k_at_the_corners():
     """Pixel centres at +-(w/2 - 1/2, h/2 - 1/2) from (cx, cy) = (w/2, h/2): r^2 there is
     ((w-1)^2 + (h-1)^2) / (w^2 + h^2)."""
