@@ -236,8 +236,9 @@ def visible_in_views(points: np.ndarray, normals: np.ndarray, ds: Dataset, split
     by the exact depth test of the module docstring. Returns [n] bool.
 
     Samples no view sees are tested against every view, so the cost is about
-    n_hidden x n_views: samples a view confirms leave the working set."""
-    cameras = ds.cameras(split)
+    n_hidden x n_views: samples a view confirms leave the working set. The views' exact
+    poses, which their depth was rendered from (Dataset.exact_cameras)."""
+    cameras = ds.exact_cameras(split)
     visible = np.zeros(len(points), bool)
     left = np.arange(len(points))  # samples no view has confirmed yet (a superset: compacted lazily)
     xyz, nrm = np.ascontiguousarray(points.T), np.ascontiguousarray(normals.T)  # [3, m]

@@ -14,6 +14,7 @@ import re
 
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
+from nerfgauge.generate import degrade
 from nerfgauge.generate.layouts import LAYOUTS
 from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, NOISE_PSNR, GenerateConfig
 from nerfgauge.generate.variant import CHOICES
@@ -21,7 +22,7 @@ from nerfgauge.generate.variant import CHOICES
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
                   "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits",
-                  "units", "envmap", "envmap_rotation")
+                  "units", "envmap", "envmap_rotation") + degrade.FIELDS
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -89,8 +90,30 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
     parser.add_argument("--lens-splits", choices=("test", "all"), default=d.lens_splits,
                         help="views rendered through the lens: test (default) or all splits; depth, normals and "
                              "masks stay those of the pinhole pixel-centre rays")
+    add_degradation_arguments(parser, d)
     parser.add_argument("--workers", type=arguments.WORKERS, default=1, help="worker processes (default 1)")
     return parser
+
+
+def add_degradation_arguments(parser: argparse.ArgumentParser, d: GenerateConfig) -> None:
+    """The train-view degradations (generate.degrade; docs/conventions.md "Degradations")."""
+    group = parser.add_argument_group("degraded training views (train split only; val/test, depth, normals, "
+                                      "masks and meshes stay exact)")
+    group.add_argument("--pose-noise-rotation", type=degrade.ROTATION_NOISE_DEGREES, default=d.pose_noise_rotation,
+                       metavar="DEG", help="RMS rotation angle of the noise on the train poses the transforms hold "
+                                           "(axis uniform; the images are rendered from the exact poses)")
+    group.add_argument("--pose-noise-translation", type=degrade.TRANSLATION_NOISE_FRACTION,
+                       default=d.pose_noise_translation, metavar="FRAC",
+                       help="RMS offset of the train camera centres, as a fraction of their RMS distance from "
+                            "their mean")
+    group.add_argument("--exposure-ev", type=degrade.EXPOSURE_SIGMA_EV, default=d.exposure_ev, metavar="SIGMA",
+                       help="std of each train view's exposure in EV (gain 2^EV on the linear render)")
+    group.add_argument("--white-balance", type=degrade.WHITE_BALANCE_SIGMA, default=d.white_balance,
+                       metavar="SIGMA", help="std of each train view's log2 red and blue gains (green 1)")
+    group.add_argument("--vignetting", type=degrade.VIGNETTING_K, default=d.vignetting, metavar="K",
+                       help="train views' vignetting 1 - K r^2, r = 1 at the corners")
+    group.add_argument("--degrade-seed", type=arguments.SEED, default=d.degrade_seed,
+                       help="seed of the degradations' draws (default: --seed)")
 
 
 def generate_fields(args: argparse.Namespace) -> dict:

@@ -25,6 +25,8 @@ from typing import Optional
 
 import numpy as np
 from nerfgauge.generate import layouts
+from nerfgauge.generate.degrade import FIELDS as DEGRADATION_FIELDS
+from nerfgauge.generate.degrade import Degradations, add_frame_extras, camera_spread, frame_extras, train_poses
 from nerfgauge.generate.export import export_colmap, export_current, require_pycolmap
 from nerfgauge.generate.points import parse_spec
 from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
@@ -99,6 +101,13 @@ class GenerateConfig:
     units: str = "normalise"  # "keep": user assets stay in their files' units
     envmap: Optional[str] = None  # an equirectangular .exr/.hdr lighting the scene instead of its lights
     envmap_rotation: float = 0.0  # degrees about +Z
+    # Degraded TRAIN views (generate.degrade, docs/conventions.md "Degradations"); all 0: none.
+    pose_noise_rotation: float = 0.0  # RMS rotation angle of the train poses' noise, degrees
+    pose_noise_translation: float = 0.0  # RMS centre offset, fraction of the train cameras' spread
+    exposure_ev: float = 0.0  # std of each train view's exposure, EV
+    white_balance: float = 0.0  # std of each train view's log2 R and B gains
+    vignetting: float = 0.0  # k of 1 - k r^2 on every train view
+    degrade_seed: Optional[int] = None  # None: --seed
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
@@ -137,6 +146,11 @@ class GenerateConfig:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
         self._validate_noise()
         self._validate_lens()
+        self.degradations().validate()
+
+    def degradations(self) -> Degradations:
+        """The train-view degradations (generate.degrade)."""
+        return Degradations.of(self)
 
     def _validate_noise(self) -> None:
         target = self.noise_psnr
@@ -179,7 +193,8 @@ class GenerateConfig:
         if self.lens() is None and self.lens_splits == "test":
             for key in ("aperture", "focus_distance", "lens_splits"):
                 del out[key]
-        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0)):
+        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0),
+                              *((name, getattr(Degradations(), name)) for name in DEGRADATION_FIELDS)):
             if out[name] == default:
                 del out[name]
         return out
@@ -287,11 +302,19 @@ def finish(out: Path, the_plan: Plan) -> None:
     import trimesh  # trimesh: scene.json's versions
 
     intrinsics, stems, poses = the_plan.intrinsics, the_plan.stems, the_plan.poses
+    # Degraded train views (generate.degrade): the train transforms hold the perturbed poses,
+    # each train frame its exact pose and photometric parameters; other splits are exact.
+    degradations, seed = the_plan.config.degradations(), the_plan.config.seed
+    poses = dict(poses, train=train_poses(poses["train"], degradations, seed))
+    extras = frame_extras(degradations, seed, the_plan.poses["train"])
     for split in dataset.SPLITS:
-        write_json(out / f"transforms_{split}.json",
-                   dataset.synthetic_transforms(intrinsics, stems[split], poses[split], the_plan.lens(split)))
+        transforms = dataset.synthetic_transforms(intrinsics, stems[split], poses[split], the_plan.lens(split))
+        if split == "train":
+            add_frame_extras(transforms, stems[split], extras, with_dot=True)
+        write_json(out / f"transforms_{split}.json", transforms)
     lenses = {split: the_plan.lens(split) for split in dataset.SPLITS}
-    write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses))
+    write_json(out / "transforms.json", add_frame_extras(dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses),
+                                                         stems["train"], extras, with_dot=False))
     scene = the_plan.scene
     scene_json = {
         "schema": 1,
@@ -314,6 +337,8 @@ def finish(out: Path, the_plan: Plan) -> None:
         "instances": {"file": "*_instance.png: 16-bit ids of the pixel-centre ray's shape, 0 = miss",
                       "names": instance_names(scene)},
         "noise": noise_summary(out, stems, the_plan.config),
+        **({"degradations": degradations.to_json(seed) | {"spread": camera_spread(the_plan.poses["train"])}}
+           if degradations.any else {}),
         "variant": the_plan.variant,
         "inputs": the_plan.inputs,
         "recipe_sha256": recipe_hash(the_plan.recipe()),

@@ -245,8 +245,9 @@ def _seen(xyz, nrm, pose, intrinsics, depth) -> tuple[np.ndarray, np.ndarray]:
 
 
 def surface_points(ds, count: int, seed: int, vertices, faces) -> InitialPoints:
-    """`count` mesh samples some train view sees, coloured from the train PNGs (module docstring)."""
-    cameras = ds.cameras("train")
+    """`count` mesh samples some train view sees, coloured from the train PNGs (module docstring);
+    the depth test with the views' exact poses (Dataset.exact_cameras: what they were rendered from)."""
+    cameras = ds.exact_cameras("train")
     rng = rng_for(seed)
     normals_of_face = face_normals(vertices, faces)
     kept_xyz, kept_rgb, kept_normal, kept_face, total = [], [], [], [], 0

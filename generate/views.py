@@ -16,6 +16,7 @@ import numpy as np
 from nerfgauge.core import dataset
 from nerfgauge.core.files import write_json
 from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
+from nerfgauge.generate.degrade import degrade_images
 from nerfgauge.generate.mitsuba_scene import scene_dict
 from nerfgauge.generate.render import render_view
 from nerfgauge.generate.variant import use_variant
@@ -72,4 +73,7 @@ def render_one(mi, scene, out, the_plan, split, index):
     images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
                          view_seed(config.seed, split, index), target=config.noise_target,
                          lens=the_plan.lens(split))
+    degradations = config.degradations()
+    if split == "train" and degradations.photometric:  # train views only (generate.degrade)
+        images = degrade_images(images, degradations.view_photometric(config.seed, index), the_plan.intrinsics)
     return images, time.perf_counter() - start

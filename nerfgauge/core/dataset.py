@@ -34,6 +34,7 @@ or an open Dataset.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 from pathlib import Path
@@ -213,6 +214,7 @@ class Dataset:
             raise InputError(f"dataset folder not found: {self.root}")
         self._real_root = self.root.resolve()
         self.foreign = None  # a foreign_dataset.ForeignLayout for folders nerfgauge did not write
+        self._exact_poses = {}  # split -> [n, 4, 4] where frames record exact_transform_matrix (pose noise)
         self.files_read = {}  # foreign folders: {relative path: sha256} of every file read
         if not (self.root / MANIFEST).is_file():
             fmt = None if (self.root / MARKER).exists() else foreign_dataset.detect(self.root)
@@ -280,7 +282,7 @@ class Dataset:
         if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
             raise InputError(f"{where}: 'frames' must be a list of objects")
         intrinsics = validate.intrinsics(meta, where)
-        stems, poses, lenses = [], [], []
+        stems, poses, lenses, exact = [], [], [], []
         for k, frame in enumerate(frames):
             if "file_path" not in frame or "transform_matrix" not in frame:
                 raise InputError(f"{where}: frame {k} needs file_path and transform_matrix")
@@ -291,8 +293,13 @@ class Dataset:
             stems.append(stem)
             poses.append(validate.pose(frame["transform_matrix"], stem, where))
             lenses.append(ThinLens.from_json(frame["lens"], f"{where}: frame {stem}") if "lens" in frame else None)
+            exact.append(validate.pose(frame["exact_transform_matrix"], stem, where) if "exact_transform_matrix" in frame
+                         else poses[-1])
         c2w = np.stack(poses) if poses else np.zeros((0, 4, 4))
         c2w.flags.writeable = False  # shared by every caller of cameras(split)
+        if any("exact_transform_matrix" in frame for frame in frames):
+            self._exact_poses[split] = np.stack(exact)
+            self._exact_poses[split].flags.writeable = False
         return SplitCameras(split, tuple(stems), c2w, intrinsics, tuple(lenses) if any(lenses) else ())
 
     def frame_file(self, stem: str, kind: str, decode):
@@ -320,6 +327,15 @@ class Dataset:
             any_split = next(iter(self._cameras.values()))
             return SplitCameras(split, (), np.zeros((0, 4, 4)), any_split.intrinsics)
         return self._cameras[split]
+
+    def exact_cameras(self, split: str) -> SplitCameras:
+        """cameras(split) with the poses its images, depth and normals were rendered from:
+        the frames' exact_transform_matrix in a dataset with pose noise (docs/conventions.md,
+        "Degradations"; its transform_matrix is then perturbed), else cameras(split) itself.
+        Ground-truth geometry (visibility, co-visibility) pairs depth maps with these."""
+        cameras = self.cameras(split)
+        exact = self._exact_poses.get(split)
+        return cameras if exact is None else dataclasses.replace(cameras, c2w=exact)
 
     @property
     def splits(self) -> tuple:
