@@ -280,7 +280,8 @@ class Distortion:
         limit = fold if self.model == "opencv" else min(fold, MAX_FISHEYE_THETA)
         name = "r" if self.model == "opencv" else "theta"
         if math.isfinite(limit) and float(self.radial(limit)) <= reach:
-            why = (f"the radial map stops increasing at {name} = {limit:.4g} (d/d{name} = 0)" if limit == fold
+            why = (f"the radial map stops increasing at {name} = {limit:.4g} (d/d{name} = 0), distorted radius "
+                   f"{float(self.radial(limit)):.4g}" if limit == fold
                    else f"the image reaches 90 degrees from the optical axis (theta_d(89.94 deg) = "
                         f"{float(self.radial(limit)):.4g})")
             raise InputError(f"{what} {self.to_text()} folds the {intrinsics.width}x{intrinsics.height} image: "
