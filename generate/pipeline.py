@@ -39,6 +39,7 @@ from nerfgauge.scenes.registry import scene_inputs
 
 from nerfgauge.core import arguments, dataset
 from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
+from nerfgauge.core.distortion import Distortion, parse_distortion
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash
@@ -53,6 +54,7 @@ MAX_NOISE_PSNR = 80.0  # dB; beyond it the 8-bit PNG's own rounding (about 59 dB
 NOISE_PSNR = arguments.bounded(float, 0, MAX_NOISE_PSNR, above=True)
 DEFAULT_MAX_SPP = 4096
 LENS_SPLITS = {"test": ("test",), "all": ("train", "val", "test")}  # --lens-splits -> splits with the lens
+DISTORTION_SPLITS = ("train",)  # issue 35: degradations apply to the training views only
 RENDERER_PACKAGES = ("mitsuba", "drjit", "nerfgauge")  # their versions are part of a dataset's recipe
 
 
@@ -99,6 +101,9 @@ class GenerateConfig:
     units: str = "normalise"  # "keep": user assets stay in their files' units
     envmap: Optional[str] = None  # an equirectangular .exr/.hdr lighting the scene instead of its lights
     envmap_rotation: float = 0.0  # degrees about +Z
+    # Lens distortion of the train views (--distortion opencv:k1,k2,p1,p2[,k3] or
+    # fisheye:k1,k2,k3,k4; core.distortion); None: pinhole. Val and test stay pinhole.
+    distortion: Optional[str] = None
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
@@ -137,6 +142,9 @@ class GenerateConfig:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
         self._validate_noise()
         self._validate_lens()
+        distortion = self.distortion_model()
+        if distortion is not None:
+            distortion.check_image(Intrinsics.from_fov(self.width, self.height, self.fov))
 
     def _validate_noise(self) -> None:
         target = self.noise_psnr
@@ -172,6 +180,10 @@ class GenerateConfig:
             return None
         return ThinLens(self.aperture, self.focus_distance)
 
+    def distortion_model(self) -> Optional[Distortion]:
+        """The train views' lens distortion (core.distortion), None for none."""
+        return parse_distortion(self.distortion)
+
     def to_json(self) -> dict:
         """The recipe's config. The lens, units and envmap fields only when they differ from
         the defaults, so a dataset keeps the recipe (and hash) it had before they existed."""
@@ -179,7 +191,7 @@ class GenerateConfig:
         if self.lens() is None and self.lens_splits == "test":
             for key in ("aperture", "focus_distance", "lens_splits"):
                 del out[key]
-        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0)):
+        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0), ("distortion", None)):
             if out[name] == default:
                 del out[name]
         return out
@@ -207,6 +219,10 @@ class Plan:
     def lens(self, split: str) -> Optional[ThinLens]:
         """The thin lens the colour of `split`'s views is rendered through (None: pinhole)."""
         return self.config.lens() if split in LENS_SPLITS[self.config.lens_splits] else None
+
+    def distortion(self, split: str) -> Optional[Distortion]:
+        """The lens distortion `split`'s views are seen through: the train views only."""
+        return self.config.distortion_model() if split in DISTORTION_SPLITS else None
 
     def recipe(self) -> dict:
         """What config.json holds: the config plus the resolved radius and variant, the
@@ -289,9 +305,11 @@ def finish(out: Path, the_plan: Plan) -> None:
     intrinsics, stems, poses = the_plan.intrinsics, the_plan.stems, the_plan.poses
     for split in dataset.SPLITS:
         write_json(out / f"transforms_{split}.json",
-                   dataset.synthetic_transforms(intrinsics, stems[split], poses[split], the_plan.lens(split)))
+                   dataset.synthetic_transforms(intrinsics, stems[split], poses[split], the_plan.lens(split),
+                                                the_plan.distortion(split)))
     lenses = {split: the_plan.lens(split) for split in dataset.SPLITS}
-    write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses))
+    distortions = {split: the_plan.distortion(split) for split in dataset.SPLITS}
+    write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses, distortions))
     scene = the_plan.scene
     scene_json = {
         "schema": 1,
@@ -304,7 +322,13 @@ def finish(out: Path, the_plan: Plan) -> None:
                    **({"lens": {"splits": list(LENS_SPLITS[the_plan.config.lens_splits]),
                                 **the_plan.config.lens().to_json(),
                                 "note": "colour only; depth, normals and masks are of the pinhole pixel-centre rays"}}
-                      if the_plan.config.lens() is not None else {})},
+                      if the_plan.config.lens() is not None else {}),
+                   **({"distortion": {"splits": list(DISTORTION_SPLITS), "spec": the_plan.config.distortion_model().to_text(),
+                                      **the_plan.config.distortion_model().to_json(),
+                                      "note": "every per-pixel file of these views (colour, albedo, depth, normals, mask, "
+                                              "instance ids) follows the distorted pixel grid; other splits are pinhole "
+                                              "(docs/conventions.md, Lens distortion)"}}
+                      if the_plan.config.distortion_model() is not None else {})},
         "depth": {"distance": "*_distance.exr: Euclidean distance from the camera centre along the pixel-centre ray",
                   "z": "*_zdepth.exr: depth along the optical axis", "miss": 0,
                   "source": "scene.ray_intersect of pixel-centre rays, not the filtered depth AOV"},

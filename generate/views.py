@@ -71,5 +71,5 @@ def render_one(mi, scene, out, the_plan, split, index):
     start = time.perf_counter()
     images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
                          view_seed(config.seed, split, index), target=config.noise_target,
-                         lens=the_plan.lens(split))
+                         lens=the_plan.lens(split), distortion=the_plan.distortion(split))
     return images, time.perf_counter() - start

@@ -12,7 +12,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from nerfgauge.core.camera import SplitCameras, pixel_rays
+from nerfgauge.core.camera import SplitCameras
 from nerfgauge.core.dataset import open_dataset
 
 
@@ -28,8 +28,10 @@ class RayBatch:
 
 
 def split_rays(cameras: SplitCameras, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays of one view, row-major. Returns origins, directions [H*W, 3] float32."""
-    origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)
+    """Rays of one view, row-major, through the split's lens distortion if it has one (the
+    camera the dataset's pixels were rendered with). Returns origins, directions [H*W, 3]
+    float32."""
+    origins, directions = cameras.rays(index)
     return (torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)),
             torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)))
 
