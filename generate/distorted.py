@@ -45,11 +45,13 @@ def film_map(distortion, intrinsics):
     return mapped
 
 
-def render_scalar(mi, scene, integrator, sensor, intrinsics, distortion, spp: int, seed: int) -> np.ndarray:
+def render_scalar(mi, scene, integrator, sensor, intrinsics, distortion, spp: int, seed: int,
+                  ray_map=None) -> np.ndarray:
     """`spp` samples per pixel of `sensor` seen through `distortion` on a scalar variant
-    (module docstring). Returns [H, W, 4 + AOVs] float32: RGB, alpha (share of samples whose
-    ray hit), then the integrator's AOVs, as render.render_samples."""
-    to_film = film_map(distortion, intrinsics)
+    (module docstring); with `ray_map` (render.render_samples') each sample takes that ray
+    instead (weight 1, no differentials). Returns [H, W, 4 + AOVs] float32: RGB, alpha (share
+    of samples whose ray hit), then the integrator's AOVs, as render.render_samples."""
+    to_film = film_map(distortion, intrinsics) if ray_map is None else None
     integrator = integrator if integrator is not None else scene.integrator()
     width, height = intrinsics.width, intrinsics.height
     sampler = sensor.sampler().clone()
@@ -64,12 +66,17 @@ def render_scalar(mi, scene, integrator, sensor, intrinsics, distortion, spp: in
             total = None
             for _ in range(int(spp)):
                 sample = sampler.next_2d()
-                u, v = to_film(np.array([j + sample[0]]), np.array([i + sample[1]]))
-                position = mi.Point2f(float(u[0]) / width, float(v[0]) / height)
                 aperture = sampler.next_2d() if needs_aperture else mi.Point2f(0.5)
                 time = shutter_open + (sampler.next_1d() * shutter_time if shutter_time > 0 else 0.0)
-                ray, weight = sensor.sample_ray_differential(time, 0.0, position, aperture)
-                ray.scale_differential(1.0 / math.sqrt(spp))
+                if ray_map is not None:
+                    origin, direction = ray_map(np.array([j + sample[0]]), np.array([i + sample[1]]))
+                    ray = mi.RayDifferential3f(mi.Ray3f(mi.Point3f(*origin[0]), mi.Vector3f(*direction[0])))
+                    weight = 1.0
+                else:
+                    u, v = to_film(np.array([j + sample[0]]), np.array([i + sample[1]]))
+                    position = mi.Point2f(float(u[0]) / width, float(v[0]) / height)
+                    ray, weight = sensor.sample_ray_differential(time, 0.0, position, aperture)
+                    ray.scale_differential(1.0 / math.sqrt(spp))
                 radiance, valid, aovs = integrator.sample(scene, sampler, ray, medium)
                 rgb = weight * radiance
                 values = np.array([rgb[0], rgb[1], rgb[2], 1.0 if valid else 0.0] + [float(a) for a in aovs])

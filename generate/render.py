@@ -161,16 +161,21 @@ def chunk_seed(view_seed: int, chunk: int) -> int:
 
 
 def render_chunk(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int,
-                 lens: Optional[ThinLens] = None, distortion=None) -> np.ndarray:
+                 lens: Optional[ThinLens] = None, distortion=None, ray_map=None) -> np.ndarray:
     """`spp` samples per pixel of one view (through `lens` if given) with `seed`: with
     render_samples on the JIT variants (byte-identical from run to run), with mi.render on
     scalar ones. Returns [H, W, C] float32 whose last channels are the integrator's AOVs (the
     first four RGBA, except from mi.render with the AOV integrator, which gives the AOVs
     only). distortion: a core.distortion.Distortion the pixel grid is seen through (None or
     the identity: the pinhole); its samples go through generate.distorted (the AOVs then
-    follow the RGBA on every variant)."""
+    follow the RGBA on every variant). ray_map: every sample's own world ray (render_samples;
+    the pixels' distortion is then the ray map's business)."""
     sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp, lens))
-    if distortion is not None and not distortion.is_identity and mi.variant().startswith("scalar"):
+    if ray_map is not None and mi.variant().startswith("scalar"):
+        array = distorted.render_scalar(mi, scene, integrator, sensor, intrinsics, None, int(spp), int(seed), ray_map)
+    elif ray_map is not None:
+        array = render_samples(mi, scene, integrator, sensor, int(spp), int(seed), ray_map=ray_map)
+    elif distortion is not None and not distortion.is_identity and mi.variant().startswith("scalar"):
         array = distorted.render_scalar(mi, scene, integrator, sensor, intrinsics, distortion, int(spp), int(seed))
     elif distortion is not None and not distortion.is_identity:
         array = render_samples(mi, scene, integrator, sensor, int(spp), int(seed), distorted.film_map(distortion, intrinsics))
@@ -199,7 +204,7 @@ def band_seed(seed: int, band: int) -> int:
     return (int(seed) + int(band) * BAND_SEED_STRIDE) % (2**32)
 
 
-def render_samples(mi, scene, integrator, sensor, spp: int, seed: int, film_map=None) -> np.ndarray:
+def render_samples(mi, scene, integrator, sensor, spp: int, seed: int, film_map=None, ray_map=None) -> np.ndarray:
     """mi.render's estimator, summed in a fixed order (the module's "Determinism").
 
     Each pixel's value is the mean of its `spp` samples, each box-filtered over the pixel's
@@ -213,6 +218,9 @@ def render_samples(mi, scene, integrator, sensor, spp: int, seed: int, film_map=
     the AOVs). film_map: None, or a function of the samples' film positions in pixels
     (u [n], v [n] float64) giving the film positions whose sensor rays they take instead (a
     lens distortion: generate.distorted); the sample order and seeds are unchanged.
+    ray_map: None, or a function of the film positions (u [n], v [n] float64, pixels) giving
+    each sample's world ray (origins, unit directions [n, 3] float64) in place of the
+    sensor's (weight 1, no differentials; a rolling shutter: generate.motion).
     Returns [H, W, 4 + AOVs] float32."""
     import drjit as dr  # drjit: loaded with the Mitsuba variant, only when rendering
 
@@ -247,7 +255,16 @@ def render_samples(mi, scene, integrator, sensor, spp: int, seed: int, film_map=
         if sensor.shutter_open_time() > 0:
             time = time + sampler.next_1d() * sensor.shutter_open_time()
         wavelength = mi.Float(0.0)  # RGB variants draw no wavelength sample
-        ray, weight = sensor.sample_ray_differential(time, wavelength, position * scale, aperture)
+        if ray_map is not None:
+            dr.eval(position)
+            origins, directions = ray_map(position.x.numpy().astype(np.float64), position.y.numpy().astype(np.float64))
+            ray = mi.RayDifferential3f(mi.Ray3f(
+                mi.Point3f(*(mi.Float(np.ascontiguousarray(origins[:, k], np.float32)) for k in range(3))),
+                mi.Vector3f(*(mi.Float(np.ascontiguousarray(directions[:, k], np.float32)) for k in range(3)))))
+            ray.time = time
+            weight = mi.Float(1.0)
+        else:
+            ray, weight = sensor.sample_ray_differential(time, wavelength, position * scale, aperture)
         if ray.has_differentials:
             ray.scale_differential(1.0 / math.sqrt(spp))
         radiance, valid, aovs = integrator.sample(scene, sampler, ray, sensor.get_medium())
@@ -302,12 +319,12 @@ def render_albedo(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, 
 
 def render_passes(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
                   target: Optional[NoiseTarget] = None, integrator=None, lens: Optional[ThinLens] = None,
-                  distortion=None) -> tuple:
+                  distortion=None, ray_map=None) -> tuple:
     """Two independent passes of spp/2 samples each (spp 1: pass A only). With a target,
     both passes grow by equal amounts until the noise estimate reaches it or the total
     reaches target.max_spp. Returns (pass A, pass B or None), each with .mean [H, W, 4]
     and .spp. integrator: None for the scene's own; lens: the colour's thin lens (None: pinhole);
-    distortion: the pixel grid's lens distortion (None: pinhole)."""
+    distortion: the pixel grid's lens distortion (None: pinhole); ray_map: render_chunk's."""
     passes, chunk = (_Pass(), _Pass()), 0
 
     def grow(per_pass: int) -> None:
@@ -315,21 +332,21 @@ def render_passes(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
         for one in passes:
             for count in sample_chunks(per_pass):
                 one.add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens,
-                                         distortion), count)
+                                         distortion, ray_map), count)
                 chunk += 1
 
     if target is None:
         if spp == 1:
-            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, 1, seed, lens, distortion), 1)
+            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, 1, seed, lens, distortion, ray_map), 1)
             return passes[0], None
         a_spp = spp // 2
         for count in sample_chunks(a_spp):
             passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens,
-                                         distortion), count)
+                                         distortion, ray_map), count)
             chunk += 1
         for count in sample_chunks(spp - a_spp):
             passes[1].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens,
-                                         distortion), count)
+                                         distortion, ray_map), count)
             chunk += 1
         return passes
     grow(max(1, min(target.start_spp, target.max_spp) // 2))

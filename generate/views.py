@@ -17,6 +17,7 @@ from nerfgauge.core import dataset
 from nerfgauge.core.files import write_json
 from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
 from nerfgauge.generate.mitsuba_scene import scene_dict
+from nerfgauge.generate.motion import render_motion_view
 from nerfgauge.generate.render import render_view
 from nerfgauge.generate.variant import use_variant
 
@@ -69,6 +70,12 @@ def load_mitsuba_scene(out, the_plan):
 def render_one(mi, scene, out, the_plan, split, index):
     config = the_plan.config
     start = time.perf_counter()
+    path = the_plan.motion_path(split, index)
+    if path is not None:  # a moving camera: generate.motion integrates the frame
+        images, _ = render_motion_view(mi, scene, path, config.motion_model(), the_plan.intrinsics, config.spp,
+                                       view_seed(config.seed, split, index), aabb=the_plan.scene.aabb,
+                                       distortion=the_plan.distortion(split), lens=the_plan.lens(split))
+        return images, time.perf_counter() - start
     images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
                          view_seed(config.seed, split, index), target=config.noise_target,
                          lens=the_plan.lens(split), distortion=the_plan.distortion(split))
