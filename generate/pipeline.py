@@ -444,6 +444,9 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
     points_spec = parse_spec(points)
     if points_spec.kind == "sfm":
         require_pycolmap("--points sfm")
+        if config.distortion_model() is not None:
+            raise InputError("--points sfm matches features with a PINHOLE camera; the train views of --distortion "
+                             f"{config.distortion} are not: use --points surface or random")
     arguments.WORKERS.check(workers, "--workers")
     arguments.encodable_path(out, "--out")  # the API's path too: Mitsuba reads the meshes written under it
     if scheduler is not None:

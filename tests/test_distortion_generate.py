@@ -313,3 +313,10 @@ def test_a_distorted_rolling_shutter_dataset_is_byte_identical_when_made_again(m
     a = json.loads((make_dataset(tmp_path / "a", **settings) / "manifest.json").read_text())
     b = json.loads((make_dataset(tmp_path / "b", **settings) / "manifest.json").read_text())
     assert a == b
+
+
+def test_sfm_points_with_a_distortion_are_refused_before_anything_is_written(capsys, tmp_path):
+    pytest.importorskip("pycolmap")
+    one_line_exit_2(capsys, ["generate", "primitives", "--out", tmp_path / "d", "--views", "2", "--points", "sfm",
+                             "--distortion", "opencv:-0.1,0,0,0"], "PINHOLE")
+    assert not (tmp_path / "d").exists()
