@@ -171,3 +171,31 @@ def test_a_generated_dataset_records_the_path_and_the_sharp_ground_truth(mi, mak
         assert np.array_equal(ds.depth("train", index), distance)
     assert "motion" not in json.loads((root / "transforms_test.json").read_text())["frames"][0]
     assert json.loads((root / "scene.json").read_text())["camera"]["motion_blur"]["readout"] == 0.3
+
+
+def test_a_still_rolling_shutter_through_a_distortion_is_the_distorted_render(mi, loaded):
+    """The rolling shutter's ray map undistorts each sample itself: with a still camera it
+    must give the distorted camera's render (generate.distorted's film map) within noise."""
+    from nerfgauge.core.distortion import Distortion
+    from nerfgauge.generate.render import render_view
+
+    scene, the_plan = loaded
+    spp = 32  # the distortion's bias must stand out of the noise
+    distortion = Distortion.parse("opencv:-0.3,0.05,0.003,-0.002")
+    from nerfgauge.core.camera import look_at
+
+    blur = motion.MotionBlur.parse("travel=0,exposure=0.5,readout=0.5")
+    centre = (np.asarray(the_plan.scene.aabb[0]) + np.asarray(the_plan.scene.aabb[1])) / 2
+    eye = the_plan.poses["train"][1][:3, 3]
+    c2w = look_at(centre + 0.5 * (eye - centre), centre)  # close: the objects reach where the distortion is large
+    path = motion.view_path(c2w, blur, the_plan.scene.aabb, 0, 1)
+    rolling, _ = motion.render_motion_view(mi, scene, path, blur, the_plan.intrinsics, spp, 5,
+                                           aabb=the_plan.scene.aabb, distortion=distortion)
+    distorted = render_view(mi, scene, c2w, the_plan.intrinsics, spp, 77, distortion=distortion)
+    pinhole = render_view(mi, scene, c2w, the_plan.intrinsics, spp, 77)
+    expected = linear_variance(rolling) + linear_variance(distorted)
+    difference = np.mean((rolling.rgba[..., :3].astype(np.float64) - distorted.rgba[..., :3]) ** 2)
+    assert difference <= 2 * expected, (difference, expected)
+    off = np.mean((rolling.rgba[..., :3].astype(np.float64) - pinhole.rgba[..., :3]) ** 2)
+    assert off > 3 * (linear_variance(rolling) + linear_variance(pinhole)), off  # noise alone: E = 1x
+    assert np.array_equal(rolling.distance, distorted.distance)
