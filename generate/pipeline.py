@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from nerfgauge.generate import layouts
+from nerfgauge.generate import layouts, motion
 from nerfgauge.generate.export import export_colmap, export_current, require_pycolmap
 from nerfgauge.generate.points import parse_spec
 from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
@@ -40,7 +40,6 @@ from nerfgauge.scenes.registry import scene_inputs
 from nerfgauge.core import arguments, dataset
 from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
 from nerfgauge.core.distortion import Distortion, parse_distortion
-from nerfgauge.generate import motion
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash
