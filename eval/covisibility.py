@@ -41,7 +41,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nerfgauge.core.camera import pixel_rays
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.eval.geometry import seen_in_view
 
@@ -73,7 +72,7 @@ def views_seeing(points: np.ndarray, normals: np.ndarray, ds: Dataset, depths: l
     xyz, nrm = np.ascontiguousarray(points.T), np.ascontiguousarray(normals.T)  # [3, n]
     seen = np.zeros((len(cameras.c2w), len(points)), bool)
     for index, pose in enumerate(cameras.c2w):
-        seen[index, seen_in_view(xyz, nrm, pose, cameras.intrinsics, depths[index])] = True
+        seen[index, seen_in_view(xyz, nrm, pose, cameras.intrinsics, depths[index], cameras.distortion)] = True
     return seen
 
 
@@ -112,7 +111,7 @@ def held_out_pixels(ds: Dataset, split: str, index: int, depths: list, mask: np.
     cameras = ds.exact_cameras(split)
     distance = distance.astype(np.float64)
     hit = mask & (distance > 0)  # [H, W]
-    origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)  # [H, W, 3] each
+    origins, directions = cameras.rays(index)  # [H, W, 3] each, through the split's distortion if any
     points = origins[hit] + directions[hit] * distance[hit][:, None]  # [n, 3]
     seen = views_seeing(points, ds.normals(split, index)[hit].astype(np.float64), ds, depths, reference)
     reference_cameras = ds.exact_cameras(reference)

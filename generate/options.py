@@ -22,7 +22,7 @@ from nerfgauge.generate.variant import CHOICES
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
                   "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits",
-                  "units", "envmap", "envmap_rotation") + degrade.FIELDS
+                  "units", "envmap", "envmap_rotation", "distortion", "motion_blur") + degrade.FIELDS
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -91,6 +91,16 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
                         help="views rendered through the lens: test (default) or all splits; depth, normals and "
                              "masks stay those of the pinhole pixel-centre rays")
     add_degradation_arguments(parser, d)
+    parser.add_argument("--distortion", default=d.distortion, metavar="MODEL:COEFFS",
+                        help="lens distortion of the train views, rendered exactly (each sample's ray through the "
+                             "distorted pixel grid): opencv:K1,K2,P1,P2[,K3] (OpenCV radial-tangential) or "
+                             "fisheye:K1,K2,K3,K4 (OpenCV fisheye); depth, normals and masks follow the same rays; "
+                             "val and test views stay pinhole")
+    parser.add_argument("--motion-blur", default=d.motion_blur, metavar="SPEC",
+                        help="train views taken by a moving camera: TRAVEL (the path over the frame as a fraction of "
+                             "the scene's diagonal) or travel=T,rotation=DEG,exposure=E,readout=R (exposure and "
+                             "rolling-shutter readout as fractions of the frame); the colour integrates the exposure, "
+                             "the transform and depth are the sharp mid-frame pose's")
     parser.add_argument("--workers", type=arguments.WORKERS, default=1, help="worker processes (default 1)")
     return parser
 

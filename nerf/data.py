@@ -12,7 +12,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from nerfgauge.core.camera import SplitCameras, pixel_rays
+from nerfgauge.core.camera import SplitCameras
 from nerfgauge.core.dataset import open_dataset
 
 
@@ -30,8 +30,10 @@ class RayBatch:
 
 
 def split_rays(cameras: SplitCameras, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays of one view, row-major. Returns origins, directions [H*W, 3] float32."""
-    origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)
+    """Rays of one view, row-major, through the split's lens distortion if it has one (the
+    camera the dataset's pixels were rendered with). Returns origins, directions [H*W, 3]
+    float32."""
+    origins, directions = cameras.rays(index)
     return (torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)),
             torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)))
 
@@ -83,7 +85,7 @@ def load_split_rays(root, split: str, limit: Optional[int] = None,
     count = len(cameras.stems) if limit is None else min(limit, len(cameras.stems))
     origins, directions, colours, footprints = [], [], [], []
     for index in range(count):
-        o, d = pixel_rays(cameras.c2w[index], cameras.intrinsics)  # [H, W, 3] float64
+        o, d = cameras.rays(index)  # [H, W, 3] float64, through the split's distortion if any
         origins.append(torch.from_numpy(o.reshape(-1, 3).astype(np.float32)))
         directions.append(torch.from_numpy(d.reshape(-1, 3).astype(np.float32)))
         if footprint:

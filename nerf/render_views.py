@@ -41,7 +41,7 @@ from nerfgauge.nerf.train import pick_device
 from tqdm import tqdm
 
 from nerfgauge.core import arguments
-from nerfgauge.core.camera import lens_samples, pixel_rays, thin_lens_rays
+from nerfgauge.core.camera import lens_samples, thin_lens_rays
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash
@@ -119,7 +119,7 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
     [H*W, 3] and opacity [H*W], the means over per_axis^2 rays through a regular grid of
     points in each pixel (`pixel_offsets`), and the depth [H*W] of the pixel-centre rays
     (as the dataset's ground truth is). per_axis 1 renders the centre rays once."""
-    origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)  # [H, W, 3] float64
+    origins, directions = cameras.rays(index)  # [H, W, 3] float64
     centre_o = torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)).to(device)
     centre_d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
     rgb, opacity, depth = render_frame(model, centre_o, centre_d, pool, parts)

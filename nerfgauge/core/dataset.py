@@ -45,6 +45,7 @@ from PIL import Image, JpegImagePlugin
 
 from nerfgauge.core import foreign_dataset, validate
 from nerfgauge.core.camera import Intrinsics, SplitCameras, ThinLens  # SplitCameras: read here, defined with the cameras
+from nerfgauge.core.distortion import Distortion
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.folders import MARKER
 from nerfgauge.core.files import atomic_path, json_from_bytes, read_json, sha256_file, write_json
@@ -94,13 +95,16 @@ def _lens_entry(lens) -> dict:
     return {} if lens is None else {"lens": lens.to_json()}
 
 
-def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[ThinLens] = None) -> dict:
+def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[ThinLens] = None,
+                         distortion: Optional[Distortion] = None) -> dict:
     """transforms_<split>.json in the NeRF-synthetic format (plus w/h/fl_x/... extras; each
-    frame's "lens" when its colour was rendered through a thin lens)."""
+    frame's "lens" when its colour was rendered through a thin lens; the split's lens
+    distortion as nerfstudio's camera_model and k1.. keys)."""
     return {
         "camera_angle_x": intrinsics.camera_angle_x,
         "w": intrinsics.width, "h": intrinsics.height,
         "fl_x": intrinsics.fx, "fl_y": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy,
+        **({} if distortion is None else distortion.to_json()),
         "frames": [{"file_path": "./" + stem, "transform_matrix": np.asarray(pose).tolist(),
                     "depth_file_path": "./" + stem + FRAME_SUFFIXES["distance"],
                     "mask_path": "./" + stem + FRAME_SUFFIXES["mask"]} | _lens_entry(lens)
@@ -109,9 +113,12 @@ def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[Th
 
 
 def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses: dict,
-                          split_lenses: Optional[dict] = None) -> dict:
+                          split_lenses: Optional[dict] = None, split_distortions: Optional[dict] = None) -> dict:
     """transforms.json for nerfstudio. Its depth is z-depth in scene units (nerfstudio
-    expects z-depth; pass --depth-unit-scale-factor 1 to its dataparser)."""
+    expects z-depth; pass --depth-unit-scale-factor 1 to its dataparser). With a lens
+    distortion (split_distortions: {split: Distortion or None}) see distorted_transforms."""
+    if any((split_distortions or {}).values()):
+        return distorted_transforms(intrinsics, split_stems, split_poses, split_lenses, split_distortions)
     frames, filenames = [], {}
     for split in SPLITS:
         filenames[f"{split}_filenames"] = [stem + ".png" for stem in split_stems[split]]
@@ -122,6 +129,41 @@ def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses
     return {"camera_model": "OPENCV", "fl_x": intrinsics.fx, "fl_y": intrinsics.fy,
             "cx": intrinsics.cx, "cy": intrinsics.cy, "w": intrinsics.width, "h": intrinsics.height,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames, **filenames}
+
+
+def distorted_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses: dict, split_lenses, split_distortions
+                         ) -> dict:
+    """transforms.json of a dataset with distorted splits. nerfstudio's dataparser reads one
+    camera_model for the file and the coefficients per frame when the top level has none:
+    - opencv: camera_model OPENCV, every frame its own k1 k2 k3 p1 p2 (0 for pinhole frames,
+      which OPENCV with zeros is);
+    - fisheye: camera_model OPENCV_FISHEYE cannot state a pinhole frame (a fisheye with
+      zeros is the equidistant projection), so the file lists the fisheye frames only, with
+      no {split}_filenames (nerfstudio then splits them itself); the pinhole splits are in
+      transforms_{split}.json."""
+    models = {d.model for d in split_distortions.values() if d is not None}
+    if len(models) != 1:
+        raise ValueError(f"one distortion model per dataset, got {sorted(models)}")
+    model = models.pop()
+    frames, filenames = [], {}
+    for split in SPLITS:
+        distortion = split_distortions.get(split)
+        if model == "fisheye" and distortion is None:
+            continue
+        keys = (distortion or Distortion("opencv")).to_json()
+        keys.pop("camera_model")
+        if model == "opencv":
+            keys.setdefault("k3", 0.0)
+        filenames[f"{split}_filenames"] = [stem + ".png" for stem in split_stems[split]]
+        for stem, pose in zip(split_stems[split], split_poses[split]):
+            frames.append({"file_path": stem + ".png", "transform_matrix": np.asarray(pose).tolist(),
+                           "depth_file_path": stem + FRAME_SUFFIXES["z_depth"],
+                           "mask_path": stem + FRAME_SUFFIXES["mask"], **keys}
+                          | _lens_entry((split_lenses or {}).get(split)))
+    out = {"camera_model": "OPENCV" if model == "opencv" else "OPENCV_FISHEYE", "fl_x": intrinsics.fx,
+           "fl_y": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy, "w": intrinsics.width,
+           "h": intrinsics.height, "frames": frames}
+    return out | ({} if model == "fisheye" else filenames)
 
 
 def write_manifest(root: Path, relative_paths) -> None:
@@ -282,6 +324,9 @@ class Dataset:
         if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
             raise InputError(f"{where}: 'frames' must be a list of objects")
         intrinsics = validate.intrinsics(meta, where)
+        distortion = Distortion.from_json(meta, where)
+        if distortion is not None:
+            distortion.check_image(intrinsics, f"{where}: camera_model {meta.get('camera_model')}")
         stems, poses, lenses, exact = [], [], [], []
         for k, frame in enumerate(frames):
             if "file_path" not in frame or "transform_matrix" not in frame:
@@ -300,7 +345,7 @@ class Dataset:
         if any("exact_transform_matrix" in frame for frame in frames):
             self._exact_poses[split] = np.stack(exact)
             self._exact_poses[split].flags.writeable = False
-        return SplitCameras(split, tuple(stems), c2w, intrinsics, tuple(lenses) if any(lenses) else ())
+        return SplitCameras(split, tuple(stems), c2w, intrinsics, tuple(lenses) if any(lenses) else (), distortion)
 
     def frame_file(self, stem: str, kind: str, decode):
         """decode(path, verified bytes) of the frame's file of `kind` (a FRAME_SUFFIXES
