@@ -14,6 +14,7 @@ import re
 
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
+from nerfgauge.generate.holdout import parse_scales
 from nerfgauge.generate.layouts import LAYOUTS
 from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, NOISE_PSNR, GenerateConfig
 from nerfgauge.generate.variant import CHOICES
@@ -21,7 +22,7 @@ from nerfgauge.generate.variant import CHOICES
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
                   "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits",
-                  "units", "envmap", "envmap_rotation")
+                  "units", "envmap", "envmap_rotation", "holdout", "test_scales")
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -36,6 +37,14 @@ def parse_resolution(text: str) -> tuple[int, int]:
     if max(width, height) > arguments.IMAGE_SIDE.high:
         raise InputError(f"--res sides must be {arguments.IMAGE_SIDE.text} pixels, got {text!r}")
     return width, height
+
+
+def _scales(text: str) -> tuple:
+    """--test-scales's argparse type: generate.holdout.parse_scales, its message kept."""
+    try:
+        return parse_scales(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
@@ -89,6 +98,13 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
     parser.add_argument("--lens-splits", choices=("test", "all"), default=d.lens_splits,
                         help="views rendered through the lens: test (default) or all splits; depth, normals and "
                              "masks stay those of the pinhole pixel-centre rays")
+    parser.add_argument("--holdout", default=d.holdout, metavar="AXIS:MIN:MAX",
+                        help="hold out a sector of camera directions, azimuth:A:B or elevation:A:B degrees: train and "
+                             "val views outside it; test views half inside (extrapolation), half outside "
+                             "(interpolation); hemisphere and sphere layouts (docs/conventions.md)")
+    parser.add_argument("--test-scales", type=_scales, default=d.test_scales, metavar="S,S,...",
+                        help="add --test-views test views per scale s != 1 at distance radius/s (s=2: twice as close, "
+                             "Mip-Splatting-style zoom), e.g. 0.5,1,2")
     parser.add_argument("--workers", type=arguments.WORKERS, default=1, help="worker processes (default 1)")
     return parser
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from nerfgauge.generate import layouts
+from nerfgauge.generate import holdout, layouts
 from nerfgauge.generate.export import export_colmap, export_current, require_pycolmap
 from nerfgauge.generate.points import parse_spec
 from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
@@ -99,6 +99,10 @@ class GenerateConfig:
     units: str = "normalise"  # "keep": user assets stay in their files' units
     envmap: Optional[str] = None  # an equirectangular .exr/.hdr lighting the scene instead of its lights
     envmap_rotation: float = 0.0  # degrees about +Z
+    # issue 35 item 6 (generate.holdout): a held-out sector "azimuth:A:B" / "elevation:A:B" and
+    # test views at other distances (scales, e.g. (0.5, 1, 2)); None: the layout's splits
+    holdout: Optional[str] = None
+    test_scales: Optional[tuple] = None
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
@@ -137,6 +141,10 @@ class GenerateConfig:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
         self._validate_noise()
         self._validate_lens()
+        if self.holdout is not None:
+            holdout.parse_holdout(self.holdout)
+        if self.test_scales is not None:
+            holdout.parse_scales(self.test_scales)
 
     def _validate_noise(self) -> None:
         target = self.noise_psnr
@@ -179,9 +187,12 @@ class GenerateConfig:
         if self.lens() is None and self.lens_splits == "test":
             for key in ("aperture", "focus_distance", "lens_splits"):
                 del out[key]
-        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0)):
+        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0), ("holdout", None),
+                              ("test_scales", None)):
             if out[name] == default:
                 del out[name]
+        if "test_scales" in out:
+            out["test_scales"] = list(holdout.parse_scales(self.test_scales))
         return out
 
 
@@ -199,6 +210,7 @@ class Plan:
     lightfield: Optional[dict]
     inputs: dict  # {path: sha256} of every file the scene was read from (user meshes)
     versions: dict  # renderer_versions()
+    extrapolation: Optional[dict] = None  # scene.json's "extrapolation" (generate.holdout), None without one
 
     @property
     def radius(self) -> float:
@@ -224,11 +236,15 @@ def plan(config: GenerateConfig) -> Plan:
     spec = layout_spec(config, scene)
     rng = np.random.default_rng(config.seed)
     poses = layouts.camera_poses(spec, scene.aabb, rng)
+    held_out = holdout.extrapolation_split(spec, scene.aabb, poses, config.holdout, config.test_scales, config.seed,
+                                           config.sampling)
+    poses, extrapolation = (poses, None) if held_out is None else held_out
     lightfield = layouts.lightfield_plane(spec, scene.aabb) if spec.layout == "lightfield" else None
     stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
              for split in dataset.SPLITS}
     return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield,
-                scene_inputs(scene), renderer_versions())
+                scene_inputs(scene), renderer_versions(),
+                extrapolation and holdout.frame_record(extrapolation, stems["test"]))
 
 
 def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
@@ -315,6 +331,7 @@ def finish(out: Path, the_plan: Plan) -> None:
                       "names": instance_names(scene)},
         "noise": noise_summary(out, stems, the_plan.config),
         "variant": the_plan.variant,
+        **({"extrapolation": the_plan.extrapolation} if the_plan.extrapolation is not None else {}),
         "inputs": the_plan.inputs,
         "recipe_sha256": recipe_hash(the_plan.recipe()),
         "versions": {"mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "trimesh": trimesh.__version__,
@@ -322,6 +339,7 @@ def finish(out: Path, the_plan: Plan) -> None:
                      "nerfgauge": the_plan.versions["nerfgauge"]},
     }
     write_json(out / "scene.json", scene_json)
+    write_json(out / holdout.SPARSE_FILE, holdout.sparse_views(poses["train"], stems["train"]))
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
              if p.is_file() and p.name != dataset.MANIFEST and not p.name.startswith(".")]
     dataset.write_manifest(out, files)
