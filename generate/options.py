@@ -22,7 +22,8 @@ from nerfgauge.generate.variant import CHOICES
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
                   "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits",
-                  "units", "envmap", "envmap_rotation", "holdout", "test_scales")
+                  "units", "envmap", "envmap_rotation", "holdout", "test_scales", "transients",
+                  "transient_fraction")
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -105,6 +106,12 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
     parser.add_argument("--test-scales", type=_scales, default=d.test_scales, metavar="S,S,...",
                         help="add --test-views test views per scale s != 1 at distance radius/s (s=2: twice as close, "
                              "Mip-Splatting-style zoom), e.g. 0.5,1,2")
+    parser.add_argument("--transients", type=arguments.bounded(int, 0, 64), default=d.transients, metavar="N",
+                        help="add N small objects (spheres, cubes) to some training views only, with their masks "
+                             "(train/r_XXX_transient.png); val and test views never show them")
+    parser.add_argument("--transient-fraction", type=arguments.bounded(float, 0, 1, above=True),
+                        default=d.transient_fraction, metavar="F",
+                        help=f"share of the training views each transient is in (default {d.transient_fraction:g})")
     parser.add_argument("--workers", type=arguments.WORKERS, default=1, help="worker processes (default 1)")
     return parser
 

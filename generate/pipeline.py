@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from nerfgauge.generate import holdout, layouts
+from nerfgauge.generate import holdout, layouts, transients
 from nerfgauge.generate.export import export_colmap, export_current, require_pycolmap
 from nerfgauge.generate.points import parse_spec
 from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
@@ -103,6 +103,9 @@ class GenerateConfig:
     # test views at other distances (scales, e.g. (0.5, 1, 2)); None: the layout's splits
     holdout: Optional[str] = None
     test_scales: Optional[tuple] = None
+    # issue 35 item 5 (generate.transients): this many small objects, each in this fraction of the train views
+    transients: int = 0
+    transient_fraction: float = 0.5
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
@@ -145,6 +148,7 @@ class GenerateConfig:
             holdout.parse_holdout(self.holdout)
         if self.test_scales is not None:
             holdout.parse_scales(self.test_scales)
+        transients.check(self.transients, self.transient_fraction)
 
     def _validate_noise(self) -> None:
         target = self.noise_psnr
@@ -188,9 +192,11 @@ class GenerateConfig:
             for key in ("aperture", "focus_distance", "lens_splits"):
                 del out[key]
         for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0), ("holdout", None),
-                              ("test_scales", None)):
+                              ("test_scales", None), ("transients", 0)):
             if out[name] == default:
                 del out[name]
+        if "transients" not in out and out["transient_fraction"] == 0.5:
+            del out["transient_fraction"]
         if "test_scales" in out:
             out["test_scales"] = list(holdout.parse_scales(self.test_scales))
         return out
@@ -211,6 +217,7 @@ class Plan:
     inputs: dict  # {path: sha256} of every file the scene was read from (user meshes)
     versions: dict  # renderer_versions()
     extrapolation: Optional[dict] = None  # scene.json's "extrapolation" (generate.holdout), None without one
+    transients: tuple = ()  # generate.transients.Transient objects of the train views
 
     @property
     def radius(self) -> float:
@@ -244,7 +251,8 @@ def plan(config: GenerateConfig) -> Plan:
              for split in dataset.SPLITS}
     return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield,
                 scene_inputs(scene), renderer_versions(),
-                extrapolation and holdout.frame_record(extrapolation, stems["test"]))
+                extrapolation and holdout.frame_record(extrapolation, stems["test"]),
+                transients.place(scene, config.transients, config.transient_fraction, len(poses["train"]), config.seed))
 
 
 def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
@@ -328,16 +336,18 @@ def finish(out: Path, the_plan: Plan) -> None:
                    "spp": the_plan.config.spp, "max_depth": the_plan.config.max_depth, "filter": "box",
                    "albedo": "*_albedo.exr: linear albedo of the first surface, box-filtered, 0 on misses"},
         "instances": {"file": "*_instance.png: 16-bit ids of the pixel-centre ray's shape, 0 = miss",
-                      "names": instance_names(scene)},
+                      "names": instance_names(scene) + transients.names(the_plan.transients)},
         "noise": noise_summary(out, stems, the_plan.config),
         "variant": the_plan.variant,
         **({"extrapolation": the_plan.extrapolation} if the_plan.extrapolation is not None else {}),
+        **({"transients": transients.record(the_plan)} if the_plan.transients else {}),
         "inputs": the_plan.inputs,
         "recipe_sha256": recipe_hash(the_plan.recipe()),
         "versions": {"mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "trimesh": trimesh.__version__,
                      "numpy": np.__version__, "python": platform.python_version(),
                      "nerfgauge": the_plan.versions["nerfgauge"]},
     }
+    transients.write_masks(out, the_plan, len(instance_names(scene)))
     write_json(out / "scene.json", scene_json)
     write_json(out / holdout.SPARSE_FILE, holdout.sparse_views(poses["train"], stems["train"]))
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))

@@ -17,6 +17,7 @@ from nerfgauge.core import dataset
 from nerfgauge.core.files import write_json
 from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
 from nerfgauge.generate.mitsuba_scene import scene_dict
+from nerfgauge.generate import transients
 from nerfgauge.generate.render import render_view
 from nerfgauge.generate.variant import use_variant
 
@@ -68,8 +69,10 @@ def load_mitsuba_scene(out, the_plan):
 
 def render_one(mi, scene, out, the_plan, split, index):
     config = the_plan.config
+    # the static scene, or it with the view's transient objects (generate.transients)
+    scene, integrator, legend = transients.scene_for_view(mi, scene, out, the_plan, split, index)
     start = time.perf_counter()
     images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
                          view_seed(config.seed, split, index), target=config.noise_target,
-                         lens=the_plan.lens(split))
+                         lens=the_plan.lens(split), integrator=integrator, legend=legend)
     return images, time.perf_counter() - start
