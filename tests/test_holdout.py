@@ -207,3 +207,24 @@ def test_train_on_a_sparse_list(holdout_dataset, tmp_path):
         (holdout_dataset / "sparse_views.json").read_text())["counts"]["6"]
     with pytest.raises(InputError, match="no list of 24 views"):
         sparse_train_views(holdout_dataset, 24)
+
+
+def test_suites_take_the_options():
+    """A suite's [dataset] passes the new GenerateConfig fields through (and [train] sparse);
+    bad values are the suite file's one-line errors."""
+    from nerfgauge.orchestrate.suite import parse_suite
+
+    data = {"name": "ext", "version": 1,
+            "dataset": {"width": 16, "height": 16, "views": 12, "val_views": 1, "test_views": 2, "spp": 4,
+                        "holdout": "azimuth:0:60", "test_scales": [0.5, 1, 2], "transients": 2,
+                        "transient_fraction": 0.25},
+            "train": {"steps": 10, "sparse": 6},
+            "protocol": {"split": "test", "background": "white", "depth_kind": "distance"},
+            "scenes": [{"scene": "primitives", "seed": 1}]}
+    suite = parse_suite(data, "ext.toml")
+    the_plan = plan(suite.generate_config(suite.scenes[0]))
+    assert [f["scale"] for f in the_plan.extrapolation["frames"]] == [1.0] * 2 + [0.5] * 2 + [2.0] * 2
+    assert len(the_plan.transients) == 2 and all(len(t.views) == 3 for t in the_plan.transients)
+    bad = data | {"dataset": data["dataset"] | {"holdout": "azimuth:9"}}
+    with pytest.raises(InputError, match=r"ext.toml scenes\[0\]: --holdout"):
+        parse_suite(bad, "ext.toml")
