@@ -65,14 +65,6 @@ class Sector:
     lo: float
     hi: float
 
-    def contains(self, directions: np.ndarray) -> np.ndarray:
-        """[n] bool: which unit directions [n, 3] (from the AABB centre) lie inside."""
-        if self.axis == "elevation":
-            elevation = np.degrees(np.arcsin(np.clip(directions[:, 2], -1, 1)))
-            return (elevation >= self.lo - 1e-9) & (elevation <= self.hi + 1e-9)
-        azimuth = np.degrees(np.arctan2(directions[:, 1], directions[:, 0]))
-        return np.mod(azimuth - self.lo, 360.0) <= (self.hi - self.lo) + 1e-9
-
     def to_json(self) -> dict:
         return {"axis": self.axis, "min_degrees": self.lo, "max_degrees": self.hi}
 
