@@ -8,11 +8,16 @@ distance, "scale"). The gap of a metric is
     gap = mean over interpolation frames - mean over extrapolation frames
 
 in the metric's own units (dB for PSNR): positive when the method does worse where it saw
-nothing like the view. It is given for psnr, ssim and the co-visible scores (the share of
-an extrapolation view that no train view saw is `covisible_fraction`, reported beside it),
-overall, for the sector frames alone (`sector`) and per scale (`scales`, each scale's mean
-against the interpolation frames). A group without frames (or without values, e.g.
-co-visible scores with --no-held-out) gives null.
+nothing like the view. It is given for psnr, psnr_foreground, ssim, lpips and the
+co-visible scores (the share of an extrapolation view that no train view saw is
+`covisible_fraction`, reported beside it), overall, for the sector frames alone (`sector`)
+and per scale (`scales`, each scale's mean against the interpolation frames).
+
+Across scales, read psnr_foreground: a view from twice as far is about three-quarters
+white background that any method gets right, which lifts its whole-image PSNR (measured:
+our NeRF, 60 s on primitives at 64 px, scored 9.3 dB *more* at scale 0.5 than on the
+interpolation views); the foreground PSNR scores the object alone. A group without frames
+(or without values, e.g. co-visible scores with --no-held-out) gives null.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import numpy as np
 
 from nerfgauge.core.errors import InputError
 
-GAP_METRICS = ("psnr", "ssim", "lpips", "psnr_covisible", "ssim_covisible", "covisible_fraction")
+GAP_METRICS = ("psnr", "psnr_foreground", "ssim", "lpips", "psnr_covisible", "ssim_covisible", "covisible_fraction")
 GROUPS = ("interpolation", "extrapolation")
 
 
@@ -71,7 +76,8 @@ def extrapolation_gap(scene_json: dict, frames: list, split: str) -> Optional[di
 
 
 def format_gap(document: Optional[dict]) -> list:
-    """Lines for the evaluator's table: the PSNR gap overall, in the sector, per scale."""
+    """Lines for the evaluator's table: the PSNR and foreground-PSNR gaps overall, in the
+    sector, per scale."""
     if not document:
         return []
     lines = []
@@ -80,8 +86,9 @@ def format_gap(document: Optional[dict]) -> list:
         parts.append(("sector", document["sector"]))
     parts += [(f"scale {s}", gap) for s, gap in document["scales"].items()]
     for name, gap in parts:
-        psnr = gap["psnr"]
-        if psnr["gap"] is not None:
-            lines.append(f"extrapolation gap ({name}): psnr {psnr['interpolation']:.2f} (interpolation) - "
-                         f"{psnr['extrapolation']:.2f} (extrapolation) = {psnr['gap']:.2f} dB")
+        for metric in ("psnr", "psnr_foreground"):
+            psnr = gap[metric]
+            if psnr["gap"] is not None:
+                lines.append(f"extrapolation gap ({name}): {metric} {psnr['interpolation']:.2f} (interpolation) - "
+                             f"{psnr['extrapolation']:.2f} (extrapolation) = {psnr['gap']:.2f} dB")
     return lines
