@@ -2,8 +2,8 @@
 distances, and the fixed sparse view lists published with every dataset.
 
 - `--holdout azimuth:A:B` / `--holdout elevation:A:B` (degrees): a sector of camera
-  directions about the AABB centre (azimuth from +X towards +Y, elevation above the
-  horizon). Train and val views stand only outside it; the test split holds
+  directions about the orbit's centre (the AABB centre, or a scene's own orbit target;
+  azimuth from +X towards +Y, elevation above the horizon). Train and val views stand only outside it; the test split holds
   ceil(test_views / 2) **extrapolation** views inside it, then floor(test_views / 2)
   **interpolation** views drawn outside it from the very pool the train and val views
   are dealt from, so the interpolation/extrapolation gap is measured on one dataset. The
@@ -166,9 +166,11 @@ def regions(sector: Optional[Sector], band: tuple) -> tuple:
     return Region(0.0, 360.0, tuple(_intersect(band, cut))), Region(0.0, 360.0, tuple(_intervals_minus(band, cut)))
 
 
-def _poses(directions: np.ndarray, centre: np.ndarray, radius: float, aabb: np.ndarray, what: str) -> np.ndarray:
+def _poses(directions: np.ndarray, centre: np.ndarray, radius: float, aabb, what: str) -> np.ndarray:
+    """Cameras at `centre` + radius x directions [n, 3] facing `centre`; inside `aabb` is
+    refused (None: a scene's own orbit target, where layouts allows it too)."""
     eyes = centre + radius * directions
-    if np.all((eyes >= aabb[0]) & (eyes <= aabb[1]), axis=1).any():
+    if aabb is not None and np.all((eyes >= aabb[0]) & (eyes <= aabb[1]), axis=1).any():
         raise InputError(f"{what} at distance {radius:g} stand inside the scene's AABB; choose smaller --test-scales "
                          f"or a larger --radius")
     return np.stack([look_at(eye, centre) for eye in eyes]) if len(eyes) else np.zeros((0, 4, 4))
@@ -187,7 +189,9 @@ def extrapolation_split(spec, aabb: np.ndarray, poses: dict, holdout: Optional[s
     scales = () if test_scales is None else tuple(s for s in parse_scales(test_scales) if s != 1.0)
     band = SPHERE_BAND if spec.layout == "sphere" else tuple(spec.elevation)
     rng = np.random.default_rng([int(seed), RNG_TAG])
-    centre = (aabb[0] + aabb[1]) / 2
+    # the orbit's centre as layouts.camera_poses has it: a scene's target, else the AABB centre
+    centre = (aabb[0] + aabb[1]) / 2 if spec.target is None else np.asarray(spec.target, np.float64)
+    aabb = aabb if spec.target is None else None
     n_train, n_val, n_test = spec.counts
     inside, outside = regions(sector, band)
     frames = []
