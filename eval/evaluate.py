@@ -87,6 +87,7 @@ from nerfgauge.eval.error_maps import (
     depth_relative_error,
     write_error_maps,
 )
+from nerfgauge.eval.extrapolation import extrapolation_gap, format_gap
 from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.lpips import MIN_SIDE, NOT_AVAILABLE, LpipsBatch, load_lpips
 from nerfgauge.eval import protocols as protocols_module
@@ -367,6 +368,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
                 "ground_truth": ds.ground_truth_record(),
                 "noise": noise_summary(frames) if ds.has("noise_ceiling") else
                 {"psnr_ceiling": None, "at_noise_floor": None, "note": ds.unavailable_reason("noise_ceiling")}, "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
+                **({"extrapolation": gap} if (gap := extrapolation_gap(ds.scene, frames, split)) else {}),
                 "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}
     write_json(out, document)
@@ -416,6 +418,7 @@ def format_means(document: dict) -> str:
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
     if noise.get("at_noise_floor"):
         lines.append(f"psnr within {NOISE_FLOOR_DB:g} dB of the ceiling: at the noise floor: add spp")
+    lines += format_gap(document.get("extrapolation"))
     if (document.get("empty_views") or {}).get("warning"):
         lines.append("warning: " + document["empty_views"]["warning"])
     return "\n".join(lines)

@@ -15,6 +15,7 @@ import re
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.generate import degrade
+from nerfgauge.generate.holdout import parse_scales
 from nerfgauge.generate.layouts import LAYOUTS
 from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, NOISE_PSNR, GenerateConfig
 from nerfgauge.generate.variant import CHOICES
@@ -22,7 +23,8 @@ from nerfgauge.generate.variant import CHOICES
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
                   "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits",
-                  "units", "envmap", "envmap_rotation", "distortion", "motion_blur") + degrade.FIELDS
+                  "units", "envmap", "envmap_rotation", "distortion", "motion_blur", "holdout", "test_scales",
+                  "transients", "transient_fraction") + degrade.FIELDS
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -37,6 +39,14 @@ def parse_resolution(text: str) -> tuple[int, int]:
     if max(width, height) > arguments.IMAGE_SIDE.high:
         raise InputError(f"--res sides must be {arguments.IMAGE_SIDE.text} pixels, got {text!r}")
     return width, height
+
+
+def _scales(text: str) -> tuple:
+    """--test-scales's argparse type: generate.holdout.parse_scales, its message kept."""
+    try:
+        return parse_scales(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
@@ -101,6 +111,19 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
                              "the scene's diagonal) or travel=T,rotation=DEG,exposure=E,readout=R (exposure and "
                              "rolling-shutter readout as fractions of the frame); the colour integrates the exposure, "
                              "the transform and depth are the sharp mid-frame pose's")
+    parser.add_argument("--holdout", default=d.holdout, metavar="AXIS:MIN:MAX",
+                        help="hold out a sector of camera directions, azimuth:A:B or elevation:A:B degrees: train and "
+                             "val views outside it; test views half inside (extrapolation), half outside "
+                             "(interpolation); hemisphere and sphere layouts (docs/conventions.md)")
+    parser.add_argument("--test-scales", type=_scales, default=d.test_scales, metavar="S,S,...",
+                        help="add --test-views test views per scale s != 1 at distance radius/s (s=2: twice as close, "
+                             "Mip-Splatting-style zoom), e.g. 0.5,1,2")
+    parser.add_argument("--transients", type=arguments.bounded(int, 0, 64), default=d.transients, metavar="N",
+                        help="add N small objects (spheres, cubes) to some training views only, with their masks "
+                             "(train/r_XXX_transient.png); val and test views never show them")
+    parser.add_argument("--transient-fraction", type=arguments.bounded(float, 0, 1, above=True),
+                        default=d.transient_fraction, metavar="F",
+                        help=f"share of the training views each transient is in (default {d.transient_fraction:g})")
     parser.add_argument("--workers", type=arguments.WORKERS, default=1, help="worker processes (default 1)")
     return parser
 

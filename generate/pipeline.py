@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from nerfgauge.generate import layouts, motion
+from nerfgauge.generate import holdout, layouts, motion, transients
 from nerfgauge.generate.degrade import FIELDS as DEGRADATION_FIELDS
 from nerfgauge.generate.degrade import Degradations, add_frame_extras, camera_spread, frame_extras, train_poses
 from nerfgauge.generate.export import export_colmap, export_current, require_pycolmap
@@ -116,6 +116,13 @@ class GenerateConfig:
     # Motion blur / rolling shutter of the train views (--motion-blur TRAVEL or
     # travel=T,rotation=DEG,exposure=E,readout=R; generate.motion); None: still cameras.
     motion_blur: Optional[str] = None
+    # issue 35 item 6 (generate.holdout): a held-out sector "azimuth:A:B" / "elevation:A:B" and
+    # test views at other distances (scales, e.g. (0.5, 1, 2)); None: the layout's splits
+    holdout: Optional[str] = None
+    test_scales: Optional[tuple] = None
+    # issue 35 item 5 (generate.transients): this many small objects, each in this fraction of the train views
+    transients: int = 0
+    transient_fraction: float = 0.5
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
@@ -166,6 +173,12 @@ class GenerateConfig:
             if self.lens() is not None and "train" in LENS_SPLITS[self.lens_splits] and blur.readout > 0:
                 raise InputError("--motion-blur with a rolling shutter (readout > 0) does not combine with a thin lens "
                                  "on the train views (--lens-splits all)")
+        if self.holdout is not None:
+            holdout.parse_holdout(self.holdout)
+        if self.test_scales is not None:
+            holdout.parse_scales(self.test_scales)
+        transients.check(self.transients, self.transient_fraction)
+
 
     def degradations(self) -> Degradations:
         """The train-view degradations (generate.degrade)."""
@@ -221,9 +234,14 @@ class GenerateConfig:
             for key in ("aperture", "focus_distance", "lens_splits"):
                 del out[key]
         for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0), ("distortion", None),
-                              ("motion_blur", None), *((name, getattr(Degradations(), name)) for name in DEGRADATION_FIELDS)):
+                              ("motion_blur", None), ("holdout", None), ("test_scales", None), ("transients", 0),
+                              *((name, getattr(Degradations(), name)) for name in DEGRADATION_FIELDS)):
             if out[name] == default:
                 del out[name]
+        if "transients" not in out and out["transient_fraction"] == 0.5:
+            del out["transient_fraction"]
+        if "test_scales" in out:
+            out["test_scales"] = list(holdout.parse_scales(self.test_scales))
         return out
 
 
@@ -241,6 +259,8 @@ class Plan:
     lightfield: Optional[dict]
     inputs: dict  # {path: sha256} of every file the scene was read from (user meshes)
     versions: dict  # renderer_versions()
+    extrapolation: Optional[dict] = None  # scene.json's "extrapolation" (generate.holdout), None without one
+    transients: tuple = ()  # generate.transients.Transient objects of the train views
 
     @property
     def radius(self) -> float:
@@ -278,11 +298,16 @@ def plan(config: GenerateConfig) -> Plan:
     spec = layout_spec(config, scene)
     rng = np.random.default_rng(config.seed)
     poses = layouts.camera_poses(spec, scene.aabb, rng)
+    held_out = holdout.extrapolation_split(spec, scene.aabb, poses, config.holdout, config.test_scales, config.seed,
+                                           config.sampling)
+    poses, extrapolation = (poses, None) if held_out is None else held_out
     lightfield = layouts.lightfield_plane(spec, scene.aabb) if spec.layout == "lightfield" else None
     stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
              for split in dataset.SPLITS}
     return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield,
-                scene_inputs(scene), renderer_versions())
+                scene_inputs(scene), renderer_versions(),
+                extrapolation and holdout.frame_record(extrapolation, stems["test"]),
+                transients.place(scene, config.transients, config.transient_fraction, len(poses["train"]), config.seed))
 
 
 def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
@@ -391,18 +416,22 @@ def finish(out: Path, the_plan: Plan) -> None:
                    "spp": the_plan.config.spp, "max_depth": the_plan.config.max_depth, "filter": "box",
                    "albedo": "*_albedo.exr: linear albedo of the first surface, box-filtered, 0 on misses"},
         "instances": {"file": "*_instance.png: 16-bit ids of the pixel-centre ray's shape, 0 = miss",
-                      "names": instance_names(scene)},
+                      "names": instance_names(scene) + transients.names(the_plan.transients)},
         "noise": noise_summary(out, stems, the_plan.config),
         **({"degradations": degradations.to_json(seed) | {"spread": camera_spread(the_plan.poses["train"])}}
            if degradations.any else {}),
         "variant": the_plan.variant,
+        **({"extrapolation": the_plan.extrapolation} if the_plan.extrapolation is not None else {}),
+        **({"transients": transients.record(the_plan)} if the_plan.transients else {}),
         "inputs": the_plan.inputs,
         "recipe_sha256": recipe_hash(the_plan.recipe()),
         "versions": {"mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "trimesh": trimesh.__version__,
                      "numpy": np.__version__, "python": platform.python_version(),
                      "nerfgauge": the_plan.versions["nerfgauge"]},
     }
+    transients.write_masks(out, the_plan, len(instance_names(scene)))
     write_json(out / "scene.json", scene_json)
+    write_json(out / holdout.SPARSE_FILE, holdout.sparse_views(poses["train"], stems["train"]))
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
              if p.is_file() and p.name != dataset.MANIFEST and not p.name.startswith(".")]
     dataset.write_manifest(out, files)

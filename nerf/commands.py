@@ -131,6 +131,9 @@ def _add_train(subparsers) -> None:
                         help="training seconds between val PSNR points in log.jsonl (default 10)")
     parser.add_argument("--threads", type=arguments.THREADS, default=2, help="torch CPU threads (default 2)")
     parser.add_argument("--device", default="auto", help="auto (cuda when present), cpu, cuda or cuda:N")
+    parser.add_argument("--sparse", type=arguments.VIEWS, default=None, metavar="N",
+                        help="train on the dataset's fixed sparse list of N views (sparse_views.json: 3, 6, 9, 12 "
+                             "or 24, by farthest-point sampling on the camera centres)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 
@@ -149,7 +152,7 @@ def _run_train(args) -> int:
                          threads=args.threads, device=args.device, eval_every_seconds=args.eval_every,
                          parametrisation=None if args.parametrisation == "auto" else args.parametrisation,
                          checkpoint_every=args.checkpoint_every, step_ratio=args.step_ratio,
-                         batch_rays=args.batch_rays, pixel_filter=args.pixel_filter)
+                         batch_rays=args.batch_rays, pixel_filter=args.pixel_filter, sparse=args.sparse)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
           f"model {summary['model_bytes'] / 1e6:.2f} MB"

@@ -99,6 +99,9 @@ class TrainConfig:
     checkpoint_every: Optional[int] = None
     threads: int = 2
     device: str = "auto"
+    # train on the dataset's sparse list of this many views (sparse_views.json; nerf.data);
+    # None: every train view. Left out of config.json when None, so older runs keep their recipe.
+    sparse: Optional[int] = None
 
     def validate(self) -> None:
         """One-line InputError for anything a run cannot use (the API path: the CLI's
@@ -129,7 +132,10 @@ class TrainConfig:
             raise InputError(f"unknown device {self.device!r}; choose auto, cpu, cuda or cuda:N")
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        if out["sparse"] is None:
+            del out["sparse"]
+        return out
 
 
 # CLI flag of a config field, for messages that name what the user typed
@@ -143,7 +149,7 @@ LEARNING_RATE = arguments.bounded(float, 0, 10, above=True)  # Adam's step; 10 o
 # Every numeric field of TrainConfig and its range (None-valued fields are optional).
 FIELD_RANGES = {
     "steps": arguments.STEPS, "budget_seconds": arguments.SECONDS, "checkpoint_every": arguments.STEPS,
-    "seed": arguments.SEED, "threads": arguments.THREADS, "eval_every_seconds": arguments.SECONDS,
+    "seed": arguments.SEED, "sparse": arguments.VIEWS, "threads": arguments.THREADS, "eval_every_seconds": arguments.SECONDS,
     "batch_rays": arguments.BATCH_RAYS, "vanilla_batch_rays": arguments.BATCH_RAYS,
     "final_resolution": arguments.GRID_RESOLUTION, "start_resolution": arguments.GRID_RESOLUTION,
     "step_ratio": arguments.STEP_RATIO, "tv_weight": arguments.WEIGHT, "distortion_weight": arguments.WEIGHT,

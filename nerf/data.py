@@ -6,6 +6,7 @@ the background can be composited per ray.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from typing import Optional
 
@@ -14,6 +15,7 @@ import torch
 
 from nerfgauge.core.camera import SplitCameras
 from nerfgauge.core.dataset import open_dataset
+from nerfgauge.core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -75,16 +77,19 @@ def jittered_direction(directions: torch.Tensor, footprint: torch.Tensor, offset
     return moved / torch.linalg.vector_norm(moved, dim=-1, keepdim=True)
 
 
-def load_split_rays(root, split: str, limit: Optional[int] = None,
+def load_split_rays(root, split: str, limit: Optional[int] = None, views: Optional[list] = None,
                     footprint: bool = False) -> tuple[SplitCameras, RayBatch]:
-    """All rays and RGBA targets of a split (the first `limit` views if given), with each
-    ray's pixel footprint when `footprint` (24 more bytes a ray).
-    root: a dataset folder or an open nerfgauge.core.dataset.Dataset."""
+    """All rays and RGBA targets of a split (the first `limit` views if given; only the
+    frame indices `views`, in that order, if given), with each ray's pixel footprint when
+    `footprint` (24 more bytes a ray). root: a dataset folder or an open
+    nerfgauge.core.dataset.Dataset."""
     ds = open_dataset(root)
     cameras = ds.cameras(split)
     count = len(cameras.stems) if limit is None else min(limit, len(cameras.stems))
+    indices = list(range(count)) if views is None else list(views)
+    count = len(indices)
     origins, directions, colours, footprints = [], [], [], []
-    for index in range(count):
+    for index in indices:
         o, d = cameras.rays(index)  # [H, W, 3] float64, through the split's distortion if any
         origins.append(torch.from_numpy(o.reshape(-1, 3).astype(np.float32)))
         directions.append(torch.from_numpy(d.reshape(-1, 3).astype(np.float32)))
@@ -96,6 +101,33 @@ def load_split_rays(root, split: str, limit: Optional[int] = None,
         return cameras, RayBatch(empty, empty, torch.zeros((0, 4)), 0, torch.zeros((0, 2, 3)) if footprint else None)
     return cameras, RayBatch(torch.cat(origins), torch.cat(directions), torch.cat(colours), count,
                              torch.cat(footprints) if footprint else None)
+
+
+SPARSE_FILE = "sparse_views.json"  # generate.holdout writes it (docs/conventions.md, "Extrapolation splits")
+
+
+def sparse_train_views(root, count: int) -> list:
+    """The train frame indices of the dataset's sparse list of `count` views (nested lists
+    by farthest-point sampling on the camera centres), checked; one line when absent."""
+    ds = open_dataset(root)
+    where = ds.root / SPARSE_FILE
+    if SPARSE_FILE not in ds.manifest_files:
+        raise InputError(f"{ds.root} has no {SPARSE_FILE} (datasets generated before the sparse view lists "
+                         f"have none); regenerate it to train on --sparse {count}")
+    try:
+        document = json.loads(ds.read_bytes(SPARSE_FILE))
+    except ValueError as error:
+        raise InputError(f"{where}: not JSON ({error})") from None
+    lists = document.get("counts") if isinstance(document, dict) else None
+    n_train = len(ds.cameras("train").stems)
+    if not isinstance(lists, dict) or str(count) not in lists:
+        have = ", ".join(sorted(lists, key=lambda k: (len(k), k))) if isinstance(lists, dict) else "none"
+        raise InputError(f"{where} has no list of {count} views (it has: {have})")
+    indices = lists[str(count)]
+    if (not isinstance(indices, list) or len(indices) != count or len(set(indices)) != count
+            or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n_train for i in indices)):
+        raise InputError(f"{where}: list {count} must be {count} distinct train frame indices below {n_train}")
+    return indices
 
 
 def scene_info(root) -> tuple[Optional[dict], Optional[np.ndarray]]:

@@ -17,6 +17,7 @@ trajectory of a steps-run.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -28,7 +29,7 @@ from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
 from nerfgauge.nerf.config import (LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig, resolve,
                                    upsample_count)
-from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info
+from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
@@ -206,11 +207,16 @@ def prepare_run(config: TrainConfig):
     train_cams = ds.cameras("train")
     if not train_cams.stems:
         raise InputError(f"dataset {root} has no training views")
+    sparse = None if config.sparse is None else sparse_train_views(ds, config.sparse)
+    if sparse is not None:  # only the listed views: their cameras bound the scene and place the grid
+        train_cams = dataclasses.replace(train_cams, stems=tuple(train_cams.stems[i] for i in sparse),
+                                         c2w=train_cams.c2w[sparse],
+                                         lenses=tuple(train_cams.lenses[i] for i in sparse) if train_cams.lenses else ())
     needs, aabb = scene_info(root)
     if aabb is None:
         aabb = aabb_from_cameras(train_cams.c2w)
     check_targets(aabb, train_cams.c2w)
-    _, train_rays = load_split_rays(root, "train", footprint=config.pixel_filter != "centre")
+    _, train_rays = load_split_rays(root, "train", views=sparse, footprint=config.pixel_filter != "centre")
     config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
                               train_cams.intrinsics.width, opaque_share(train_rays))
     recipe = run_recipe(config, manifest_sha256(root))
