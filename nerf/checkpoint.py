@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from nerfgauge.nerf.config import FLAGS, TrainConfig, step_ratio_of
 from nerfgauge.nerf.grid_field import VoxelGridField, node_mask
 from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF

@@ -113,6 +113,13 @@ class CompactNeRF(RadianceModel):
         the parametrisation; differentiable w.r.t. points."""
         return self.field.density(points)
 
+    def world_voxel(self, points: torch.Tensor) -> torch.Tensor:
+        """The world length of one voxel of the current grid at points [n, 3] (the grid's
+        voxel times its parametrisation's world length per grid unit there). Returns [n]."""
+        field = self.field
+        scale = torch.ones_like(points[:, 0]) if field.space is None else field.space.world_per_unit(points)
+        return field.voxel * scale
+
     @torch.no_grad()
     def update_occupancy(self) -> float:
         """Recompute which cells can hold density. Returns the occupied fraction."""
