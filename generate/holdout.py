@@ -37,6 +37,7 @@ from typing import Optional
 
 import numpy as np
 
+from nerfgauge.core import dataset
 from nerfgauge.core.camera import look_at
 from nerfgauge.generate import layouts
 from nerfgauge.core.errors import InputError
@@ -45,7 +46,7 @@ AXES = ("azimuth", "elevation")
 ORBITING = ("hemisphere", "sphere")  # the layouts whose cameras stand on a sphere facing its centre
 SPHERE_BAND = (-89.0, 89.0)  # layouts.camera_poses's band for "sphere"
 SPARSE_COUNTS = (3, 6, 9, 12, 24)
-SPARSE_FILE = "sparse_views.json"
+SPARSE_FILE = dataset.SPARSE_VIEWS
 SPARSE_RULE = ("farthest-point sampling on the train camera centres: start at the camera nearest their mean, "
                "then repeatedly add the camera farthest (Euclidean) from those chosen, ties to the lowest index; "
                "list N is the first N of that order, so the lists are nested")
@@ -258,16 +259,3 @@ def sparse_views(train_c2w: np.ndarray, stems: list) -> dict:
     return {"rule": SPARSE_RULE, "split": "train",
             "counts": {str(n): order[:n] for n in counts},
             "stems": {str(n): [stems[i] for i in order[:n]] for n in counts}}
-
-
-def sparse_indices(document: dict, count: int, n_train: int, where: str) -> list:
-    """The train indices of list `count` of a sparse_views.json document, checked."""
-    lists = document.get("counts") if isinstance(document, dict) else None
-    if not isinstance(lists, dict) or str(count) not in lists:
-        have = ", ".join(sorted(lists, key=int)) if isinstance(lists, dict) else "none"
-        raise InputError(f"{where} has no list of {count} views (it has: {have})")
-    indices = lists[str(count)]
-    if (not isinstance(indices, list) or len(indices) != count or len(set(indices)) != count
-            or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n_train for i in indices)):
-        raise InputError(f"{where}: list {count} must be {count} distinct train indices below {n_train}")
-    return indices

@@ -6,7 +6,6 @@ the background can be composited per ray.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from typing import Optional
 
@@ -15,7 +14,6 @@ import torch
 
 from nerfgauge.core.camera import SplitCameras
 from nerfgauge.core.dataset import open_dataset
-from nerfgauge.core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -103,31 +101,10 @@ def load_split_rays(root, split: str, limit: Optional[int] = None, views: Option
                              torch.cat(footprints) if footprint else None)
 
 
-SPARSE_FILE = "sparse_views.json"  # generate.holdout writes it (docs/conventions.md, "Extrapolation splits")
-
-
 def sparse_train_views(root, count: int) -> list:
-    """The train frame indices of the dataset's sparse list of `count` views (nested lists
-    by farthest-point sampling on the camera centres), checked; one line when absent."""
-    ds = open_dataset(root)
-    where = ds.root / SPARSE_FILE
-    if SPARSE_FILE not in ds.manifest_files:
-        raise InputError(f"{ds.root} has no {SPARSE_FILE} (datasets generated before the sparse view lists "
-                         f"have none); regenerate it to train on --sparse {count}")
-    try:
-        document = json.loads(ds.read_bytes(SPARSE_FILE))
-    except ValueError as error:
-        raise InputError(f"{where}: not JSON ({error})") from None
-    lists = document.get("counts") if isinstance(document, dict) else None
-    n_train = len(ds.cameras("train").stems)
-    if not isinstance(lists, dict) or str(count) not in lists:
-        have = ", ".join(sorted(lists, key=lambda k: (len(k), k))) if isinstance(lists, dict) else "none"
-        raise InputError(f"{where} has no list of {count} views (it has: {have})")
-    indices = lists[str(count)]
-    if (not isinstance(indices, list) or len(indices) != count or len(set(indices)) != count
-            or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n_train for i in indices)):
-        raise InputError(f"{where}: list {count} must be {count} distinct train frame indices below {n_train}")
-    return indices
+    """The train frame indices of the dataset's sparse list of `count` views
+    (nerfgauge.core.dataset.Dataset.sparse_train_views)."""
+    return open_dataset(root).sparse_train_views(count)
 
 
 def scene_info(root) -> tuple[Optional[dict], Optional[np.ndarray]]:

@@ -52,6 +52,7 @@ from nerfgauge.core.files import atomic_path, json_from_bytes, read_json, sha256
 from nerfgauge.core.images import read_exr, read_exr_single, read_png
 
 SPLITS = ("train", "val", "test")
+SPARSE_VIEWS = "sparse_views.json"  # nested lists of train views (docs/conventions.md, "Extrapolation splits")
 MANIFEST = "manifest.json"
 MANIFEST_SCHEMA = 2  # {"files": {rel: {"sha256": hex, "bytes": n}}}; schema 1 ({rel: hex}) is still read
 FRAME_SUFFIXES = {
@@ -385,6 +386,26 @@ class Dataset:
     @property
     def splits(self) -> tuple:
         return tuple(split for split in SPLITS if self.cameras(split).stems)
+
+    def sparse_train_views(self, count: int) -> list:
+        """The train frame indices of the dataset's sparse list of `count` views (SPARSE_VIEWS,
+        nested lists by farthest-point sampling on the camera centres; generate.holdout writes
+        it), checked; one line when absent or damaged."""
+        where = self.root / SPARSE_VIEWS
+        if SPARSE_VIEWS not in self.manifest_files:
+            raise InputError(f"{self.root} has no {SPARSE_VIEWS} (datasets generated before the sparse view lists "
+                             f"have none); regenerate it to train on --sparse {count}")
+        document = self._read_json(SPARSE_VIEWS, finite=True)
+        lists = document.get("counts") if isinstance(document, dict) else None
+        n_train = len(self.cameras("train").stems)
+        if not isinstance(lists, dict) or str(count) not in lists:
+            have = ", ".join(sorted(lists, key=lambda k: (len(k), k))) if isinstance(lists, dict) else "none"
+            raise InputError(f"{where} has no list of {count} views (it has: {have})")
+        indices = lists[str(count)]
+        if (not isinstance(indices, list) or len(indices) != count or len(set(indices)) != count
+                or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n_train for i in indices)):
+            raise InputError(f"{where}: list {count} must be {count} distinct train frame indices below {n_train}")
+        return indices
 
     def frames(self, split: str) -> tuple:
         return self.cameras(split).stems
