@@ -41,6 +41,9 @@ from nerfgauge.nerf.runs import open_run_dataset
 OPACITY_LEVEL = 0.5  # opacity over one voxel of the fixed level, and the least opacity of a calibration ray
 CALIBRATION_RAYS = 16384  # training rays (strided over every view) that set the level
 DENSITY_CHUNK = 1 << 21  # points per density query (~100 MB of temporaries)
+# A face is kept where some training view renders a surface within this many voxels (the
+# model's, or the extraction grid's cell if coarser) of it (on_rendered_surface).
+SURFACE_TOLERANCE_VOXELS = 3.0
 
 
 class NoSurface(InputError):
@@ -74,6 +77,41 @@ def seen_by_any(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> 
             inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
         seen[todo[inside]] = True
         todo = todo[~inside]
+        if not len(todo):
+            break
+    return seen
+
+
+def on_rendered_surface(points: np.ndarray, model, c2w: np.ndarray, intrinsics: Intrinsics, tolerance: float,
+                        device="cpu") -> np.ndarray:
+    """Points [n, 3] that some camera of c2w [m, 4, 4] sees on the surface the model
+    renders: they project into its image where the rendered opacity is >= OPACITY_LEVEL and
+    their distance from the camera is within `tolerance` (world units) of the rendered
+    expected ray distance there (nearest pixel). Surfaces behind what the model renders
+    (a shell's inner side, what lies inside an object) and faint surfaces in front of it
+    (floaters the renders see through) fail in every view. Returns [n] bool."""
+    import torch  # torch: only when meshing
+
+    from nerfgauge.nerf.rendering import render_rays_chunked  # torch, as above
+
+    seen = np.zeros(len(points), bool)
+    todo = np.arange(len(points))
+    for pose in c2w:
+        origins, directions = pixel_rays(pose, intrinsics)  # [H, W, 3]
+        with torch.no_grad():
+            _, opacity, depth = render_rays_chunked(
+                model, torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)).to(device),
+                torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device))
+        opacity = opacity.cpu().numpy().reshape(intrinsics.height, intrinsics.width)
+        depth = depth.cpu().numpy().reshape(intrinsics.height, intrinsics.width)
+        u, v, _ = project(points[todo], pose, intrinsics)
+        with np.errstate(invalid="ignore"):
+            inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+        column, row = np.floor(u[inside]).astype(np.int64), np.floor(v[inside]).astype(np.int64)
+        distance = np.linalg.norm(points[todo[inside]] - pose[:3, 3], axis=1)
+        hit = (opacity[row, column] >= OPACITY_LEVEL) & (np.abs(distance - depth[row, column]) <= tolerance)
+        seen[todo[inside][hit]] = True
+        todo = todo[~seen[todo]]
         if not len(todo):
             break
     return seen
@@ -205,7 +243,12 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
     faces = faces.astype(np.int64)
     culled = 0
     if train_c2w is not None and len(faces):
-        keep = seen_by_any(vertices[faces].mean(axis=1), train_c2w, intrinsics)
+        centroids = vertices[faces].mean(axis=1)
+        keep = seen_by_any(centroids, train_c2w, intrinsics)
+        voxel = model_voxel(model)
+        if voxel is not None:  # and on the surface the model renders (SURFACE_TOLERANCE_VOXELS)
+            keep[keep] = on_rendered_surface(centroids[keep], model, train_c2w, intrinsics,
+                                             SURFACE_TOLERANCE_VOXELS * max(voxel, cell), device)
         culled = int((~keep).sum())
         faces = faces[keep]
         used = np.unique(faces)
