@@ -4,7 +4,7 @@
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
     nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...]
-    nerfgauge suite run SUITE --out DIR [--overwrite]
+    nerfgauge suite run SUITE --out DIR [--overwrite] [--seeds K|A,B,...] [--scheduler ADDRESS]
     nerfgauge suite report DIR
 
 SUITE is a built-in name (`suite list`) or a path to a .toml file.
@@ -12,10 +12,13 @@ SUITE is a built-in name (`suite list`) or a path to a .toml file.
 
 from __future__ import annotations
 
+import argparse
+
 from nerfgauge.core import arguments
+from nerfgauge.core.errors import InputError
 from nerfgauge.orchestrate.suite import builtin_suites, evaluate_suite, generate_suite, load_suite, suite_from_folder
 from nerfgauge.orchestrate.suite_report import write_leaderboard
-from nerfgauge.orchestrate.suite_run import run_suite
+from nerfgauge.orchestrate.suite_run import parse_seeds, run_suite
 
 
 def register(subparsers) -> None:
@@ -48,6 +51,12 @@ def register(subparsers) -> None:
     run.add_argument("--out", type=arguments.path, required=True, metavar="DIR", help="suite folder")
     run.add_argument("--overwrite", action="store_true", help="replace a suite folder of another suite or version")
     run.add_argument("--progress", action="store_true", help="progress bars")
+    run.add_argument("--seeds", type=_seeds, default=None, metavar="K|A,B,...",
+                     help="train our NeRF K times (seeds 0..K-1) or with the listed seeds; every run is kept, the "
+                          "leaderboard gives 95%% intervals over seeds and views (default: once, the entry's seed)")
+    run.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="run generation and every (dataset, method, seed) job on a dask.distributed cluster: "
+                          "tcp://HOST:PORT or local:N (needs the dask extra)")
     run.set_defaults(func=run_run)
     report = kinds.add_parser("report", help="the leaderboard (Markdown, HTML, JSON) and per-dataset reports")
     report.add_argument("dir", type=arguments.path, metavar="DIR", help="the suite folder")
@@ -78,8 +87,17 @@ def run_evaluate(args) -> int:
     return 0
 
 
+def _seeds(text: str) -> list:
+    """argparse type of --seeds (orchestrate.suite_run.parse_seeds): a bad value is one line, exit 2."""
+    try:
+        return parse_seeds(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix(f"--seeds {text}: ")) from None
+
+
 def run_run(args) -> int:
-    run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress)
+    run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress, seeds=args.seeds,
+              scheduler=args.scheduler)
     return 0
 
 
