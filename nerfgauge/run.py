@@ -171,6 +171,9 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
         print("[4/5] evaluate and baselines")
         documents = {f"{config.model} NeRF": evaluate(out / "dataset", run_dir / "renders", "test",
                                                       out / "eval" / config.model / "metrics.json")}
+        # what the training got, beside its scores: `check` prints the machine's speed and flags an
+        # under-trained run against a calibration (eval.check)
+        documents[f"{config.model} NeRF"]["training"] = training_record(summary, train_config)
         geometry, no_geometry = None, None
         if config.model == "compact":
             try:
@@ -179,7 +182,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                 no_geometry = f"geometry n/a: {reason}"
                 print(no_geometry)
             documents[f"{config.model} NeRF"]["geometry"] = geometry_summary(None if geometry is None else geometry[0])
-            write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
+        write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
         layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
         baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if layout == "lightfield" else [])
         for method in baselines:
@@ -215,6 +218,14 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     print(f"report: {out / 'report.html'}")
     return {"metrics": str(out / "eval" / config.model / "metrics.json"), "report": str(out / "report.html"),
             "train": summary}
+
+
+def training_record(summary: dict, train_config) -> dict:
+    """metrics.json's `training`: steps, seconds, steps_per_second, the time budget (None when
+    step-counted), the training seed and threads."""
+    return {"steps": summary["steps"], "seconds": summary["seconds"],
+            "steps_per_second": summary["steps"] / max(summary["seconds"], 1e-9),
+            "budget_seconds": train_config.budget_seconds, "seed": train_config.seed, "threads": train_config.threads}
 
 
 def geometry_step(dataset_root: Path, run_dir: Path, eval_dir: Path) -> tuple[dict, dict]:
