@@ -232,3 +232,28 @@ def test_smoke_suite_with_three_seeds(tmp_path, capsys):
         low, high = loop_bootstrap(differences, EVALUATE_SEED)
         row = rows[(entry_id, "nearest")]
         assert abs(row["ci95"][0] - low) < 1e-9 and abs(row["ci95"][1] - high) < 1e-9
+
+
+@pytest.mark.slow
+def test_run_with_seeds_keeps_every_run_and_aggregates_them(tmp_path, capsys):
+    """`nerfgauge run --seeds 0,2`: the first seed in OUT/run, the other in OUT/seeds/seed-2/run,
+    both scored (with their training record) and aggregated as an independent loop
+    bootstrap does; a rerun with --overwrite and no --seeds removes the seeded outputs."""
+    out = tmp_path / "run"
+    args = ["run", "primitives", "--out", out, "--res", "16", "--views", "4", "--test-views", "3", "--spp", "2",
+            "--steps", "60", "--quiet"]
+    code, stdout, err = run(capsys, *args, "--seeds", "0,2")
+    assert code == 0, err
+    assert (out / "run" / "model.pt").is_file() and (out / "seeds" / "seed-2" / "run" / "model.pt").is_file()
+    documents = [read(out / "eval" / "compact" / f"seed-{s}" / "metrics.json") for s in (0, 2)]
+    assert [d["training"]["seed"] for d in documents] == [0, 2]
+    assert all(d["training"]["steps"] == 60 and d["training"]["steps_per_second"] > 0 for d in documents)
+    assert documents[0]["mean"] == read(out / "eval" / "compact" / "metrics.json")["mean"]
+    aggregate = read(out / "eval" / "compact" / "aggregate.json")
+    low, high = loop_bootstrap([frame_values(d) for d in documents], EVALUATE_SEED)
+    assert abs(aggregate["ci95"]["psnr"][0] - low) < 1e-9 and abs(aggregate["ci95"]["psnr"][1] - high) < 1e-9
+    assert "PSNR over 2 seeds x 3 views" in stdout
+    code, _, err = run(capsys, *args, "--overwrite")
+    assert code == 0, err
+    assert not (out / "seeds").exists() and not (out / "eval" / "compact" / "aggregate.json").exists()
+    assert not (out / "eval" / "compact" / "seed-2").exists()

@@ -12,13 +12,10 @@ SUITE is a built-in name (`suite list`) or a path to a .toml file.
 
 from __future__ import annotations
 
-import argparse
-
 from nerfgauge.core import arguments
-from nerfgauge.core.errors import InputError
 from nerfgauge.orchestrate.suite import builtin_suites, evaluate_suite, generate_suite, load_suite, suite_from_folder
 from nerfgauge.orchestrate.suite_report import write_leaderboard
-from nerfgauge.orchestrate.suite_run import parse_seeds, run_suite
+from nerfgauge.orchestrate.suite_run import run_suite
 
 
 def register(subparsers) -> None:
@@ -51,7 +48,7 @@ def register(subparsers) -> None:
     run.add_argument("--out", type=arguments.path, required=True, metavar="DIR", help="suite folder")
     run.add_argument("--overwrite", action="store_true", help="replace a suite folder of another suite or version")
     run.add_argument("--progress", action="store_true", help="progress bars")
-    run.add_argument("--seeds", type=_seeds, default=None, metavar="K|A,B,...",
+    run.add_argument("--seeds", type=arguments.seeds, default=None, metavar="K|A,B,...",
                      help="train our NeRF K times (seeds 0..K-1) or with the listed seeds; every run is kept, the "
                           "leaderboard gives 95%% intervals over seeds and views (default: once, the entry's seed)")
     run.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -85,14 +82,6 @@ def run_evaluate(args) -> int:
     result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format)
     print(f"{args.method}: {len(result['datasets'])} datasets scored -> {args.dir / 'results' / args.method}")
     return 0
-
-
-def _seeds(text: str) -> list:
-    """argparse type of --seeds (orchestrate.suite_run.parse_seeds): a bad value is one line, exit 2."""
-    try:
-        return parse_seeds(text)
-    except InputError as error:
-        raise argparse.ArgumentTypeError(str(error).removeprefix(f"--seeds {text}: ")) from None
 
 
 def run_run(args) -> int:

@@ -10,14 +10,20 @@ training seconds, model size, render milliseconds per frame. The mean row of a m
 the mean over the datasets where the value is defined; `scenes` says over how many.
 
 Uncertainty (eval.uncertainty, docs/conventions.md "Uncertainty"): each dataset's table
-gives the PSNR's 95% interval copied from metrics.json's `ci95` (bootstrap over the views,
-as `nerfgauge evaluate` wrote it), and the paired table compares our NeRF (OURS) with
-each other method on each dataset both scored, on the per-frame PSNR of their
-metrics.json files matched by frame name: mean difference OURS - method, its 95% paired
-bootstrap interval (the views resampled once for both methods; a fresh
+gives the PSNR's 95% interval: for a method run once, copied from metrics.json's `ci95`
+(bootstrap over the views, as `nerfgauge evaluate` wrote it); for a method run with seeds
+(`suite run --seeds`), from results/<method>/<id>/aggregate.json (two-level bootstrap over
+seeds, then views), with the seeds, each seed's PSNR and their std (the run-to-run
+spread). The mean row's interval is `suite_interval` (each dataset's two-level resample,
+averaged over the datasets; a fresh np.random.default_rng(EVALUATE_SEED) per method and
+metric). The paired table compares our NeRF (OURS) with each other method on each dataset
+both scored, on the per-frame PSNR of their metrics.json files matched by frame name and
+per seed (`pair_runs`: a method run once, the baselines, is repeated for every seed):
+mean difference OURS - method over the (seed, view) cells, its 95% paired bootstrap
+interval (seeds then views resampled once for both methods; a fresh
 np.random.default_rng(EVALUATE_SEED) per comparison, 10000 resamples), the two-sided
-Wilcoxon signed-rank p-value and whether it is significant at 0.05. With one seed per run
-(today) the resampling is over views only.
+Wilcoxon signed-rank p-value on the per-view differences averaged over seeds, and whether
+it is significant at 0.05.
 
 One table is recomputed, on purpose: the protocol-sensitivity table scores the same
 renders under each scoring protocol the field uses (eval.protocols: ours, NerfBaselines',
@@ -112,8 +118,9 @@ def leaderboard(suite: Suite, out) -> dict:
 
 
 PAIRED_METRIC = "psnr"
-PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views; 95% paired "
-                  f"bootstrap interval over the views; two-sided Wilcoxon signed-rank test at {LEVEL_ALPHA:g})")
+PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views and seeds; 95% "
+                  f"paired bootstrap interval over seeds, then views; two-sided Wilcoxon signed-rank test on the "
+                  f"per-view differences at {LEVEL_ALPHA:g})")
 
 
 def paired_comparisons(documents: dict, scenes: list, reference: str = OURS, metric: str = PAIRED_METRIC) -> dict:

@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 
 from nerfgauge.core import arguments
-from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_json
 from nerfgauge.orchestrate.suite import (OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite,
                                          seed_folder)
@@ -64,7 +63,7 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     out = Path(out)
     if scheduler is not None:
         parse_scheduler(scheduler)  # a malformed address is one line before anything is written
-    seeds = None if seeds is None else tuple(check_seeds(seeds))
+    seeds = None if seeds is None else tuple(arguments.check_seeds(seeds))
     start = time.perf_counter()
     manifest = generate_suite(suite, out, overwrite=overwrite, progress=progress, log=log, scheduler=scheduler)
     split = suite.protocol["split"]
@@ -125,42 +124,6 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     board = write_leaderboard(suite, out, log=log)
     log(f"suite {suite.name} v{suite.version}: {time.perf_counter() - start:.1f} s in all")
     return board
-
-
-MAX_SEEDS = 1000
-
-
-def check_seeds(seeds) -> list:
-    """A list of distinct training seeds (core.arguments.SEED each, 1 to MAX_SEEDS of them);
-    InputError otherwise."""
-    seeds = list(seeds)
-    if not 1 <= len(seeds) <= MAX_SEEDS:
-        raise InputError(f"--seeds needs 1 to {MAX_SEEDS} seeds, got {len(seeds)}")
-    for seed in seeds:
-        arguments.SEED.check(seed, "--seeds")
-    if len(set(seeds)) != len(seeds):
-        raise InputError(f"--seeds lists a seed twice: {','.join(map(str, seeds))}")
-    return seeds
-
-
-def parse_seeds(text: str) -> list:
-    """`--seeds K` (K seeds: 0, 1, ..., K-1) or `--seeds A,B,C` (those seeds; `7,` is the
-    one seed 7). InputError (one line, exit 2) otherwise."""
-    text = str(text).strip()
-    try:
-        if "," in text:
-            seeds = [int(part) for part in text.split(",") if part.strip()]
-            if not seeds:
-                raise ValueError
-        else:
-            count = int(text)
-            if not 1 <= count <= MAX_SEEDS:
-                raise InputError(f"--seeds {text}: the number of seeds must be 1 to {MAX_SEEDS} "
-                                 "(or give a list: --seeds 0,5,9)")
-            seeds = list(range(count))
-    except ValueError:
-        raise InputError(f"--seeds {text!r}: give a count K (seeds 0..K-1) or a list A,B,C of seeds") from None
-    return check_seeds(seeds)
 
 
 def evaluate_subset(suite: Suite, out, method: str, root, ids: set, extras: dict, log, skipped=None,
