@@ -95,10 +95,30 @@ def test_every_seed_is_kept_and_scored_as_evaluate_scores_it(seeded, tmp_path, c
             assert main(["evaluate", str(out / "datasets" / entry_id), "--pred",
                          str(out / "predictions" / "compact-nerf" / f"seed-{seed}" / entry_id),
                          "--out", str(single)]) == 0
-            assert read(single)["mean"] == read(out / run_row["metrics"])["mean"]
+            scored = read(out / run_row["metrics"])
+            assert read(single)["mean"] == scored["mean"]
+            assert scored["training"]["seed"] == seed and scored["training"]["steps"] == 60
         # different seeds train different models: the per-seed scores differ
         psnr = [read(out / run_row["metrics"])["mean"]["psnr"] for run_row in row["runs"]]
         assert len(set(psnr)) == len(SEEDS), psnr
+
+
+def test_calibrate_on_the_seeded_runs(seeded, tmp_path, capsys):
+    """check --calibrate on a suite's per-seed metrics: the floor from the three runs' PSNR."""
+    from scipy.stats import t
+
+    _, out = seeded
+    proposed = tmp_path / "proposed.toml"
+    code, _, err = run(capsys, "check", "--calibrate", out / "results" / "compact-nerf" / "primitives",
+                       "--metrics", "psnr", "--out", proposed)
+    assert code == 0, err
+    import tomllib
+
+    table = tomllib.loads(proposed.read_text())["primitives"]
+    psnr = np.array([d["mean"]["psnr"] for d in per_seed_documents(out, "compact-nerf", "primitives")])
+    floor = psnr.mean() - t.ppf(0.95, 2) * psnr.std(ddof=1) * math.sqrt(1 + 1 / 3)
+    assert table["psnr"]["min"] == pytest.approx(floor, rel=1e-9)
+    assert table["training"]["steps"] == 60
 
 
 def test_aggregate_interval_and_split_match_an_independent_computation(seeded):

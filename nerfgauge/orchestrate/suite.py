@@ -34,6 +34,9 @@ A suite folder (`nerfgauge suite generate SUITE --out DIR`, a nerfgauge "suite" 
     DIR/suite-manifest.json         written last, when every dataset is complete: every
                                     dataset's manifest.json sha256 and every file's sha256
     DIR/results/<method>/<id>/metrics.json  `suite evaluate` (eval.evaluate's document)
+    DIR/results/<method>/<id>/seed-<s>/metrics.json, DIR/results/<method>/<id>/aggregate.json
+                                    `suite run --seeds`: one per training seed, and their
+                                    aggregate (eval.uncertainty.aggregate_runs)
     DIR/results/<method>/result.json        written last: suite version and sha256, each
                                     dataset's manifest sha256, training time, model size
 Generation is resumable: a dataset whose manifest verifies and whose recipe matches is
@@ -561,6 +564,11 @@ def _score_one(suite: Suite, out: Path, entry, record: dict, pred_dir: Path, met
         info = read_json(train_file, finite=True)
         row["train_seconds"], row["model_bytes"] = info.get("seconds"), info.get("model_bytes")
     row.update(extras)
+    if isinstance(extras.get("steps"), int):  # our NeRF's training beside its scores (check prints it)
+        document["training"] = {"steps": extras["steps"], "seconds": extras.get("train_seconds"),
+                                "steps_per_second": extras.get("steps_per_second"), "budget_seconds": None,
+                                **({"seed": extras["seed"]} if isinstance(extras.get("seed"), int) else {})}
+        write_json(metrics_path, document)
     return row, document
 
 

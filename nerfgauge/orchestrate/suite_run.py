@@ -103,7 +103,7 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     extras = {}
     for key, (entry_id, seed) in owners.items():
         row = {name: done[key][name] for name in ("train_seconds", "model_bytes", "steps", "steps_per_second",
-                                                  "geometry")}
+                                                  "geometry", "seed")}
         if seed is None:
             extras[entry_id] = row
         else:
