@@ -186,6 +186,7 @@ def test_leaderboard_intervals_and_paired_rows_match_an_independent_bootstrap(se
         assert row["seeds"] == list(SEEDS) and row["views"] == 4
     markdown = (out / "leaderboard.md").read_text()
     assert "PSNR per seed (std)" in markdown and "0,1,2" in markdown and "PSNR 95% CI" in markdown
+    assert "PSNR variance: seed / view / residual" in markdown and "(seeds " in markdown
 
 
 def test_a_second_run_resumes_every_finished_job(seeded, tmp_path, capsys):
@@ -207,6 +208,36 @@ def test_a_second_run_resumes_every_finished_job(seeded, tmp_path, capsys):
 def test_bad_seeds_are_one_line_exit_2(value, tmp_path, capsys):
     code, _, err = run(capsys, "suite", "run", "smoke", "--out", tmp_path / "x", f"--seeds={value}")
     assert code == 2 and len(err.strip().splitlines()) == 1 and "--seeds" in err, err
+    assert not (tmp_path / "x").exists()
+
+
+def test_suite_evaluate_with_seeds_pairs_by_seed(seeded, tmp_path, capsys):
+    """Another tool run once per seed (PRED_ROOT/seed-<s>/<id>/): `suite evaluate --seeds`
+    scores and aggregates it like ours; the paired row pairs run s with run s (here the same
+    renders: every difference is 0, p = 1)."""
+    toml, out = seeded
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns(".nerfgauge.lock"))
+    code, _, err = run(capsys, "suite", "evaluate", toml, copy, "--method", "again", "--pred",
+                       copy / "predictions" / "compact-nerf", "--seeds", "0,1,2")
+    assert code == 0, err
+    code, _, err = run(capsys, "suite", "report", copy)
+    assert code == 0, err
+    board = read(copy / "leaderboard.json")
+    for entry_id in IDS:
+        ours = read(copy / "results" / "compact-nerf" / entry_id / "aggregate.json")
+        again = read(copy / "results" / "again" / entry_id / "aggregate.json")
+        assert again["ci95"] == ours["ci95"] and again["per_seed"] == ours["per_seed"]
+        row = next(r for r in board["paired"]["rows"] if r["scene"] == entry_id and r["method"] == "again")
+        assert row["seeds"] == list(SEEDS) and row["mean_difference"] == 0 and row["p_value"] == 1.0
+    code, _, err = run(capsys, "suite", "evaluate", toml, copy, "--method", "x", "--pred",
+                       copy / "predictions" / "compact-nerf", "--seeds", "0,7")
+    assert code == 2 and "seed-7/primitives" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_bad_scheduler_is_one_line_before_anything_is_written(tmp_path, capsys):
+    code, _, err = run(capsys, "suite", "run", "smoke", "--out", tmp_path / "x", "--seeds", "2", "--scheduler", "nowhere")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "local:N" in err, err
     assert not (tmp_path / "x").exists()
 
 

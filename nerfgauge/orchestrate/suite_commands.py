@@ -3,7 +3,7 @@
 
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
-    nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...]
+    nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...] [--seeds K|A,B,...]
     nerfgauge suite run SUITE --out DIR [--overwrite] [--seeds K|A,B,...] [--scheduler ADDRESS]
     nerfgauge suite report DIR
 
@@ -42,6 +42,9 @@ def register(subparsers) -> None:
                           help="PRED_ROOT/<dataset id>/ holds the renders of each dataset (any format evaluate reads)")
     evaluate.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
                           default="auto", help="how the renders are named (default: detect per dataset)")
+    evaluate.add_argument("--seeds", type=arguments.seeds, default=None, metavar="K|A,B,...",
+                          help="the method was run once per seed: PRED_ROOT/seed-<s>/<id>/ per seed (K: seeds "
+                               "0..K-1); scored per seed and aggregated with intervals over seeds and views")
     evaluate.set_defaults(func=run_evaluate)
     run = kinds.add_parser("run", help="our NeRF and the baselines through a whole suite, then the leaderboard")
     run.add_argument("suite", metavar="SUITE")
@@ -79,7 +82,7 @@ def run_generate(args) -> int:
 
 def run_evaluate(args) -> int:
     suite = load_suite(args.suite)
-    result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format)
+    result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format, seeds=args.seeds)
     print(f"{args.method}: {len(result['datasets'])} datasets scored -> {args.dir / 'results' / args.method}")
     return 0
 

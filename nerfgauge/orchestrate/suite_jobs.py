@@ -27,7 +27,11 @@ the [train] `threads` (TrainConfig.threads, default 2) wherever it runs; torch o
 a fixed thread count repeats its results (tests/test_suite_seeds.py compares the per-run
 metrics of a local and a 2-worker run). What may differ: wall-clock figures (train_seconds,
 steps_per_second, ms_per_frame, evaluate_seconds) and anything a time budget would decide
-(suites have none). On a GPU worker, CUDA kernels are not bitwise repeatable.
+(suites have none). On a GPU worker, CUDA kernels are not bitwise repeatable. Scoring runs
+in the client with torch's default thread count either way (a local job restores it after
+training); LPIPS's float32 convolutions sum in an order that depends on that count, so
+LPIPS scored on machines with different core counts may differ in the 9th digit (measured:
+8.0778154e-3 against 8.0778152e-3 before the restore, the same renders).
 """
 
 from __future__ import annotations
@@ -83,12 +87,21 @@ def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256
     from nerfgauge.nerf.render_views import render_split  # torch
     from nerfgauge.nerf.train import train as train_run  # torch
 
+    import torch  # torch: only where a job runs
+
     config = TrainConfig(dataset=dataset, seed=seed, **train)
-    summary = train_run(config, run_dir, overwrite=True, progress=False)
-    render_split(run_dir, split, renders, overwrite=True, progress=False)
-    result = {"train_seconds": summary["seconds"], "model_bytes": summary["model_bytes"], "steps": summary["steps"],
-              "steps_per_second": summary["steps"] / max(summary["seconds"], 1e-9), "seed": seed,
-              "geometry": _geometry(dataset, run_dir, geometry)}
+    # training sets torch's thread count for the whole process; a job run in the client's
+    # process (no scheduler) puts it back, so the scoring that follows (LPIPS's convolutions
+    # sum in a thread-count-dependent order) runs as it does after a cluster's jobs
+    threads = torch.get_num_threads()
+    try:
+        summary = train_run(config, run_dir, overwrite=True, progress=False)
+        render_split(run_dir, split, renders, overwrite=True, progress=False)
+        result = {"train_seconds": summary["seconds"], "model_bytes": summary["model_bytes"],
+                  "steps": summary["steps"], "steps_per_second": summary["steps"] / max(summary["seconds"], 1e-9),
+                  "seed": seed, "geometry": _geometry(dataset, run_dir, geometry)}
+    finally:
+        torch.set_num_threads(threads)
     write_json(job_record_path(out, job_key), {"recipe": recipe_hash(recipe), "result": result})
     return {**result, "resumed": False}
 

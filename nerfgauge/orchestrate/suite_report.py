@@ -235,15 +235,17 @@ def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
                          + [_interval((data.get("ci95") or {}).get("psnr"))])
     result = [(f"mean over datasets ({n})", mean_rows)]
     for scene in board["scenes"]:
-        rows = [["method", "frames"] + [_label(c) for c in columns] + ["PSNR 95% CI", "seeds", "PSNR per seed (std)"]]
+        rows = [["method", "frames"] + [_label(c) for c in columns]
+                + ["PSNR 95% CI", "seeds", "PSNR per seed (std)", "PSNR variance: seed / view / residual"]]
         for method, data in board["methods"].items():
             entry = data["scenes"].get(scene)
             if entry is None:
                 reason = data.get("skipped", {}).get(scene)
-                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * (len(columns) + 3))
+                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * (len(columns) + 4))
             else:
                 rows.append([method, str(entry["frames"])] + [_cell(c, entry["values"].get(c)) for c in columns]
-                            + [_interval(entry.get("psnr_ci95")), _seeds(entry), _per_seed(entry)])
+                            + [_interval(entry.get("psnr_ci95")), _seeds(entry), _per_seed(entry),
+                               _variance(entry.get("psnr_variance"))])
         result.append((scene, rows))
     return result
 
@@ -255,6 +257,15 @@ def _interval(ci) -> str:
 def _seeds(entry: dict) -> str:
     seeds = entry.get("seeds")
     return "1 (no seed)" if seeds is None else ",".join(map(str, seeds))
+
+
+def _variance(split) -> str:
+    """eval.uncertainty.variance_split's components (dB²) and the seeds' share."""
+    if not split or split.get("var_seed") is None or split.get("var_residual") is None:
+        return "–"
+    share = split.get("seed_share")
+    return (f"{split['var_seed']:.3g} / {split['var_view']:.3g} / {split['var_residual']:.3g}"
+            + ("" if share is None else f" (seeds {100 * share:.0f}%)"))
 
 
 def _per_seed(entry: dict) -> str:
