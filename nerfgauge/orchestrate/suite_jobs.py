@@ -17,7 +17,8 @@ retried RETRIES times if it raises; a lost worker's task is rescheduled by the s
 
 Resumable job by job: a finished job writes OUT/jobs/<key>.json (its result and its
 `recipe`: the training settings with the seed, the dataset's manifest sha256, the split,
-the geometry settings and nerfgauge's version) after its files, and removes it before it
+the geometry settings, nerfgauge's version and a hash of the training and baseline code)
+after its files, and removes it before it
 starts; a job whose record matches and whose outputs are there is skipped. An
 interrupted suite run therefore redoes only the jobs that had not finished.
 
@@ -36,13 +37,16 @@ LPIPS scored on machines with different core counts may differ in the 9th digit 
 
 from __future__ import annotations
 
+import hashlib
 import time
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
+from nerfgauge import nerf as nerf_package
 from nerfgauge.core.folders import recipe_hash
+from nerfgauge.eval import baselines as baselines_module
 from nerfgauge.eval.baselines import baseline_folder, write_baseline
 from nerfgauge.eval.geometry import score_geometry, summary
 from nerfgauge.generate.distributed import dask_client
@@ -123,10 +127,18 @@ def baseline_job(out: str, job_key: str, dataset: str, manifest_sha256: str, met
 
 
 def _version() -> str:
+    """nerfgauge's version and the sha256 of the training, rendering and baseline code (the
+    nerf package's and eval/baselines.py's sources): a job finished by other code is redone
+    (the package version alone does not change between commits)."""
     try:
-        return version("nerfgauge")
+        package = version("nerfgauge")
     except PackageNotFoundError:
-        return "unknown"
+        package = "unknown"
+    digest = hashlib.sha256()
+    nerf_sources = sorted(Path(nerf_package.__file__).parent.glob("*.py"))
+    for source in [*nerf_sources, Path(baselines_module.__file__)]:
+        digest.update(source.name.encode() + b"\0" + source.read_bytes())
+    return f"{package}+{digest.hexdigest()[:16]}"
 
 
 def _geometry(dataset: str, run_dir: str, settings: dict | None):
