@@ -124,6 +124,9 @@ class LightField:
         except (KeyError, TypeError, ValueError) as error:
             raise InputError(f"{root / 'scene.json'}: camera.lightfield is malformed: {error!r}") from None
         train = ds.cameras("train")
+        if train.distortion is not None:
+            raise InputError(f"dataset {root}: {needed_by} resample pinhole training images, and its train views are "
+                             f"distorted ({train.distortion.to_text()})")
         self.intrinsics = train.intrinsics
         if min(self.intrinsics.width, self.intrinsics.height) < 2 or min(self.rows, self.cols) < 2:
             raise InputError("the light field needs a grid of at least 2x2 cameras and images of at least 2x2 pixels")

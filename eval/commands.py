@@ -28,6 +28,7 @@ from nerfgauge.eval.check import run_check as check
 from nerfgauge.eval.evaluate import METRICS_KIND, evaluate, format_means
 from nerfgauge.eval.foreign_results import nerfbaselines_document, ns_eval_document
 from nerfgauge.eval.geometry import format_geometry, score_geometry
+from nerfgauge.eval.pose_scores import KIND as POSES_KIND, format_pose_scores, score_poses
 from nerfgauge.nerf.runs import open_run_dataset
 
 
@@ -127,7 +128,15 @@ def register_evaluate(subparsers) -> None:
     )
     parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder, or a NeRF-synthetic, nerfstudio or "
                              "COLMAP text-model folder nerfgauge did not write")
-    parser.add_argument("--pred", type=arguments.path, required=True, metavar="DIR", help="folder of predicted frames")
+    parser.add_argument("--pred", type=arguments.path, metavar="DIR",
+                        help="folder of predicted frames (required unless --poses is given)")
+    parser.add_argument("--poses", type=arguments.path, metavar="POSES.json",
+                        help="score a method's optimised train poses (transforms-style JSON, OpenGL camera-to-world, "
+                             "by file_path) against the exact ones: rotation and translation error per camera and "
+                             "ATE after a Sim(3) alignment, and the test cameras in the method's world "
+                             "(eval/pose_scores.py)")
+    parser.add_argument("--poses-out", type=arguments.path, metavar="FILE",
+                        help="where --poses writes its document (default pose_errors.json beside POSES.json)")
     parser.add_argument("--split", default="test", help="split to score (default test)")
     parser.add_argument("--out", type=arguments.path, metavar="FILE", help="metrics file (default DIR/metrics.json); "
                         "error maps go to error_maps/ beside it. FILE must be new or a metrics file nerfgauge "
@@ -164,6 +173,17 @@ OUTPUT_KINDS = {"ns-eval": "ns-eval", "nerfbaselines": "nerfbaselines-results"} 
 
 
 def run_evaluate(args) -> int:
+    poses = getattr(args, "poses", None)
+    if args.pred is None and poses is None:
+        raise InputError("the following arguments are required: --pred (or --poses POSES.json)")
+    if poses is not None:
+        poses_out = getattr(args, "poses_out", None) or Path(poses).parent / "pose_errors.json"
+        check_output_file(poses_out, POSES_KIND, overwrite=getattr(args, "overwrite", False))
+        pose_document = score_poses(args.dataset, poses)  # before --pred's work: bad poses write nothing
+        write_json(poses_out, stamp(pose_document, POSES_KIND))
+        print(f"{format_pose_scores(pose_document)} -> {poses_out}")
+        if args.pred is None:
+            return 0
     out = args.out if args.out is not None else args.pred / "metrics.json"
     extra = {"ns-eval": getattr(args, "ns_eval", None), "nerfbaselines": getattr(args, "nerfbaselines", None)}
     overwrite = getattr(args, "overwrite", False)

@@ -41,7 +41,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nerfgauge.core.camera import pixel_rays
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.eval.geometry import seen_in_view
 
@@ -66,12 +65,14 @@ def reference_depths(ds: Dataset, reference: str = REFERENCE_SPLIT) -> list:
 def views_seeing(points: np.ndarray, normals: np.ndarray, ds: Dataset, depths: list,
                  reference: str = REFERENCE_SPLIT) -> np.ndarray:
     """[views, n] bool: which reference views see each point [n, 3] (unit normals [n, 3]),
-    by eval.geometry's depth test. depths: reference_depths(ds, reference)."""
-    cameras = ds.cameras(reference)
+    by eval.geometry's depth test. depths: reference_depths(ds, reference). The reference
+    views' exact poses (their depth was rendered from them, whatever pose noise the
+    transforms hold)."""
+    cameras = ds.exact_cameras(reference)
     xyz, nrm = np.ascontiguousarray(points.T), np.ascontiguousarray(normals.T)  # [3, n]
     seen = np.zeros((len(cameras.c2w), len(points)), bool)
     for index, pose in enumerate(cameras.c2w):
-        seen[index, seen_in_view(xyz, nrm, pose, cameras.intrinsics, depths[index])] = True
+        seen[index, seen_in_view(xyz, nrm, pose, cameras.intrinsics, depths[index], cameras.distortion)] = True
     return seen
 
 
@@ -107,13 +108,13 @@ def held_out_pixels(ds: Dataset, split: str, index: int, depths: list, mask: np.
     """The co-visible and depth-resolved pixels of frame `index` of `split` (module
     docstring), from the frame's ground-truth mask [H, W] bool and ray distance [H, W],
     which the caller has read. depths: reference_depths(ds, reference)."""
-    cameras = ds.cameras(split)
+    cameras = ds.exact_cameras(split)
     distance = distance.astype(np.float64)
     hit = mask & (distance > 0)  # [H, W]
-    origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)  # [H, W, 3] each
+    origins, directions = cameras.rays(index)  # [H, W, 3] each, through the split's distortion if any
     points = origins[hit] + directions[hit] * distance[hit][:, None]  # [n, 3]
     seen = views_seeing(points, ds.normals(split, index)[hit].astype(np.float64), ds, depths, reference)
-    reference_cameras = ds.cameras(reference)
+    reference_cameras = ds.exact_cameras(reference)
     parallax = parallax_pixels(points, seen, reference_cameras.c2w[:, :3, 3],
                                max(reference_cameras.intrinsics.fx, reference_cameras.intrinsics.fy))
     covisible, resolved = np.ones(hit.shape, bool), np.zeros(hit.shape, bool)

@@ -87,6 +87,7 @@ from nerfgauge.eval.error_maps import (
     depth_relative_error,
     write_error_maps,
 )
+from nerfgauge.eval.extrapolation import extrapolation_gap, format_gap
 from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.lpips import MIN_SIDE, NOT_AVAILABLE, LpipsBatch, load_lpips
 from nerfgauge.eval import protocols as protocols_module
@@ -103,6 +104,7 @@ from nerfgauge.eval.metrics import (
     METRIC_NAMES,
     composite,
     depth_metrics,
+    edge_pixels,
     opacity_iou,
     psnr,
     psnr_capture_bound,
@@ -179,6 +181,7 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     for batch in (lpips_batch.values() if isinstance(lpips_batch, dict) else [lpips_batch] if lpips_batch else []):
         batch.add(*scored)
     values["psnr_objects"] = object_psnrs(ds, stem, intrinsics, pred, gt)
+    values.update(edge_scores(ds, stem, intrinsics, pred, gt, gt_rgba))
     values["empty"] = None if mask is None else not mask.any()
     depth_err = None
     if files.depth is not None and mask is not None and ds.has("depth"):
@@ -207,6 +210,18 @@ def object_psnrs(ds: dataset.Dataset, stem: str, intrinsics, pred, gt) -> Option
     ids, names = ds.instance_of(stem, intrinsics), ds.instance_names()
     return {names.get(int(number), f"instance {int(number)}"): psnr_masked(pred, gt, ids == number)
             for number in np.unique(ids) if number != 0}
+
+
+def edge_scores(ds: dataset.Dataset, stem: str, intrinsics, pred, gt, gt_rgba) -> dict:
+    """PSNR on the frame's edge pixels (eval.metrics.edge_pixels: where a pixel's box filter
+    mixes what its rays see) and on the other pixels the ground truth covers, with the
+    edges' share of the image: the error of a method that samples one ray per pixel, or
+    resolves an edge a pixel off, sits on the first. Instance ids where the dataset has them."""
+    has_ids = stem + dataset.FRAME_SUFFIXES["instance"] in ds.manifest_files
+    edges = edge_pixels(gt_rgba, ds.instance_of(stem, intrinsics) if has_ids else None)
+    interior = ~edges & (gt_rgba[..., 3] > 0)
+    return {"psnr_edges": psnr_masked(pred, gt, edges), "psnr_interior": psnr_masked(pred, gt, interior),
+            "edge_fraction": float(edges.mean())}
 
 
 def frame_ceiling(ds: dataset.Dataset, stem: str, background: str) -> Optional[float]:
@@ -353,6 +368,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
                 "ground_truth": ds.ground_truth_record(),
                 "noise": noise_summary(frames) if ds.has("noise_ceiling") else
                 {"psnr_ceiling": None, "at_noise_floor": None, "note": ds.unavailable_reason("noise_ceiling")}, "psnr_objects": object_means(frames), "empty_views": empty_views(frames),
+                **({"extrapolation": gap} if (gap := extrapolation_gap(ds.scene, frames, split)) else {}),
                 "frames": frames,
                 "timing": {**timing, "evaluate_seconds": time.perf_counter() - start}}
     write_json(out, document)
@@ -402,6 +418,7 @@ def format_means(document: dict) -> str:
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
     if noise.get("at_noise_floor"):
         lines.append(f"psnr within {NOISE_FLOOR_DB:g} dB of the ceiling: at the noise floor: add spp")
+    lines += format_gap(document.get("extrapolation"))
     if (document.get("empty_views") or {}).get("warning"):
         lines.append("warning: " + document["empty_views"]["warning"])
     return "\n".join(lines)

@@ -65,7 +65,7 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.core.camera import pixel_coordinates, pixel_rays
+from nerfgauge.core.camera import pixel_coordinates
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.outputs import stamp
@@ -236,15 +236,17 @@ def visible_in_views(points: np.ndarray, normals: np.ndarray, ds: Dataset, split
     by the exact depth test of the module docstring. Returns [n] bool.
 
     Samples no view sees are tested against every view, so the cost is about
-    n_hidden x n_views: samples a view confirms leave the working set."""
-    cameras = ds.cameras(split)
+    n_hidden x n_views: samples a view confirms leave the working set. The views' exact
+    poses, which their depth was rendered from (Dataset.exact_cameras)."""
+    cameras = ds.exact_cameras(split)
     visible = np.zeros(len(points), bool)
     left = np.arange(len(points))  # samples no view has confirmed yet (a superset: compacted lazily)
     xyz, nrm = np.ascontiguousarray(points.T), np.ascontiguousarray(normals.T)  # [3, m]
     for index, pose in enumerate(cameras.c2w):
         if not len(left):
             break
-        seen = seen_in_view(xyz, nrm, pose, cameras.intrinsics, ds.depth(split, index, kind="distance"))
+        seen = seen_in_view(xyz, nrm, pose, cameras.intrinsics, ds.depth(split, index, kind="distance"),
+                            cameras.distortion)
         visible[left[seen]] = True
         if len(seen) * 16 >= len(left):  # compact when it pays; confirmed samples re-tested meanwhile are harmless
             keep = ~visible[left]
@@ -252,10 +254,12 @@ def visible_in_views(points: np.ndarray, normals: np.ndarray, ds: Dataset, split
     return visible
 
 
-def seen_in_view(xyz: np.ndarray, nrm: np.ndarray, pose: np.ndarray, intrinsics, depth: np.ndarray) -> np.ndarray:
+def seen_in_view(xyz: np.ndarray, nrm: np.ndarray, pose: np.ndarray, intrinsics, depth: np.ndarray,
+                 distortion=None) -> np.ndarray:
     """The columns of xyz [3, m] (samples as rows of x, y, z, each contiguous; unit normals
     nrm [3, m]) that one view (c2w `pose` [4, 4], its exact ray-distance `depth` [H, W])
-    sees, by the depth test of the module docstring. Returns their indices [k] int64.
+    sees, by the depth test of the module docstring (its pixels through `distortion`, a
+    core.distortion.Distortion, when the view has one). Returns their indices [k] int64.
     The normal-dependent tolerance is only computed for samples within the widest
     tolerance (the grazing cap) of the recorded depth."""
     cap = math.tan(math.radians(GRAZING_CAP_DEGREES))
@@ -263,7 +267,10 @@ def seen_in_view(xyz: np.ndarray, nrm: np.ndarray, pose: np.ndarray, intrinsics,
     widest = half_pixel * cap + 1e-5  # tolerance / distance at the grazing cap
     offset = xyz - pose[:3, 3, None]  # [3, m] camera centre to sample
     local = pose[:3, :3].T @ offset  # [3, m] camera axes
-    u, v = pixel_coordinates(local[0], local[1], local[2], intrinsics)
+    if distortion is not None:
+        u, v = distortion.project(local[0], local[1], local[2], intrinsics)
+    else:
+        u, v = pixel_coordinates(local[0], local[1], local[2], intrinsics)
     with np.errstate(invalid="ignore"):  # u, v are NaN behind the camera
         inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
         pixel = np.where(inside, v.astype(np.int64) * intrinsics.width + u.astype(np.int64), 0)  # [m] flat
@@ -308,7 +315,7 @@ def depth_points(ds: Dataset, pred_dir, split: str = "test") -> tuple[np.ndarray
             raise InputError(f"{path} holds NaN or inf depth")
         if (depth < 0).any():
             raise InputError(f"{path} holds negative depth")
-        origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)
+        origins, directions = cameras.rays(index)
         hit = depth > 0
         points.append(origins[hit] + depth[hit][:, None] * directions[hit])
         used.append(str(path))

@@ -20,7 +20,6 @@ import math
 import numpy as np
 import torch
 
-from nerfgauge.core.camera import pixel_rays
 from nerfgauge.core.dataset import open_dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.nerf.rendering import render_rays_chunked  # the field renders its depth: eval -> nerf by design
@@ -81,7 +80,7 @@ def score_normals(model, root, split: str = "test", views: int | None = None, de
         if not mask.any():
             continue
         truth = ds.normals(split, index).reshape(-1, 3)[mask].astype(np.float64)
-        origins, directions = (a.reshape(-1, 3)[mask] for a in pixel_rays(cameras.c2w[index], cameras.intrinsics))
+        origins, directions = (a.reshape(-1, 3)[mask] for a in cameras.rays(index))
         o = torch.from_numpy(origins.astype(np.float32)).to(device)
         d = torch.from_numpy(directions.astype(np.float32)).to(device)
         with torch.no_grad():

@@ -28,6 +28,7 @@ from nerfgauge.core.files import atomic_path, write_bytes_atomic
 from nerfgauge.core.images import read_exr_single
 
 TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_foreground", "foreground PSNR dB", "{:.2f}"),
+                 ("psnr_edges", "edge PSNR dB", "{:.2f}"), ("psnr_interior", "interior PSNR dB", "{:.2f}"),
                  ("psnr_covisible", "co-visible PSNR dB", "{:.2f}"),
                  ("psnr_capture_bound", "capture bound PSNR dB", "{:.2f}"),
                  ("depth_absrel", "depth AbsRel", "{:.4f}"),

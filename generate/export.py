@@ -73,7 +73,7 @@ def check_exportable(ds: Dataset) -> None:
     if lenses:
         raise InputError(f"dataset {ds.root}: the train views were rendered through a thin lens (aperture "
                          f"{lenses[0].aperture_radius:g}), which no COLMAP camera model can express")
-    colmap.pinhole_camera(cameras.intrinsics)
+    colmap.camera_model(cameras.intrinsics, cameras.distortion)
     names = [image_name(stem) for stem in cameras.stems]
     if len(set(names)) != len(names):
         raise InputError(f"dataset {ds.root}: train frame names collide under images/ ({len(names) - len(set(names))})")
@@ -144,6 +144,9 @@ def sfm_points(ds: Dataset, count, seed: int) -> points_module.InitialPoints:
     """Features of the train images triangulated with the exact poses (pycolmap)."""
     pycolmap = require_pycolmap("--points sfm")
     cameras = ds.cameras("train")
+    if cameras.distortion is not None:
+        raise InputError(f"dataset {ds.root}: --points sfm matches features with a PINHOLE camera, and the train views "
+                         f"are distorted ({cameras.distortion.to_text()}); use --points surface or random")
     with tempfile.TemporaryDirectory(prefix="nerfgauge-sfm-") as work:
         work = Path(work)
         (work / "images").mkdir()
@@ -245,7 +248,8 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
     if initial.points2D is not None:
         images = [colmap.Image(i.image_id, i.qvec, i.tvec, i.camera_id, i.name, *initial.points2D.get(
             i.image_id, (np.zeros((0, 2)), np.zeros(0, np.int64)))) for i in images]
-    model = colmap.model_files([colmap.pinhole_camera(cameras.intrinsics)], images,
+    camera = colmap.camera_model(cameras.intrinsics, cameras.distortion)
+    model = colmap.model_files([camera], images,
                                colmap.Points.make(initial.xyz, initial.rgb, initial.error, initial.tracks))
     files = {f"{MODEL_DIR}/{name}": data for name, data in model.items()}
     if spec.kind != "none":
@@ -264,7 +268,9 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
     scene["colmap"] = {
         "model": MODEL_DIR, "formats": ["bin", "txt"], "images": IMAGES_DIR,
         "images_are": "hard links to the train PNGs (copies where the file system has no links)",
-        "camera": "PINHOLE fx fy cx cy, our intrinsics exactly",
+        "camera": (f"{camera.model}: our intrinsics and lens distortion exactly (docs/conventions.md, "
+                   "Lens distortion)" if cameras.distortion is not None
+                   else "PINHOLE fx fy cx cy, our intrinsics exactly"),
         "convention": "world-to-camera quaternion (w, x, y, z) and translation, OpenCV axes (+X right, +Y down, "
                       "looks along +Z): c2w_cv = c2w_gl @ diag(1, -1, -1, 1); pixel (0, 0)'s centre at (0.5, 0.5)",
         "train_views": len(names),

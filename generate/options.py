@@ -14,6 +14,8 @@ import re
 
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
+from nerfgauge.generate import degrade
+from nerfgauge.generate.holdout import parse_scales
 from nerfgauge.generate.layouts import LAYOUTS
 from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, NOISE_PSNR, GenerateConfig
 from nerfgauge.generate.variant import CHOICES
@@ -21,7 +23,8 @@ from nerfgauge.generate.variant import CHOICES
 # Options of the dataset itself (GenerateConfig fields), not of how it is rendered.
 CONFIG_OPTIONS = ("views", "val_views", "test_views", "spp", "max_depth", "fov", "seed", "layout", "sampling",
                   "elevation", "radius", "variant", "noise_psnr", "max_spp", "aperture", "focus_distance", "lens_splits",
-                  "units", "envmap", "envmap_rotation")
+                  "units", "envmap", "envmap_rotation", "distortion", "motion_blur", "holdout", "test_scales",
+                  "transients", "transient_fraction") + degrade.FIELDS
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -36,6 +39,14 @@ def parse_resolution(text: str) -> tuple[int, int]:
     if max(width, height) > arguments.IMAGE_SIDE.high:
         raise InputError(f"--res sides must be {arguments.IMAGE_SIDE.text} pixels, got {text!r}")
     return width, height
+
+
+def _scales(text: str) -> tuple:
+    """--test-scales's argparse type: generate.holdout.parse_scales, its message kept."""
+    try:
+        return parse_scales(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
@@ -89,8 +100,53 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
     parser.add_argument("--lens-splits", choices=("test", "all"), default=d.lens_splits,
                         help="views rendered through the lens: test (default) or all splits; depth, normals and "
                              "masks stay those of the pinhole pixel-centre rays")
+    add_degradation_arguments(parser, d)
+    parser.add_argument("--distortion", default=d.distortion, metavar="MODEL:COEFFS",
+                        help="lens distortion of the train views, rendered exactly (each sample's ray through the "
+                             "distorted pixel grid): opencv:K1,K2,P1,P2[,K3] (OpenCV radial-tangential) or "
+                             "fisheye:K1,K2,K3,K4 (OpenCV fisheye); depth, normals and masks follow the same rays; "
+                             "val and test views stay pinhole")
+    parser.add_argument("--motion-blur", default=d.motion_blur, metavar="SPEC",
+                        help="train views taken by a moving camera: TRAVEL (the path over the frame as a fraction of "
+                             "the scene's diagonal) or travel=T,rotation=DEG,exposure=E,readout=R (exposure and "
+                             "rolling-shutter readout as fractions of the frame); the colour integrates the exposure, "
+                             "the transform and depth are the sharp mid-frame pose's")
+    parser.add_argument("--holdout", default=d.holdout, metavar="AXIS:MIN:MAX",
+                        help="hold out a sector of camera directions, azimuth:A:B or elevation:A:B degrees: train and "
+                             "val views outside it; test views half inside (extrapolation), half outside "
+                             "(interpolation); hemisphere and sphere layouts (docs/conventions.md)")
+    parser.add_argument("--test-scales", type=_scales, default=d.test_scales, metavar="S,S,...",
+                        help="add --test-views test views per scale s != 1 at distance radius/s (s=2: twice as close, "
+                             "Mip-Splatting-style zoom), e.g. 0.5,1,2")
+    parser.add_argument("--transients", type=arguments.bounded(int, 0, 64), default=d.transients, metavar="N",
+                        help="add N small objects (spheres, cubes) to some training views only, with their masks "
+                             "(train/r_XXX_transient.png); val and test views never show them")
+    parser.add_argument("--transient-fraction", type=arguments.bounded(float, 0, 1, above=True),
+                        default=d.transient_fraction, metavar="F",
+                        help=f"share of the training views each transient is in (default {d.transient_fraction:g})")
     parser.add_argument("--workers", type=arguments.WORKERS, default=1, help="worker processes (default 1)")
     return parser
+
+
+def add_degradation_arguments(parser: argparse.ArgumentParser, d: GenerateConfig) -> None:
+    """The train-view degradations (generate.degrade; docs/conventions.md "Degradations")."""
+    group = parser.add_argument_group("degraded training views (train split only; val/test, depth, normals, "
+                                      "masks and meshes stay exact)")
+    group.add_argument("--pose-noise-rotation", type=degrade.ROTATION_NOISE_DEGREES, default=d.pose_noise_rotation,
+                       metavar="DEG", help="RMS rotation angle of the noise on the train poses the transforms hold "
+                                           "(axis uniform; the images are rendered from the exact poses)")
+    group.add_argument("--pose-noise-translation", type=degrade.TRANSLATION_NOISE_FRACTION,
+                       default=d.pose_noise_translation, metavar="FRAC",
+                       help="RMS offset of the train camera centres, as a fraction of their RMS distance from "
+                            "their mean")
+    group.add_argument("--exposure-ev", type=degrade.EXPOSURE_SIGMA_EV, default=d.exposure_ev, metavar="SIGMA",
+                       help="std of each train view's exposure in EV (gain 2^EV on the linear render)")
+    group.add_argument("--white-balance", type=degrade.WHITE_BALANCE_SIGMA, default=d.white_balance,
+                       metavar="SIGMA", help="std of each train view's log2 red and blue gains (green 1)")
+    group.add_argument("--vignetting", type=degrade.VIGNETTING_K, default=d.vignetting, metavar="K",
+                       help="train views' vignetting 1 - K r^2, r = 1 at the corners")
+    group.add_argument("--degrade-seed", type=arguments.SEED, default=d.degrade_seed,
+                       help="seed of the degradations' draws (default: --seed)")
 
 
 def generate_fields(args: argparse.Namespace) -> dict:

@@ -24,7 +24,9 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from nerfgauge.generate import layouts
+from nerfgauge.generate import holdout, layouts, motion, transients
+from nerfgauge.generate.degrade import FIELDS as DEGRADATION_FIELDS
+from nerfgauge.generate.degrade import Degradations, add_frame_extras, camera_spread, frame_extras, train_poses
 from nerfgauge.generate.export import export_colmap, export_current, require_pycolmap
 from nerfgauge.generate.points import parse_spec
 from nerfgauge.generate.distributed import dask_client, parse_scheduler, require_dask
@@ -39,6 +41,7 @@ from nerfgauge.scenes.registry import scene_inputs
 
 from nerfgauge.core import arguments, dataset
 from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
+from nerfgauge.core.distortion import Distortion, parse_distortion
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash
@@ -53,6 +56,7 @@ MAX_NOISE_PSNR = 80.0  # dB; beyond it the 8-bit PNG's own rounding (about 59 dB
 NOISE_PSNR = arguments.bounded(float, 0, MAX_NOISE_PSNR, above=True)
 DEFAULT_MAX_SPP = 4096
 LENS_SPLITS = {"test": ("test",), "all": ("train", "val", "test")}  # --lens-splits -> splits with the lens
+DISTORTION_SPLITS = ("train",)  # issue 35: degradations apply to the training views only
 RENDERER_PACKAGES = ("mitsuba", "drjit", "nerfgauge")  # their versions are part of a dataset's recipe
 
 
@@ -99,6 +103,26 @@ class GenerateConfig:
     units: str = "normalise"  # "keep": user assets stay in their files' units
     envmap: Optional[str] = None  # an equirectangular .exr/.hdr lighting the scene instead of its lights
     envmap_rotation: float = 0.0  # degrees about +Z
+    # Degraded TRAIN views (generate.degrade, docs/conventions.md "Degradations"); all 0: none.
+    pose_noise_rotation: float = 0.0  # RMS rotation angle of the train poses' noise, degrees
+    pose_noise_translation: float = 0.0  # RMS centre offset, fraction of the train cameras' spread
+    exposure_ev: float = 0.0  # std of each train view's exposure, EV
+    white_balance: float = 0.0  # std of each train view's log2 R and B gains
+    vignetting: float = 0.0  # k of 1 - k r^2 on every train view
+    degrade_seed: Optional[int] = None  # None: --seed
+    # Lens distortion of the train views (--distortion opencv:k1,k2,p1,p2[,k3] or
+    # fisheye:k1,k2,k3,k4; core.distortion); None: pinhole. Val and test stay pinhole.
+    distortion: Optional[str] = None
+    # Motion blur / rolling shutter of the train views (--motion-blur TRAVEL or
+    # travel=T,rotation=DEG,exposure=E,readout=R; generate.motion); None: still cameras.
+    motion_blur: Optional[str] = None
+    # issue 35 item 6 (generate.holdout): a held-out sector "azimuth:A:B" / "elevation:A:B" and
+    # test views at other distances (scales, e.g. (0.5, 1, 2)); None: the layout's splits
+    holdout: Optional[str] = None
+    test_scales: Optional[tuple] = None
+    # issue 35 item 5 (generate.transients): this many small objects, each in this fraction of the train views
+    transients: int = 0
+    transient_fraction: float = 0.5
 
     def validate(self) -> None:
         positive = {"views": self.views, "width": self.width, "height": self.height, "max-depth": self.max_depth,
@@ -137,6 +161,28 @@ class GenerateConfig:
             raise InputError(f"--seed must be a non-negative integer, got {self.seed!r}")
         self._validate_noise()
         self._validate_lens()
+        self.degradations().validate()
+        distortion = self.distortion_model()
+        if distortion is not None:
+            distortion.check_image(Intrinsics.from_fov(self.width, self.height, self.fov))
+        blur = self.motion_model()
+        if blur is not None:
+            blur.check_rows(self.height)
+            if self.spp == "auto":
+                raise InputError("--motion-blur renders a fixed --spp per sub-frame; it does not combine with --spp auto")
+            if self.lens() is not None and "train" in LENS_SPLITS[self.lens_splits] and blur.readout > 0:
+                raise InputError("--motion-blur with a rolling shutter (readout > 0) does not combine with a thin lens "
+                                 "on the train views (--lens-splits all)")
+        if self.holdout is not None:
+            holdout.parse_holdout(self.holdout)
+        if self.test_scales is not None:
+            holdout.parse_scales(self.test_scales)
+        transients.check(self.transients, self.transient_fraction)
+
+
+    def degradations(self) -> Degradations:
+        """The train-view degradations (generate.degrade)."""
+        return Degradations.of(self)
 
     def _validate_noise(self) -> None:
         target = self.noise_psnr
@@ -172,6 +218,14 @@ class GenerateConfig:
             return None
         return ThinLens(self.aperture, self.focus_distance)
 
+    def motion_model(self) -> Optional[motion.MotionBlur]:
+        """The train views' motion blur (generate.motion), None for still cameras."""
+        return motion.parse_motion_blur(self.motion_blur)
+
+    def distortion_model(self) -> Optional[Distortion]:
+        """The train views' lens distortion (core.distortion), None for none."""
+        return parse_distortion(self.distortion)
+
     def to_json(self) -> dict:
         """The recipe's config. The lens, units and envmap fields only when they differ from
         the defaults, so a dataset keeps the recipe (and hash) it had before they existed."""
@@ -179,9 +233,15 @@ class GenerateConfig:
         if self.lens() is None and self.lens_splits == "test":
             for key in ("aperture", "focus_distance", "lens_splits"):
                 del out[key]
-        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0)):
+        for name, default in (("units", "normalise"), ("envmap", None), ("envmap_rotation", 0.0), ("distortion", None),
+                              ("motion_blur", None), ("holdout", None), ("test_scales", None), ("transients", 0),
+                              *((name, getattr(Degradations(), name)) for name in DEGRADATION_FIELDS)):
             if out[name] == default:
                 del out[name]
+        if "transients" not in out and out["transient_fraction"] == 0.5:
+            del out["transient_fraction"]
+        if "test_scales" in out:
+            out["test_scales"] = list(holdout.parse_scales(self.test_scales))
         return out
 
 
@@ -199,6 +259,8 @@ class Plan:
     lightfield: Optional[dict]
     inputs: dict  # {path: sha256} of every file the scene was read from (user meshes)
     versions: dict  # renderer_versions()
+    extrapolation: Optional[dict] = None  # scene.json's "extrapolation" (generate.holdout), None without one
+    transients: tuple = ()  # generate.transients.Transient objects of the train views
 
     @property
     def radius(self) -> float:
@@ -207,6 +269,18 @@ class Plan:
     def lens(self, split: str) -> Optional[ThinLens]:
         """The thin lens the colour of `split`'s views is rendered through (None: pinhole)."""
         return self.config.lens() if split in LENS_SPLITS[self.config.lens_splits] else None
+
+    def distortion(self, split: str) -> Optional[Distortion]:
+        """The lens distortion `split`'s views are seen through: the train views only."""
+        return self.config.distortion_model() if split in DISTORTION_SPLITS else None
+
+    def motion_path(self, split: str, index: int) -> Optional[motion.CameraPath]:
+        """The path of view `index` of `split` during its frame (train views with
+        --motion-blur), None for a still camera."""
+        blur = self.config.motion_model()
+        if blur is None or split not in DISTORTION_SPLITS:
+            return None
+        return motion.view_path(self.poses[split][index], blur, self.scene.aabb, self.config.seed, index)
 
     def recipe(self) -> dict:
         """What config.json holds: the config plus the resolved radius and variant, the
@@ -224,11 +298,16 @@ def plan(config: GenerateConfig) -> Plan:
     spec = layout_spec(config, scene)
     rng = np.random.default_rng(config.seed)
     poses = layouts.camera_poses(spec, scene.aabb, rng)
+    held_out = holdout.extrapolation_split(spec, scene.aabb, poses, config.holdout, config.test_scales, config.seed,
+                                           config.sampling)
+    poses, extrapolation = (poses, None) if held_out is None else held_out
     lightfield = layouts.lightfield_plane(spec, scene.aabb) if spec.layout == "lightfield" else None
     stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
              for split in dataset.SPLITS}
     return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield,
-                scene_inputs(scene), renderer_versions())
+                scene_inputs(scene), renderer_versions(),
+                extrapolation and holdout.frame_record(extrapolation, stems["test"]),
+                transients.place(scene, config.transients, config.transient_fraction, len(poses["train"]), config.seed))
 
 
 def layout_spec(config: GenerateConfig, scene) -> layouts.LayoutSpec:
@@ -287,11 +366,24 @@ def finish(out: Path, the_plan: Plan) -> None:
     import trimesh  # trimesh: scene.json's versions
 
     intrinsics, stems, poses = the_plan.intrinsics, the_plan.stems, the_plan.poses
+    # Degraded train views (generate.degrade): the train transforms hold the perturbed poses,
+    # each train frame its exact pose and photometric parameters; other splits are exact.
+    degradations, seed = the_plan.config.degradations(), the_plan.config.seed
+    poses = dict(poses, train=train_poses(poses["train"], degradations, seed))
+    extras = frame_extras(degradations, seed, the_plan.poses["train"])
     for split in dataset.SPLITS:
-        write_json(out / f"transforms_{split}.json",
-                   dataset.synthetic_transforms(intrinsics, stems[split], poses[split], the_plan.lens(split)))
+        transforms = dataset.synthetic_transforms(intrinsics, stems[split], poses[split], the_plan.lens(split),
+                                                  the_plan.distortion(split))
+        if split == "train":
+            add_frame_extras(transforms, stems[split], extras, with_dot=True)
+        write_json(out / f"transforms_{split}.json", transforms)
     lenses = {split: the_plan.lens(split) for split in dataset.SPLITS}
-    write_json(out / "transforms.json", dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses))
+    distortions = {split: the_plan.distortion(split) for split in dataset.SPLITS}
+    nerfstudio = add_frame_extras(dataset.nerfstudio_transforms(intrinsics, stems, poses, lenses, distortions),
+                                  stems["train"], extras, with_dot=False)
+    if the_plan.config.motion_model() is not None:
+        add_motion(out, the_plan, nerfstudio)
+    write_json(out / "transforms.json", nerfstudio)
     scene = the_plan.scene
     scene_json = {
         "schema": 1,
@@ -304,7 +396,19 @@ def finish(out: Path, the_plan: Plan) -> None:
                    **({"lens": {"splits": list(LENS_SPLITS[the_plan.config.lens_splits]),
                                 **the_plan.config.lens().to_json(),
                                 "note": "colour only; depth, normals and masks are of the pinhole pixel-centre rays"}}
-                      if the_plan.config.lens() is not None else {})},
+                      if the_plan.config.lens() is not None else {}),
+                   **({"distortion": {"splits": list(DISTORTION_SPLITS), "spec": the_plan.config.distortion_model().to_text(),
+                                      **the_plan.config.distortion_model().to_json(),
+                                      "note": "every per-pixel file of these views (colour, albedo, depth, normals, mask, "
+                                              "instance ids) follows the distorted pixel grid; other splits are pinhole "
+                                              "(docs/conventions.md, Lens distortion)"}}
+                      if the_plan.config.distortion_model() is not None else {}),
+                   **({"motion_blur": {"splits": list(DISTORTION_SPLITS), "spec": the_plan.config.motion_model().to_text(),
+                                       **the_plan.config.motion_model().to_json(),
+                                       "note": "colour integrated over each row's exposure by sub-frames; the transform, "
+                                               "depth, normals, masks, ids and albedo are the sharp mid-frame pose's "
+                                               "(docs/conventions.md, Motion blur)"}}
+                      if the_plan.config.motion_model() is not None else {})},
         "depth": {"distance": "*_distance.exr: Euclidean distance from the camera centre along the pixel-centre ray",
                   "z": "*_zdepth.exr: depth along the optical axis", "miss": 0,
                   "source": "scene.ray_intersect of pixel-centre rays, not the filtered depth AOV"},
@@ -312,19 +416,45 @@ def finish(out: Path, the_plan: Plan) -> None:
                    "spp": the_plan.config.spp, "max_depth": the_plan.config.max_depth, "filter": "box",
                    "albedo": "*_albedo.exr: linear albedo of the first surface, box-filtered, 0 on misses"},
         "instances": {"file": "*_instance.png: 16-bit ids of the pixel-centre ray's shape, 0 = miss",
-                      "names": instance_names(scene)},
+                      "names": instance_names(scene) + transients.names(the_plan.transients)},
         "noise": noise_summary(out, stems, the_plan.config),
+        **({"degradations": degradations.to_json(seed) | {"spread": camera_spread(the_plan.poses["train"])}}
+           if degradations.any else {}),
         "variant": the_plan.variant,
+        **({"extrapolation": the_plan.extrapolation} if the_plan.extrapolation is not None else {}),
+        **({"transients": transients.record(the_plan)} if the_plan.transients else {}),
         "inputs": the_plan.inputs,
         "recipe_sha256": recipe_hash(the_plan.recipe()),
         "versions": {"mitsuba": mitsuba.__version__, "drjit": drjit.__version__, "trimesh": trimesh.__version__,
                      "numpy": np.__version__, "python": platform.python_version(),
                      "nerfgauge": the_plan.versions["nerfgauge"]},
     }
+    transients.write_masks(out, the_plan, len(instance_names(scene)))
     write_json(out / "scene.json", scene_json)
+    write_json(out / holdout.SPARSE_FILE, holdout.sparse_views(poses["train"], stems["train"]))
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
              if p.is_file() and p.name != dataset.MANIFEST and not p.name.startswith(".")]
     dataset.write_manifest(out, files)
+
+
+def add_motion(out: Path, the_plan: Plan, nerfstudio: dict) -> None:
+    """Each moving frame's path ("motion": direction, axis, travel, rotation, start and end
+    poses, the shutter and its sub-frame count) in transforms_<split>.json (rewritten) and in
+    the nerfstudio frames."""
+    blur = the_plan.config.motion_model()
+    entries = {}
+    for split in DISTORTION_SPLITS:
+        name = out / f"transforms_{split}.json"
+        document = read_json(name)
+        for index, frame in enumerate(document["frames"]):
+            path = the_plan.motion_path(split, index)
+            entry = {**path.to_json(), **blur.to_json(),
+                     "subframes": motion.subframe_count(path, blur, the_plan.intrinsics, the_plan.scene.aabb)}
+            frame["motion"] = entries[the_plan.stems[split][index] + ".png"] = entry
+        write_json(name, document)
+    for frame in nerfstudio["frames"]:
+        if frame["file_path"] in entries:
+            frame["motion"] = entries[frame["file_path"]]
 
 
 NOISE_METHOD = ("two independent passes of spp/2 samples (seeds differ); the image is their mean; "
@@ -366,6 +496,9 @@ def generate(config: GenerateConfig, out, *, workers: int = 1, overwrite: bool =
     points_spec = parse_spec(points)
     if points_spec.kind == "sfm":
         require_pycolmap("--points sfm")
+        if config.distortion_model() is not None:
+            raise InputError("--points sfm matches features with a PINHOLE camera; the train views of --distortion "
+                             f"{config.distortion} are not: use --points surface or random")
     arguments.WORKERS.check(workers, "--workers")
     arguments.encodable_path(out, "--out")  # the API's path too: Mitsuba reads the meshes written under it
     if scheduler is not None:

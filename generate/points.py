@@ -214,17 +214,22 @@ def distance_summary(distance: np.ndarray, diagonal: float) -> dict:
 # --- surface points ---------------------------------------------------------------------
 
 
-def _seen(xyz, nrm, pose, intrinsics, depth) -> tuple[np.ndarray, np.ndarray]:
+def _seen(xyz, nrm, pose, intrinsics, depth, distortion=None) -> tuple[np.ndarray, np.ndarray]:
     """Columns of xyz [3, m] (unit normals nrm [3, m]) one view sees (eval/geometry.py's depth
     test) and their pixels (flat index row * width + col). Component-wise arithmetic on
-    contiguous rows: this runs once per train view over every candidate."""
+    contiguous rows: this runs once per train view over every candidate. distortion: the
+    view's lens distortion (core.distortion), whose pixel grid its depth is on."""
     dx, dy, dz = xyz[0] - pose[0, 3], xyz[1] - pose[1, 3], xyz[2] - pose[2, 3]
     r = pose[:3, :3]
     depth_along = -(r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz)  # OpenGL camera looks along -Z
     front = np.flatnonzero(depth_along > 1e-12)
     dx, dy, dz, depth_along = dx[front], dy[front], dz[front], depth_along[front]
-    u = intrinsics.fx * (r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz) / depth_along + intrinsics.cx
-    v = -intrinsics.fy * (r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz) / depth_along + intrinsics.cy
+    x = (r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz) / depth_along
+    y = -(r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz) / depth_along  # OpenCV axes: +y down
+    if distortion is not None:
+        x, y = distortion.distort(x, y)
+    u = intrinsics.fx * x + intrinsics.cx
+    v = intrinsics.fy * y + intrinsics.cy
     inside = np.flatnonzero((u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height))
     index = front[inside]
     dx, dy, dz = dx[inside], dy[inside], dz[inside]
@@ -245,8 +250,9 @@ def _seen(xyz, nrm, pose, intrinsics, depth) -> tuple[np.ndarray, np.ndarray]:
 
 
 def surface_points(ds, count: int, seed: int, vertices, faces) -> InitialPoints:
-    """`count` mesh samples some train view sees, coloured from the train PNGs (module docstring)."""
-    cameras = ds.cameras("train")
+    """`count` mesh samples some train view sees, coloured from the train PNGs (module docstring);
+    the depth test with the views' exact poses (Dataset.exact_cameras: what they were rendered from)."""
+    cameras = ds.exact_cameras("train")
     rng = rng_for(seed)
     normals_of_face = face_normals(vertices, faces)
     kept_xyz, kept_rgb, kept_normal, kept_face, total = [], [], [], [], 0
@@ -262,7 +268,7 @@ def surface_points(ds, count: int, seed: int, vertices, faces) -> InitialPoints:
             if not len(left):
                 break
             depth = ds.depth("train", index, kind="distance")
-            which, pixel = _seen(xyz_rows, normal_rows, pose, cameras.intrinsics, depth)
+            which, pixel = _seen(xyz_rows, normal_rows, pose, cameras.intrinsics, depth, cameras.distortion)
             if not len(which):
                 continue
             which = left[which]

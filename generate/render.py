@@ -51,6 +51,7 @@ from nerfgauge.core.camera import (
 )
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.images import linear_to_srgb, premultiplied_to_png_rgba
+from nerfgauge.generate import distorted
 from nerfgauge.generate.mitsuba_scene import SCALAR_BLOCK_SIZE
 
 NEAR_CLIP = 1e-3  # scene units; only clips what is closer than this to the camera
@@ -160,14 +161,25 @@ def chunk_seed(view_seed: int, chunk: int) -> int:
 
 
 def render_chunk(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int,
-                 lens: Optional[ThinLens] = None) -> np.ndarray:
+                 lens: Optional[ThinLens] = None, distortion=None, ray_map=None) -> np.ndarray:
     """`spp` samples per pixel of one view (through `lens` if given) with `seed`: with
     render_samples on the JIT variants (byte-identical from run to run), with mi.render on
     scalar ones. Returns [H, W, C] float32 whose last channels are the integrator's AOVs (the
     first four RGBA, except from mi.render with the AOV integrator, which gives the AOVs
-    only)."""
+    only). distortion: a core.distortion.Distortion the pixel grid is seen through (None or
+    the identity: the pinhole); its samples go through generate.distorted (the AOVs then
+    follow the RGBA on every variant). ray_map: every sample's own world ray (render_samples;
+    the pixels' distortion is then the ray map's business)."""
     sensor = mi.load_dict(sensor_dict(mi, c2w, intrinsics, spp, lens))
-    if mi.variant().startswith("scalar"):
+    if ray_map is not None and mi.variant().startswith("scalar"):
+        array = distorted.render_scalar(mi, scene, integrator, sensor, intrinsics, None, int(spp), int(seed), ray_map)
+    elif ray_map is not None:
+        array = render_samples(mi, scene, integrator, sensor, int(spp), int(seed), ray_map=ray_map)
+    elif distortion is not None and not distortion.is_identity and mi.variant().startswith("scalar"):
+        array = distorted.render_scalar(mi, scene, integrator, sensor, intrinsics, distortion, int(spp), int(seed))
+    elif distortion is not None and not distortion.is_identity:
+        array = render_samples(mi, scene, integrator, sensor, int(spp), int(seed), distorted.film_map(distortion, intrinsics))
+    elif mi.variant().startswith("scalar"):
         image = mi.render(scene, sensor=sensor, integrator=integrator, spp=int(spp), seed=int(seed))
         array = np.array(image, dtype=np.float32)
     else:
@@ -192,7 +204,7 @@ def band_seed(seed: int, band: int) -> int:
     return (int(seed) + int(band) * BAND_SEED_STRIDE) % (2**32)
 
 
-def render_samples(mi, scene, integrator, sensor, spp: int, seed: int) -> np.ndarray:
+def render_samples(mi, scene, integrator, sensor, spp: int, seed: int, film_map=None, ray_map=None) -> np.ndarray:
     """mi.render's estimator, summed in a fixed order (the module's "Determinism").
 
     Each pixel's value is the mean of its `spp` samples, each box-filtered over the pixel's
@@ -203,7 +215,13 @@ def render_samples(mi, scene, integrator, sensor, spp: int, seed: int) -> np.nda
     dimensions in SamplingIntegrator::render_sample's order; ray differentials are scaled by
     1/sqrt(spp) as there. Rows are evaluated in bands of band_rows() (band b seeded
     band_seed(seed, b)), so no wave holds more than MAX_WAVE_SAMPLES samples (x 4 floats and
-    the AOVs). Returns [H, W, 4 + AOVs] float32."""
+    the AOVs). film_map: None, or a function of the samples' film positions in pixels
+    (u [n], v [n] float64) giving the film positions whose sensor rays they take instead (a
+    lens distortion: generate.distorted); the sample order and seeds are unchanged.
+    ray_map: None, or a function of the film positions (u [n], v [n] float64, pixels) giving
+    each sample's world ray (origins, unit directions [n, 3] float64) in place of the
+    sensor's (weight 1, no differentials; a rolling shutter: generate.motion).
+    Returns [H, W, 4 + AOVs] float32."""
     import drjit as dr  # drjit: loaded with the Mitsuba variant, only when rendering
 
     if mi.is_spectral or mi.is_monochromatic:
@@ -228,12 +246,25 @@ def render_samples(mi, scene, integrator, sensor, spp: int, seed: int) -> np.nda
         row = pixel // width
         position = mi.Vector2f(mi.Float(pixel - row * width), mi.Float(row + dr.opaque(mi.UInt32, top)))
         position = position + sampler.next_2d()
+        if film_map is not None:
+            dr.eval(position)
+            u, v = film_map(position.x.numpy().astype(np.float64), position.y.numpy().astype(np.float64))
+            position = mi.Vector2f(mi.Float(np.asarray(u, np.float32)), mi.Float(np.asarray(v, np.float32)))
         aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
         time = mi.Float(sensor.shutter_open())
         if sensor.shutter_open_time() > 0:
             time = time + sampler.next_1d() * sensor.shutter_open_time()
         wavelength = mi.Float(0.0)  # RGB variants draw no wavelength sample
-        ray, weight = sensor.sample_ray_differential(time, wavelength, position * scale, aperture)
+        if ray_map is not None:
+            dr.eval(position)
+            origins, directions = ray_map(position.x.numpy().astype(np.float64), position.y.numpy().astype(np.float64))
+            ray = mi.RayDifferential3f(mi.Ray3f(
+                mi.Point3f(*(mi.Float(np.ascontiguousarray(origins[:, k], np.float32)) for k in range(3))),
+                mi.Vector3f(*(mi.Float(np.ascontiguousarray(directions[:, k], np.float32)) for k in range(3)))))
+            ray.time = time
+            weight = mi.Float(1.0)
+        else:
+            ray, weight = sensor.sample_ray_differential(time, wavelength, position * scale, aperture)
         if ray.has_differentials:
             ray.scale_differential(1.0 / math.sqrt(spp))
         radiance, valid, aovs = integrator.sample(scene, sampler, ray, sensor.get_medium())
@@ -277,38 +308,45 @@ def aov_integrator(mi):
     return mi.load_dict({"type": "aov", "aovs": AOVS, "block_size": SCALAR_BLOCK_SIZE})
 
 
-def render_albedo(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int) -> np.ndarray:
-    """Linear albedo, box-filtered over the pixel with min(spp, MAX_ALBEDO_SPP) samples.
-    Returns [H, W, 3] float32."""
+def render_albedo(mi, scene, integrator, c2w, intrinsics: Intrinsics, spp: int, seed: int,
+                  distortion=None) -> np.ndarray:
+    """Linear albedo, box-filtered over the pixel with min(spp, MAX_ALBEDO_SPP) samples
+    (through `distortion`'s pixel grid when given). Returns [H, W, 3] float32."""
     count = max(n for n in range(1, min(int(spp), MAX_ALBEDO_SPP) + 1) if multijitter_exact(n))
-    return render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, ALBEDO_CHUNK))[..., -3:]
+    return render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, ALBEDO_CHUNK),
+                        distortion=distortion)[..., -3:]
 
 
 def render_passes(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int,
-                  target: Optional[NoiseTarget] = None, integrator=None, lens: Optional[ThinLens] = None) -> tuple:
+                  target: Optional[NoiseTarget] = None, integrator=None, lens: Optional[ThinLens] = None,
+                  distortion=None, ray_map=None) -> tuple:
     """Two independent passes of spp/2 samples each (spp 1: pass A only). With a target,
     both passes grow by equal amounts until the noise estimate reaches it or the total
     reaches target.max_spp. Returns (pass A, pass B or None), each with .mean [H, W, 4]
-    and .spp. integrator: None for the scene's own; lens: the colour's thin lens (None: pinhole)."""
+    and .spp. integrator: None for the scene's own; lens: the colour's thin lens (None: pinhole);
+    distortion: the pixel grid's lens distortion (None: pinhole); ray_map: render_chunk's."""
     passes, chunk = (_Pass(), _Pass()), 0
 
     def grow(per_pass: int) -> None:
         nonlocal chunk
         for one in passes:
             for count in sample_chunks(per_pass):
-                one.add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens), count)
+                one.add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens,
+                                         distortion, ray_map), count)
                 chunk += 1
 
     if target is None:
         if spp == 1:
-            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, 1, seed, lens), 1)
+            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, 1, seed, lens, distortion, ray_map), 1)
             return passes[0], None
         a_spp = spp // 2
         for count in sample_chunks(a_spp):
-            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens), count)
+            passes[0].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens,
+                                         distortion, ray_map), count)
             chunk += 1
         for count in sample_chunks(spp - a_spp):
-            passes[1].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens), count)
+            passes[1].add(render_chunk(mi, scene, integrator, c2w, intrinsics, count, chunk_seed(seed, chunk), lens,
+                                         distortion, ray_map), count)
             chunk += 1
         return passes
     grow(max(1, min(target.start_spp, target.max_spp) // 2))
@@ -462,10 +500,10 @@ def render_geometry(mi, scene, c2w, intrinsics: Intrinsics):
     return render_geometry_with_ids(mi, scene, c2w, intrinsics)[:4]
 
 
-def render_geometry_with_ids(mi, scene, c2w, intrinsics: Intrinsics, shape_ids: tuple = ()):
+def render_geometry_with_ids(mi, scene, c2w, intrinsics: Intrinsics, shape_ids: tuple = (), distortion=None):
     """Exact distance, z-depth, normals, hit mask and instance ids ([H, W] uint16, see
-    cast_rays_with_ids) from pixel-centre rays."""
-    origins, directions = pixel_rays(c2w, intrinsics)
+    cast_rays_with_ids) from pixel-centre rays (through `distortion` when given)."""
+    origins, directions = pixel_rays(c2w, intrinsics, distortion)
     shape = directions.shape[:2]
     distance, normals, hit, instance = cast_rays_with_ids(mi, scene, origins.reshape(-1, 3), directions.reshape(-1, 3),
                                                  shape_ids)
@@ -494,17 +532,20 @@ def _loaded_for(mi, scene) -> tuple:
 
 def render_view(mi, scene, c2w, intrinsics: Intrinsics, spp: int, seed: int, *,
                 target: Optional[NoiseTarget] = None, integrator=None, legend: Optional[tuple] = None,
-                lens: Optional[ThinLens] = None) -> ViewImages:
+                lens: Optional[ThinLens] = None, distortion=None) -> ViewImages:
     """Everything one view writes. integrator, legend: aov_integrator(mi) (for albedo) and
     instance_legend(scene); made once per scene when not given. Colour through `lens`
-    (None: pinhole); depth, normals, mask, ids and albedo always from the pinhole camera."""
+    (None: pinhole); depth, normals, mask, ids and albedo always from the pinhole camera.
+    distortion (a core.distortion.Distortion, None: none) moves every pixel's samples and its
+    centre ray, so colour, albedo, depth, normals, mask and ids all follow the distorted grid."""
     if spp == "auto" and target is None:
         raise InputError("--spp auto needs a noise target (--noise-psnr)")
     if integrator is None or legend is None:
         integrator, legend = _loaded_for(mi, scene)
-    pass_a, pass_b = render_passes(mi, scene, c2w, intrinsics, spp, seed, target, lens=lens)
+    pass_a, pass_b = render_passes(mi, scene, c2w, intrinsics, spp, seed, target, lens=lens, distortion=distortion)
     image = mean_of_passes(pass_a, pass_b)
-    albedo = render_albedo(mi, scene, integrator, c2w, intrinsics, pass_a.spp + (pass_b.spp if pass_b else 0), seed)
+    albedo = render_albedo(mi, scene, integrator, c2w, intrinsics, pass_a.spp + (pass_b.spp if pass_b else 0), seed,
+                           distortion)
     passes = ((pass_a.mean, pass_a.spp),) + (() if pass_b is None else ((pass_b.mean, pass_b.spp),))
-    distance, z_depth, normals, hit, instance = render_geometry_with_ids(mi, scene, c2w, intrinsics, legend)
+    distance, z_depth, normals, hit, instance = render_geometry_with_ids(mi, scene, c2w, intrinsics, legend, distortion)
     return ViewImages(image[..., :4], distance, z_depth, normals, hit, instance, albedo, passes)

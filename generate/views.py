@@ -16,7 +16,10 @@ import numpy as np
 from nerfgauge.core import dataset
 from nerfgauge.core.files import write_json
 from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
+from nerfgauge.generate.degrade import degrade_images
 from nerfgauge.generate.mitsuba_scene import scene_dict
+from nerfgauge.generate.motion import render_motion_view
+from nerfgauge.generate import transients
 from nerfgauge.generate.render import render_view
 from nerfgauge.generate.variant import use_variant
 
@@ -68,8 +71,21 @@ def load_mitsuba_scene(out, the_plan):
 
 def render_one(mi, scene, out, the_plan, split, index):
     config = the_plan.config
+    # the static scene, or it with the view's transient objects (generate.transients)
+    scene, integrator, legend = transients.scene_for_view(mi, scene, out, the_plan, split, index)
     start = time.perf_counter()
-    images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
-                         view_seed(config.seed, split, index), target=config.noise_target,
-                         lens=the_plan.lens(split))
+    path = the_plan.motion_path(split, index)
+    if path is not None:  # a moving camera: generate.motion integrates the frame
+        images, _ = render_motion_view(mi, scene, path, config.motion_model(), the_plan.intrinsics, config.spp,
+                                       view_seed(config.seed, split, index), aabb=the_plan.scene.aabb,
+                                       integrator=integrator, legend=legend, distortion=the_plan.distortion(split),
+                                       lens=the_plan.lens(split))
+    else:
+        images = render_view(mi, scene, the_plan.poses[split][index], the_plan.intrinsics, config.spp,
+                             view_seed(config.seed, split, index), target=config.noise_target,
+                             lens=the_plan.lens(split), distortion=the_plan.distortion(split),
+                             integrator=integrator, legend=legend)
+    degradations = config.degradations()
+    if split == "train" and degradations.photometric:  # train views only (generate.degrade)
+        images = degrade_images(images, degradations.view_photometric(config.seed, index), the_plan.intrinsics)
     return images, time.perf_counter() - start

@@ -192,16 +192,22 @@ def load_model(path):
     """Rebuild a model from model.pt. Returns (model, TrainConfig)."""
     payload = load_checked(path)
     try:
-        config = TrainConfig(**payload["config"])
+        config = config_of(payload)
         config.validate()  # the saved settings drive rendering: a damaged value is refused here
         return model_from_payload(payload), config
     except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as error:  # InputError is a ValueError
         raise InputError(f"{path} is a damaged nerfgauge model: {str(error).splitlines()[0][:200]}") from None
 
 
+def config_of(payload: dict) -> TrainConfig:
+    """A payload's TrainConfig; a model saved before `pixel_filter` existed trained through
+    pixel centres."""
+    return TrainConfig(**{"pixel_filter": "centre", **payload["config"]})
+
+
 def model_from_payload(payload: dict):
     """The model described by a payload of `model_payload`."""
-    config = TrainConfig(**payload["config"])
+    config = config_of(payload)
     if config.model == "vanilla":
         aabb = payload["state"]["aabb"]
         model = build_model(config, aabb)

@@ -117,6 +117,10 @@ def _add_train(subparsers) -> None:
                         help="ray-marching step while training, in voxels (auto: 0.5, 1 in contracted space)")
     parser.add_argument("--batch-rays", type=arguments.BATCH_RAYS, default=None, metavar="N",
                         help="rays per training step (auto: 4096, 2048 in contracted space)")
+    parser.add_argument("--pixel-filter", choices=("box", "jitter", "centre"), default="box",
+                        help="what a training pixel is compared as: box (default), the mean of 2 x 2 stratified "
+                             "rays through it, as the ground truth averages the pixel's area; jitter, one ray "
+                             "through a random point of it; centre, its centre ray")
     parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
                         help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
     parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "
@@ -127,6 +131,9 @@ def _add_train(subparsers) -> None:
                         help="training seconds between val PSNR points in log.jsonl (default 10)")
     parser.add_argument("--threads", type=arguments.THREADS, default=2, help="torch CPU threads (default 2)")
     parser.add_argument("--device", default="auto", help="auto (cuda when present), cpu, cuda or cuda:N")
+    parser.add_argument("--sparse", type=arguments.VIEWS, default=None, metavar="N",
+                        help="train on the dataset's fixed sparse list of N views (sparse_views.json: 3, 6, 9, 12 "
+                             "or 24, by farthest-point sampling on the camera centres)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 
@@ -145,7 +152,7 @@ def _run_train(args) -> int:
                          threads=args.threads, device=args.device, eval_every_seconds=args.eval_every,
                          parametrisation=None if args.parametrisation == "auto" else args.parametrisation,
                          checkpoint_every=args.checkpoint_every, step_ratio=args.step_ratio,
-                         batch_rays=args.batch_rays)
+                         batch_rays=args.batch_rays, pixel_filter=args.pixel_filter, sparse=args.sparse)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
           f"model {summary['model_bytes'] / 1e6:.2f} MB"
@@ -177,6 +184,9 @@ def _add_render(subparsers) -> None:
     parser.add_argument("--aperture-samples", type=arguments.LENS_SAMPLES, default=16, metavar="N",
                         help="lens samples per pixel for frames rendered through a thin lens (their transforms "
                              "entry has \"lens\"): stratified on the lens disc, seeded (default 16)")
+    parser.add_argument("--pixel-samples", type=arguments.PIXEL_SAMPLES, default=None, metavar="N",
+                        help="rays per pixel along each axis, averaged as the ground truth's box filter averages "
+                             "the pixel (default: 2 for a run trained with --pixel-filter box, 1 for centre)")
     parser.add_argument("--lens-seed", type=arguments.SEED, default=0, help="seed of the lens samples (default 0)")
     parser.add_argument("--dataset", type=path, default=None, metavar="DATASET",
                         help="render the views of this dataset instead of those of the dataset the run was "
@@ -195,11 +205,13 @@ def _run_render(args) -> int:
 
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
                           overwrite=args.overwrite, progress=not args.quiet, aperture_samples=args.aperture_samples,
-                          lens_seed=args.lens_seed, dataset=args.dataset, other_dataset=args.other_dataset)
+                          lens_seed=args.lens_seed, dataset=args.dataset, other_dataset=args.other_dataset,
+                          pixel_samples=args.pixel_samples)
     if timing.get("lens_frames"):
         print(f"{timing['lens_frames']} frames through their thin lens at {timing['aperture_samples']} lens samples: "
               f"{timing['ms_per_lens_frame']:.1f} ms per frame")
-    print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame "
+    print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame, "
+          f"{timing['pixel_samples'] ** 2} rays per pixel "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
     return 0
 

@@ -21,6 +21,9 @@ from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisat
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
+# TrainConfig.pixel_filter -> training rays per pixel, averaged before the loss (nerf.train)
+TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1}
+PIXEL_FILTERS = tuple(TRAIN_PIXEL_SAMPLES)
 # The sparse grid stores values only where cells are occupied, but its node index (4 bytes
 # a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing
@@ -76,6 +79,10 @@ class TrainConfig:
     tv_weight: float = 0.0
     distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
     step_ratio: Optional[float] = None  # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
+    # What a training pixel's colour is compared as: "box", the mean of 2 x 2 stratified rays
+    # through the pixel, as the ground truth's box filter averages its area; "jitter", one
+    # ray through a random point of it; "centre", its centre ray (runs before issue 34).
+    pixel_filter: str = "box"
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
     # vanilla (the original NeRF, Mildenhall et al. 2020)
     n_coarse: int = 64
@@ -92,6 +99,9 @@ class TrainConfig:
     checkpoint_every: Optional[int] = None
     threads: int = 2
     device: str = "auto"
+    # train on the dataset's sparse list of this many views (sparse_views.json; nerf.data);
+    # None: every train view. Left out of config.json when None, so older runs keep their recipe.
+    sparse: Optional[int] = None
 
     def validate(self) -> None:
         """One-line InputError for anything a run cannot use (the API path: the CLI's
@@ -104,6 +114,8 @@ class TrainConfig:
             raise InputError("give exactly one of --steps N or --budget-seconds T")
         if self.quantise not in ("fp16", "int8"):
             raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
+        if self.pixel_filter not in PIXEL_FILTERS:
+            raise InputError(f"unknown pixel filter {self.pixel_filter!r}; choose {', '.join(PIXEL_FILTERS)}")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
         # every number through its range: the command line's (core.arguments) where it has a flag
@@ -120,13 +132,16 @@ class TrainConfig:
             raise InputError(f"unknown device {self.device!r}; choose auto, cpu, cuda or cuda:N")
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        if out["sparse"] is None:
+            del out["sparse"]
+        return out
 
 
 # CLI flag of a config field, for messages that name what the user typed
 FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
          "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation",
-         "step_ratio": "--step-ratio", "batch_rays": "--batch-rays"}
+         "step_ratio": "--step-ratio", "batch_rays": "--batch-rays", "pixel_filter": "--pixel-filter"}
 
 
 SAMPLES_PER_RAY = arguments.bounded(int, 1, 4096)  # the vanilla NeRF's coarse and fine samples
@@ -134,7 +149,7 @@ LEARNING_RATE = arguments.bounded(float, 0, 10, above=True)  # Adam's step; 10 o
 # Every numeric field of TrainConfig and its range (None-valued fields are optional).
 FIELD_RANGES = {
     "steps": arguments.STEPS, "budget_seconds": arguments.SECONDS, "checkpoint_every": arguments.STEPS,
-    "seed": arguments.SEED, "threads": arguments.THREADS, "eval_every_seconds": arguments.SECONDS,
+    "seed": arguments.SEED, "sparse": arguments.VIEWS, "threads": arguments.THREADS, "eval_every_seconds": arguments.SECONDS,
     "batch_rays": arguments.BATCH_RAYS, "vanilla_batch_rays": arguments.BATCH_RAYS,
     "final_resolution": arguments.GRID_RESOLUTION, "start_resolution": arguments.GRID_RESOLUTION,
     "step_ratio": arguments.STEP_RATIO, "tv_weight": arguments.WEIGHT, "distortion_weight": arguments.WEIGHT,

@@ -6,49 +6,128 @@ the background can be composited per ray.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 import torch
 
-from nerfgauge.core.camera import SplitCameras, pixel_rays
+from nerfgauge.core.camera import SplitCameras
 from nerfgauge.core.dataset import open_dataset
+from nerfgauge.core.errors import InputError
 
 
 @dataclass(frozen=True)
 class RayBatch:
     """origins, directions (unit): [n, 3]; rgba: [n, 4] straight alpha or None;
-    n_views whole views, row-major, one after another."""
+    n_views whole views, row-major, one after another. footprint: [n, 2, 3], how a ray's
+    direction moves per pixel in x and in y (`pixel_footprints`), or None."""
 
     origins: torch.Tensor
     directions: torch.Tensor
     rgba: Optional[torch.Tensor]
     n_views: int = 1
+    footprint: Optional[torch.Tensor] = None
 
 
 def split_rays(cameras: SplitCameras, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays of one view, row-major. Returns origins, directions [H*W, 3] float32."""
-    origins, directions = pixel_rays(cameras.c2w[index], cameras.intrinsics)
+    """Rays of one view, row-major, through the split's lens distortion if it has one (the
+    camera the dataset's pixels were rendered with). Returns origins, directions [H*W, 3]
+    float32."""
+    origins, directions = cameras.rays(index)
     return (torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)),
             torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)))
 
 
-def load_split_rays(root, split: str, limit: Optional[int] = None) -> tuple[SplitCameras, RayBatch]:
-    """All rays and RGBA targets of a split (the first `limit` views if given).
-    root: a dataset folder or an open nerfgauge.core.dataset.Dataset."""
+def pixel_footprints(directions: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Each pixel-centre ray's change per pixel, so a ray through any point of the pixel is
+    `jittered_direction`. With the forward axis f (c2w's -z), the direction scaled to unit
+    depth, u = d / (d . f), is linear in the pixel position for a pinhole; its central
+    differences across the grid (one-sided at the border) are then exact, and for any other
+    camera model they are the model's local linearisation. Returned scaled by (d . f), so
+    that d + a dx + b dy is parallel to the unit-depth ray at offset (a, b) pixels.
+
+    Args:
+        directions: [H, W, 3] unit pixel-centre directions of one view.
+        c2w: [4, 4] (or [3, 4]) camera-to-world.
+    Returns:
+        [H * W, 2, 3] float32: the x (column) and y (row) steps.
+    """
+    forward = -np.asarray(c2w, dtype=np.float64)[:3, 2]
+    cosine = directions @ forward  # [H, W]
+    unit_depth = directions / cosine[..., None]  # [H, W, 3]
+    steps = [np.gradient(unit_depth, axis=axis) if unit_depth.shape[axis] > 1 else np.zeros_like(unit_depth)
+             for axis in (1, 0)]  # x along columns, y along rows
+    footprint = np.stack(steps, axis=-2) * cosine[..., None, None]  # [H, W, 2, 3]
+    return footprint.reshape(-1, 2, 3).astype(np.float32)
+
+
+def jittered_direction(directions: torch.Tensor, footprint: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """Unit directions through a point of each ray's pixel instead of its centre.
+
+    Args:
+        directions: [n, 3] unit pixel-centre directions.
+        footprint: [n, 2, 3] from `pixel_footprints`.
+        offsets: [n, 2] in pixels from the centre, x then y, in [-0.5, 0.5) for the pixel.
+    Returns:
+        [n, 3] unit directions.
+    """
+    moved = directions + offsets[:, :1] * footprint[:, 0] + offsets[:, 1:] * footprint[:, 1]
+    return moved / torch.linalg.vector_norm(moved, dim=-1, keepdim=True)
+
+
+def load_split_rays(root, split: str, limit: Optional[int] = None, views: Optional[list] = None,
+                    footprint: bool = False) -> tuple[SplitCameras, RayBatch]:
+    """All rays and RGBA targets of a split (the first `limit` views if given; only the
+    frame indices `views`, in that order, if given), with each ray's pixel footprint when
+    `footprint` (24 more bytes a ray). root: a dataset folder or an open
+    nerfgauge.core.dataset.Dataset."""
     ds = open_dataset(root)
     cameras = ds.cameras(split)
     count = len(cameras.stems) if limit is None else min(limit, len(cameras.stems))
-    origins, directions, colours = [], [], []
-    for index in range(count):
-        o, d = split_rays(cameras, index)
-        origins.append(o), directions.append(d)
+    indices = list(range(count)) if views is None else list(views)
+    count = len(indices)
+    origins, directions, colours, footprints = [], [], [], []
+    for index in indices:
+        o, d = cameras.rays(index)  # [H, W, 3] float64, through the split's distortion if any
+        origins.append(torch.from_numpy(o.reshape(-1, 3).astype(np.float32)))
+        directions.append(torch.from_numpy(d.reshape(-1, 3).astype(np.float32)))
+        if footprint:
+            footprints.append(torch.from_numpy(pixel_footprints(d, cameras.c2w[index])))
         colours.append(torch.from_numpy(ds.rgba_of(cameras.stems[index], cameras.intrinsics).reshape(-1, 4)))
     if not origins:
         empty = torch.zeros((0, 3))
-        return cameras, RayBatch(empty, empty, torch.zeros((0, 4)), 0)
-    return cameras, RayBatch(torch.cat(origins), torch.cat(directions), torch.cat(colours), count)
+        return cameras, RayBatch(empty, empty, torch.zeros((0, 4)), 0, torch.zeros((0, 2, 3)) if footprint else None)
+    return cameras, RayBatch(torch.cat(origins), torch.cat(directions), torch.cat(colours), count,
+                             torch.cat(footprints) if footprint else None)
+
+
+SPARSE_FILE = "sparse_views.json"  # generate.holdout writes it (docs/conventions.md, "Extrapolation splits")
+
+
+def sparse_train_views(root, count: int) -> list:
+    """The train frame indices of the dataset's sparse list of `count` views (nested lists
+    by farthest-point sampling on the camera centres), checked; one line when absent."""
+    ds = open_dataset(root)
+    where = ds.root / SPARSE_FILE
+    if SPARSE_FILE not in ds.manifest_files:
+        raise InputError(f"{ds.root} has no {SPARSE_FILE} (datasets generated before the sparse view lists "
+                         f"have none); regenerate it to train on --sparse {count}")
+    try:
+        document = json.loads(ds.read_bytes(SPARSE_FILE))
+    except ValueError as error:
+        raise InputError(f"{where}: not JSON ({error})") from None
+    lists = document.get("counts") if isinstance(document, dict) else None
+    n_train = len(ds.cameras("train").stems)
+    if not isinstance(lists, dict) or str(count) not in lists:
+        have = ", ".join(sorted(lists, key=lambda k: (len(k), k))) if isinstance(lists, dict) else "none"
+        raise InputError(f"{where} has no list of {count} views (it has: {have})")
+    indices = lists[str(count)]
+    if (not isinstance(indices, list) or len(indices) != count or len(set(indices)) != count
+            or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n_train for i in indices)):
+        raise InputError(f"{where}: list {count} must be {count} distinct train frame indices below {n_train}")
+    return indices
 
 
 def scene_info(root) -> tuple[Optional[dict], Optional[np.ndarray]]:

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
-from nerfgauge.nerf.data import split_rays
+from nerfgauge.nerf.data import jittered_direction, pixel_footprints, split_rays
 from nerfgauge.nerf.runs import open_run_dataset
 from nerfgauge.nerf.rendering import render_rays_chunked
 from nerfgauge.nerf.train import pick_device
@@ -58,6 +58,11 @@ RENDER_STEP_RATIO = 1.0
 # 8 parts 85-88 ms a frame.
 PARTS_PER_THREAD = 4
 APERTURE_SAMPLES = 16  # lens samples per pixel of a thin-lens frame (--aperture-samples)
+# Rays per pixel along each axis by the run's pixel filter (nerf.config.PIXEL_FILTERS): a
+# box-trained model renders the mean of 2 x 2 rays through each pixel, the box filter the
+# ground truth applies (docs/conventions.md, "Pixel footprint"); a centre-trained one its
+# centre ray.
+PIXEL_SAMPLES = {"box": 2, "jitter": 2, "centre": 1}
 
 
 def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -100,17 +105,46 @@ def lens_frame(model, cameras, index: int, samples: int, seed: int, pool, parts:
     return rgb, opacity, depth
 
 
+def pixel_offsets(per_axis: int) -> np.ndarray:
+    """The centres of a per_axis x per_axis grid of equal cells over a pixel, as offsets
+    from its centre in pixels, row-major: [per_axis^2, 2] (x, y) in (-0.5, 0.5). Their mean
+    is the midpoint rule of the pixel's box filter; 1 gives the centre alone."""
+    centres = (np.arange(per_axis) + 0.5) / per_axis - 0.5
+    y, x = np.meshgrid(centres, centres, indexing="ij")
+    return np.stack([x.ravel(), y.ravel()], axis=-1)
+
+
+def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, device) -> tuple:
+    """Frame `index` box-filtered over each pixel as the ground truth is: premultiplied rgb
+    [H*W, 3] and opacity [H*W], the means over per_axis^2 rays through a regular grid of
+    points in each pixel (`pixel_offsets`), and the depth [H*W] of the pixel-centre rays
+    (as the dataset's ground truth is). per_axis 1 renders the centre rays once."""
+    origins, directions = cameras.rays(index)  # [H, W, 3] float64
+    centre_o = torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)).to(device)
+    centre_d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
+    rgb, opacity, depth = render_frame(model, centre_o, centre_d, pool, parts)
+    if per_axis == 1:
+        return rgb, opacity, depth
+    footprint = torch.from_numpy(pixel_footprints(directions, cameras.c2w[index])).to(device)  # [P, 2, 3]
+    offsets = torch.from_numpy(pixel_offsets(per_axis).astype(np.float32)).to(device)  # [S, 2]
+    pixels = centre_d.shape[0]
+    moved = torch.cat([jittered_direction(centre_d, footprint, offset.expand(pixels, 2)) for offset in offsets])
+    rgb, opacity, _ = render_frame(model, centre_o.repeat(len(offsets), 1), moved, pool, parts)
+    return rgb.view(len(offsets), pixels, 3).mean(dim=0), opacity.view(len(offsets), pixels).mean(dim=0), depth
+
+
 def render_split(run_dir, split: str = "test", out=None, *, threads: int | None = None,
                  step_ratio: float | None = RENDER_STEP_RATIO, overwrite: bool = False, progress: bool = True,
                  aperture_samples: int = APERTURE_SAMPLES, lens_seed: int = 0, dataset=None,
-                 other_dataset: bool = False) -> dict:
+                 other_dataset: bool = False, pixel_samples: int | None = None) -> dict:
     """Render every view of `split` into `out` (default RUN/renders). step_ratio: marching
     step in voxels for the compact model (None: the training step, half a voxel).
     aperture_samples, lens_seed: lens samples per pixel and their seed for frames with a
     thin lens. dataset: render this dataset's views instead of the training dataset's: one
     with the manifest the run recorded (a moved copy), or with other_dataset=True another
     dataset of the scene the run was trained on (e.g. the same cameras through a lens);
-    see nerf.runs.open_run_dataset, which refuses any other."""
+    see nerf.runs.open_run_dataset, which refuses any other. pixel_samples: rays per pixel
+    along each axis (`box_frame`); None: the run's pixel filter's (PIXEL_SAMPLES)."""
     if isinstance(run_dir, str) and not run_dir.strip() or isinstance(out, str) and not out.strip():
         raise InputError("the run folder and --out must be non-empty paths")
     run_dir = Path(run_dir)
@@ -122,7 +156,10 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
         arguments.THREADS.check(threads, "--threads")
     arguments.LENS_SAMPLES.check(aperture_samples, "--aperture-samples")
     arguments.SEED.check(lens_seed, "--lens-seed")
+    if pixel_samples is not None:
+        arguments.PIXEL_SAMPLES.check(pixel_samples, "--pixel-samples")
     model, config = load_model(run_dir / "model.pt")
+    pixel_samples = PIXEL_SAMPLES[config.pixel_filter] if pixel_samples is None else pixel_samples
     threads = threads or config.threads
     device = pick_device(config.device)
     if other_dataset and dataset is None:
@@ -134,14 +171,15 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     # The lens settings and another dataset are part of the recipe only when used, so a
     # pinhole render keeps the recipe it always had.
     recipe = recipe_hash({"model_sha256": sha256_file(run_dir / "model.pt"), "step_ratio": step_ratio}
-                         | ({"lens": lens} if lens else {}) | ({"dataset": str(dataset)} if dataset is not None else {}))
+                         | ({"lens": lens} if lens else {}) | ({"dataset": str(dataset)} if dataset is not None else {})
+                         | ({"pixel_samples": pixel_samples} if pixel_samples != 1 else {}))
     with claim_folder(out, "renders", recipe, overwrite=overwrite):
         return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress, lens,
-                            source)
+                            source, pixel_samples)
 
 
 def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress, lens=None,
-                 source=None) -> dict:
+                 source=None, pixel_samples: int = 1) -> dict:
     model = model.to(device).eval()
     if model.has_grid and step_ratio is not None:
         model.field.step_ratio = step_ratio
@@ -161,7 +199,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
                 rgb, opacity, depth = lens_frame(model, cameras, index, lens["aperture_samples"], lens["lens_seed"],
                                                  pool, parts, device)
             else:
-                rgb, opacity, depth = render_frame(model, origins.to(device), directions.to(device), pool, parts)
+                rgb, opacity, depth = box_frame(model, cameras, index, pixel_samples, pool, parts, device)
             if device.type == "cuda":
                 torch.cuda.synchronize()
             (lens_seconds if through_lens else seconds).append(time.perf_counter() - start)
@@ -180,7 +218,8 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     all_seconds = seconds + lens_seconds
     timing = {"ms_per_frame": 1000 * float(np.mean(all_seconds)) if all_seconds else None, "frames": len(all_seconds),
               "resolution": [width, height], "device": device.type, "threads": threads,
-              "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None)}
+              "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None),
+              "pixel_samples": pixel_samples}
     if source is not None:  # what the frames show, which `evaluate` checks (core.provenance.check_renders_dataset)
         timing |= {"dataset": str(source.root), "dataset_files": renders_record(source, split)}
     if lens is not None:  # the thin-lens frames' own cost, beside the pinhole frames'

@@ -17,6 +17,7 @@ trajectory of a steps-run.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -26,8 +27,9 @@ from pathlib import Path
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TrainConfig, resolve, upsample_count
-from nerfgauge.nerf.data import aabb_from_cameras, load_split_rays, scene_info
+from nerfgauge.nerf.config import (LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig, resolve,
+                                   upsample_count)
+from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
@@ -205,11 +207,16 @@ def prepare_run(config: TrainConfig):
     train_cams = ds.cameras("train")
     if not train_cams.stems:
         raise InputError(f"dataset {root} has no training views")
+    sparse = None if config.sparse is None else sparse_train_views(ds, config.sparse)
+    if sparse is not None:  # only the listed views: their cameras bound the scene and place the grid
+        train_cams = dataclasses.replace(train_cams, stems=tuple(train_cams.stems[i] for i in sparse),
+                                         c2w=train_cams.c2w[sparse],
+                                         lenses=tuple(train_cams.lenses[i] for i in sparse) if train_cams.lenses else ())
     needs, aabb = scene_info(root)
     if aabb is None:
         aabb = aabb_from_cameras(train_cams.c2w)
     check_targets(aabb, train_cams.c2w)
-    _, train_rays = load_split_rays(root, "train")
+    _, train_rays = load_split_rays(root, "train", views=sparse, footprint=config.pixel_filter != "centre")
     config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
                               train_cams.intrinsics.width, opaque_share(train_rays))
     recipe = run_recipe(config, manifest_sha256(root))
@@ -457,17 +464,32 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
     optimizer = training.optimizer
     for group in optimizer.param_groups:
         group["lr"] = group["base_lr"] * LR_FINAL_FRACTION ** fraction_done
-    index = torch.randint(rays.origins.shape[0], (n_rays,), generator=generator)
+    # TrainConfig.pixel_filter: per pixel one ray through its centre or a random point of
+    # it, or (box) the mean of a stratified 2 x 2 set of rays, so the loss compares the
+    # pixel's box-filtered colour with the ground truth's; n_rays counts rays either way.
+    per_pixel = TRAIN_PIXEL_SAMPLES[config.pixel_filter]
+    n_pixels = max(1, n_rays // per_pixel)
+    index = torch.randint(rays.origins.shape[0], (n_pixels,), generator=generator)
     origins, directions, rgba = (t[index].to(device) for t in (rays.origins, rays.directions, rays.rgba))
+    if config.pixel_filter != "centre":
+        offsets = stratified_offsets(n_pixels, per_pixel, generator).to(device)  # [per_pixel * n_pixels, 2]
+        origins = origins.repeat(per_pixel, 1)
+        directions = jittered_direction(directions.repeat(per_pixel, 1),
+                                        rays.footprint[index].to(device).repeat(per_pixel, 1, 1), offsets)
     if config.background == "random":
-        background = torch.rand((n_rays, 3), generator=generator).to(device)
+        background = torch.rand((n_pixels, 3), generator=generator).to(device)
     else:
         background = torch.full((3,), 1.0 if config.background == "white" else 0.0, device=device)
     target = rgba[:, :3] * rgba[:, 3:] + background * (1 - rgba[:, 3:])
+    ray_background = background.repeat(per_pixel, 1) if background.ndim == 2 else background
     out = model.render(origins, directions, generator=generator, training=True)
-    loss = ((composite(out.rgb, out.opacity, background) - target) ** 2).mean()
+
+    def pixel_error(rgb, opacity):  # [n_pixels, 3]: the mean of each pixel's rays, composited, minus the target
+        return composite(rgb, opacity, ray_background).view(per_pixel, n_pixels, 3).mean(dim=0) - target
+
+    loss = (pixel_error(out.rgb, out.opacity) ** 2).mean()
     if out.coarse is not None:
-        loss = loss + ((composite(out.coarse.rgb, out.coarse.opacity, background) - target) ** 2).mean()
+        loss = loss + (pixel_error(out.coarse.rgb, out.coarse.opacity) ** 2).mean()
     loss = loss + model.regularisation(config.tv_weight)
     if out.distortion is not None and config.distortion_weight > 0:
         loss = loss + config.distortion_weight * out.distortion.mean()
@@ -480,6 +502,17 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
     if gradients_finite:
         optimizer.step()
     return float(loss.detach()), gradients_finite
+
+
+def stratified_offsets(n_pixels: int, per_pixel: int, generator: torch.Generator) -> torch.Tensor:
+    """Offsets from the pixel centre (pixels, x then y, in [-0.5, 0.5)) of `per_pixel` rays
+    for each of n_pixels pixels: one uniform point in each cell of a k x k grid over the
+    pixel (k^2 = per_pixel), or one uniform point of the pixel when per_pixel is 1.
+    Returns [per_pixel * n_pixels, 2], ray r of pixel p at row r * n_pixels + p."""
+    k = math.isqrt(per_pixel)
+    cells = torch.stack(torch.meshgrid(torch.arange(k), torch.arange(k), indexing="xy"), dim=-1).reshape(-1, 1, 2)
+    points = (cells + torch.rand((per_pixel, n_pixels, 2), generator=generator)) / k - 0.5
+    return points.reshape(-1, 2)
 
 
 def _truncate_log(path: Path, last_step: int) -> None:

@@ -61,7 +61,9 @@ def generate_dataset(scene: str, /, out, **options) -> Path:
     """Render `scene` into a dataset folder `out` (resumed if it holds the same recipe).
 
     options: GenerateConfig fields (seed, views, val_views, test_views, width, height, spp,
-    max_depth, fov, layout, sampling, elevation, radius, variant) and workers=1,
+    max_depth, fov, layout, sampling, elevation, radius, variant; the train-view degradations
+    pose_noise_rotation, pose_noise_translation, exposure_ev, white_balance, vignetting,
+    degrade_seed: docs/conventions.md "Degradations") and workers=1,
     overwrite=False, progress=False, points="surface" (the COLMAP export's initial points,
     KIND[:COUNT]: docs/conventions.md "COLMAP"). Returns the dataset folder.
     """

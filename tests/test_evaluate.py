@@ -73,7 +73,9 @@ def test_ground_truth_scores_perfectly(ds, test_split, tmp_path, capsys, depth_k
     assert doc["mean"]["depth_absrel"] == 0.0 and doc["mean"]["depth_delta1"] == 1.0
     assert doc["mean"]["depth_absrel_resolved"] == 0.0 and doc["mean"]["psnr_covisible"] == PSNR_CAP_DB
     # LPIPS-Alex needs 31 px: at 24 px it is n/a, whether or not its weights are installed
-    assert all(doc["count"][m] == 3 for m in METRIC_NAMES if m != "lpips") and doc["count"]["lpips"] == 0
+    # at 24 px every covered pixel lies within a pixel of an edge: no interior to score
+    assert all(doc["count"][m] == 3 for m in METRIC_NAMES if m not in ("lpips", "psnr_interior"))
+    assert doc["count"]["lpips"] == 0 and doc["mean"]["psnr_edges"] == PSNR_CAP_DB
     assert doc["mean"]["lpips"] is None and doc["notes"]["lpips"].startswith("n/a")
     # Opacity from the PNG's alpha (coverage) against the pixel-centre mask: not always 1.
     opened = dataset.open_dataset(ds)

@@ -333,3 +333,40 @@ def test_area_average_refuses_what_it_cannot_split_into_blocks(shape, factor, me
 
     with pytest.raises(InputError, match=re.escape(message)):
         area_average(np.zeros(shape), factor)
+
+
+def _edge_pixels_by_scipy(rgba, ids, step):
+    """The same rule built another way: gradients by np.diff, dilation by scipy.ndimage."""
+    from scipy import ndimage
+
+    alpha = rgba[..., 3]
+    colour = rgba[..., :3] * alpha[..., None]
+    seeds = (alpha > 0) & (alpha < 1)
+    for axis in (0, 1):
+        jump = np.abs(np.diff(colour, axis=axis)).max(axis=-1) > step
+        if ids is not None:
+            jump |= np.diff(ids, axis=axis) != 0
+        pad_before = [(1, 0) if a == axis else (0, 0) for a in range(2)]
+        pad_after = [(0, 1) if a == axis else (0, 0) for a in range(2)]
+        seeds |= np.pad(jump, pad_before) | np.pad(jump, pad_after)
+    return ndimage.binary_dilation(seeds, structure=np.ones((3, 3), bool))
+
+
+@pytest.mark.parametrize("with_ids", [False, True])
+def test_edge_pixels_equal_an_independent_construction(with_ids):
+    from nerfgauge.eval.metrics import edge_pixels
+
+    rng = np.random.default_rng(3)
+    rgba = np.zeros((40, 50, 4))
+    rgba[8:30, 10:40] = [0.2, 0.6, 0.3, 1.0]  # an opaque block
+    rgba[8:30, 25:40, 0] += rng.uniform(0, 0.08, size=(22, 15))  # texture below the step threshold
+    rgba[15:20, 12:20, :3] = 0.9  # a colour step inside the block
+    rgba[29, 10:40, 3] = 0.5  # a partially covered row
+    ids = np.where(rgba[..., 3] > 0, 1, 0)
+    ids[8:30, 30:40] = 2  # two shapes meeting without a colour step
+    got = edge_pixels(rgba, ids if with_ids else None)
+    assert np.array_equal(got, _edge_pixels_by_scipy(rgba, ids if with_ids else None, 0.1))
+    # what the rule must and must not mark, by construction
+    assert not got[23:27, 13:24].any()  # the block's inside, two pixels from every step
+    assert got[7:10, 10:40].all() and got[28:31, 10:40].all()  # silhouette rows (and the half-covered row)
+    assert got[20, 29:31].all() == with_ids  # the shapes' shared boundary is an edge only by the ids

@@ -46,6 +46,21 @@ def test_their_blender_loader_reads_our_dataset(ds):
     assert theirs["metadata"]["background_color"].tolist() == [255, 255, 255]
 
 
+def test_their_blender_loader_reads_a_degraded_dataset_with_the_perturbed_train_poses(tmp_path, make_dataset):
+    """The extra train-frame keys (exact_transform_matrix, photometric) are passed over: their
+    loader reads the train split and gets the perturbed poses the transforms hold."""
+    from nerfbaselines.datasets.blender import load_blender_dataset
+
+    ds = make_dataset(tmp_path / "degraded", views=4, val_views=1, test_views=2, width=24, height=24,
+                      pose_noise_rotation=2.0, pose_noise_translation=0.05, exposure_ev=0.5, vignetting=0.2)
+    theirs = load_blender_dataset(str(ds), "train")
+    ours = dataset.Dataset(ds)
+    expected = ours.c2w("train")[:, :3, :4] @ np.diag([1.0, -1.0, -1.0, 1.0])
+    np.testing.assert_allclose(theirs["cameras"].poses, expected, atol=1e-6)
+    exact = np.array([f["exact_transform_matrix"] for f in json.loads((ds / "transforms_train.json").read_text())["frames"]])
+    assert np.abs(exact[:, :3, 3] - ours.c2w("train")[:, :3, 3]).max() > 1e-6
+
+
 def test_their_results_tooling_reads_our_results_json(ds, tmp_path, capsys):
     from nerfbaselines import io as nb_io
     from nerfbaselines import results as nb_results

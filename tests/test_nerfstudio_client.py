@@ -145,3 +145,34 @@ def test_their_input_dataset_reads_our_images(nerfstudio_colmap, ds):
         theirs = data.get_numpy_image(index)
         ours = np.round(read_png(ds / (frame["file_path"] + ".png")) * 255).astype(np.uint8)
         np.testing.assert_array_equal(theirs, ours)
+
+
+def test_their_dataparsers_read_a_degraded_dataset_with_the_perturbed_train_poses(nerfstudio_colmap, tmp_path):
+    """Degraded train views (generate.degrade): the extra frame keys (exact_transform_matrix,
+    photometric) are passed over; their nerfstudio-format dataparser (transforms.json) and
+    their COLMAP dataparser (sparse/0) both give the perturbed train poses the transforms hold."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from nerfgauge.generate.pipeline import GenerateConfig, generate
+
+    ds = tmp_path / "degraded"
+    generate(GenerateConfig(scene="primitives", views=5, val_views=1, test_views=1, width=32, height=24, spp=4,
+                            pose_noise_rotation=2.0, pose_noise_translation=0.05, exposure_ev=0.5, white_balance=0.1),
+             ds, progress=False, points="surface:200")
+    frames = json.loads((ds / "transforms_train.json").read_text())["frames"]
+    noisy = np.array([frame["transform_matrix"] for frame in frames], dtype=np.float64)
+    exact = np.array([frame["exact_transform_matrix"] for frame in frames], dtype=np.float64)
+    assert np.abs(noisy - exact).max() > 1e-4
+
+    theirs_json = NerfstudioDataParserConfig(data=ds, orientation_method="none", center_method="none",
+                                             auto_scale_poses=False, scale_factor=1.0, eval_mode="filename")
+    out = theirs_json.setup().get_dataparser_outputs(split="train")
+    assert [Path(p).name for p in out.image_filenames] == [Path(f["file_path"]).name + ".png" for f in frames]
+    poses = np.tile(np.eye(4), (len(frames), 1, 1))
+    poses[:, :3, :4] = out.cameras.camera_to_worlds.numpy().astype(np.float64)
+    recovered = np.linalg.inv(homogeneous(out.dataparser_transform.numpy())) @ poses
+    np.testing.assert_allclose(recovered, noisy, rtol=0, atol=ATOL)
+
+    out = parse(nerfstudio_colmap, ds, Path("sparse/0"), "as-is")
+    poses[:, :3, :4] = out.cameras.camera_to_worlds.numpy().astype(np.float64)
+    np.testing.assert_allclose(poses, noisy, rtol=0, atol=ATOL)

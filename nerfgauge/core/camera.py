@@ -59,10 +59,12 @@ def camera_directions(intrinsics: Intrinsics) -> np.ndarray:
     return np.stack([x, y, -np.ones_like(x)], axis=-1)
 
 
-def pixel_rays(c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(c2w: np.ndarray, intrinsics: Intrinsics, distortion=None) -> tuple[np.ndarray, np.ndarray]:
     """World-space rays through every pixel centre.
 
-    c2w: [4, 4] camera-to-world (OpenGL axes).
+    c2w: [4, 4] camera-to-world (OpenGL axes). distortion: a core.distortion.Distortion the
+    pixel grid is seen through (None: the pinhole): each pixel centre's ray is that of its
+    undistorted normalised coordinates (docs/conventions.md, "Lens distortion").
     Returns origins [H, W, 3] and unit directions [H, W, 3] (float64).
     """
     c2w = np.asarray(c2w, np.float64)
@@ -72,7 +74,8 @@ def pixel_rays(c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.
         raise InputError(f"camera-to-world matrix has non-finite entries: {c2w[:3].round(6).tolist()}")
     if abs(np.linalg.det(c2w[:3, :3])) < 1e-12:
         raise InputError(f"camera-to-world rotation is singular: {c2w[:3, :3].round(6).tolist()}")
-    d = camera_directions(intrinsics) @ c2w[:3, :3].T
+    local = camera_directions(intrinsics) if distortion is None else distortion.camera_directions(intrinsics)
+    d = local @ c2w[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return np.broadcast_to(c2w[:3, 3], d.shape).copy(), d
 
@@ -88,13 +91,18 @@ def pixel_coordinates(x: np.ndarray, y: np.ndarray, z: np.ndarray, intrinsics: I
     return intrinsics.cx + intrinsics.fx * x * inverse, intrinsics.cy - intrinsics.fy * y * inverse
 
 
-def project(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel coordinates of world points in one camera (see pixel_coordinates).
+def project(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics,
+            distortion=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel coordinates of world points in one camera (see pixel_coordinates; through
+    `distortion`, a core.distortion.Distortion, when given).
 
     points [n, 3], c2w [4, 4]. Returns u, v [n] (NaN behind the camera) and the distance
     from the camera centre [n]."""
     c2w = np.asarray(c2w, np.float64)
     local = (np.asarray(points, np.float64) - c2w[:3, 3]) @ c2w[:3, :3]  # [n, 3] camera axes
+    if distortion is not None:
+        u, v = distortion.project(local[:, 0], local[:, 1], local[:, 2], intrinsics)
+        return u, v, np.linalg.norm(local, axis=1)
     u, v = pixel_coordinates(local[:, 0], local[:, 1], local[:, 2], intrinsics)
     return u, v, np.linalg.norm(local, axis=1)
 
@@ -275,14 +283,21 @@ def thin_lens_rays(c2w: np.ndarray, intrinsics: Intrinsics, lens: ThinLens,
 @dataclass(frozen=True)
 class SplitCameras:
     """One split: frame stems (relative, extension-less), poses [n, 4, 4] (read-only),
-    intrinsics, and per frame the thin lens its colour was rendered through (None: a
-    pinhole frame; an empty tuple when no frame has a lens)."""
+    intrinsics, per frame the thin lens its colour was rendered through (None: a
+    pinhole frame; an empty tuple when no frame has a lens), and the split's lens
+    distortion (a core.distortion.Distortion; None: pinhole pixels)."""
 
     split: str
     stems: tuple
     c2w: np.ndarray
     intrinsics: Intrinsics
     lenses: tuple = ()
+    distortion: object = None
+
+    def rays(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame `index`'s pixel-centre rays through the split's distortion (pixel_rays).
+        Returns origins, unit directions [H, W, 3] float64."""
+        return pixel_rays(self.c2w[index], self.intrinsics, self.distortion)
 
     def lens(self, index: int) -> Optional[ThinLens]:
         """Frame `index`'s thin lens, None for a pinhole frame."""

@@ -87,6 +87,25 @@ def pinhole_camera(intrinsics: Intrinsics, camera_id: int = 1) -> Camera:
     return Camera(camera_id, "PINHOLE", int(intrinsics.width), int(intrinsics.height), tuple(float(v) for v in values))
 
 
+def camera_model(intrinsics: Intrinsics, distortion=None, camera_id: int = 1) -> Camera:
+    """Our intrinsics and lens distortion (a core.distortion.Distortion, None: pinhole) as
+    the COLMAP model that states them exactly: PINHOLE; OPENCV (fx fy cx cy k1 k2 p1 p2);
+    FULL_OPENCV when k3 != 0 (OPENCV has no k3; FULL_OPENCV's radial factor is
+    (1 + k1 r2 + k2 r4 + k3 r6) / (1 + k4 r2 + k5 r4 + k6 r6), here with k4 = k5 = k6 = 0);
+    OPENCV_FISHEYE (fx fy cx cy k1 k2 k3 k4) for the fisheye model."""
+    if distortion is None or distortion.is_identity:
+        return pinhole_camera(intrinsics, camera_id)
+    base = pinhole_camera(intrinsics, camera_id)
+    d = distortion
+    if d.model == "fisheye":
+        model, extra = "OPENCV_FISHEYE", (d.k1, d.k2, d.k3, d.k4)
+    elif d.k3 == 0:
+        model, extra = "OPENCV", (d.k1, d.k2, d.p1, d.p2)
+    else:
+        model, extra = "FULL_OPENCV", (d.k1, d.k2, d.p1, d.p2, d.k3, 0.0, 0.0, 0.0)
+    return Camera(camera_id, model, base.width, base.height, base.params + tuple(float(v) for v in extra))
+
+
 def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix [3, 3] (Shepperd's method:
     the largest of the four diagonal combinations divides, so no branch loses precision)."""

@@ -34,6 +34,7 @@ or an open Dataset.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 from pathlib import Path
@@ -44,6 +45,7 @@ from PIL import Image, JpegImagePlugin
 
 from nerfgauge.core import foreign_dataset, validate
 from nerfgauge.core.camera import Intrinsics, SplitCameras, ThinLens  # SplitCameras: read here, defined with the cameras
+from nerfgauge.core.distortion import Distortion
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.folders import MARKER
 from nerfgauge.core.files import atomic_path, json_from_bytes, read_json, sha256_file, write_json
@@ -93,13 +95,16 @@ def _lens_entry(lens) -> dict:
     return {} if lens is None else {"lens": lens.to_json()}
 
 
-def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[ThinLens] = None) -> dict:
+def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[ThinLens] = None,
+                         distortion: Optional[Distortion] = None) -> dict:
     """transforms_<split>.json in the NeRF-synthetic format (plus w/h/fl_x/... extras; each
-    frame's "lens" when its colour was rendered through a thin lens)."""
+    frame's "lens" when its colour was rendered through a thin lens; the split's lens
+    distortion as nerfstudio's camera_model and k1.. keys)."""
     return {
         "camera_angle_x": intrinsics.camera_angle_x,
         "w": intrinsics.width, "h": intrinsics.height,
         "fl_x": intrinsics.fx, "fl_y": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy,
+        **({} if distortion is None else distortion.to_json()),
         "frames": [{"file_path": "./" + stem, "transform_matrix": np.asarray(pose).tolist(),
                     "depth_file_path": "./" + stem + FRAME_SUFFIXES["distance"],
                     "mask_path": "./" + stem + FRAME_SUFFIXES["mask"]} | _lens_entry(lens)
@@ -108,9 +113,12 @@ def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[Th
 
 
 def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses: dict,
-                          split_lenses: Optional[dict] = None) -> dict:
+                          split_lenses: Optional[dict] = None, split_distortions: Optional[dict] = None) -> dict:
     """transforms.json for nerfstudio. Its depth is z-depth in scene units (nerfstudio
-    expects z-depth; pass --depth-unit-scale-factor 1 to its dataparser)."""
+    expects z-depth; pass --depth-unit-scale-factor 1 to its dataparser). With a lens
+    distortion (split_distortions: {split: Distortion or None}) see distorted_transforms."""
+    if any((split_distortions or {}).values()):
+        return distorted_transforms(intrinsics, split_stems, split_poses, split_lenses, split_distortions)
     frames, filenames = [], {}
     for split in SPLITS:
         filenames[f"{split}_filenames"] = [stem + ".png" for stem in split_stems[split]]
@@ -121,6 +129,41 @@ def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses
     return {"camera_model": "OPENCV", "fl_x": intrinsics.fx, "fl_y": intrinsics.fy,
             "cx": intrinsics.cx, "cy": intrinsics.cy, "w": intrinsics.width, "h": intrinsics.height,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames, **filenames}
+
+
+def distorted_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses: dict, split_lenses, split_distortions
+                         ) -> dict:
+    """transforms.json of a dataset with distorted splits. nerfstudio's dataparser reads one
+    camera_model for the file and the coefficients per frame when the top level has none:
+    - opencv: camera_model OPENCV, every frame its own k1 k2 k3 p1 p2 (0 for pinhole frames,
+      which OPENCV with zeros is);
+    - fisheye: camera_model OPENCV_FISHEYE cannot state a pinhole frame (a fisheye with
+      zeros is the equidistant projection), so the file lists the fisheye frames only, with
+      no {split}_filenames (nerfstudio then splits them itself); the pinhole splits are in
+      transforms_{split}.json."""
+    models = {d.model for d in split_distortions.values() if d is not None}
+    if len(models) != 1:
+        raise ValueError(f"one distortion model per dataset, got {sorted(models)}")
+    model = models.pop()
+    frames, filenames = [], {}
+    for split in SPLITS:
+        distortion = split_distortions.get(split)
+        if model == "fisheye" and distortion is None:
+            continue
+        keys = (distortion or Distortion("opencv")).to_json()
+        keys.pop("camera_model")
+        if model == "opencv":
+            keys.setdefault("k3", 0.0)
+        filenames[f"{split}_filenames"] = [stem + ".png" for stem in split_stems[split]]
+        for stem, pose in zip(split_stems[split], split_poses[split]):
+            frames.append({"file_path": stem + ".png", "transform_matrix": np.asarray(pose).tolist(),
+                           "depth_file_path": stem + FRAME_SUFFIXES["z_depth"],
+                           "mask_path": stem + FRAME_SUFFIXES["mask"], **keys}
+                          | _lens_entry((split_lenses or {}).get(split)))
+    out = {"camera_model": "OPENCV" if model == "opencv" else "OPENCV_FISHEYE", "fl_x": intrinsics.fx,
+           "fl_y": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy, "w": intrinsics.width,
+           "h": intrinsics.height, "frames": frames}
+    return out | ({} if model == "fisheye" else filenames)
 
 
 def write_manifest(root: Path, relative_paths) -> None:
@@ -213,6 +256,7 @@ class Dataset:
             raise InputError(f"dataset folder not found: {self.root}")
         self._real_root = self.root.resolve()
         self.foreign = None  # a foreign_dataset.ForeignLayout for folders nerfgauge did not write
+        self._exact_poses = {}  # split -> [n, 4, 4] where frames record exact_transform_matrix (pose noise)
         self.files_read = {}  # foreign folders: {relative path: sha256} of every file read
         if not (self.root / MANIFEST).is_file():
             fmt = None if (self.root / MARKER).exists() else foreign_dataset.detect(self.root)
@@ -280,7 +324,10 @@ class Dataset:
         if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
             raise InputError(f"{where}: 'frames' must be a list of objects")
         intrinsics = validate.intrinsics(meta, where)
-        stems, poses, lenses = [], [], []
+        distortion = Distortion.from_json(meta, where)
+        if distortion is not None:
+            distortion.check_image(intrinsics, f"{where}: camera_model {meta.get('camera_model')}")
+        stems, poses, lenses, exact = [], [], [], []
         for k, frame in enumerate(frames):
             if "file_path" not in frame or "transform_matrix" not in frame:
                 raise InputError(f"{where}: frame {k} needs file_path and transform_matrix")
@@ -291,9 +338,14 @@ class Dataset:
             stems.append(stem)
             poses.append(validate.pose(frame["transform_matrix"], stem, where))
             lenses.append(ThinLens.from_json(frame["lens"], f"{where}: frame {stem}") if "lens" in frame else None)
+            exact.append(validate.pose(frame["exact_transform_matrix"], stem, where) if "exact_transform_matrix" in frame
+                         else poses[-1])
         c2w = np.stack(poses) if poses else np.zeros((0, 4, 4))
         c2w.flags.writeable = False  # shared by every caller of cameras(split)
-        return SplitCameras(split, tuple(stems), c2w, intrinsics, tuple(lenses) if any(lenses) else ())
+        if any("exact_transform_matrix" in frame for frame in frames):
+            self._exact_poses[split] = np.stack(exact)
+            self._exact_poses[split].flags.writeable = False
+        return SplitCameras(split, tuple(stems), c2w, intrinsics, tuple(lenses) if any(lenses) else (), distortion)
 
     def frame_file(self, stem: str, kind: str, decode):
         """decode(path, verified bytes) of the frame's file of `kind` (a FRAME_SUFFIXES
@@ -320,6 +372,15 @@ class Dataset:
             any_split = next(iter(self._cameras.values()))
             return SplitCameras(split, (), np.zeros((0, 4, 4)), any_split.intrinsics)
         return self._cameras[split]
+
+    def exact_cameras(self, split: str) -> SplitCameras:
+        """cameras(split) with the poses its images, depth and normals were rendered from:
+        the frames' exact_transform_matrix in a dataset with pose noise (docs/conventions.md,
+        "Degradations"; its transform_matrix is then perturbed), else cameras(split) itself.
+        Ground-truth geometry (visibility, co-visibility) pairs depth maps with these."""
+        cameras = self.cameras(split)
+        exact = self._exact_poses.get(split)
+        return cameras if exact is None else dataclasses.replace(cameras, c2w=exact)
 
     @property
     def splits(self) -> tuple:

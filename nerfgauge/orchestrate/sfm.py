@@ -51,6 +51,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_json
 from nerfgauge.core.folders import _check_claimable, claim_folder, recipe_hash
 from nerfgauge.core.outputs import stamp
+from nerfgauge.eval.poses import pose_errors, rotation_angle_degrees, umeyama  # noqa: F401 (the maths lives in eval.poses)
 from nerfgauge.generate import points as points_module
 from nerfgauge.generate.export import check_exportable, extract_and_match, require_pycolmap, stage_images
 
@@ -60,72 +61,6 @@ MIN_REGISTERED = 3  # a similarity needs three non-collinear centres
 # ~40 SIFT features of a 128 px view of a synthetic scene hold. These thresholds (recorded in
 # sfm.json) let small images reconstruct; --colmap-defaults restores COLMAP's.
 SMALL_IMAGE_MAPPER = {"init_min_num_inliers": 30, "abs_pose_min_num_inliers": 15}
-
-
-def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(s, R, t) minimising sum |target - (s R source + t)|^2 over similarities (Umeyama,
-    "Least-squares estimation of transformation parameters between two point patterns",
-    PAMI 1991). source, target: [n, 3], n >= 3 not collinear."""
-    source, target = np.asarray(source, np.float64), np.asarray(target, np.float64)
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    xs, xt = source - mu_s, target - mu_t
-    variance = (xs ** 2).sum() / len(source)
-    covariance = xt.T @ xs / len(source)
-    u, d, vt = np.linalg.svd(covariance)
-    sign = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        sign[2, 2] = -1
-    rotation = u @ sign @ vt
-    scale = float(np.trace(np.diag(d) @ sign) / variance) if variance > 0 else 1.0
-    return scale, rotation, mu_t - scale * rotation @ mu_s
-
-
-def rotation_angle_degrees(rotation: np.ndarray) -> np.ndarray:
-    """Angle of rotation matrices [..., 3, 3], degrees."""
-    trace = np.trace(rotation, axis1=-2, axis2=-1)
-    axis = np.stack([rotation[..., 2, 1] - rotation[..., 1, 2], rotation[..., 0, 2] - rotation[..., 2, 0],
-                     rotation[..., 1, 0] - rotation[..., 0, 1]], axis=-1)
-    # atan2(2 sin, 2 cos): precise near 0 and 180 degrees, where arccos of the trace is not
-    return np.degrees(np.arctan2(np.linalg.norm(axis, axis=-1), trace - 1))
-
-
-def pose_errors(gt_c2w: np.ndarray, est_c2w: np.ndarray) -> dict:
-    """Errors of recovered camera-to-world poses est_c2w [n, 4, 4] (any consistent axes:
-    both OpenCV here) against gt_c2w [n, 4, 4] after a Sim(3) alignment of the centres."""
-    gt_centres, est_centres = gt_c2w[:, :3, 3], est_c2w[:, :3, 3]
-    scale, rotation, translation = umeyama(est_centres, gt_centres)
-    aligned_centres = scale * est_centres @ rotation.T + translation
-    aligned_rotations = rotation @ est_c2w[:, :3, :3]
-    rotation_error = rotation_angle_degrees(np.transpose(gt_c2w[:, :3, :3], (0, 2, 1)) @ aligned_rotations)
-    translation_error = np.linalg.norm(aligned_centres - gt_centres, axis=1)
-    spread = float(np.sqrt(((gt_centres - gt_centres.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    i, j = np.triu_indices(len(gt_c2w), k=1)
-    rpe_rotation, rpe_translation = np.zeros(0), np.zeros(0)
-    if len(i):
-        gt_rel_r = np.transpose(gt_c2w[i, :3, :3], (0, 2, 1)) @ gt_c2w[j, :3, :3]
-        est_rel_r = np.transpose(aligned_rotations[i], (0, 2, 1)) @ aligned_rotations[j]
-        rpe_rotation = rotation_angle_degrees(np.transpose(gt_rel_r, (0, 2, 1)) @ est_rel_r)
-        gt_rel_t = np.einsum("nji,nj->ni", gt_c2w[i, :3, :3], gt_centres[j] - gt_centres[i])
-        est_rel_t = np.einsum("nji,nj->ni", aligned_rotations[i], aligned_centres[j] - aligned_centres[i])
-        rpe_translation = np.linalg.norm(gt_rel_t - est_rel_t, axis=1)
-
-    def stats(values):
-        if not len(values):
-            return None
-        return {"mean": float(values.mean()), "median": float(np.median(values)), "max": float(values.max())}
-
-    return {
-        "alignment": {"scale": scale, "rotation": rotation.tolist(), "translation": translation.tolist(),
-                      "method": "Umeyama Sim(3) on camera centres (recovered -> exact)"},
-        "rotation_error_degrees": stats(rotation_error),
-        "translation_error": stats(translation_error),
-        "translation_error_over_spread": stats(translation_error / spread) if spread > 0 else None,
-        "camera_spread": spread,
-        "ate_rmse": float(np.sqrt((translation_error ** 2).mean())),
-        "rpe": {"pairs": int(len(i)),
-                "rotation_rmse_degrees": float(np.sqrt((rpe_rotation ** 2).mean())) if len(i) else None,
-                "translation_rmse": float(np.sqrt((rpe_translation ** 2).mean())) if len(i) else None},
-    }, (scale, rotation, translation)
 
 
 def run_sfm(ds, work: Path, fix_intrinsics: bool = False, colmap_defaults: bool = False) -> tuple:

@@ -7,8 +7,8 @@ path ending in .toml):
     version = 1                    # required, a positive integer: bump it on any change
     description = "..."            # optional
     [dataset]                      # required: nerfgauge generate settings (GenerateConfig
-    width = 16 ...                 #   fields but scene and seed); width, height, views,
-                                   #   test_views and spp are required
+    width = 16 ...                 #   fields but scene and seed, the train-view degradations
+                                   #   too); width, height, views, test_views and spp are required
     [train]                        # required: our NeRF (TrainConfig fields but dataset and
     steps = 80 ...                 #   seed); steps is required (reproducible)
     [protocol]                     # required: split, background, depth_kind; optional

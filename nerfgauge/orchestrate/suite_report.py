@@ -40,6 +40,7 @@ import numpy as np
 from pathlib import Path
 
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
+from nerfgauge.orchestrate import suite_robustness
 from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results
 from nerfgauge.eval.metrics import METRIC_NAMES
 from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, paired_comparison, run_matrix,
@@ -118,6 +119,8 @@ def leaderboard(suite: Suite, out) -> dict:
 
 
 PAIRED_METRIC = "psnr"
+ROBUSTNESS_CAPTION = ("Robustness: each method's score against the level of one train-view degradation "
+                      "(orchestrate.suite_robustness; docs/conventions.md, Degradations)")
 PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views and seeds; 95% "
                   f"paired bootstrap interval over seeds, then views; two-sided Wilcoxon signed-rank test on the "
                   f"per-view differences at {LEVEL_ALPHA:g})")
@@ -316,6 +319,12 @@ def markdown(board: dict) -> str:
         lines += [f"## {PAIRED_CAPTION}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
         lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
         lines.append("")
+    if board.get("robustness"):
+        rows = suite_robustness.rows(board["robustness"])
+        lines += [f"## {ROBUSTNESS_CAPTION}", "", f"![robustness curves]({suite_robustness.PLOT})", "",
+                  "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+        lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
+        lines.append("")
     sensitivity = board.get("protocol_sensitivity")
     if sensitivity:
         rows = sensitivity_rows(sensitivity)
@@ -330,6 +339,10 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
     out = Path(out)
     board = leaderboard(suite, out)
     board["protocol_sensitivity"] = protocol_sensitivity(suite, out)
+    curves = suite_robustness.robustness(suite, board)  # score against degradation level, when the suite has levels
+    if curves is not None:
+        board["robustness"] = curves
+        suite_robustness.plot(curves, out / suite_robustness.PLOT)
     links = {}
     if reports:
         for entry in suite.scenes:
@@ -346,6 +359,9 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
             sections.append(f"<p>{html.escape(unavailable_line(board['unavailable'][title]))}</p>")
     if board.get("paired"):
         sections.append(f"<h2>{html.escape(PAIRED_CAPTION)}</h2>" + sortable_table_html(paired_rows(board["paired"])))
+    if board.get("robustness"):
+        sections.append(f"<h2>{html.escape(ROBUSTNESS_CAPTION)}</h2><img src='{suite_robustness.PLOT}' "
+                        f"alt='robustness curves'>" + sortable_table_html(suite_robustness.rows(board["robustness"])))
     if board["protocol_sensitivity"]:
         sections.append(f"<h2>{html.escape(PROTOCOL_CAPTION)}</h2>"
                         + sortable_table_html(sensitivity_rows(board["protocol_sensitivity"])))

@@ -1,0 +1,145 @@
+"""Camera pose errors as pure functions: a method's optimised (or recovered) train poses
+against the exact ones, after a similarity alignment. numpy only, float64.
+
+Notation: c2w [n, 4, 4] camera-to-world matrices (rotation R_i = c2w[:3, :3], centre
+c_i = c2w[:3, 3]); gt the exact poses, est the method's. A similarity (s, Q, t) maps the
+method's world to the dataset's: x_gt = s Q x_est + t.
+
+- Alignment (umeyama): argmin over (s, Q, t) of sum_i |c_gt_i - (s Q c_est_i + t)|^2, closed
+  form (Umeyama, PAMI 1991): with mu the means, Sigma = (1/n) sum (c_gt - mu_gt)(c_est - mu_est)^T
+  = U D V^T, S = diag(1, 1, det(U) det(V)), Q = U S V^T, s = tr(D S) / var_est, t = mu_gt - s Q mu_est.
+- Aligned pose: R'_i = Q R_est_i, c'_i = s Q c_est_i + t (align_c2w).
+- Rotation error (deg): angle(R_gt_i^T R'_i) = atan2(|vee(M - M^T)|, tr M - 1).
+- Translation error: |c'_i - c_gt_i| (scene units), also over the spread of the exact
+  centres (sqrt(mean |c_gt - mean c_gt|^2)).
+- ATE: sqrt(mean_i |c'_i - c_gt_i|^2), the absolute trajectory error after a Sim(3)
+  alignment as evo's APE (translation part, --align --correct_scale) computes it.
+- RPE over every pair (i, j) (views are no trajectory): angle of the exact against the
+  aligned relative rotation, and the distance of the relative translations, RMS over pairs.
+
+Test-time alignment (to_method_world): a method that optimised its poses has drifted into
+its own world; to render the held-out views it needs their exact poses in that world,
+c2w_method = inverse similarity applied to c2w_gt: R = Q^T R_gt, c = Q^T (c_gt - t) / s. This
+is the protocol of BARF and of nerfstudio's camera-optimiser evaluation (the Sim(3) fitted
+on the train cameras is applied to the test cameras before rendering; BARF then also
+refines each test pose photometrically, which needs the method and is not done here).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, Q, t) minimising sum |target - (s Q source + t)|^2 over similarities (module
+    docstring). source, target: [n, 3], n >= 3 not collinear. Returns (float, [3, 3], [3])."""
+    source, target = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)  # [3]
+    xs, xt = source - mu_s, target - mu_t  # [n, 3]
+    variance = (xs ** 2).sum() / len(source)
+    covariance = xt.T @ xs / len(source)  # [3, 3]
+    u, d, vt = np.linalg.svd(covariance)
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2, 2] = -1
+    rotation = u @ sign @ vt
+    scale = float(np.trace(np.diag(d) @ sign) / variance) if variance > 0 else 1.0
+    return scale, rotation, mu_t - scale * rotation @ mu_s
+
+
+def rotation_angle_degrees(rotation: np.ndarray) -> np.ndarray:
+    """Angle of rotation matrices [..., 3, 3], degrees [...]: atan2(2 sin, 2 cos), precise
+    near 0 and 180 degrees, where arccos of the trace is not."""
+    trace = np.trace(rotation, axis1=-2, axis2=-1)
+    axis = np.stack([rotation[..., 2, 1] - rotation[..., 1, 2], rotation[..., 0, 2] - rotation[..., 2, 0],
+                     rotation[..., 1, 0] - rotation[..., 0, 1]], axis=-1)
+    return np.degrees(np.arctan2(np.linalg.norm(axis, axis=-1), trace - 1))
+
+
+def sim3_matrix(scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """The 4x4 matrix [[s Q, t], [0, 1]] of a similarity. -> [4, 4]."""
+    out = np.eye(4)
+    out[:3, :3] = scale * np.asarray(rotation, np.float64)
+    out[:3, 3] = translation
+    return out
+
+
+def align_c2w(c2w: np.ndarray, scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Poses moved by the similarity: R' = Q R, c' = s Q c + t (the rotation stays
+    orthonormal; the scale acts on positions only). c2w [n, 4, 4] -> [n, 4, 4]."""
+    c2w = np.asarray(c2w, np.float64)
+    out = c2w.copy()
+    out[:, :3, :3] = rotation @ c2w[:, :3, :3]
+    out[:, :3, 3] = scale * c2w[:, :3, 3] @ np.asarray(rotation).T + translation
+    return out
+
+
+def to_method_world(c2w_gt: np.ndarray, scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Exact poses [n, 4, 4] carried into the method's world by the inverse of the
+    alignment (s, Q, t) (test-time alignment, module docstring): R = Q^T R_gt,
+    c = Q^T (c_gt - t) / s. -> [n, 4, 4]."""
+    q = np.asarray(rotation, np.float64)
+    return align_c2w(c2w_gt, 1.0 / scale, q.T, -(q.T @ np.asarray(translation, np.float64)) / scale)
+
+
+def camera_spread(c2w: np.ndarray) -> float:
+    """sqrt(mean_i |c_i - mean c|^2) of the centres of c2w [n, 4, 4]."""
+    centres = np.asarray(c2w, np.float64)[:, :3, 3]
+    return float(np.sqrt(((centres - centres.mean(axis=0)) ** 2).sum(axis=1).mean()))
+
+
+def per_camera_errors(gt_c2w: np.ndarray, est_c2w: np.ndarray, align: bool = True) -> dict:
+    """Per camera: rotation error (degrees) [n] and translation error [n] of est against gt,
+    after the Umeyama alignment of the centres (align) or as given. Returns
+    {"rotation_degrees", "translation", "alignment": (s, Q, t)}."""
+    gt_c2w, est_c2w = np.asarray(gt_c2w, np.float64), np.asarray(est_c2w, np.float64)
+    similarity = umeyama(est_c2w[:, :3, 3], gt_c2w[:, :3, 3]) if align else (1.0, np.eye(3), np.zeros(3))
+    aligned = align_c2w(est_c2w, *similarity)
+    rotation = rotation_angle_degrees(np.swapaxes(gt_c2w[:, :3, :3], 1, 2) @ aligned[:, :3, :3])
+    translation = np.linalg.norm(aligned[:, :3, 3] - gt_c2w[:, :3, 3], axis=1)
+    return {"rotation_degrees": rotation, "translation": translation, "alignment": similarity, "aligned": aligned}
+
+
+def ate_rmse(translation_errors: np.ndarray) -> float:
+    """sqrt(mean e_i^2) of per-camera translation errors [n]."""
+    return float(np.sqrt(np.mean(np.asarray(translation_errors, np.float64) ** 2)))
+
+
+def pose_errors(gt_c2w: np.ndarray, est_c2w: np.ndarray) -> tuple[dict, tuple]:
+    """Errors of recovered camera-to-world poses est_c2w [n, 4, 4] (any consistent axes)
+    against gt_c2w [n, 4, 4] after a Sim(3) alignment of the centres: a summary dict
+    (alignment, rotation and translation error stats, ATE, RPE) and (s, Q, t)."""
+    gt_c2w = np.asarray(gt_c2w, np.float64)
+    errors = per_camera_errors(gt_c2w, est_c2w)
+    scale, rotation, translation = errors["alignment"]
+    aligned = errors["aligned"]
+    gt_centres, aligned_centres, aligned_rotations = gt_c2w[:, :3, 3], aligned[:, :3, 3], aligned[:, :3, :3]
+    rotation_error, translation_error = errors["rotation_degrees"], errors["translation"]
+    spread = camera_spread(gt_c2w)
+    i, j = np.triu_indices(len(gt_c2w), k=1)
+    rpe_rotation, rpe_translation = np.zeros(0), np.zeros(0)
+    if len(i):
+        gt_rel_r = np.transpose(gt_c2w[i, :3, :3], (0, 2, 1)) @ gt_c2w[j, :3, :3]
+        est_rel_r = np.transpose(aligned_rotations[i], (0, 2, 1)) @ aligned_rotations[j]
+        rpe_rotation = rotation_angle_degrees(np.transpose(gt_rel_r, (0, 2, 1)) @ est_rel_r)
+        gt_rel_t = np.einsum("nji,nj->ni", gt_c2w[i, :3, :3], gt_centres[j] - gt_centres[i])
+        est_rel_t = np.einsum("nji,nj->ni", aligned_rotations[i], aligned_centres[j] - aligned_centres[i])
+        rpe_translation = np.linalg.norm(gt_rel_t - est_rel_t, axis=1)
+
+    def stats(values):
+        if not len(values):
+            return None
+        return {"mean": float(values.mean()), "median": float(np.median(values)), "max": float(values.max())}
+
+    return {
+        "alignment": {"scale": scale, "rotation": rotation.tolist(), "translation": translation.tolist(),
+                      "method": "Umeyama Sim(3) on camera centres (recovered -> exact)"},
+        "rotation_error_degrees": stats(rotation_error),
+        "translation_error": stats(translation_error),
+        "translation_error_over_spread": stats(translation_error / spread) if spread > 0 else None,
+        "camera_spread": spread,
+        "ate_rmse": ate_rmse(translation_error),
+        "rpe": {"pairs": int(len(i)),
+                "rotation_rmse_degrees": float(np.sqrt((rpe_rotation ** 2).mean())) if len(i) else None,
+                "translation_rmse": float(np.sqrt((rpe_translation ** 2).mean())) if len(i) else None},
+    }, (scale, rotation, translation)

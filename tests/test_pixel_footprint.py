@@ -1,0 +1,82 @@
+"""The pixel's footprint (issue 34, item 1): training rays through any point of a pixel and
+box-filtered renders, checked against rays built independently from shifted intrinsics."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from nerfgauge.core.camera import Intrinsics, SplitCameras, look_at, pixel_rays
+from nerfgauge.nerf.data import jittered_direction, pixel_footprints
+from nerfgauge.nerf.render_views import box_frame, pixel_offsets
+
+
+def _camera(seed: int):
+    rng = np.random.default_rng(seed)
+    eye = rng.normal(size=3) * 3
+    intrinsics = Intrinsics(width=13, height=9, fx=11.0, fy=12.5, cx=6.1, cy=4.7)
+    return look_at(eye, rng.normal(size=3) * 0.3), intrinsics
+
+
+def _shifted_rays(c2w, intrinsics, offset):
+    """Rays through (column + 0.5 + ox, row + 0.5 + oy): the pinhole's rays with the
+    principal point moved by -offset (an independent route to the same rays)."""
+    moved = replace(intrinsics, cx=intrinsics.cx - offset[0], cy=intrinsics.cy - offset[1])
+    return pixel_rays(c2w, moved)[1].reshape(-1, 3)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_jittered_ray_is_the_ray_through_that_point_of_the_pixel(seed):
+    c2w, intrinsics = _camera(seed)
+    _, directions = pixel_rays(c2w, intrinsics)
+    footprint = torch.from_numpy(pixel_footprints(directions, c2w))
+    centre = torch.from_numpy(directions.reshape(-1, 3))
+    rng = np.random.default_rng(seed)
+    for offset in rng.uniform(-0.5, 0.5, size=(4, 2)):
+        got = jittered_direction(centre.float(), footprint, torch.tensor(offset, dtype=torch.float32).expand(len(centre), 2))
+        expected = _shifted_rays(c2w, intrinsics, offset)
+        # float32 footprint and directions: a few ulps of a unit vector
+        assert np.abs(got.numpy() - expected).max() < 2e-6
+        assert np.allclose(np.linalg.norm(got.numpy(), axis=1), 1, atol=1e-6)
+
+
+def test_pixel_offsets_are_the_midpoint_rule():
+    for n in (1, 2, 3, 5):
+        offsets = pixel_offsets(n)
+        assert offsets.shape == (n * n, 2) and np.allclose(offsets.mean(axis=0), 0, atol=1e-15)
+        assert np.all(np.abs(offsets) < 0.5) and len({tuple(o) for o in offsets}) == n * n
+        # the cells' centres: spaced 1/n, so the rule integrates a linear function over the pixel exactly
+        assert np.allclose(np.sort(np.unique(offsets[:, 0])), (np.arange(n) + 0.5) / n - 0.5)
+    assert np.array_equal(pixel_offsets(1), [[0.0, 0.0]])
+
+
+class EdgeField:
+    """A stand-in model: colour by which side of a plane through the origin a ray points to
+    (a sharp edge in the image), opacity 1, depth the ray's x component (so the centre ray
+    can be told from the others)."""
+
+    def render(self, origins, directions):
+        side = (directions @ torch.tensor([0.6, 0.0, 0.8]) > 0).float()
+        rgb = torch.stack([side, 1 - side, 0.5 * torch.ones_like(side)], dim=-1)
+        return SimpleNamespace(rgb=rgb, opacity=torch.ones_like(side), depth=directions[:, 0])
+
+
+@pytest.mark.parametrize("per_axis", [1, 2, 3])
+def test_a_box_frame_averages_the_rays_through_the_grid_of_points(per_axis):
+    c2w, intrinsics = _camera(5)
+    cameras = SplitCameras("test", ("a",), np.stack([c2w]), intrinsics)
+    rgb, opacity, depth = box_frame(EdgeField(), cameras, 0, per_axis, None, 1, torch.device("cpu"))
+    field = EdgeField()
+    expected = np.mean([field.render(None, torch.from_numpy(_shifted_rays(c2w, intrinsics, offset)).float()).rgb.numpy()
+                        for offset in pixel_offsets(per_axis)], axis=0)
+    assert np.allclose(rgb.numpy(), expected, atol=1e-6)
+    assert torch.all(opacity == 1)
+    centre = pixel_rays(c2w, intrinsics)[1].reshape(-1, 3)[:, 0]
+    assert np.allclose(depth.numpy(), centre, atol=1e-6)  # depth of the centre rays, as the ground truth's
+    # the edge crosses the image: a mixed pixel exists once there is more than one ray
+    mixed = (rgb[:, 0] > 0) & (rgb[:, 0] < 1)
+    assert bool(mixed.any()) == (per_axis > 1)
