@@ -4,7 +4,17 @@
 
 Exit codes: 0 every check passes (or is skipped), 1 at least one fails, 2 malformed input
 (`InputError`: unreadable or malformed files, unknown scene / metric / key, wrong schema,
-nothing to check).
+nothing to check), 4 at least one fails and the run is **under-trained**: the thresholds
+record a calibrated training (`training = { steps, steps_per_second }`, written by
+`check --calibrate`) and metrics.json's `training.steps` is below half of its steps (a
+time-budgeted run on a slower or busier machine). The line
+`under-trained: got N steps, calibration had M (...)` says so, so the failure is not read
+as a quality drop; CI may treat 4 as "rerun on a calibrated machine" rather than "regressed".
+An under-trained run whose bounds all pass exits 0 (the line is still printed).
+`nerfgauge run` writes metrics.json's `training` (steps, seconds, steps_per_second,
+budget_seconds, seed); check prints it beside the table (the machine's measured speed).
+`nerfgauge check --calibrate RESULTS...` proposes thresholds from measured runs
+(eval/calibrate.py).
 
 thresholds.toml
 ---------------
@@ -22,6 +32,8 @@ One table per scene, one entry per metric, each an inline table with `min` and/o
     ["mesh:assets/bunny.obj"]        # user meshes by their full scene name
     psnr = { min = 25.0 }
 
+- `training = { steps = N, steps_per_second = X }` in a scene table (or "*") is not a
+  metric: the calibration runs' median steps and speed, read for the under-trained test.
 - Table names: a scene from `scenes.registry.RECIPES`, a `mesh:PATH` scene, or `"*"`.
   Anything else is an error naming it.
 - Metric names: `eval.metrics.METRIC_NAMES` (psnr, ssim, psnr_foreground, psnr_covisible,
@@ -99,6 +111,9 @@ BOUND_KEYS = ("min", "max")
 ENTRY_KEYS = BOUND_KEYS + ("on",)
 ON_VALUES = ("mean", "ci95")  # what a bound is compared with (module docstring)
 MESH_PREFIX = "mesh:"
+TRAINING_KEY = "training"  # a table's calibrated training, not a metric (check --calibrate)
+UNDER_TRAINED_FRACTION = 0.5  # fewer steps than this share of the calibration's: under-trained
+EXIT_UNDER_TRAINED = 4  # a bound failed on a run that got under half the calibrated steps
 JUNIT_KIND = "junit"  # the JUnit file's mark, `<!-- nerfgauge-kind: junit -->` (core.outputs)
 
 
@@ -110,6 +125,14 @@ class Bound:
     min: Optional[float] = None
     max: Optional[float] = None
     on: str = "mean"  # "ci95": min against the interval's lower end, max against its upper end
+
+
+@dataclass(frozen=True)
+class Training:
+    """A scene table's `training = { steps, steps_per_second }`: what the calibration runs got."""
+
+    steps: int
+    steps_per_second: float
 
 
 @dataclass(frozen=True)
@@ -199,6 +222,9 @@ def parse_thresholds(data: dict, source: str = "thresholds") -> dict[str, dict[s
         bounds: dict[str, Bound] = {}
         for metric, entry in table.items():
             where = f"{source}: [{scene}] {metric}"
+            if metric == TRAINING_KEY:
+                bounds[metric] = _training_entry(entry, where)
+                continue
             if metric not in METRIC_NAMES:
                 raise InputError(f"{source}: [{scene}] unknown metric {metric!r}; known: {', '.join(METRIC_NAMES)}")
             if not isinstance(entry, dict):
@@ -227,6 +253,18 @@ def parse_thresholds(data: dict, source: str = "thresholds") -> dict[str, dict[s
                                    None if high is None else float(high), on)
         tables[scene] = bounds
     return tables
+
+
+def _training_entry(entry, where: str) -> "Training":
+    """A table's `training = { steps = N, steps_per_second = X }` (check --calibrate writes it)."""
+    if not isinstance(entry, dict) or set(entry) != {"steps", "steps_per_second"}:
+        raise InputError(f"{where} must be {{ steps = N, steps_per_second = X }}, got {entry!r}")
+    steps, speed = entry["steps"], entry["steps_per_second"]
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+        raise InputError(f"{where}.steps must be a positive integer, got {steps!r}")
+    if not _is_number(speed) or not math.isfinite(speed) or speed <= 0:
+        raise InputError(f"{where}.steps_per_second must be a positive number, got {speed!r}")
+    return Training(steps, float(speed))
 
 
 def load_thresholds(path) -> dict[str, dict[str, Bound]]:
@@ -261,6 +299,9 @@ def validate_metrics(data, source: str = "metrics") -> dict:
     for metric, value in geometry.items():
         if value is not None and not _is_number(value):
             raise InputError(f"{source}: geometry.{metric} must be a number or null, got {value!r}")
+    training = data.get("training", {})
+    if not isinstance(training, dict):
+        raise InputError(f"{source}: 'training' must be an object (steps, seconds, steps_per_second), got {training!r}")
     intervals = data.get("ci95", {})
     if not isinstance(intervals, dict):
         raise InputError(f"{source}: 'ci95' must be an object of [low, high] intervals, got {intervals!r}")
@@ -284,12 +325,48 @@ def load_metrics(path) -> dict:
 
 def bounds_for_scene(tables: dict[str, dict[str, Bound]], scene: str, source: str = "thresholds") -> list[Bound]:
     """The "*" bounds overlaid by the scene's own, per metric. Raises if there are none."""
-    merged = dict(tables.get(DEFAULT_TABLE, {}))
-    merged.update(tables.get(scene, {}))
+    merged = {metric: bound for metric, bound in tables.get(DEFAULT_TABLE, {}).items() if isinstance(bound, Bound)}
+    merged.update({metric: bound for metric, bound in tables.get(scene, {}).items() if isinstance(bound, Bound)})
     if not merged:
         raise InputError(f"{source} has no bounds for scene {scene!r} (and no [\"{DEFAULT_TABLE}\"] table): "
                          "nothing would be checked")
     return list(merged.values())
+
+
+def training_for_scene(tables: dict, scene: str) -> Optional["Training"]:
+    """The calibrated training of the scene's table (else the "*" table's), or None."""
+    for name in (scene, DEFAULT_TABLE):
+        found = tables.get(name, {}).get(TRAINING_KEY)
+        if found is not None:
+            return found
+    return None
+
+
+def training_line(training) -> Optional[str]:
+    """"training: N steps in S s, X steps/s (time budget B s)" from metrics.json's `training`, or None."""
+    if not isinstance(training, dict) or not _is_number(training.get("steps")):
+        return None
+    speed = training.get("steps_per_second")
+    budget = training.get("budget_seconds")
+    return (f"training: {training['steps']} steps"
+            + (f" in {training['seconds']:.1f} s" if _is_number(training.get("seconds")) else "")
+            + (f", {speed:.3g} steps/s on this machine" if _is_number(speed) else "")
+            + (f" (time budget {budget:g} s)" if _is_number(budget) else " (step-counted)"))
+
+
+def under_trained(training, calibrated: Optional["Training"]) -> Optional[str]:
+    """The under-trained line when the run got fewer than UNDER_TRAINED_FRACTION of the
+    calibrated steps, else None (also when either side is unknown)."""
+    if calibrated is None or not isinstance(training, dict) or not _is_number(training.get("steps")):
+        return None
+    if training["steps"] >= UNDER_TRAINED_FRACTION * calibrated.steps:
+        return None
+    speed = training.get("steps_per_second")
+    return (f"under-trained: got {training['steps']} steps, calibration had {calibrated.steps} "
+            + (f"({speed:.3g} steps/s here, {calibrated.steps_per_second:.3g} in calibration)"
+               if _is_number(speed) else f"({calibrated.steps_per_second:.3g} steps/s in calibration)")
+            + ": this machine trained less than the thresholds assume; a failed bound below is not a verdict "
+              f"on quality (exit {EXIT_UNDER_TRAINED})")
 
 
 # --- checking -----------------------------------------------------------------------
@@ -427,7 +504,10 @@ def write_junit(results: list[CheckResult], path, properties: Optional[dict[str,
 
 def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[str] = None, out=None,
               overwrite: bool = False) -> int:
-    """Load, check, print the table (and write JUnit). Returns 0 all pass, 1 any fails.
+    """Load, check, print the table (and write JUnit). Returns 0 all pass, 1 any fails, 4
+    (EXIT_UNDER_TRAINED) any fails on a run that got fewer than half the calibrated steps.
+    metrics.json's `training` (nerfgauge run), when present, is printed beside the table:
+    steps, seconds, steps per second and the time budget.
     junit_path: a new path or a JUnit file nerfgauge wrote (core.outputs.check_output_file);
     overwrite=True also replaces another nerfgauge file."""
     out = sys.stdout if out is None else out
@@ -450,7 +530,20 @@ def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[st
     failed, skipped = sum(not r.passed for r in results), sum(r.skipped for r in results)
     print(f"{len(results)} checks: {len(results) - failed - skipped} passed, {failed} failed"
           + (f", {skipped} skipped (no geometry in metrics)" if skipped else ""), file=out)
+    training = metrics.get("training")
+    line, short = training_line(training), under_trained(training, training_for_scene(tables, table_scene))
+    if line is not None:
+        print(line, file=out)
+    if short is not None:
+        print(short, file=out)
+    properties = {"metrics": str(metrics_path), "thresholds": str(thresholds_path), "scene": metrics["scene"],
+                  "bounds_scene": table_scene}
+    if line is not None:
+        properties["training"] = line
+    if short is not None:
+        properties["under_trained"] = short
     if junit_path is not None:
-        write_junit(results, junit_path, {"metrics": str(metrics_path), "thresholds": str(thresholds_path),
-                                          "scene": metrics["scene"], "bounds_scene": table_scene})
+        write_junit(results, junit_path, properties)
+    if failed and short is not None:
+        return EXIT_UNDER_TRAINED
     return 1 if failed else 0

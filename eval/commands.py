@@ -12,16 +12,18 @@ DIR` as a "baseline", bench folders as "bench". Output files (`evaluate --out`, 
 of the same kind; `--overwrite` also replaces a nerfgauge file of another kind.
 """
 
+import argparse
 from pathlib import Path
 
 from nerfgauge.core import arguments
 from nerfgauge.core.camera import ThinLens
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import write_json
+from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.core.outputs import check_output_file, claim_output_file, stamp
 from nerfgauge.eval import lpips_commands
 from nerfgauge.eval.baselines import METHODS, baseline_folder, write_baseline
+from nerfgauge.eval.calibrate import THRESHOLDS_KIND, calibrate, proposal_toml
 from nerfgauge.eval.check import run_check as check
 from nerfgauge.eval.evaluate import METRICS_KIND, evaluate, format_means
 from nerfgauge.eval.foreign_results import nerfbaselines_document, ns_eval_document
@@ -38,18 +40,34 @@ def register(subparsers) -> None:
     lpips_commands.register(subparsers)
 
 
+FALSE_ALARM = arguments.bounded(float, 0, 1, above=True, below=True)  # a rate strictly between 0 and 1
+
+
 def register_check(subparsers) -> None:
     parser = subparsers.add_parser(
         "check",
-        help="compare a metrics.json against thresholds; exit 0 pass, 1 fail, 2 bad input",
+        help="compare a metrics.json against thresholds; exit 0 pass, 1 fail, 2 bad input, 4 fail under-trained",
         description="Compare a metrics.json (from `nerfgauge evaluate`) against per-scene min/max "
                     "bounds in a TOML file. Exit 0 when every check passes, 1 when any fails, "
-                    "2 for malformed input.",
+                    "2 for malformed input, 4 when any fails and the run got under half the training steps "
+                    "the thresholds' calibration recorded (under-trained: a slower machine, not a quality "
+                    "verdict). With --calibrate RESULTS... --out FILE: propose thresholds from K >= 2 runs "
+                    "for a stated false-alarm rate instead (eval/calibrate.py).",
     )
-    parser.add_argument("metrics", type=arguments.path, metavar="METRICS.json",
+    parser.add_argument("metrics", type=arguments.path, metavar="METRICS.json", nargs="?",
                         help="metrics file written by `nerfgauge evaluate`")
-    parser.add_argument("--thresholds", type=arguments.path, required=True, metavar="FILE",
-                        help="TOML: [scene] tables of metric = { min = ..., max = ... }; [\"*\"] applies to all scenes")
+    parser.add_argument("--thresholds", type=arguments.path, metavar="FILE",
+                        help="TOML: [scene] tables of metric = { min = ..., max = ... }; [\"*\"] applies to all scenes "
+                             "(required unless --calibrate)")
+    parser.add_argument("--calibrate", type=arguments.path, nargs="+", metavar="RESULTS",
+                        help="propose thresholds instead of checking: metrics.json files (or folders of them) of K >= 2 "
+                             "runs with different seeds; writes --out (eval/calibrate.py)")
+    parser.add_argument("--false-alarm", type=FALSE_ALARM, default=0.05, metavar="A",
+                        help="--calibrate: the chance that a new good run fails each proposed bound (default 0.05)")
+    parser.add_argument("--metrics", dest="calibrate_metrics", type=_metric_list, default=None,
+                        metavar="LIST", help="--calibrate: only these metrics (default: every metric with a direction)")
+    parser.add_argument("--out", type=arguments.path, metavar="FILE",
+                        help="--calibrate: the proposed thresholds TOML (new, or one check --calibrate wrote)")
     parser.add_argument("--junit", type=arguments.path, metavar="FILE",
                         help="also write the checks as JUnit XML; FILE must be new or a JUnit file nerfgauge wrote "
                              "(a rerun replaces it), never a user's file or a file in a dataset folder")
@@ -61,9 +79,43 @@ def register_check(subparsers) -> None:
     parser.set_defaults(func=run_check)
 
 
+def _metric_list(text: str) -> tuple:
+    """"psnr,ssim" -> ("psnr", "ssim"); empty items are an argument error."""
+    parts = tuple(part.strip() for part in text.split(","))
+    if not all(parts):
+        raise argparse.ArgumentTypeError(f"expected comma-separated metric names, got {text!r}")
+    return parts
+
+
 def run_check(args) -> int:
+    if args.calibrate is not None:
+        return run_calibrate(args)
+    if args.metrics is None or args.thresholds is None:
+        raise InputError("check needs METRICS.json and --thresholds FILE (or --calibrate RESULTS... --out FILE)")
+    if args.out is not None or args.calibrate_metrics is not None:
+        raise InputError("--out and --metrics go with --calibrate")
     return check(args.metrics, args.thresholds, junit_path=args.junit, scene=args.scene,
                  overwrite=getattr(args, "overwrite", False))
+
+
+def run_calibrate(args) -> int:
+    """check --calibrate: propose thresholds from measured runs into --out (eval.calibrate)."""
+    if args.metrics is not None or args.thresholds is not None or args.junit is not None or args.scene is not None:
+        raise InputError("--calibrate takes RESULTS... and --out FILE, not METRICS.json, --thresholds, --junit or "
+                         "--scene")
+    if args.out is None:
+        raise InputError("--calibrate needs --out FILE (the proposed thresholds TOML)")
+    check_output_file(args.out, THRESHOLDS_KIND, overwrite=args.overwrite)  # refused before anything is read
+    if not args.out.parent.is_dir():
+        raise InputError(f"cannot write {args.out}: directory {args.out.parent} does not exist")
+    scenes = calibrate(args.calibrate, args.false_alarm, args.calibrate_metrics)
+    text = proposal_toml(scenes, args.false_alarm)
+    write_bytes_atomic(args.out, text.encode())
+    for scene, data in scenes.items():
+        bounds = ", ".join(f"{m} {b['kind']} {b['bound']:.4g}" for m, b in data["bounds"].items())
+        print(f"{scene}: {len(data['runs'])} runs -> {bounds}")
+    print(f"proposed thresholds (false-alarm rate {args.false_alarm:g} per bound) -> {args.out}")
+    return 0
 
 
 def register_evaluate(subparsers) -> None:

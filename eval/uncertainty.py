@@ -233,3 +233,88 @@ def paired_comparison(a, b, rng: np.random.Generator, resamples: int = RESAMPLES
     return {"mean_difference": interval.mean, "ci95": interval.to_json(), "p_value": p,
             "significant": None if p is None else bool(p < alpha), "alpha": alpha,
             "n_seeds": interval.n_seeds, "n_views": interval.n_views, "degenerate": interval.degenerate}
+
+
+# --- several training runs of one method on one dataset ----------------------------------
+
+AGGREGATE_SCHEMA = 1
+
+
+def run_matrix(documents: list, metric: str, names=None):
+    """([n_runs, n_views] per-frame values of `metric`, None where undefined; frame names)
+    from metrics.json documents (one per training seed, same dataset and split), frames
+    matched by name in the order of the first document (or `names`). A frame that a run
+    lacks is undefined in that run."""
+    if names is None:
+        names = [frame["name"] for frame in documents[0]["frames"]]
+    rows = []
+    for document in documents:
+        by_name = {frame["name"]: frame.get(metric) for frame in document["frames"]}
+        rows.append([by_name.get(name) for name in names])
+    return rows, names
+
+
+def aggregate_runs(documents: list, seeds: list, metrics, bootstrap_seed: int = EVALUATE_SEED) -> dict:
+    """One method's runs on one dataset, one metrics.json document per training seed (same
+    order as `seeds`): every run's means, and per metric the mean over all (seed, view)
+    cells, the two-level bootstrap interval (`bootstrap_ci`, a fresh
+    np.random.default_rng(bootstrap_seed) per metric, so the interval of one metric does not
+    depend on the others), each seed's mean, their spread, and the variance split.
+
+    Returns {"schema", "seeds", "runs": [{"seed", "mean"}], "mean": {metric: value},
+    "ci95": {metric: [low, high] | None}, "per_seed": {metric: [mean of each seed]},
+    "seed_std": {metric: sample std (ddof=1) of the per-seed means, None for one seed},
+    "seed_range": {metric: [min, max] of the per-seed means}, "variance": {metric:
+    variance_split}, "n_views", "resamples", "bootstrap_seed"}."""
+    if len(documents) != len(seeds) or not documents:
+        raise InputError(f"aggregate_runs needs one metrics document per seed, got {len(documents)} for {len(seeds)}")
+    if len(set(seeds)) != len(seeds):
+        raise InputError(f"aggregate_runs: seeds repeat: {list(seeds)}")
+    out = {"schema": AGGREGATE_SCHEMA, "seeds": list(seeds),
+           "runs": [{"seed": seed, "mean": document.get("mean", {})} for seed, document in zip(seeds, documents)],
+           "mean": {}, "ci95": {}, "per_seed": {}, "seed_std": {}, "seed_range": {}, "variance": {},
+           "n_views": len(documents[0]["frames"]), "resamples": RESAMPLES, "level": LEVEL,
+           "bootstrap_seed": bootstrap_seed,
+           "resampling": "two-level bootstrap: seeds with replacement, then views with replacement (the same view "
+                         "resample for every seed); percentile interval (docs/conventions.md, Uncertainty)"}
+    for metric in metrics:
+        rows, _ = run_matrix(documents, metric)
+        if all(value is None for row in rows for value in row):
+            continue
+        interval = bootstrap_ci(rows, np.random.default_rng(bootstrap_seed))
+        matrix = as_matrix(rows)
+        per_seed = [None if np.isnan(row).all() else float(np.nanmean(row)) for row in matrix]
+        defined = [value for value in per_seed if value is not None]
+        out["mean"][metric] = interval.mean
+        out["ci95"][metric] = interval.to_json()
+        out["per_seed"][metric] = per_seed
+        out["seed_std"][metric] = float(np.std(defined, ddof=1)) if len(defined) >= 2 else None
+        out["seed_range"][metric] = [min(defined), max(defined)] if defined else None
+        out["variance"][metric] = variance_split(rows)
+    return out
+
+
+
+def suite_interval(tables: list, rng: np.random.Generator, resamples: int = RESAMPLES, level: float = LEVEL) -> Interval:
+    """The interval of a suite's mean score, the mean over datasets of each dataset's mean.
+    tables: one [n_seeds, n_views] matrix (or [n_views] list) per dataset. The datasets are
+    the suite's fixed set (not resampled); within each, in the given order, seeds then views
+    are resampled by `draw_indices(rng, ...)` on its defined matrix, independently of the
+    other datasets (another dataset's seed k is another training run). Resample b's suite
+    mean is the mean over the datasets of their resample-b means; the interval is the
+    percentile interval of those. Datasets with nothing defined are left out (as the
+    leaderboard's mean leaves them out); n_seeds and n_views are the largest counts."""
+    matrices = [m for m in (defined_matrix(t) for t in tables) if m.size]
+    if not matrices:
+        return Interval(None, None, None, 0, 0, resamples, True)
+    means = np.zeros(resamples)
+    for matrix in matrices:
+        seed_index, view_index = draw_indices(rng, matrix.shape[0], matrix.shape[1], resamples)
+        means += resampled_means(matrix, seed_index, view_index)
+    means /= len(matrices)
+    tail = 100.0 * (1.0 - level) / 2.0
+    low, high = np.nanpercentile(means, [tail, 100.0 - tail])
+    mean = float(np.mean([np.nanmean(m) for m in matrices]))
+    degenerate = all(m.shape == (1, 1) for m in matrices)
+    return Interval(mean, float(low), float(high), max(m.shape[0] for m in matrices),
+                    max(m.shape[1] for m in matrices), resamples, degenerate)

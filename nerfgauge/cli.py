@@ -11,7 +11,10 @@ an OS error on the user's paths (no space, permission, read-only, not a folder .
 naming the path and the reason), or an allocation too large for this machine; 3 NaN or inf
 where finite numbers are required (`NumericalError`), one line; 130 interrupted; 141
 (silently) when stdout's reader has gone, as `| head` does.
-Commands may return 1 for "ran, and the result failed" (`check`, `bench hard`).
+Commands may return 1 for "ran, and the result failed" (`check`, `bench hard`), and `check`
+4 for "failed, but the run was under-trained": it got fewer than half the training steps the
+thresholds' calibration recorded (a time budget on a slower machine), so the failure is
+not a verdict on quality (eval/check.py).
 Set NERFGAUGE_DEBUG=1 to see the traceback instead of the one line.
 """
 

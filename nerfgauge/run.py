@@ -39,6 +39,8 @@ from nerfgauge.generate.options import add_generate_arguments, generate_fields
 from nerfgauge.generate.pipeline import GenerateConfig, generate
 from nerfgauge.nerf.mesh import NoSurface, mesh_from_run, ply_bytes
 from nerfgauge.nerf.runs import open_run_dataset
+from nerfgauge.eval.metrics import METRIC_NAMES
+from nerfgauge.eval.uncertainty import aggregate_runs
 from nerfgauge.scenes import make_scene
 
 REPORT_FILES = ("report.html", "report/curve.png", "report/grid.png", "report/cameras.png", "report/geometry.png")
@@ -69,11 +71,16 @@ class RunConfig:
     # noise_psnr, max_spp, ...), passed to the generator as given.
     generate_options: dict = field(default_factory=dict)
     workers: int = 1  # the generator's worker processes (not part of the recipe: same dataset)
+    # Training seeds (`--seeds K|A,B,...`): None trains once with `seed`; a tuple trains once per
+    # seed on the one dataset of `seed` (OUT/run: the first; OUT/seeds/seed-<s>/run: the others)
+    seeds: tuple | None = None
 
     def recipe(self) -> str:
-        """The hash in OUT's marker: every setting but where OUT is and how many workers render."""
-        return recipe_hash({key: value for key, value in dataclasses.asdict(self).items()
-                            if key not in ("out", "workers")})
+        """The hash in OUT's marker: every setting but where OUT is and how many workers render
+        (seeds only when given, so a run without --seeds keeps the recipe it always had)."""
+        return recipe_hash({key: (list(value) if isinstance(value, tuple) else value)
+                            for key, value in dataclasses.asdict(self).items()
+                            if key not in ("out", "workers") and not (key == "seeds" and value is None)})
 
     def generate_config(self):
         """The dataset's GenerateConfig: this config's shared fields plus generate_options."""
@@ -111,6 +118,16 @@ def remove_earlier_outputs(out: Path, model: str) -> None:
     by its known file name; folders are removed only once empty (anything the user put
     there stays)."""
     remove_owned(out / "run", "run")
+    for folder in sorted((out / "seeds").glob("seed-*")) if (out / "seeds").is_dir() else []:  # run --seeds
+        remove_owned(folder / "run" / "renders", "renders")
+        remove_owned(folder / "run", "run")
+        _remove_empty_folder(folder)
+    _remove_empty_folder(out / "seeds")
+    for folder in sorted((out / "eval" / model).glob("seed-*")) if (out / "eval" / model).is_dir() else []:
+        _remove_file(folder / "metrics.json")
+        remove_owned(folder / "error_maps", "evaluation")
+        _remove_empty_folder(folder)
+    _remove_file(out / "eval" / model / "aggregate.json")
     for method in (model, *METHODS):
         remove_owned(out / "baselines" / method, "baseline")
         remove_owned(out / "eval" / method / "error_maps", "evaluation")
@@ -149,7 +166,9 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
 
     out = Path(config.out)
     generate_config = config.generate_config()
-    train_config = TrainConfig(dataset=str(out / "dataset"), model=config.model, seed=config.seed,
+    seeds = None if config.seeds is None else tuple(arguments.check_seeds(config.seeds))
+    train_config = TrainConfig(dataset=str(out / "dataset"), model=config.model,
+                               seed=config.seed if seeds is None else seeds[0],
                                budget_seconds=None if config.steps else config.budget_seconds, steps=config.steps)
     generate_config.validate()
     train_config.validate()
@@ -171,6 +190,9 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
         print("[4/5] evaluate and baselines")
         documents = {f"{config.model} NeRF": evaluate(out / "dataset", run_dir / "renders", "test",
                                                       out / "eval" / config.model / "metrics.json")}
+        # what the training got, beside its scores: `check` prints the machine's speed and flags an
+        # under-trained run against a calibration (eval.check)
+        documents[f"{config.model} NeRF"]["training"] = training_record(summary, train_config)
         geometry, no_geometry = None, None
         if config.model == "compact":
             try:
@@ -179,7 +201,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                 no_geometry = f"geometry n/a: {reason}"
                 print(no_geometry)
             documents[f"{config.model} NeRF"]["geometry"] = geometry_summary(None if geometry is None else geometry[0])
-            write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
+        write_json(out / "eval" / config.model / "metrics.json", documents[f"{config.model} NeRF"])
         layout = read_json(out / "dataset" / "scene.json")["camera"]["layout"]
         baselines = ["nearest"] + (["lightfield-nearest", "lightfield-quadrilinear"] if layout == "lightfield" else [])
         for method in baselines:
@@ -187,6 +209,8 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
                 write_baseline(out / "dataset", method, out / "baselines" / method, "test")
             documents[f"baseline: {method}"] = evaluate(out / "dataset", out / "baselines" / method, "test",
                                                         out / "eval" / method / "metrics.json")
+        if seeds is not None:
+            more_seeds(out, train_config, seeds, documents[f"{config.model} NeRF"], progress)
         print("[5/5] report")
         (out / "report").mkdir(parents=True, exist_ok=True)
         ours_name = f"{config.model} NeRF"
@@ -215,6 +239,48 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
     print(f"report: {out / 'report.html'}")
     return {"metrics": str(out / "eval" / config.model / "metrics.json"), "report": str(out / "report.html"),
             "train": summary}
+
+
+def more_seeds(out: Path, train_config, seeds: tuple, first: dict, progress: bool) -> dict:
+    """`run --seeds`: train, render and score seeds[1:] on the same dataset (OUT/seeds/seed-<s>/run,
+    OUT/eval/<model>/seed-<s>/metrics.json; seeds[0] is OUT/run, its metrics copied to
+    eval/<model>/seed-<s0>/), then OUT/eval/<model>/aggregate.json (eval.uncertainty.aggregate_runs:
+    every run's means, the two-level bootstrap interval over seeds and views, the per-seed
+    spread, the variance split). Returns the aggregate."""
+    from nerfgauge.nerf.render_views import render_split  # torch: kept off `nerfgauge --help`'s import path
+    from nerfgauge.nerf.train import train  # torch
+
+    model_eval = out / "eval" / train_config.model
+    (model_eval / f"seed-{seeds[0]}").mkdir(parents=True, exist_ok=True)
+    write_json(model_eval / f"seed-{seeds[0]}" / "metrics.json", first)
+    documents = [first]
+    for index, seed in enumerate(seeds[1:], 2):
+        run_dir = out / "seeds" / f"seed-{seed}" / "run"
+        config = dataclasses.replace(train_config, seed=seed)
+        print(f"      seed {seed} ({index}/{len(seeds)}): train, render, evaluate -> {run_dir}")
+        summary = train(config, run_dir, progress=progress, overwrite=True)
+        render_split(run_dir, "test", progress=progress, overwrite=True)
+        document = evaluate(out / "dataset", run_dir / "renders", "test", model_eval / f"seed-{seed}" / "metrics.json")
+        document["training"] = training_record(summary, config)
+        write_json(model_eval / f"seed-{seed}" / "metrics.json", document)
+        documents.append(document)
+    names = [name for name in METRIC_NAMES if name in first["mean"]]
+    aggregate = aggregate_runs(documents, list(seeds), names)
+    write_json(model_eval / "aggregate.json", {"method": train_config.model, "scene": first.get("scene"), **aggregate})
+    interval, std = aggregate["ci95"].get("psnr"), aggregate["seed_std"].get("psnr")
+    if interval is not None:
+        print(f"      PSNR over {len(seeds)} seeds x {aggregate['n_views']} views: {aggregate['mean']['psnr']:.2f} dB, "
+              f"95% CI [{interval[0]:.2f}, {interval[1]:.2f}]"
+              + ("" if std is None else f", per-seed std {std:.2f} dB") + f" -> {model_eval / 'aggregate.json'}")
+    return aggregate
+
+
+def training_record(summary: dict, train_config) -> dict:
+    """metrics.json's `training`: steps, seconds, steps_per_second, the time budget (None when
+    step-counted), the training seed and threads."""
+    return {"steps": summary["steps"], "seconds": summary["seconds"],
+            "steps_per_second": summary["steps"] / max(summary["seconds"], 1e-9),
+            "budget_seconds": train_config.budget_seconds, "seed": train_config.seed, "threads": train_config.threads}
 
 
 def geometry_step(dataset_root: Path, run_dir: Path, eval_dir: Path) -> tuple[dict, dict]:
@@ -250,6 +316,10 @@ def register(subparsers) -> None:
     length.add_argument("--steps", type=arguments.STEPS, default=None,
                         help="training steps instead of time (reproducible)")
     parser.add_argument("--model", default=defaults.model, choices=("compact", "vanilla"))
+    parser.add_argument("--seeds", type=arguments.seeds, default=None, metavar="K|A,B,...",
+                        help="train K times (training seeds 0..K-1) or with the listed seeds, on the one dataset of "
+                             "--seed; every run is kept and eval/MODEL/aggregate.json gives the 95%% interval over "
+                             "seeds and views (default: once, with --seed)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an earlier run in --out (only a folder nerfgauge made)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -264,6 +334,7 @@ def _run(args) -> int:
              if name not in own and value != getattr(defaults, name)}  # only what the user changed: same recipe
     config = dataclasses.replace(RunConfig(), scene=args.scene, out=str(args.out), budget_seconds=args.budget_seconds,
                                  steps=args.steps, model=args.model, workers=args.workers, generate_options=extra,
+                                 seeds=None if args.seeds is None else tuple(args.seeds),
                                  **{name: value for name, value in fields.items() if name in own})
     run_pipeline(config, overwrite=args.overwrite, progress=not args.quiet)
     return 0

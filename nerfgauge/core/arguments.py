@@ -191,6 +191,49 @@ TARGET_PSNR = bounded(float, 0, 200, above=True)
 BATCH_RAYS = bounded(int, 1, 1 << 20)  # a batch's samples must fit in memory: ~126 per contracted ray
 
 
+MAX_SEEDS = 1000  # training runs of one configuration (`--seeds`): 1000 runs are weeks of CPU time
+
+
+def check_seeds(seeds) -> list:
+    """A list of distinct training seeds (SEED each, 1 to MAX_SEEDS of them); InputError otherwise."""
+    seeds = list(seeds)
+    if not 1 <= len(seeds) <= MAX_SEEDS:
+        raise InputError(f"--seeds needs 1 to {MAX_SEEDS} seeds, got {len(seeds)}")
+    for seed in seeds:
+        SEED.check(seed, "--seeds")
+    if len(set(seeds)) != len(seeds):
+        raise InputError(f"--seeds lists a seed twice: {','.join(map(str, seeds))}")
+    return seeds
+
+
+def parse_seeds(text: str) -> list:
+    """`--seeds K` (K seeds: 0, 1, ..., K-1) or `--seeds A,B,C` (those seeds; `7,` is the
+    one seed 7). InputError otherwise."""
+    text = str(text).strip()
+    try:
+        if "," in text:
+            seeds = [int(part) for part in text.split(",") if part.strip()]
+            if not seeds:
+                raise ValueError
+        else:
+            count = int(text)
+            if not 1 <= count <= MAX_SEEDS:
+                raise InputError(f"--seeds {text}: the number of seeds must be 1 to {MAX_SEEDS} "
+                                 "(or give a list: --seeds 0,5,9)")
+            seeds = list(range(count))
+    except ValueError:
+        raise InputError(f"--seeds {text!r}: give a count K (seeds 0..K-1) or a list A,B,C of seeds") from None
+    return check_seeds(seeds)
+
+
+def seeds(text: str) -> list:
+    """argparse type of `--seeds` (parse_seeds): a bad value is an argument error (one line, exit 2)."""
+    try:
+        return parse_seeds(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix(f"--seeds {text}: ")) from None
+
+
 def path(text: str) -> Path:
     """A non-empty path (an empty one would silently mean the current folder)."""
     if not text.strip():

@@ -2,7 +2,7 @@
 
 Folders are claimed with a marker (core.folders); a file a command writes at a path the user
 gives (`evaluate --out`, `--ns-eval`, `--nerfbaselines`, `check --junit`, `mesh -o`,
-`geometry -o`, `toy-pe --out`'s two files) goes through `check_output_file` before any work
+`geometry -o`, `toy-pe --out`'s two files, `check --calibrate --out`) goes through `check_output_file` before any work
 is done. The rule, in order:
 
 1. Devices, FIFOs, sockets, folders and symbolic links are refused (`files.check_writable_target`),
@@ -25,7 +25,8 @@ Our files say what they are in their content, so a copy or a move keeps it:
 - JSON documents: top-level `"tool": "nerfgauge"` and `"kind"` (`stamp`);
 - PLY meshes: a header line `comment nerfgauge-kind: mesh`;
 - JUnit XML: a comment `<!-- nerfgauge-kind: junit -->` after the XML declaration;
-- PNG images: a tEXt chunk with keyword `nerfgauge-kind`.
+- PNG images: a tEXt chunk with keyword `nerfgauge-kind`;
+- TOML (proposed thresholds, `check --calibrate --out`): a first line `# nerfgauge-kind: KIND`.
 Only the first MAX_IDENTIFY_BYTES of a file are read to recognise it.
 """
 
@@ -95,6 +96,9 @@ def identify(path) -> str | None:
         header = head[:head.find(b"end_header")] if b"end_header" in head else b""
         found = _MARK.search(header)
         return found.group(1).decode() if found and b"comment " + found.group(0) in header else None
+    if head.startswith(b"# " + TEXT_MARK.encode() + b": "):  # TOML (thresholds): the first line says so
+        found = _MARK.match(head[2:head.find(b"\n") if b"\n" in head else 200])
+        return found.group(1).decode() if found else None
     if head.lstrip().startswith(b"<"):
         found = _MARK.search(head[:512])
         return found.group(1).decode() if found and b"<!-- " + found.group(0) in head[:512] else None

@@ -34,6 +34,9 @@ A suite folder (`nerfgauge suite generate SUITE --out DIR`, a nerfgauge "suite" 
     DIR/suite-manifest.json         written last, when every dataset is complete: every
                                     dataset's manifest.json sha256 and every file's sha256
     DIR/results/<method>/<id>/metrics.json  `suite evaluate` (eval.evaluate's document)
+    DIR/results/<method>/<id>/seed-<s>/metrics.json, DIR/results/<method>/<id>/aggregate.json
+                                    `suite run --seeds`: one per training seed, and their
+                                    aggregate (eval.uncertainty.aggregate_runs)
     DIR/results/<method>/result.json        written last: suite version and sha256, each
                                     dataset's manifest sha256, training time, model size
 Generation is resumable: a dataset whose manifest verifies and whose recipe matches is
@@ -58,6 +61,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib.resources
+import math
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -70,6 +74,8 @@ from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, folder_lock
 from nerfgauge.eval.baselines import METHODS
 from nerfgauge.eval.evaluate import BACKGROUNDS, evaluate
+from nerfgauge.eval.metrics import METRIC_NAMES
+from nerfgauge.eval.uncertainty import aggregate_runs
 from nerfgauge.eval.predictions import DEPTH_SUFFIXES
 from nerfgauge.generate.distributed import parse_scheduler
 from nerfgauge.generate.pipeline import GenerateConfig, generate
@@ -78,6 +84,7 @@ from nerfgauge.scenes.registry import RECIPES
 SUITE_FILE = "suite.json"
 SUITE_MANIFEST = "suite-manifest.json"
 RESULT_FILE = "result.json"
+AGGREGATE_FILE = "aggregate.json"  # results/<method>/<id>/aggregate.json: a method's runs over seeds
 SCHEMA = 1
 OURS = "compact-nerf"  # our NeRF's name on the leaderboard (suite run)
 REQUIRED = {"dataset": ("width", "height", "views", "test_views", "spp"), "train": ("steps",),
@@ -457,7 +464,8 @@ def read_suite_folder(suite: Suite, out) -> dict:
 
 
 def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: str = "auto",
-                   extras: dict | None = None, log=print, entries=None, skipped: dict | None = None) -> dict:
+                   extras: dict | None = None, log=print, entries=None, skipped: dict | None = None,
+                   seeds=None) -> dict:
     """Score PRED_ROOT/<id>/ against every dataset of the suite (eval.evaluate, the same
     function as `nerfgauge evaluate`) into out/results/<method>/; result.json last.
 
@@ -466,7 +474,13 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
     another tool's runs. A PRED_ROOT/suite.json naming another suite or version is refused.
     entries: the suite's SceneEntry to score (default all; `suite run` passes the light-field
     datasets only for the light-field baselines). skipped: {id: why the method does not apply},
-    kept in result.json for the leaderboard."""
+    kept in result.json for the leaderboard.
+
+    seeds: training seeds (suite run --seeds): PRED_ROOT/seed-<s>/<id>/ holds each seed's
+    renders; each is scored into results/<method>/<id>/seed-<s>/metrics.json, and
+    results/<method>/<id>/aggregate.json (eval.uncertainty.aggregate_runs) holds every run's
+    means, the two-level bootstrap interval over seeds and views, the per-seed spread and
+    the variance split. extras may then be {id: {seed: {...}}}."""
     out, pred_root = Path(out), Path(pred_root)
     if not method or "/" in method or method.startswith("."):
         raise InputError(f"--method must be a folder name, got {method!r}")
@@ -476,45 +490,100 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
     if (pred_root / SUITE_FILE).is_file():
         check_same_suite(suite, read_json(pred_root / SUITE_FILE), str(pred_root / SUITE_FILE))
     entries = suite.scenes if entries is None else tuple(entries)
-    missing = [entry.id for entry in entries if not (pred_root / entry.id).is_dir()]
+    seeds = None if seeds is None else tuple(seeds)
+    roots = [pred_root] if seeds is None else [pred_root / seed_folder(seed) for seed in seeds]
+    missing = [f"{root.relative_to(pred_root).as_posix() + '/' if root != pred_root else ''}{entry.id}"
+               for root in roots for entry in entries if not (root / entry.id).is_dir()]
     if missing:
         raise InputError(f"{pred_root} has no predictions for {len(missing)} of the suite's {len(suite.scenes)} "
                          f"datasets: {', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} "
-                         f"(expected {pred_root}/<id>/ for each)")
+                         f"(expected {pred_root}/{'' if seeds is None else 'seed-<s>/'}<id>/ for each)")
     extras = extras or {}
     results_dir = out / "results" / method
     with folder_lock(out):
         (results_dir / RESULT_FILE).unlink(missing_ok=True)  # no stale result.json beside new metrics
         rows = {}
         for index, entry in enumerate(entries, 1):
-            log(f"[{index}/{len(entries)}] evaluate {method} on {entry.id}")
-            metrics_path = results_dir / entry.id / "metrics.json"
-            document = evaluate(dataset_dir(out, entry), pred_root / entry.id, split=suite.protocol["split"],
-                                out=metrics_path, background=suite.protocol["background"],
-                                depth_kind=suite.protocol["depth_kind"], pred_format=pred_format)
+            log(f"[{index}/{len(entries)}] evaluate {method} on {entry.id}"
+                + ("" if seeds is None else f" ({len(seeds)} seeds)"))
             record = manifest["datasets"][entry.id]
             key = identity_key(record)
-            if key == "ground_truth_sha256":  # the files this scoring read are the ones recorded
-                read = document.get("ground_truth", {}).get("files", {})
-                changed = sorted(rel for rel, digest in read.items() if record["files"].get(rel) != digest)
-                if changed:
-                    metrics_path.unlink(missing_ok=True)
-                    raise InputError(f"ground-truth folder {dataset_dir(out, entry)} ({entry.id}): {changed[0]} "
-                                     f"changed while it was scored ({len(changed)} files differ from {SUITE_MANIFEST})")
-            row = {key: record[key],
-                   "metrics": metrics_path.relative_to(out).as_posix(),
-                   "ms_per_frame": document["timing"].get("ms_per_frame"),
-                   "train_seconds": None, "model_bytes": None, "geometry": None}
-            train_file = pred_root / entry.id / "train.json"
-            if train_file.is_file():
-                info = read_json(train_file, finite=True)
-                row["train_seconds"], row["model_bytes"] = info.get("seconds"), info.get("model_bytes")
-            row.update(extras.get(entry.id, {}))
-            rows[entry.id] = row
+            if seeds is None:
+                rows[entry.id] = _score_one(suite, out, entry, record, pred_root / entry.id,
+                                            results_dir / entry.id / "metrics.json", pred_format,
+                                            extras.get(entry.id, {}))[0]
+                continue
+            runs, documents = [], []
+            for seed in seeds:
+                row, document = _score_one(suite, out, entry, record, pred_root / seed_folder(seed) / entry.id,
+                                           results_dir / entry.id / seed_folder(seed) / "metrics.json",
+                                           pred_format, extras.get(entry.id, {}).get(seed, {}))
+                runs.append({"seed": seed, **{k: v for k, v in row.items() if k != key}})
+                documents.append(document)
+            aggregate = aggregate_runs(documents, list(seeds), [m for m in METRIC_NAMES if m in documents[0]["mean"]])
+            aggregate_path = results_dir / entry.id / AGGREGATE_FILE
+            write_json(aggregate_path, {"method": method, "scene": entry.id, **aggregate})
+            first = runs[0]
+            rows[entry.id] = {key: record[key], "metrics": first["metrics"],
+                              "aggregate": aggregate_path.relative_to(out).as_posix(), "seeds": list(seeds),
+                              "runs": runs, **{name: _mean_of(runs, name) for name in
+                                               ("ms_per_frame", "train_seconds", "model_bytes", "steps")},
+                              "geometry": _mean_geometry(runs)}
         result = {**suite.identity(), "schema": SCHEMA, "method": method, "pred_root": str(pred_root),
-                  "datasets": rows, **({"skipped": dict(skipped)} if skipped else {})}
+                  "datasets": rows, **({"skipped": dict(skipped)} if skipped else {}),
+                  **({"seeds": list(seeds)} if seeds is not None else {})}
         write_json(results_dir / RESULT_FILE, result)
     return result
+
+
+def seed_folder(seed: int) -> str:
+    """The folder of one training seed's run, renders and metrics: seed-<s>."""
+    return f"seed-{seed}"
+
+
+def _score_one(suite: Suite, out: Path, entry, record: dict, pred_dir: Path, metrics_path: Path, pred_format: str,
+               extras: dict) -> tuple[dict, dict]:
+    """eval.evaluate of one folder of renders into metrics_path: (result.json row, document)."""
+    document = evaluate(dataset_dir(out, entry), pred_dir, split=suite.protocol["split"],
+                        out=metrics_path, background=suite.protocol["background"],
+                        depth_kind=suite.protocol["depth_kind"], pred_format=pred_format)
+    key = identity_key(record)
+    if key == "ground_truth_sha256":  # the files this scoring read are the ones recorded
+        read = document.get("ground_truth", {}).get("files", {})
+        changed = sorted(rel for rel, digest in read.items() if record["files"].get(rel) != digest)
+        if changed:
+            metrics_path.unlink(missing_ok=True)
+            raise InputError(f"ground-truth folder {dataset_dir(out, entry)} ({entry.id}): {changed[0]} "
+                             f"changed while it was scored ({len(changed)} files differ from {SUITE_MANIFEST})")
+    row = {key: record[key],
+           "metrics": metrics_path.relative_to(out).as_posix(),
+           "ms_per_frame": document["timing"].get("ms_per_frame"),
+           "train_seconds": None, "model_bytes": None, "geometry": None}
+    train_file = pred_dir / "train.json"
+    if train_file.is_file():
+        info = read_json(train_file, finite=True)
+        row["train_seconds"], row["model_bytes"] = info.get("seconds"), info.get("model_bytes")
+    row.update(extras)
+    if isinstance(extras.get("steps"), int):  # our NeRF's training beside its scores (check prints it)
+        document["training"] = {"steps": extras["steps"], "seconds": extras.get("train_seconds"),
+                                "steps_per_second": extras.get("steps_per_second"), "budget_seconds": None,
+                                **({"seed": extras["seed"]} if isinstance(extras.get("seed"), int) else {})}
+        write_json(metrics_path, document)
+    return row, document
+
+
+def _mean_of(runs: list, name: str):
+    """The mean of a cost figure over the runs that have it (None when none has)."""
+    values = [run[name] for run in runs if isinstance(run.get(name), (int, float)) and not isinstance(run.get(name), bool)]
+    return math.fsum(values) / len(values) if values else None
+
+
+def _mean_geometry(runs: list):
+    """The runs' geometry figures averaged (those defined in some run); None when no run has any."""
+    tables = [run["geometry"] for run in runs if isinstance(run.get("geometry"), dict) and "n/a" not in run["geometry"]]
+    if not tables:
+        return next((run["geometry"] for run in runs if isinstance(run.get("geometry"), dict)), None)
+    return {name: _mean_of(tables, name) for name in sorted({k for table in tables for k in table})}
 
 
 def read_results(suite: Suite, out) -> dict:

@@ -3,8 +3,8 @@
 
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
-    nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...]
-    nerfgauge suite run SUITE --out DIR [--overwrite]
+    nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...] [--seeds K|A,B,...]
+    nerfgauge suite run SUITE --out DIR [--overwrite] [--seeds K|A,B,...] [--scheduler ADDRESS]
     nerfgauge suite report DIR
 
 SUITE is a built-in name (`suite list`) or a path to a .toml file.
@@ -42,12 +42,21 @@ def register(subparsers) -> None:
                           help="PRED_ROOT/<dataset id>/ holds the renders of each dataset (any format evaluate reads)")
     evaluate.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
                           default="auto", help="how the renders are named (default: detect per dataset)")
+    evaluate.add_argument("--seeds", type=arguments.seeds, default=None, metavar="K|A,B,...",
+                          help="the method was run once per seed: PRED_ROOT/seed-<s>/<id>/ per seed (K: seeds "
+                               "0..K-1); scored per seed and aggregated with intervals over seeds and views")
     evaluate.set_defaults(func=run_evaluate)
     run = kinds.add_parser("run", help="our NeRF and the baselines through a whole suite, then the leaderboard")
     run.add_argument("suite", metavar="SUITE")
     run.add_argument("--out", type=arguments.path, required=True, metavar="DIR", help="suite folder")
     run.add_argument("--overwrite", action="store_true", help="replace a suite folder of another suite or version")
     run.add_argument("--progress", action="store_true", help="progress bars")
+    run.add_argument("--seeds", type=arguments.seeds, default=None, metavar="K|A,B,...",
+                     help="train our NeRF K times (seeds 0..K-1) or with the listed seeds; every run is kept, the "
+                          "leaderboard gives 95%% intervals over seeds and views (default: once, the entry's seed)")
+    run.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="run generation and every (dataset, method, seed) job on a dask.distributed cluster: "
+                          "tcp://HOST:PORT or local:N (needs the dask extra)")
     run.set_defaults(func=run_run)
     report = kinds.add_parser("report", help="the leaderboard (Markdown, HTML, JSON) and per-dataset reports")
     report.add_argument("dir", type=arguments.path, metavar="DIR", help="the suite folder")
@@ -73,13 +82,14 @@ def run_generate(args) -> int:
 
 def run_evaluate(args) -> int:
     suite = load_suite(args.suite)
-    result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format)
+    result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format, seeds=args.seeds)
     print(f"{args.method}: {len(result['datasets'])} datasets scored -> {args.dir / 'results' / args.method}")
     return 0
 
 
 def run_run(args) -> int:
-    run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress)
+    run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress, seeds=args.seeds,
+              scheduler=args.scheduler)
     return 0
 
 

@@ -10,14 +10,20 @@ training seconds, model size, render milliseconds per frame. The mean row of a m
 the mean over the datasets where the value is defined; `scenes` says over how many.
 
 Uncertainty (eval.uncertainty, docs/conventions.md "Uncertainty"): each dataset's table
-gives the PSNR's 95% interval copied from metrics.json's `ci95` (bootstrap over the views,
-as `nerfgauge evaluate` wrote it), and the paired table compares our NeRF (OURS) with
-each other method on each dataset both scored, on the per-frame PSNR of their
-metrics.json files matched by frame name: mean difference OURS - method, its 95% paired
-bootstrap interval (the views resampled once for both methods; a fresh
+gives the PSNR's 95% interval: for a method run once, copied from metrics.json's `ci95`
+(bootstrap over the views, as `nerfgauge evaluate` wrote it); for a method run with seeds
+(`suite run --seeds`), from results/<method>/<id>/aggregate.json (two-level bootstrap over
+seeds, then views), with the seeds, each seed's PSNR and their std (the run-to-run
+spread). The mean row's interval is `suite_interval` (each dataset's two-level resample,
+averaged over the datasets; a fresh np.random.default_rng(EVALUATE_SEED) per method and
+metric). The paired table compares our NeRF (OURS) with each other method on each dataset
+both scored, on the per-frame PSNR of their metrics.json files matched by frame name and
+per seed (`pair_runs`: a method run once, the baselines, is repeated for every seed):
+mean difference OURS - method over the (seed, view) cells, its 95% paired bootstrap
+interval (seeds then views resampled once for both methods; a fresh
 np.random.default_rng(EVALUATE_SEED) per comparison, 10000 resamples), the two-sided
-Wilcoxon signed-rank p-value and whether it is significant at 0.05. With one seed per run
-(today) the resampling is over views only.
+Wilcoxon signed-rank p-value on the per-view differences averaged over seeds, and whether
+it is significant at 0.05.
 
 One table is recomputed, on purpose: the protocol-sensitivity table scores the same
 renders under each scoring protocol the field uses (eval.protocols: ours, NerfBaselines',
@@ -37,7 +43,8 @@ from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.orchestrate import suite_robustness
 from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results
 from nerfgauge.eval.metrics import METRIC_NAMES
-from nerfgauge.eval.uncertainty import EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, paired_comparison
+from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, paired_comparison, run_matrix,
+                                        suite_interval)
 from nerfgauge.eval.protocols import suite_sensitivity, sensitivity_rows
 from nerfgauge.eval.report import PROTOCOL_CAPTION, page_html, sortable_table_html, write_report
 
@@ -69,24 +76,41 @@ def leaderboard(suite: Suite, out) -> dict:
             if row is None:
                 continue
             document = read_json(out / row["metrics"], finite=True)
-            documents.setdefault(method, {})[entry.id] = document
-            values = dict(document["mean"])
+            runs = row.get("runs")
+            if runs:  # suite run --seeds: every seed's metrics.json, and their aggregate
+                aggregate = read_json(out / row["aggregate"], finite=True)
+                docs = [read_json(out / run["metrics"], finite=True) for run in runs]
+                documents.setdefault(method, {})[entry.id] = ([run["seed"] for run in runs], docs)
+                values = {name: aggregate["mean"].get(name) for name in document["mean"]}
+                spread = {"seeds": [run["seed"] for run in runs], "aggregate": row["aggregate"],
+                          "psnr_per_seed": aggregate["per_seed"].get("psnr"),
+                          "psnr_seed_std": aggregate["seed_std"].get("psnr"),
+                          "psnr_variance": aggregate["variance"].get("psnr")}
+                interval = aggregate["ci95"].get("psnr")
+            else:
+                documents.setdefault(method, {})[entry.id] = (None, [document])
+                values, spread = dict(document["mean"]), {}
+                interval = (document.get("ci95") or {}).get("psnr")
             geometry = row.get("geometry") or {}
             values.update({key: geometry.get(key) for key in GEOMETRY_COLUMNS})
             values.update({"train_seconds": row.get("train_seconds"), "model_bytes": row.get("model_bytes"),
                            "ms_per_frame": row.get("ms_per_frame")})
             scenes[entry.id] = {"values": values, "frames": len(document["frames"]),
-                                "psnr_ci95": (document.get("ci95") or {}).get("psnr"),
+                                "psnr_ci95": interval, **spread,
                                 "geometry_na": geometry.get("n/a"), "metrics": row["metrics"]}
         methods[method] = {"scenes": scenes, **({"skipped": dict(result["skipped"])} if result.get("skipped") else {})}
     columns = [name for name in (*metric_names(), *GEOMETRY_COLUMNS, *COST_COLUMNS)
                if any(isinstance(s["values"].get(name), (int, float)) for m in methods.values() for s in m["scenes"].values())]
-    for method in methods.values():
-        method["mean"], method["scenes_scored"] = {}, {}
+    for name_of_method, method in methods.items():
+        method["mean"], method["scenes_scored"], method["ci95"] = {}, {}, {}
         for name in columns:
             defined = [s["values"][name] for s in method["scenes"].values() if isinstance(s["values"].get(name), (int, float))]
             method["mean"][name] = math.fsum(defined) / len(defined) if defined else None
             method["scenes_scored"][name] = len(defined)
+            if name in METRIC_NAMES:  # the suite mean's interval (eval.uncertainty.suite_interval)
+                tables = [run_matrix(docs, name)[0] for _, docs in documents.get(name_of_method, {}).values()]
+                interval = suite_interval(tables, np.random.default_rng(EVALUATE_SEED)) if tables else None
+                method["ci95"][name] = None if interval is None else interval.to_json()
     unavailable = unavailable_metrics(suite, out, results)
     paired = paired_comparisons(documents, [e.id for e in suite.scenes])
     return {**suite.identity(), "schema": 1, "columns": columns, "scenes": [e.id for e in suite.scenes],
@@ -97,8 +121,9 @@ def leaderboard(suite: Suite, out) -> dict:
 PAIRED_METRIC = "psnr"
 ROBUSTNESS_CAPTION = ("Robustness: each method's score against the level of one train-view degradation "
                       "(orchestrate.suite_robustness; docs/conventions.md, Degradations)")
-PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views; 95% paired "
-                  f"bootstrap interval over the views; two-sided Wilcoxon signed-rank test at {LEVEL_ALPHA:g})")
+PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views and seeds; 95% "
+                  f"paired bootstrap interval over seeds, then views; two-sided Wilcoxon signed-rank test on the "
+                  f"per-view differences at {LEVEL_ALPHA:g})")
 
 
 def paired_comparisons(documents: dict, scenes: list, reference: str = OURS, metric: str = PAIRED_METRIC) -> dict:
@@ -107,7 +132,10 @@ def paired_comparisons(documents: dict, scenes: list, reference: str = OURS, met
     "method", "views", "mean_difference" (reference - method), "ci95", "p_value",
     "significant", "degenerate"} from eval.uncertainty.paired_comparison on the per-frame
     values matched by frame name (the reference's order; frames either leaves undefined
-    are left out). documents: {method: {scene id: metrics.json document}}."""
+    are left out), one row per training seed paired by `pair_runs` (by seed; a method run
+    once, without a seed, repeated for every seed of the other), so the differences are
+    per (seed, view) and the interval resamples seeds then views. documents: {method:
+    {scene id: (seeds or None, [metrics.json document per seed])}}."""
     rows = []
     for scene in scenes:
         ours = documents.get(reference, {}).get(scene)
@@ -117,12 +145,15 @@ def paired_comparisons(documents: dict, scenes: list, reference: str = OURS, met
             theirs = by_scene.get(scene)
             if method == reference or theirs is None:
                 continue
-            their_values = {frame["name"]: frame.get(metric) for frame in theirs["frames"]}
-            names = [frame["name"] for frame in ours["frames"] if frame["name"] in their_values]
-            our_values = {frame["name"]: frame.get(metric) for frame in ours["frames"]}
-            result = paired_comparison([our_values[n] for n in names], [their_values[n] for n in names],
+            pairs = pair_runs(ours, theirs)
+            if pairs is None:
+                continue
+            seeds, our_docs, their_docs = pairs
+            their_names = {frame["name"] for frame in their_docs[0]["frames"]}
+            names = [frame["name"] for frame in our_docs[0]["frames"] if frame["name"] in their_names]
+            result = paired_comparison(run_matrix(our_docs, metric, names)[0], run_matrix(their_docs, metric, names)[0],
                                        np.random.default_rng(EVALUATE_SEED))
-            rows.append({"scene": scene, "method": method, "views": result["n_views"],
+            rows.append({"scene": scene, "method": method, "views": result["n_views"], "seeds": seeds,
                          **{key: result[key] for key in ("mean_difference", "ci95", "p_value", "significant",
                                                          "degenerate")}})
     return {"metric": metric, "reference": reference, "difference": f"{reference} - method", "level": LEVEL,
@@ -130,13 +161,34 @@ def paired_comparisons(documents: dict, scenes: list, reference: str = OURS, met
             "resamples": RESAMPLES, "seed": EVALUATE_SEED, "rows": rows}
 
 
+def pair_runs(ours: tuple, theirs: tuple):
+    """(seeds, our documents, their documents) paired run by run: by seed where both were run
+    with seeds (the seeds both have, in our order); a method run once without a seed (the
+    baselines: deterministic functions of the dataset) is paired with every seed of the
+    other, its one document repeated. None when two seeded methods share no seed."""
+    (our_seeds, our_docs), (their_seeds, their_docs) = ours, theirs
+    if our_seeds is not None and their_seeds is not None:
+        common = [seed for seed in our_seeds if seed in their_seeds]
+        if not common:
+            return None
+        return (common, [our_docs[our_seeds.index(s)] for s in common],
+                [their_docs[their_seeds.index(s)] for s in common])
+    if our_seeds is None and their_seeds is None:
+        return None, our_docs, their_docs
+    if our_seeds is None:
+        return their_seeds, our_docs * len(their_docs), their_docs
+    return our_seeds, our_docs, their_docs * len(our_docs)
+
+
 def paired_rows(paired: dict) -> list[list[str]]:
     """The paired table, a header row first."""
-    rows = [["dataset", "method", "views", "Δ PSNR dB", "95% CI", "Wilcoxon p", f"significant at {paired['alpha']:g}"]]
+    rows = [["dataset", "method", "seeds", "views", "Δ PSNR dB", "95% CI", "Wilcoxon p",
+             f"significant at {paired['alpha']:g}"]]
     for row in paired["rows"]:
         ci = row["ci95"]
         mark = "–" if row["significant"] is None else "yes" if row["significant"] else "no (not significant)"
-        rows.append([row["scene"], row["method"], str(row["views"]),
+        seeds = row.get("seeds")
+        rows.append([row["scene"], row["method"], "1 (no seed)" if seeds is None else str(len(seeds)), str(row["views"]),
                      "–" if row["mean_difference"] is None else f"{row['mean_difference']:+.2f}",
                      "–" if ci is None else f"[{ci[0]:+.2f}, {ci[1]:+.2f}]" + (" (1 view)" if row["degenerate"] else ""),
                      "–" if row["p_value"] is None else f"{row['p_value']:.3g}", mark])
@@ -178,26 +230,54 @@ def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
     """(title, rows with a header row first): the means, then one table per dataset."""
     columns = board["columns"]
     n = len(board["scenes"])
-    head = ["method", "scenes"] + [_label(c) for c in columns]
+    head = ["method", "scenes"] + [_label(c) for c in columns] + ["PSNR 95% CI"]
     mean_rows = [head]
     for method, data in board["methods"].items():
-        scored = max(data["scenes_scored"].values(), default=0)
         mean_rows.append([method, f"{len(data['scenes'])}/{n}" if len(data["scenes"]) != n else str(n)]
-                         + [_cell(c, data["mean"].get(c)) for c in columns])
+                         + [_cell(c, data["mean"].get(c)) for c in columns]
+                         + [_interval((data.get("ci95") or {}).get("psnr"))])
     result = [(f"mean over datasets ({n})", mean_rows)]
     for scene in board["scenes"]:
-        rows = [["method", "frames"] + [_label(c) for c in columns] + ["PSNR 95% CI"]]
+        rows = [["method", "frames"] + [_label(c) for c in columns]
+                + ["PSNR 95% CI", "seeds", "PSNR per seed (std)", "PSNR variance: seed / view / residual"]]
         for method, data in board["methods"].items():
             entry = data["scenes"].get(scene)
             if entry is None:
                 reason = data.get("skipped", {}).get(scene)
-                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * (len(columns) + 1))
+                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * (len(columns) + 4))
             else:
-                ci = entry.get("psnr_ci95")
                 rows.append([method, str(entry["frames"])] + [_cell(c, entry["values"].get(c)) for c in columns]
-                            + ["–" if ci is None else f"[{ci[0]:.2f}, {ci[1]:.2f}]"])
+                            + [_interval(entry.get("psnr_ci95")), _seeds(entry), _per_seed(entry),
+                               _variance(entry.get("psnr_variance"))])
         result.append((scene, rows))
     return result
+
+
+def _interval(ci) -> str:
+    return "–" if ci is None else f"[{ci[0]:.2f}, {ci[1]:.2f}]"
+
+
+def _seeds(entry: dict) -> str:
+    seeds = entry.get("seeds")
+    return "1 (no seed)" if seeds is None else ",".join(map(str, seeds))
+
+
+def _variance(split) -> str:
+    """eval.uncertainty.variance_split's components (dB²) and the seeds' share."""
+    if not split or split.get("var_seed") is None or split.get("var_residual") is None:
+        return "–"
+    share = split.get("seed_share")
+    return (f"{split['var_seed']:.3g} / {split['var_view']:.3g} / {split['var_residual']:.3g}"
+            + ("" if share is None else f" (seeds {100 * share:.0f}%)"))
+
+
+def _per_seed(entry: dict) -> str:
+    """Each seed's PSNR and the sample std of those (the run-to-run spread)."""
+    values = entry.get("psnr_per_seed")
+    if not values:
+        return "–"
+    std = entry.get("psnr_seed_std")
+    return " ".join("–" if v is None else f"{v:.2f}" for v in values) + ("" if std is None else f" (±{std:.2f})")
 
 
 def protocol_sensitivity(suite: Suite, out) -> dict:
@@ -207,8 +287,10 @@ def protocol_sensitivity(suite: Suite, out) -> dict:
     entries = {}
     for method, result in read_results(suite, out).items():
         root = result.get("pred_root")
-        pairs = [(dataset_dir(out, entry), Path(root) / entry.id) for entry in suite.scenes
-                 if root and entry.id in result.get("datasets", {}) and (Path(root) / entry.id).is_dir()]
+        seeds = result.get("seeds")  # seeded runs: the first seed's renders stand for the method
+        base = Path(root) / f"seed-{seeds[0]}" if root and seeds else Path(root or ".")
+        pairs = [(dataset_dir(out, entry), base / entry.id) for entry in suite.scenes
+                 if root and entry.id in result.get("datasets", {}) and (base / entry.id).is_dir()]
         entries[method] = pairs
     return suite_sensitivity(entries, split=suite.protocol["split"], background=suite.protocol["background"])
 
@@ -296,7 +378,9 @@ def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> 
 def scene_report(suite: Suite, out: Path, entry, board: dict):
     """report/<id>/report.html: our NeRF against the baselines on one dataset, when our
     NeRF's renders are in the suite folder (suite run). Returns its path or None."""
-    renders = out / "predictions" / OURS / entry.id
+    seeds = board["methods"].get(OURS, {}).get("scenes", {}).get(entry.id, {}).get("seeds")
+    where = f"seed-{seeds[0]}/{entry.id}" if seeds else entry.id  # seeded: the first seed's run is shown
+    renders = out / "predictions" / OURS / where
     if (entry.foreign or OURS not in board["methods"] or entry.id not in board["methods"][OURS]["scenes"]
             or not renders.is_dir()):  # a folder entry: no run of ours (suite_run.skipped_on_folder)
         return None
@@ -309,8 +393,9 @@ def scene_report(suite: Suite, out: Path, entry, board: dict):
                 baselines[method] = documents[method]
     target = out / "report" / entry.id / "report.html"
     write_report(target, f"{suite.name} v{suite.version}: {entry.id}", dataset_dir(out, entry), renders,
-                 documents, log_path=out / "runs" / entry.id / "log.jsonl", ours=OURS,
+                 documents, log_path=out / "runs" / where / "log.jsonl", ours=OURS,
                  train_seconds=board["methods"][OURS]["scenes"][entry.id]["values"].get("train_seconds"),
                  notes=[f"scene {entry.scene}, seed {entry.seed}, {entry.dataset.get('width')}x"
-                        f"{entry.dataset.get('height')}, split {suite.protocol['split']}"])
+                        f"{entry.dataset.get('height')}, split {suite.protocol['split']}"
+                        + (f"; training seed {seeds[0]} of {len(seeds)} shown (leaderboard: all)" if seeds else "")])
     return target

@@ -4,13 +4,18 @@ baselines and evaluate), then the leaderboard.
 
     DIR/                          the suite folder (orchestrate.suite): datasets, suite manifest
     DIR/runs/<id>/                our NeRF's training run on dataset <id>
-    DIR/predictions/<method>/<id>/ renders of every method (ours: renders folder; baselines)
+                                  (--seeds: DIR/runs/seed-<s>/<id>/, one per training seed)
+    DIR/predictions/<method>/<id>/ renders of every method (ours: renders folder; baselines;
+                                  --seeds: ours in predictions/compact-nerf/seed-<s>/<id>/)
+    DIR/jobs/<job>.json           a finished job's record (orchestrate.suite_jobs: resuming)
     DIR/predictions/<method>/suite.json  which suite they were made for
     DIR/results/<method>/         `suite evaluate` of those predictions (orchestrate.suite)
     DIR/leaderboard.{md,html,json}, DIR/report/<id>/report.html (orchestrate.suite_report)
 
-Datasets are resumed (orchestrate.suite.generate_suite); training, renders and baselines are made
-again on every run (their folders are ours and replaced through their markers).
+Datasets are resumed (orchestrate.suite.generate_suite); so are the (dataset, method, seed) jobs
+(training, renders, baselines: orchestrate.suite_jobs), each skipped when its record says it
+finished with the same settings, dataset and nerfgauge version; scoring and the leaderboard
+are made again on every run. --scheduler runs generation and the jobs on a dask cluster.
 """
 
 from __future__ import annotations
@@ -19,12 +24,13 @@ import dataclasses
 import time
 from pathlib import Path
 
-from nerfgauge.core.files import write_bytes_atomic, write_json
-from nerfgauge.orchestrate.suite import OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite
+from nerfgauge.core import arguments
+from nerfgauge.core.files import write_json
+from nerfgauge.orchestrate.suite import (OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite,
+                                         seed_folder)
 from nerfgauge.core.dataset import open_dataset
-from nerfgauge.eval.baselines import baseline_folder, write_baseline
-from nerfgauge.eval.geometry import score_geometry, summary
-from nerfgauge.nerf.mesh import NoSurface, mesh_from_run, ply_bytes
+from nerfgauge.generate.distributed import parse_scheduler
+from nerfgauge.orchestrate.suite_jobs import baseline_job, run_jobs, train_job
 from nerfgauge.orchestrate.suite_report import write_leaderboard
 
 def methods_for(suite: Suite, layout: str) -> list[str]:
@@ -43,18 +49,26 @@ def skipped_on_folder(suite: Suite, entry) -> dict:
     return reasons
 
 
-def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print) -> dict:
-    """Generate, train, render, baselines, evaluate, leaderboard. Returns the leaderboard."""
-    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
-    from nerfgauge.nerf.render_views import render_split  # torch
-    from nerfgauge.nerf.train import train  # torch
+def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print,
+              seeds=None, scheduler: str | None = None) -> dict:
+    """Generate, train, render, baselines, evaluate, leaderboard. Returns the leaderboard.
 
+    seeds: None trains our NeRF once per dataset with the dataset entry's seed (runs/<id>/,
+    predictions/<method>/<id>/); a list of training seeds trains it once per seed, into
+    runs/seed-<s>/<id>/ and predictions/compact-nerf/seed-<s>/<id>/, scored per seed and
+    aggregated (orchestrate.suite.evaluate_suite, results/<method>/<id>/aggregate.json). The
+    baselines are deterministic functions of the dataset: run once, paired with every seed.
+    scheduler: None runs the jobs here; local:N or tcp://HOST:PORT runs generation's views
+    and every (dataset, method, seed) job on a dask cluster (orchestrate.suite_jobs)."""
     out = Path(out)
+    if scheduler is not None:
+        parse_scheduler(scheduler)  # a malformed address is one line before anything is written
+    seeds = None if seeds is None else tuple(arguments.check_seeds(seeds))
     start = time.perf_counter()
-    generate_suite(suite, out, overwrite=overwrite, progress=progress, log=log)
+    manifest = generate_suite(suite, out, overwrite=overwrite, progress=progress, log=log, scheduler=scheduler)
     split = suite.protocol["split"]
     predictions = out / "predictions"
-    extras, baseline_roots, skipped = {}, {}, {}
+    baseline_roots, skipped, jobs, owners = {}, {}, [], {}
     for index, entry in enumerate(suite.scenes, 1):
         data = dataset_dir(out, entry)
         if entry.foreign:
@@ -62,62 +76,60 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
                 skipped.setdefault(method, {})[entry.id] = reason
                 log(f"[{index}/{len(suite.scenes)}] {entry.id}: {method} skipped: {reason}")
             continue
-        run_dir = out / "runs" / entry.id
-        log(f"[{index}/{len(suite.scenes)}] {entry.id}: train {suite.train.get('model', 'compact')} "
-            f"{suite.train['steps']} steps")
-        config = TrainConfig(dataset=str(data), seed=entry.seed, **suite.train)
-        clock = time.perf_counter()
-        summary = train(config, run_dir, overwrite=True, progress=progress)
-        stages = {"train": time.perf_counter() - clock}
-        clock = time.perf_counter()
-        render_split(run_dir, split, predictions / OURS / entry.id, overwrite=True, progress=progress)
-        stages["render"], clock = time.perf_counter() - clock, time.perf_counter()
-        extras[entry.id] = {"train_seconds": summary["seconds"], "model_bytes": summary["model_bytes"],
-                            "steps": summary["steps"], "geometry": geometry_of(suite, data, run_dir, log)}
-        stages["geometry"], clock = time.perf_counter() - clock, time.perf_counter()
+        manifest_sha256 = manifest["datasets"][entry.id]["manifest_sha256"]
+        for seed in (entry.seed,) if seeds is None else seeds:
+            where = entry.id if seeds is None else f"{seed_folder(seed)}/{entry.id}"
+            key = f"train-{entry.id}" + ("" if seeds is None else f"-{seed_folder(seed)}")
+            jobs.append((key, train_job, dict(out=str(out), job_key=key, train=suite.train, dataset=str(data),
+                                              manifest_sha256=manifest_sha256, run_dir=str(out / "runs" / where),
+                                              renders=str(predictions / OURS / where), seed=seed, split=split,
+                                              geometry=suite.protocol.get("geometry"))))
+            owners[key] = (entry.id, None if seeds is None else seed)
         layout = open_dataset(data).scene.get("camera", {}).get("layout")
         for method in methods_for(suite, layout):
-            target = predictions / method / entry.id
-            with baseline_folder(data, method, target, split, overwrite=True):
-                write_baseline(data, method, target, split)
+            key = f"baseline-{method}-{entry.id}"
+            jobs.append((key, baseline_job, dict(out=str(out), job_key=key, dataset=str(data),
+                                                 manifest_sha256=manifest_sha256, method=method,
+                                                 target=str(predictions / method / entry.id), split=split)))
             baseline_roots.setdefault(method, []).append(entry.id)
-        stages["baselines"] = time.perf_counter() - clock
-        log(f"    {entry.id}: " + ", ".join(f"{name} {seconds:.1f} s" for name, seconds in stages.items()))
+    log(f"{len(jobs)} jobs: {sum(k.startswith('train-') for k, _, _ in jobs)} trainings "
+        f"({suite.train.get('model', 'compact')}, {suite.train['steps']} steps"
+        + (f", seeds {', '.join(map(str, seeds))}" if seeds is not None else "") + f"), "
+        f"{sum(k.startswith('baseline-') for k, _, _ in jobs)} baselines"
+        + ("" if scheduler is None else f", on {scheduler}"))
+    clock = time.perf_counter()
+    done = run_jobs(jobs, scheduler, log)
+    log(f"jobs: {time.perf_counter() - clock:.1f} s")
+    extras = {}
+    for key, (entry_id, seed) in owners.items():
+        row = {name: done[key][name] for name in ("train_seconds", "model_bytes", "steps", "steps_per_second",
+                                                  "geometry", "seed")}
+        if seed is None:
+            extras[entry_id] = row
+        else:
+            extras.setdefault(entry_id, {})[seed] = row
     methods = {OURS: extras} if extras else {}
     for method, ids in baseline_roots.items():
         methods[method] = {entry_id: {"train_seconds": 0.0, "model_bytes": None} for entry_id in ids}
     for method, method_extras in methods.items():
         root = predictions / method
         write_json(root / SUITE_FILE, suite.identity())
+        method_seeds = seeds if method == OURS else None
         ids = set(method_extras)
         if ids != {entry.id for entry in suite.scenes}:
             log(f"{method}: applies to {len(ids)} of {len(suite.scenes)} datasets; scored on those only")
-            evaluate_subset(suite, out, method, root, ids, method_extras, log, skipped.get(method))
+            evaluate_subset(suite, out, method, root, ids, method_extras, log, skipped.get(method), method_seeds)
         else:
-            evaluate_suite(suite, out, method, root, extras=method_extras, log=log)
+            evaluate_suite(suite, out, method, root, extras=method_extras, log=log, seeds=method_seeds)
     board = write_leaderboard(suite, out, log=log)
     log(f"suite {suite.name} v{suite.version}: {time.perf_counter() - start:.1f} s in all")
     return board
 
 
-def evaluate_subset(suite: Suite, out, method: str, root, ids: set, extras: dict, log, skipped=None) -> dict:
+def evaluate_subset(suite: Suite, out, method: str, root, ids: set, extras: dict, log, skipped=None,
+                    seeds=None) -> dict:
     """evaluate_suite on the suite's entries in `ids` (a baseline that applies to some
     layouts only); the leaderboard shows the others as not applicable."""
     subset = dataclasses.replace(suite, scenes=tuple(e for e in suite.scenes if e.id in ids))
-    return evaluate_suite(suite, out, method, root, extras=extras, log=log, entries=subset.scenes, skipped=skipped)
-
-
-def geometry_of(suite: Suite, data: Path, run_dir: Path, log):
-    """Our NeRF's mesh scored against the exact meshes (eval.geometry.summary's flat numbers),
-    when the suite's protocol asks for it; {"n/a": reason} when the field has no surface."""
-    settings = suite.protocol.get("geometry")
-    if not settings:
-        return None
-    try:
-        mesh = mesh_from_run(run_dir, settings["resolution"])
-    except NoSurface as reason:
-        log(f"geometry n/a: {reason}")
-        return {"n/a": str(reason)}
-    write_bytes_atomic(run_dir / "mesh.ply", ply_bytes(mesh.vertices, mesh.faces))
-    document, _ = score_geometry(data, run_dir / "mesh.ply", samples=settings["samples"])
-    return summary(document)
+    return evaluate_suite(suite, out, method, root, extras=extras, log=log, entries=subset.scenes, skipped=skipped,
+                          seeds=seeds)
