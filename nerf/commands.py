@@ -117,10 +117,10 @@ def _add_train(subparsers) -> None:
                         help="ray-marching step while training, in voxels (auto: 0.5, 1 in contracted space)")
     parser.add_argument("--batch-rays", type=arguments.BATCH_RAYS, default=None, metavar="N",
                         help="rays per training step (auto: 4096, 2048 in contracted space)")
-    parser.add_argument("--pixel-filter", choices=("box", "jitter", "centre"), default="box",
-                        help="what a training pixel is compared as: box (default), the mean of 2 x 2 stratified "
-                             "rays through it, as the ground truth averages the pixel's area; jitter, one ray "
-                             "through a random point of it; centre, its centre ray")
+    parser.add_argument("--pixel-filter", choices=("centre", "box", "jitter"), default="centre",
+                        help="what a training pixel is compared as: centre (default), its centre ray; box, the mean "
+                             "of 2 x 2 stratified rays through it, as the ground truth averages the pixel's area "
+                             "(give it 4x --batch-rays: BENCHMARKS.md); jitter, one ray through a random point of it")
     parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
                         help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
     parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "

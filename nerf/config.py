@@ -79,10 +79,12 @@ class TrainConfig:
     tv_weight: float = 0.0
     distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
     step_ratio: Optional[float] = None  # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
-    # What a training pixel's colour is compared as: "box", the mean of 2 x 2 stratified rays
-    # through the pixel, as the ground truth's box filter averages its area; "jitter", one
-    # ray through a random point of it; "centre", its centre ray (runs before issue 34).
-    pixel_filter: str = "box"
+    # What a training pixel's colour is compared as: "centre", its centre ray; "box", the mean
+    # of 2 x 2 stratified rays through the pixel, as the ground truth's box filter averages its
+    # area (batch_rays counts rays: a quarter as many pixels a step); "jitter", one ray through
+    # a random point of it. Centre by measurement (BENCHMARKS.md, "The pixel's footprint"):
+    # at the default batch it scored best; box wins only with 4x the rays a step.
+    pixel_filter: str = "centre"
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
     # vanilla (the original NeRF, Mildenhall et al. 2020)
     n_coarse: int = 64

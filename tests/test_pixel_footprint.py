@@ -80,3 +80,37 @@ def test_a_box_frame_averages_the_rays_through_the_grid_of_points(per_axis):
     # the edge crosses the image: a mixed pixel exists once there is more than one ray
     mixed = (rgb[:, 0] > 0) & (rgb[:, 0] < 1)
     assert bool(mixed.any()) == (per_axis > 1)
+
+
+def test_stratified_offsets_put_one_ray_in_each_cell_of_each_pixel():
+    from nerfgauge.nerf.train import stratified_offsets
+
+    generator = torch.Generator().manual_seed(0)
+    n_pixels = 500
+    for per_pixel in (1, 4, 9):
+        offsets = stratified_offsets(n_pixels, per_pixel, generator).view(per_pixel, n_pixels, 2)
+        assert bool(((offsets >= -0.5) & (offsets < 0.5)).all())
+        k = int(round(per_pixel ** 0.5))
+        cells = torch.floor((offsets + 0.5) * k).long()  # [per_pixel, n_pixels, 2] cell of each ray
+        keys = cells[..., 0] + k * cells[..., 1]
+        # ray r of every pixel lies in cell r (x fastest): k^2 distinct cells per pixel
+        assert torch.equal(keys, torch.arange(per_pixel)[:, None].expand(per_pixel, n_pixels))
+        # uniform inside its cell: the mean position over many pixels is the cell's centre
+        centres = (cells.double() + 0.5) / k - 0.5
+        assert torch.allclose((offsets - centres).mean(dim=1), torch.zeros(per_pixel, 2, dtype=torch.float64),
+                              atol=4 * (1 / k) / (12 * n_pixels) ** 0.5)  # 4 standard errors of U[0, 1/k)'s mean
+
+
+@pytest.mark.parametrize("pixel_filter", ["box", "jitter"])
+def test_training_through_the_pixels_footprint_runs_and_renders_box_filtered(tiny_dataset, tmp_path, pixel_filter):
+    import json
+
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.render_views import render_split
+    from nerfgauge.nerf.train import train
+
+    run = tmp_path / "run"
+    train(TrainConfig(dataset=str(tiny_dataset), steps=4, pixel_filter=pixel_filter, threads=1), run, progress=False)
+    assert json.loads((run / "config.json").read_text())["pixel_filter"] == pixel_filter
+    timing = render_split(run, "test", progress=False)
+    assert timing["pixel_samples"] == 2  # the box filter's 2 x 2 rays for a run trained through the footprint
