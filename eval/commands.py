@@ -12,7 +12,6 @@ DIR` as a "baseline", bench folders as "bench". Output files (`evaluate --out`, 
 of the same kind; `--overwrite` also replaces a nerfgauge file of another kind.
 """
 
-import argparse
 from pathlib import Path
 
 from nerfgauge.core import arguments
@@ -64,7 +63,7 @@ def register_check(subparsers) -> None:
                              "runs with different seeds; writes --out (eval/calibrate.py)")
     parser.add_argument("--false-alarm", type=FALSE_ALARM, default=0.05, metavar="A",
                         help="--calibrate: the chance that a new good run fails each proposed bound (default 0.05)")
-    parser.add_argument("--metrics", dest="calibrate_metrics", type=_metric_list, default=None,
+    parser.add_argument("--metrics", dest="calibrate_metrics", type=arguments.names, default=None,
                         metavar="LIST", help="--calibrate: only these metrics (default: every metric with a direction)")
     parser.add_argument("--out", type=arguments.path, metavar="FILE",
                         help="--calibrate: the proposed thresholds TOML (new, or one check --calibrate wrote)")
@@ -77,14 +76,6 @@ def register_check(subparsers) -> None:
     parser.add_argument("--scene", metavar="NAME",
                         help="use the bounds of scene NAME instead of the scene named in the metrics file")
     parser.set_defaults(func=run_check)
-
-
-def _metric_list(text: str) -> tuple:
-    """"psnr,ssim" -> ("psnr", "ssim"); empty items are an argument error."""
-    parts = tuple(part.strip() for part in text.split(","))
-    if not all(parts):
-        raise argparse.ArgumentTypeError(f"expected comma-separated metric names, got {text!r}")
-    return parts
 
 
 def run_check(args) -> int:

@@ -37,7 +37,7 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.core import dataset
+from nerfgauge.core import arguments, dataset
 from nerfgauge.core.camera import look_at
 from nerfgauge.generate import layouts
 from nerfgauge.core.errors import InputError
@@ -52,6 +52,7 @@ SPARSE_RULE = ("farthest-point sampling on the train camera centres: start at th
                "list N is the first N of that order, so the lists are nested")
 MAX_SCALES = 8
 SCALE_RANGE = (1 / 16, 16.0)
+SCALE = arguments.bounded(float, *SCALE_RANGE)  # --test-scales: each scale
 GOLDEN_FRACTION = (math.sqrt(5.0) - 1) / 2
 RNG_TAG = 35  # issue 35: the extrapolation views' generator is seeded (seed, 35)
 _NUMBER = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)"
@@ -96,10 +97,9 @@ def parse_scales(text) -> tuple:
         raise InputError(f"--test-scales must be numbers separated by commas (e.g. 0.5,1,2), got {text!r}") from None
     if not scales or len(scales) > MAX_SCALES:
         raise InputError(f"--test-scales takes 1 to {MAX_SCALES} scales, got {text!r}")
-    lo, hi = SCALE_RANGE
     for scale in scales:
-        if not (math.isfinite(scale) and lo <= scale <= hi):
-            raise InputError(f"--test-scales: each scale must be in [{lo:g}, {hi:g}], got {scale!r}")
+        if not (math.isfinite(scale) and SCALE.contains(scale)):
+            raise InputError(f"--test-scales: each scale must be {SCALE.wanted}, got {scale!r}")
     if len(set(scales)) != len(scales):
         raise InputError(f"--test-scales lists a scale twice: {text!r}")
     return scales

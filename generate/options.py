@@ -15,7 +15,7 @@ import re
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.generate import degrade
-from nerfgauge.generate.holdout import parse_scales
+from nerfgauge.generate.holdout import SCALE, parse_scales
 from nerfgauge.generate.layouts import LAYOUTS
 from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, NOISE_PSNR, GenerateConfig
 from nerfgauge.generate.variant import CHOICES
@@ -47,6 +47,9 @@ def _scales(text: str) -> tuple:
         return parse_scales(text)
     except InputError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
+
+
+_scales.range = SCALE  # each scale's range, shown in --help
 
 
 def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,

@@ -210,20 +210,20 @@ def parse_seeds(text: str) -> list:
     """`--seeds K` (K seeds: 0, 1, ..., K-1) or `--seeds A,B,C` (those seeds; `7,` is the
     one seed 7). InputError otherwise."""
     text = str(text).strip()
+    parts = [part for part in text.split(",") if part.strip()] if "," in text else [text]
     try:
-        if "," in text:
-            seeds = [int(part) for part in text.split(",") if part.strip()]
-            if not seeds:
-                raise ValueError
-        else:
-            count = int(text)
-            if not 1 <= count <= MAX_SEEDS:
-                raise InputError(f"--seeds {text}: the number of seeds must be 1 to {MAX_SEEDS} "
-                                 "(or give a list: --seeds 0,5,9)")
-            seeds = list(range(count))
+        numbers = [int(part) for part in parts]
     except ValueError:
-        raise InputError(f"--seeds {text!r}: give a count K (seeds 0..K-1) or a list A,B,C of seeds") from None
-    return check_seeds(seeds)
+        numbers = []
+    if not numbers:
+        raise InputError(f"--seeds {text!r}: give a count K (seeds 0..K-1) or a list A,B,C of seeds, "
+                         f"each {SEED.text}")
+    if "," not in text:
+        if not 1 <= numbers[0] <= MAX_SEEDS:
+            raise InputError(f"--seeds {text}: the number of seeds must be 1 to {MAX_SEEDS} "
+                             f"(or give a list of seeds, each {SEED.text}: --seeds 0,5,9)")
+        numbers = list(range(numbers[0]))
+    return check_seeds(numbers)
 
 
 def seeds(text: str) -> list:
@@ -232,6 +232,40 @@ def seeds(text: str) -> list:
         return parse_seeds(text)
     except InputError as error:
         raise argparse.ArgumentTypeError(str(error).removeprefix(f"--seeds {text}: ")) from None
+
+
+seeds.range = SEED  # each listed seed's range, shown in --help (document_ranges)
+
+
+def comma_separated(item_type, *, distinct: bool = False):
+    """An argparse type: "a,b,c" -> a tuple of item_type(each), at least one item; with
+    distinct=True a repeated value is refused. Item errors name the item and the list."""
+    def parse(text: str) -> tuple:
+        parts = [part.strip() for part in text.split(",")]
+        if not all(parts):
+            raise argparse.ArgumentTypeError(f"expected comma-separated values, got {text!r}")
+        values = []
+        for part in parts:
+            try:
+                values.append(item_type(part))
+            except argparse.ArgumentTypeError as error:
+                raise argparse.ArgumentTypeError(f"{error} (in {text!r})" if len(parts) > 1 else str(error)) from None
+        if distinct and len(set(values)) < len(values):
+            repeated = next(v for v in values if values.count(v) > 1)
+            raise argparse.ArgumentTypeError(f"{repeated} appears more than once in {text!r}")
+        return tuple(values)
+
+    parse.__name__ = f"comma-separated {item_type.__name__.replace('_', ' ')}s"  # argparse's fallback message
+    parse.range = item_type if isinstance(item_type, Range) else None  # shown in --help
+    return parse
+
+
+def names(text: str) -> tuple:
+    """ "a, b" -> ("a", "b"): comma-separated names, at least one, none empty."""
+    parts = tuple(part.strip() for part in text.split(","))
+    if not all(parts):
+        raise argparse.ArgumentTypeError(f"expected comma-separated names, got {text!r}")
+    return parts
 
 
 def path(text: str) -> Path:

@@ -2,13 +2,12 @@
 `bench_hard`, `bench_lens`, `bench_read`) and `suite` (`orchestrate.suite_commands`).
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
-errors); comma-separated lists are checked item by item (`comma_separated`). Bench output
+errors); comma-separated lists are checked item by item (`core.arguments.comma_separated`). Bench output
 folders are claimed with `core.folders.claim_folder` as "bench" folders (marker and lock).
 The bench modules generate datasets and train models; they import torch (nerf) inside
 their functions, so importing them here keeps `nerfgauge --help` free of torch and Mitsuba.
 """
 
-import argparse
 from pathlib import Path
 
 from nerfgauge.core import arguments
@@ -22,39 +21,6 @@ from nerfgauge.orchestrate.bench_scaling import ScalingConfig, bench_scaling, re
 from nerfgauge.scenes import HARD_SCENES
 
 
-def comma_separated(item_type, *, distinct: bool = False):
-    """An argparse type: "a,b,c" -> a tuple of item_type(each), at least one item; with
-    distinct=True a repeated value is refused. Item errors name the item and the list."""
-    def parse(text: str) -> tuple:
-        parts = [part.strip() for part in text.split(",")]
-        if not all(parts):
-            raise argparse.ArgumentTypeError(f"expected comma-separated values, got {text!r}")
-        values = []
-        for part in parts:
-            try:
-                values.append(item_type(part))
-            except argparse.ArgumentTypeError as error:
-                raise argparse.ArgumentTypeError(f"{error} (in {text!r})" if len(parts) > 1 else str(error)) from None
-        if distinct and len(set(values)) < len(values):
-            repeated = next(v for v in values if values.count(v) > 1)
-            raise argparse.ArgumentTypeError(f"{repeated} appears more than once in {text!r}")
-        return tuple(values)
-
-    parse.__name__ = f"comma-separated {item_type.__name__.replace('_', ' ')}s"  # argparse's fallback message
-    parse.range = item_type if isinstance(item_type, arguments.Range) else None  # shown in --help
-    return parse
-
-
-
-
-def names(text: str) -> tuple:
-    """ "a, b" -> ("a", "b"): comma-separated names, at least one, none empty."""
-    parts = tuple(part.strip() for part in text.split(","))
-    if not all(parts):
-        raise argparse.ArgumentTypeError(f"expected comma-separated names, got {text!r}")
-    return parts
-
-
 def register(subparsers) -> None:
     register_bench(subparsers)
     suite_commands.register(subparsers)
@@ -62,8 +28,8 @@ def register(subparsers) -> None:
 
 
 def register_bench(subparsers) -> None:
-    sides, view_counts = (comma_separated(arguments.IMAGE_SIDE, distinct=True),
-                          comma_separated(arguments.VIEWS, distinct=True))
+    sides, view_counts = (arguments.comma_separated(arguments.IMAGE_SIDE, distinct=True),
+                          arguments.comma_separated(arguments.VIEWS, distinct=True))
     parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants, scaling",
                                    description="Benchmarks measured in one run on this machine (see BENCHMARKS.md). "
                                                "Each writes into its own --out folder (a nerfgauge bench folder).")
@@ -77,10 +43,10 @@ def register_bench(subparsers) -> None:
                      help="repeat and report each run (the machine is noisy)")
     gen.set_defaults(func=run_bench_generate)
     train = kinds.add_parser("train", help="scenes x variants x budgets: PSNR, SSIM, depth, time, size, memory")
-    train.add_argument("--scenes", type=names, default=("primitives",), help="comma-separated scene names")
-    train.add_argument("--variants", type=names, default=("compact", "vanilla"),
+    train.add_argument("--scenes", type=arguments.names, default=("primitives",), help="comma-separated scene names")
+    train.add_argument("--variants", type=arguments.names, default=("compact", "vanilla"),
                        help="comma-separated, from: " + ", ".join(_variant_names()))
-    train.add_argument("--budgets", type=comma_separated(arguments.SECONDS, distinct=True), default=(30.0, 120.0),
+    train.add_argument("--budgets", type=arguments.comma_separated(arguments.SECONDS, distinct=True), default=(30.0, 120.0),
                        help="comma-separated training seconds (default 30,120)")
     train.add_argument("--res", default="128")
     train.add_argument("--views", type=arguments.VIEWS, default=100)
@@ -106,7 +72,7 @@ def register_bench(subparsers) -> None:
                          help="generation: train-view counts at --gen-views-spp")
     scaling.add_argument("--gen-views-spp", type=arguments.SPP, default=64,
                          help="spp of the --gen-views cases (default 64)")
-    scaling.add_argument("--gen-spp", type=comma_separated(arguments.SPP, distinct=True), default=(16, 64, 256),
+    scaling.add_argument("--gen-spp", type=arguments.comma_separated(arguments.SPP, distinct=True), default=(16, 64, 256),
                          help="generation: spp values at --gen-spp-views views")
     scaling.add_argument("--gen-spp-views", type=arguments.VIEWS, default=50,
                          help="views of the --gen-spp cases (default 50)")
@@ -117,7 +83,7 @@ def register_bench(subparsers) -> None:
     scaling.set_defaults(func=run_bench_scaling)
     hard = kinds.add_parser("hard", help="the hard scenes through generate, brief training and evaluate, "
                                          "audited for NaN/inf")
-    hard.add_argument("--scenes", type=names, default=None, help="comma-separated scene names (default: every hard scene)")
+    hard.add_argument("--scenes", type=arguments.names, default=None, help="comma-separated scene names (default: every hard scene)")
     hard.add_argument("--res", default="64")
     hard.add_argument("--views", type=arguments.VIEWS, default=40)
     hard.add_argument("--test-views", type=arguments.VIEWS, default=8)
@@ -134,7 +100,7 @@ def register_bench(subparsers) -> None:
     lens.add_argument("--spp", type=arguments.SPP, default=64)
     lens.add_argument("--radius", type=arguments.DISTANCE, default=3.5, help="camera plane's distance from the scene centre")
     lens.add_argument("--focus-distance", type=arguments.DISTANCE, default=None, help="default: --radius")
-    lens.add_argument("--apertures", type=comma_separated(arguments.DISTANCE), default=(0.1, 0.2),
+    lens.add_argument("--apertures", type=arguments.comma_separated(arguments.DISTANCE), default=(0.1, 0.2),
                       help="comma-separated aperture radii, scene units (default 0.1,0.2)")
     lens.add_argument("--budget-seconds", type=arguments.SECONDS, default=120.0)
     lens.add_argument("--aperture-samples", type=arguments.LENS_SAMPLES, default=16)
