@@ -6,6 +6,7 @@ built-in `robustness` suite is the slow test."""
 from __future__ import annotations
 
 import pytest
+from suite_toml import suite_toml
 
 from nerfgauge.cli import main
 from nerfgauge.core.files import read_json
@@ -13,52 +14,13 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.orchestrate.suite import load_suite, parse_suite
 from nerfgauge.orchestrate.suite_robustness import robustness
 
-TINY = """
-name = "tiny-robustness"
-version = 1
-[dataset]
-width = 16
-height = 16
-views = 6
-val_views = 0
-test_views = 2
-spp = 2
-degrade_seed = 4
-[train]
-steps = 15
-final_resolution = 24
-eval_views = 1
-[protocol]
-split = "test"
-background = "white"
-depth_kind = "distance"
-baselines = ["nearest"]
-[[scenes]]
-id = "clean"
-scene = "primitives"
-seed = 0
-[[scenes]]
-id = "pose-2"
-scene = "primitives"
-seed = 0
-pose_noise_rotation = 2.0
-[[scenes]]
-id = "pose-4"
-scene = "primitives"
-seed = 0
-pose_noise_rotation = 4.0
-[[scenes]]
-id = "ev-1"
-scene = "primitives"
-seed = 0
-exposure_ev = 1.0
-[[scenes]]
-id = "both"
-scene = "primitives"
-seed = 0
-exposure_ev = 1.0
-vignetting = 0.2
-"""
+ENTRIES = ({"id": "clean"}, {"id": "pose-2", "pose_noise_rotation": 2.0}, {"id": "pose-4", "pose_noise_rotation": 4.0},
+           {"id": "ev-1", "exposure_ev": 1.0}, {"id": "both", "exposure_ev": 1.0, "vignetting": 0.2})
+TINY = suite_toml("tiny-robustness",
+                  {"width": 16, "height": 16, "views": 6, "val_views": 0, "test_views": 2, "spp": 2, "degrade_seed": 4},
+                  {"steps": 15, "final_resolution": 24, "eval_views": 1},
+                  [{"id": e["id"], "scene": "primitives", "seed": 0} | {k: v for k, v in e.items() if k != "id"}
+                   for e in ENTRIES])
 
 
 @pytest.fixture(scope="module")

@@ -7,45 +7,20 @@ import hashlib
 import json
 import os
 import shutil
-from pathlib import Path
 
 import pytest
+from suite_toml import suite_toml
 
 from nerfgauge.cli import main
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.orchestrate.suite import SUITE_MANIFEST, load_suite
 
-TINY = """
-name = "tiny"
-version = {version}
-description = "two 16x16 datasets"
+TINY_DATASET = {"width": 16, "height": 16, "views": 4, "val_views": 0, "test_views": 2, "spp": 2}
 
-[dataset]
-width = 16
-height = 16
-views = 4
-val_views = 0
-test_views = 2
-spp = 2
 
-[train]
-steps = 10
-
-[protocol]
-split = "test"
-background = "white"
-depth_kind = "distance"
-baselines = ["nearest"]
-
-[[scenes]]
-scene = "primitives"
-seed = 0
-
-[[scenes]]
-id = "random-3"
-scene = "random"
-seed = 3
-"""
+def tiny(version: int = 1, steps: int = 10) -> str:
+    """Two 16x16 datasets, 10 steps of our NeRF, the nearest baseline."""
+    return suite_toml("tiny", TINY_DATASET, {"steps": steps}, version=version, description="two 16x16 datasets")
 
 
 def run(capsys, *argv):
@@ -64,7 +39,7 @@ def one_line_error(code, err, *words):
 @pytest.fixture(scope="module")
 def tiny_toml(tmp_path_factory):
     path = tmp_path_factory.mktemp("suites") / "tiny.toml"
-    path.write_text(TINY.format(version=1))
+    path.write_text(tiny())
     return path
 
 
@@ -124,7 +99,7 @@ def test_builtin_suites_list_and_standard_covers_every_scene(capsys):
 ])
 def test_bad_suite_files_are_refused_before_anything_is_written(tmp_path, capsys, edit, words):
     bad = tmp_path / "bad.toml"
-    bad.write_text(edit(TINY.format(version=1)))
+    bad.write_text(edit(tiny()))
     code, _, err = run(capsys, "suite", "generate", bad, "--out", tmp_path / "out")
     one_line_error(code, err, str(bad), *words)
     assert not (tmp_path / "out").exists()
@@ -193,11 +168,11 @@ def test_results_of_another_version_or_dataset_are_refused(suite_dir, tiny_toml,
     assert main(["suite", "evaluate", str(tiny_toml), str(suite_dir), "--method", "tool-b",
                  "--pred", str(gt_predictions)]) == 0
     v2 = tmp_path / "tiny-v2.toml"
-    v2.write_text(TINY.format(version=2))
+    v2.write_text(tiny(version=2))
     code, _, err = run(capsys, "suite", "evaluate", v2, suite_dir, "--method", "x", "--pred", gt_predictions)
     one_line_error(code, err, "version 1", "not version 2")
     edited = tmp_path / "tiny-edited.toml"
-    edited.write_text(TINY.format(version=1).replace("steps = 10", "steps = 11"))
+    edited.write_text(tiny(steps=11))
     code, _, err = run(capsys, "suite", "evaluate", edited, suite_dir, "--method", "x", "--pred", gt_predictions)
     one_line_error(code, err, "another definition", "bump the version")
 
@@ -280,7 +255,7 @@ def test_generate_over_another_version_needs_overwrite(suite_dir, tmp_path, caps
     copy = tmp_path / "copy"
     shutil.copytree(suite_dir, copy, ignore=shutil.ignore_patterns(".nerfgauge.lock", "results", "leaderboard.*"))
     v2 = tmp_path / "tiny-v2.toml"
-    v2.write_text(TINY.format(version=2))
+    v2.write_text(tiny(version=2))
     code, _, err = run(capsys, "suite", "generate", v2, "--out", copy)
     one_line_error(code, err, "version 1, not version 2", "--overwrite")
     assert read_json(copy / SUITE_MANIFEST)["version"] == 1  # untouched

@@ -17,39 +17,18 @@ from nerfgauge.cli import main
 from nerfgauge.core.files import read_json
 from nerfgauge.core.images import read_png
 from nerfgauge.orchestrate.suite import SUITE_MANIFEST, files_sha256, load_suite
+from suite_toml import suite_toml
 from test_suite import one_line_error, run
 
-SUITE = """
-name = "tiny-fg"
-version = 1
+LEGO = {"id": "lego", "folder": "gt/lego"}
+PRIMITIVES = {"scene": "primitives", "seed": 0}
 
-[dataset]
-width = 16
-height = 16
-views = 4
-val_views = 1
-test_views = 2
-spp = 2
 
-[train]
-steps = 10
-
-[protocol]
-split = "test"
-background = "white"
-depth_kind = "distance"
-baselines = ["nearest", "lightfield-nearest"]
-{procedural}
-[[scenes]]
-id = "lego"
-folder = "gt/lego"
-"""
-
-PROCEDURAL = """
-[[scenes]]
-scene = "primitives"
-seed = 0
-"""
+def suite(procedural: bool, scenes=None) -> str:
+    """A 16x16 suite holding the foreign folder gt/lego (after the procedural scene when asked)."""
+    return suite_toml("tiny-fg", {"width": 16, "height": 16, "views": 4, "val_views": 1, "test_views": 2, "spp": 2},
+                      {"steps": 10}, scenes if scenes is not None else ([PRIMITIVES] if procedural else []) + [LEGO],
+                      protocol={"baselines": ["nearest", "lightfield-nearest"]})
 
 
 def synthetic_copy(ours, out):
@@ -84,7 +63,7 @@ def make_suite(root, lego_source, procedural=True):
     """root/tiny-fg.toml and root/gt/lego (the folder entry, relative to the .toml)."""
     synthetic_copy(lego_source, root / "gt" / "lego")
     toml = root / "tiny-fg.toml"
-    toml.write_text(SUITE.format(procedural=PROCEDURAL if procedural else ""))
+    toml.write_text(suite(procedural))
     return toml
 
 
@@ -208,7 +187,7 @@ def test_bad_folder_entries_are_one_line(tmp_path, lego_source, capsys, entry, w
     shutil.copytree(lego_source, tmp_path / "ours")
     (tmp_path / "gt" / "lego").mkdir(parents=True)
     toml = tmp_path / "bad.toml"
-    toml.write_text(SUITE.format(procedural="").split("[[scenes]]")[0] + "[[scenes]]\n" + entry + "\n")
+    toml.write_text(suite(False, scenes=[]) + "\n[[scenes]]\n" + entry + "\n")
     code, _, err = run(capsys, "suite", "generate", toml, "--out", tmp_path / "out")
     one_line_error(code, err, *words)
     assert not (tmp_path / "out").exists()
@@ -235,7 +214,7 @@ def test_nerfstudio_folder_entry(tmp_path, lego_source, capsys):
                                                                        "*.json", ".nerfgauge*", "meshes", "sparse"))
     shutil.copy(lego_source / "transforms.json", folder / "transforms.json")
     toml = tmp_path / "tiny-fg.toml"
-    toml.write_text(SUITE.format(procedural=""))
+    toml.write_text(suite(False))
     out = tmp_path / "suite"
     code, _, err = run(capsys, "suite", "generate", toml, "--out", out)
     assert code == 0, err

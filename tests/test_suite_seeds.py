@@ -11,43 +11,14 @@ import shutil
 import numpy as np
 import pytest
 from scipy.stats import wilcoxon
+from suite_toml import suite_toml
 from test_uncertainty import loop_bootstrap, percentile_linear
 
 from nerfgauge.cli import main
 from nerfgauge.eval.uncertainty import EVALUATE_SEED, RESAMPLES
 
-TINY = """
-name = "tiny-seeds"
-version = 1
-description = "two 16x16 datasets, 4 test views"
-
-[dataset]
-width = 16
-height = 16
-views = 4
-val_views = 0
-test_views = 4
-spp = 2
-
-[train]
-steps = 60
-threads = 1
-
-[protocol]
-split = "test"
-background = "white"
-depth_kind = "distance"
-baselines = ["nearest"]
-
-[[scenes]]
-scene = "primitives"
-seed = 0
-
-[[scenes]]
-id = "random-3"
-scene = "random"
-seed = 3
-"""
+TINY = suite_toml("tiny-seeds", {"width": 16, "height": 16, "views": 4, "val_views": 0, "test_views": 4, "spp": 2},
+                  {"steps": 60, "threads": 1}, description="two 16x16 datasets, 4 test views")
 SEEDS = (0, 1, 2)
 IDS = ("primitives", "random-3")
 
