@@ -117,10 +117,11 @@ def _add_train(subparsers) -> None:
                         help="ray-marching step while training, in voxels (auto: 0.5, 1 in contracted space)")
     parser.add_argument("--batch-rays", type=arguments.BATCH_RAYS, default=None, metavar="N",
                         help="rays per training step (auto: 4096, 2048 in contracted space)")
-    parser.add_argument("--pixel-filter", choices=("centre", "box", "jitter"), default="centre",
-                        help="what a training pixel is compared as: centre (default), its centre ray; box, the mean "
-                             "of 2 x 2 stratified rays through it, as the ground truth averages the pixel's area "
-                             "(give it 4x --batch-rays: BENCHMARKS.md); jitter, one ray through a random point of it")
+    parser.add_argument("--pixel-filter", choices=("auto", "centre", "box", "jitter"), default="auto",
+                        help="what a training pixel is compared as: box, the mean of 2 x 2 stratified rays through "
+                             "it, as the ground truth averages the pixel's area (4x the rays a step, as many "
+                             "pixels); centre, its centre ray; jitter, one ray through a random point of it; auto "
+                             "(default): box under --budget-seconds, centre under --steps (RUN/config.json says why)")
     parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
                         help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
     parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "
@@ -152,7 +153,8 @@ def _run_train(args) -> int:
                          threads=args.threads, device=args.device, eval_every_seconds=args.eval_every,
                          parametrisation=None if args.parametrisation == "auto" else args.parametrisation,
                          checkpoint_every=args.checkpoint_every, step_ratio=args.step_ratio,
-                         batch_rays=args.batch_rays, pixel_filter=args.pixel_filter, sparse=args.sparse)
+                         batch_rays=args.batch_rays, sparse=args.sparse,
+                         pixel_filter=None if args.pixel_filter == "auto" else args.pixel_filter)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
           f"model {summary['model_bytes'] / 1e6:.2f} MB"

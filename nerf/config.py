@@ -81,10 +81,8 @@ class TrainConfig:
     step_ratio: Optional[float] = None  # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
     # What a training pixel's colour is compared as: "centre", its centre ray; "box", the mean
     # of 2 x 2 stratified rays through the pixel, as the ground truth's box filter averages its
-    # area (batch_rays counts rays: a quarter as many pixels a step); "jitter", one ray through
-    # a random point of it. Centre by measurement (BENCHMARKS.md, "The pixel's footprint"):
-    # at the default batch it scored best; box wins only with 4x the rays a step.
-    pixel_filter: str = "centre"
+    # area; "jitter", one ray through a random point of it. None: `pixel_filter_for`.
+    pixel_filter: Optional[str] = None
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
     # vanilla (the original NeRF, Mildenhall et al. 2020)
     n_coarse: int = 64
@@ -116,7 +114,7 @@ class TrainConfig:
             raise InputError("give exactly one of --steps N or --budget-seconds T")
         if self.quantise not in ("fp16", "int8"):
             raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
-        if self.pixel_filter not in PIXEL_FILTERS:
+        if self.pixel_filter is not None and self.pixel_filter not in PIXEL_FILTERS:
             raise InputError(f"unknown pixel filter {self.pixel_filter!r}; choose {', '.join(PIXEL_FILTERS)}")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
@@ -218,10 +216,15 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["final_resolution"] = why
     else:
         reasons["final_resolution"] = "set on the command line"
+    updates["pixel_filter"], reasons["pixel_filter"] = pixel_filter_for(config)
+    per_pixel = TRAIN_PIXEL_SAMPLES[updates["pixel_filter"]]
     for name, (by_kind, reason) in BY_PARAMETRISATION.items():
         if getattr(config, name) is None:
             updates[name] = by_kind[kind]
             reasons[name] = f"{kind} space: {reason.format(by_kind[kind])}"
+            if name == "batch_rays" and per_pixel > 1:  # as many pixels a step as one ray a pixel gets
+                updates[name] *= per_pixel
+                reasons[name] += f" x {per_pixel} rays a pixel ({updates['pixel_filter']} filter)"
         else:
             reasons[name] = "set on the command line"
     final = updates.get("final_resolution", config.final_resolution)
@@ -230,6 +233,23 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["start_resolution"] = (f"coarse to fine: {upsample_count(updates['start_resolution'], final)} "
                                        f"stages of about x{STAGE_RATIO:.2f} from about {START_VOXELS} voxels")
     return dataclasses.replace(config, **updates), reasons
+
+
+def pixel_filter_for(config: TrainConfig) -> tuple[str, str]:
+    """The pixel filter a run trains with, and why. Set: as set. Otherwise `box` under a time
+    budget and `centre` under a step count. Why (BENCHMARKS.md, "The pixel's footprint"): with
+    as many pixels a step, the box loss with its 2 x 2 render beat centre rays at equal compute
+    on primitives (+1.2 dB) and on far-object, a scene outside the bench set (+4.0 dB), and
+    lost with a quarter of the pixels a step; so a box step holds TRAIN_PIXEL_SAMPLES times the
+    rays, which a time budget pays for by taking fewer steps, while a step count names the work
+    and would silently cost four times as much."""
+    if config.pixel_filter is not None:
+        return config.pixel_filter, "set on the command line"
+    if config.model != "compact":
+        return "centre", "the vanilla NeRF as the lecture trains it: one ray a pixel"
+    if config.budget_seconds is not None:
+        return "box", "a time budget: the box filter, 2 x 2 rays a pixel (equal compute: BENCHMARKS.md)"
+    return "centre", "a step count: one ray a pixel (a box step would cost 4x the rays)"
 
 
 def step_ratio_of(config: TrainConfig) -> float:

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
+from nerfgauge.nerf.config import pixel_filter_for
 from nerfgauge.nerf.data import jittered_direction, pixel_footprints, split_rays
 from nerfgauge.nerf.runs import open_run_dataset
 from nerfgauge.nerf.rendering import render_rays_chunked
@@ -159,7 +160,7 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     if pixel_samples is not None:
         arguments.PIXEL_SAMPLES.check(pixel_samples, "--pixel-samples")
     model, config = load_model(run_dir / "model.pt")
-    pixel_samples = PIXEL_SAMPLES[config.pixel_filter] if pixel_samples is None else pixel_samples
+    pixel_samples = PIXEL_SAMPLES[pixel_filter_for(config)[0]] if pixel_samples is None else pixel_samples
     threads = threads or config.threads
     device = pick_device(config.device)
     if other_dataset and dataset is None:

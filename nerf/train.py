@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import (LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig, resolve,
-                                   upsample_count)
+from nerfgauge.nerf.config import (LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig,
+                                   pixel_filter_for, resolve, upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
@@ -216,7 +216,7 @@ def prepare_run(config: TrainConfig):
     if aabb is None:
         aabb = aabb_from_cameras(train_cams.c2w)
     check_targets(aabb, train_cams.c2w)
-    _, train_rays = load_split_rays(root, "train", views=sparse, footprint=config.pixel_filter != "centre")
+    _, train_rays = load_split_rays(root, "train", views=sparse, footprint=pixel_filter_for(config)[0] != "centre")
     config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
                               train_cams.intrinsics.width, opaque_share(train_rays))
     recipe = run_recipe(config, manifest_sha256(root))
