@@ -114,3 +114,22 @@ def test_training_through_the_pixels_footprint_runs_and_renders_box_filtered(tin
     assert json.loads((run / "config.json").read_text())["pixel_filter"] == pixel_filter
     timing = render_split(run, "test", progress=False)
     assert timing["pixel_samples"] == 2  # the box filter's 2 x 2 rays for a run trained through the footprint
+
+
+@pytest.mark.parametrize("fields, expected_filter", [
+    ({"budget_seconds": 60.0}, "box"),
+    ({"steps": 100}, "centre"),
+    ({"budget_seconds": 60.0, "pixel_filter": "centre"}, "centre"),
+    ({"steps": 100, "pixel_filter": "box"}, "box"),
+    ({"budget_seconds": 60.0, "model": "vanilla"}, "centre"),
+])
+def test_the_automatic_pixel_filter_and_its_batch(fields, expected_filter):
+    """box under a time budget with TRAIN_PIXEL_SAMPLES times the rays a step (as many
+    pixels as one ray a pixel), centre under a step count; a set filter stays."""
+    from nerfgauge.nerf.config import BATCH_RAYS, TRAIN_PIXEL_SAMPLES, TrainConfig, resolve
+
+    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    c2w = np.stack([look_at(np.array([3.0, 0.0, 1.0]), np.zeros(3)), look_at(np.array([0.0, 3.0, 1.0]), np.zeros(3))])
+    config, reasons = resolve(TrainConfig(dataset="unused", **fields), None, aabb, c2w, 100.0, 64, 0.5)
+    assert config.pixel_filter == expected_filter and reasons["pixel_filter"]
+    assert config.batch_rays == BATCH_RAYS[config.parametrisation] * TRAIN_PIXEL_SAMPLES[expected_filter]
