@@ -121,7 +121,7 @@ def _add_train(subparsers) -> None:
                         help="what a training pixel is compared as: box, the mean of 2 x 2 stratified rays through "
                              "it, as the ground truth averages the pixel's area (4x the rays a step, as many "
                              "pixels); centre, its centre ray; jitter, one ray through a random point of it; auto "
-                             "(default): box under --budget-seconds, centre under --steps (RUN/config.json says why)")
+                             "(default): centre (BENCHMARKS.md, \"The pixel's footprint\")")
     parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
                         help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
     parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "

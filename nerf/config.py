@@ -236,20 +236,15 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
 
 
 def pixel_filter_for(config: TrainConfig) -> tuple[str, str]:
-    """The pixel filter a run trains with, and why. Set: as set. Otherwise `box` under a time
-    budget and `centre` under a step count. Why (BENCHMARKS.md, "The pixel's footprint"): with
-    as many pixels a step, the box loss with its 2 x 2 render beat centre rays at equal compute
-    on primitives (+1.2 dB) and on far-object, a scene outside the bench set (+4.0 dB), and
-    lost with a quarter of the pixels a step; so a box step holds TRAIN_PIXEL_SAMPLES times the
-    rays, which a time budget pays for by taking fewer steps, while a step count names the work
-    and would silently cost four times as much."""
+    """The pixel filter a run trains with, and why: as set, else `centre`. Why not `box` by
+    default (BENCHMARKS.md, "The pixel's footprint"): with as many pixels a step (so 4x the
+    rays), the box loss with its 2 x 2 render beat centre rays at equal compute at 64 px
+    (primitives +1.2 dB, far-object +4.0 dB, time budgets of 30-180 s 0 to +1.8 dB), but on
+    the demo (primitives 128 px, 90 s) it lost 2.1 dB: its steps cost 3.6x as much, so the
+    budget kept a 68-voxel grid where centre rays reached 109."""
     if config.pixel_filter is not None:
         return config.pixel_filter, "set on the command line"
-    if config.model != "compact":
-        return "centre", "the vanilla NeRF as the lecture trains it: one ray a pixel"
-    if config.budget_seconds is not None:
-        return "box", "a time budget: the box filter, 2 x 2 rays a pixel (equal compute: BENCHMARKS.md)"
-    return "centre", "a step count: one ray a pixel (a box step would cost 4x the rays)"
+    return "centre", "the default: one ray a pixel (the box filter's 4x rays a step slow the grid's growth)"
 
 
 def step_ratio_of(config: TrainConfig) -> float:

@@ -117,15 +117,14 @@ def test_training_through_the_pixels_footprint_runs_and_renders_box_filtered(tin
 
 
 @pytest.mark.parametrize("fields, expected_filter", [
-    ({"budget_seconds": 60.0}, "box"),
+    ({"budget_seconds": 60.0}, "centre"),
     ({"steps": 100}, "centre"),
-    ({"budget_seconds": 60.0, "pixel_filter": "centre"}, "centre"),
-    ({"steps": 100, "pixel_filter": "box"}, "box"),
-    ({"budget_seconds": 60.0, "model": "vanilla"}, "centre"),
+    ({"budget_seconds": 60.0, "pixel_filter": "box"}, "box"),
+    ({"steps": 100, "pixel_filter": "jitter"}, "jitter"),
 ])
-def test_the_automatic_pixel_filter_and_its_batch(fields, expected_filter):
-    """box under a time budget with TRAIN_PIXEL_SAMPLES times the rays a step (as many
-    pixels as one ray a pixel), centre under a step count; a set filter stays."""
+def test_the_pixel_filter_and_its_batch(fields, expected_filter):
+    """centre unless set; a box run's automatic batch holds TRAIN_PIXEL_SAMPLES times the
+    rays a step (as many pixels as one ray a pixel)."""
     from nerfgauge.nerf.config import BATCH_RAYS, TRAIN_PIXEL_SAMPLES, TrainConfig, resolve
 
     aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
