@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -159,3 +160,19 @@ def test_every_command_refuses_duplicate_frames_in_one_line(tiny_dataset, tmp_pa
             "evaluate": ["evaluate", root, "--pred", root, "--out", tmp_path / "m.json"]}[command]
     one_line_exit_2(capsys, argv, "test/r_000", "transforms_val.json", "transforms_test.json", "list each frame once")
     assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("fields", [{"fl_y": 1e-300}, {"fl_x": 1e-3}, {"cx": 1e12}, {"cy": -1e9}])
+def test_intrinsics_whose_rays_leave_the_pinhole_are_one_line(fields):
+    """A focal length or principal point that puts the image's edge more than
+    MAX_RAY_TANGENT focal lengths off the axis (rays within 0.06 deg of 90, whose
+    directions overflow in float arithmetic: found by a fresh fuzz seed) is refused where
+    the transforms are read; a wide but real pinhole (170 deg) is not."""
+    from nerfgauge.core import validate
+    from nerfgauge.core.errors import InputError
+
+    meta = {"w": 64, "h": 48, "fl_x": 80.0, "fl_y": 80.0, "cx": 32.0, "cy": 24.0}
+    with pytest.raises(InputError, match="focal lengths off the axis"):
+        validate.intrinsics({**meta, **fields}, "transforms_train.json")
+    wide = 32.0 / math.tan(math.radians(85.0))  # 170 deg across the width
+    assert validate.intrinsics({**meta, "fl_x": wide, "fl_y": wide}, "t").fx == wide

@@ -114,6 +114,9 @@ def _side(value, name: str, where: str) -> int:
     return int(value)
 
 
+MAX_RAY_TANGENT = 1000.0  # tan of 89.94 deg: a pinhole's field of view up to 179.89 deg
+
+
 def intrinsics(meta: dict, where: str) -> Intrinsics:
     """Intrinsics from a transforms document's w, h, fl_x, fl_y, cx, cy."""
     missing = [key for key in ("w", "h", "fl_x", "fl_y", "cx", "cy") if key not in meta]
@@ -123,7 +126,17 @@ def intrinsics(meta: dict, where: str) -> Intrinsics:
     fx, fy = _real(meta["fl_x"], "fl_x", where), _real(meta["fl_y"], "fl_y", where)
     if fx <= 0 or fy <= 0:
         raise InputError(f"{where}: focal lengths must be > 0, got fl_x={fx} fl_y={fy}")
-    return Intrinsics(width, height, fx, fy, _real(meta["cx"], "cx", where), _real(meta["cy"], "cy", where))
+    cx, cy = _real(meta["cx"], "cx", where), _real(meta["cy"], "cy", where)
+    # The farthest pixel edge from the principal point, in focal lengths: a pinhole ray's
+    # tangent off the axis. Past MAX_RAY_TANGENT the rays are within 0.06 deg of 90 and
+    # their directions overflow or vanish in float arithmetic (a fresh fuzz seed:
+    # fl_y = 1e-300 gave zero-length rays deep in training).
+    tangent = max(max(abs(cx), abs(width - cx)) / fx, max(abs(cy), abs(height - cy)) / fy)
+    if not tangent <= MAX_RAY_TANGENT:
+        raise InputError(f"{where}: fl_x={fx:g}, fl_y={fy:g}, cx={cx:g}, cy={cy:g} put the image's edge "
+                         f"{tangent:.3g} focal lengths off the axis (at most {MAX_RAY_TANGENT:g}: a pinhole "
+                         "image within 89.94 deg of its axis)")
+    return Intrinsics(width, height, fx, fy, cx, cy)
 
 
 def bounds(value, where: str) -> np.ndarray:
