@@ -176,3 +176,29 @@ def test_intrinsics_whose_rays_leave_the_pinhole_are_one_line(fields):
         validate.intrinsics({**meta, **fields}, "transforms_train.json")
     wide = 32.0 / math.tan(math.radians(85.0))  # 170 deg across the width
     assert validate.intrinsics({**meta, "fl_x": wide, "fl_y": wide}, "t").fx == wide
+
+
+def test_a_damaged_exr_is_one_error_and_nothing_on_stderr(tmp_path, capfd):
+    """OpenEXR's C library prints its own complaints about a damaged file on file
+    descriptor 2 (a fresh fuzz seed found them under a command's one-line error): reading
+    any EXR with one header byte zeroed either succeeds or raises InputError naming the
+    file, and nothing reaches stderr."""
+    from nerfgauge.core.errors import InputError
+    from nerfgauge.core.images import read_exr, write_exr
+
+    good = tmp_path / "depth.exr"
+    write_exr(good, {"Z": np.linspace(0, 1, 32 * 24, dtype=np.float32).reshape(24, 32)})
+    data = good.read_bytes()
+    refused = 0
+    for position in range(8, min(len(data), 400)):
+        bad = bytearray(data)
+        bad[position] = 0
+        path = tmp_path / f"bad-{position}.exr"
+        path.write_bytes(bytes(bad))
+        try:
+            read_exr(path)
+        except InputError as error:
+            refused += 1
+            assert str(path) in str(error) and "\n" not in str(error)
+    assert refused > 0
+    assert capfd.readouterr().err == ""
