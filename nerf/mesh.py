@@ -66,13 +66,13 @@ class ExtractedMesh:
     seconds: float
 
 
-def seen_by_any(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+def seen_by_any(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics, distortion=None) -> np.ndarray:
     """Points [n, 3] in front of and projecting into the image of at least one camera of
     c2w [m, 4, 4]. Returns [n] bool."""
     seen = np.zeros(len(points), bool)
     todo = np.arange(len(points))
     for pose in c2w:  # each camera only looks at the points no earlier one saw
-        u, v, _ = project(points[todo], pose, intrinsics)
+        u, v, _ = project(points[todo], pose, intrinsics, distortion)
         with np.errstate(invalid="ignore"):
             inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
         seen[todo[inside]] = True
@@ -83,7 +83,7 @@ def seen_by_any(points: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics) -> 
 
 
 def on_rendered_surface(points: np.ndarray, model, c2w: np.ndarray, intrinsics: Intrinsics, tolerance: float,
-                        device="cpu") -> np.ndarray:
+                        device="cpu", distortion=None) -> np.ndarray:
     """Points [n, 3] that some camera of c2w [m, 4, 4] sees on the surface the model
     renders: they project into its image where the rendered opacity is >= OPACITY_LEVEL and
     their distance from the camera is within `tolerance` (world units) of the rendered
@@ -97,14 +97,14 @@ def on_rendered_surface(points: np.ndarray, model, c2w: np.ndarray, intrinsics: 
     seen = np.zeros(len(points), bool)
     todo = np.arange(len(points))
     for pose in c2w:
-        origins, directions = pixel_rays(pose, intrinsics)  # [H, W, 3]
+        origins, directions = pixel_rays(pose, intrinsics, distortion)  # [H, W, 3], the views' own rays
         with torch.no_grad():
             _, opacity, depth = render_rays_chunked(
                 model, torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)).to(device),
                 torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device))
         opacity = opacity.cpu().numpy().reshape(intrinsics.height, intrinsics.width)
         depth = depth.cpu().numpy().reshape(intrinsics.height, intrinsics.width)
-        u, v, _ = project(points[todo], pose, intrinsics)
+        u, v, _ = project(points[todo], pose, intrinsics, distortion)
         with np.errstate(invalid="ignore"):
             inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
         column, row = np.floor(u[inside]).astype(np.int64), np.floor(v[inside]).astype(np.int64)
@@ -208,11 +208,12 @@ def rendered_surface_level(model, c2w: np.ndarray, intrinsics: Intrinsics, rays:
 
 def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray | None = None,
                  intrinsics: Intrinsics | None = None, level: float | None = None,
-                 device: torch.device | str = "cpu") -> ExtractedMesh:
+                 device: torch.device | str = "cpu", distortion=None) -> ExtractedMesh:
     """Marching cubes on `model.density` over `box` [2, 3] at `resolution` cells along its
     longest side, at `level` (None: the rendered-surface level over the cameras train_c2w
     [m, 4, 4], else the voxel level); faces no camera of train_c2w sees are dropped (None:
-    keep all, no calibration). InputError when the field has no surface there."""
+    keep all, no calibration). distortion: the train views' lens distortion (their rays and
+    projections go through it), None for pinholes. InputError when the field has no surface there."""
     from skimage.measure import marching_cubes  # scikit-image: only when meshing
 
     if not model.has_density:
@@ -244,11 +245,11 @@ def extract_mesh(model, box: np.ndarray, resolution: int, train_c2w: np.ndarray 
     culled = 0
     if train_c2w is not None and len(faces):
         centroids = vertices[faces].mean(axis=1)
-        keep = seen_by_any(centroids, train_c2w, intrinsics)
+        keep = seen_by_any(centroids, train_c2w, intrinsics, distortion)
         voxel = model_voxel(model)
         if voxel is not None:  # and on the surface the model renders (SURFACE_TOLERANCE_VOXELS)
             keep[keep] = on_rendered_surface(centroids[keep], model, train_c2w, intrinsics,
-                                             SURFACE_TOLERANCE_VOXELS * max(voxel, cell), device)
+                                             SURFACE_TOLERANCE_VOXELS * max(voxel, cell), device, distortion)
         culled = int((~keep).sum())
         faces = faces[keep]
         used = np.unique(faces)
@@ -284,4 +285,5 @@ def mesh_from_run(run_dir, resolution: int = 256, cull: bool = True, level: floa
     box = extraction_box(ds.bounds, model)
     if not cull and level is None:  # the cameras still set the level
         level = rendered_surface_level(model, cameras.c2w, cameras.intrinsics)
-    return extract_mesh(model, box, resolution, cameras.c2w if cull else None, cameras.intrinsics, level)
+    return extract_mesh(model, box, resolution, cameras.c2w if cull else None, cameras.intrinsics, level,
+                        distortion=cameras.distortion)
