@@ -381,7 +381,7 @@ def unavailable_notes(ds: dataset.Dataset, held_out: bool) -> dict:
     if ds.foreign is None:
         return {}
     notes = {}
-    for metric in ("depth_absrel", "depth_rmse", "depth_mae", "depth_delta1", "depth_absrel_resolved",
+    for metric in ("depth_absrel", "depth_rmse", "depth_mae", "depth_delta1", "depth_bias", "depth_absrel_resolved",
                    "resolved_fraction"):
         notes[metric] = "unavailable: " + ds.unavailable_reason("depth")
     notes["opacity_iou"] = "unavailable: " + ds.unavailable_reason("masks")

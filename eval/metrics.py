@@ -42,6 +42,7 @@ METRIC_NAMES = (
     "depth_rmse",
     "depth_mae",
     "depth_delta1",
+    "depth_bias",  # median signed relative depth error: > 0 when surfaces are drawn behind the true ones
     "depth_absrel_resolved",  # eval.covisibility: on the hit pixels whose depth two train views resolve
     "resolved_fraction",  # the share of hit pixels they are
     "opacity_iou",
@@ -369,6 +370,11 @@ def depth_metrics(pred, gt, mask) -> dict[str, Optional[float]]:
         rmse   = sqrt(mean((p - g)^2))
         mae    = mean(|p - g|)
         delta1 = fraction of pixels with p > 0 and max(p / g, g / p) < 1.25
+        bias   = median((p - g) / g)
+
+    `bias` is signed: a method that draws every surface a little behind (or in front of)
+    the true one has it > 0 (< 0), where absrel cannot tell a systematic offset from noise;
+    the median, so a few floaters do not decide it.
 
     A prediction <= 0 counts as a delta1 failure (the ratio is undefined) and enters the
     other three as it is. Pixels outside the mask are ignored (they may hold anything,
@@ -380,7 +386,7 @@ def depth_metrics(pred, gt, mask) -> dict[str, Optional[float]]:
         gt: [H, W] true depth, finite and > 0 on every masked pixel (misses are stored as 0).
         mask: [H, W] bool, True where the ground-truth ray hit geometry.
     Returns:
-        {"absrel", "rmse", "mae", "delta1"}: floats, or all None for an empty mask.
+        {"absrel", "rmse", "mae", "delta1", "bias"}: floats, or all None for an empty mask.
     """
     pred = _plane(pred, "predicted depth")
     gt = _plane(gt, "ground-truth depth")
@@ -389,7 +395,7 @@ def depth_metrics(pred, gt, mask) -> dict[str, Optional[float]]:
     mask = _mask(mask, "depth mask", gt.shape)
     p, g = pred[mask], gt[mask]  # [N] each
     if p.size == 0:
-        return {"absrel": None, "rmse": None, "mae": None, "delta1": None}
+        return {"absrel": None, "rmse": None, "mae": None, "delta1": None, "bias": None}
     _check_finite(p, "predicted depth (masked pixels)")
     _check_finite(g, "ground-truth depth (masked pixels)")
     if g.min() <= 0:
@@ -405,6 +411,7 @@ def depth_metrics(pred, gt, mask) -> dict[str, Optional[float]]:
             "rmse": float(np.sqrt(np.mean(error ** 2))),
             "mae": float(np.mean(np.abs(error))),
             "delta1": float(np.mean(ratio < DELTA1_THRESHOLD)),
+            "bias": float(np.median(error / g)),
         }
     overflowed = sorted(key for key, value in scores.items() if not math.isfinite(value))
     if overflowed:

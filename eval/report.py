@@ -34,6 +34,7 @@ TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("ps
                  ("depth_absrel", "depth AbsRel", "{:.4f}"),
                  ("depth_absrel_resolved", "resolved depth AbsRel", "{:.4f}"),
                  ("depth_rmse", "depth RMSE", "{:.4f}"), ("depth_delta1", "depth δ<1.25", "{:.4f}"),
+                 ("depth_bias", "depth bias (median rel.)", "{:+.4f}"),
                  ("opacity_iou", "opacity IoU", "{:.4f}"), ("lpips", "LPIPS (Alex)", "{:.4f}"))
 
 

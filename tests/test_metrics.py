@@ -222,7 +222,24 @@ def test_depth_metrics_on_masked_pixels():
     assert out["mae"] == pytest.approx(2.1 / 3, rel=1e-12)
     assert out["rmse"] == pytest.approx(math.sqrt(2.01 / 3), rel=1e-12)
     assert out["delta1"] == pytest.approx(1 / 3, rel=1e-12)
-    assert set(out) == {"absrel", "rmse", "mae", "delta1"}
+    # signed relative errors 0.1, -0.5, 0.25: the median is the middle one, 0.1
+    assert out["bias"] == pytest.approx(0.1, rel=1e-12)
+    assert set(out) == {"absrel", "rmse", "mae", "delta1", "bias"}
+
+
+def test_depth_bias_is_signed_and_ignores_a_few_floaters():
+    """Surfaces drawn 2% behind everywhere: bias +0.02 (absrel cannot tell behind from in
+    front); 2% in front: -0.02; the same with 10% of the pixels on floaters at 1/10 of the
+    depth: the median keeps +0.02 where the mean would be pulled below zero."""
+    rng = np.random.default_rng(3)
+    gt = rng.uniform(1.0, 5.0, (20, 20))
+    mask = np.ones_like(gt, bool)
+    assert depth_metrics(gt * 1.02, gt, mask)["bias"] == pytest.approx(0.02, rel=1e-9)
+    assert depth_metrics(gt * 0.98, gt, mask)["bias"] == pytest.approx(-0.02, rel=1e-9)
+    floaters = gt * 1.02
+    floaters.flat[::10] = gt.flat[::10] * 0.1
+    assert depth_metrics(floaters, gt, mask)["bias"] == pytest.approx(0.02, rel=1e-9)
+    assert np.mean((floaters - gt) / gt) < 0
 
 
 def test_depth_non_positive_prediction_fails_delta():
@@ -238,11 +255,12 @@ def test_depth_non_positive_prediction_fails_delta():
 def test_depth_empty_mask_gives_none_and_unmasked_nan_is_ignored():
     gt = np.zeros((3, 3))
     pred = np.full((3, 3), np.nan)
-    assert depth_metrics(pred, gt, np.zeros((3, 3), bool)) == {"absrel": None, "rmse": None, "mae": None, "delta1": None}
+    assert depth_metrics(pred, gt, np.zeros((3, 3), bool)) == {"absrel": None, "rmse": None, "mae": None, "delta1": None,
+                                                                   "bias": None}
     gt[1, 1], pred[1, 1] = 2.0, 2.0
     mask = np.zeros((3, 3), bool)
     mask[1, 1] = True
-    assert depth_metrics(pred, gt, mask) == {"absrel": 0.0, "rmse": 0.0, "mae": 0.0, "delta1": 1.0}
+    assert depth_metrics(pred, gt, mask) == {"absrel": 0.0, "rmse": 0.0, "mae": 0.0, "delta1": 1.0, "bias": 0.0}
 
 
 def test_depth_input_errors():
