@@ -4,6 +4,7 @@ independent bootstrap (plain loops on the same generator draws), the paired comp
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -279,3 +280,31 @@ def test_run_with_seeds_keeps_every_run_and_aggregates_them(tmp_path, capsys):
     assert code == 0, err
     assert not (out / "seeds").exists() and not (out / "eval" / "compact" / "aggregate.json").exists()
     assert not (out / "eval" / "compact" / "seed-2").exists()
+
+
+@pytest.mark.parametrize("cores, scheduler, given, suite_threads, expected", [
+    (2, None, None, None, 2),            # no cluster: the training default (TrainConfig.threads)
+    (2, "local:2", None, None, 1),       # 2 workers x 2 threads on 2 cores: a share each
+    (8, "local:2", None, None, 2),       # room for both: the default stands
+    (2, "local:4", None, None, 1),       # never below one
+    (2, "local:2", None, 1, 1),          # the suite's own threads fit
+    (2, "local:2", 3, None, 3),          # --threads wins, even oversubscribed: the user asked
+    (2, "tcp://10.0.0.5:8786", None, None, 2),  # a remote cluster's workers have their own cores
+])
+def test_training_threads_share_a_local_clusters_cores(monkeypatch, cores, scheduler, given, suite_threads, expected):
+    from nerfgauge.orchestrate import suite_run
+    from nerfgauge.orchestrate.suite import load_suite
+    monkeypatch.setattr(suite_run.os, "sched_getaffinity", lambda pid: set(range(cores)), raising=False)
+    suite = load_suite("smoke")
+    train = {key: value for key, value in suite.train.items() if key != "threads"}
+    if suite_threads is not None:
+        train["threads"] = suite_threads
+    suite = dataclasses.replace(suite, train=train)
+    threads, why = suite_run.training_threads(suite, scheduler, given)
+    assert threads == expected and why
+
+
+def test_bad_threads_are_one_line_exit_2(tmp_path, capsys):
+    code, _, err = run(capsys, "suite", "run", "smoke", "--out", tmp_path / "x", "--threads", "0")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--threads" in err, err
+    assert not (tmp_path / "x").exists()

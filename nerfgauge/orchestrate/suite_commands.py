@@ -4,7 +4,7 @@
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
     nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...] [--seeds K|A,B,...]
-    nerfgauge suite run SUITE --out DIR [--overwrite] [--seeds K|A,B,...] [--scheduler ADDRESS]
+    nerfgauge suite run SUITE --out DIR [--overwrite] [--seeds K|A,B,...] [--scheduler ADDRESS] [--threads T]
     nerfgauge suite report DIR
 
 SUITE is a built-in name (`suite list`) or a path to a .toml file.
@@ -57,6 +57,9 @@ def register(subparsers) -> None:
     run.add_argument("--scheduler", default=None, metavar="ADDRESS",
                      help="run generation and every (dataset, method, seed) job on a dask.distributed cluster: "
                           "tcp://HOST:PORT or local:N (needs the dask extra)")
+    run.add_argument("--threads", type=arguments.THREADS, default=None, metavar="T",
+                     help="torch threads per training job (default: the suite's; on local:N a share of the cores "
+                          "when N workers would oversubscribe them). Per-run metrics repeat for equal T")
     run.set_defaults(func=run_run)
     report = kinds.add_parser("report", help="the leaderboard (Markdown, HTML, JSON) and per-dataset reports")
     report.add_argument("dir", type=arguments.path, metavar="DIR", help="the suite folder")
@@ -89,7 +92,7 @@ def run_evaluate(args) -> int:
 
 def run_run(args) -> int:
     run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress, seeds=args.seeds,
-              scheduler=args.scheduler)
+              scheduler=args.scheduler, threads=args.threads)
     return 0
 
 

@@ -24,9 +24,13 @@ interrupted suite run therefore redoes only the jobs that had not finished.
 
 Same numbers as a local run: a job's result depends only on its inputs. Training is
 step-counted (a suite's [train] needs `steps`), seeded by the job's seed, and runs with
-the [train] `threads` (TrainConfig.threads, default 2) wherever it runs; torch on CPU with
-a fixed thread count repeats its results (tests/test_suite_seeds.py compares the per-run
-metrics of a local and a 2-worker run). What may differ: wall-clock figures (train_seconds,
+the same torch thread count wherever it runs (`suite run --threads`, else the [train]
+`threads`, TrainConfig's default 2, except that `local:N` shares this machine's cores:
+orchestrate.suite_run.training_threads); torch on CPU with a fixed thread count repeats
+its results (tests/test_suite_seeds.py compares the per-run metrics of a local and a
+2-worker run). Another thread count splits some float sums differently: a 600-step run
+with 1 and with 2 threads gave the same val PSNR and fp16 node values apart by at most
+0.0078, so compare a local:N run with a local run at its --threads. What may differ: wall-clock figures (train_seconds,
 steps_per_second, ms_per_frame, evaluate_seconds) and anything a time budget would decide
 (suites have none). On a GPU worker, CUDA kernels are not bitwise repeatable. Scoring runs
 in the client with torch's default thread count either way (a local job restores it after
@@ -76,10 +80,12 @@ def finished(out, key: str, recipe: dict, outputs) -> dict | None:
 
 
 def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256: str, run_dir: str, renders: str,
-              seed: int, split: str, geometry: dict | None) -> dict:
+              seed: int, split: str, geometry: dict | None, threads: int | None = None) -> dict:
     """Train our NeRF with `seed`, render `split` into `renders`, score its mesh (geometry
     settings, or None). Returns the cost row: {"train_seconds", "model_bytes", "steps",
-    "steps_per_second", "geometry", "seed", "resumed"}. Skipped (resumed) when finished."""
+    "steps_per_second", "geometry", "seed", "threads", "resumed"}. Skipped (resumed) when finished.
+    threads: torch threads for training (None: the [train] table's); like a run's, not part
+    of the recipe (nerf.train.NOT_RECIPE), though the float sums it splits may round apart."""
     recipe = {"kind": "train", "train": train, "seed": seed, "manifest_sha256": manifest_sha256, "split": split,
               "geometry": geometry, "version": _version()}
     outputs = [Path(run_dir) / "model.pt", Path(renders) / "timing.json"]
@@ -93,7 +99,7 @@ def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256
 
     import torch  # torch: only where a job runs
 
-    config = TrainConfig(dataset=dataset, seed=seed, **train)
+    config = TrainConfig(dataset=dataset, seed=seed, **{**train, **({} if threads is None else {"threads": threads})})
     # training sets torch's thread count for the whole process; a job run in the client's
     # process (no scheduler) puts it back, so the scoring that follows (LPIPS's convolutions
     # sum in a thread-count-dependent order) runs as it does after a cluster's jobs
@@ -103,7 +109,7 @@ def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256
         render_split(run_dir, split, renders, overwrite=True, progress=False)
         result = {"train_seconds": summary["seconds"], "model_bytes": summary["model_bytes"],
                   "steps": summary["steps"], "steps_per_second": summary["steps"] / max(summary["seconds"], 1e-9),
-                  "seed": seed, "geometry": _geometry(dataset, run_dir, geometry)}
+                  "seed": seed, "threads": config.threads, "geometry": _geometry(dataset, run_dir, geometry)}
     finally:
         torch.set_num_threads(threads)
     write_json(job_record_path(out, job_key), {"recipe": recipe_hash(recipe), "result": result})

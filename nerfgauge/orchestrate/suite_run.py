@@ -21,6 +21,7 @@ are made again on every run. --scheduler runs generation and the jobs on a dask 
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from pathlib import Path
 
@@ -49,8 +50,30 @@ def skipped_on_folder(suite: Suite, entry) -> dict:
     return reasons
 
 
+def training_threads(suite: Suite, scheduler: str | None, threads: int | None) -> tuple[int, str]:
+    """Torch threads for each training job, and why: as given; else the suite's [train]
+    threads (TrainConfig's default when it names none), except on local:N where N workers
+    times that would exceed this machine's cores: then cores // N (at least 1). Oversubscribed
+    torch threads spin against each other: on 2 cores, local:2 with 2 threads a job took 7.2x
+    as long for the standard suite's primitives job (450 s against 63 s, BENCHMARKS.md)."""
+    if threads is not None:
+        return arguments.THREADS.check(threads, "--threads"), "--threads"
+    from nerfgauge.nerf.config import TrainConfig  # the default lives with the config
+    wanted = int(suite.train.get("threads", TrainConfig.threads))
+    source = "the suite's [train] threads" if "threads" in suite.train else "the training default"
+    if scheduler is None:
+        return wanted, source
+    kind, workers = parse_scheduler(scheduler)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if kind == "local" and workers * wanted > cores:
+        share = max(1, cores // workers)
+        return share, (f"{workers} local workers share {cores} cores; {source} ({wanted}) would oversubscribe "
+                       f"them. Per-run metrics equal a local run's with --threads {share}")
+    return wanted, source
+
+
 def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print,
-              seeds=None, scheduler: str | None = None) -> dict:
+              seeds=None, scheduler: str | None = None, threads: int | None = None) -> dict:
     """Generate, train, render, baselines, evaluate, leaderboard. Returns the leaderboard.
 
     seeds: None trains our NeRF once per dataset with the dataset entry's seed (runs/<id>/,
@@ -59,11 +82,14 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     aggregated (orchestrate.suite.evaluate_suite, results/<method>/<id>/aggregate.json). The
     baselines are deterministic functions of the dataset: run once, paired with every seed.
     scheduler: None runs the jobs here; local:N or tcp://HOST:PORT runs generation's views
-    and every (dataset, method, seed) job on a dask cluster (orchestrate.suite_jobs)."""
+    and every (dataset, method, seed) job on a dask cluster (orchestrate.suite_jobs).
+    threads: torch threads per training job; None: `training_threads` (the suite's, or a
+    share of this machine's cores on local:N)."""
     out = Path(out)
     if scheduler is not None:
         parse_scheduler(scheduler)  # a malformed address is one line before anything is written
     seeds = None if seeds is None else tuple(arguments.check_seeds(seeds))
+    threads, why = training_threads(suite, scheduler, threads)
     start = time.perf_counter()
     manifest = generate_suite(suite, out, overwrite=overwrite, progress=progress, log=log, scheduler=scheduler)
     split = suite.protocol["split"]
@@ -80,7 +106,8 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
         for seed in (entry.seed,) if seeds is None else seeds:
             where = entry.id if seeds is None else f"{seed_folder(seed)}/{entry.id}"
             key = f"train-{entry.id}" + ("" if seeds is None else f"-{seed_folder(seed)}")
-            jobs.append((key, train_job, dict(out=str(out), job_key=key, train=suite.train, dataset=str(data),
+            jobs.append((key, train_job, dict(out=str(out), job_key=key, train=suite.train, threads=threads,
+                                              dataset=str(data),
                                               manifest_sha256=manifest_sha256, run_dir=str(out / "runs" / where),
                                               renders=str(predictions / OURS / where), seed=seed, split=split,
                                               geometry=suite.protocol.get("geometry"))))
@@ -96,7 +123,7 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
         f"({suite.train.get('model', 'compact')}, {suite.train['steps']} steps"
         + (f", seeds {', '.join(map(str, seeds))}" if seeds is not None else "") + f"), "
         f"{sum(k.startswith('baseline-') for k, _, _ in jobs)} baselines"
-        + ("" if scheduler is None else f", on {scheduler}"))
+        + ("" if scheduler is None else f", on {scheduler}") + f"; {threads} torch thread(s) a training ({why})")
     clock = time.perf_counter()
     done = run_jobs(jobs, scheduler, log)
     log(f"jobs: {time.perf_counter() - clock:.1f} s")
