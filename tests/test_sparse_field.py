@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nerfgauge.nerf.checkpoint import pack_mask, unpack_mask
-from nerfgauge.nerf.grid_field import EMPTY_RAW, VoxelGridField, node_mask
+from nerfgauge.nerf.grid_field import EMPTY_RAW, SHARPEN_ALPHA, VoxelGridField, node_mask
 from nerfgauge.nerf.models import CompactNeRF
 from nerfgauge.nerf.train import free_unoccupied
 
@@ -93,7 +93,7 @@ def test_upsample_allocates_only_the_kept_cells_and_resamples_them():
     before = [field.to_dense(), field.shape]
     keep = torch.zeros(tuple(n - 1 for n in field.shape), dtype=torch.bool)
     keep[1:3, 2:4, 3:5] = True
-    field.upsample(24, keep)
+    field.upsample(24, keep, sharpen=False)
     allocated = field.index > 0
     assert 0 < int(allocated.sum()) < allocated.numel() / 4
     # every allocated node holds the old field's trilinear value at its position
@@ -107,6 +107,33 @@ def test_upsample_allocates_only_the_kept_cells_and_resamples_them():
     with torch.no_grad():
         far_corner = field.density(AABB[1:2] - 1e-4)
     assert torch.allclose(far_corner, field.density_from_raw(torch.tensor([EMPTY_RAW])))
+
+
+def test_upsample_sharpens_density_above_the_anchor_level_only():
+    """sharpen_raw: raw values above the level where a step of the finer grid reaches
+    opacity SHARPEN_ALPHA are steepened by the resolution ratio about it; values below
+    stay; features are resampled as without sharpening."""
+    plain, sharp = random_field(8), random_field(8)
+    for field in (plain, sharp):  # raw densities spread over empty, faint and solid (the level is ~5)
+        dense = field.to_dense()
+        dense[0] = dense[0] * 6 + 4
+        field.load_dense(dense)
+    plain.upsample(12, sharpen=False)
+    sharp.upsample(12)
+    everything = torch.ones(plain.shape, dtype=torch.bool)
+    before, after = plain.node_values(everything), sharp.node_values(everything)
+    raw_before, raw_after = before[:, 0], after[:, 0]
+    # the anchor level, from its definition: a step of the 12-voxel grid reaches SHARPEN_ALPHA
+    step = plain.step_ratio * float((AABB[1] - AABB[0]).max()) / 12
+    levels = torch.linspace(-20, 20, 400001)
+    alphas = -torch.expm1(-plain.density_from_raw(levels) * step)
+    level = float(levels[(alphas - SHARPEN_ALPHA).abs().argmin()])
+    below = raw_before < level - 1e-3
+    above = raw_before > level + 1e-3
+    assert bool(below.any()) and bool(above.any())
+    assert torch.equal(raw_after[below], raw_before[below])
+    assert torch.allclose(raw_after[above], level + 1.5 * (raw_before[above] - level), atol=2e-3)
+    assert torch.equal(after[:, 1:], before[:, 1:])
 
 
 def test_keep_rows_frees_nodes_and_keeps_values():
