@@ -119,7 +119,7 @@ def test_depth_and_opacity_reject_empty_planes():
 def test_one_pixel_depth_and_opacity():
     hit, miss = np.array([[True]]), np.array([[False]])
     assert depth_metrics(np.array([[3.0]]), np.array([[2.0]]), hit) == {
-        "absrel": 0.5, "rmse": 1.0, "mae": 1.0, "delta1": 0.0}  # 1.5 >= 1.25; exact in binary
+        "absrel": 0.5, "rmse": 1.0, "mae": 1.0, "delta1": 0.0, "bias": 0.5}  # 1.5 >= 1.25; exact in binary
     assert depth_metrics(np.array([[np.inf]]), np.array([[0.0]]), miss)["rmse"] is None
     assert opacity_iou(np.array([[0.0]]), miss) == 1.0  # both silhouettes empty: they agree
     assert opacity_iou(np.array([[1.0]]), miss) == 0.0  # something predicted where nothing is
