@@ -347,7 +347,6 @@ class VoxelGridField(nn.Module):
     # ----------------------------------------------------------------------------------
     # coarse to fine, occupancy, regularisation
 
-    @torch.no_grad()
     def sharpen_raw(self, raw: torch.Tensor, resolution: int) -> torch.Tensor:
         """Raw densities [n, 1] resampled for a grid of `resolution`, steepened about the
         level L where one marching step of that grid reaches opacity SHARPEN_ALPHA: values
@@ -360,6 +359,7 @@ class VoxelGridField(nn.Module):
         level = math.log(math.expm1(softplus_value)) - self.shift
         return torch.where(raw > level, level + ratio * (raw - level), raw)
 
+    @torch.no_grad()
     def upsample(self, resolution: int, keep_cells: torch.Tensor | None = None, sharpen: bool = True) -> None:
         """Coarse to fine: trilinear resampling onto a finer grid (the box stays), the
         density steepened by `sharpen_raw` (sharpen=False: plain resampling).

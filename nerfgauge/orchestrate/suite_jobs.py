@@ -30,8 +30,9 @@ orchestrate.suite_run.training_threads); torch on CPU with a fixed thread count 
 its results (tests/test_suite_seeds.py compares the per-run metrics of a local and a
 2-worker run). Another thread count splits some float sums differently: a 600-step run
 with 1 and with 2 threads gave the same val PSNR and fp16 node values apart by at most
-0.0078, so compare a local:N run with a local run at its --threads. What may differ: wall-clock figures (train_seconds,
-steps_per_second, ms_per_frame, evaluate_seconds) and anything a time budget would decide
+0.0078, so compare a local:N run with a local run at its --threads. What may differ:
+wall-clock figures (train_seconds, steps_per_second, ms_per_frame, evaluate_seconds),
+the thread count as above, and anything a time budget would decide
 (suites have none). On a GPU worker, CUDA kernels are not bitwise repeatable. Scoring runs
 in the client with torch's default thread count either way (a local job restores it after
 training); LPIPS's float32 convolutions sum in an order that depends on that count, so
@@ -103,7 +104,7 @@ def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256
     # training sets torch's thread count for the whole process; a job run in the client's
     # process (no scheduler) puts it back, so the scoring that follows (LPIPS's convolutions
     # sum in a thread-count-dependent order) runs as it does after a cluster's jobs
-    threads = torch.get_num_threads()
+    client_threads = torch.get_num_threads()
     try:
         summary = train_run(config, run_dir, overwrite=True, progress=False)
         render_split(run_dir, split, renders, overwrite=True, progress=False)
@@ -111,7 +112,7 @@ def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256
                   "steps": summary["steps"], "steps_per_second": summary["steps"] / max(summary["seconds"], 1e-9),
                   "seed": seed, "threads": config.threads, "geometry": _geometry(dataset, run_dir, geometry)}
     finally:
-        torch.set_num_threads(threads)
+        torch.set_num_threads(client_threads)
     write_json(job_record_path(out, job_key), {"recipe": recipe_hash(recipe), "result": result})
     return {**result, "resumed": False}
 
