@@ -28,6 +28,7 @@ from typing import Optional
 import numpy as np
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.pixel_edges import EDGE_COLOUR_STEP, edge_mask
 
 # Metric names as they appear in metrics.json's "mean"/"std" tables and in thresholds files.
 METRIC_NAMES = (
@@ -64,10 +65,6 @@ RANGE_TOLERANCE = 1e-6
 SSIM_SIGMA = 1.5
 SSIM_WINDOW = 11  # skimage's window for sigma 1.5: 2 * int(3.5 * 1.5 + 0.5) + 1
 DELTA1_THRESHOLD = 1.25
-# A colour step between 4-neighbours of the ground truth larger than this (any sRGB channel,
-# on [0, 1]) marks both as edge pixels: a texture edge or a shading crease, not the smooth
-# change of shading across a surface (a few 1/255 per pixel at 64-512 px).
-EDGE_COLOUR_STEP = 0.1
 
 
 class NonFiniteError(InputError):
@@ -220,44 +217,22 @@ def psnr_masked(pred, gt, mask) -> Optional[float]:
 
 
 def edge_pixels(gt_rgba, ids=None, colour_step: float = EDGE_COLOUR_STEP) -> np.ndarray:
-    """The pixels whose box-filtered value depends on where in the pixel a ray goes: partial
-    coverage (0 < alpha < 1), a boundary between instance ids (`ids`, the centre rays' hit
-    shapes, 0 = none), or a colour step above `colour_step` between 4-neighbours; the union
-    dilated by one pixel (3 x 3), since a step between two pixel centres blurs both of them
-    and their neighbours in a method that resolves the edge a pixel off.
+    """The pixels whose box-filtered value depends on where in the pixel a ray goes
+    (nerfgauge.core.pixel_edges.edge_mask: partial coverage, a boundary between instance
+    ids, or a colour step above `colour_step` between 4-neighbours, dilated by one pixel).
 
     Args:
         gt_rgba: [H, W, 4] ground truth on [0, 1], straight alpha.
-        ids: [H, W] integer instance ids, or None (a dataset without them).
+        ids: [H, W] integer instance ids (the centre rays' hit shapes, 0 = none), or None.
     Returns:
         [H, W] bool.
     """
     rgba = _image(gt_rgba, "ground truth", 4)
-    alpha = rgba[..., 3]
-    edges = (alpha > 0) & (alpha < 1)
-    colour = rgba[..., :3] * alpha[..., None]  # premultiplied: no colour step hides behind alpha 0
-
-    def steps(values: np.ndarray, differs) -> None:
-        horizontal = differs(values[:, 1:], values[:, :-1])  # [H, W-1]
-        vertical = differs(values[1:], values[:-1])  # [H-1, W]
-        edges[:, 1:] |= horizontal
-        edges[:, :-1] |= horizontal
-        edges[1:] |= vertical
-        edges[:-1] |= vertical
-
-    steps(colour, lambda a, b: np.abs(a - b).max(axis=-1) > colour_step)
     if ids is not None:
         ids = np.asarray(ids)
-        if ids.shape != alpha.shape or not np.issubdtype(ids.dtype, np.integer):
-            raise InputError(f"instance ids must be an integer array of shape {alpha.shape}, got {_describe(ids)}")
-        steps(ids, lambda a, b: a != b)
-    dilated = edges.copy()
-    dilated[1:] |= edges[:-1]
-    dilated[:-1] |= edges[1:]
-    rows = dilated.copy()
-    dilated[:, 1:] |= rows[:, :-1]
-    dilated[:, :-1] |= rows[:, 1:]
-    return dilated
+        if ids.shape != rgba.shape[:2] or not np.issubdtype(ids.dtype, np.integer):
+            raise InputError(f"instance ids must be an integer array of shape {rgba.shape[:2]}, got {_describe(ids)}")
+    return edge_mask(rgba, ids, colour_step)
 
 
 def psnr_capture_bound(gt, seen, ceiling_db: Optional[float]) -> float:

@@ -117,11 +117,12 @@ def _add_train(subparsers) -> None:
                         help="ray-marching step while training, in voxels (auto: 0.5, 1 in contracted space)")
     parser.add_argument("--batch-rays", type=arguments.BATCH_RAYS, default=None, metavar="N",
                         help="rays per training step (auto: 4096, 2048 in contracted space)")
-    parser.add_argument("--pixel-filter", choices=("auto", "centre", "box", "jitter"), default="auto",
+    parser.add_argument("--pixel-filter", choices=("auto", "centre", "box", "jitter", "edges"), default="auto",
                         help="what a training pixel is compared as: box, the mean of 2 x 2 stratified rays through "
                              "it, as the ground truth averages the pixel's area (4x the rays a step, as many "
-                             "pixels); centre, its centre ray; jitter, one ray through a random point of it; auto "
-                             "(default): centre (BENCHMARKS.md, \"The pixel's footprint\")")
+                             "pixels); edges, the box on the target's edge pixels and the centre ray elsewhere; "
+                             "centre, its centre ray; jitter, one ray through a random point of it; auto (default): "
+                             "edges (BENCHMARKS.md, \"Edge pixels\")")
     parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
                         help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
     parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "
@@ -181,14 +182,16 @@ def _add_render(subparsers) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace DIR when it holds renders of another model (only a nerfgauge renders folder)")
     parser.add_argument("--threads", type=arguments.THREADS, default=None, help="CPU threads (default: the run's)")
-    parser.add_argument("--step-ratio", type=arguments.STEP_RATIO, default=1.0, metavar="VOXELS",
-                        help="compact model's marching step in voxels (default 1; 0.5 renders as trained, slower)")
+    parser.add_argument("--step-ratio", type=arguments.STEP_RATIO, default=None, metavar="VOXELS",
+                        help="compact model's marching step in voxels (default: the step the run trained with; "
+                             "1 renders faster and softer)")
     parser.add_argument("--aperture-samples", type=arguments.LENS_SAMPLES, default=16, metavar="N",
                         help="lens samples per pixel for frames rendered through a thin lens (their transforms "
                              "entry has \"lens\"): stratified on the lens disc, seeded (default 16)")
     parser.add_argument("--pixel-samples", type=arguments.PIXEL_SAMPLES, default=None, metavar="N",
                         help="rays per pixel along each axis, averaged as the ground truth's box filter averages "
-                             "the pixel (default: 2 for a run trained with --pixel-filter box, 1 for centre)")
+                             "the pixel (default: 2 for a run trained with --pixel-filter box or edges, on an edges run's edge "
+                             "pixels only; 1 for centre)")
     parser.add_argument("--lens-seed", type=arguments.SEED, default=0, help="seed of the lens samples (default 0)")
     parser.add_argument("--dataset", type=path, default=None, metavar="DATASET",
                         help="render the views of this dataset instead of those of the dataset the run was "

@@ -22,7 +22,15 @@ from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisat
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
 # TrainConfig.pixel_filter -> training rays per pixel, averaged before the loss (nerf.train)
-TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1}
+TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1, "edges": 1}
+# ... and on the `edges` filter's edge pixels (nerfgauge.core.pixel_edges), 2 x 2 as the box
+EDGE_PIXEL_SAMPLES = 4
+# The automatic filter is `edges` while edge pixels are at most this share of the training
+# pixels: their extra rays then at most double the rays a step (1 + 3 x 1/3). Bench and
+# suite scenes hold 9-24% (primitives 128 px 12.6%); forward-near at 64 px 75% and
+# far-reaching 52% (textures finer than the pixels), where the extra rays cost more steps
+# than they gain (`pixel_filter_for`).
+EDGE_SHARE_MAX = 1 / 3
 PIXEL_FILTERS = tuple(TRAIN_PIXEL_SAMPLES)
 # The sparse grid stores values only where cells are occupied, but its node index (4 bytes
 # a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
@@ -81,7 +89,8 @@ class TrainConfig:
     step_ratio: Optional[float] = None  # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
     # What a training pixel's colour is compared as: "centre", its centre ray; "box", the mean
     # of 2 x 2 stratified rays through the pixel, as the ground truth's box filter averages its
-    # area; "jitter", one ray through a random point of it. None: `pixel_filter_for`.
+    # area; "edges", the box on the target's edge pixels and the centre ray elsewhere;
+    # "jitter", one ray through a random point of it. None: `pixel_filter_for`.
     pixel_filter: Optional[str] = None
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
     # vanilla (the original NeRF, Mildenhall et al. 2020)
@@ -185,11 +194,13 @@ def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquis
 
 
 def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_c2w: np.ndarray,
-            focal: float, width: Optional[int] = None, opaque: Optional[float] = None) -> tuple[TrainConfig, dict]:
+            focal: float, width: Optional[int] = None, opaque: Optional[float] = None,
+            edge_share: Optional[float] = None) -> tuple[TrainConfig, dict]:
     """Fill the automatic choices. Returns the resolved config and {choice: reason}.
     width: the training images' width in pixels (the unbounded grids' resolution follows it).
     opaque: the share of training pixels with alpha 1 (whether the capture is closed; see
-    choose_parametrisation), None when unknown."""
+    choose_parametrisation), None when unknown. edge_share: the share of training pixels
+    that are edge pixels (`pixel_filter_for`), None when unknown."""
     reasons = {}
     updates = {}
     kind, reasons["parametrisation"] = choose_parametrisation(config.parametrisation, aabb, train_c2w, opaque)
@@ -216,7 +227,7 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["final_resolution"] = why
     else:
         reasons["final_resolution"] = "set on the command line"
-    updates["pixel_filter"], reasons["pixel_filter"] = pixel_filter_for(config)
+    updates["pixel_filter"], reasons["pixel_filter"] = pixel_filter_for(config, edge_share)
     per_pixel = TRAIN_PIXEL_SAMPLES[updates["pixel_filter"]]
     for name, (by_kind, reason) in BY_PARAMETRISATION.items():
         if getattr(config, name) is None:
@@ -235,16 +246,25 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
     return dataclasses.replace(config, **updates), reasons
 
 
-def pixel_filter_for(config: TrainConfig) -> tuple[str, str]:
-    """The pixel filter a run trains with, and why: as set, else `centre`. Why not `box` by
-    default (BENCHMARKS.md, "The pixel's footprint"): with as many pixels a step (so 4x the
-    rays), the box loss with its 2 x 2 render beat centre rays at equal compute at 64 px
-    (primitives +1.2 dB, far-object +4.0 dB, time budgets of 30-180 s 0 to +1.8 dB), but on
-    the demo (primitives 128 px, 90 s) it lost 2.1 dB: its steps cost 3.6x as much, so the
-    budget kept a 68-voxel grid where centre rays reached 109."""
+def pixel_filter_for(config: TrainConfig, edge_share: Optional[float] = None) -> tuple[str, str]:
+    """The pixel filter a run trains with, and why: as set; else `edges` when at most
+    EDGE_SHARE_MAX of the training pixels are edge pixels (`edge_share`), `centre` when more
+    or unknown. The ground truth box-filters every pixel; only on edge pixels does that
+    differ from the centre ray's colour, so the box's 2 x 2 rays go there alone
+    (BENCHMARKS.md, "Edge pixels": primitives 128 px, 120 s, 42.12 dB against 39.64 with
+    centre rays). Where most pixels are edges (a texture finer than the pixels), the extra
+    rays cost more steps than they gain: forward-near 64 px, 60 s, 73% edge pixels, 25.8
+    against 34.2 dB. `box` (2 x 2 rays on every pixel) lost 2.1 dB to centre rays at 128 px:
+    its steps cost 3.6x, so the budget kept a 68-voxel grid where centre rays reached 109."""
     if config.pixel_filter is not None:
         return config.pixel_filter, "set on the command line"
-    return "centre", "the default: one ray a pixel (the box filter's 4x rays a step slow the grid's growth)"
+    if edge_share is None:
+        return "centre", "the default without the training images' edge share: one ray through each pixel's centre"
+    if edge_share <= EDGE_SHARE_MAX:
+        return "edges", (f"{100 * edge_share:.1f}% of training pixels are edge pixels (<= {100 * EDGE_SHARE_MAX:.0f}%): "
+                         "2 x 2 rays on them (where the box filter differs from the centre ray), the centre ray elsewhere")
+    return "centre", (f"{100 * edge_share:.1f}% of training pixels are edge pixels (> {100 * EDGE_SHARE_MAX:.0f}%): "
+                      "their extra rays would cost more steps than they gain; one ray through each pixel's centre")
 
 
 def step_ratio_of(config: TrainConfig) -> float:

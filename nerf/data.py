@@ -14,19 +14,22 @@ import torch
 
 from nerfgauge.core.camera import SplitCameras
 from nerfgauge.core.dataset import open_dataset
+from nerfgauge.core.pixel_edges import edge_mask
 
 
 @dataclass(frozen=True)
 class RayBatch:
     """origins, directions (unit): [n, 3]; rgba: [n, 4] straight alpha or None;
     n_views whole views, row-major, one after another. footprint: [n, 2, 3], how a ray's
-    direction moves per pixel in x and in y (`pixel_footprints`), or None."""
+    direction moves per pixel in x and in y (`pixel_footprints`), or None. edges: [n] bool,
+    the target's edge pixels (nerfgauge.core.pixel_edges.edge_mask of its RGBA), or None."""
 
     origins: torch.Tensor
     directions: torch.Tensor
     rgba: Optional[torch.Tensor]
     n_views: int = 1
     footprint: Optional[torch.Tensor] = None
+    edges: Optional[torch.Tensor] = None
 
 
 def split_rays(cameras: SplitCameras, index: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -76,29 +79,34 @@ def jittered_direction(directions: torch.Tensor, footprint: torch.Tensor, offset
 
 
 def load_split_rays(root, split: str, limit: Optional[int] = None, views: Optional[list] = None,
-                    footprint: bool = False) -> tuple[SplitCameras, RayBatch]:
+                    footprint: bool = False, edges: bool = False) -> tuple[SplitCameras, RayBatch]:
     """All rays and RGBA targets of a split (the first `limit` views if given; only the
     frame indices `views`, in that order, if given), with each ray's pixel footprint when
-    `footprint` (24 more bytes a ray). root: a dataset folder or an open
-    nerfgauge.core.dataset.Dataset."""
+    `footprint` (24 more bytes a ray) and whether its target is an edge pixel when `edges`
+    (from the colours alone: a real capture has no instance ids). root: a dataset folder or
+    an open nerfgauge.core.dataset.Dataset."""
     ds = open_dataset(root)
     cameras = ds.cameras(split)
     count = len(cameras.stems) if limit is None else min(limit, len(cameras.stems))
     indices = list(range(count)) if views is None else list(views)
     count = len(indices)
-    origins, directions, colours, footprints = [], [], [], []
+    origins, directions, colours, footprints, edge_flags = [], [], [], [], []
     for index in indices:
         o, d = cameras.rays(index)  # [H, W, 3] float64, through the split's distortion if any
         origins.append(torch.from_numpy(o.reshape(-1, 3).astype(np.float32)))
         directions.append(torch.from_numpy(d.reshape(-1, 3).astype(np.float32)))
         if footprint:
             footprints.append(torch.from_numpy(pixel_footprints(d, cameras.c2w[index])))
-        colours.append(torch.from_numpy(ds.rgba_of(cameras.stems[index], cameras.intrinsics).reshape(-1, 4)))
+        rgba = ds.rgba_of(cameras.stems[index], cameras.intrinsics)  # [H, W, 4]
+        colours.append(torch.from_numpy(rgba.reshape(-1, 4)))
+        if edges:
+            edge_flags.append(torch.from_numpy(edge_mask(rgba.astype(np.float64)).reshape(-1)))
     if not origins:
         empty = torch.zeros((0, 3))
-        return cameras, RayBatch(empty, empty, torch.zeros((0, 4)), 0, torch.zeros((0, 2, 3)) if footprint else None)
+        return cameras, RayBatch(empty, empty, torch.zeros((0, 4)), 0, torch.zeros((0, 2, 3)) if footprint else None,
+                                 torch.zeros(0, dtype=torch.bool) if edges else None)
     return cameras, RayBatch(torch.cat(origins), torch.cat(directions), torch.cat(colours), count,
-                             torch.cat(footprints) if footprint else None)
+                             torch.cat(footprints) if footprint else None, torch.cat(edge_flags) if edges else None)
 
 
 def sparse_train_views(root, count: int) -> list:

@@ -47,12 +47,16 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash
 from nerfgauge.core.images import write_exr, write_png
+from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, edge_mask
 from nerfgauge.core.provenance import renders_record
 
-# Marching step at render time, in voxels. Training marches half a voxel with jitter; a
-# whole voxel renders ~1.6x faster for -0.2 dB on primitives (38.29 vs 38.50 dB, measured
-# on 6 test views of the 120-s benchmark model). --step-ratio 0.5 renders as trained.
-RENDER_STEP_RATIO = 1.0
+# Marching step at render time, in voxels; None: the step the run trained with (half a voxel
+# in bounded and forward space, one in contracted space). A whole voxel once rendered ~1.6x
+# faster for -0.2 dB; since coarse to fine sharpens the surfaces (nerf.grid_field.
+# SHARPEN_ALPHA) it costs 0.9-1.1 dB: primitives 128 px, 120 s, 38.74 against 39.64 dB
+# (centre rays), 41.06 against 42.12 (edges filter), 600 s 40.88 against 43.15 (BENCHMARKS.md,
+# "Edge pixels"), for about the same render time there (33.6 ms at 128 px, centre rays).
+RENDER_STEP_RATIO = None
 # A frame's rays are split into this many parts per thread: rays that hit the scene cost
 # far more than rays that miss it, so two halves of an image rarely cost the same, and the
 # thread with the cheap half waits. Measured at 256 px on 2 threads: 2 parts 106-122 ms,
@@ -63,7 +67,11 @@ APERTURE_SAMPLES = 16  # lens samples per pixel of a thin-lens frame (--aperture
 # box-trained model renders the mean of 2 x 2 rays through each pixel, the box filter the
 # ground truth applies (docs/conventions.md, "Pixel footprint"); a centre-trained one its
 # centre ray.
-PIXEL_SAMPLES = {"box": 2, "jitter": 2, "centre": 1}
+PIXEL_SAMPLES = {"box": 2, "jitter": 2, "centre": 1, "edges": 2}
+# Pixel filters whose renders spend those rays on edge pixels only: the centre render's
+# edges (nerfgauge.core.pixel_edges.edge_mask of the rendered RGBA), as training found them
+# on the targets; every other pixel keeps its centre ray.
+EDGES_ONLY = ("edges",)
 
 
 def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -115,11 +123,13 @@ def pixel_offsets(per_axis: int) -> np.ndarray:
     return np.stack([x.ravel(), y.ravel()], axis=-1)
 
 
-def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, device) -> tuple:
+def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, device,
+              edges_only: bool = False) -> tuple:
     """Frame `index` box-filtered over each pixel as the ground truth is: premultiplied rgb
     [H*W, 3] and opacity [H*W], the means over per_axis^2 rays through a regular grid of
     points in each pixel (`pixel_offsets`), and the depth [H*W] of the pixel-centre rays
-    (as the dataset's ground truth is). per_axis 1 renders the centre rays once."""
+    (as the dataset's ground truth is). per_axis 1 renders the centre rays once.
+    edges_only: only the centre render's edge pixels get the per_axis^2 rays."""
     origins, directions = cameras.rays(index)  # [H, W, 3] float64
     centre_o = torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)).to(device)
     centre_d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
@@ -127,11 +137,22 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
     if per_axis == 1:
         return rgb, opacity, depth
     footprint = torch.from_numpy(pixel_footprints(directions, cameras.c2w[index])).to(device)  # [P, 2, 3]
+    chosen = slice(None)
+    if edges_only:
+        height, width = directions.shape[:2]
+        straight = rgba_png(rgb.cpu().numpy(), opacity.cpu().numpy(), height, width).astype(np.float64) / 255
+        chosen = torch.from_numpy(np.flatnonzero(edge_mask(straight, alpha_rounding=ALPHA_ROUNDING))).to(device)
+        if not len(chosen):  # nothing steps inside any pixel: the centre render is the box render
+            return rgb, opacity, depth
     offsets = torch.from_numpy(pixel_offsets(per_axis).astype(np.float32)).to(device)  # [S, 2]
-    pixels = centre_d.shape[0]
-    moved = torch.cat([jittered_direction(centre_d, footprint, offset.expand(pixels, 2)) for offset in offsets])
-    rgb, opacity, _ = render_frame(model, centre_o.repeat(len(offsets), 1), moved, pool, parts)
-    return rgb.view(len(offsets), pixels, 3).mean(dim=0), opacity.view(len(offsets), pixels).mean(dim=0), depth
+    sub_o, sub_d, sub_footprint = centre_o[chosen], centre_d[chosen], footprint[chosen]
+    pixels = sub_d.shape[0]
+    moved = torch.cat([jittered_direction(sub_d, sub_footprint, offset.expand(pixels, 2)) for offset in offsets])
+    sub_rgb, sub_opacity, _ = render_frame(model, sub_o.repeat(len(offsets), 1), moved, pool, parts)
+    rgb, opacity = rgb.clone(), opacity.clone()
+    rgb[chosen] = sub_rgb.view(len(offsets), pixels, 3).mean(dim=0)
+    opacity[chosen] = sub_opacity.view(len(offsets), pixels).mean(dim=0)
+    return rgb, opacity, depth
 
 
 def render_split(run_dir, split: str = "test", out=None, *, threads: int | None = None,
@@ -139,7 +160,7 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
                  aperture_samples: int = APERTURE_SAMPLES, lens_seed: int = 0, dataset=None,
                  other_dataset: bool = False, pixel_samples: int | None = None) -> dict:
     """Render every view of `split` into `out` (default RUN/renders). step_ratio: marching
-    step in voxels for the compact model (None: the training step, half a voxel).
+    step in voxels for the compact model (None: the run's training step).
     aperture_samples, lens_seed: lens samples per pixel and their seed for frames with a
     thin lens. dataset: render this dataset's views instead of the training dataset's: one
     with the manifest the run recorded (a moved copy), or with other_dataset=True another
@@ -160,7 +181,8 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     if pixel_samples is not None:
         arguments.PIXEL_SAMPLES.check(pixel_samples, "--pixel-samples")
     model, config = load_model(run_dir / "model.pt")
-    pixel_samples = PIXEL_SAMPLES[pixel_filter_for(config)[0]] if pixel_samples is None else pixel_samples
+    pixel_filter = pixel_filter_for(config)[0]
+    pixel_samples = PIXEL_SAMPLES[pixel_filter] if pixel_samples is None else pixel_samples
     threads = threads or config.threads
     device = pick_device(config.device)
     if other_dataset and dataset is None:
@@ -173,14 +195,15 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     # pinhole render keeps the recipe it always had.
     recipe = recipe_hash({"model_sha256": sha256_file(run_dir / "model.pt"), "step_ratio": step_ratio}
                          | ({"lens": lens} if lens else {}) | ({"dataset": str(dataset)} if dataset is not None else {})
-                         | ({"pixel_samples": pixel_samples} if pixel_samples != 1 else {}))
+                         | ({"pixel_samples": pixel_samples} if pixel_samples != 1 else {})
+                         | ({"edges_only": True} if pixel_filter in EDGES_ONLY else {}))
     with claim_folder(out, "renders", recipe, overwrite=overwrite):
         return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress, lens,
-                            source, pixel_samples)
+                            source, pixel_samples, edges_only=pixel_filter in EDGES_ONLY)
 
 
 def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress, lens=None,
-                 source=None, pixel_samples: int = 1) -> dict:
+                 source=None, pixel_samples: int = 1, edges_only: bool = False) -> dict:
     model = model.to(device).eval()
     if model.has_grid and step_ratio is not None:
         model.field.step_ratio = step_ratio
@@ -200,7 +223,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
                 rgb, opacity, depth = lens_frame(model, cameras, index, lens["aperture_samples"], lens["lens_seed"],
                                                  pool, parts, device)
             else:
-                rgb, opacity, depth = box_frame(model, cameras, index, pixel_samples, pool, parts, device)
+                rgb, opacity, depth = box_frame(model, cameras, index, pixel_samples, pool, parts, device, edges_only)
             if device.type == "cuda":
                 torch.cuda.synchronize()
             (lens_seconds if through_lens else seconds).append(time.perf_counter() - start)
@@ -220,7 +243,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     timing = {"ms_per_frame": 1000 * float(np.mean(all_seconds)) if all_seconds else None, "frames": len(all_seconds),
               "resolution": [width, height], "device": device.type, "threads": threads,
               "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None),
-              "pixel_samples": pixel_samples}
+              "pixel_samples": pixel_samples} | ({"edges_only": True} if edges_only else {})
     if source is not None:  # what the frames show, which `evaluate` checks (core.provenance.check_renders_dataset)
         timing |= {"dataset": str(source.root), "dataset_files": renders_record(source, split)}
     if lens is not None:  # the thin-lens frames' own cost, beside the pinhole frames'

@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import (LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig,
-                                   pixel_filter_for, resolve, upsample_count)
+from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig,
+                                   resolve, upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
@@ -216,9 +216,15 @@ def prepare_run(config: TrainConfig):
     if aabb is None:
         aabb = aabb_from_cameras(train_cams.c2w)
     check_targets(aabb, train_cams.c2w)
-    _, train_rays = load_split_rays(root, "train", views=sparse, footprint=pixel_filter_for(config)[0] != "centre")
+    # edges and footprints are loaded unless the filter is set to centre, and dropped when the
+    # automatic choice (which reads the edge share) is centre
+    through_footprint = config.pixel_filter != "centre"
+    _, train_rays = load_split_rays(root, "train", views=sparse, footprint=through_footprint, edges=through_footprint)
+    edge_share = float(train_rays.edges.float().mean()) if through_footprint and len(train_rays.edges) else None
     config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
-                              train_cams.intrinsics.width, opaque_share(train_rays))
+                              train_cams.intrinsics.width, opaque_share(train_rays), edge_share)
+    if config.pixel_filter == "centre":
+        train_rays = dataclasses.replace(train_rays, footprint=None, edges=None)
     recipe = run_recipe(config, manifest_sha256(root))
     stride = max(1, train_rays.origins.shape[0] // 65536)
     intrinsics = train_cams.intrinsics
@@ -467,25 +473,34 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
     # TrainConfig.pixel_filter: per pixel one ray through its centre or a random point of
     # it, or (box) the mean of a stratified 2 x 2 set of rays, so the loss compares the
     # pixel's box-filtered colour with the ground truth's; n_rays counts rays either way.
+    # edges: the box's 2 x 2 rays on the target's edge pixels only, one centre ray on the
+    # rest (a pixel's box mean equals its centre's value where nothing steps inside it);
+    # n_rays counts pixels, the edge pixels' extra rays come on top.
     per_pixel = TRAIN_PIXEL_SAMPLES[config.pixel_filter]
     n_pixels = max(1, n_rays // per_pixel)
     index = torch.randint(rays.origins.shape[0], (n_pixels,), generator=generator)
     origins, directions, rgba = (t[index].to(device) for t in (rays.origins, rays.directions, rays.rgba))
-    if config.pixel_filter != "centre":
-        offsets = stratified_offsets(n_pixels, per_pixel, generator).to(device)  # [per_pixel * n_pixels, 2]
-        origins = origins.repeat(per_pixel, 1)
-        directions = jittered_direction(directions.repeat(per_pixel, 1),
-                                        rays.footprint[index].to(device).repeat(per_pixel, 1, 1), offsets)
     if config.background == "random":
         background = torch.rand((n_pixels, 3), generator=generator).to(device)
     else:
         background = torch.full((3,), 1.0 if config.background == "white" else 0.0, device=device)
     target = rgba[:, :3] * rgba[:, 3:] + background * (1 - rgba[:, 3:])
-    ray_background = background.repeat(per_pixel, 1) if background.ndim == 2 else background
+    if config.pixel_filter == "edges":
+        rays_of, pixel_colour = _edge_rays(rays, index, origins, directions, generator, device)
+        origins, directions = rays_of
+        ray_background = pixel_colour.spread(background) if background.ndim == 2 else background
+    else:
+        if config.pixel_filter != "centre":
+            offsets = stratified_offsets(n_pixels, per_pixel, generator).to(device)  # [per_pixel * n_pixels, 2]
+            origins = origins.repeat(per_pixel, 1)
+            directions = jittered_direction(directions.repeat(per_pixel, 1),
+                                            rays.footprint[index].to(device).repeat(per_pixel, 1, 1), offsets)
+        ray_background = background.repeat(per_pixel, 1) if background.ndim == 2 else background
+        pixel_colour = MeanOfRepeats(per_pixel, n_pixels)
     out = model.render(origins, directions, generator=generator, training=True)
 
     def pixel_error(rgb, opacity):  # [n_pixels, 3]: the mean of each pixel's rays, composited, minus the target
-        return composite(rgb, opacity, ray_background).view(per_pixel, n_pixels, 3).mean(dim=0) - target
+        return pixel_colour.gather(composite(rgb, opacity, ray_background)) - target
 
     loss = (pixel_error(out.rgb, out.opacity) ** 2).mean()
     if out.coarse is not None:
@@ -502,6 +517,49 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
     if gradients_finite:
         optimizer.step()
     return float(loss.detach()), gradients_finite
+
+
+class MeanOfRepeats:
+    """Pixel colours from rays laid out as `per_pixel` blocks of `n_pixels` rays (ray r of
+    pixel p at row r * n_pixels + p): each pixel's mean."""
+
+    def __init__(self, per_pixel: int, n_pixels: int):
+        self.per_pixel, self.n_pixels = per_pixel, n_pixels
+
+    def gather(self, ray_values: torch.Tensor) -> torch.Tensor:  # [per_pixel * n_pixels, C] -> [n_pixels, C]
+        return ray_values.view(self.per_pixel, self.n_pixels, -1).mean(dim=0)
+
+
+class EdgeSplit:
+    """Pixel colours from rays laid out as one centre ray for each plain pixel (`plain`,
+    indices into the batch's pixels) followed by EDGE_PIXEL_SAMPLES blocks of one ray for each
+    edge pixel (`edge`): a plain pixel's ray, an edge pixel's mean."""
+
+    def __init__(self, plain: torch.Tensor, edge: torch.Tensor, n_pixels: int):
+        self.plain, self.edge, self.n_pixels = plain, edge, n_pixels
+
+    def spread(self, pixel_values: torch.Tensor) -> torch.Tensor:  # [n_pixels, C] -> [rays, C]
+        return torch.cat([pixel_values[self.plain], pixel_values[self.edge].repeat(EDGE_PIXEL_SAMPLES, 1)])
+
+    def gather(self, ray_values: torch.Tensor) -> torch.Tensor:  # [rays, C] -> [n_pixels, C]
+        n_plain = len(self.plain)
+        pixels = ray_values.new_empty((self.n_pixels, ray_values.shape[1]))
+        pixels[self.plain] = ray_values[:n_plain]
+        pixels[self.edge] = ray_values[n_plain:].view(EDGE_PIXEL_SAMPLES, len(self.edge), -1).mean(dim=0)
+        return pixels
+
+
+def _edge_rays(rays, index: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
+               generator: torch.Generator, device) -> tuple[tuple[torch.Tensor, torch.Tensor], EdgeSplit]:
+    """The `edges` filter's rays for the batch's pixels `index` (their centre rays
+    origins, directions [n_pixels, 3]): ((origins, directions) [rays, 3], EdgeSplit)."""
+    is_edge = rays.edges[index].to(device)
+    plain, edge = (~is_edge).nonzero().squeeze(1), is_edge.nonzero().squeeze(1)
+    offsets = stratified_offsets(len(edge), EDGE_PIXEL_SAMPLES, generator).to(device)
+    moved = jittered_direction(directions[edge].repeat(EDGE_PIXEL_SAMPLES, 1),
+                               rays.footprint[index[edge.cpu()]].to(device).repeat(EDGE_PIXEL_SAMPLES, 1, 1), offsets)
+    return ((torch.cat([origins[plain], origins[edge].repeat(EDGE_PIXEL_SAMPLES, 1)]),
+             torch.cat([directions[plain], moved])), EdgeSplit(plain, edge, len(index)))
 
 
 def stratified_offsets(n_pixels: int, per_pixel: int, generator: torch.Generator) -> torch.Tensor:

@@ -101,7 +101,70 @@ def test_stratified_offsets_put_one_ray_in_each_cell_of_each_pixel():
                               atol=4 * (1 / k) / (12 * n_pixels) ** 0.5)  # 4 standard errors of U[0, 1/k)'s mean
 
 
-@pytest.mark.parametrize("pixel_filter", ["box", "jitter"])
+def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_centre_elsewhere():
+    from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, edge_mask
+    from nerfgauge.nerf.render_views import rgba_png
+
+    c2w, intrinsics = _camera(5)
+    cameras = SplitCameras("test", ("a",), np.stack([c2w]), intrinsics)
+    device = torch.device("cpu")
+    centre = box_frame(EdgeField(), cameras, 0, 1, None, 1, device)
+    box = box_frame(EdgeField(), cameras, 0, 2, None, 1, device)
+    rgb, opacity, depth = box_frame(EdgeField(), cameras, 0, 2, None, 1, device, edges_only=True)
+    straight = rgba_png(centre[0].numpy(), centre[1].numpy(), intrinsics.height, intrinsics.width) / 255.0
+    edges = edge_mask(straight, alpha_rounding=ALPHA_ROUNDING).reshape(-1)
+    assert 0 < edges.sum() < edges.size  # the plane's edge crosses the image, and not everywhere
+    assert torch.equal(rgb[torch.from_numpy(edges)], box[0][torch.from_numpy(edges)])
+    assert torch.equal(rgb[torch.from_numpy(~edges)], centre[0][torch.from_numpy(~edges)])
+    assert torch.equal(depth, centre[2]) and torch.all(opacity == 1)
+    # a frame with no edge pixel at all is its centre render
+    flat = SimpleNamespace(render=lambda o, d: SimpleNamespace(rgb=torch.full((len(d), 3), 0.3), opacity=torch.ones(len(d)),
+                                                               depth=d[:, 0]))
+    assert all(torch.equal(a, b) for a, b in zip(box_frame(flat, cameras, 0, 2, None, 1, device, edges_only=True),
+                                                 box_frame(flat, cameras, 0, 1, None, 1, device)))
+
+
+def test_the_edges_filter_spends_four_stratified_rays_on_edge_pixels_and_the_centre_ray_on_the_rest():
+    from nerfgauge.nerf.config import EDGE_PIXEL_SAMPLES
+    from nerfgauge.nerf.data import RayBatch
+    from nerfgauge.nerf.train import _edge_rays
+
+    c2w, intrinsics = _camera(3)
+    origins, directions = pixel_rays(c2w, intrinsics)
+    n = intrinsics.width * intrinsics.height
+    is_edge = torch.arange(n) % 3 == 0
+    rays = RayBatch(torch.from_numpy(origins.reshape(-1, 3)).float(), torch.from_numpy(directions.reshape(-1, 3)).float(),
+                    torch.zeros((n, 4)), 1, torch.from_numpy(pixel_footprints(directions, c2w)), is_edge)
+    index = torch.randperm(n, generator=torch.Generator().manual_seed(0))[:50]
+    (ray_o, ray_d), split = _edge_rays(rays, index, rays.origins[index], rays.directions[index],
+                                       torch.Generator().manual_seed(1), torch.device("cpu"))
+    n_edge = int(is_edge[index].sum())
+    assert 0 < n_edge < 50 and ray_d.shape == (50 - n_edge + EDGE_PIXEL_SAMPLES * n_edge, 3)
+    # a plain pixel's one ray is its centre ray
+    assert torch.equal(ray_d[:50 - n_edge], rays.directions[index][~is_edge[index]])
+    # an edge pixel's rays: block r holds, for every edge pixel in batch order, its ray through
+    # the point of stratified cell r (the same draws from the same generator state;
+    # stratified_offsets' placement is checked above, the ray through a point against
+    # shifted intrinsics)
+    from nerfgauge.nerf.train import stratified_offsets
+
+    edge_pixels = index[is_edge[index]]
+    offsets = stratified_offsets(n_edge, EDGE_PIXEL_SAMPLES, torch.Generator().manual_seed(1))
+    expected = jittered_direction(rays.directions[edge_pixels].repeat(EDGE_PIXEL_SAMPLES, 1),
+                                  rays.footprint[edge_pixels].repeat(EDGE_PIXEL_SAMPLES, 1, 1), offsets)
+    assert torch.equal(ray_d[50 - n_edge:], expected)
+    assert torch.equal(ray_o[50 - n_edge:], rays.origins[edge_pixels].repeat(EDGE_PIXEL_SAMPLES, 1))
+    # pixel values: the plain pixels' rays as they are, each edge pixel the mean of its four
+    values = torch.arange(len(ray_d), dtype=torch.float64)[:, None]
+    pixels = split.gather(values)
+    assert torch.equal(pixels[~is_edge[index], 0], torch.arange(50 - n_edge, dtype=torch.float64))
+    expected = values[50 - n_edge:].view(EDGE_PIXEL_SAMPLES, n_edge).mean(dim=0)
+    assert torch.allclose(pixels[is_edge[index], 0], expected)
+    colours = torch.randn(50, 3, dtype=torch.float64)
+    assert torch.allclose(split.gather(split.spread(colours)), colours)  # a per-pixel value is every ray's
+
+
+@pytest.mark.parametrize("pixel_filter", ["box", "jitter", "edges"])
 def test_training_through_the_pixels_footprint_runs_and_renders_box_filtered(tiny_dataset, tmp_path, pixel_filter):
     import json
 
@@ -114,21 +177,48 @@ def test_training_through_the_pixels_footprint_runs_and_renders_box_filtered(tin
     assert json.loads((run / "config.json").read_text())["pixel_filter"] == pixel_filter
     timing = render_split(run, "test", progress=False)
     assert timing["pixel_samples"] == 2  # the box filter's 2 x 2 rays for a run trained through the footprint
+    assert timing.get("edges_only", False) == (pixel_filter == "edges")
 
 
-@pytest.mark.parametrize("fields, expected_filter", [
-    ({"budget_seconds": 60.0}, "centre"),
-    ({"steps": 100}, "centre"),
-    ({"budget_seconds": 60.0, "pixel_filter": "box"}, "box"),
-    ({"steps": 100, "pixel_filter": "jitter"}, "jitter"),
+@pytest.mark.parametrize("fields, edge_share, expected_filter", [
+    ({"budget_seconds": 60.0}, None, "centre"),
+    ({"steps": 100}, 0.2, "edges"),
+    ({"steps": 100}, 1 / 3, "edges"),
+    ({"budget_seconds": 60.0}, 0.34, "centre"),
+    ({"budget_seconds": 60.0, "pixel_filter": "box"}, 0.1, "box"),
+    ({"steps": 100, "pixel_filter": "jitter"}, 0.1, "jitter"),
+    ({"steps": 100, "pixel_filter": "centre"}, 0.1, "centre"),
 ])
-def test_the_pixel_filter_and_its_batch(fields, expected_filter):
-    """centre unless set; a box run's automatic batch holds TRAIN_PIXEL_SAMPLES times the
-    rays a step (as many pixels as one ray a pixel)."""
+def test_the_pixel_filter_and_its_batch(fields, edge_share, expected_filter):
+    """As set; else edges while at most a third of the training pixels are edge pixels (the
+    extra rays at most double a step's), centre beyond or when the share is unknown; a box
+    run's automatic batch holds TRAIN_PIXEL_SAMPLES times the rays a step (as many pixels as
+    one ray a pixel)."""
     from nerfgauge.nerf.config import BATCH_RAYS, TRAIN_PIXEL_SAMPLES, TrainConfig, resolve
 
     aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     c2w = np.stack([look_at(np.array([3.0, 0.0, 1.0]), np.zeros(3)), look_at(np.array([0.0, 3.0, 1.0]), np.zeros(3))])
-    config, reasons = resolve(TrainConfig(dataset="unused", **fields), None, aabb, c2w, 100.0, 64, 0.5)
+    config, reasons = resolve(TrainConfig(dataset="unused", **fields), None, aabb, c2w, 100.0, 64, 0.5, edge_share)
     assert config.pixel_filter == expected_filter and reasons["pixel_filter"]
+    if "pixel_filter" not in fields and edge_share is not None:
+        assert f"{100 * edge_share:.1f}%" in reasons["pixel_filter"]  # the reason states the measured share
     assert config.batch_rays == BATCH_RAYS[config.parametrisation] * TRAIN_PIXEL_SAMPLES[expected_filter]
+
+
+def test_a_run_states_its_training_images_edge_share_and_drops_what_centre_rays_do_not_need(tiny_dataset, tmp_path):
+    import json
+
+    from nerfgauge.core.dataset import open_dataset
+    from nerfgauge.core.pixel_edges import edge_mask
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.train import prepare_run
+
+    ds = open_dataset(tiny_dataset)
+    cameras = ds.cameras("train")
+    share = np.mean([edge_mask(ds.rgba_of(stem, cameras.intrinsics).astype(np.float64)).mean() for stem in cameras.stems])
+    config, reasons, _, rays, *_ = prepare_run(TrainConfig(dataset=str(tiny_dataset), steps=1))
+    assert f"{100 * share:.1f}%" in reasons["pixel_filter"]
+    assert config.pixel_filter == ("edges" if share <= 1 / 3 else "centre")
+    assert (rays.edges is None) == (config.pixel_filter == "centre")
+    config, _, _, rays, *_ = prepare_run(TrainConfig(dataset=str(tiny_dataset), steps=1, pixel_filter="centre"))
+    assert rays.footprint is None and rays.edges is None
