@@ -545,7 +545,8 @@ class EdgeSplit:
         n_plain = len(self.plain)
         pixels = ray_values.new_empty((self.n_pixels, ray_values.shape[1]))
         pixels[self.plain] = ray_values[:n_plain]
-        pixels[self.edge] = ray_values[n_plain:].view(EDGE_PIXEL_SAMPLES, len(self.edge), -1).mean(dim=0)
+        if len(self.edge):  # a batch may hold no edge pixel (an empty scene has none at all)
+            pixels[self.edge] = ray_values[n_plain:].reshape(EDGE_PIXEL_SAMPLES, len(self.edge), -1).mean(dim=0)
         return pixels
 
 

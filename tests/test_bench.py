@@ -52,3 +52,32 @@ def test_bench_read_times_both_verification_modes(tiny_dataset):
     assert [row["read"] for row in rows] == list(READS)
     assert all(row["frames"] == 4 and 0 < row["ms_sizes_only"] < 1e5 and 0 < row["ms_sha256"] < 1e5 for row in rows)
     assert table_markdown(rows).count("\n") == 1 + len(rows)
+
+
+def test_the_plots_draw_each_budgets_test_psnr_against_seconds_and_steps(tmp_path, monkeypatch):
+    """One line a scene and variant through its budgets, in budget order, on the time and
+    the steps panels; the PNG is written whole."""
+    from PIL import Image
+
+    from nerfgauge.orchestrate import bench
+
+    rows = []
+    for budget, steps, psnr in ((120, 4000, 41.0), (30, 900, 37.0), (600, 16000, 43.0)):
+        log = write_log(tmp_path / f"c{budget}.jsonl", [(0, 20.0), (budget, psnr - 5)])
+        rows.append({"scene": "s", "variant": "compact", "budget": budget, "val_psnr": psnr - 5, "psnr": psnr,
+                     "train_seconds": budget + 0.5, "steps": steps, "model_mb": 1.0, "log": log})
+    rows.append({"scene": "s", "variant": "vanilla", "budget": 30, "error": "exit 2"})
+    drawn = {}
+    original = bench.write_png_figure
+
+    def keep(figure, path):
+        drawn["axes"] = figure.axes
+        original(figure, path)
+
+    monkeypatch.setattr(bench, "write_png_figure", keep)
+    bench.pareto_plots(rows, tmp_path)
+    by_time, by_steps = drawn["axes"][2], drawn["axes"][3]
+    (time_line,), (steps_line,) = by_time.get_lines(), by_steps.get_lines()
+    assert list(time_line.get_xdata()) == [30.5, 120.5, 600.5] and list(time_line.get_ydata()) == [37.0, 41.0, 43.0]
+    assert list(steps_line.get_xdata()) == [900, 4000, 16000] and list(steps_line.get_ydata()) == [37.0, 41.0, 43.0]
+    assert Image.open(tmp_path / "pareto.png").size == (1210, 880)

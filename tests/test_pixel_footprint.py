@@ -222,3 +222,22 @@ def test_a_run_states_its_training_images_edge_share_and_drops_what_centre_rays_
     assert (rays.edges is None) == (config.pixel_filter == "centre")
     config, _, _, rays, *_ = prepare_run(TrainConfig(dataset=str(tiny_dataset), steps=1, pixel_filter="centre"))
     assert rays.footprint is None and rays.edges is None
+
+
+def test_a_batch_without_edge_pixels_is_its_centre_rays():
+    """An empty scene has no edge pixel at all: the edges filter then trains on centre rays."""
+    from nerfgauge.nerf.data import RayBatch
+    from nerfgauge.nerf.train import _edge_rays
+
+    c2w, intrinsics = _camera(4)
+    origins, directions = pixel_rays(c2w, intrinsics)
+    n = intrinsics.width * intrinsics.height
+    rays = RayBatch(torch.from_numpy(origins.reshape(-1, 3)).float(), torch.from_numpy(directions.reshape(-1, 3)).float(),
+                    torch.zeros((n, 4)), 1, torch.from_numpy(pixel_footprints(directions, c2w)),
+                    torch.zeros(n, dtype=torch.bool))
+    index = torch.arange(0, n, 7)
+    (ray_o, ray_d), split = _edge_rays(rays, index, rays.origins[index], rays.directions[index],
+                                       torch.Generator().manual_seed(0), torch.device("cpu"))
+    assert torch.equal(ray_d, rays.directions[index]) and torch.equal(ray_o, rays.origins[index])
+    values = torch.randn(len(index), 3)
+    assert torch.equal(split.gather(values), values)

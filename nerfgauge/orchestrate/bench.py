@@ -185,22 +185,35 @@ def table_markdown(rows: list) -> str:
 
 
 def pareto_plots(rows: list, out: Path) -> None:
-    """PSNR against training seconds (every run's val curve) and against model MB: OUT/pareto.png."""
+    """OUT/pareto.png: every run's val PSNR against training seconds; each budget's final
+    test PSNR against training seconds and against steps (one line a scene and variant,
+    so machine load, which moves the seconds, cannot hide whether more steps still help);
+    final val PSNR against model MB."""
     from matplotlib.figure import Figure  # matplotlib: only when a figure is drawn
 
-    figure = Figure(figsize=(11, 4), dpi=110)
-    by_time, by_size = figure.add_subplot(1, 2, 1), figure.add_subplot(1, 2, 2)
-    for r in rows:
-        if "error" in r:
-            continue
+    figure = Figure(figsize=(11, 8), dpi=110)
+    by_time, by_size = figure.add_subplot(2, 2, 1), figure.add_subplot(2, 2, 2)
+    test_by_time, test_by_steps = figure.add_subplot(2, 2, 3), figure.add_subplot(2, 2, 4)
+    done = [r for r in rows if "error" not in r]
+    for r in done:
         label = f"{r['scene']}: {r['variant']} ({r['budget']:g} s)"
         log = read_log(r["log"])
         by_time.plot([e["seconds"] for e in log], [e["val_psnr"] for e in log], marker=".", label=label)
         by_size.scatter([r["model_mb"]], [r["val_psnr"]], label=label)
-    by_time.set(xlabel="training seconds", ylabel="val PSNR (dB)", title="PSNR against training time")
+    for scene, variant in dict.fromkeys((r["scene"], r["variant"]) for r in done if r["psnr"] is not None):
+        line = sorted((r for r in done if (r["scene"], r["variant"]) == (scene, variant) and r["psnr"] is not None),
+                      key=lambda r: r["budget"])
+        test_by_time.plot([r["train_seconds"] for r in line], [r["psnr"] for r in line], marker="o", label=f"{scene}: {variant}")
+        test_by_steps.plot([r["steps"] for r in line], [r["psnr"] for r in line], marker="o", label=f"{scene}: {variant}")
+    by_time.set(xlabel="training seconds", ylabel="val PSNR (dB)", title="PSNR against training time (each run)")
     by_size.set(xlabel="saved model (MB)", ylabel="final val PSNR (dB)", title="PSNR against model size", xscale="log")
-    for axes in (by_time, by_size):
+    test_by_time.set(xlabel="training seconds (the budget)", ylabel="test PSNR (dB)",
+                     title="test PSNR at the end of each budget", xscale="log")
+    test_by_steps.set(xlabel="training steps", ylabel="test PSNR (dB)", title="the same against steps", xscale="log")
+    for axes in (by_time, by_size, test_by_time, test_by_steps):
         axes.grid(alpha=0.3)
     by_size.legend(fontsize=6, loc="lower right")
+    if done:
+        test_by_steps.legend(fontsize=7, loc="lower right")
     figure.tight_layout()
     write_png_figure(figure, out / "pareto.png")
