@@ -111,6 +111,11 @@ class TrainConfig:
     # train on the dataset's sparse list of this many views (sparse_views.json; nerf.data);
     # None: every train view. Left out of config.json when None, so older runs keep their recipe.
     sparse: Optional[int] = None
+    # How an `edges` run's frames are rendered, chosen at the end of training on the val
+    # views (nerf.train.choose_render_filter): "edges" (2 x 2 rays on the centre render's
+    # edge pixels) or "centre". None: not chosen (any other filter renders by its own rule).
+    # Left out of config.json when None; not part of the recipe (it follows from it).
+    render_filter: Optional[str] = None
 
     def validate(self) -> None:
         """One-line InputError for anything a run cannot use (the API path: the CLI's
@@ -125,6 +130,8 @@ class TrainConfig:
             raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
         if self.pixel_filter is not None and self.pixel_filter not in PIXEL_FILTERS:
             raise InputError(f"unknown pixel filter {self.pixel_filter!r}; choose {', '.join(PIXEL_FILTERS)}")
+        if self.render_filter not in (None, "edges", "centre"):
+            raise InputError(f"unknown render filter {self.render_filter!r}; choose edges or centre")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
         # every number through its range: the command line's (core.arguments) where it has a flag
@@ -142,8 +149,9 @@ class TrainConfig:
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self)
-        if out["sparse"] is None:
-            del out["sparse"]
+        for optional in ("sparse", "render_filter"):
+            if out[optional] is None:
+                del out[optional]
         return out
 
 
@@ -227,7 +235,7 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["final_resolution"] = why
     else:
         reasons["final_resolution"] = "set on the command line"
-    updates["pixel_filter"], reasons["pixel_filter"] = pixel_filter_for(config, edge_share)
+    updates["pixel_filter"], reasons["pixel_filter"] = pixel_filter_for(config, edge_share, kind)
     per_pixel = TRAIN_PIXEL_SAMPLES[updates["pixel_filter"]]
     for name, (by_kind, reason) in BY_PARAMETRISATION.items():
         if getattr(config, name) is None:
@@ -246,25 +254,34 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
     return dataclasses.replace(config, **updates), reasons
 
 
-def pixel_filter_for(config: TrainConfig, edge_share: Optional[float] = None) -> tuple[str, str]:
-    """The pixel filter a run trains with, and why: as set; else `edges` when at most
-    EDGE_SHARE_MAX of the training pixels are edge pixels (`edge_share`), `centre` when more
-    or unknown. The ground truth box-filters every pixel; only on edge pixels does that
-    differ from the centre ray's colour, so the box's 2 x 2 rays go there alone
-    (BENCHMARKS.md, "Edge pixels": primitives 128 px, 120 s, 42.12 dB against 39.64 with
-    centre rays). Where most pixels are edges (a texture finer than the pixels), the extra
-    rays cost more steps than they gain: forward-near 64 px, 60 s, 73% edge pixels, 25.8
-    against 34.2 dB. `box` (2 x 2 rays on every pixel) lost 2.1 dB to centre rays at 128 px:
-    its steps cost 3.6x, so the budget kept a 68-voxel grid where centre rays reached 109."""
+def pixel_filter_for(config: TrainConfig, edge_share: Optional[float] = None,
+                     kind: Optional[str] = None) -> tuple[str, str]:
+    """The pixel filter a run trains with, and why: as set; else `edges` in bounded space
+    (`kind`) when at most EDGE_SHARE_MAX of the training pixels are edge pixels
+    (`edge_share`); `centre` otherwise or when either is unknown. The ground truth
+    box-filters every pixel; only on edge pixels does that differ from the centre ray's
+    colour, so the box's 2 x 2 rays go there alone (BENCHMARKS.md, "Edge pixels":
+    primitives 128 px, 120 s, 42.12 dB against 39.64 with centre rays; far-object 64 px,
+    30 s, 45.31 against 40.14). Where most pixels are edges (a texture finer than the
+    pixels), the extra rays cost more steps than they gain. Both forward captures measured
+    lost with it: forward-near 64 px, 60 s (75% edge pixels) 25.8 against 34.2 dB, and
+    depth-range at bench hard's 400 steps (27%) 31.73 against 33.66, where `box` and
+    `jitter` lost too (33.04, 32.04); no contracted capture with few edges was measured.
+    `box` (2 x 2 rays on every pixel) lost 2.1 dB to centre rays at 128 px, 90 s: its
+    steps cost 3.6x, so the budget kept a 68-voxel grid where centre rays reached 109."""
     if config.pixel_filter is not None:
         return config.pixel_filter, "set on the command line"
-    if edge_share is None:
+    if edge_share is None or kind is None:
         return "centre", "the default without the training images' edge share: one ray through each pixel's centre"
+    share = f"{100 * edge_share:.1f}% of training pixels are edge pixels"
+    if kind != "bounded":
+        return "centre", (f"{share}, but in {kind} space rays through points of a pixel lost to centre rays "
+                          "wherever measured: one ray through each pixel's centre")
     if edge_share <= EDGE_SHARE_MAX:
-        return "edges", (f"{100 * edge_share:.1f}% of training pixels are edge pixels (<= {100 * EDGE_SHARE_MAX:.0f}%): "
-                         "2 x 2 rays on them (where the box filter differs from the centre ray), the centre ray elsewhere")
-    return "centre", (f"{100 * edge_share:.1f}% of training pixels are edge pixels (> {100 * EDGE_SHARE_MAX:.0f}%): "
-                      "their extra rays would cost more steps than they gain; one ray through each pixel's centre")
+        return "edges", (f"{share} (<= {100 * EDGE_SHARE_MAX:.0f}%): 2 x 2 rays on them (where the box filter "
+                         "differs from the centre ray), the centre ray elsewhere")
+    return "centre", (f"{share} (> {100 * EDGE_SHARE_MAX:.0f}%): their extra rays would cost more steps than they "
+                      "gain; one ray through each pixel's centre")
 
 
 def step_ratio_of(config: TrainConfig) -> float:

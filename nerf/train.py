@@ -30,6 +30,7 @@ from nerfgauge.nerf.checkpoint import LoopState
 from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig,
                                    resolve, upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
+from nerfgauge.nerf.frames import box_frame
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
@@ -81,7 +82,7 @@ CHECKPOINT, MODEL, CONFIG, LOG = "checkpoint.pt", "model.pt", "config.json", "lo
 # dataset's path (its manifest hash stands for it), the stopping rule (resume trains
 # further), logging, checkpointing, threads, device and how model.pt is stored.
 NOT_RECIPE = ("dataset", "steps", "budget_seconds", "eval_every_seconds", "eval_views", "eval_rays",
-              "checkpoint_every", "threads", "device", "quantise")
+              "checkpoint_every", "threads", "device", "quantise", "render_filter")
 
 
 def pick_device(name: str) -> torch.device:
@@ -437,9 +438,41 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     finally:
         bar.close()
         log.close()
+    if config.pixel_filter == "edges":
+        config, reasons["render_filter"] = choose_render_filter(model, config, val_rays, device)
+        write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
+                                      "recipe": recipe})
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
     return {"steps": state.step, "seconds": state.seconds, "val_psnr": last_psnr, "model_bytes": size,
             "resolution": model.field.resolution if model.has_grid else None}
+
+
+def choose_render_filter(model, config: TrainConfig, val_rays, device) -> tuple[TrainConfig, str]:
+    """An `edges` run's render filter, by measurement on its val views (whole frames, the
+    eval_views of psnr_on_white): the 2 x 2 rays on the centre render's edge pixels when
+    they score higher, else the centre ray alone. The box render assumes the field resolves
+    what lies inside a pixel; where it cannot (bench hard's tiny: a 3-pixel sphere in a
+    53-voxel grid), averaging sub-pixel rays blurs the blur again: 56.99 dB against 58.32
+    through the centres of the same model (BENCHMARKS.md, "Edge pixels").
+    Returns (config with render_filter set, the reason)."""
+    ds = open_dataset(config.dataset)
+    split = "val" if ds.cameras("val").stems else "test"
+    cameras = ds.cameras(split)
+    pixels = cameras.intrinsics.width * cameras.intrinsics.height
+    errors = {"edges": 0.0, "centre": 0.0}
+    model.eval()
+    for index in range(val_rays.n_views):
+        rgba = val_rays.rgba[index * pixels:(index + 1) * pixels].to(device)
+        target = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:])
+        for name, (per_axis, edges_only) in {"edges": (2, True), "centre": (1, False)}.items():
+            rgb, opacity, _ = box_frame(model, cameras, index, per_axis, None, 1, device, edges_only)
+            errors[name] += float(((composite(rgb, opacity, torch.ones(3, device=device)).clamp(0, 1) - target) ** 2).mean())
+    model.train()
+    psnr = {name: -10 * math.log10(max(error / max(val_rays.n_views, 1), 1e-10)) for name, error in errors.items()}
+    chosen = "edges" if psnr["edges"] > psnr["centre"] else "centre"  # a tie: the cheaper render
+    return dataclasses.replace(config, render_filter=chosen), (
+        f"{chosen}: on {val_rays.n_views} {split} views, 2 x 2 rays on edge pixels {psnr['edges']:.2f} dB, "
+        f"centre rays {psnr['centre']:.2f} dB")
 
 
 def _grow_grid(training: Training, config: TrainConfig) -> None:

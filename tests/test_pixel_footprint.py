@@ -12,7 +12,7 @@ import torch
 
 from nerfgauge.core.camera import Intrinsics, SplitCameras, look_at, pixel_rays
 from nerfgauge.nerf.data import jittered_direction, pixel_footprints
-from nerfgauge.nerf.render_views import box_frame, pixel_offsets
+from nerfgauge.nerf.frames import box_frame, pixel_offsets
 
 
 def _camera(seed: int):
@@ -103,7 +103,7 @@ def test_stratified_offsets_put_one_ray_in_each_cell_of_each_pixel():
 
 def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_centre_elsewhere():
     from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, edge_mask
-    from nerfgauge.nerf.render_views import rgba_png
+    from nerfgauge.nerf.frames import rgba_png
 
     c2w, intrinsics = _camera(5)
     cameras = SplitCameras("test", ("a",), np.stack([c2w]), intrinsics)
@@ -176,8 +176,10 @@ def test_training_through_the_pixels_footprint_runs_and_renders_box_filtered(tin
     train(TrainConfig(dataset=str(tiny_dataset), steps=4, pixel_filter=pixel_filter, threads=1), run, progress=False)
     assert json.loads((run / "config.json").read_text())["pixel_filter"] == pixel_filter
     timing = render_split(run, "test", progress=False)
-    assert timing["pixel_samples"] == 2  # the box filter's 2 x 2 rays for a run trained through the footprint
-    assert timing.get("edges_only", False) == (pixel_filter == "edges")
+    if pixel_filter == "edges" and json.loads((run / "config.json").read_text())["render_filter"] == "centre":
+        assert timing["pixel_samples"] == 1  # chosen on the val views (the next tests)
+    else:  # the box filter's 2 x 2 rays for a run trained through the footprint
+        assert timing["pixel_samples"] == 2 and timing.get("edges_only", False) == (pixel_filter == "edges")
 
 
 @pytest.mark.parametrize("fields, edge_share, expected_filter", [
@@ -241,3 +243,77 @@ def test_a_batch_without_edge_pixels_is_its_centre_rays():
     assert torch.equal(ray_d, rays.directions[index]) and torch.equal(ray_o, rays.origins[index])
     values = torch.randn(len(index), 3)
     assert torch.equal(split.gather(values), values)
+
+
+@pytest.mark.parametrize("kind, share, expected", [
+    ("bounded", 0.2, "edges"), ("bounded", 0.5, "centre"), ("forward", 0.2, "centre"), ("contracted", 0.1, "centre"),
+    (None, 0.1, "centre"), ("bounded", None, "centre"),
+])
+def test_the_automatic_filter_is_edges_only_in_bounded_space_with_few_edges(kind, share, expected):
+    from nerfgauge.nerf.config import TrainConfig, pixel_filter_for
+
+    chosen, reason = pixel_filter_for(TrainConfig(dataset="d", steps=1), share, kind)
+    assert chosen == expected and reason
+    assert pixel_filter_for(TrainConfig(dataset="d", steps=1, pixel_filter="edges"), 0.9, "forward")[0] == "edges"
+
+
+class _FrameModel:
+    """A stand-in model for whole frames: two colours either side of a plane through the
+    origin, by the point of each ray closest to it, so the edge crosses the middle of every
+    view of a camera looking at the origin; opacity 1."""
+
+    def render(self, origins, directions):
+        closest = origins - (origins * directions).sum(dim=-1, keepdim=True) * directions
+        side = (closest @ torch.tensor([0.6, 0.0, 0.8]) > 0).float()
+        rgb = torch.stack([side, 1 - side, 0.5 * torch.ones_like(side)], dim=-1)
+        return SimpleNamespace(rgb=rgb, opacity=torch.ones_like(side), depth=directions[:, 0])
+
+    def eval(self):
+        return self
+
+    def train(self):
+        return self
+
+
+@pytest.mark.parametrize("truth", ["edges", "centre"])
+def test_an_edges_run_keeps_the_render_filter_that_scores_higher_on_its_val_views(tiny_dataset, truth):
+    """Targets made by one of the two renders: that render scores exactly and is kept."""
+    from nerfgauge.core.dataset import open_dataset
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.data import RayBatch
+    from nerfgauge.nerf.train import choose_render_filter
+
+    ds = open_dataset(tiny_dataset)
+    split = "val" if ds.cameras("val").stems else "test"
+    cameras = ds.cameras(split)
+    device = torch.device("cpu")
+    frames = [box_frame(_FrameModel(), cameras, i, 2 if truth == "edges" else 1, None, 1, device, truth == "edges")
+              for i in range(min(2, len(cameras.stems)))]
+    rgba = torch.cat([torch.cat([rgb, opacity[:, None]], dim=1) for rgb, opacity, _ in frames])
+    other = [box_frame(_FrameModel(), cameras, i, 1 if truth == "edges" else 2, None, 1, device, truth != "edges")
+             for i in range(len(frames))]
+    assert all(not torch.equal(a[0], b[0]) for a, b in zip(frames, other))  # the two renders differ somewhere
+    val = RayBatch(torch.zeros((len(rgba), 3)), torch.zeros((len(rgba), 3)), rgba, len(frames))
+    config, reason = choose_render_filter(_FrameModel(), TrainConfig(dataset=str(tiny_dataset), steps=1,
+                                                                     pixel_filter="edges"), val, device)
+    assert config.render_filter == truth and "dB" in reason
+
+
+def test_an_edges_run_renders_by_its_chosen_filter(tiny_dataset, tmp_path):
+    import json
+
+    from nerfgauge.nerf.checkpoint import load_checked, save_atomic
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.render_views import render_split
+    from nerfgauge.nerf.train import train
+
+    run = tmp_path / "run"
+    train(TrainConfig(dataset=str(tiny_dataset), steps=4, pixel_filter="edges", threads=1), run, progress=False)
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["render_filter"] in ("edges", "centre") and saved["auto_reasons"]["render_filter"]
+    payload = load_checked(run / "model.pt")
+    for chosen, samples in (("centre", 1), ("edges", 2)):
+        payload["config"]["render_filter"] = chosen
+        save_atomic(payload, run / "model.pt")
+        timing = render_split(run, "test", tmp_path / chosen, progress=False)
+        assert timing["pixel_samples"] == samples and timing.get("edges_only", False) == (chosen == "edges")

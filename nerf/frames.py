@@ -1,0 +1,115 @@
+"""One frame of a trained model: its rays through a model, as `nerfgauge render` writes
+them and training's end checks them (nerf.train picks an edges run's render filter on the
+val views with these).
+
+A frame is rendered through pixel centres, box-filtered over each pixel (the ground
+truth's filter, `box_frame`), box-filtered on the centre render's edge pixels only (an
+`edges` run), or through a thin lens (`lens_frame`). Colours are premultiplied, depth is
+always the pixel-centre rays' (as the dataset's ground truth is).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from nerfgauge.nerf.data import jittered_direction, pixel_footprints, split_rays
+from nerfgauge.nerf.rendering import render_rays_chunked
+
+from nerfgauge.core.camera import lens_samples, thin_lens_rays
+from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, edge_mask
+
+# A frame's rays are split into this many parts per thread: rays that hit the scene cost
+# far more than rays that miss it, so two halves of an image rarely cost the same, and the
+# thread with the cheap half waits. Measured at 256 px on 2 threads: 2 parts 106-122 ms,
+# 8 parts 85-88 ms a frame.
+PARTS_PER_THREAD = 4
+# Rays per pixel along each axis by the run's pixel filter (nerf.config.PIXEL_FILTERS): a
+# box-trained model renders the mean of 2 x 2 rays through each pixel, the box filter the
+# ground truth applies (docs/conventions.md, "Pixel footprint"); a centre-trained one its
+# centre ray.
+PIXEL_SAMPLES = {"box": 2, "jitter": 2, "centre": 1, "edges": 2}
+# Pixel filters whose renders spend those rays on edge pixels only: the centre render's
+# edges (nerfgauge.core.pixel_edges.edge_mask of the rendered RGBA), as training found them
+# on the targets; every other pixel keeps its centre ray.
+EDGES_ONLY = ("edges",)
+
+
+def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Premultiplied sRGB [n, 3] and opacity [n] -> straight-alpha uint8 [H, W, 4]."""
+    alpha = np.clip(opacity, 0, 1)[:, None]
+    straight = np.divide(rgb_premultiplied, alpha, out=np.zeros_like(rgb_premultiplied), where=alpha > 1e-6)
+    rgba = np.concatenate([np.clip(straight, 0, 1), alpha], axis=1).reshape(height, width, 4)
+    return np.round(rgba * 255).astype(np.uint8)
+
+
+def render_frame(model, origins, directions, pool, parts: int = 1) -> tuple:
+    """One frame's rays split into `parts` over the worker threads of `pool` (None: this thread).
+    On a CPU, a few threads each running single-threaded ops on part of the rays use the
+    cores better than one thread of many small multi-threaded ops (measured: ~1.3x)."""
+    if pool is None:
+        return render_rays_chunked(model, origins, directions)
+
+    def part(o, d):
+        with torch.no_grad():
+            return render_rays_chunked(model, o, d)
+
+    chunks = zip(origins.chunk(parts), directions.chunk(parts))
+    results = [future.result() for future in [pool.submit(part, o, d) for o, d in chunks]]
+    return tuple(torch.cat(column) for column in zip(*results))
+
+
+def lens_frame(model, cameras, index: int, samples: int, seed: int, pool, parts: int, device) -> tuple:
+    """Frame `index` through its thin lens: premultiplied rgb [H*W, 3] and opacity [H*W]
+    averaged over `samples` stratified lens samples (seeded by (seed, index)), and the depth
+    [H*W] of the pinhole pixel-centre rays."""
+    disk = lens_samples(samples, (seed, index))  # [S, 2]
+    origins, directions = thin_lens_rays(cameras.c2w[index], cameras.intrinsics, cameras.lens(index), disk)
+    o = torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)).to(device)
+    d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
+    rgb, opacity, _ = render_frame(model, o, d, pool, parts)
+    pixels = cameras.intrinsics.width * cameras.intrinsics.height
+    rgb, opacity = rgb.view(samples, pixels, 3).mean(dim=0), opacity.view(samples, pixels).mean(dim=0)
+    centre_o, centre_d = split_rays(cameras, index)
+    _, _, depth = render_frame(model, centre_o.to(device), centre_d.to(device), pool, parts)
+    return rgb, opacity, depth
+
+
+def pixel_offsets(per_axis: int) -> np.ndarray:
+    """The centres of a per_axis x per_axis grid of equal cells over a pixel, as offsets
+    from its centre in pixels, row-major: [per_axis^2, 2] (x, y) in (-0.5, 0.5). Their mean
+    is the midpoint rule of the pixel's box filter; 1 gives the centre alone."""
+    centres = (np.arange(per_axis) + 0.5) / per_axis - 0.5
+    y, x = np.meshgrid(centres, centres, indexing="ij")
+    return np.stack([x.ravel(), y.ravel()], axis=-1)
+
+
+def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, device,
+              edges_only: bool = False) -> tuple:
+    """Frame `index` box-filtered over each pixel as the ground truth is: premultiplied rgb
+    [H*W, 3] and opacity [H*W], the means over per_axis^2 rays through a regular grid of
+    points in each pixel (`pixel_offsets`), and the depth [H*W] of the pixel-centre rays
+    (as the dataset's ground truth is). per_axis 1 renders the centre rays once.
+    edges_only: only the centre render's edge pixels get the per_axis^2 rays."""
+    origins, directions = cameras.rays(index)  # [H, W, 3] float64
+    centre_o = torch.from_numpy(origins.reshape(-1, 3).astype(np.float32)).to(device)
+    centre_d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
+    rgb, opacity, depth = render_frame(model, centre_o, centre_d, pool, parts)
+    if per_axis == 1:
+        return rgb, opacity, depth
+    footprint = torch.from_numpy(pixel_footprints(directions, cameras.c2w[index])).to(device)  # [P, 2, 3]
+    chosen = slice(None)
+    if edges_only:
+        height, width = directions.shape[:2]
+        straight = rgba_png(rgb.cpu().numpy(), opacity.cpu().numpy(), height, width).astype(np.float64) / 255
+        chosen = torch.from_numpy(np.flatnonzero(edge_mask(straight, alpha_rounding=ALPHA_ROUNDING))).to(device)
+        if not len(chosen):  # nothing steps inside any pixel: the centre render is the box render
+            return rgb, opacity, depth
+    offsets = torch.from_numpy(pixel_offsets(per_axis).astype(np.float32)).to(device)  # [S, 2]
+    sub_o, sub_d, sub_footprint = centre_o[chosen], centre_d[chosen], footprint[chosen]
+    pixels = sub_d.shape[0]
+    moved = torch.cat([jittered_direction(sub_d, sub_footprint, offset.expand(pixels, 2)) for offset in offsets])
+    sub_rgb, sub_opacity, _ = render_frame(model, sub_o.repeat(len(offsets), 1), moved, pool, parts)
+    rgb, opacity = rgb.clone(), opacity.clone()
+    rgb[chosen] = sub_rgb.view(len(offsets), pixels, 3).mean(dim=0)
+    opacity[chosen] = sub_opacity.view(len(offsets), pixels).mean(dim=0)
+    return rgb, opacity, depth
