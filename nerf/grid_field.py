@@ -42,6 +42,10 @@ OCCUPANCY_ALPHA = 5e-3  # a cell is empty when no node reaches this opacity per 
 # F-score at 1% 0.550 -> 0.747, depth offset 1.46 -> 1.19 voxels, PSNR 38.92 -> 38.80;
 # 64 px, 600 steps +0.34 dB. Anchored lower it moves surfaces further forward but costs
 # PSNR (alpha 5e-3: offset 0.29 voxels, -2.5 dB), higher it does less (0.05: +0.13 dB, 0.77).
+# Bounded space only: chosen and checked on bounded captures; on depth-range (forward space,
+# bench hard, 400 steps) it cost 0.18 dB and raised the resolved depth AbsRel from 0.076 to
+# 0.101 (BENCHMARKS.md, "Edge pixels"), where a voxel of the log-depth grid is not a
+# constant world length along the ray.
 SHARPEN_ALPHA = 0.1
 
 
@@ -362,7 +366,8 @@ class VoxelGridField(nn.Module):
     @torch.no_grad()
     def upsample(self, resolution: int, keep_cells: torch.Tensor | None = None, sharpen: bool = True) -> None:
         """Coarse to fine: trilinear resampling onto a finer grid (the box stays), the
-        density steepened by `sharpen_raw` (sharpen=False: plain resampling).
+        density steepened by `sharpen_raw` in bounded space (sharpen=False, or a contracted
+        or forward space: plain resampling; SHARPEN_ALPHA says why).
         keep_cells: [nz-1, ny-1, nx-1] bool cells of the current grid; only new nodes in
         these cells, grown by one cell, are allocated. None: every node."""
         shape = grid_shape(self.aabb, resolution)
@@ -381,7 +386,7 @@ class VoxelGridField(nn.Module):
             raw.append(self._blend(self.density_table, rows, weights))
             features.append(self._blend(self.features, rows, weights))
         raw = torch.cat(raw) if raw else torch.zeros(0, 1)
-        if sharpen and resolution > self.resolution:
+        if sharpen and resolution > self.resolution and self.space is None:
             raw = self.sharpen_raw(raw, resolution)
         self.index = torch.zeros(shape, dtype=torch.int32, device=self.aabb.device)
         self._set_nodes(mask, raw,

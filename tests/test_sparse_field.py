@@ -136,6 +136,23 @@ def test_upsample_sharpens_density_above_the_anchor_level_only():
     assert torch.equal(after[:, 1:], before[:, 1:])
 
 
+def test_upsample_sharpens_in_bounded_space_only():
+    """In a contracted or forward grid (field.space set) coarse to fine resamples plainly:
+    sharpening was measured to cost there (nerf.grid_field.SHARPEN_ALPHA)."""
+    from types import SimpleNamespace
+
+    plain, unbounded = random_field(8), random_field(8)
+    for field in (plain, unbounded):
+        dense = field.to_dense()
+        dense[0] = dense[0] * 6 + 4
+        field.load_dense(dense)
+    unbounded.space = SimpleNamespace(kind="forward")  # only its presence matters to upsample
+    plain.upsample(12, sharpen=False)
+    unbounded.upsample(12)
+    everything = torch.ones(plain.shape, dtype=torch.bool)
+    assert torch.equal(unbounded.node_values(everything), plain.node_values(everything))
+
+
 def test_keep_rows_frees_nodes_and_keeps_values():
     field = random_field(10)
     keep = torch.zeros(field.shape, dtype=torch.bool)
