@@ -200,7 +200,8 @@ def opaque_share(rays) -> float | None:
 
 def prepare_run(config: TrainConfig):
     """Validate input, load data, resolve the config. Nothing is written here.
-    Returns (config, reasons, (aabb, space), train_rays, val_rays, device, recipe)."""
+    Returns (config, reasons, (aabb, space), train_rays, val_rays, device, recipe, val_cameras):
+    val_rays and val_cameras are the first eval_views views of the val split (test without one)."""
     config.validate()
     device = pick_device(config.device)
     ds = open_dataset(config.dataset)
@@ -217,15 +218,16 @@ def prepare_run(config: TrainConfig):
     if aabb is None:
         aabb = aabb_from_cameras(train_cams.c2w)
     check_targets(aabb, train_cams.c2w)
-    # edges and footprints are loaded unless the filter is set to centre, and dropped when the
-    # automatic choice (which reads the edge share) is centre
-    through_footprint = config.pixel_filter != "centre"
-    _, train_rays = load_split_rays(root, "train", views=sparse, footprint=through_footprint, edges=through_footprint)
-    edge_share = float(train_rays.edges.float().mean()) if through_footprint and len(train_rays.edges) else None
+    # footprints unless the filter is set to centre, edge flags when it may be edges (the
+    # automatic choice reads their share); each dropped when the resolved filter needs none
+    may_be_edges = config.pixel_filter in (None, "edges")
+    _, train_rays = load_split_rays(root, "train", views=sparse, footprint=config.pixel_filter != "centre",
+                                    edges=may_be_edges)
+    edge_share = float(train_rays.edges.float().mean()) if may_be_edges and len(train_rays.edges) else None
     config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
                               train_cams.intrinsics.width, opaque_share(train_rays), edge_share)
-    if config.pixel_filter == "centre":
-        train_rays = dataclasses.replace(train_rays, footprint=None, edges=None)
+    train_rays = dataclasses.replace(train_rays, footprint=None if config.pixel_filter == "centre" else train_rays.footprint,
+                                     edges=train_rays.edges if config.pixel_filter == "edges" else None)
     recipe = run_recipe(config, manifest_sha256(root))
     stride = max(1, train_rays.origins.shape[0] // 65536)
     intrinsics = train_cams.intrinsics
@@ -233,8 +235,9 @@ def prepare_run(config: TrainConfig):
     space = make_space(config.parametrisation, aabb, train_cams.c2w, train_rays.origins[::stride],
                        train_rays.directions[::stride], tan_half_fov)
     val_split = "val" if ds.cameras("val").stems else "test"
-    _, val_rays = load_split_rays(root, val_split, limit=config.eval_views)
-    return config, reasons, (torch.tensor(aabb, dtype=torch.float32), space), train_rays, val_rays, device, recipe
+    val_cameras, val_rays = load_split_rays(root, val_split, limit=config.eval_views)
+    return (config, reasons, (torch.tensor(aabb, dtype=torch.float32), space), train_rays, val_rays, device, recipe,
+            val_cameras)
 
 
 def _check_resumable(run_dir: Path, recipe: dict) -> None:
@@ -284,7 +287,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, overwrite: bool
     if resume and overwrite:
         raise InputError("--resume continues a run and --overwrite starts it over; give one of them")
     run_dir = Path(run_dir)
-    config, reasons, aabb, train_rays, val_rays, device, recipe = prepare_run(config)
+    config, reasons, aabb, train_rays, val_rays, device, recipe, val_cameras = prepare_run(config)
     if resume:
         _check_resumable(run_dir, recipe)
     with claim_folder(run_dir, "run", recipe_hash(recipe), overwrite=overwrite) as claimed:
@@ -301,7 +304,8 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, overwrite: bool
                                  "--overwrite to start over, or choose another --out")
             if saved is None:  # --overwrite of this recipe, or killed before its first checkpoint
                 _start_over(run_dir)
-        return _train_in(run_dir, config, reasons, recipe, aabb, train_rays, val_rays, device, saved, progress)
+        return _train_in(run_dir, config, reasons, recipe, aabb, train_rays, (val_cameras, val_rays), device, saved,
+                         progress)
 
 
 @dataclass
@@ -347,12 +351,13 @@ def _measure_visibility(training: Training, train_rays, device) -> None:
         free_unoccupied(model, training.optimizer)
 
 
-def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, aabb, train_rays, val_rays, device,
+def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, aabb, train_rays, val, device,
               saved: dict | None, progress: bool) -> dict:
     """The loop, in a claimed run folder; from `saved` (a checked checkpoint) when given.
-    progress: show a progress bar."""
+    val: (val_cameras, val_rays) of `prepare_run`. progress: show a progress bar."""
     torch.set_num_threads(config.threads)
     aabb, space = aabb
+    val_cameras, val_rays = val
     training = _start_training(run_dir, config, aabb, space, device, saved)
     model, state = training.model, training.loop
     if saved is not None:
@@ -439,7 +444,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
         bar.close()
         log.close()
     if config.pixel_filter == "edges":
-        config, reasons["render_filter"] = choose_render_filter(model, config, val_rays, device)
+        config, reasons["render_filter"] = choose_render_filter(model, config, val_cameras, val_rays, device)
         write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
                                       "recipe": recipe})
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
@@ -447,17 +452,15 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
             "resolution": model.field.resolution if model.has_grid else None}
 
 
-def choose_render_filter(model, config: TrainConfig, val_rays, device) -> tuple[TrainConfig, str]:
+def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) -> tuple[TrainConfig, str]:
     """An `edges` run's render filter, by measurement on its val views (whole frames, the
     eval_views of psnr_on_white): the 2 x 2 rays on the centre render's edge pixels when
     they score higher, else the centre ray alone. The box render assumes the field resolves
     what lies inside a pixel; where it cannot (bench hard's tiny: a 3-pixel sphere in a
     53-voxel grid), averaging sub-pixel rays blurs the blur again: 56.99 dB against 58.32
     through the centres of the same model (BENCHMARKS.md, "Edge pixels").
+    cameras, val_rays: the val views' cameras and rays (`prepare_run`).
     Returns (config with render_filter set, the reason)."""
-    ds = open_dataset(config.dataset)
-    split = "val" if ds.cameras("val").stems else "test"
-    cameras = ds.cameras(split)
     pixels = cameras.intrinsics.width * cameras.intrinsics.height
     errors = {"edges": 0.0, "centre": 0.0}
     model.eval()
@@ -471,7 +474,7 @@ def choose_render_filter(model, config: TrainConfig, val_rays, device) -> tuple[
     psnr = {name: -10 * math.log10(max(error / max(val_rays.n_views, 1), 1e-10)) for name, error in errors.items()}
     chosen = "edges" if psnr["edges"] > psnr["centre"] else "centre"  # a tie: the cheaper render
     return dataclasses.replace(config, render_filter=chosen), (
-        f"{chosen}: on {val_rays.n_views} {split} views, 2 x 2 rays on edge pixels {psnr['edges']:.2f} dB, "
+        f"{chosen}: on {val_rays.n_views} {cameras.split} views, 2 x 2 rays on edge pixels {psnr['edges']:.2f} dB, "
         f"centre rays {psnr['centre']:.2f} dB")
 
 

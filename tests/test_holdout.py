@@ -199,7 +199,7 @@ def test_train_on_a_sparse_list(holdout_dataset, tmp_path):
     from nerfgauge.nerf.train import prepare_run
 
     config = TrainConfig(dataset=str(holdout_dataset), steps=2, sparse=3, threads=1)
-    _, _, _, train_rays, _, _, recipe = prepare_run(config)
+    _, _, _, train_rays, _, _, recipe, _ = prepare_run(config)
     assert train_rays.n_views == 3 and train_rays.origins.shape[0] == 3 * 32 * 32
     assert recipe["sparse"] == 3
     assert "sparse" not in TrainConfig(dataset="x").to_json()  # older runs keep their recipe
