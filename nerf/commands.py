@@ -136,6 +136,10 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--sparse", type=arguments.VIEWS, default=None, metavar="N",
                         help="train on the dataset's fixed sparse list of N views (sparse_views.json: 3, 6, 9, 12 "
                              "or 24, by farthest-point sampling on the camera centres)")
+    parser.add_argument("--sparse-priors", choices=("auto", "on", "off"), default="auto",
+                        help="priors on rays from unseen viewpoints (opacity entropy, distortion, total variation) "
+                             "for sparse captures; auto (default): on when a point of the scene is in fewer than "
+                             "12 train images (BENCHMARKS.md, \"Sparse captures\")")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 
@@ -155,6 +159,7 @@ def _run_train(args) -> int:
                          parametrisation=None if args.parametrisation == "auto" else args.parametrisation,
                          checkpoint_every=args.checkpoint_every, step_ratio=args.step_ratio,
                          batch_rays=args.batch_rays, sparse=args.sparse,
+                         sparse_priors={"auto": None, "on": True, "off": False}[args.sparse_priors],
                          pixel_filter=None if args.pixel_filter == "auto" else args.pixel_filter)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "

@@ -18,6 +18,7 @@ import numpy as np
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisation
+from nerfgauge.nerf.sparse_priors import sparse_priors_for
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
@@ -116,6 +117,10 @@ class TrainConfig:
     # edge pixels) or "centre". None: not chosen (any other filter renders by its own rule).
     # Left out of config.json when None; not part of the recipe (it follows from it).
     render_filter: Optional[str] = None
+    # priors on rays from unseen viewpoints (nerf.sparse_priors); None: on when the capture
+    # is sparse (`sparse_priors_for`). Left out of config.json when False, so runs made
+    # before the mode keep their recipe.
+    sparse_priors: Optional[bool] = None
 
     def validate(self) -> None:
         """One-line InputError for anything a run cannot use (the API path: the CLI's
@@ -141,6 +146,8 @@ class TrainConfig:
                              f"{', '.join(PARAMETRISATIONS)}")
         if not (self.view_dependent is None or isinstance(self.view_dependent, bool)):
             raise InputError(f"--view-dependent must be true, false or None (auto), got {self.view_dependent!r}")
+        if not (self.sparse_priors is None or isinstance(self.sparse_priors, bool)):
+            raise InputError(f"--sparse-priors must be true, false or None (auto), got {self.sparse_priors!r}")
         for name in ("prune", "occupancy"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name} must be true or false, got {getattr(self, name)!r}")
@@ -149,8 +156,8 @@ class TrainConfig:
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self)
-        for optional in ("sparse", "render_filter"):
-            if out[optional] is None:
+        for optional in ("sparse", "render_filter", "sparse_priors"):
+            if out[optional] is None or (optional == "sparse_priors" and out[optional] is False):
                 del out[optional]
         return out
 
@@ -158,7 +165,8 @@ class TrainConfig:
 # CLI flag of a config field, for messages that name what the user typed
 FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
          "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation",
-         "step_ratio": "--step-ratio", "batch_rays": "--batch-rays", "pixel_filter": "--pixel-filter"}
+         "step_ratio": "--step-ratio", "batch_rays": "--batch-rays", "pixel_filter": "--pixel-filter",
+         "sparse_priors": "--sparse-priors"}
 
 
 SAMPLES_PER_RAY = arguments.bounded(int, 1, 4096)  # the vanilla NeRF's coarse and fine samples
@@ -203,12 +211,14 @@ def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquis
 
 def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_c2w: np.ndarray,
             focal: float, width: Optional[int] = None, opaque: Optional[float] = None,
-            edge_share: Optional[float] = None) -> tuple[TrainConfig, dict]:
+            edge_share: Optional[float] = None, views_per_point: Optional[float] = None) -> tuple[TrainConfig, dict]:
     """Fill the automatic choices. Returns the resolved config and {choice: reason}.
     width: the training images' width in pixels (the unbounded grids' resolution follows it).
     opaque: the share of training pixels with alpha 1 (whether the capture is closed; see
     choose_parametrisation), None when unknown. edge_share: the share of training pixels
-    that are edge pixels (`pixel_filter_for`), None when unknown."""
+    that are edge pixels (`pixel_filter_for`), None when unknown. views_per_point: the
+    median number of train images holding a point of the box (nerf.sparse_priors), None
+    when unknown."""
     reasons = {}
     updates = {}
     kind, reasons["parametrisation"] = choose_parametrisation(config.parametrisation, aabb, train_c2w, opaque)
@@ -236,6 +246,8 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
     else:
         reasons["final_resolution"] = "set on the command line"
     updates["pixel_filter"], reasons["pixel_filter"] = pixel_filter_for(config, edge_share, kind)
+    if config.model == "compact":
+        updates["sparse_priors"], reasons["sparse_priors"] = sparse_priors_for(config.sparse_priors, views_per_point)
     per_pixel = TRAIN_PIXEL_SAMPLES[updates["pixel_filter"]]
     for name, (by_kind, reason) in BY_PARAMETRISATION.items():
         if getattr(config, name) is None:

@@ -35,6 +35,7 @@ from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, render_rays_chunked
+from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
 from tqdm import tqdm
 
 from nerfgauge.core import bounded
@@ -224,8 +225,9 @@ def prepare_run(config: TrainConfig):
     _, train_rays = load_split_rays(root, "train", views=sparse, footprint=config.pixel_filter != "centre",
                                     edges=may_be_edges)
     edge_share = float(train_rays.edges.float().mean()) if may_be_edges and len(train_rays.edges) else None
+    coverage = views_per_point(aabb, train_cams.c2w, train_cams.intrinsics) if config.sparse_priors is None else None
     config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
-                              train_cams.intrinsics.width, opaque_share(train_rays), edge_share)
+                              train_cams.intrinsics.width, opaque_share(train_rays), edge_share, coverage)
     train_rays = dataclasses.replace(train_rays, footprint=None if config.pixel_filter == "centre" else train_rays.footprint,
                                      edges=train_rays.edges if config.pixel_filter == "edges" else None)
     recipe = run_recipe(config, manifest_sha256(root))
@@ -368,6 +370,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
                                   "recipe": recipe})
     log = (run_dir / LOG).open("a")
+    # the scale of the unseen viewpoints' offsets, when the sparse-capture priors are on
+    priors = origin_spread(train_rays.origins) if config.sparse_priors else None
     n_rays = config.batch_rays if config.model == "compact" else config.vanilla_batch_rays
     total = config.steps if config.steps is not None else config.budget_seconds
     # A time budget advances the bar in training seconds; steps/s and PSNR ride in the postfix.
@@ -427,7 +431,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                 else:
                     state.stage += 1
                     state.stage_steps, state.stage_seconds = 0, 0.0
-            loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done)
+            loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
             if not (math.isfinite(loss) and gradients_finite):
                 raise NumericalError(
                     f"training diverged at step {state.step}: loss {loss}, gradients "
@@ -493,10 +497,12 @@ def _grow_grid(training: Training, config: TrainConfig) -> None:
 
 
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,
-                fraction_done: float) -> tuple[float, bool]:
+                fraction_done: float, priors: float | None = None) -> tuple[float, bool]:
     """One optimiser step on `n_rays` random training rays. fraction_done: of the steps or
-    the budget, in [0, 1), which the learning rate decays with. Returns (loss, whether every
-    gradient was finite); a step with a non-finite gradient leaves the parameters alone."""
+    the budget, in [0, 1), which the learning rate decays with. priors: the spread of the
+    train cameras when the sparse-capture priors are on (nerf.sparse_priors), else None.
+    Returns (loss, whether every gradient was finite); a step with a non-finite gradient
+    leaves the parameters alone."""
     model, generator, state = training.model, training.generator, training.loop
     if model.has_grid:
         _grow_grid(training, config)
@@ -544,6 +550,9 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
     loss = loss + model.regularisation(config.tv_weight)
     if out.distortion is not None and config.distortion_weight > 0:
         loss = loss + config.distortion_weight * out.distortion.mean()
+    if priors is not None:
+        unseen_origins, unseen_directions = unseen_rays(rays.origins, rays.directions, priors, PRIOR_RAYS, generator)
+        loss = loss + prior_loss(model, unseen_origins.to(device), unseen_directions.to(device), generator)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     # One reduction per parameter: NaN or inf anywhere makes the total non-finite. Checked

@@ -1,0 +1,102 @@
+"""Sparse captures: how many train views see each part of the scene, and the priors that
+carve the space few of them constrain.
+
+A grid fitted to few views explains each view with density anywhere along its rays, so
+between the views the geometry stays wrong (bench hard's inside, 40 views from the middle
+of a room: 30.1 dB on its train views, 20.5 on held-out ones; BENCHMARKS.md). The priors
+below act on rays no train view cast, from viewpoints near the train cameras (InfoNeRF,
+Kim et al. 2022; RegNeRF, Niemeyer et al. 2022): they ask each such ray to be either empty
+or opaque (the binary entropy of its opacity) and to end in one compact interval (the
+distortion loss), plus total variation on the grid's density, so floaters that only the
+train views' own rays pass over cost something.
+
+Whether a capture is sparse is read from its cameras alone (a real capture has no depth):
+`views_per_point` is the median number of train cameras whose image holds a point drawn
+uniformly in the scene's box, over the points at least one of them holds. Occlusion is not
+known, so this counts what a view could see, an upper bound on what it saw.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import torch
+
+from nerfgauge.core.camera import project
+
+# The capture is sparse when a point of the box is in the images of fewer train views than
+# this (the median over points some view holds). Measured (BENCHMARKS.md, "Sparse
+# captures"): object-centred captures hold every point in all of their views;
+# inside, 40 views from the middle of a room, ...
+SPARSE_VIEWS_PER_POINT = 12
+VIEWS_PER_POINT_SAMPLES = 4096  # points drawn in the box (seeded: the choice is reproducible)
+PRIOR_RAYS = 1024  # rays from unseen viewpoints a step
+PRIOR_ENTROPY = 0.01  # weight of the opacity's binary entropy on them
+PRIOR_DISTORTION = 0.01  # weight of the distortion loss on them
+PRIOR_TV = 1e-3  # weight of the grid density's total variation
+OPACITY_EPS = 1e-4  # keeps the entropy's logarithms finite at opacity 0 and 1
+
+
+def views_per_point(aabb: np.ndarray, c2w: np.ndarray, intrinsics, seed: int = 0) -> float:
+    """The median, over points drawn uniformly in `aabb` [2, 3] that at least one camera
+    holds in its image, of how many of the cameras c2w [n, 4, 4] (OpenGL axes) hold them.
+    0.0 when no camera holds any point."""
+    points = np.random.default_rng(seed).uniform(aabb[0], aabb[1], size=(VIEWS_PER_POINT_SAMPLES, 3))
+    counts = np.zeros(len(points), dtype=np.int64)
+    for camera in c2w:
+        u, v, _ = project(points, camera, intrinsics)
+        with np.errstate(invalid="ignore"):
+            counts += (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+    seen = counts[counts > 0]
+    return float(np.median(seen)) if len(seen) else 0.0
+
+
+def sparse_priors_for(setting: Optional[bool], views: Optional[float]) -> tuple[bool, str]:
+    """Whether a run trains with the sparse-capture priors, and why: as set; else on when
+    a point of the box is in fewer than SPARSE_VIEWS_PER_POINT train images (`views`, the
+    median of `views_per_point`); off when that is unknown."""
+    if setting is not None:
+        return setting, "set on the command line"
+    if views is None:
+        return False, "off: the train views' coverage is not known"
+    if views < SPARSE_VIEWS_PER_POINT:
+        return True, (f"a point of the box is in {views:g} train images (median; < {SPARSE_VIEWS_PER_POINT}): "
+                      "a sparse capture, priors on rays from unseen viewpoints")
+    return False, f"a point of the box is in {views:g} train images (median; >= {SPARSE_VIEWS_PER_POINT}): off"
+
+
+def origin_spread(origins: torch.Tensor) -> float:
+    """The RMS distance of the train rays' origins [N, 3] from their mean, per axis: the
+    camera centres' spread, each weighted by its pixels (the unseen viewpoints' offsets)."""
+    centred = origins.double() - origins.double().mean(dim=0)
+    return float(torch.sqrt((centred ** 2).sum(dim=1).mean() / 3))
+
+
+def unseen_rays(origins: torch.Tensor, directions: torch.Tensor, spread: float, n: int,
+                generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """`n` rays from viewpoints no train camera stands at: a random train ray's direction
+    from its camera centre moved by a normal draw of standard deviation `spread` per axis.
+    origins, directions: the train rays [N, 3]. Returns (origins, directions) [n, 3]."""
+    index = torch.randint(origins.shape[0], (n,), generator=generator)
+    offsets = torch.randn((n, 3), generator=generator) * spread
+    return origins[index] + offsets, directions[index]
+
+
+def opacity_entropy(opacity: torch.Tensor) -> torch.Tensor:
+    """Binary entropy (nats) of each ray's opacity [n] -> [n]: 0 for an empty or an opaque
+    ray, log 2 at opacity 1/2."""
+    o = opacity.clamp(OPACITY_EPS, 1 - OPACITY_EPS)
+    return -(o * torch.log(o) + (1 - o) * torch.log(1 - o))
+
+
+def prior_loss(model, origins: torch.Tensor, directions: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """The priors on rays [n, 3] from unseen viewpoints: PRIOR_ENTROPY x mean binary
+    entropy of their opacity + PRIOR_DISTORTION x their mean distortion, and PRIOR_TV x
+    the grid's density total variation. A scalar."""
+    out = model.render(origins, directions, generator=generator, training=True)
+    loss = PRIOR_ENTROPY * opacity_entropy(out.opacity).mean() + model.regularisation(PRIOR_TV)
+    if out.distortion is not None:
+        loss = loss + PRIOR_DISTORTION * out.distortion.mean()
+    return loss
+
