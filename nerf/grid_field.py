@@ -407,14 +407,16 @@ class VoxelGridField(nn.Module):
             occupied = any_within(occupied, dilate, dilate)
         return occupied
 
-    def total_variation(self) -> torch.Tensor:
-        """Mean squared difference of neighbouring allocated raw densities (smoothness prior)."""
-        raw = self.density_table[:, 0]
-        total = raw.new_zeros(())
+    def total_variation(self, of: str = "density") -> torch.Tensor:
+        """Smoothness prior: along each axis the mean squared difference between
+        neighbouring allocated nodes' raw densities (`of` "density") or colour features
+        ("features": the mean over the pairs and the channels), summed over the axes."""
+        table = {"density": self.density_table, "features": self.features}[of]
+        total = table.new_zeros(())
         for dim in range(3):
             a = self.index.narrow(dim, 1, self.index.shape[dim] - 1)
             b = self.index.narrow(dim, 0, self.index.shape[dim] - 1)
             both = (a > 0) & (b > 0)
             if bool(both.any()):
-                total = total + ((raw[a[both].long()] - raw[b[both].long()]) ** 2).mean()
+                total = total + ((table[a[both].long()] - table[b[both].long()]) ** 2).mean()
         return total

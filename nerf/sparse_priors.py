@@ -34,7 +34,8 @@ VIEWS_PER_POINT_SAMPLES = 4096  # points drawn in the box (seeded: the choice is
 PRIOR_RAYS = 1024  # rays from unseen viewpoints a step
 PRIOR_ENTROPY = 0.01  # weight of the opacity's binary entropy on them
 PRIOR_DISTORTION = 0.01  # weight of the distortion loss on them
-PRIOR_TV = 1e-3  # weight of the grid density's total variation
+PRIOR_TV = 1e-3  # weight of the grid density's total variation ...
+PRIOR_COLOUR_TV = 3e-3  # ... and of its colour features
 OPACITY_EPS = 1e-4  # keeps the entropy's logarithms finite at opacity 0 and 1
 
 
@@ -91,11 +92,13 @@ def opacity_entropy(opacity: torch.Tensor) -> torch.Tensor:
 
 
 def prior_loss(model, origins: torch.Tensor, directions: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """The priors on rays [n, 3] from unseen viewpoints: PRIOR_ENTROPY x mean binary
-    entropy of their opacity + PRIOR_DISTORTION x their mean distortion, and PRIOR_TV x
-    the grid's density total variation. A scalar."""
+    """The priors of a compact model (nerf.models.CompactNeRF) on rays [n, 3] from unseen
+    viewpoints: PRIOR_ENTROPY x the mean binary entropy of their opacity + PRIOR_DISTORTION
+    x their mean distortion, and the grid's total variation, PRIOR_TV x its density's +
+    PRIOR_COLOUR_TV x its colour features'. A scalar."""
     out = model.render(origins, directions, generator=generator, training=True)
-    loss = PRIOR_ENTROPY * opacity_entropy(out.opacity).mean() + model.regularisation(PRIOR_TV)
+    loss = (PRIOR_ENTROPY * opacity_entropy(out.opacity).mean() + PRIOR_TV * model.field.total_variation("density")
+            + PRIOR_COLOUR_TV * model.field.total_variation("features"))
     if out.distortion is not None:
         loss = loss + PRIOR_DISTORTION * out.distortion.mean()
     return loss

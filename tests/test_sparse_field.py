@@ -309,13 +309,15 @@ def sparse_random_field(seed: int) -> tuple[VoxelGridField, torch.Tensor]:
 
 def exact_total_variation(raw: torch.Tensor, keep: torch.Tensor) -> float:
     """Sum over the axes of the mean squared difference of neighbouring kept nodes'
-    raw densities [nz, ny, nx], by plain slicing of the dense grid."""
+    values raw [C, nz, ny, nx] (over the pairs and the channels), by plain slicing of the
+    dense grid; raw [nz, ny, nx] is one channel."""
+    raw = raw[None] if raw.dim() == 3 else raw
     total = 0.0
     for dim in range(3):
-        n = raw.shape[dim]
+        n = raw.shape[dim + 1]
         both = keep.narrow(dim, 1, n - 1) & keep.narrow(dim, 0, n - 1)
-        difference = raw.narrow(dim, 1, n - 1) - raw.narrow(dim, 0, n - 1)
-        total += float((difference[both] ** 2).mean())
+        difference = raw.narrow(dim + 1, 1, n - 1) - raw.narrow(dim + 1, 0, n - 1)
+        total += float((difference[:, both] ** 2).mean())
     return total
 
 
@@ -330,3 +332,18 @@ def test_total_variation_is_the_mean_over_allocated_neighbour_pairs(seed):
     assert float(total.detach()) == pytest.approx(exact, rel=1e-5)
     total.backward()
     assert field.density_table.grad[0] == 0 and int((field.density_table.grad != 0).sum()) > 100
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_total_variation_of_the_colour_features_is_the_mean_over_pairs_and_channels(seed):
+    """The sparse-capture priors' colour smoothness (nerf.sparse_priors): the same rule on
+    the feature channels; its gradient reaches the features only, never row 0."""
+    field, keep = sparse_random_field(seed)
+    with torch.no_grad():
+        field.features.normal_(generator=torch.Generator().manual_seed(seed))
+    exact = exact_total_variation(field.to_dense()[1:], keep)
+    total = field.total_variation("features")
+    assert float(total.detach()) == pytest.approx(exact, rel=1e-5)
+    total.backward()
+    assert field.density_table.grad is None and bool((field.features.grad[0] == 0).all())
+    assert int((field.features.grad != 0).sum()) > 100

@@ -12,8 +12,9 @@ import torch
 
 from nerfgauge.core.camera import Intrinsics, look_at
 from nerfgauge.nerf.config import TrainConfig, resolve
-from nerfgauge.nerf.sparse_priors import (SPARSE_VIEWS_PER_POINT, opacity_entropy, origin_spread, prior_loss,
-                                          sparse_priors_for, unseen_rays, views_per_point)
+from nerfgauge.nerf.sparse_priors import (PRIOR_COLOUR_TV, PRIOR_ENTROPY, PRIOR_TV, SPARSE_VIEWS_PER_POINT,
+                                          opacity_entropy, origin_spread, prior_loss, sparse_priors_for, unseen_rays,
+                                          views_per_point)
 
 
 def _in_frustum_by_angles(point, c2w, intrinsics) -> bool:
@@ -113,19 +114,19 @@ def test_unseen_rays_move_the_train_cameras_by_their_spread():
 
 class _SlabModel(torch.nn.Module):
     """A stand-in with the compact model's render interface: every ray's opacity is the
-    sigmoid of one parameter (a half-transparent haze when it is 0)."""
+    sigmoid of one parameter (a half-transparent haze when it is 0), and a field whose
+    total variation is 1 for density and 2 for colour."""
 
     def __init__(self):
         super().__init__()
         self.logit = torch.nn.Parameter(torch.tensor(0.3))
+        self.field = type("Field", (), {"total_variation": staticmethod(
+            lambda of: torch.tensor({"density": 1.0, "features": 2.0}[of]))})()
 
     def render(self, origins, directions, generator=None, training=False):
         n = origins.shape[0]
         opacity = torch.sigmoid(self.logit).expand(n)
         return type("Out", (), {"opacity": opacity, "distortion": torch.zeros(n)})()
-
-    def regularisation(self, tv_weight):
-        return torch.zeros(())
 
 
 def test_the_priors_push_a_haze_towards_empty_or_opaque():
@@ -135,7 +136,7 @@ def test_the_priors_push_a_haze_towards_empty_or_opaque():
     loss.backward()
     # d/dl of H(sigmoid(l)) = -l sigmoid'(l): pushes a positive logit up (towards opaque)
     assert float(model.logit.grad) < 0
-    expected = 0.01 * float(opacity_entropy(torch.sigmoid(torch.tensor([0.3]))))
+    expected = PRIOR_ENTROPY * float(opacity_entropy(torch.sigmoid(torch.tensor([0.3])))) + PRIOR_TV + 2 * PRIOR_COLOUR_TV
     assert abs(float(loss) - expected) < 1e-7
 
 
