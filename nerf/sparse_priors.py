@@ -39,11 +39,17 @@ PRIOR_COLOUR_TV = 3e-3  # ... and of its colour features
 OPACITY_EPS = 1e-4  # keeps the entropy's logarithms finite at opacity 0 and 1
 
 
-def views_per_point(aabb: np.ndarray, c2w: np.ndarray, intrinsics, seed: int = 0) -> float:
+def views_per_point(aabb: np.ndarray, c2w: np.ndarray, intrinsics, seed: int = 0) -> Optional[float]:
     """The median, over points drawn uniformly in `aabb` [2, 3] that at least one camera
     holds in its image, of how many of the cameras c2w [n, 4, 4] (OpenGL axes) hold them.
-    0.0 when no camera holds any point."""
-    points = np.random.default_rng(seed).uniform(aabb[0], aabb[1], size=(VIEWS_PER_POINT_SAMPLES, 3))
+    0.0 when no camera holds any point; None when the box's extent is not finite (a
+    scene.json out of range: the run's own checks name it)."""
+    aabb = np.asarray(aabb, np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        extent = aabb[1] - aabb[0]
+    if not np.all(np.isfinite(extent)):
+        return None
+    points = aabb[0] + np.random.default_rng(seed).random((VIEWS_PER_POINT_SAMPLES, 3)) * extent
     counts = np.zeros(len(points), dtype=np.int64)
     for camera in c2w:
         u, v, _ = project(points, camera, intrinsics)

@@ -36,7 +36,7 @@ def test_views_per_point_counts_the_cameras_whose_image_holds_each_point(seed):
     cameras = np.stack([look_at(rng.normal(size=3) * 3, rng.normal(size=3)) for _ in range(9)])
     got = views_per_point(aabb, cameras, intrinsics, seed=5)
     # the same points (the function's draw), counted by angles
-    points = np.random.default_rng(5).uniform(aabb[0], aabb[1], size=(4096, 3))
+    points = aabb[0] + np.random.default_rng(5).random((4096, 3)) * (aabb[1] - aabb[0])
     counts = np.array([sum(_in_frustum_by_angles(p, c, intrinsics) for c in cameras) for p in points])
     assert got == float(np.median(counts[counts > 0]))
     assert 0 < got <= len(cameras)
@@ -54,6 +54,7 @@ def test_cameras_around_an_object_hold_all_of_it_and_cameras_looking_out_share_l
     outward = np.stack([look_at(0.1 * p, 2 * p) for p in ring])
     assert 1 <= views_per_point(room, outward, intrinsics) <= 4
     assert views_per_point(room, outward[:0], intrinsics) == 0.0
+    assert views_per_point(np.array([[-1e308] * 3, [1e308] * 3]), outward, intrinsics) is None  # extent overflows
 
 
 def test_the_priors_turn_on_below_the_coverage_bar_and_say_why():
