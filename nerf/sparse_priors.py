@@ -59,18 +59,24 @@ def views_per_point(aabb: np.ndarray, c2w: np.ndarray, intrinsics, seed: int = 0
     return float(np.median(seen)) if len(seen) else 0.0
 
 
-def sparse_priors_for(setting: Optional[bool], views: Optional[float]) -> tuple[bool, str]:
-    """Whether a run trains with the sparse-capture priors, and why: as set; else on when
-    a point of the box is in fewer than SPARSE_VIEWS_PER_POINT train images (`views`, the
-    median of `views_per_point`); off when that is unknown."""
+def sparse_priors_for(setting: Optional[bool], views: Optional[float], kind: Optional[str] = None) -> tuple[bool, str]:
+    """Whether a run trains with the sparse-capture priors, and why: as set; else on in
+    bounded space (`kind`) when a point of the box is in fewer than SPARSE_VIEWS_PER_POINT
+    train images (`views`, the median of `views_per_point`); off when either is unknown.
+    In contracted space they lost 3.4 dB on far-reaching (40 views, 4 images a point:
+    20.56 against 23.95 dB), whose rays all end on far content the entropy and the total
+    variation cannot tell from haze; forward captures hold every point in every view."""
     if setting is not None:
         return setting, "set on the command line"
-    if views is None:
+    if views is None or kind is None:
         return False, "off: the train views' coverage is not known"
-    if views < SPARSE_VIEWS_PER_POINT:
-        return True, (f"a point of the box is in {views:g} train images (median; < {SPARSE_VIEWS_PER_POINT}): "
-                      "a sparse capture, priors on rays from unseen viewpoints")
-    return False, f"a point of the box is in {views:g} train images (median; >= {SPARSE_VIEWS_PER_POINT}): off"
+    coverage = f"a point of the box is in {views:g} train images (median)"
+    if views >= SPARSE_VIEWS_PER_POINT:
+        return False, f"{coverage}, >= {SPARSE_VIEWS_PER_POINT}: off"
+    if kind != "bounded":
+        return False, f"{coverage}, < {SPARSE_VIEWS_PER_POINT}, but in {kind} space the priors lost wherever measured: off"
+    return True, (f"{coverage}, < {SPARSE_VIEWS_PER_POINT}: a sparse capture, priors on rays from unseen "
+                  "viewpoints")
 
 
 def origin_spread(origins: torch.Tensor) -> float:

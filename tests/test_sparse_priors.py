@@ -57,14 +57,18 @@ def test_cameras_around_an_object_hold_all_of_it_and_cameras_looking_out_share_l
     assert views_per_point(np.array([[-1e308] * 3, [1e308] * 3]), outward, intrinsics) is None  # extent overflows
 
 
-def test_the_priors_turn_on_below_the_coverage_bar_and_say_why():
-    on, reason = sparse_priors_for(None, SPARSE_VIEWS_PER_POINT - 1)
+def test_the_priors_turn_on_below_the_coverage_bar_in_bounded_space_and_say_why():
+    on, reason = sparse_priors_for(None, SPARSE_VIEWS_PER_POINT - 1, "bounded")
     assert on and f"{SPARSE_VIEWS_PER_POINT - 1:g} train images" in reason
-    off, reason = sparse_priors_for(None, SPARSE_VIEWS_PER_POINT)
+    off, reason = sparse_priors_for(None, SPARSE_VIEWS_PER_POINT, "bounded")
     assert not off and ">=" in reason
-    assert sparse_priors_for(None, None)[0] is False
-    assert sparse_priors_for(True, 100.0) == (True, "set on the command line")
-    assert sparse_priors_for(False, 1.0) == (False, "set on the command line")
+    for kind in ("contracted", "forward"):
+        off, reason = sparse_priors_for(None, 1.0, kind)
+        assert not off and f"{kind} space" in reason
+    assert sparse_priors_for(None, None, "bounded")[0] is False
+    assert sparse_priors_for(None, 1.0, None)[0] is False
+    assert sparse_priors_for(True, 100.0, "contracted") == (True, "set on the command line")
+    assert sparse_priors_for(False, 1.0, "bounded") == (False, "set on the command line")
 
 
 def test_resolve_states_the_choice_and_config_json_keeps_older_recipes():
