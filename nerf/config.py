@@ -18,7 +18,7 @@ import numpy as np
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisation
-from nerfgauge.nerf.sparse_priors import sparse_priors_for
+from nerfgauge.nerf.sparse_priors import cameras_inside, sparse_priors_for
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
@@ -247,7 +247,8 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         reasons["final_resolution"] = "set on the command line"
     updates["pixel_filter"], reasons["pixel_filter"] = pixel_filter_for(config, edge_share, kind)
     if config.model == "compact":
-        updates["sparse_priors"], reasons["sparse_priors"] = sparse_priors_for(config.sparse_priors, views_per_point, kind)
+        updates["sparse_priors"], reasons["sparse_priors"] = sparse_priors_for(
+            config.sparse_priors, views_per_point, kind, cameras_inside(aabb, train_c2w))
     per_pixel = TRAIN_PIXEL_SAMPLES[updates["pixel_filter"]]
     for name, (by_kind, reason) in BY_PARAMETRISATION.items():
         if getattr(config, name) is None:

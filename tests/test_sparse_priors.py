@@ -13,7 +13,7 @@ import torch
 from nerfgauge.core.camera import Intrinsics, look_at
 from nerfgauge.nerf.config import TrainConfig, resolve
 from nerfgauge.nerf.sparse_priors import (PRIOR_COLOUR_TV, PRIOR_ENTROPY, PRIOR_TV, SPARSE_VIEWS_PER_POINT,
-                                          opacity_entropy, origin_spread, prior_loss, sparse_priors_for, unseen_rays,
+                                          cameras_inside, opacity_entropy, origin_spread, prior_loss, sparse_priors_for, unseen_rays,
                                           views_per_point)
 
 
@@ -57,30 +57,49 @@ def test_cameras_around_an_object_hold_all_of_it_and_cameras_looking_out_share_l
     assert views_per_point(np.array([[-1e308] * 3, [1e308] * 3]), outward, intrinsics) is None  # extent overflows
 
 
-def test_the_priors_turn_on_below_the_coverage_bar_in_bounded_space_and_say_why():
-    on, reason = sparse_priors_for(None, SPARSE_VIEWS_PER_POINT - 1, "bounded")
-    assert on and f"{SPARSE_VIEWS_PER_POINT - 1:g} train images" in reason
-    off, reason = sparse_priors_for(None, SPARSE_VIEWS_PER_POINT, "bounded")
+def test_the_priors_turn_on_for_a_sparse_capture_from_inside_in_bounded_space_and_say_why():
+    bar = SPARSE_VIEWS_PER_POINT
+    on, reason = sparse_priors_for(None, bar - 1, "bounded", 1.0)
+    assert on and f"{bar - 1:g} train images" in reason and "100% of the cameras" in reason
+    off, reason = sparse_priors_for(None, bar, "bounded", 1.0)
     assert not off and ">=" in reason
     for kind in ("contracted", "forward"):
-        off, reason = sparse_priors_for(None, 1.0, kind)
+        off, reason = sparse_priors_for(None, 1.0, kind, 1.0)
         assert not off and f"{kind} space" in reason
-    assert sparse_priors_for(None, None, "bounded")[0] is False
-    assert sparse_priors_for(None, 1.0, None)[0] is False
-    assert sparse_priors_for(True, 100.0, "contracted") == (True, "set on the command line")
-    assert sparse_priors_for(False, 1.0, "bounded") == (False, "set on the command line")
+    off, reason = sparse_priors_for(None, 1.0, "bounded", 0.4)  # around an object
+    assert not off and "40% stand in the box" in reason
+    assert sparse_priors_for(None, 1.0, "bounded", 0.5)[0] is True
+    for unknown in ((None, "bounded", 1.0), (1.0, None, 1.0), (1.0, "bounded", None)):
+        assert sparse_priors_for(None, *unknown)[0] is False
+    assert sparse_priors_for(True, 100.0, "contracted", 0.0) == (True, "set on the command line")
+    assert sparse_priors_for(False, 1.0, "bounded", 1.0) == (False, "set on the command line")
+
+
+def test_cameras_inside_is_the_share_of_centres_in_the_box():
+    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    c2w = np.stack([look_at(eye, (0, 0, 5)) for eye in ((0.0, 0.0, 0.0), (0.9, -0.9, 0.5), (1.5, 0.0, 0.0),
+                                                       (0.0, 0.0, -3.0))])
+    assert cameras_inside(aabb, c2w) == 0.5
+    assert cameras_inside(aabb, c2w[:0]) == 0.0
 
 
 def test_resolve_states_the_choice_and_config_json_keeps_older_recipes():
-    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-    c2w = np.stack([look_at((4.0, 0.0, 1.0), (0, 0, 0)), look_at((0.0, 4.0, 1.0), (0, 0, 0))])
+    aabb = np.array([[-2.0, -2.0, -1.0], [2.0, 2.0, 1.0]])
+    # a ring of cameras in the middle of a room, looking outwards
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1)
+    c2w = np.stack([look_at(0.3 * p, 2 * p) for p in ring])
     config = TrainConfig(dataset="d", steps=10)
     sparse, reasons = resolve(config, None, aabb, c2w, 50.0, 64, views_per_point=3.0)
+    assert sparse.parametrisation == "bounded"
     assert sparse.sparse_priors is True and "3 train images" in reasons["sparse_priors"]
     dense, _ = resolve(config, None, aabb, c2w, 50.0, 64, views_per_point=40.0)
     assert dense.sparse_priors is False
     assert dense.to_json().get("sparse_priors", "absent") == "absent"  # a run made before the mode has no key
     assert sparse.to_json()["sparse_priors"] is True
+    around = np.stack([look_at(4 * p + (0, 0, 1), (0, 0, 0)) for p in ring])
+    outside, reasons = resolve(config, None, aabb, around, 50.0, 64, views_per_point=3.0)
+    assert outside.sparse_priors is False and "from outside" in reasons["sparse_priors"]
     vanilla, reasons = resolve(TrainConfig(dataset="d", steps=10, model="vanilla"), None, aabb, c2w, 50.0, 64,
                                views_per_point=3.0)
     assert vanilla.sparse_priors is None and "sparse_priors" not in reasons  # the compact model's mode
