@@ -13,8 +13,8 @@ import torch
 from nerfgauge.core.camera import Intrinsics, look_at
 from nerfgauge.nerf.config import TrainConfig, resolve
 from nerfgauge.nerf.sparse_priors import (PRIOR_COLOUR_TV, PRIOR_ENTROPY, PRIOR_TV, SPARSE_VIEWS_PER_POINT,
-                                          cameras_inside, opacity_entropy, origin_spread, prior_loss, sparse_priors_for, unseen_rays,
-                                          views_per_point)
+                                          cameras_inside, opacity_entropy, origin_spread, prior_loss,
+                                          sparse_priors_for, unseen_rays, views_per_point)
 
 
 def _in_frustum_by_angles(point, c2w, intrinsics) -> bool:
