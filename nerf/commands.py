@@ -139,7 +139,7 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--sparse-priors", choices=("auto", "on", "off"), default="auto",
                         help="priors on rays from unseen viewpoints (opacity entropy, distortion, total variation) "
                              "for sparse captures; auto (default): on for a capture from inside the scene whose points "
-                             "are each in fewer than 12 train images (BENCHMARKS.md, \"Sparse captures\")")
+                             "are each in fewer than 9 train images (BENCHMARKS.md, \"Sparse captures\")")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 
