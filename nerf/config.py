@@ -117,9 +117,9 @@ class TrainConfig:
     # edge pixels) or "centre". None: not chosen (any other filter renders by its own rule).
     # Left out of config.json when None; not part of the recipe (it follows from it).
     render_filter: Optional[str] = None
-    # priors on rays from unseen viewpoints (nerf.sparse_priors); None: on when the capture
-    # is sparse (`sparse_priors_for`). Left out of config.json when False, so runs made
-    # before the mode keep their recipe.
+    # priors on rays from unseen viewpoints (nerf.sparse_priors; the compact model's): None:
+    # on for a sparse capture from inside the scene (`sparse_priors_for`). Left out of
+    # config.json when False, so runs made before the mode keep their recipe.
     sparse_priors: Optional[bool] = None
 
     def validate(self) -> None:
@@ -148,6 +148,8 @@ class TrainConfig:
             raise InputError(f"--view-dependent must be true, false or None (auto), got {self.view_dependent!r}")
         if not (self.sparse_priors is None or isinstance(self.sparse_priors, bool)):
             raise InputError(f"--sparse-priors must be true, false or None (auto), got {self.sparse_priors!r}")
+        if self.sparse_priors and self.model != "compact":
+            raise InputError("--sparse-priors on needs the compact model (they act on its voxel grid)")
         for name in ("prune", "occupancy"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name} must be true or false, got {getattr(self, name)!r}")

@@ -7,8 +7,8 @@ of a room: 30.1 dB on its train views, 20.5 on held-out ones; BENCHMARKS.md). Th
 below act on rays no train view cast, from viewpoints near the train cameras (InfoNeRF,
 Kim et al. 2022; RegNeRF, Niemeyer et al. 2022): they ask each such ray to be either empty
 or opaque (the binary entropy of its opacity) and to end in one compact interval (the
-distortion loss), plus total variation on the grid's density, so floaters that only the
-train views' own rays pass over cost something.
+distortion loss), plus total variation on the grid's density and colour features, so
+floaters that only the train views' own rays pass over cost something.
 
 Whether a capture is sparse is read from its cameras alone (a real capture has no depth):
 `views_per_point` is the median number of train cameras whose image holds a point drawn

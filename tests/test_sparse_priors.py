@@ -105,6 +105,14 @@ def test_resolve_states_the_choice_and_config_json_keeps_older_recipes():
     assert vanilla.sparse_priors is None and "sparse_priors" not in reasons  # the compact model's mode
 
 
+def test_the_priors_are_refused_for_the_vanilla_model():
+    from nerfgauge.core.errors import InputError
+
+    with pytest.raises(InputError, match="compact model"):
+        TrainConfig(dataset="d", steps=1, model="vanilla", sparse_priors=True).validate()
+    TrainConfig(dataset="d", steps=1, model="vanilla", sparse_priors=False).validate()
+
+
 def test_opacity_entropy_is_the_bernoulli_entropy():
     opacity = torch.tensor([0.0, 1e-3, 0.25, 0.5, 0.9, 1.0])
     expected = torch.distributions.Bernoulli(probs=opacity.clamp(1e-4, 1 - 1e-4)).entropy()
