@@ -250,7 +250,7 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
     updates["pixel_filter"], reasons["pixel_filter"] = pixel_filter_for(config, edge_share, kind)
     if config.model == "compact":
         updates["sparse_priors"], reasons["sparse_priors"] = sparse_priors_for(
-            config.sparse_priors, views_per_point, kind, cameras_inside(aabb, train_c2w))
+            config.sparse_priors, views_per_point, kind, cameras_inside(aabb, train_c2w), opaque)
     per_pixel = TRAIN_PIXEL_SAMPLES[updates["pixel_filter"]]
     for name, (by_kind, reason) in BY_PARAMETRISATION.items():
         if getattr(config, name) is None:

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from nerfgauge.core.camera import project
+from nerfgauge.nerf.parametrisation import CLOSED_SHARE
 
 # The capture is sparse when a point of the box is in the images of fewer train views than
 # this (the median over points some view holds). Object-centred captures hold every point
@@ -70,19 +71,23 @@ def cameras_inside(aabb: np.ndarray, c2w: np.ndarray) -> float:
 
 
 def sparse_priors_for(setting: Optional[bool], views: Optional[float], kind: Optional[str] = None,
-                      inside: Optional[float] = None) -> tuple[bool, str]:
-    """Whether a run trains with the sparse-capture priors, and why: as set; else on for a
-    capture from inside the scene (`inside`, the share of train cameras in the box, at
-    least 1/2) in bounded space (`kind`) when a point of the box is in fewer than
-    SPARSE_VIEWS_PER_POINT train images (`views`, the median of `views_per_point`); off
-    when any of them is unknown. Measured (BENCHMARKS.md, "Sparse captures"), 400 steps:
-    inside at 40 views (4 images a point) 23.28 dB against 20.58 without, at 80 (7) 22.53
-    against 21.07 (1200 steps: 22.17 against 21.59), at 120 (11) 27.59 against 27.53 but
-    29.29 against 30.92 at 1200 steps, hence the bar below 11. Elsewhere they lost: in contracted
-    space 3.4 dB on far-reaching (40 views, 4 a point), whose rays all end on far content
-    the entropy and the total variation cannot tell from haze; around an object, primitives'
-    sparse lists of 6 and 9 views (600 steps) lost 1.8 and 3.0 dB, the total variation
-    smoothing the object the few views do resolve."""
+                      inside: Optional[float] = None, opaque: Optional[float] = None) -> tuple[bool, str]:
+    """Whether a run trains with the sparse-capture priors, and why: as set; else on for an
+    open capture from inside the scene (`inside`, the share of train cameras in the box, at
+    least 1/2; `opaque`, the share of training pixels with alpha 1, below CLOSED_SHARE) in
+    bounded space (`kind`) when a point of the box is in fewer than SPARSE_VIEWS_PER_POINT
+    train images (`views`, the median of `views_per_point`); off when any of these is
+    unknown (`opaque` may be: a capture without alpha counts as open).
+
+    Measured (BENCHMARKS.md, "Sparse captures"), 400 steps: inside at 40 views (4 images a
+    point) 23.28 dB against 20.58 without, at 80 (7) 22.53 against 21.07 (1200 steps: 22.17
+    against 21.59), at 120 (11) 27.59 against 27.53 but 29.29 against 30.92 at 1200 steps,
+    hence the bar below 11. Elsewhere they lost: room (a closed room from inside, 40 views,
+    3 a point, a scene outside bench hard) 17.10 against 19.56; in contracted space 3.4 dB
+    on far-reaching (40 views, 4 a point); around an object, primitives' sparse lists of 6
+    and 9 views (600 steps) 1.8 and 3.0 dB. Where every ray ends on content (a closed room,
+    an unbounded world) the entropy and the total variation cannot tell it from haze, and
+    around an object the total variation smooths what the few views do resolve."""
     if setting is not None:
         return setting, "set on the command line"
     if views is None or kind is None or inside is None:
@@ -90,12 +95,16 @@ def sparse_priors_for(setting: Optional[bool], views: Optional[float], kind: Opt
     coverage = f"a point of the box is in {views:g} train images (median)"
     if views >= SPARSE_VIEWS_PER_POINT:
         return False, f"{coverage}, >= {SPARSE_VIEWS_PER_POINT}: off"
+    lost = f"{coverage}, < {SPARSE_VIEWS_PER_POINT}, but"
     if kind != "bounded":
-        return False, f"{coverage}, < {SPARSE_VIEWS_PER_POINT}, but in {kind} space the priors lost wherever measured: off"
+        return False, f"{lost} in {kind} space the priors lost wherever measured: off"
     if inside < 0.5:
-        return False, (f"{coverage}, < {SPARSE_VIEWS_PER_POINT}, but the cameras look at the scene from outside "
-                       f"({100 * inside:.0f}% stand in the box), where the priors lost wherever measured: off")
-    return True, (f"{coverage}, < {SPARSE_VIEWS_PER_POINT}, from inside the scene ({100 * inside:.0f}% of the "
+        return False, (f"{lost} the cameras look at the scene from outside ({100 * inside:.0f}% stand in the box), "
+                       "where the priors lost wherever measured: off")
+    if opaque is not None and opaque >= CLOSED_SHARE:
+        return False, (f"{lost} the capture is closed ({100 * opaque:.2f}% of training pixels opaque), where the "
+                       "priors lost wherever measured: off")
+    return True, (f"{coverage}, < {SPARSE_VIEWS_PER_POINT}, from inside an open scene ({100 * inside:.0f}% of the "
                   "cameras stand in the box): a sparse capture, priors on rays from unseen viewpoints")
 
 

@@ -57,10 +57,10 @@ def test_cameras_around_an_object_hold_all_of_it_and_cameras_looking_out_share_l
     assert views_per_point(np.array([[-1e308] * 3, [1e308] * 3]), outward, intrinsics) is None  # extent overflows
 
 
-def test_the_priors_turn_on_for_a_sparse_capture_from_inside_in_bounded_space_and_say_why():
+def test_the_priors_turn_on_for_a_sparse_open_capture_from_inside_in_bounded_space_and_say_why():
     bar = SPARSE_VIEWS_PER_POINT
     on, reason = sparse_priors_for(None, bar - 1, "bounded", 1.0)
-    assert on and f"{bar - 1:g} train images" in reason and "100% of the cameras" in reason
+    assert on and f"{bar - 1:g} train images" in reason and "open scene (100% of the cameras" in reason
     off, reason = sparse_priors_for(None, bar, "bounded", 1.0)
     assert not off and ">=" in reason
     for kind in ("contracted", "forward"):
@@ -69,6 +69,10 @@ def test_the_priors_turn_on_for_a_sparse_capture_from_inside_in_bounded_space_an
     off, reason = sparse_priors_for(None, 1.0, "bounded", 0.4)  # around an object
     assert not off and "40% stand in the box" in reason
     assert sparse_priors_for(None, 1.0, "bounded", 0.5)[0] is True
+    off, reason = sparse_priors_for(None, 1.0, "bounded", 1.0, opaque=1.0)  # a closed room
+    assert not off and "closed (100.00%" in reason
+    assert sparse_priors_for(None, 1.0, "bounded", 1.0, opaque=0.63)[0] is True  # open above
+    assert sparse_priors_for(None, 1.0, "bounded", 1.0, opaque=None)[0] is True  # no alpha: counted open
     for unknown in ((None, "bounded", 1.0), (1.0, None, 1.0), (1.0, "bounded", None)):
         assert sparse_priors_for(None, *unknown)[0] is False
     assert sparse_priors_for(True, 100.0, "contracted", 0.0) == (True, "set on the command line")
@@ -93,6 +97,8 @@ def test_resolve_states_the_choice_and_config_json_keeps_older_recipes():
     sparse, reasons = resolve(config, None, aabb, c2w, 50.0, 64, views_per_point=3.0)
     assert sparse.parametrisation == "bounded"
     assert sparse.sparse_priors is True and "3 train images" in reasons["sparse_priors"]
+    closed, reasons = resolve(config, None, aabb, c2w, 50.0, 64, opaque=1.0, views_per_point=3.0)
+    assert closed.sparse_priors is False and "closed" in reasons["sparse_priors"]
     dense, _ = resolve(config, None, aabb, c2w, 50.0, 64, views_per_point=40.0)
     assert dense.sparse_priors is False
     assert dense.to_json().get("sparse_priors", "absent") == "absent"  # a run made before the mode has no key
