@@ -138,7 +138,7 @@ def _add_train(subparsers) -> None:
                              "or 24, by farthest-point sampling on the camera centres)")
     parser.add_argument("--sparse-priors", choices=("auto", "on", "off"), default="auto",
                         help="priors on rays from unseen viewpoints (opacity entropy, distortion, total variation) "
-                             "for sparse captures; auto (default): on for a capture from inside the scene whose points "
+                             "for sparse captures; auto (default): on for an open capture from inside the scene whose points "
                              "are each in fewer than 9 train images (BENCHMARKS.md, \"Sparse captures\")")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
