@@ -186,6 +186,12 @@ class Space:
         return t
 
 
+def cameras_in_box(aabb: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Which cameras c2w [n, 4, 4] have their centre in `aabb` [2, 3] (faces included): [n] bool."""
+    positions = np.asarray(c2w)[:, :3, 3]
+    return ((positions >= aabb[0]) & (positions <= aabb[1])).all(axis=1)
+
+
 def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndarray,
                            opaque: float | None = None) -> tuple[str, str]:
     """(kind, reason) from what the capture is, unless `requested` names one.
@@ -212,7 +218,7 @@ def choose_parametrisation(requested: str | None, aabb: np.ndarray, c2w: np.ndar
             raise InputError(f"unknown parametrisation {requested!r}; choose one of {', '.join(PARAMETRISATIONS)}")
         return requested, "set on the command line"
     positions, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
-    inside = ((positions >= aabb[0]) & (positions <= aabb[1])).all(axis=1)
+    inside = cameras_in_box(aabb, c2w)
     if inside.any():
         centre, _ = contraction_frame(aabb, c2w)
         cams = 1.1 * float(np.linalg.norm(positions - centre, axis=1).max())

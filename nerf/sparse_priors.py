@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from nerfgauge.core.camera import project
-from nerfgauge.nerf.parametrisation import CLOSED_SHARE
+from nerfgauge.nerf.parametrisation import CLOSED_SHARE, cameras_in_box
 
 # The capture is sparse when a point of the box is in the images of fewer train views than
 # this (the median over points some view holds). Object-centred captures hold every point
@@ -64,10 +64,8 @@ def views_per_point(aabb: np.ndarray, c2w: np.ndarray, intrinsics, seed: int = 0
 def cameras_inside(aabb: np.ndarray, c2w: np.ndarray) -> float:
     """The share of the cameras c2w [n, 4, 4] whose centre lies in `aabb` [2, 3] (a
     capture from inside the scene: a room from its middle). 0.0 without cameras."""
-    positions = np.asarray(c2w, np.float64)[:, :3, 3]
-    if not len(positions):
-        return 0.0
-    return float(((positions >= aabb[0]) & (positions <= aabb[1])).all(axis=1).mean())
+    inside = cameras_in_box(aabb, c2w)
+    return float(inside.mean()) if len(inside) else 0.0
 
 
 def sparse_priors_for(setting: Optional[bool], views: Optional[float], kind: Optional[str] = None,
