@@ -48,7 +48,8 @@ class LoopState:
     last log entry; visibility_done: visibility measurements done (of train.VISIBILITY_AT);
     stage: coarse-to-fine growths done; stage_steps, stage_seconds: steps and seconds at
     this resolution; last_stage: the finest stage the run will take (a time budget stops
-    growing when a finer grid could not be trained)."""
+    growing when a finer grid could not be trained); colour_head: the residual colour head's
+    decision (config.colour_head_for), made when the ladder ends: 0 not yet, 1 added, -1 not."""
 
     step: int = 0
     seconds: float = 0.0
@@ -59,6 +60,7 @@ class LoopState:
     logged_step: int = -1
     stage_seconds: float = 0.0
     last_stage: int = 0
+    colour_head: int = 0
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -70,7 +72,7 @@ class LoopState:
 
 
 # counters added after checkpoint version 2 first shipped, and their value in older files
-LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3}
+LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3, "colour_head": -1}
 
 
 def save_atomic(obj, path) -> int:
@@ -219,6 +221,8 @@ def model_from_payload(payload: dict):
     model = build_model(config, aabb, payload["resolution"], space=space, allocate=False)
     field = model.field
     shape = payload["grid_shape"]
+    if not config.view_dependent and payload["head"]:  # a diffuse grid that took the residual colour head
+        field.add_residual_head(int(shape[0]) - 1)
     if list(shape) != [1 + field.channels, *field.shape]:
         raise ValueError(f"grid shape {tuple(shape)} does not match resolution {payload['resolution']}")
     mask = unpack_mask(payload["node_mask"], shape[1:])
@@ -313,6 +317,13 @@ def restore_model(payload: dict, config: TrainConfig, aabb: torch.Tensor, path, 
                          f"({(saved_space or {}).get('kind', 'bounded')}, this run: {config.parametrisation}); "
                          "refusing to resume it")
     model = build_model(config, aabb, resolution, space=space, allocate=False)
+    features = saved["state"].get("field.features")
+    if config.model == "compact" and not config.view_dependent and "field.head.0.weight" in saved["state"] \
+            and isinstance(features, torch.Tensor) and features.ndim == 2:
+        try:  # added when the grid reached its final size
+            model.field.add_residual_head(features.shape[1])
+        except ValueError as error:
+            raise InputError(f"{path} is a damaged nerfgauge checkpoint: {error}") from None
     rows = saved["state"].get("field.density_table")
     if config.model == "compact" and isinstance(rows, torch.Tensor) and rows.ndim == 2 and rows.shape[0] >= 1:
         model.field.reserve(rows.shape[0])  # the sparse grid's allocated rows, as saved

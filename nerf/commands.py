@@ -140,6 +140,11 @@ def _add_train(subparsers) -> None:
                         help="priors on rays from unseen viewpoints (opacity entropy, distortion, total variation) "
                              "for sparse captures; auto (default): on for an open capture from inside the scene whose points "
                              "are each in fewer than 9 train images (BENCHMARKS.md, \"Sparse captures\")")
+    parser.add_argument("--colour-head", choices=("auto", "on", "off"), default="auto",
+                        help="a residual colour head (12 features and a small MLP, no view direction) added to a "
+                             "diffuse grid when it reaches its final size, for colour that varies inside a voxel; "
+                             "auto (default): in bounded space when the final grid still gets about 2000 steps "
+                             "with it (BENCHMARKS.md, \"Colour that grows with the budget\")")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 
@@ -160,6 +165,7 @@ def _run_train(args) -> int:
                          checkpoint_every=args.checkpoint_every, step_ratio=args.step_ratio,
                          batch_rays=args.batch_rays, sparse=args.sparse,
                          sparse_priors={"auto": None, "on": True, "off": False}[args.sparse_priors],
+                         colour_head={"auto": None, "on": True, "off": False}[args.colour_head],
                          pixel_filter=None if args.pixel_filter == "auto" else args.pixel_filter)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "

@@ -63,6 +63,12 @@ START_VOXELS = 32
 MIN_UPSAMPLES = 3
 LAST_UPSAMPLE_AT = 0.3  # the grid grows at evenly spaced fractions of the budget up to this ...
 MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
+# The residual colour head (`colour_head_for`) costs steps: a step with it takes about
+# 1 / HEAD_STEP_COST as long (its MLP runs on every sample, its features widen the table
+# 4x). It is added only when the final grid would still get MIN_STEPS_WITH_HEAD steps with
+# it: the head starts at zero and needs steps to learn before it pays for the steps it costs.
+HEAD_STEP_COST = 0.56
+MIN_STEPS_WITH_HEAD = 2000
 
 
 @dataclass(frozen=True)
@@ -121,6 +127,11 @@ class TrainConfig:
     # on for a sparse capture from inside the scene (`sparse_priors_for`). Left out of
     # config.json when False, so runs made before the mode keep their recipe.
     sparse_priors: Optional[bool] = None
+    # a residual colour head on a diffuse grid (nerf.grid_field.add_residual_head), added
+    # when the grid reaches its final size: None: when the final grid will still get
+    # MIN_STEPS_WITH_HEAD steps with it (`colour_head_for`, decided then and written into
+    # config.json). Left out of config.json while None, so older runs keep their recipe.
+    colour_head: Optional[bool] = None
 
     def validate(self) -> None:
         """One-line InputError for anything a run cannot use (the API path: the CLI's
@@ -148,6 +159,12 @@ class TrainConfig:
             raise InputError(f"--view-dependent must be true, false or None (auto), got {self.view_dependent!r}")
         if not (self.sparse_priors is None or isinstance(self.sparse_priors, bool)):
             raise InputError(f"--sparse-priors must be true, false or None (auto), got {self.sparse_priors!r}")
+        if not (self.colour_head is None or isinstance(self.colour_head, bool)):
+            raise InputError(f"--colour-head must be true, false or None (auto), got {self.colour_head!r}")
+        if self.colour_head and self.model != "compact":
+            raise InputError("--colour-head on needs the compact model (the head reads its grid's features)")
+        if self.colour_head and self.view_dependent:
+            raise InputError("--colour-head on is for a diffuse grid; --view-dependent on has its own colour head")
         if self.sparse_priors and self.model != "compact":
             raise InputError("--sparse-priors on needs the compact model (they act on its voxel grid)")
         for name in ("prune", "occupancy"):
@@ -158,7 +175,7 @@ class TrainConfig:
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self)
-        for optional in ("sparse", "render_filter", "sparse_priors"):
+        for optional in ("sparse", "render_filter", "sparse_priors", "colour_head"):
             if out[optional] is None or (optional == "sparse_priors" and out[optional] is False):
                 del out[optional]
         return out
@@ -168,7 +185,7 @@ class TrainConfig:
 FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
          "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation",
          "step_ratio": "--step-ratio", "batch_rays": "--batch-rays", "pixel_filter": "--pixel-filter",
-         "sparse_priors": "--sparse-priors"}
+         "sparse_priors": "--sparse-priors", "colour_head": "--colour-head"}
 
 
 SAMPLES_PER_RAY = arguments.bounded(int, 1, 4096)  # the vanilla NeRF's coarse and fine samples
@@ -234,6 +251,12 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
             reasons["view_dependent"] = f"scene.json needs.view_dependent = {needs.get('view_dependent')}"
     else:
         reasons["view_dependent"] = "set on the command line"
+    if config.colour_head and updates.get("view_dependent", config.view_dependent):
+        raise InputError("--colour-head on is for a diffuse grid; this scene's is view-dependent "
+                         "(its own colour head); pass --view-dependent off with it")
+    if config.model == "compact":
+        reasons["colour_head"] = ("set on the command line" if config.colour_head is not None else
+                                  "decided when the grid reaches its final size (`colour_head_for`)")
     if config.final_resolution is None and kind != "bounded":
         # the contracted cube's inner ball, or the frustum's angles, get about one cell per
         # pixel across the image: twice the width along the grid's longest side
@@ -297,6 +320,27 @@ def pixel_filter_for(config: TrainConfig, edge_share: Optional[float] = None,
                          "differs from the centre ray), the centre ray elsewhere")
     return "centre", (f"{share} (> {100 * EDGE_SHARE_MAX:.0f}%): their extra rays would cost more steps than they "
                       "gain; one ray through each pixel's centre")
+
+
+def colour_head_for(config: TrainConfig, final_steps: Optional[float]) -> tuple[bool, str]:
+    """Whether a run adds the residual colour head when its grid reaches its final size,
+    and why: as set; never for a view-dependent grid (its head models colour already) or
+    outside bounded space (not measured there); else when the final grid's steps without
+    the head, `final_steps` (a --steps run's remaining steps; a budget's projection from
+    the step rate), times HEAD_STEP_COST reach MIN_STEPS_WITH_HEAD. None: unknown (no)."""
+    if config.colour_head is not None:
+        return config.colour_head, "set on the command line"
+    if config.view_dependent:
+        return False, "the view-dependent grid's colour head models colour already"
+    if config.parametrisation != "bounded":
+        return False, f"{config.parametrisation} space: the residual colour head was measured in bounded space only"
+    if final_steps is None:
+        return False, "the final grid's steps are unknown"
+    with_head = final_steps * HEAD_STEP_COST
+    verdict = ">=" if with_head >= MIN_STEPS_WITH_HEAD else "<"
+    return with_head >= MIN_STEPS_WITH_HEAD, (
+        f"the final grid gets about {with_head:.0f} steps with it ({final_steps:.0f} without, x {HEAD_STEP_COST}) "
+        f"{verdict} {MIN_STEPS_WITH_HEAD}")
 
 
 def step_ratio_of(config: TrainConfig) -> float:

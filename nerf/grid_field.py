@@ -17,6 +17,10 @@ so surfaces can be sharper than a voxel; `shift` makes a fresh grid nearly trans
 (alpha = ALPHA_INIT per marching step). Colour: diffuse scenes store sRGB logits (3
 channels, no view direction); view-dependent scenes store `feature_channels` features
 that a small MLP turns into colour with the view direction (degree-3 spherical harmonics).
+A diffuse grid can take a residual colour head mid-run (`add_residual_head`): the 3 logits
+gain `feature_channels - 3` features and colour = sigmoid(logits + MLP(all features)), with
+the MLP's last layer at zero so the field's colours do not change when it is added. It
+models colour that varies inside a cell (a texture edge) where trilinear logits cannot.
 """
 
 from __future__ import annotations
@@ -164,8 +168,27 @@ class VoxelGridField(nn.Module):
         n = math.prod(shape) if allocate else 0
         self._set_nodes(torch.full(shape, allocate), torch.zeros(n, 1), torch.zeros(n, self.channels))
         self.head = None
+        self.residual_head = False  # see add_residual_head
         if view_dependent:
             self.head = nn.Sequential(nn.Linear(self.channels + 16, 64), nn.ReLU(), nn.Linear(64, 3))
+
+    @torch.no_grad()
+    def add_residual_head(self, channels: int) -> None:
+        """Give a diffuse grid (3 colour logits) `channels` - 3 more feature channels, at 0,
+        and a residual colour head over all of them whose output layer is 0: colours are
+        unchanged now and can vary inside a cell once trained. nn.Linear draws the hidden
+        layer's weights from torch's global generator (seed it around the call)."""
+        if self.view_dependent or self.head is not None or channels <= 3:
+            raise ValueError(f"a residual colour head needs a diffuse grid without a head and > 3 channels, "
+                             f"got {channels}")
+        extra = self.features.new_zeros(self.features.shape[0], channels - 3)
+        self.features = nn.Parameter(torch.cat([self.features.data, extra], dim=1))
+        self.channels = channels
+        self._dense_key = None
+        self.head = nn.Sequential(nn.Linear(channels, 64), nn.ReLU(), nn.Linear(64, 3)).to(self.aabb.device)
+        nn.init.zeros_(self.head[2].weight)
+        nn.init.zeros_(self.head[2].bias)
+        self.residual_head = True
 
     # ----------------------------------------------------------------------------------
     # storage
@@ -302,28 +325,55 @@ class VoxelGridField(nn.Module):
         """sigma (per world unit) at world positions [M, 3], differentiable w.r.t. them. Returns [M]."""
         return self.density_at_stencil(self.stencil(positions), positions)
 
-    def _dense_for_rendering(self) -> torch.Tensor | None:
-        """The grid as [1, 1 + C, nz, ny, nx] for grid_sample, rebuilt when a table changed
-        (Adam steps bump their version counters); None when it would be too large."""
+    def _dense_for_rendering(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The grid as dense tensors for grid_sample, raw density [1, 1, nz, ny, nx] and
+        features [1, C, nz, ny, nx], rebuilt when a table changed (Adam steps bump their
+        version counters); None when they would be too large."""
         if (1 + self.channels) * math.prod(self.shape) > DENSE_RENDER_FLOATS:
             return None
         key = (self.index.data_ptr(), self.density_table.data_ptr(), self.density_table._version,
                self.features.data_ptr(), self.features._version)
         if getattr(self, "_dense_key", None) != key:
-            self._dense, self._dense_key = self.to_dense()[None], key
+            dense = self.to_dense()[None]
+            self._dense, self._dense_key = (dense[:, :1].contiguous(), dense[:, 1:].contiguous()), key
         return self._dense
+
+    def _grid_coordinates(self, positions: torch.Tensor) -> torch.Tensor:
+        """World positions [M, 3] as grid_sample's coordinates [1, 1, 1, M, 3] in [-1, 1]."""
+        box = self._to_box(positions)
+        return (2 * (box - self.aabb[0]) / (self.aabb[1] - self.aabb[0]) - 1).view(1, 1, 1, -1, 3)
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """positions, directions: [M, 3] (world, unit). Returns sigma [M], rgb [M, 3] in [0, 1]."""
+        sigma, colour_at = self.density_then_colour(positions, directions)
+        return sigma, colour_at(None)
+
+    def density_then_colour(self, positions: torch.Tensor, directions: torch.Tensor):
+        """sigma [M] at world positions [M, 3], and colour_at(index [k] or None for all) ->
+        rgb [k, 3] of those samples: a renderer that knows which samples it can see asks
+        colour (the features' lookup and the colour head, most of a sample's cost with a
+        head) only for them. The values are forward's."""
         dense = None if torch.is_grad_enabled() else self._dense_for_rendering()
         if dense is None:
-            return self.at_stencil(self.stencil(positions), positions, directions)
+            stencil = self.stencil(positions)
+            sigma = self.density_at_stencil(stencil, positions)
+
+            def colour_at(index):
+                rows, weights = stencil if index is None else (part.index_select(0, index) for part in stencil)
+                chosen = directions if index is None else directions.index_select(0, index)
+                return self._colour(self._blend(self.features, rows, weights), chosen)
+            return sigma, colour_at
         # the same trilinear values (tests/test_sparse_field.py), one fused kernel
-        box = self._to_box(positions)
-        normalised = 2 * (box - self.aabb[0]) / (self.aabb[1] - self.aabb[0]) - 1
-        values = F.grid_sample(dense, normalised.view(1, 1, 1, -1, 3), mode="bilinear", align_corners=True,
-                               padding_mode="border").view(dense.shape[1], -1).t()
-        return self._activate(values[:, 0], values[:, 1:], positions, directions)
+        density_grid, feature_grid = dense
+        grid = self._grid_coordinates(positions)
+        raw = F.grid_sample(density_grid, grid, mode="bilinear", align_corners=True, padding_mode="border").view(-1)
+
+        def colour_at(index):
+            chosen = grid if index is None else grid.index_select(3, index)
+            features = F.grid_sample(feature_grid, chosen, mode="bilinear", align_corners=True,
+                                     padding_mode="border").view(feature_grid.shape[1], -1).t()
+            return self._colour(features, directions if index is None else directions.index_select(0, index))
+        return self._world_density(raw, positions), colour_at
 
     def stencil(self, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The trilinear stencil (rows [M, 8], weights [M, 8]) of world positions [M, 3]:
@@ -343,10 +393,15 @@ class VoxelGridField(nn.Module):
         return self._activate(raw, features, positions, directions)
 
     def _activate(self, raw, features, positions, directions):
-        sigma = self._world_density(raw, positions)
+        return self._world_density(raw, positions), self._colour(features, directions)
+
+    def _colour(self, features: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+        """rgb [M, 3] in [0, 1] from interpolated features [M, C] and unit directions [M, 3]."""
         if self.head is None:
-            return sigma, torch.sigmoid(features)
-        return sigma, torch.sigmoid(self.head(torch.cat([features, sh_basis_deg3(directions)], dim=-1)))
+            return torch.sigmoid(features)
+        if self.residual_head:
+            return torch.sigmoid(features[:, :3] + self.head(features))
+        return torch.sigmoid(self.head(torch.cat([features, sh_basis_deg3(directions)], dim=-1)))
 
     # ----------------------------------------------------------------------------------
     # coarse to fine, occupancy, regularisation

@@ -253,8 +253,9 @@ class CompactNeRF(RadianceModel):
             samples = segment_samples(segments, chosen)
             rays, t = samples.ray_index, samples.t_mid
             d = directions.index_select(0, rays)
-            sigma, rgb = self.field(torch.addcmul(origins.index_select(0, rays), t[:, None], d), d)
-            return rays, t, sample_deltas(samples), sigma, rgb
+            sigma, colour_at = self.field.density_then_colour(torch.addcmul(origins.index_select(0, rays),
+                                                                             t[:, None], d), d)
+            return rays, t, sample_deltas(samples), sigma, colour_at
 
         colour, opacity, depth, evaluated = render_front_to_back(window_samples, segments.ray_index, segments.near,
                                                                  segments.far, window=EARLY_STOP_SEGMENTS)

@@ -28,7 +28,7 @@ import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
 from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig,
-                                   resolve, upsample_count)
+                                   colour_head_for, resolve, upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import box_frame
 from nerfgauge.nerf.grid_field import node_mask
@@ -45,6 +45,7 @@ from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
+HEAD_SEED_OFFSET = 2  # the residual colour head's hidden layer: seed + 2 (seed + 1 draws the model's)
 # A time budget takes a finer grid only if it can still give it this many steps (projected
 # from the current stage's step rate, scaled by the resolution ratio: samples per ray grow
 # with it). Measured on primitives, 120 s, 2 CPU cores (BENCHMARKS.md): at 256 px the 218
@@ -135,6 +136,19 @@ def projected_steps_at_finer(config: TrainConfig, state: LoopState) -> float | N
     current, finer = resolution_at(config, state.stage), resolution_at(config, state.stage + 1)
     rate = state.stage_steps / state.stage_seconds * current / finer
     return rate * max(config.budget_seconds - state.seconds, 0.0)
+
+
+def steps_at_final_grid(config: TrainConfig, state: LoopState) -> float | None:
+    """Steps the final grid will get, asked as the last growth is about to happen: a
+    --steps run's remaining steps; a budget's seconds left times the current stage's step
+    rate slowed by the resolution ratio (as `projected_steps_at_finer`); None when the
+    rate is unknown."""
+    if config.steps is not None:
+        return float(config.steps - state.step)
+    if state.stage_seconds <= 0:
+        return None
+    current, finer = resolution_at(config, state.stage), resolution_at(config, state.stage + 1)
+    return state.stage_steps / state.stage_seconds * current / finer * max(config.budget_seconds - state.seconds, 0.0)
 
 
 def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int, int]:
@@ -422,8 +436,11 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
             if state.stage < state.last_stage and fraction_done >= upsample_at(config, state.stage) \
                     and state.stage_steps >= MIN_STAGE_STEPS:
                 projected = projected_steps_at_finer(config, state)
+                final_steps = steps_at_final_grid(config, state)
                 if projected is not None and projected < MIN_STEPS_AT_FINER:
                     state.last_stage = state.stage
+                    final_steps = None if config.budget_seconds is None else \
+                        state.stage_steps / max(state.stage_seconds, 1e-9) * (config.budget_seconds - state.seconds)
                     if progress:
                         tqdm.write(f"keeping the {model.field.resolution}-voxel grid: the budget would give a "
                                    f"{resolution_at(config, state.stage + 1)}-voxel one about {projected:.0f} "
@@ -431,6 +448,14 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                 else:
                     state.stage += 1
                     state.stage_steps, state.stage_seconds = 0, 0.0
+                if state.stage == state.last_stage and state.colour_head == 0 and model.has_grid:
+                    head, reasons["colour_head"] = colour_head_for(config, final_steps)
+                    state.colour_head = 1 if head else -1
+                    config = dataclasses.replace(config, colour_head=head)
+                    write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons,
+                                                  "space": space.to_json(), "recipe": recipe})
+                    if progress and head:
+                        tqdm.write(f"adding the residual colour head: {reasons['colour_head']}")
             loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
             if not (math.isfinite(loss) and gradients_finite):
                 raise NumericalError(
@@ -484,12 +509,19 @@ def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) 
 
 def _grow_grid(training: Training, config: TrainConfig) -> None:
     """Coarse to fine: upsample the grid to its stage's resolution when it is not there
-    yet, and give Adam the new parameters (fresh moments) at the current learning rates."""
+    yet, add the residual colour head once it is decided (LoopState.colour_head), and give
+    Adam the new parameters (fresh moments) at the current learning rates."""
     model = training.model
     wanted = resolution_at(config, training.loop.stage)
-    if wanted == model.field.resolution:
+    add_head = training.loop.colour_head == 1 and model.field.head is None
+    if wanted == model.field.resolution and not add_head:
         return
-    model.upsample(wanted)
+    if wanted != model.field.resolution:
+        model.upsample(wanted)
+    if add_head:  # its hidden layer drawn from the run's seed, the caller's RNG untouched
+        with torch.random.fork_rng(devices=[]):
+            torch.random.manual_seed(config.seed + HEAD_SEED_OFFSET)
+            model.field.add_residual_head(config.feature_channels)
     rates = [group["lr"] for group in training.optimizer.param_groups]
     training.optimizer = make_optimizer(model, config)
     for group, rate in zip(training.optimizer.param_groups, rates):

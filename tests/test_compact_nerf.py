@@ -185,6 +185,47 @@ def test_early_termination_leaves_out_at_most_the_remaining_transmittance():
     torch.testing.assert_close(early[0][transparent], full[0][transparent], rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("min_weight", [1e-5, 1e-3])
+def test_a_lazy_colour_is_asked_only_where_samples_weigh_and_moves_a_ray_by_at_most_what_it_leaves_out(
+        min_weight, monkeypatch):
+    """render_front_to_back with colour_at: colour is evaluated only for samples whose
+    weight exceeds COLOUR_MIN_WEIGHT; the others' weight times a colour in [0, 1] is left
+    out, so each ray's colour differs from the eager render by at most the sum of the
+    weights left out, and opacity and depth not at all."""
+    from nerfgauge.nerf import packed
+
+    counts, sigma, rgb, edges, keep = ragged_case(seed=7, n_rays=40, max_samples=60, dtype=torch.float64)
+    sigma[::3] = 0.05  # faint rays, whose samples mostly weigh little
+    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
+    step = 0.1
+    t_mid = (torch.arange(keep.shape[1], dtype=torch.float64) * step + 0.05)[None, :].expand_as(keep)[keep]
+    near = torch.zeros(len(counts), dtype=torch.float64)
+    far = torch.full((len(counts),), keep.shape[1] * step, dtype=torch.float64)
+    s, c = sigma[keep], rgb[keep]
+    asked = []
+
+    def eager(chosen):
+        return rays[chosen], t_mid[chosen], torch.full_like(s[chosen], step), s[chosen], c[chosen]
+
+    def lazy(chosen):
+        def colour_at(index):
+            asked.append(chosen[index])
+            return c[chosen[index]]
+        return rays[chosen], t_mid[chosen], torch.full_like(s[chosen], step), s[chosen], colour_at
+
+    monkeypatch.setattr(packed, "COLOUR_MIN_WEIGHT", min_weight)
+    full = packed.render_front_to_back(eager, rays, near, far, window=4)
+    got = packed.render_front_to_back(lazy, rays, near, far, window=4)
+    weights = packed_render(s, c, torch.full_like(s, step), t_mid, rays, near, far)[3]  # [n_samples]
+    asked = torch.cat(asked)
+    left_out = torch.ones(len(s), dtype=torch.bool)
+    left_out[asked] = False
+    assert (weights[asked] > min_weight * (1 - 1e-9)).all() and len(asked) < len(s)
+    bound = torch.zeros(len(counts), dtype=torch.float64).index_add_(0, rays, weights * left_out)
+    assert ((got[0] - full[0]).abs().amax(dim=1) <= bound + 1e-12).all()
+    assert torch.equal(got[1], full[1]) and torch.equal(got[2], full[2])
+
+
 def blob_model(g: torch.Generator, step_ratio: float = 0.5):
     """A CompactNeRF on a 24-voxel grid of blobs in empty air, denser towards their cores
     (softplus(raw + shift), shift ~ -9.2), occupancy updated. Returns (model, aabb)."""
