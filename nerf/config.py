@@ -128,7 +128,7 @@ class TrainConfig:
     # config.json when False, so runs made before the mode keep their recipe.
     sparse_priors: Optional[bool] = None
     # a residual colour head on a diffuse grid (nerf.grid_field.add_residual_head), added
-    # when the grid reaches its final size: None: when the final grid will still get
+    # once the final grid has trained MIN_STAGE_STEPS steps: None: when it will still get
     # MIN_STEPS_WITH_HEAD steps with it (`colour_head_for`, decided then and written into
     # config.json). Left out of config.json while None, so older runs keep their recipe.
     colour_head: Optional[bool] = None
@@ -323,11 +323,12 @@ def pixel_filter_for(config: TrainConfig, edge_share: Optional[float] = None,
 
 
 def colour_head_for(config: TrainConfig, final_steps: Optional[float]) -> tuple[bool, str]:
-    """Whether a run adds the residual colour head when its grid reaches its final size,
-    and why: as set; never for a view-dependent grid (its head models colour already) or
-    outside bounded space (not measured there); else when the final grid's steps without
-    the head, `final_steps` (a --steps run's remaining steps; a budget's projection from
-    the step rate), times HEAD_STEP_COST reach MIN_STEPS_WITH_HEAD. None: unknown (no)."""
+    """Whether a run adds the residual colour head to its final grid (asked once that grid
+    has trained MIN_STAGE_STEPS steps), and why: as set; never for a view-dependent grid
+    (its head models colour already) or outside bounded space (not measured there); else
+    when the final grid's remaining steps without the head, `final_steps` (a --steps run's
+    count; a budget's seconds left times the final grid's step rate), times HEAD_STEP_COST
+    reach MIN_STEPS_WITH_HEAD. None: unknown (no)."""
     if config.colour_head is not None:
         return config.colour_head, "set on the command line"
     if config.view_dependent:

@@ -81,3 +81,46 @@ def test_the_plots_draw_each_budgets_test_psnr_against_seconds_and_steps(tmp_pat
     assert list(time_line.get_xdata()) == [30.5, 120.5, 600.5] and list(time_line.get_ydata()) == [37.0, 41.0, 43.0]
     assert list(steps_line.get_xdata()) == [900, 4000, 16000] and list(steps_line.get_ydata()) == [37.0, 41.0, 43.0]
     assert Image.open(tmp_path / "pareto.png").size == (1210, 880)
+
+
+def test_bench_targets_refuses_an_unknown_part_before_any_work(tmp_path, capsys):
+    assert main(["bench", "targets", "--skip", "train,everything", "--out", str(tmp_path / "t")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "everything" in err
+    assert not (tmp_path / "t").exists()
+
+
+def _train_row(psnr, foreground, steps=1000, mb=1.5, ms=80.0):
+    return {"psnr": psnr, "psnr_foreground": foreground, "steps": steps, "steps_per_second": steps / 120,
+            "model_mb": mb, "render_ms_per_frame": ms}
+
+
+def test_bench_targets_judges_each_target_from_its_figures():
+    """Each row's verdict is the target's inequality on the figures given: 600 s at 43.0
+    and 120 s at 41.0 meet `+2 dB` exactly, a foreground of 35.99 does not meet 36, a
+    4.01 MB model fails 4 MB, bench hard's scenes 0.05 dB below their figures are within
+    0.1 dB and one 0.2 dB below is not, inside at 23.99 misses 24, the room's automatic pick
+    scores as its forced self."""
+    from nerfgauge.orchestrate.bench_targets import REFERENCE_HARD, target_rows
+
+    hard = {scene: {"mean": {"psnr": figure - 0.05}} for scene, figure in REFERENCE_HARD.items()}
+    hard["inside"] = {"mean": {"psnr": 23.99}}
+    parts = {"train": {120: _train_row(41.0, 34.0), 600: _train_row(43.0, 35.99, mb=4.01)},
+             "geometry": {"normals": {"mean_degrees": 15.0}, "at_tau": [{"fscore": 0.5}, {"fscore": 0.7}]},
+             "exact_geometry": {"worst_relative_difference": 0.006},
+             "hard": hard,
+             "inside_check": {"auto": {"psnr": 19.0, "picked": "bounded"}, "bounded": {"psnr": 19.0},
+                              "contracted": {"psnr": 15.6}}}
+    verdicts = {row["target"]: row["met"] for row in target_rows(parts)}
+    assert verdicts == {
+        "primitives 128 px, 120 s: PSNR >= 40 dB": True, "600 s: PSNR >= 43 dB": True,
+        "600 s >= 120 s + 2 dB": True, "600 s: foreground PSNR >= 36 dB": False,
+        "120 s: model <= 4 MB, render <= 100 ms a frame": True, "600 s: model <= 4 MB, render <= 100 ms a frame": False,
+        "120 s: normals mean error <= 20 deg, F-score at 1% >= 0.7": True,
+        "geometry scores within 0.5% of an exact point-to-surface computation": False,
+        "bench hard: no scene more than 0.1 dB below its figure before issue 34": True,
+        "inside at 40 views >= 24 dB": False,
+        "room (from inside, not in bench hard): automatic >= the best forced": True}
+    hard["glass"] = {"mean": {"psnr": REFERENCE_HARD["glass"] - 0.2}}
+    assert not {row["target"]: row["met"] for row in target_rows(parts)}[
+        "bench hard: no scene more than 0.1 dB below its figure before issue 34"]

@@ -131,6 +131,8 @@ def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: i
                         metrics = evaluate(data, run / "renders", "test", run / "metrics.json")
                     rows.append({"scene": scene, "variant": variant, "budget": budget,
                                  "val_psnr": log[-1]["val_psnr"], "psnr": metrics["mean"]["psnr"],
+                                 **{key: metrics["mean"].get(key) for key in
+                                    ("psnr_foreground", "psnr_edges", "psnr_interior")},
                                  "psnr_ceiling": (metrics.get("noise") or {}).get("psnr_ceiling"),
                                  "ssim": metrics["mean"]["ssim"], "depth_absrel": metrics["mean"]["depth_absrel"],
                                  "lpips": metrics["mean"].get("lpips"), "lpips_note": metrics.get("notes", {}).get("lpips"),

@@ -1,5 +1,5 @@
 """The orchestration commands: `bench` (the benchmarks: `orchestrate.bench`, `bench_scaling`,
-`bench_hard`, `bench_lens`, `bench_read`) and `suite` (`orchestrate.suite_commands`).
+`bench_hard`, `bench_lens`, `bench_read`, `bench_targets`) and `suite` (`orchestrate.suite_commands`).
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`core.arguments.comma_separated`). Bench output
@@ -18,6 +18,7 @@ from nerfgauge.orchestrate.bench_hard import HardConfig, bench_hard, table_markd
 from nerfgauge.orchestrate.bench_lens import run_lens_bench
 from nerfgauge.orchestrate.bench_read import bench_read, table_markdown as read_table_markdown
 from nerfgauge.orchestrate.bench_scaling import ScalingConfig, bench_scaling, report_markdown
+from nerfgauge.orchestrate.bench_targets import bench_targets, targets_markdown
 from nerfgauge.scenes import HARD_SCENES
 
 
@@ -91,6 +92,13 @@ def register_bench(subparsers) -> None:
     hard.add_argument("--steps", type=arguments.STEPS, default=400, help="training steps per scene (default 400)")
     hard.add_argument("--out", type=arguments.path, default=Path("bench-out/hard"))
     hard.set_defaults(func=run_bench_hard)
+    targets = kinds.add_parser("targets", help="the reference NeRF's targets (issue 34) in one command: primitives "
+                                               "at 120 and 600 s, geometry, exact scores, bench hard, a room")
+    targets.add_argument("--skip", type=arguments.names, default=(),
+                         help="comma-separated parts to leave out: train, geometry, exact_geometry, hard, inside_check")
+    targets.add_argument("--out", type=arguments.path, default=Path("bench-out/targets"),
+                         help="bench folder (default bench-out/targets): targets.json/.md and each part's folder")
+    targets.set_defaults(func=run_bench_targets)
     lens = kinds.add_parser("lens", help="defocus: the NeRF through a thin lens against refocused light fields and "
                                          "the nearest view, at several apertures")
     lens.add_argument("--scene", default="primitives")
@@ -165,6 +173,12 @@ def run_bench_hard(args) -> int:
     rows = bench_hard(config, args.out)
     print(hard_table_markdown(rows, config.command(args.out)))
     return 0 if all(row["finite"] for row in rows) else 1
+
+
+def run_bench_targets(args) -> int:
+    rows = bench_targets(args.out, tuple(args.skip))
+    print(targets_markdown(rows, f"nerfgauge bench targets --out {args.out}"))
+    return 0
 
 
 def run_bench_read(args) -> int:
