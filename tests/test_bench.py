@@ -124,3 +124,23 @@ def test_bench_targets_judges_each_target_from_its_figures():
     hard["glass"] = {"mean": {"psnr": REFERENCE_HARD["glass"] - 0.2}}
     assert not {row["target"]: row["met"] for row in target_rows(parts)}[
         "bench hard: no scene more than 0.1 dB below its figure before issue 34"]
+
+
+def test_bench_targets_keeps_a_skipped_parts_earlier_figures(tmp_path):
+    """A rerun with every part skipped measures nothing and judges the figures the folder's
+    targets.json already holds (budgets back as numbers, so 600 s is compared with 120 s);
+    the command it records says what was skipped."""
+    from nerfgauge.orchestrate.bench_targets import bench_targets
+
+    out = tmp_path / "targets"
+    everything = ("train", "geometry", "exact_geometry", "hard", "inside_check")
+    assert bench_targets(out, everything, progress_print=lambda *_: None) == []  # a fresh folder: nothing to judge
+    earlier = {"command": "earlier", "targets": [],
+               "parts": {"train": {"120": _train_row(41.0, 34.0), "600": _train_row(43.5, 36.2)},
+                         "exact_geometry": {"worst_relative_difference": 0.001}}}
+    (out / "targets.json").write_text(json.dumps(earlier))
+    rows = {row["target"]: row for row in bench_targets(out, everything, progress_print=lambda *_: None)}
+    assert rows["600 s >= 120 s + 2 dB"]["met"] and rows["600 s >= 120 s + 2 dB"]["figure"] == "+2.50 dB"
+    assert rows["geometry scores within 0.5% of an exact point-to-surface computation"]["met"]
+    saved = json.loads((out / "targets.json").read_text())
+    assert set(saved["parts"]) == {"train", "exact_geometry"} and "--skip" in saved["command"]

@@ -5,8 +5,8 @@ the time-budgeted figures carry the steps per second they were trained at.
 The parts, each command a child process (its time and memory its own), into OUT:
 1. OUT/train: `bench train --scenes primitives --variants compact --budgets 120,600
    --res 128 --views 100`: test PSNR, foreground PSNR, model MB, render ms, steps/s.
-2. OUT/geometry.json: the 120-s run's mesh (`nerfgauge mesh`) scored by `nerfgauge
-   geometry --run` (exact point-to-surface distances, the field's normals).
+2. the 120-s run's mesh (`nerfgauge mesh`, RUN/mesh.ply) scored by `nerfgauge geometry
+   --run` (exact point-to-surface distances, the field's normals; RUN/geometry.json).
 3. OUT/exact-geometry.txt: the ground truth's meshes displaced along their normals by 0.5%
    and 1% of the diagonal, scored by eval.geometry and by trimesh's float64 closest
    points (docs/benchmarks/displaced_geometry.py; needs the repository).
@@ -15,7 +15,10 @@ The parts, each command a child process (its time and memory its own), into OUT:
 5. OUT/inside-check: `room` (scenes/checks.py, in no bench and no suite) trained with the
    automatic parametrisation and each forced one at bench hard's settings.
 
-Writes OUT/targets.json (rewritten after each part) and OUT/targets.md (the table).
+Writes OUT/targets.json (rewritten after each part) and OUT/targets.md (the table). A
+rerun into the same folder with `--skip PART` keeps that part's earlier figures from
+OUT/targets.json (so a part that failed can be run again alone); the command line it
+records names what was skipped.
 """
 
 from __future__ import annotations
@@ -57,12 +60,12 @@ def primitives_budgets(out: Path) -> dict:
     return {int(row["budget"]): row for row in rows if "error" not in row}
 
 
-def geometry_at(run: Path, dataset: Path, out: Path) -> dict:
-    """Part 2: mesh and geometry scores of `run`."""
-    mesh = out / "mesh-120s.ply"
-    _run(["mesh", run, "-o", mesh], "mesh")
-    _run(["geometry", dataset, "--pred-mesh", mesh, "--run", run, "-o", out / "geometry.json"], "geometry")
-    return read_json(out / "geometry.json")
+def geometry_at(run: Path, dataset: Path) -> dict:
+    """Part 2: mesh and geometry scores of `run`, written into the run's folder (single-file
+    outputs never go into a bench folder itself: core.outputs)."""
+    _run(["mesh", run, "-o", run / "mesh.ply"], "mesh")
+    _run(["geometry", dataset, "--pred-mesh", run / "mesh.ply", "--run", run, "-o", run / "geometry.json"], "geometry")
+    return read_json(run / "geometry.json")
 
 
 def exact_geometry(out: Path) -> dict:
@@ -195,6 +198,10 @@ def bench_targets(out, skip: tuple = (), progress_print=print) -> list[dict]:
         return rows
 
     with claim_bench_folder(out, "targets"):
+        earlier = read_json(out / "targets.json")["parts"] if (out / "targets.json").is_file() else {}
+        parts.update({name: part for name, part in earlier.items() if name in skip})
+        if "train" in parts:  # JSON keys are strings; the budgets are numbers
+            parts["train"] = {int(budget): row for budget, row in parts["train"].items()}
         if "train" not in skip:
             progress_print("bench targets: primitives at 120 and 600 s")
             parts["train"] = primitives_budgets(out / "train")
@@ -203,7 +210,7 @@ def bench_targets(out, skip: tuple = (), progress_print=print) -> list[dict]:
             progress_print("bench targets: geometry of the 120-s run")
             run = Path(parts["train"][120]["log"]).parent
             dataset = out / "train" / "datasets" / "primitives-128x128-100"
-            parts["geometry"] = geometry_at(run, dataset, out)
+            parts["geometry"] = geometry_at(run, dataset)
             save()
         if "exact_geometry" not in skip:
             progress_print("bench targets: exact geometry scores")
