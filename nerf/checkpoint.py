@@ -49,7 +49,8 @@ class LoopState:
     stage: coarse-to-fine growths done; stage_steps, stage_seconds: steps and seconds at
     this resolution; last_stage: the finest stage the run will take (a time budget stops
     growing when a finer grid could not be trained); colour_head: the residual colour head's
-    decision (config.colour_head_for), made when the ladder ends: 0 not yet, 1 added, -1 not."""
+    decision (TrainConfig.colour_head), made once the final grid has trained MIN_STAGE_STEPS
+    steps: 0 not yet, 1 added, -1 not."""
 
     step: int = 0
     seconds: float = 0.0

@@ -142,9 +142,9 @@ def _add_train(subparsers) -> None:
                              "are each in fewer than 9 train images (BENCHMARKS.md, \"Sparse captures\")")
     parser.add_argument("--colour-head", choices=("auto", "on", "off"), default="auto",
                         help="a residual colour head (12 features and a small MLP, no view direction) added to a "
-                             "diffuse grid when it reaches its final size, for colour that varies inside a voxel; "
-                             "auto (default): in bounded space when the final grid still gets about 2000 steps "
-                             "with it (BENCHMARKS.md, \"Colour that grows with the budget\")")
+                             "diffuse grid once its final size has trained 100 steps, for colour that varies inside a "
+                             "voxel; auto (default): off, since at equal time it gained nothing measured "
+                             "(BENCHMARKS.md, \"Colour that grows with the budget\")")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 

@@ -28,7 +28,7 @@ import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
 from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig,
-                                   colour_head_for, resolve, upsample_count)
+                                   resolve, upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import box_frame
 from nerfgauge.nerf.grid_field import node_mask
@@ -136,17 +136,6 @@ def projected_steps_at_finer(config: TrainConfig, state: LoopState) -> float | N
     current, finer = resolution_at(config, state.stage), resolution_at(config, state.stage + 1)
     rate = state.stage_steps / state.stage_seconds * current / finer
     return rate * max(config.budget_seconds - state.seconds, 0.0)
-
-
-def steps_left_at_final_grid(config: TrainConfig, state: LoopState) -> float:
-    """Steps the final grid will still get, asked once it has trained MIN_STAGE_STEPS
-    steps: a --steps run's remaining steps; a budget's seconds left times the final grid's
-    own step rate so far. Asked at the last growth instead, a projection from the coarser
-    grid's rate said 3417 steps on primitives at 600 s where the run took about 8000
-    (occupancy and visibility shrink the finer grid's work)."""
-    if config.steps is not None:
-        return float(config.steps - state.step)
-    return state.stage_steps / max(state.stage_seconds, 1e-9) * max(config.budget_seconds - state.seconds, 0.0)
 
 
 def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int, int]:
@@ -374,9 +363,9 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     val_cameras, val_rays = val
     training = _start_training(run_dir, config, aabb, space, device, saved)
     model, state = training.model, training.loop
-    if state.colour_head != 0 and config.colour_head is None:  # resumed after the head was decided
-        config = dataclasses.replace(config, colour_head=state.colour_head == 1)
-        reasons["colour_head"] = "decided before the run was resumed (checkpoint.pt's loop state)"
+    if state.colour_head == 1 and config.colour_head is None:  # resumed: an earlier rule added the head
+        config = dataclasses.replace(config, colour_head=True)
+        reasons["colour_head"] = "added before the run was resumed (checkpoint.pt's loop state)"
     if saved is not None:
         _truncate_log(run_dir / LOG, state.step)
     else:
@@ -447,14 +436,10 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                     state.stage += 1
                     state.stage_steps, state.stage_seconds = 0, 0.0
             if state.colour_head == 0 and model.has_grid and state.stage == state.last_stage \
-                    and state.stage_steps >= MIN_STAGE_STEPS:
-                head, reasons["colour_head"] = colour_head_for(config, steps_left_at_final_grid(config, state))
-                state.colour_head = 1 if head else -1
-                config = dataclasses.replace(config, colour_head=head)
-                write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons,
-                                              "space": space.to_json(), "recipe": recipe})
-                if progress and head:
-                    tqdm.write(f"adding the residual colour head: {reasons['colour_head']}")
+                    and state.stage_steps >= MIN_STAGE_STEPS:  # the final grid has settled: add the head now
+                state.colour_head = 1 if config.colour_head else -1
+                if progress and config.colour_head:
+                    tqdm.write(f"adding the residual colour head at step {state.step}")
             loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
             if not (math.isfinite(loss) and gradients_finite):
                 raise NumericalError(
