@@ -161,19 +161,26 @@ def test_transmittance_with_early_stop_equals_the_full_pass_where_rays_still_see
     assert torch.equal(index[early >= 1e-3].sort().values, (full >= 1e-3).nonzero()[:, 0])
 
 
+def _packed_case(seed: int, step: float = 0.1):
+    """A ragged float64 case laid out as packed samples at a constant `step`: (sigma [n_rays,
+    max_samples], rgb, keep mask, each kept sample's ray index and t_mid, near, far, step).
+    Index sigma and rgb with `keep` after editing them."""
+    counts, sigma, rgb, _, keep = ragged_case(seed=seed, n_rays=40, max_samples=60, dtype=torch.float64)
+    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
+    t_mid = (torch.arange(keep.shape[1], dtype=torch.float64) * step + 0.05)[None, :].expand_as(keep)[keep]
+    near = torch.zeros(len(counts), dtype=torch.float64)
+    far = torch.full((len(counts),), keep.shape[1] * step, dtype=torch.float64)
+    return sigma, rgb, keep, rays, t_mid, near, far, step
+
+
 def test_early_termination_leaves_out_at_most_the_remaining_transmittance():
     """Stopping a ray once T < 1e-3 drops only what lies behind: colour and opacity change
     by at most T_stop (colours are in [0, 1]); rays that never get opaque are untouched."""
     from nerfgauge.nerf.packed import packed_render_early_stop
 
-    counts, sigma, rgb, edges, keep = ragged_case(seed=4, n_rays=40, max_samples=60, dtype=torch.float64)
+    sigma, rgb, keep, rays, t_mid, near, far, step = _packed_case(seed=4)
     sigma = sigma * 10  # opaque within a few samples on most rays
     sigma[::5] = 0.01  # and some rays that stay nearly transparent
-    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
-    step = 0.1
-    t_mid = (torch.arange(keep.shape[1], dtype=torch.float64) * step + 0.05)[None, :].expand_as(keep)[keep]
-    near = torch.zeros(len(counts), dtype=torch.float64)
-    far = torch.full((len(counts),), keep.shape[1] * step, dtype=torch.float64)
     s, c = sigma[keep], rgb[keep]
     full = packed_render(s, c, torch.full_like(s, step), t_mid, rays, near, far)
     early = packed_render_early_stop(lambda i: (s[i], c[i]), t_mid, rays, step, near, far, window=4,
@@ -194,13 +201,8 @@ def test_a_lazy_colour_is_asked_only_where_samples_weigh_and_moves_a_ray_by_at_m
     weights left out, and opacity and depth not at all."""
     from nerfgauge.nerf import packed
 
-    counts, sigma, rgb, edges, keep = ragged_case(seed=7, n_rays=40, max_samples=60, dtype=torch.float64)
+    sigma, rgb, keep, rays, t_mid, near, far, step = _packed_case(seed=7)
     sigma[::3] = 0.05  # faint rays, whose samples mostly weigh little
-    rays = torch.arange(len(counts))[:, None].expand_as(keep)[keep]
-    step = 0.1
-    t_mid = (torch.arange(keep.shape[1], dtype=torch.float64) * step + 0.05)[None, :].expand_as(keep)[keep]
-    near = torch.zeros(len(counts), dtype=torch.float64)
-    far = torch.full((len(counts),), keep.shape[1] * step, dtype=torch.float64)
     s, c = sigma[keep], rgb[keep]
     asked = []
 
@@ -221,7 +223,7 @@ def test_a_lazy_colour_is_asked_only_where_samples_weigh_and_moves_a_ray_by_at_m
     left_out = torch.ones(len(s), dtype=torch.bool)
     left_out[asked] = False
     assert (weights[asked] > min_weight * (1 - 1e-9)).all() and len(asked) < len(s)
-    bound = torch.zeros(len(counts), dtype=torch.float64).index_add_(0, rays, weights * left_out)
+    bound = torch.zeros(len(near), dtype=torch.float64).index_add_(0, rays, weights * left_out)
     assert ((got[0] - full[0]).abs().amax(dim=1) <= bound + 1e-12).all()
     assert torch.equal(got[1], full[1]) and torch.equal(got[2], full[2])
 
