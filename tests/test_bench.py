@@ -144,3 +144,13 @@ def test_bench_targets_keeps_a_skipped_parts_earlier_figures(tmp_path):
     assert rows["geometry scores within 0.5% of an exact point-to-surface computation"]["met"]
     saved = json.loads((out / "targets.json").read_text())
     assert set(saved["parts"]) == {"train", "exact_geometry"} and "--skip" in saved["command"]
+
+
+def test_bench_targets_refuses_an_earlier_file_it_cannot_read_in_one_line(tmp_path, capsys):
+    out = tmp_path / "targets"
+    assert main(["bench", "targets", "--skip", "train,geometry,exact_geometry,hard,inside_check", "--out", str(out)]) == 0
+    capsys.readouterr()
+    (out / "targets.json").write_text(json.dumps({"parts": {"train": ["not", "a", "table"]}}))
+    assert main(["bench", "targets", "--skip", "train,geometry,exact_geometry,hard,inside_check", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not a bench targets file" in err

@@ -174,6 +174,22 @@ def target_rows(parts: dict) -> list[dict]:
     return rows
 
 
+def _earlier_parts(path: Path, skip: tuple) -> dict:
+    """The parts named in `skip` from an earlier run's targets.json (none without one), the
+    train part's budgets back as numbers (JSON keys are strings); InputError when the file
+    is not what this bench writes."""
+    if not path.is_file():
+        return {}
+    earlier = read_json(path).get("parts")
+    try:
+        kept = {name: dict(earlier[name]) for name in skip if name in earlier}
+        if "train" in kept:
+            kept["train"] = {int(float(budget)): dict(row) for budget, row in kept["train"].items()}
+    except (TypeError, ValueError, KeyError) as error:
+        raise InputError(f"{path} is not a bench targets file ({error}); move it away to start afresh") from None
+    return kept
+
+
 def targets_markdown(rows: list[dict], command: str) -> str:
     lines = [f"`{command}`", "", "| target | figure | met |", "|---|---|---|"]
     lines += [f"| {r['target']} | {r['figure']} | {'yes' if r['met'] else '**no**'} |" for r in rows]
@@ -198,10 +214,7 @@ def bench_targets(out, skip: tuple = (), progress_print=print) -> list[dict]:
         return rows
 
     with claim_bench_folder(out, "targets"):
-        earlier = read_json(out / "targets.json")["parts"] if (out / "targets.json").is_file() else {}
-        parts.update({name: part for name, part in earlier.items() if name in skip})
-        if "train" in parts:  # JSON keys are strings; the budgets are numbers
-            parts["train"] = {int(budget): row for budget, row in parts["train"].items()}
+        parts.update(_earlier_parts(out / "targets.json", skip))
         if "train" not in skip:
             progress_print("bench targets: primitives at 120 and 600 s")
             parts["train"] = primitives_budgets(out / "train")
