@@ -60,9 +60,11 @@ def primitives_budgets(out: Path) -> dict:
     return {int(row["budget"]): row for row in rows if "error" not in row}
 
 
-def geometry_at(run: Path, dataset: Path) -> dict:
-    """Part 2: mesh and geometry scores of `run`, written into the run's folder (single-file
-    outputs never go into a bench folder itself: core.outputs)."""
+def geometry_at(run: Path) -> dict:
+    """Part 2: mesh and geometry scores of `run` against the dataset it was trained on (its
+    config.json says which), written into the run's folder (single-file outputs never go
+    into a bench folder itself: core.outputs)."""
+    dataset = read_json(run / "config.json")["dataset"]
     _run(["mesh", run, "-o", run / "mesh.ply"], "mesh")
     _run(["geometry", dataset, "--pred-mesh", run / "mesh.ply", "--run", run, "-o", run / "geometry.json"], "geometry")
     return read_json(run / "geometry.json")
@@ -221,9 +223,7 @@ def bench_targets(out, skip: tuple = (), progress_print=print) -> list[dict]:
             save()
         if "geometry" not in skip and parts.get("train", {}).get(120):
             progress_print("bench targets: geometry of the 120-s run")
-            run = Path(parts["train"][120]["log"]).parent
-            dataset = out / "train" / "datasets" / "primitives-128x128-100"
-            parts["geometry"] = geometry_at(run, dataset)
+            parts["geometry"] = geometry_at(Path(parts["train"][120]["log"]).parent)
             save()
         if "exact_geometry" not in skip:
             progress_print("bench targets: exact geometry scores")

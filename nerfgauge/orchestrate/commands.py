@@ -177,7 +177,8 @@ def run_bench_hard(args) -> int:
 
 def run_bench_targets(args) -> int:
     rows = bench_targets(args.out, tuple(args.skip))
-    print(targets_markdown(rows, f"nerfgauge bench targets --out {args.out}"))
+    skipped = f" --skip {','.join(args.skip)}" if args.skip else ""
+    print(targets_markdown(rows, f"nerfgauge bench targets --out {args.out}{skipped}"))
     return 0
 
 
