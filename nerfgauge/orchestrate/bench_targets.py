@@ -72,7 +72,8 @@ def geometry_at(run: Path) -> dict:
 
 def exact_geometry(out: Path) -> dict:
     """Part 3: the largest |scored / exact - 1| over both offsets and both directions,
-    from the displaced-mesh script's "now / exact" lines (None without the repository)."""
+    from the displaced-mesh script's "now / exact" lines (a note instead without the
+    repository's script)."""
     if not DISPLACED_SCRIPT.is_file():
         return {"note": f"not run: {DISPLACED_SCRIPT} is in the repository only"}
     result = subprocess.run([sys.executable, str(DISPLACED_SCRIPT)], cwd=DISPLACED_SCRIPT.parents[2],
@@ -192,6 +193,11 @@ def _earlier_parts(path: Path, skip: tuple) -> dict:
     return kept
 
 
+def targets_command(out, skip: tuple = ()) -> str:
+    """The command line a bench targets run records (targets.json, targets.md) and prints."""
+    return f"nerfgauge bench targets --out {out}" + (f" --skip {','.join(skip)}" if skip else "")
+
+
 def targets_markdown(rows: list[dict], command: str) -> str:
     lines = [f"`{command}`", "", "| target | figure | met |", "|---|---|---|"]
     lines += [f"| {r['target']} | {r['figure']} | {'yes' if r['met'] else '**no**'} |" for r in rows]
@@ -206,7 +212,7 @@ def bench_targets(out, skip: tuple = (), progress_print=print) -> list[dict]:
         raise InputError(f"--skip: unknown part(s) {sorted(unknown)}; choose from train, geometry, exact_geometry, "
                          "hard, inside_check")
     out = Path(out)
-    command = f"nerfgauge bench targets --out {out}" + (f" --skip {','.join(skip)}" if skip else "")
+    command = targets_command(out, skip)
     parts = {}
 
     def save():

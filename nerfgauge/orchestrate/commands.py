@@ -18,7 +18,7 @@ from nerfgauge.orchestrate.bench_hard import HardConfig, bench_hard, table_markd
 from nerfgauge.orchestrate.bench_lens import run_lens_bench
 from nerfgauge.orchestrate.bench_read import bench_read, table_markdown as read_table_markdown
 from nerfgauge.orchestrate.bench_scaling import ScalingConfig, bench_scaling, report_markdown
-from nerfgauge.orchestrate.bench_targets import bench_targets, targets_markdown
+from nerfgauge.orchestrate.bench_targets import bench_targets, targets_command, targets_markdown
 from nerfgauge.scenes import HARD_SCENES
 
 
@@ -177,8 +177,7 @@ def run_bench_hard(args) -> int:
 
 def run_bench_targets(args) -> int:
     rows = bench_targets(args.out, tuple(args.skip))
-    skipped = f" --skip {','.join(args.skip)}" if args.skip else ""
-    print(targets_markdown(rows, f"nerfgauge bench targets --out {args.out}{skipped}"))
+    print(targets_markdown(rows, targets_command(args.out, tuple(args.skip))))
     return 0
 
 
