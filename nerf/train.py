@@ -17,6 +17,7 @@ trajectory of a steps-run.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -27,8 +28,8 @@ from pathlib import Path
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig,
-                                   resolve, upsample_count)
+from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MAX_STAGE_STEPS, MIN_STAGE_STEPS,
+                                   TRAIN_PIXEL_SAMPLES, TrainConfig, resolve, upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import box_frame
 from nerfgauge.nerf.grid_field import node_mask
@@ -46,13 +47,14 @@ from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remov
 
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 HEAD_SEED_OFFSET = 2  # the residual colour head's hidden layer: seed + 2 (seed + 1 draws the model's)
-# A time budget takes a finer grid only if it can still give it this many steps (projected
-# from the current stage's step rate, scaled by the resolution ratio: samples per ray grow
-# with it). Measured on primitives, 120 s, 2 CPU cores (BENCHMARKS.md): at 256 px the 218
-# grid got ~640 steps and scored 37.5 dB, the 137 grid it skipped to ~1300-1500 steps and
-# 38.7. The projection is pessimistic from the 86 grid (it said ~930 for the 137 grid's
-# 1300: part of a step does not grow with the resolution) and close from 137 (~690 for 640),
-# so the bar sits between: at 1000 the four-stage ladder stopped at 86 (36.7 dB).
+# A time budget keeps a finer grid only if it can still give it this many steps: the finer
+# grid trains GROWTH_TRIAL_STEPS steps first, timed, and the growth is undone when its
+# measured rate times the seconds left falls short. Measured on primitives, 120 s, 2 CPU
+# cores (BENCHMARKS.md): at 256 px the 218 grid got ~640 steps and scored 37.5 dB, the 137
+# grid it skipped to ~1300-1500 steps and 38.7, so the bar sits between. (A projection from
+# the coarser grid's rate times the resolution ratio, used before, was 35% pessimistic from
+# the 68 grid at 128 px: the 109 grid ran at 0.84x its rate, not 0.62x, and two idle 120-s
+# runs split 41.32 / 39.33 dB on which side of the bar it fell.)
 MIN_STEPS_AT_FINER = 800
 # ... and only for the last growth: earlier stages are cheap (a 76-voxel grid costs a
 # fraction of a 218 one), and a bar set on primitives' rates kept far-reaching's
@@ -63,6 +65,8 @@ BUDGET_DECIDES_LAST_GROWTHS = 1
 # scored 27.35 dB with the 192 grid's ~170 steps (the projection said ~173) against 26.83
 # with the 121 grid the bar kept (BENCHMARKS.md).
 BUDGET_DECIDES_IN = ("bounded", "forward")
+GROWTH_TRIAL_WARMUP = 5  # steps of a new grid not timed: the first allocate its rows and moments
+GROWTH_TRIAL_STEPS = 40  # steps timed after them; ~3 s of a 120-s budget at 128 px
 VISIBILITY_AT = (0.4, 0.7, 1.0)  # fractions where hidden cells are measured and skipped
 VISIBILITY_RAY_STRIDE = 4  # every 4th training ray is enough to see every visible cell ...
 # ... up to this many rays (100 views of 128 px). Beyond it, measuring costs more than the
@@ -121,21 +125,14 @@ def psnr_on_white(model, rays, device, max_rays: int) -> float:
     return float((-10 * torch.log10(per_view)).mean())
 
 
-def projected_steps_at_finer(config: TrainConfig, state: LoopState) -> float | None:
-    """Steps a time budget would still give the next stage's finer grid: the current
-    stage's step rate, slowed by the resolution ratio, times the seconds left. None for a
-    --steps run (its schedule is fixed by the step count, so it stays reproducible) and
-    for the vanilla model; None too for growths before the last BUDGET_DECIDES_LAST_GROWTHS
-    and outside BUDGET_DECIDES_IN (those always happen)."""
-    if config.budget_seconds is None or config.model != "compact" or state.stage_seconds <= 0:
-        return None
-    if config.parametrisation not in BUDGET_DECIDES_IN:
-        return None
-    if state.stage < upsample_count(config.start_resolution, config.final_resolution) - BUDGET_DECIDES_LAST_GROWTHS:
-        return None
-    current, finer = resolution_at(config, state.stage), resolution_at(config, state.stage + 1)
-    rate = state.stage_steps / state.stage_seconds * current / finer
-    return rate * max(config.budget_seconds - state.seconds, 0.0)
+def budget_decides_growth(config: TrainConfig, state: LoopState) -> bool:
+    """Whether the growth from `state.stage` is the budget's to decide (a trial, then keep
+    or undo): only for a time budget's compact model, in BUDGET_DECIDES_IN, for the last
+    BUDGET_DECIDES_LAST_GROWTHS growths. A --steps run's schedule is fixed by its step
+    count, so it stays reproducible."""
+    if config.budget_seconds is None or config.model != "compact" or config.parametrisation not in BUDGET_DECIDES_IN:
+        return False
+    return state.stage >= upsample_count(config.start_resolution, config.final_resolution) - BUDGET_DECIDES_LAST_GROWTHS
 
 
 def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int, int]:
@@ -154,8 +151,8 @@ def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int,
 
 def upsample_at(config: TrainConfig, stage: int) -> float:
     """Fraction of the budget where the grid grows from `stage` to the next: evenly spaced
-    up to LAST_UPSAMPLE_AT (0.1, 0.2, 0.3 for three stages), so the final grid always
-    trains for the last 70%."""
+    up to LAST_UPSAMPLE_AT (0.1, 0.2, 0.3 for three stages), so the final grid trains for at
+    least the last 70%; a stage that reaches MAX_STAGE_STEPS steps grows before its fraction."""
     return LAST_UPSAMPLE_AT * (stage + 1) / upsample_count(config.start_resolution, config.final_resolution)
 
 
@@ -323,6 +320,50 @@ class Training:
     loop: LoopState
 
 
+@dataclass
+class GrowthTrial:
+    """A growth on trial: the coarser grid's model, optimiser and loop counters as they were
+    before it (restored when the growth is undone), and the finer stage's seconds when its
+    timed steps began (None during the warm-up)."""
+
+    model: RadianceModel
+    optimizer: torch.optim.Adam
+    loop: LoopState
+    timed_from: float | None = None
+
+
+def begin_growth_trial(training: Training) -> GrowthTrial:
+    """Snapshot what a growth changes; one deepcopy keeps the optimiser on the copied
+    parameters. (Not in checkpoint.pt: a run resumed during a trial keeps the growth.)"""
+    model, optimizer = copy.deepcopy((training.model, training.optimizer))
+    return GrowthTrial(model, optimizer, dataclasses.replace(training.loop))
+
+
+def steps_on_trial(config: TrainConfig, state: LoopState, trial: GrowthTrial) -> float | None:
+    """The steps the finer grid on trial would get in all: those done, plus its measured
+    rate over the GROWTH_TRIAL_STEPS after the warm-up times the budget's seconds left.
+    None until those steps are timed (it records when the timed steps begin)."""
+    if trial.timed_from is None:
+        if state.stage_steps >= GROWTH_TRIAL_WARMUP:
+            trial.timed_from = state.stage_seconds
+        return None
+    timed = state.stage_seconds - trial.timed_from
+    if state.stage_steps < GROWTH_TRIAL_WARMUP + GROWTH_TRIAL_STEPS or timed <= 0:
+        return None
+    rate = (state.stage_steps - GROWTH_TRIAL_WARMUP) / timed
+    return state.stage_steps + rate * max(config.budget_seconds - state.seconds, 0.0)
+
+
+def undo_growth(training: Training, trial: GrowthTrial) -> None:
+    """Back to the coarser grid as it was before the trial, which becomes the final one.
+    The step count, training seconds and ray generator run on: the trial's time was spent."""
+    state = training.loop
+    training.model, training.optimizer = trial.model, trial.optimizer
+    for name in ("stage", "stage_steps", "stage_seconds", "visibility_done", "colour_head"):
+        setattr(state, name, getattr(trial.loop, name))
+    state.last_stage = state.stage
+
+
 def _start_training(run_dir: Path, config: TrainConfig, aabb, space, device, saved: dict | None) -> Training:
     """A new run's model, optimiser and generator from the config's seeds, or a resumed
     run's from its checked checkpoint `saved`."""
@@ -388,6 +429,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     # the step of the checkpoint on disk, and when (wall clock) it was written
     checkpointed_step = state.step if saved is not None else None
     last_checkpoint = time.monotonic() if saved is not None else -math.inf
+    trial = None  # the last growth while the budget decides whether to keep it (GrowthTrial)
     try:
         while True:
             fraction_done = state.step / config.steps if config.steps else state.seconds / config.budget_seconds
@@ -423,18 +465,24 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
             if fraction_done >= 1:
                 break
             start = time.perf_counter()
-            if state.stage < state.last_stage and fraction_done >= upsample_at(config, state.stage) \
-                    and state.stage_steps >= MIN_STAGE_STEPS:
-                projected = projected_steps_at_finer(config, state)
+            if state.stage < state.last_stage and state.stage_steps >= MIN_STAGE_STEPS \
+                    and (fraction_done >= upsample_at(config, state.stage) or state.stage_steps >= MAX_STAGE_STEPS):
+                if budget_decides_growth(config, state):
+                    trial = begin_growth_trial(training)
+                state.stage += 1
+                state.stage_steps, state.stage_seconds = 0, 0.0
+            elif trial is not None:
+                projected = steps_on_trial(config, state, trial)
                 if projected is not None and projected < MIN_STEPS_AT_FINER:
-                    state.last_stage = state.stage
+                    finer = model.field.resolution
+                    undo_growth(training, trial)
+                    model = training.model
                     if progress:
-                        tqdm.write(f"keeping the {model.field.resolution}-voxel grid: the budget would give a "
-                                   f"{resolution_at(config, state.stage + 1)}-voxel one about {projected:.0f} "
-                                   f"steps (< {MIN_STEPS_AT_FINER})")
-                else:
-                    state.stage += 1
-                    state.stage_steps, state.stage_seconds = 0, 0.0
+                        tqdm.write(f"keeping the {model.field.resolution}-voxel grid: the budget would give the "
+                                   f"{finer}-voxel one about {projected:.0f} steps at its measured rate "
+                                   f"(< {MIN_STEPS_AT_FINER})")
+                if projected is not None:
+                    trial = None
             if state.colour_head == 0 and model.has_grid and state.stage == state.last_stage \
                     and state.stage_steps >= MIN_STAGE_STEPS:  # the final grid has settled: add the head now
                 state.colour_head = 1 if config.colour_head else -1

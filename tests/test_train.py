@@ -204,45 +204,116 @@ def test_resume_refuses_another_parametrisation(small_dataset, tmp_path, capsys)
                              "--parametrisation", "ndcx"], "unknown parametrisation 'ndcx'")
 
 
-def test_projected_steps_at_the_finer_grid_follow_rate_resolution_and_time_left():
-    """A budget run projects the next stage's steps as the current stage's rate, slowed by
-    the resolution ratio (samples per ray grow with it), times the seconds left; a --steps
-    run never projects (its schedule stays reproducible)."""
+def test_the_budget_decides_only_its_last_growths_in_bounded_and_forward_space():
+    """A --steps run never trials a growth (its schedule stays reproducible); nor does a
+    budget for growths before the last BUDGET_DECIDES_LAST_GROWTHS, nor in contracted space."""
     import dataclasses
 
     from nerfgauge.nerf.checkpoint import LoopState
     from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.train import projected_steps_at_finer, resolution_at
+    from nerfgauge.nerf.train import BUDGET_DECIDES_LAST_GROWTHS, budget_decides_growth
 
     config = TrainConfig("d", budget_seconds=120.0, final_resolution=108, start_resolution=27,
                          parametrisation="bounded")
-    state = LoopState(stage=2, stage_steps=200, stage_seconds=10.0, seconds=36.0)
-    current, finer = resolution_at(config, 2), resolution_at(config, 3)
-    assert (current, finer) == (68, 108)  # 27 * 4^(2/3) = 68.03
-    assert projected_steps_at_finer(config, state) == pytest.approx(20.0 * current / finer * 84.0)
-    steps_run = TrainConfig("d", steps=500, final_resolution=108, start_resolution=27)
-    assert projected_steps_at_finer(steps_run, state) is None
-    # Growths before the last BUDGET_DECIDES_LAST_GROWTHS are not the budget's to decide.
-    from nerfgauge.nerf.train import BUDGET_DECIDES_LAST_GROWTHS
-    earlier = dataclasses.replace(state, stage=2 - BUDGET_DECIDES_LAST_GROWTHS)
-    assert projected_steps_at_finer(config, earlier) is None
-    # Contracted space always takes its final grid.
-    assert projected_steps_at_finer(dataclasses.replace(config, parametrisation="contracted"), state) is None
-    assert projected_steps_at_finer(dataclasses.replace(config, parametrisation="forward"), state) is not None
+    last = LoopState(stage=3 - BUDGET_DECIDES_LAST_GROWTHS)
+    assert budget_decides_growth(config, last)
+    assert not budget_decides_growth(dataclasses.replace(config, budget_seconds=None, steps=500), last)
+    assert not budget_decides_growth(config, dataclasses.replace(last, stage=last.stage - 1))
+    assert not budget_decides_growth(dataclasses.replace(config, parametrisation="contracted"), last)
+    assert budget_decides_growth(dataclasses.replace(config, parametrisation="forward"), last)
+
+
+def test_a_growth_on_trial_is_judged_by_its_own_measured_rate():
+    """The finer grid's steps in all = steps done + (timed steps / their seconds) x the
+    budget's seconds left; the warm-up steps are not timed, and nothing is judged before
+    GROWTH_TRIAL_STEPS are timed."""
+    from nerfgauge.nerf.checkpoint import LoopState
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.train import GROWTH_TRIAL_STEPS, GROWTH_TRIAL_WARMUP, GrowthTrial, steps_on_trial
+
+    config = TrainConfig("d", budget_seconds=120.0, parametrisation="bounded")
+    trial = GrowthTrial(None, None, LoopState())
+    warm = LoopState(stage_steps=GROWTH_TRIAL_WARMUP, stage_seconds=2.0, seconds=40.0)
+    assert steps_on_trial(config, warm, trial) is None and trial.timed_from == 2.0
+    early = LoopState(stage_steps=GROWTH_TRIAL_WARMUP + GROWTH_TRIAL_STEPS - 1, stage_seconds=5.0, seconds=43.0)
+    assert steps_on_trial(config, early, trial) is None
+    done = LoopState(stage_steps=GROWTH_TRIAL_WARMUP + GROWTH_TRIAL_STEPS, stage_seconds=6.0, seconds=44.0)
+    rate = GROWTH_TRIAL_STEPS / (6.0 - 2.0)
+    assert steps_on_trial(config, done, trial) == pytest.approx(done.stage_steps + rate * (120.0 - 44.0))
+
+
+def test_an_undone_growth_restores_the_coarser_model_and_its_optimiser_exactly():
+    """Undo gives back the parameters and Adam moments from before the trial, with the
+    optimiser on the restored parameters (not the trial's), and the coarser stage becomes
+    the last; the steps and seconds the trial spent stay counted."""
+    from nerfgauge.nerf.checkpoint import LoopState
+    from nerfgauge.nerf.train import Training, begin_growth_trial, undo_growth
+
+    model = torch.nn.Linear(3, 2)
+    optimizer = torch.optim.Adam(model.parameters(), lr=0.1)
+    model(torch.ones(1, 3)).sum().backward()
+    optimizer.step()
+    before = {name: value.clone() for name, value in model.state_dict().items()}
+    moments = optimizer.state[model.weight]["exp_avg"].clone()
+    state = LoopState(step=300, seconds=40.0, stage=2, stage_steps=120, stage_seconds=9.0, last_stage=3,
+                      visibility_done=0)
+    training = Training(model, optimizer, torch.Generator(), state)
+    trial = begin_growth_trial(training)
+    state.stage, state.stage_steps, state.stage_seconds, state.visibility_done = 3, 45, 4.0, 1
+    state.step, state.seconds = 345, 44.0
+    for _ in range(3):  # the trial trains the (here: same-shaped) model on
+        model(torch.ones(1, 3)).sum().backward()
+        optimizer.step()
+    undo_growth(training, trial)
+    for name, value in training.model.state_dict().items():
+        assert torch.equal(value, before[name])
+    assert torch.equal(training.optimizer.state[training.model.weight]["exp_avg"], moments)
+    assert {id(p) for group in training.optimizer.param_groups for p in group["params"]} == \
+        {id(p) for p in training.model.parameters()}
+    assert (state.stage, state.last_stage, state.stage_steps, state.stage_seconds) == (2, 2, 120, 9.0)
+    assert (state.step, state.seconds, state.visibility_done) == (345, 44.0, 0)
+
+
+def test_a_coarse_grid_is_left_after_max_stage_steps_however_long_the_run(small_dataset, tmp_path, monkeypatch):
+    """A long run's coarse stages end after MAX_STAGE_STEPS steps each, before their share
+    of the run (here step 6, 12, 18 of 60), so the final grid gets the time they would
+    have taken. (Both bounds patched small so the run is short.)"""
+    import nerfgauge.nerf.train as train_module
+
+    monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 2)
+    monkeypatch.setattr(train_module, "MAX_STAGE_STEPS", 4)
+    resolutions = []  # the grid each step trained
+    real_step = train_module._train_step
+
+    def spy(training, *args, **kwargs):
+        result = real_step(training, *args, **kwargs)
+        resolutions.append(training.model.field.resolution)
+        return result
+
+    monkeypatch.setattr(train_module, "_train_step", spy)
+    run = tmp_path / "long"
+    assert main(["train", str(small_dataset), "--out", str(run), "--steps", "60", "--quiet"]) == 0
+    config = json.loads((run / "config.json").read_text())
+    stages = train_module.upsample_count(config["start_resolution"], config["final_resolution"])
+    growths = [step for step in range(1, len(resolutions)) if resolutions[step] != resolutions[step - 1]]
+    assert growths == [4 * (stage + 1) for stage in range(stages)]
+    assert resolutions[-1] == config["final_resolution"]
 
 
 @pytest.mark.parametrize("min_steps, grows", [(10**9, False), (0, True)])
 def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small_dataset, tmp_path, monkeypatch,
                                                                           min_steps, grows):
-    """With the projection's bar out of reach the run still takes the growths the budget
-    does not decide, keeps the grid before the last one and its log says so; with no bar it
+    """With the trial's bar out of reach the run still takes the growths the budget does
+    not decide, undoes the last one after its trial and its log says so; with no bar it
     grows as a --steps run does. (The bar and the steps a stage needs are patched so the
-    decision does not depend on this machine's speed.)"""
+    decision does not depend on this machine's speed, and the trial ends within the budget.)"""
     import nerfgauge.nerf.train as train_module
     from nerfgauge.nerf.config import TrainConfig, upsample_count
 
     monkeypatch.setattr(train_module, "MIN_STEPS_AT_FINER", min_steps)
     monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 3)
+    monkeypatch.setattr(train_module, "GROWTH_TRIAL_WARMUP", 1)
+    monkeypatch.setattr(train_module, "GROWTH_TRIAL_STEPS", 3)
     run = tmp_path / "budget"
     assert main(["train", str(small_dataset), "--out", str(run), "--budget-seconds", "4", "--quiet"]) == 0
     config = json.loads((run / "config.json").read_text())
@@ -258,7 +329,7 @@ def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small
         kept = train_module.resolution_at(ladder, upsample_count(start, final)
                                           - train_module.BUDGET_DECIDES_LAST_GROWTHS)
         assert start <= kept < final
-        assert max(entry["resolution"] for entry in log) == kept == saved
+        assert log[-1]["resolution"] == kept == saved
         assert log[-1]["final_resolution"] == kept
 
 
