@@ -63,10 +63,6 @@ START_VOXELS = 32
 MIN_UPSAMPLES = 3
 LAST_UPSAMPLE_AT = 0.3  # the grid grows at evenly spaced fractions of the budget up to this ...
 MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
-# ... or earlier, once a coarser grid had this many: it only has to find where matter is, and
-# beyond a few hundred steps a long budget's time buys more at the final grid (primitives
-# 128 px, 600 s: the 27, 43 and 68 grids took the first 180 s, ~700 steps each; BENCHMARKS.md).
-MAX_STAGE_STEPS = 300
 
 
 @dataclass(frozen=True)

@@ -28,8 +28,8 @@ from pathlib import Path
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MAX_STAGE_STEPS, MIN_STAGE_STEPS,
-                                   TRAIN_PIXEL_SAMPLES, TrainConfig, resolve, upsample_count)
+from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, TRAIN_PIXEL_SAMPLES, TrainConfig,
+                                   resolve, upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import box_frame
 from nerfgauge.nerf.grid_field import node_mask
@@ -151,8 +151,8 @@ def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int,
 
 def upsample_at(config: TrainConfig, stage: int) -> float:
     """Fraction of the budget where the grid grows from `stage` to the next: evenly spaced
-    up to LAST_UPSAMPLE_AT (0.1, 0.2, 0.3 for three stages), so the final grid trains for at
-    least the last 70%; a stage that reaches MAX_STAGE_STEPS steps grows before its fraction."""
+    up to LAST_UPSAMPLE_AT (0.1, 0.2, 0.3 for three stages), so the final grid always
+    trains for the last 70%."""
     return LAST_UPSAMPLE_AT * (stage + 1) / upsample_count(config.start_resolution, config.final_resolution)
 
 
@@ -465,8 +465,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
             if fraction_done >= 1:
                 break
             start = time.perf_counter()
-            if state.stage < state.last_stage and state.stage_steps >= MIN_STAGE_STEPS \
-                    and (fraction_done >= upsample_at(config, state.stage) or state.stage_steps >= MAX_STAGE_STEPS):
+            if state.stage < state.last_stage and fraction_done >= upsample_at(config, state.stage) \
+                    and state.stage_steps >= MIN_STAGE_STEPS:
                 if budget_decides_growth(config, state):
                     trial = begin_growth_trial(training)
                 state.stage += 1

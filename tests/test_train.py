@@ -274,32 +274,6 @@ def test_an_undone_growth_restores_the_coarser_model_and_its_optimiser_exactly()
     assert (state.step, state.seconds, state.visibility_done) == (345, 44.0, 0)
 
 
-def test_a_coarse_grid_is_left_after_max_stage_steps_however_long_the_run(small_dataset, tmp_path, monkeypatch):
-    """A long run's coarse stages end after MAX_STAGE_STEPS steps each, before their share
-    of the run (here step 6, 12, 18 of 60), so the final grid gets the time they would
-    have taken. (Both bounds patched small so the run is short.)"""
-    import nerfgauge.nerf.train as train_module
-
-    monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 2)
-    monkeypatch.setattr(train_module, "MAX_STAGE_STEPS", 4)
-    resolutions = []  # the grid each step trained
-    real_step = train_module._train_step
-
-    def spy(training, *args, **kwargs):
-        result = real_step(training, *args, **kwargs)
-        resolutions.append(training.model.field.resolution)
-        return result
-
-    monkeypatch.setattr(train_module, "_train_step", spy)
-    run = tmp_path / "long"
-    assert main(["train", str(small_dataset), "--out", str(run), "--steps", "60", "--quiet"]) == 0
-    config = json.loads((run / "config.json").read_text())
-    stages = train_module.upsample_count(config["start_resolution"], config["final_resolution"])
-    growths = [step for step in range(1, len(resolutions)) if resolutions[step] != resolutions[step - 1]]
-    assert growths == [4 * (stage + 1) for stage in range(stages)]
-    assert resolutions[-1] == config["final_resolution"]
-
-
 @pytest.mark.parametrize("min_steps, grows", [(10**9, False), (0, True)])
 def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small_dataset, tmp_path, monkeypatch,
                                                                           min_steps, grows):
