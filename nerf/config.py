@@ -33,6 +33,12 @@ EDGE_PIXEL_SAMPLES = 4
 # than they gain (`pixel_filter_for`).
 EDGE_SHARE_MAX = 1 / 3
 PIXEL_FILTERS = tuple(TRAIN_PIXEL_SAMPLES)
+# An `edges` run's render filters, cheapest first: rays per axis on the centre render's edge
+# pixels (nerf.frames.box_frame), 1 for the centre ray alone. 3 x 3: a model trained through
+# fixed points keeps edges sharp (nerf.train.pixel_sample_offsets), and the box mean of a
+# sharp edge wants more than 2 x 2 points (primitives 128 px, 300 s: 43.09 dB against 42.94;
+# far-object 64 px: 45.04 against 43.70; BENCHMARKS.md, "Train through the render's points").
+RENDER_FILTERS = {"centre": 1, "edges": 2, "edges-3x3": 3}
 # The sparse grid stores values only where cells are occupied, but its node index (4 bytes
 # a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing
@@ -113,9 +119,9 @@ class TrainConfig:
     # None: every train view. Left out of config.json when None, so older runs keep their recipe.
     sparse: Optional[int] = None
     # How an `edges` run's frames are rendered, chosen at the end of training on the val
-    # views (nerf.train.choose_render_filter): "edges" (2 x 2 rays on the centre render's
-    # edge pixels) or "centre". None: not chosen (any other filter renders by its own rule).
-    # Left out of config.json when None; not part of the recipe (it follows from it).
+    # views (nerf.train.choose_render_filter), one of RENDER_FILTERS. None: not chosen (any
+    # other filter renders by its own rule). Left out of config.json when None; not part of
+    # the recipe (it follows from it).
     render_filter: Optional[str] = None
     # priors on rays from unseen viewpoints (nerf.sparse_priors; the compact model's): None:
     # on for a sparse capture from inside the scene (`sparse_priors_for`). Left out of
@@ -140,8 +146,8 @@ class TrainConfig:
             raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
         if self.pixel_filter is not None and self.pixel_filter not in PIXEL_FILTERS:
             raise InputError(f"unknown pixel filter {self.pixel_filter!r}; choose {', '.join(PIXEL_FILTERS)}")
-        if self.render_filter not in (None, "edges", "centre"):
-            raise InputError(f"unknown render filter {self.render_filter!r}; choose edges or centre")
+        if self.render_filter is not None and self.render_filter not in RENDER_FILTERS:
+            raise InputError(f"unknown render filter {self.render_filter!r}; choose {', '.join(RENDER_FILTERS)}")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
         # every number through its range: the command line's (core.arguments) where it has a flag

@@ -26,7 +26,8 @@ PARTS_PER_THREAD = 4
 # Rays per pixel along each axis by the run's pixel filter (nerf.config.PIXEL_FILTERS): a
 # box-trained model renders the mean of 2 x 2 rays through each pixel, the box filter the
 # ground truth applies (docs/conventions.md, "Pixel footprint"); a centre-trained one its
-# centre ray.
+# centre ray. An `edges` run renders by the filter chosen on its val views instead
+# (nerf.config.RENDER_FILTERS), when it has one.
 PIXEL_SAMPLES = {"box": 2, "jitter": 2, "centre": 1, "edges": 2}
 # Pixel filters whose renders spend those rays on edge pixels only: the centre render's
 # edges (nerfgauge.core.pixel_edges.edge_mask of the rendered RGBA), as training found them

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
-from nerfgauge.nerf.config import pixel_filter_for
+from nerfgauge.nerf.config import RENDER_FILTERS, pixel_filter_for
 from nerfgauge.nerf.data import split_rays
 from nerfgauge.nerf.frames import EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, lens_frame, render_frame, rgba_png
 from nerfgauge.nerf.runs import open_run_dataset
@@ -85,9 +85,11 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
         arguments.PIXEL_SAMPLES.check(pixel_samples, "--pixel-samples")
     model, config = load_model(run_dir / "model.pt")
     pixel_filter = pixel_filter_for(config)[0]
-    if pixel_filter in EDGES_ONLY and config.render_filter == "centre":  # chosen on the val views (nerf.train)
-        pixel_filter = "centre"
-    pixel_samples = PIXEL_SAMPLES[pixel_filter] if pixel_samples is None else pixel_samples
+    per_axis = PIXEL_SAMPLES[pixel_filter]
+    if pixel_filter in EDGES_ONLY and config.render_filter is not None:  # chosen on the val views (nerf.train)
+        per_axis = RENDER_FILTERS[config.render_filter]
+        pixel_filter = "centre" if per_axis == 1 else pixel_filter
+    pixel_samples = per_axis if pixel_samples is None else pixel_samples
     threads = threads or config.threads
     device = pick_device(config.device)
     if other_dataset and dataset is None:

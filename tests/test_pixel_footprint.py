@@ -82,23 +82,28 @@ def test_a_box_frame_averages_the_rays_through_the_grid_of_points(per_axis):
     assert bool(mixed.any()) == (per_axis > 1)
 
 
-def test_stratified_offsets_put_one_ray_in_each_cell_of_each_pixel():
-    from nerfgauge.nerf.train import stratified_offsets
+def test_pixel_sample_offsets_are_the_box_renders_points_or_one_uniform_point():
+    """2 x 2 and 3 x 3: every pixel's rays go through the centres of its k x k cells, in the
+    order the box render averages them (nerf.frames.pixel_offsets, checked against the
+    midpoint rule by its own test), with no draw from the generator; 1: a uniform point."""
+    from nerfgauge.nerf.train import pixel_sample_offsets
 
     generator = torch.Generator().manual_seed(0)
     n_pixels = 500
-    for per_pixel in (1, 4, 9):
-        offsets = stratified_offsets(n_pixels, per_pixel, generator).view(per_pixel, n_pixels, 2)
-        assert bool(((offsets >= -0.5) & (offsets < 0.5)).all())
+    for per_pixel in (4, 9):
         k = int(round(per_pixel ** 0.5))
-        cells = torch.floor((offsets + 0.5) * k).long()  # [per_pixel, n_pixels, 2] cell of each ray
-        keys = cells[..., 0] + k * cells[..., 1]
-        # ray r of every pixel lies in cell r (x fastest): k^2 distinct cells per pixel
-        assert torch.equal(keys, torch.arange(per_pixel)[:, None].expand(per_pixel, n_pixels))
-        # uniform inside its cell: the mean position over many pixels is the cell's centre
-        centres = (cells.double() + 0.5) / k - 0.5
-        assert torch.allclose((offsets - centres).mean(dim=1), torch.zeros(per_pixel, 2, dtype=torch.float64),
-                              atol=4 * (1 / k) / (12 * n_pixels) ** 0.5)  # 4 standard errors of U[0, 1/k)'s mean
+        state = generator.get_state()
+        offsets = pixel_sample_offsets(n_pixels, per_pixel, generator).view(per_pixel, n_pixels, 2)
+        assert torch.equal(generator.get_state(), state)
+        centres = (torch.arange(k, dtype=torch.float32) + 0.5) / k - 0.5
+        y, x = torch.meshgrid(centres, centres, indexing="ij")  # ray r: cell (r % k, r // k), x fastest
+        expected = torch.stack([x.reshape(-1), y.reshape(-1)], dim=-1)  # [per_pixel, 2]
+        assert torch.allclose(offsets, expected[:, None, :].expand(per_pixel, n_pixels, 2), rtol=0, atol=1e-7)
+    uniform = pixel_sample_offsets(20_000, 1, generator)
+    assert uniform.shape == (20_000, 2) and bool(((uniform >= -0.5) & (uniform < 0.5)).all())
+    # U[-0.5, 0.5): mean 0 and variance 1/12, within 4 standard errors
+    assert torch.allclose(uniform.double().mean(dim=0), torch.zeros(2, dtype=torch.float64), atol=4 * (1 / 12 / 20_000) ** 0.5)
+    assert torch.allclose(uniform.double().var(dim=0), torch.full((2,), 1 / 12, dtype=torch.float64), atol=0.003)
 
 
 def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_centre_elsewhere():
@@ -124,7 +129,7 @@ def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_cent
                                                  box_frame(flat, cameras, 0, 1, None, 1, device)))
 
 
-def test_the_edges_filter_spends_four_stratified_rays_on_edge_pixels_and_the_centre_ray_on_the_rest():
+def test_the_edges_filter_spends_the_box_renders_four_rays_on_edge_pixels_and_the_centre_ray_on_the_rest():
     from nerfgauge.nerf.config import EDGE_PIXEL_SAMPLES
     from nerfgauge.nerf.data import RayBatch
     from nerfgauge.nerf.train import _edge_rays
@@ -143,13 +148,12 @@ def test_the_edges_filter_spends_four_stratified_rays_on_edge_pixels_and_the_cen
     # a plain pixel's one ray is its centre ray
     assert torch.equal(ray_d[:50 - n_edge], rays.directions[index][~is_edge[index]])
     # an edge pixel's rays: block r holds, for every edge pixel in batch order, its ray through
-    # the point of stratified cell r (the same draws from the same generator state;
-    # stratified_offsets' placement is checked above, the ray through a point against
-    # shifted intrinsics)
-    from nerfgauge.nerf.train import stratified_offsets
+    # the centre of cell r (pixel_sample_offsets' placement is checked above, the ray through
+    # a point against shifted intrinsics)
+    from nerfgauge.nerf.train import pixel_sample_offsets
 
     edge_pixels = index[is_edge[index]]
-    offsets = stratified_offsets(n_edge, EDGE_PIXEL_SAMPLES, torch.Generator().manual_seed(1))
+    offsets = pixel_sample_offsets(n_edge, EDGE_PIXEL_SAMPLES, torch.Generator().manual_seed(1))
     expected = jittered_direction(rays.directions[edge_pixels].repeat(EDGE_PIXEL_SAMPLES, 1),
                                   rays.footprint[edge_pixels].repeat(EDGE_PIXEL_SAMPLES, 1, 1), offsets)
     assert torch.equal(ray_d[50 - n_edge:], expected)
@@ -275,11 +279,11 @@ class _FrameModel:
         return self
 
 
-@pytest.mark.parametrize("truth", ["edges", "centre"])
+@pytest.mark.parametrize("truth", ["edges", "centre", "edges-3x3"])
 def test_an_edges_run_keeps_the_render_filter_that_scores_higher_on_its_val_views(tiny_dataset, truth):
-    """Targets made by one of the two renders: that render scores exactly and is kept."""
+    """Targets made by one of the renders: that render scores exactly and is kept."""
     from nerfgauge.core.dataset import open_dataset
-    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.config import RENDER_FILTERS, TrainConfig
     from nerfgauge.nerf.data import RayBatch
     from nerfgauge.nerf.train import choose_render_filter
 
@@ -287,12 +291,16 @@ def test_an_edges_run_keeps_the_render_filter_that_scores_higher_on_its_val_view
     split = "val" if ds.cameras("val").stems else "test"
     cameras = ds.cameras(split)
     device = torch.device("cpu")
-    frames = [box_frame(_FrameModel(), cameras, i, 2 if truth == "edges" else 1, None, 1, device, truth == "edges")
-              for i in range(min(2, len(cameras.stems)))]
+    n_views = min(2, len(cameras.stems))
+
+    def render(per_axis):
+        return [box_frame(_FrameModel(), cameras, i, per_axis, None, 1, device, per_axis > 1) for i in range(n_views)]
+
+    frames = render(RENDER_FILTERS[truth])
     rgba = torch.cat([torch.cat([rgb, opacity[:, None]], dim=1) for rgb, opacity, _ in frames])
-    other = [box_frame(_FrameModel(), cameras, i, 1 if truth == "edges" else 2, None, 1, device, truth != "edges")
-             for i in range(len(frames))]
-    assert all(not torch.equal(a[0], b[0]) for a, b in zip(frames, other))  # the two renders differ somewhere
+    for name, per_axis in RENDER_FILTERS.items():  # each other render differs somewhere
+        if name != truth:
+            assert all(not torch.equal(a[0], b[0]) for a, b in zip(frames, render(per_axis)))
     val = RayBatch(torch.zeros((len(rgba), 3)), torch.zeros((len(rgba), 3)), rgba, len(frames))
     config, reason = choose_render_filter(_FrameModel(), TrainConfig(dataset=str(tiny_dataset), steps=1,
                                                                      pixel_filter="edges"), cameras, val, device)
@@ -303,17 +311,17 @@ def test_an_edges_run_renders_by_its_chosen_filter(tiny_dataset, tmp_path):
     import json
 
     from nerfgauge.nerf.checkpoint import load_checked, save_atomic
-    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.config import RENDER_FILTERS, TrainConfig
     from nerfgauge.nerf.render_views import render_split
     from nerfgauge.nerf.train import train
 
     run = tmp_path / "run"
     train(TrainConfig(dataset=str(tiny_dataset), steps=4, pixel_filter="edges", threads=1), run, progress=False)
     saved = json.loads((run / "config.json").read_text())
-    assert saved["render_filter"] in ("edges", "centre") and saved["auto_reasons"]["render_filter"]
+    assert saved["render_filter"] in RENDER_FILTERS and saved["auto_reasons"]["render_filter"]
     payload = load_checked(run / "model.pt")
-    for chosen, samples in (("centre", 1), ("edges", 2)):
+    for chosen, samples in RENDER_FILTERS.items():
         payload["config"]["render_filter"] = chosen
         save_atomic(payload, run / "model.pt")
         timing = render_split(run, "test", tmp_path / chosen, progress=False)
-        assert timing["pixel_samples"] == samples and timing.get("edges_only", False) == (chosen == "edges")
+        assert timing["pixel_samples"] == samples and timing.get("edges_only", False) == (samples > 1)
