@@ -105,12 +105,21 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
         chosen = torch.from_numpy(np.flatnonzero(edge_mask(straight, alpha_rounding=ALPHA_ROUNDING))).to(device)
         if not len(chosen):  # nothing steps inside any pixel: the centre render is the box render
             return rgb, opacity, depth
-    offsets = torch.from_numpy(pixel_offsets(per_axis).astype(np.float32)).to(device)  # [S, 2]
+    offsets = pixel_offsets(per_axis)  # [S, 2]
+    # an odd grid's middle point is the pixel's centre, whose ray the centre render holds
+    centre_is_a_point = per_axis % 2 == 1
+    if centre_is_a_point:
+        offsets = np.delete(offsets, len(offsets) // 2, axis=0)
+    offsets = torch.from_numpy(offsets.astype(np.float32)).to(device)
     sub_o, sub_d, sub_footprint = centre_o[chosen], centre_d[chosen], footprint[chosen]
     pixels = sub_d.shape[0]
     moved = torch.cat([jittered_direction(sub_d, sub_footprint, offset.expand(pixels, 2)) for offset in offsets])
     sub_rgb, sub_opacity, _ = render_frame(model, sub_o.repeat(len(offsets), 1), moved, pool, parts)
+    rgb_sum = sub_rgb.view(len(offsets), pixels, 3).sum(dim=0)
+    opacity_sum = sub_opacity.view(len(offsets), pixels).sum(dim=0)
+    if centre_is_a_point:
+        rgb_sum, opacity_sum = rgb_sum + rgb[chosen], opacity_sum + opacity[chosen]
     rgb, opacity = rgb.clone(), opacity.clone()
-    rgb[chosen] = sub_rgb.view(len(offsets), pixels, 3).mean(dim=0)
-    opacity[chosen] = sub_opacity.view(len(offsets), pixels).mean(dim=0)
+    rgb[chosen] = rgb_sum / per_axis ** 2
+    opacity[chosen] = opacity_sum / per_axis ** 2
     return rgb, opacity, depth

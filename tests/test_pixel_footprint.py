@@ -106,7 +106,8 @@ def test_pixel_sample_offsets_are_the_box_renders_points_or_one_uniform_point():
     assert torch.allclose(uniform.double().var(dim=0), torch.full((2,), 1 / 12, dtype=torch.float64), atol=0.003)
 
 
-def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_centre_elsewhere():
+@pytest.mark.parametrize("per_axis", [2, 3])
+def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_centre_elsewhere(per_axis):
     from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, edge_mask
     from nerfgauge.nerf.frames import rgba_png
 
@@ -114,8 +115,8 @@ def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_cent
     cameras = SplitCameras("test", ("a",), np.stack([c2w]), intrinsics)
     device = torch.device("cpu")
     centre = box_frame(EdgeField(), cameras, 0, 1, None, 1, device)
-    box = box_frame(EdgeField(), cameras, 0, 2, None, 1, device)
-    rgb, opacity, depth = box_frame(EdgeField(), cameras, 0, 2, None, 1, device, edges_only=True)
+    box = box_frame(EdgeField(), cameras, 0, per_axis, None, 1, device)
+    rgb, opacity, depth = box_frame(EdgeField(), cameras, 0, per_axis, None, 1, device, edges_only=True)
     straight = rgba_png(centre[0].numpy(), centre[1].numpy(), intrinsics.height, intrinsics.width) / 255.0
     edges = edge_mask(straight, alpha_rounding=ALPHA_ROUNDING).reshape(-1)
     assert 0 < edges.sum() < edges.size  # the plane's edge crosses the image, and not everywhere
@@ -125,7 +126,7 @@ def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_cent
     # a frame with no edge pixel at all is its centre render
     flat = SimpleNamespace(render=lambda o, d: SimpleNamespace(rgb=torch.full((len(d), 3), 0.3), opacity=torch.ones(len(d)),
                                                                depth=d[:, 0]))
-    assert all(torch.equal(a, b) for a, b in zip(box_frame(flat, cameras, 0, 2, None, 1, device, edges_only=True),
+    assert all(torch.equal(a, b) for a, b in zip(box_frame(flat, cameras, 0, per_axis, None, 1, device, edges_only=True),
                                                  box_frame(flat, cameras, 0, 1, None, 1, device)))
 
 
