@@ -472,9 +472,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                     trial = begin_growth_trial(training)
                 state.stage += 1
                 state.stage_steps, state.stage_seconds = 0, 0.0
-            elif trial is not None:
-                projected = steps_on_trial(config, state, trial)
-                if projected is not None and projected < MIN_STEPS_AT_FINER:
+            elif trial is not None and (projected := steps_on_trial(config, state, trial)) is not None:
+                if projected < MIN_STEPS_AT_FINER:
                     finer = model.field.resolution
                     undo_growth(training, trial)
                     model = training.model
@@ -482,8 +481,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                         tqdm.write(f"keeping the {model.field.resolution}-voxel grid: the budget would give the "
                                    f"{finer}-voxel one about {projected:.0f} steps at its measured rate "
                                    f"(< {MIN_STEPS_AT_FINER})")
-                if projected is not None:
-                    trial = None
+                trial = None  # judged: the growth stands or is undone
             if state.colour_head == 0 and model.has_grid and state.stage == state.last_stage \
                     and state.stage_steps >= MIN_STAGE_STEPS:  # the final grid has settled: add the head now
                 state.colour_head = 1 if config.colour_head else -1
