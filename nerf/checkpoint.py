@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from nerfgauge.nerf.config import FLAGS, TrainConfig, step_ratio_of
+from nerfgauge.nerf.config import EDGE_POINTS_PER_AXIS, FLAGS, TrainConfig, step_ratio_of
 from nerfgauge.nerf.grid_field import VoxelGridField, node_mask
 from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF
 from nerfgauge.nerf.parametrisation import Space
@@ -50,7 +50,9 @@ class LoopState:
     this resolution; last_stage: the finest stage the run will take (a time budget stops
     growing when a finer grid could not be trained); colour_head: the residual colour head's
     decision (TrainConfig.colour_head), made once the final grid has trained MIN_STAGE_STEPS
-    steps: 0 not yet, 1 added, -1 not."""
+    steps: 0 not yet, 1 added, -1 not; edge_points: rays per axis through an `edges` run's
+    edge pixels (nerf.config.EDGE_POINTS_PER_AXIS, then FINE_EDGE_POINTS_PER_AXIS), and
+    edge_points_step the step it last changed at (0: never)."""
 
     step: int = 0
     seconds: float = 0.0
@@ -62,6 +64,8 @@ class LoopState:
     stage_seconds: float = 0.0
     last_stage: int = 0
     colour_head: int = 0
+    edge_points: int = EDGE_POINTS_PER_AXIS
+    edge_points_step: int = 0
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -73,7 +77,8 @@ class LoopState:
 
 
 # counters added after checkpoint version 2 first shipped, and their value in older files
-LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3, "colour_head": -1}
+LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3, "colour_head": -1, "edge_points": EDGE_POINTS_PER_AXIS,
+                 "edge_points_step": 0}
 
 
 def save_atomic(obj, path) -> int:
@@ -295,7 +300,8 @@ def load_training_checkpoint(path, recipe: dict) -> dict:
         for item in fields(LoopState):
             name, real = item.name, isinstance(item.default, float)  # a float counter also takes an int
             value = loop.setdefault(name, LOOP_DEFAULTS[name]) if name in LOOP_DEFAULTS else loop.get(name)
-            if not isinstance(value, (int, float) if real else int) or isinstance(value, bool):
+            if not isinstance(value, (int, float) if real else int) or isinstance(value, bool) \
+                    or (name == "edge_points" and value < 1):
                 problem = f"loop value {name} is {value!r}"
                 break
     if problem is not None:

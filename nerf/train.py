@@ -29,7 +29,8 @@ import numpy as np
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import (EDGE_PIXEL_SAMPLES, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, RENDER_FILTERS,
+from nerfgauge.nerf.config import (EDGE_POINTS_PER_AXIS, FINE_EDGE_POINTS_AT, FINE_EDGE_POINTS_MIN_STEPS,
+                                   FINE_EDGE_POINTS_PER_AXIS, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, RENDER_FILTERS,
                                    TRAIN_PIXEL_SAMPLES, TrainConfig, resolve, upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import box_frame, pixel_offsets
@@ -449,6 +450,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                          "steps_per_second": state.step / max(state.seconds, 1e-9),
                          "loss": sum(losses) / len(losses) if losses else None}
                 losses.clear()
+                if config.pixel_filter == "edges":
+                    entry["edge_points"] = state.edge_points
                 if model.has_grid:
                     entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean()),
                               "final_resolution": resolution_at(config, state.last_stage)}
@@ -487,6 +490,11 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                 state.colour_head = 1 if config.colour_head else -1
                 if progress and config.colour_head:
                     tqdm.write(f"adding the residual colour head at step {state.step}")
+            if fine_edge_points_due(config, state, fraction_done, trial):
+                state.edge_points, state.edge_points_step = FINE_EDGE_POINTS_PER_AXIS, state.step
+                if progress:
+                    tqdm.write(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
+                               f"from step {state.step}")
             loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
             if not (math.isfinite(loss) and gradients_finite):
                 raise NumericalError(
@@ -504,6 +512,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
         bar.close()
         log.close()
     if config.pixel_filter == "edges":
+        reasons["edge_points"] = edge_points_reason(state)
         config, reasons["render_filter"] = choose_render_filter(model, config, val_cameras, val_rays, device)
         write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
                                       "recipe": recipe})
@@ -561,6 +570,28 @@ def _grow_grid(training: Training, config: TrainConfig) -> None:
         group["lr"] = rate
 
 
+def fine_edge_points_due(config: TrainConfig, state: LoopState, fraction_done: float,
+                         trial: GrowthTrial | None) -> bool:
+    """Whether an `edges` run's edge pixels now train through FINE_EDGE_POINTS_PER_AXIS^2
+    points instead of 2 x 2 (nerf.config says why and what it measured): once, when
+    FINE_EDGE_POINTS_AT of the budget is gone and the final grid (no growth on trial) has
+    trained FINE_EDGE_POINTS_MIN_STEPS steps. A short budget never gets there, so it keeps
+    every step it has at the cheaper rays."""
+    return (config.pixel_filter == "edges" and state.edge_points < FINE_EDGE_POINTS_PER_AXIS and trial is None
+            and state.stage == state.last_stage and fraction_done >= FINE_EDGE_POINTS_AT
+            and state.stage_steps >= FINE_EDGE_POINTS_MIN_STEPS)
+
+
+def edge_points_reason(state: LoopState) -> str:
+    """config.json's account of the points an `edges` run trained its edge pixels through."""
+    if state.edge_points_step:
+        return (f"{EDGE_POINTS_PER_AXIS} x {EDGE_POINTS_PER_AXIS} to step {state.edge_points_step}, then "
+                f"{state.edge_points} x {state.edge_points} (the final grid had trained {FINE_EDGE_POINTS_MIN_STEPS}+ "
+                f"steps and {100 * FINE_EDGE_POINTS_AT:.0f}% of the budget was gone)")
+    return (f"{state.edge_points} x {state.edge_points} throughout (finer points wait for "
+            f"{100 * FINE_EDGE_POINTS_AT:.0f}% of the budget and {FINE_EDGE_POINTS_MIN_STEPS} steps at the final grid)")
+
+
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,
                 fraction_done: float, priors: float | None = None) -> tuple[float, bool]:
     """One optimiser step on `n_rays` random training rays. fraction_done: of the steps or
@@ -581,9 +612,10 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
     # it, or (box) the mean of 2 x 2 rays through the box render's points, so the loss
     # compares the pixel's box-filtered colour with the ground truth's (pixel_sample_offsets
     # says why fixed points); n_rays counts rays either way.
-    # edges: the box's 2 x 2 rays on the target's edge pixels only, one centre ray on the
-    # rest (a pixel's box mean equals its centre's value where nothing steps inside it);
-    # n_rays counts pixels, the edge pixels' extra rays come on top.
+    # edges: k x k rays through the box render's points on the target's edge pixels only
+    # (LoopState.edge_points: 2 x 2, later 3 x 3), one centre ray on the rest (a pixel's box
+    # mean equals its centre's value where nothing steps inside it); n_rays counts pixels,
+    # the edge pixels' extra rays come on top.
     per_pixel = TRAIN_PIXEL_SAMPLES[config.pixel_filter]
     n_pixels = max(1, n_rays // per_pixel)
     index = torch.randint(rays.origins.shape[0], (n_pixels,), generator=generator)
@@ -594,7 +626,7 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
         background = torch.full((3,), 1.0 if config.background == "white" else 0.0, device=device)
     target = rgba[:, :3] * rgba[:, 3:] + background * (1 - rgba[:, 3:])
     if config.pixel_filter == "edges":
-        rays_of, pixel_colour = _edge_rays(rays, index, origins, directions, generator, device)
+        rays_of, pixel_colour = _edge_rays(rays, index, origins, directions, state.edge_points ** 2, generator, device)
         origins, directions = rays_of
         ray_background = pixel_colour.spread(background) if background.ndim == 2 else background
     else:
@@ -643,35 +675,36 @@ class MeanOfRepeats:
 
 class EdgeSplit:
     """Pixel colours from rays laid out as one centre ray for each plain pixel (`plain`,
-    indices into the batch's pixels) followed by EDGE_PIXEL_SAMPLES blocks of one ray for each
+    indices into the batch's pixels) followed by `per_pixel` blocks of one ray for each
     edge pixel (`edge`): a plain pixel's ray, an edge pixel's mean."""
 
-    def __init__(self, plain: torch.Tensor, edge: torch.Tensor, n_pixels: int):
-        self.plain, self.edge, self.n_pixels = plain, edge, n_pixels
+    def __init__(self, plain: torch.Tensor, edge: torch.Tensor, n_pixels: int, per_pixel: int):
+        self.plain, self.edge, self.n_pixels, self.per_pixel = plain, edge, n_pixels, per_pixel
 
     def spread(self, pixel_values: torch.Tensor) -> torch.Tensor:  # [n_pixels, C] -> [rays, C]
-        return torch.cat([pixel_values[self.plain], pixel_values[self.edge].repeat(EDGE_PIXEL_SAMPLES, 1)])
+        return torch.cat([pixel_values[self.plain], pixel_values[self.edge].repeat(self.per_pixel, 1)])
 
     def gather(self, ray_values: torch.Tensor) -> torch.Tensor:  # [rays, C] -> [n_pixels, C]
         n_plain = len(self.plain)
         pixels = ray_values.new_empty((self.n_pixels, ray_values.shape[1]))
         pixels[self.plain] = ray_values[:n_plain]
         if len(self.edge):  # a batch may hold no edge pixel (an empty scene has none at all)
-            pixels[self.edge] = ray_values[n_plain:].reshape(EDGE_PIXEL_SAMPLES, len(self.edge), -1).mean(dim=0)
+            pixels[self.edge] = ray_values[n_plain:].reshape(self.per_pixel, len(self.edge), -1).mean(dim=0)
         return pixels
 
 
-def _edge_rays(rays, index: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
+def _edge_rays(rays, index: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor, per_pixel: int,
                generator: torch.Generator, device) -> tuple[tuple[torch.Tensor, torch.Tensor], EdgeSplit]:
     """The `edges` filter's rays for the batch's pixels `index` (their centre rays
-    origins, directions [n_pixels, 3]): ((origins, directions) [rays, 3], EdgeSplit)."""
+    origins, directions [n_pixels, 3]), `per_pixel` (a square) on each edge pixel:
+    ((origins, directions) [rays, 3], EdgeSplit)."""
     is_edge = rays.edges[index].to(device)
     plain, edge = (~is_edge).nonzero().squeeze(1), is_edge.nonzero().squeeze(1)
-    offsets = pixel_sample_offsets(len(edge), EDGE_PIXEL_SAMPLES, generator).to(device)
-    moved = jittered_direction(directions[edge].repeat(EDGE_PIXEL_SAMPLES, 1),
-                               rays.footprint[index[edge.cpu()]].to(device).repeat(EDGE_PIXEL_SAMPLES, 1, 1), offsets)
-    return ((torch.cat([origins[plain], origins[edge].repeat(EDGE_PIXEL_SAMPLES, 1)]),
-             torch.cat([directions[plain], moved])), EdgeSplit(plain, edge, len(index)))
+    offsets = pixel_sample_offsets(len(edge), per_pixel, generator).to(device)
+    moved = jittered_direction(directions[edge].repeat(per_pixel, 1),
+                               rays.footprint[index[edge.cpu()]].to(device).repeat(per_pixel, 1, 1), offsets)
+    return ((torch.cat([origins[plain], origins[edge].repeat(per_pixel, 1)]),
+             torch.cat([directions[plain], moved])), EdgeSplit(plain, edge, len(index), per_pixel))
 
 
 def pixel_sample_offsets(n_pixels: int, per_pixel: int, generator: torch.Generator) -> torch.Tensor:

@@ -130,8 +130,8 @@ def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_cent
                                                  box_frame(flat, cameras, 0, 1, None, 1, device)))
 
 
-def test_the_edges_filter_spends_the_box_renders_four_rays_on_edge_pixels_and_the_centre_ray_on_the_rest():
-    from nerfgauge.nerf.config import EDGE_PIXEL_SAMPLES
+@pytest.mark.parametrize("per_axis", [2, 3])
+def test_the_edges_filter_spends_the_box_renders_rays_on_edge_pixels_and_the_centre_ray_on_the_rest(per_axis):
     from nerfgauge.nerf.data import RayBatch
     from nerfgauge.nerf.train import _edge_rays
 
@@ -142,10 +142,11 @@ def test_the_edges_filter_spends_the_box_renders_four_rays_on_edge_pixels_and_th
     rays = RayBatch(torch.from_numpy(origins.reshape(-1, 3)).float(), torch.from_numpy(directions.reshape(-1, 3)).float(),
                     torch.zeros((n, 4)), 1, torch.from_numpy(pixel_footprints(directions, c2w)), is_edge)
     index = torch.randperm(n, generator=torch.Generator().manual_seed(0))[:50]
-    (ray_o, ray_d), split = _edge_rays(rays, index, rays.origins[index], rays.directions[index],
+    per_pixel = per_axis ** 2
+    (ray_o, ray_d), split = _edge_rays(rays, index, rays.origins[index], rays.directions[index], per_pixel,
                                        torch.Generator().manual_seed(1), torch.device("cpu"))
     n_edge = int(is_edge[index].sum())
-    assert 0 < n_edge < 50 and ray_d.shape == (50 - n_edge + EDGE_PIXEL_SAMPLES * n_edge, 3)
+    assert 0 < n_edge < 50 and ray_d.shape == (50 - n_edge + per_pixel * n_edge, 3)
     # a plain pixel's one ray is its centre ray
     assert torch.equal(ray_d[:50 - n_edge], rays.directions[index][~is_edge[index]])
     # an edge pixel's rays: block r holds, for every edge pixel in batch order, its ray through
@@ -154,16 +155,16 @@ def test_the_edges_filter_spends_the_box_renders_four_rays_on_edge_pixels_and_th
     from nerfgauge.nerf.train import pixel_sample_offsets
 
     edge_pixels = index[is_edge[index]]
-    offsets = pixel_sample_offsets(n_edge, EDGE_PIXEL_SAMPLES, torch.Generator().manual_seed(1))
-    expected = jittered_direction(rays.directions[edge_pixels].repeat(EDGE_PIXEL_SAMPLES, 1),
-                                  rays.footprint[edge_pixels].repeat(EDGE_PIXEL_SAMPLES, 1, 1), offsets)
+    offsets = pixel_sample_offsets(n_edge, per_pixel, torch.Generator().manual_seed(1))
+    expected = jittered_direction(rays.directions[edge_pixels].repeat(per_pixel, 1),
+                                  rays.footprint[edge_pixels].repeat(per_pixel, 1, 1), offsets)
     assert torch.equal(ray_d[50 - n_edge:], expected)
-    assert torch.equal(ray_o[50 - n_edge:], rays.origins[edge_pixels].repeat(EDGE_PIXEL_SAMPLES, 1))
-    # pixel values: the plain pixels' rays as they are, each edge pixel the mean of its four
+    assert torch.equal(ray_o[50 - n_edge:], rays.origins[edge_pixels].repeat(per_pixel, 1))
+    # pixel values: the plain pixels' rays as they are, each edge pixel the mean of its rays
     values = torch.arange(len(ray_d), dtype=torch.float64)[:, None]
     pixels = split.gather(values)
     assert torch.equal(pixels[~is_edge[index], 0], torch.arange(50 - n_edge, dtype=torch.float64))
-    expected = values[50 - n_edge:].view(EDGE_PIXEL_SAMPLES, n_edge).mean(dim=0)
+    expected = values[50 - n_edge:].view(per_pixel, n_edge).mean(dim=0)
     assert torch.allclose(pixels[is_edge[index], 0], expected)
     colours = torch.randn(50, 3, dtype=torch.float64)
     assert torch.allclose(split.gather(split.spread(colours)), colours)  # a per-pixel value is every ray's
@@ -243,7 +244,7 @@ def test_a_batch_without_edge_pixels_is_its_centre_rays():
                     torch.zeros((n, 4)), 1, torch.from_numpy(pixel_footprints(directions, c2w)),
                     torch.zeros(n, dtype=torch.bool))
     index = torch.arange(0, n, 7)
-    (ray_o, ray_d), split = _edge_rays(rays, index, rays.origins[index], rays.directions[index],
+    (ray_o, ray_d), split = _edge_rays(rays, index, rays.origins[index], rays.directions[index], 4,
                                        torch.Generator().manual_seed(0), torch.device("cpu"))
     assert torch.equal(ray_d, rays.directions[index]) and torch.equal(ray_o, rays.origins[index])
     values = torch.randn(len(index), 3)
@@ -326,3 +327,59 @@ def test_an_edges_run_renders_by_its_chosen_filter(tiny_dataset, tmp_path):
         save_atomic(payload, run / "model.pt")
         timing = render_split(run, "test", tmp_path / chosen, progress=False)
         assert timing["pixel_samples"] == samples and timing.get("edges_only", False) == (samples > 1)
+
+
+def test_edge_pixels_train_through_finer_points_only_late_and_at_the_final_grid():
+    """fine_edge_points_due: an `edges` run, no growth on trial, at its last stage, with
+    FINE_EDGE_POINTS_AT of the budget gone and FINE_EDGE_POINTS_MIN_STEPS steps at that
+    grid; once (a run already at the finer points is not due again)."""
+    from nerfgauge.nerf.checkpoint import LoopState
+    from nerfgauge.nerf.config import FINE_EDGE_POINTS_AT as AT, FINE_EDGE_POINTS_MIN_STEPS as STEPS
+    from nerfgauge.nerf.config import FINE_EDGE_POINTS_PER_AXIS, TrainConfig
+    from nerfgauge.nerf.train import fine_edge_points_due
+
+    config = TrainConfig("d", budget_seconds=600.0, pixel_filter="edges")
+    ready = LoopState(stage=3, last_stage=3, stage_steps=STEPS)
+    assert fine_edge_points_due(config, ready, AT, None)
+    assert not fine_edge_points_due(config, ready, AT - 1e-6, None)
+    assert not fine_edge_points_due(config, replace(ready, stage_steps=STEPS - 1), 0.99, None)
+    assert not fine_edge_points_due(config, replace(ready, stage=2), 0.99, None)  # a coarser grid
+    assert not fine_edge_points_due(config, ready, 0.99, object())  # the last growth is on trial
+    assert not fine_edge_points_due(config, replace(ready, edge_points=FINE_EDGE_POINTS_PER_AXIS), 0.99, None)
+    for other in ("centre", "box", "jitter"):
+        assert not fine_edge_points_due(replace(config, pixel_filter=other), ready, 0.99, None)
+
+
+def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_with_them(tiny_dataset, tmp_path,
+                                                                                      monkeypatch):
+    """With the stages' and the finer points' bars lowered (1 and 2 steps: the final grid
+    from step 4), a 12-step `edges` run trains its edge pixels through 2 x 2 points to step 6
+    (half the steps) and 3 x 3 after: the log and config.json say so. Resumed, a run keeps its finer points (checkpoint.pt's loop state),
+    and a run resumed from before the switch makes it at the same step."""
+    import json
+
+    import nerfgauge.nerf.train as train_module
+    from nerfgauge.nerf.config import TrainConfig
+
+    monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 1)
+    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_MIN_STEPS", 2)
+    config = TrainConfig(dataset=str(tiny_dataset), steps=12, pixel_filter="edges", start_resolution=16,
+                         final_resolution=16, eval_every_seconds=1e-9, threads=1)
+
+    def trained(folder, steps, resume=False):
+        train_module.train(replace(config, steps=steps), folder, resume=resume, progress=False)
+        log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
+        loop = torch.load(folder / "checkpoint.pt", weights_only=True)["loop"]
+        return log, loop, json.loads((folder / "config.json").read_text())["auto_reasons"]["edge_points"]
+
+    log, loop, reason = trained(tmp_path / "run", 12)
+    assert [entry["step"] for entry in log] == list(range(13))  # a point before every step and after the last
+    assert [entry["edge_points"] for entry in log] == [2] * 7 + [3] * 6  # step 6's point comes before its step
+    assert reason.startswith("2 x 2 to step 6, then 3 x 3") and (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
+    log, loop, _ = trained(tmp_path / "run", 16, resume=True)
+    assert {entry["edge_points"] for entry in log if entry["step"] >= 12} == {3}
+    assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
+    log, loop, reason = trained(tmp_path / "early", 4)  # at the final grid from step 3: never 2 steps there
+    assert {entry["edge_points"] for entry in log} == {2} and reason.startswith("2 x 2 throughout")
+    log, loop, _ = trained(tmp_path / "early", 12, resume=True)
+    assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
