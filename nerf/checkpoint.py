@@ -52,7 +52,7 @@ class LoopState:
     decision (TrainConfig.colour_head), made once the final grid has trained MIN_STAGE_STEPS
     steps: 0 not yet, 1 added, -1 not; edge_points: rays per axis through an `edges` run's
     edge pixels (nerf.config.EDGE_POINTS_PER_AXIS, then FINE_EDGE_POINTS_PER_AXIS), and
-    edge_points_step the step it last changed at (0: never)."""
+    edge_points_step the step that was decided at (0: not yet; train.fine_edge_points_due)."""
 
     step: int = 0
     seconds: float = 0.0

@@ -26,16 +26,18 @@ BACKGROUNDS = ("random", "white", "black")
 TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1, "edges": 1}
 # ... and on the `edges` filter's edge pixels (nerfgauge.core.pixel_edges): rays through the
 # centres of a k x k grid of cells, k = EDGE_POINTS_PER_AXIS (2 x 2, as the box render) at
-# first. Once the final grid has trained FINE_EDGE_POINTS_MIN_STEPS steps and
-# FINE_EDGE_POINTS_AT of the budget (steps or seconds) is gone, k becomes
-# FINE_EDGE_POINTS_PER_AXIS: a sharp field's box mean wants more than 2 x 2 points (the
-# k x k midpoint rule puts a straight step edge's coverage up to 1/(2k) off: a quarter of
-# the step for 2 x 2, a sixth for 3 x 3), and the model fits
-# the points it is trained through. Its steps cost 1.5-1.9x, which only a model that has
-# converged at its final grid repays. Primitives 128 px at 1 thread, 600 s, switched at
-# half the budget 1189 steps into the final grid: 44.17 dB against 43.89 with 2 x 2
-# throughout and 44.01 with 3 x 3 throughout; 120 s, switched at half the budget 268 steps
-# into it: 38.38 against 39.55 (BENCHMARKS.md, "Finer points in the second half").
+# first. When FINE_EDGE_POINTS_AT of the budget (steps or seconds) is gone, a run whose
+# final grid has trained FINE_EDGE_POINTS_MIN_STEPS steps by then takes
+# k = FINE_EDGE_POINTS_PER_AXIS for the rest (nerf.train.fine_edge_points_due). A sharp
+# field's box mean wants more than 2 x 2 points (the k x k midpoint rule puts a straight
+# step edge's coverage up to 1/(2k) off: a quarter of the step for 2 x 2, a sixth for
+# 3 x 3), and the model fits the points it is trained through. Its steps cost 1.5-1.9x,
+# which only a model converged at its final grid, with budget left, repays. Primitives
+# 128 px at 1 thread, 600 s, switched at half the budget 1189 steps into the final grid:
+# 44.17 dB against 43.89 with 2 x 2 throughout and 44.01 with 3 x 3 throughout; 120 s,
+# switched at half the budget 268 steps into it: 38.38 against 39.55; far-object 64 px
+# (in no bench), 600 s: 45.24 against 44.68 (BENCHMARKS.md, "Finer points in the second
+# half").
 EDGE_POINTS_PER_AXIS = 2
 FINE_EDGE_POINTS_PER_AXIS = 3
 FINE_EDGE_POINTS_AT = 0.5

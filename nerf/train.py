@@ -490,11 +490,13 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                 state.colour_head = 1 if config.colour_head else -1
                 if progress and config.colour_head:
                     tqdm.write(f"adding the residual colour head at step {state.step}")
-            if fine_edge_points_due(config, state, fraction_done, trial):
-                state.edge_points, state.edge_points_step = FINE_EDGE_POINTS_PER_AXIS, state.step
-                if progress:
-                    tqdm.write(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
-                               f"from step {state.step}")
+            if (finer := fine_edge_points_due(config, state, fraction_done, trial)) is not None:
+                state.edge_points_step = state.step  # decided, either way
+                if finer:
+                    state.edge_points = FINE_EDGE_POINTS_PER_AXIS
+                    if progress:
+                        tqdm.write(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
+                                   f"from step {state.step}")
             loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
             if not (math.isfinite(loss) and gradients_finite):
                 raise NumericalError(
@@ -571,25 +573,32 @@ def _grow_grid(training: Training, config: TrainConfig) -> None:
 
 
 def fine_edge_points_due(config: TrainConfig, state: LoopState, fraction_done: float,
-                         trial: GrowthTrial | None) -> bool:
-    """Whether an `edges` run's edge pixels now train through FINE_EDGE_POINTS_PER_AXIS^2
-    points instead of 2 x 2 (nerf.config says why and what it measured): once, when
-    FINE_EDGE_POINTS_AT of the budget is gone and the final grid (no growth on trial) has
-    trained FINE_EDGE_POINTS_MIN_STEPS steps. A short budget never gets there, so it keeps
-    every step it has at the cheaper rays."""
-    return (config.pixel_filter == "edges" and state.edge_points < FINE_EDGE_POINTS_PER_AXIS and trial is None
-            and state.stage == state.last_stage and fraction_done >= FINE_EDGE_POINTS_AT
-            and state.stage_steps >= FINE_EDGE_POINTS_MIN_STEPS)
+                         trial: GrowthTrial | None) -> bool | None:
+    """Whether an `edges` run's edge pixels train through FINE_EDGE_POINTS_PER_AXIS^2 points
+    instead of 2 x 2 from now on (nerf.config says why and what it measured): decided once,
+    at the first step at or past FINE_EDGE_POINTS_AT of the budget (after any growth on
+    trial is judged), yes when the final grid has trained FINE_EDGE_POINTS_MIN_STEPS steps
+    by then. A run that reaches that bar only later has too little budget left for the
+    slower steps to repay (primitives 120 s reached it with 13% of the budget left).
+    Returns None when there is nothing to decide (not an `edges` run, decided already,
+    too early, a trial pending)."""
+    if config.pixel_filter != "edges" or state.edge_points_step or trial is not None \
+            or fraction_done < FINE_EDGE_POINTS_AT:
+        return None
+    return state.stage == state.last_stage and state.stage_steps >= FINE_EDGE_POINTS_MIN_STEPS
 
 
 def edge_points_reason(state: LoopState) -> str:
     """config.json's account of the points an `edges` run trained its edge pixels through."""
-    if state.edge_points_step:
+    bar = (f"{100 * FINE_EDGE_POINTS_AT:.0f}% of the budget, the final grid {FINE_EDGE_POINTS_MIN_STEPS} steps "
+           "trained or more")
+    if state.edge_points != EDGE_POINTS_PER_AXIS:
         return (f"{EDGE_POINTS_PER_AXIS} x {EDGE_POINTS_PER_AXIS} to step {state.edge_points_step}, then "
-                f"{state.edge_points} x {state.edge_points} (the final grid had trained {FINE_EDGE_POINTS_MIN_STEPS}+ "
-                f"steps and {100 * FINE_EDGE_POINTS_AT:.0f}% of the budget was gone)")
-    return (f"{state.edge_points} x {state.edge_points} throughout (finer points wait for "
-            f"{100 * FINE_EDGE_POINTS_AT:.0f}% of the budget and {FINE_EDGE_POINTS_MIN_STEPS} steps at the final grid)")
+                f"{state.edge_points} x {state.edge_points} (at {bar})")
+    if state.edge_points_step:
+        return (f"{state.edge_points} x {state.edge_points} throughout: at step {state.edge_points_step} ({bar} "
+                "asked) the final grid had trained fewer steps")
+    return f"{state.edge_points} x {state.edge_points} throughout: the run ended before {bar}"
 
 
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,

@@ -329,33 +329,35 @@ def test_an_edges_run_renders_by_its_chosen_filter(tiny_dataset, tmp_path):
         assert timing["pixel_samples"] == samples and timing.get("edges_only", False) == (samples > 1)
 
 
-def test_edge_pixels_train_through_finer_points_only_late_and_at_the_final_grid():
-    """fine_edge_points_due: an `edges` run, no growth on trial, at its last stage, with
-    FINE_EDGE_POINTS_AT of the budget gone and FINE_EDGE_POINTS_MIN_STEPS steps at that
-    grid; once (a run already at the finer points is not due again)."""
+def test_edge_pixels_train_through_finer_points_only_when_half_the_budget_finds_the_final_grid_trained():
+    """fine_edge_points_due decides once, at the first step at or past FINE_EDGE_POINTS_AT
+    with no growth on trial: yes when the run is at its last stage with
+    FINE_EDGE_POINTS_MIN_STEPS steps there, no otherwise; None (nothing to decide) before,
+    while a trial runs, once decided, or for another filter."""
     from nerfgauge.nerf.checkpoint import LoopState
     from nerfgauge.nerf.config import FINE_EDGE_POINTS_AT as AT, FINE_EDGE_POINTS_MIN_STEPS as STEPS
-    from nerfgauge.nerf.config import FINE_EDGE_POINTS_PER_AXIS, TrainConfig
+    from nerfgauge.nerf.config import TrainConfig
     from nerfgauge.nerf.train import fine_edge_points_due
 
     config = TrainConfig("d", budget_seconds=600.0, pixel_filter="edges")
-    ready = LoopState(stage=3, last_stage=3, stage_steps=STEPS)
-    assert fine_edge_points_due(config, ready, AT, None)
-    assert not fine_edge_points_due(config, ready, AT - 1e-6, None)
-    assert not fine_edge_points_due(config, replace(ready, stage_steps=STEPS - 1), 0.99, None)
-    assert not fine_edge_points_due(config, replace(ready, stage=2), 0.99, None)  # a coarser grid
-    assert not fine_edge_points_due(config, ready, 0.99, object())  # the last growth is on trial
-    assert not fine_edge_points_due(config, replace(ready, edge_points=FINE_EDGE_POINTS_PER_AXIS), 0.99, None)
+    ready = LoopState(step=5000, stage=3, last_stage=3, stage_steps=STEPS)
+    assert fine_edge_points_due(config, ready, AT, None) is True
+    assert fine_edge_points_due(config, ready, AT - 1e-6, None) is None
+    assert fine_edge_points_due(config, replace(ready, stage_steps=STEPS - 1), AT, None) is False
+    assert fine_edge_points_due(config, replace(ready, stage=2), AT, None) is False  # a coarser grid
+    assert fine_edge_points_due(config, ready, 0.99, object()) is None  # the last growth is on trial
+    assert fine_edge_points_due(config, replace(ready, edge_points_step=4000), 0.99, None) is None  # decided
     for other in ("centre", "box", "jitter"):
-        assert not fine_edge_points_due(replace(config, pixel_filter=other), ready, 0.99, None)
+        assert fine_edge_points_due(replace(config, pixel_filter=other), ready, 0.99, None) is None
 
 
 def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_with_them(tiny_dataset, tmp_path,
                                                                                       monkeypatch):
     """With the stages' and the finer points' bars lowered (1 and 2 steps: the final grid
     from step 4), a 12-step `edges` run trains its edge pixels through 2 x 2 points to step 6
-    (half the steps) and 3 x 3 after: the log and config.json say so. Resumed, a run keeps its finer points (checkpoint.pt's loop state),
-    and a run resumed from before the switch makes it at the same step."""
+    (half the steps) and 3 x 3 after: the log and config.json say so. The decision is in
+    checkpoint.pt's loop state: a resumed run keeps it, yes or no, and one resumed from
+    before it decides at the same step as the uninterrupted run."""
     import json
 
     import nerfgauge.nerf.train as train_module
@@ -381,5 +383,15 @@ def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_wi
     assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
     log, loop, reason = trained(tmp_path / "early", 4)  # at the final grid from step 3: never 2 steps there
     assert {entry["edge_points"] for entry in log} == {2} and reason.startswith("2 x 2 throughout")
-    log, loop, _ = trained(tmp_path / "early", 12, resume=True)
+    assert loop["edge_points_step"] == 2  # decided at half the run (no: 0 steps at the final grid)
+    log, loop, reason = trained(tmp_path / "early", 12, resume=True)
+    assert {entry["edge_points"] for entry in log} == {2} and loop["edge_points_step"] == 2  # no second decision
+    assert reason.startswith("2 x 2 throughout: at step 2")
+    # a run stopped before its decision (the bar moved past its end) and resumed decides as
+    # the uninterrupted run did
+    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.9)
+    log, loop, reason = trained(tmp_path / "paused", 4)
+    assert loop["edge_points_step"] == 0 and reason.startswith("2 x 2 throughout: the run ended before")
+    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.5)
+    log, loop, _ = trained(tmp_path / "paused", 12, resume=True)
     assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
