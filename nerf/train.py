@@ -590,15 +590,16 @@ def fine_edge_points_due(config: TrainConfig, state: LoopState, fraction_done: f
 
 def edge_points_reason(state: LoopState) -> str:
     """config.json's account of the points an `edges` run trained its edge pixels through."""
-    bar = (f"{100 * FINE_EDGE_POINTS_AT:.0f}% of the budget, the final grid {FINE_EDGE_POINTS_MIN_STEPS} steps "
-           "trained or more")
+    when = f"at {100 * FINE_EDGE_POINTS_AT:.0f}% of the budget"
     if state.edge_points != EDGE_POINTS_PER_AXIS:
         return (f"{EDGE_POINTS_PER_AXIS} x {EDGE_POINTS_PER_AXIS} to step {state.edge_points_step}, then "
-                f"{state.edge_points} x {state.edge_points} (at {bar})")
+                f"{state.edge_points} x {state.edge_points}: {when} the final grid had trained "
+                f"{FINE_EDGE_POINTS_MIN_STEPS} steps or more")
     if state.edge_points_step:
-        return (f"{state.edge_points} x {state.edge_points} throughout: at step {state.edge_points_step} ({bar} "
-                "asked) the final grid had trained fewer steps")
-    return f"{state.edge_points} x {state.edge_points} throughout: the run ended before {bar}"
+        return (f"{state.edge_points} x {state.edge_points} throughout: {when} (step {state.edge_points_step}) "
+                f"the final grid had trained fewer than {FINE_EDGE_POINTS_MIN_STEPS} steps")
+    return (f"{state.edge_points} x {state.edge_points} throughout: the run ended before "
+            f"{100 * FINE_EDGE_POINTS_AT:.0f}% of its budget")
 
 
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,

@@ -386,12 +386,13 @@ def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_wi
     assert loop["edge_points_step"] == 2  # decided at half the run (no: 0 steps at the final grid)
     log, loop, reason = trained(tmp_path / "early", 12, resume=True)
     assert {entry["edge_points"] for entry in log} == {2} and loop["edge_points_step"] == 2  # no second decision
-    assert reason.startswith("2 x 2 throughout: at step 2")
+    assert reason.startswith("2 x 2 throughout: at 50% of the budget (step 2) the final grid had trained fewer")
     # a run stopped before its decision (the bar moved past its end) and resumed decides as
     # the uninterrupted run did
     monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.9)
     log, loop, reason = trained(tmp_path / "paused", 4)
-    assert loop["edge_points_step"] == 0 and reason.startswith("2 x 2 throughout: the run ended before")
+    assert loop["edge_points_step"] == 0
+    assert reason.startswith("2 x 2 throughout: the run ended before 90% of its budget")
     monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.5)
     log, loop, _ = trained(tmp_path / "paused", 12, resume=True)
     assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
