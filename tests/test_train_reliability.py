@@ -344,6 +344,8 @@ class RunsCode:
     ("adam step as uint8", "expected a float or a wide integer"),
     ("adam step below 0", "expected a finite count >= 0"),
     ("no loop", "no loop state"),
+    ("edge points 0", "loop value edge_points is 0"),
+    ("edge points as float", "loop value edge_points is 2.5"),
     ("generator", "generator"),
     ("old format", "not a nerfgauge checkpoint"),
     ("truncated", "not a readable"),
@@ -369,6 +371,8 @@ def test_damaged_checkpoints_are_one_line(tiny_dataset, finished_run, tmp_path, 
         damage(run, lambda p: p["optimizer"]["state"][0].update(step=step))
     elif case == "no loop":
         damage(run, lambda p: p.pop("loop"))
+    elif case.startswith("edge points"):  # rays per axis through an edge pixel: a whole number >= 1
+        damage(run, lambda p: p["loop"].update(edge_points=0 if case.endswith("0") else 2.5))
     elif case == "generator":
         damage(run, lambda p: p.update(generator=torch.zeros(7, dtype=torch.uint8)))
     elif case == "old format":
