@@ -490,9 +490,9 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                 state.colour_head = 1 if config.colour_head else -1
                 if progress and config.colour_head:
                     tqdm.write(f"adding the residual colour head at step {state.step}")
-            if (finer := fine_edge_points_due(config, state, fraction_done, trial)) is not None:
+            if (finer_points := fine_edge_points_due(config, state, fraction_done, trial)) is not None:
                 state.edge_points_step = state.step  # decided, either way
-                if finer:
+                if finer_points:
                     state.edge_points = FINE_EDGE_POINTS_PER_AXIS
                     if progress:
                         tqdm.write(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
