@@ -52,7 +52,8 @@ class LoopState:
     decision (TrainConfig.colour_head), made once the final grid has trained MIN_STAGE_STEPS
     steps: 0 not yet, 1 added, -1 not; edge_points: rays per axis through an `edges` run's
     edge pixels (nerf.config.EDGE_POINTS_PER_AXIS, then FINE_EDGE_POINTS_PER_AXIS), and
-    edge_points_step the step that was decided at (0: not yet; train.fine_edge_points_due)."""
+    edge_points_step the step the half-budget refinement (those points, and a grid past the
+    final one: last_stage + 1) was decided at (0: not yet; train.refinement_due)."""
 
     step: int = 0
     seconds: float = 0.0

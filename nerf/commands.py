@@ -145,6 +145,10 @@ def _add_train(subparsers) -> None:
                              "diffuse grid once its final size has trained 100 steps, for colour that varies inside a "
                              "voxel; auto (default): off, since at equal time it gained nothing measured "
                              "(BENCHMARKS.md, \"Colour that grows with the budget\")")
+    parser.add_argument("--refine-grid", choices=("auto", "on", "off"), default="auto",
+                        help="grow the grid one coarse-to-fine stage past its final resolution (x1.59) at half the "
+                             "budget when the final grid has trained 1000 steps by then; auto (default): on for an "
+                             "edges run whose resolution the pixel footprint set (BENCHMARKS.md, \"A finer grid in the second half\")")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 
@@ -166,6 +170,7 @@ def _run_train(args) -> int:
                          batch_rays=args.batch_rays, sparse=args.sparse,
                          sparse_priors={"auto": None, "on": True, "off": False}[args.sparse_priors],
                          colour_head={"auto": None, "on": True, "off": False}[args.colour_head],
+                         refine_grid={"auto": None, "on": True, "off": False}[args.refine_grid],
                          pixel_filter=None if args.pixel_filter == "auto" else args.pixel_filter)
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "

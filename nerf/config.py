@@ -28,7 +28,7 @@ TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1, "edges": 1}
 # centres of a k x k grid of cells, k = EDGE_POINTS_PER_AXIS (2 x 2, as the box render) at
 # first. When FINE_EDGE_POINTS_AT of the budget (steps or seconds) is gone, a run whose
 # final grid has trained FINE_EDGE_POINTS_MIN_STEPS steps by then takes
-# k = FINE_EDGE_POINTS_PER_AXIS for the rest (nerf.train.fine_edge_points_due). A sharp
+# k = FINE_EDGE_POINTS_PER_AXIS for the rest (nerf.train.refinement_due). A sharp
 # field's box mean wants more than 2 x 2 points (the k x k midpoint rule puts a straight
 # step edge's coverage up to 1/(2k) off: a quarter of the step for 2 x 2, a sixth for
 # 3 x 3), and the model fits the points it is trained through. Its steps cost 1.5-1.9x,
@@ -38,6 +38,14 @@ TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1, "edges": 1}
 # switched at half the budget 268 steps into it: 38.38 against 39.55; far-object 64 px
 # (in no bench), 600 s: 45.24 against 44.68 (BENCHMARKS.md, "Finer points in the second
 # half").
+# The same decision grows the grid of an `edges` run whose final resolution the pixel
+# footprint set one coarse-to-fine stage past it (x STAGE_RATIO, at most MAX_AUTO_RESOLUTION;
+# TrainConfig.refine_grid, `refine_grid_for`): the footprint's grid is what the pixels resolve
+# through one ray, and a model trained through several points a pixel can use a finer one once
+# it has converged. Primitives 128 px at 1 thread, 600 s: 44.48 dB against 44.12 with 3 x 3
+# points on the 109 grid (173 voxels from step 3541 of 5239); far-object 64 px (in no bench;
+# its texture sets a grid finer than its pixels, so the rule leaves it alone): 44.33 refined
+# against 44.97 (BENCHMARKS.md, "A finer grid in the second half").
 EDGE_POINTS_PER_AXIS = 2
 FINE_EDGE_POINTS_PER_AXIS = 3
 FINE_EDGE_POINTS_AT = 0.5
@@ -148,6 +156,11 @@ class TrainConfig:
     # (`colour_head_for` says why). Left out of config.json while None, so older runs keep
     # their recipe.
     colour_head: Optional[bool] = None
+    # one coarse-to-fine stage past final_resolution (`refined_resolution`) from half the
+    # budget, when the final grid has converged by then (nerf.train.refinement_due; a time
+    # budget's growth trial still judges it). None: `refine_grid_for`. Left out of
+    # config.json when None or False, so runs made before it keep their recipe.
+    refine_grid: Optional[bool] = None
 
     def validate(self) -> None:
         """One-line InputError for anything a run cannot use (the API path: the CLI's
@@ -181,6 +194,10 @@ class TrainConfig:
             raise InputError("--colour-head on needs the compact model (the head reads its grid's features)")
         if self.colour_head and self.view_dependent:
             raise InputError("--colour-head on is for a diffuse grid; --view-dependent on has its own colour head")
+        if not (self.refine_grid is None or isinstance(self.refine_grid, bool)):
+            raise InputError(f"--refine-grid must be true, false or None (auto), got {self.refine_grid!r}")
+        if self.refine_grid and self.model != "compact":
+            raise InputError("--refine-grid on needs the compact model (it grows its voxel grid)")
         if self.sparse_priors and self.model != "compact":
             raise InputError("--sparse-priors on needs the compact model (they act on its voxel grid)")
         for name in ("prune", "occupancy"):
@@ -191,8 +208,8 @@ class TrainConfig:
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self)
-        for optional in ("sparse", "render_filter", "sparse_priors", "colour_head"):
-            if out[optional] is None or (optional == "sparse_priors" and out[optional] is False):
+        for optional in ("sparse", "render_filter", "sparse_priors", "colour_head", "refine_grid"):
+            if out[optional] is None or (optional in ("sparse_priors", "refine_grid") and out[optional] is False):
                 del out[optional]
         return out
 
@@ -201,7 +218,7 @@ class TrainConfig:
 FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
          "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation",
          "step_ratio": "--step-ratio", "batch_rays": "--batch-rays", "pixel_filter": "--pixel-filter",
-         "sparse_priors": "--sparse-priors", "colour_head": "--colour-head"}
+         "sparse_priors": "--sparse-priors", "colour_head": "--colour-head", "refine_grid": "--refine-grid"}
 
 
 SAMPLES_PER_RAY = arguments.bounded(int, 1, 4096)  # the vanilla NeRF's coarse and fine samples
@@ -219,29 +236,31 @@ FIELD_RANGES = {
 }
 
 
-def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float, nyquist_period: Optional[float]) -> tuple[int, str]:
+def footprint_resolution(aabb: np.ndarray, c2w: np.ndarray, focal: float,
+                         nyquist_period: Optional[float]) -> tuple[int, str, str]:
     """Voxels along the AABB's longest side so a voxel is no smaller than what a pixel
     resolves: the pixel footprint at the nearest content (camera distance to the AABB's
     bounding sphere), and no coarser than half the finest texture period (Nyquist).
-    Returns (resolution, reason)."""
+    Returns (resolution, reason, what set it: "footprint", "texture" or "cap")."""
     centre = (aabb[0] + aabb[1]) / 2
     bound = float(np.linalg.norm(aabb[1] - aabb[0])) / 2
     nearest = float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).min()) - bound
     longest = float((aabb[1] - aabb[0]).max())
     if nearest <= 0:  # content may sit at any distance from such a camera: no footprint bounds it
-        voxel, reason = 0.0, "a camera stands within the AABB's bounding sphere"
+        voxel, reason, set_by = 0.0, "a camera stands within the AABB's bounding sphere", "cap"
     else:
         voxel = nearest / focal  # scene units per pixel at the nearest content
-        reason = f"pixel footprint {voxel:.4g} at distance {nearest:.3g}"
+        reason, set_by = f"pixel footprint {voxel:.4g} at distance {nearest:.3g}", "footprint"
     if nyquist_period is not None and nyquist_period / 2 < voxel:
         voxel = nyquist_period / 2
-        reason = f"half the finest texture period {nyquist_period:.4g}"
+        reason, set_by = f"half the finest texture period {nyquist_period:.4g}", "texture"
     wanted = math.ceil(longest / voxel) if voxel > 0 else math.inf
     resolution = int(min(max(wanted, 16), MAX_AUTO_RESOLUTION))
     if wanted > MAX_AUTO_RESOLUTION:
         reason += (f" asks for {wanted} voxels" if voxel > 0 else "") + \
             f"; capped at {MAX_AUTO_RESOLUTION} (node index and samples per ray)"
-    return resolution, reason
+        set_by = "cap"
+    return resolution, reason, set_by
 
 
 def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_c2w: np.ndarray,
@@ -272,6 +291,7 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
                          "(its own colour head); pass --view-dependent off with it")
     if config.model == "compact":
         reasons["colour_head"] = colour_head_for(dataclasses.replace(config, **updates))[1]
+    resolution_set_by = None  # what set an automatic bounded grid's resolution (footprint_resolution)
     if config.final_resolution is None and kind != "bounded":
         # the contracted cube's inner ball, or the frustum's angles, get about one cell per
         # pixel across the image: twice the width along the grid's longest side
@@ -281,7 +301,7 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
                                        + (f", capped at {UNBOUNDED_MAX_RESOLUTION}" if wanted > UNBOUNDED_MAX_RESOLUTION else ""))
     elif config.final_resolution is None:
         period = None if needs is None else needs.get("finest_texture_period")
-        updates["final_resolution"], why = footprint_resolution(aabb, train_c2w, focal, period)
+        updates["final_resolution"], why, resolution_set_by = footprint_resolution(aabb, train_c2w, focal, period)
         reasons["final_resolution"] = why
     else:
         reasons["final_resolution"] = "set on the command line"
@@ -300,6 +320,8 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
         else:
             reasons[name] = "set on the command line"
     final = updates.get("final_resolution", config.final_resolution)
+    updates["refine_grid"], reasons["refine_grid"] = refine_grid_for(dataclasses.replace(config, **updates),
+                                                                      resolution_set_by)
     if config.start_resolution is None:
         updates["start_resolution"] = start_resolution_for(final, config.steps)
         reasons["start_resolution"] = (f"coarse to fine: {upsample_count(updates['start_resolution'], final)} "
@@ -351,6 +373,41 @@ def colour_head_for(config: TrainConfig) -> tuple[bool, str]:
         return False, "the view-dependent grid's colour head models colour already"
     return False, ("not by default: at equal time it gained nothing measured (primitives 128 px, 600 s: 42.85 dB "
                    "with it, 42.86 without) and tripled the model; --colour-head on adds it")
+
+
+def refined_resolution(final: int) -> int:
+    """The grid a converged run grows to past its final one (TrainConfig.refine_grid): one
+    coarse-to-fine stage finer, at most MAX_AUTO_RESOLUTION (the final grid when at the cap)."""
+    return max(final, min(round(final * STAGE_RATIO), MAX_AUTO_RESOLUTION))
+
+
+def refine_grid_for(config: TrainConfig, resolution_set_by: Optional[str]) -> tuple[bool, str]:
+    """Whether a run grows its grid past the final resolution once it has converged (at
+    half the budget; nerf.train.refinement_due), and why: as set; else for a compact `edges`
+    run whose final resolution is the pixel footprint's (`resolution_set_by`, from
+    `footprint_resolution`; None when set on the command line or not a bounded grid).
+    `config`: resolved (its pixel filter and final resolution). The footprint's grid is
+    what one ray a pixel resolves; a model trained through several points on its edge
+    pixels resolves finer. A grid set by the texture is finer than the pixels already:
+    far-object 64 px (31 voxels where its footprint asks for 18), 600 s, lost 0.64 dB
+    refined to 49 (BENCHMARKS.md, "A finer grid in the second half")."""
+    if config.refine_grid is not None:
+        return config.refine_grid, "set on the command line"
+    if config.model != "compact":
+        return False, "the compact model's grid only"
+    if config.pixel_filter != "edges":
+        return False, f"measured only with the edges filter (this run's: {config.pixel_filter})"
+    if resolution_set_by != "footprint":
+        why = {None: "the final resolution is not the pixel footprint's automatic one",
+               "texture": "the final grid is finer than the pixels already (set by the texture)",
+               "cap": f"the final grid is at the cap ({MAX_AUTO_RESOLUTION})"}[resolution_set_by]
+        return False, why
+    finer = refined_resolution(config.final_resolution)
+    if finer == config.final_resolution:
+        return False, f"the final grid is at the cap ({MAX_AUTO_RESOLUTION})"
+    return True, (f"{config.final_resolution} -> {finer} voxels at {100 * FINE_EDGE_POINTS_AT:.0f}% of the budget if "
+                  f"the final grid has trained {FINE_EDGE_POINTS_MIN_STEPS} steps by then (the footprint's grid "
+                  f"is what one ray a pixel resolves)")
 
 
 def step_ratio_of(config: TrainConfig) -> float:

@@ -31,7 +31,8 @@ from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
 from nerfgauge.nerf.config import (EDGE_POINTS_PER_AXIS, FINE_EDGE_POINTS_AT, FINE_EDGE_POINTS_MIN_STEPS,
                                    FINE_EDGE_POINTS_PER_AXIS, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, RENDER_FILTERS,
-                                   TRAIN_PIXEL_SAMPLES, TrainConfig, resolve, upsample_count)
+                                   TRAIN_PIXEL_SAMPLES, TrainConfig, refined_resolution, resolve,
+                                   upsample_count)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import box_frame, pixel_offsets
 from nerfgauge.nerf.grid_field import node_mask
@@ -159,9 +160,12 @@ def upsample_at(config: TrainConfig, stage: int) -> float:
 
 
 def resolution_at(config: TrainConfig, stage: int) -> int:
-    """Coarse to fine: geometric steps from start (stage 0) to final resolution."""
+    """Coarse to fine: geometric steps from start (stage 0) to final resolution; the stage
+    after it is the refined grid (`refined_resolution`, TrainConfig.refine_grid)."""
     ratio = config.final_resolution / config.start_resolution
     stages = upsample_count(config.start_resolution, config.final_resolution)
+    if stage > stages:
+        return refined_resolution(config.final_resolution)
     return int(round(config.start_resolution * ratio ** (stage / stages)))
 
 
@@ -490,12 +494,22 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                 state.colour_head = 1 if config.colour_head else -1
                 if progress and config.colour_head:
                     tqdm.write(f"adding the residual colour head at step {state.step}")
-            if (finer_points := fine_edge_points_due(config, state, fraction_done, trial)) is not None:
+            if (refine := refinement_due(config, state, fraction_done, trial)) is not None:
                 state.edge_points_step = state.step  # decided, either way
-                if finer_points:
+                if refine and config.pixel_filter == "edges":
                     state.edge_points = FINE_EDGE_POINTS_PER_AXIS
                     if progress:
                         tqdm.write(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
+                                   f"from step {state.step}")
+                at_final_grid = state.stage == upsample_count(config.start_resolution, config.final_resolution)
+                if refine and config.refine_grid and at_final_grid \
+                        and refined_resolution(config.final_resolution) > model.field.resolution:
+                    # the growth comes through the coarse-to-fine branch above at the next
+                    # step, on trial for a time budget like the last growth. (A run whose
+                    # budget undid that growth is not at the final grid: no second trial.)
+                    state.last_stage += 1
+                    if progress:
+                        tqdm.write(f"growing the grid to {refined_resolution(config.final_resolution)} voxels "
                                    f"from step {state.step}")
             loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
             if not (math.isfinite(loss) and gradients_finite):
@@ -513,9 +527,12 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     finally:
         bar.close()
         log.close()
+    if config.refine_grid:
+        reasons["refine_grid"] = refine_grid_reason(config, state, model.field.resolution)
     if config.pixel_filter == "edges":
         reasons["edge_points"] = edge_points_reason(state)
         config, reasons["render_filter"] = choose_render_filter(model, config, val_cameras, val_rays, device)
+    if config.refine_grid or config.pixel_filter == "edges":
         write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
                                       "recipe": recipe})
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
@@ -572,20 +589,35 @@ def _grow_grid(training: Training, config: TrainConfig) -> None:
         group["lr"] = rate
 
 
-def fine_edge_points_due(config: TrainConfig, state: LoopState, fraction_done: float,
-                         trial: GrowthTrial | None) -> bool | None:
-    """Whether an `edges` run's edge pixels train through FINE_EDGE_POINTS_PER_AXIS^2 points
-    instead of 2 x 2 from now on (nerf.config says why and what it measured): decided once,
-    at the first step at or past FINE_EDGE_POINTS_AT of the budget (after any growth on
-    trial is judged), yes when the final grid has trained FINE_EDGE_POINTS_MIN_STEPS steps
-    by then. A run that reaches that bar only later has too little budget left for the
-    slower steps to repay (primitives 120 s reached it with 13% of the budget left).
-    Returns None when there is nothing to decide (not an `edges` run, decided already,
-    too early, a trial pending)."""
-    if config.pixel_filter != "edges" or state.edge_points_step or trial is not None \
+def refinement_due(config: TrainConfig, state: LoopState, fraction_done: float,
+                   trial: GrowthTrial | None) -> bool | None:
+    """Whether a converged run refines from now on: an `edges` run's edge pixels train
+    through FINE_EDGE_POINTS_PER_AXIS^2 points instead of 2 x 2, and a run with
+    TrainConfig.refine_grid grows its grid one stage past the final one (nerf.config says
+    why and what it measured). Decided once, at the first step at or past
+    FINE_EDGE_POINTS_AT of the budget (after any growth on trial is judged), yes when the
+    final grid has trained FINE_EDGE_POINTS_MIN_STEPS steps by then. A run that reaches
+    that bar only later has too little budget left for the slower steps to repay
+    (primitives 120 s reached it with 13% of the budget left). Returns None when there is
+    nothing to decide (neither applies, decided already, too early, a trial pending)."""
+    if not (config.pixel_filter == "edges" or config.refine_grid) or state.edge_points_step or trial is not None \
             or fraction_done < FINE_EDGE_POINTS_AT:
         return None
     return state.stage == state.last_stage and state.stage_steps >= FINE_EDGE_POINTS_MIN_STEPS
+
+
+def refine_grid_reason(config: TrainConfig, state: LoopState, resolution: int) -> str:
+    """config.json's account of whether a run with TrainConfig.refine_grid grew past its
+    final grid (`resolution`: the grid it ended with)."""
+    when = f"at {100 * FINE_EDGE_POINTS_AT:.0f}% of the budget"
+    if resolution > config.final_resolution:
+        return (f"{config.final_resolution} -> {resolution} voxels from step {state.edge_points_step}: {when} the "
+                f"final grid had trained {FINE_EDGE_POINTS_MIN_STEPS} steps or more")
+    if not state.edge_points_step:
+        return f"kept {config.final_resolution} voxels: the run ended before {100 * FINE_EDGE_POINTS_AT:.0f}% of its budget"
+    return (f"kept {config.final_resolution} voxels: {when} (step {state.edge_points_step}) the final grid had trained "
+            f"fewer than {FINE_EDGE_POINTS_MIN_STEPS} steps, or the budget left could not give "
+            f"{refined_resolution(config.final_resolution)} voxels {MIN_STEPS_AT_FINER} steps (the growth was undone)")
 
 
 def edge_points_reason(state: LoopState) -> str:

@@ -329,26 +329,102 @@ def test_an_edges_run_renders_by_its_chosen_filter(tiny_dataset, tmp_path):
         assert timing["pixel_samples"] == samples and timing.get("edges_only", False) == (samples > 1)
 
 
-def test_edge_pixels_train_through_finer_points_only_when_half_the_budget_finds_the_final_grid_trained():
-    """fine_edge_points_due decides once, at the first step at or past FINE_EDGE_POINTS_AT
-    with no growth on trial: yes when the run is at its last stage with
+def test_a_run_refines_only_when_half_the_budget_finds_the_final_grid_trained():
+    """refinement_due decides once, at the first step at or past FINE_EDGE_POINTS_AT with
+    no growth on trial: yes when the run is at its last stage with
     FINE_EDGE_POINTS_MIN_STEPS steps there, no otherwise; None (nothing to decide) before,
-    while a trial runs, once decided, or for another filter."""
+    while a trial runs, once decided, or for a run with neither the edges filter nor a grid
+    to refine."""
     from nerfgauge.nerf.checkpoint import LoopState
     from nerfgauge.nerf.config import FINE_EDGE_POINTS_AT as AT, FINE_EDGE_POINTS_MIN_STEPS as STEPS
     from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.train import fine_edge_points_due
+    from nerfgauge.nerf.train import refinement_due
 
     config = TrainConfig("d", budget_seconds=600.0, pixel_filter="edges")
     ready = LoopState(step=5000, stage=3, last_stage=3, stage_steps=STEPS)
-    assert fine_edge_points_due(config, ready, AT, None) is True
-    assert fine_edge_points_due(config, ready, AT - 1e-6, None) is None
-    assert fine_edge_points_due(config, replace(ready, stage_steps=STEPS - 1), AT, None) is False
-    assert fine_edge_points_due(config, replace(ready, stage=2), AT, None) is False  # a coarser grid
-    assert fine_edge_points_due(config, ready, 0.99, object()) is None  # the last growth is on trial
-    assert fine_edge_points_due(config, replace(ready, edge_points_step=4000), 0.99, None) is None  # decided
+    assert refinement_due(config, ready, AT, None) is True
+    assert refinement_due(config, ready, AT - 1e-6, None) is None
+    assert refinement_due(config, replace(ready, stage_steps=STEPS - 1), AT, None) is False
+    assert refinement_due(config, replace(ready, stage=2), AT, None) is False  # a coarser grid
+    assert refinement_due(config, ready, 0.99, object()) is None  # the last growth is on trial
+    assert refinement_due(config, replace(ready, edge_points_step=4000), 0.99, None) is None  # decided
     for other in ("centre", "box", "jitter"):
-        assert fine_edge_points_due(replace(config, pixel_filter=other), ready, 0.99, None) is None
+        assert refinement_due(replace(config, pixel_filter=other), ready, 0.99, None) is None
+        assert refinement_due(replace(config, pixel_filter=other, refine_grid=True), ready, AT, None) is True
+
+
+def test_the_refined_grid_is_one_stage_past_the_final_one_within_the_cap_and_only_for_automatic_resolutions():
+    """refined_resolution: final x STAGE_RATIO, rounded, at most MAX_AUTO_RESOLUTION and never
+    below the final grid; resolution_at's stage after the ladder is it. refine_grid_for: as
+    set; else on only for a compact `edges` run whose resolution is automatic and not at the
+    cap, set by the pixel footprint (not the texture, the cap or the user), and its reason
+    names the grids."""
+    from nerfgauge.nerf.config import (MAX_AUTO_RESOLUTION, STAGE_RATIO, TrainConfig, refine_grid_for,
+                                       refined_resolution, upsample_count)
+    from nerfgauge.nerf.train import resolution_at
+
+    assert refined_resolution(109) == round(109 * STAGE_RATIO) == 173
+    assert refined_resolution(200) == MAX_AUTO_RESOLUTION and refined_resolution(MAX_AUTO_RESOLUTION) == MAX_AUTO_RESOLUTION
+    config = TrainConfig("d", budget_seconds=600.0, pixel_filter="edges", start_resolution=27, final_resolution=109)
+    stages = upsample_count(27, 109)
+    assert [resolution_at(config, stage) for stage in (0, stages, stages + 1)] == [27, 109, 173]
+    on, why = refine_grid_for(config, "footprint")
+    assert on is True and "109 -> 173 voxels" in why
+    assert refine_grid_for(config, None)[0] is False  # the user's resolution is kept
+    assert refine_grid_for(config, "texture")[0] is False  # finer than the pixels already
+    assert refine_grid_for(config, "cap")[0] is False
+    assert refine_grid_for(replace(config, pixel_filter="centre"), "footprint")[0] is False
+    assert refine_grid_for(replace(config, model="vanilla"), "footprint")[0] is False
+    assert refine_grid_for(replace(config, final_resolution=MAX_AUTO_RESOLUTION), "footprint")[0] is False
+    assert refine_grid_for(replace(config, refine_grid=False), "footprint") == (False, "set on the command line")
+    assert refine_grid_for(replace(config, pixel_filter="centre", refine_grid=True), None)[0] is True
+
+
+def test_a_refining_run_grows_its_grid_at_half_the_steps_states_it_renders_and_resumes(tiny_dataset, tmp_path,
+                                                                                      monkeypatch):
+    """With the bars lowered as below, a 12-step run with --refine-grid on decides at step 6
+    and trains the refined grid (16 -> 25 voxels) from step 7: the log, model.pt and
+    config.json say so, the model renders, a resumed run keeps the grid, and a run stopped
+    before the decision and resumed grows at the same step as the uninterrupted one."""
+    import json
+
+    import nerfgauge.nerf.train as train_module
+    from nerfgauge.nerf.checkpoint import load_checked
+    from nerfgauge.nerf.config import TrainConfig, refined_resolution
+    from nerfgauge.nerf.render_views import render_split
+
+    monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 1)
+    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_MIN_STEPS", 2)
+    finer = refined_resolution(16)
+    assert finer == 25
+    config = TrainConfig(dataset=str(tiny_dataset), steps=12, pixel_filter="edges", start_resolution=16,
+                         final_resolution=16, refine_grid=True, eval_every_seconds=1e-9, threads=1)
+
+    def trained(folder, steps, resume=False):
+        train_module.train(replace(config, steps=steps), folder, resume=resume, progress=False)
+        log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
+        saved = json.loads((folder / "config.json").read_text())
+        return log, load_checked(folder / "model.pt")["resolution"], saved
+
+    log, resolution, saved = trained(tmp_path / "run", 12)
+    # decided before step 6, grown in step 7's iteration (log points come before their step)
+    assert [entry["resolution"] for entry in log] == [16] * 8 + [finer] * 5
+    assert {entry["final_resolution"] for entry in log if entry["step"] >= 7} == {finer}
+    assert resolution == finer and saved["final_resolution"] == 16 and saved["refine_grid"] is True
+    assert saved["auto_reasons"]["refine_grid"].startswith(f"16 -> {finer} voxels from step 6")
+    render_split(tmp_path / "run", "test", tmp_path / "frames", progress=False)
+    frames = sorted((tmp_path / "frames" / "test").glob("r_*.png"))
+    assert frames and len(frames) == len(list((tiny_dataset / "test").glob("r_???.png")))
+    log, resolution, _ = trained(tmp_path / "run", 16, resume=True)
+    assert resolution == finer and {entry["resolution"] for entry in log if entry["step"] >= 12} == {finer}
+    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.9)
+    log, resolution, saved = trained(tmp_path / "paused", 4)
+    assert resolution == 16 and saved["auto_reasons"]["refine_grid"].startswith("kept 16 voxels: the run ended before")
+    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.5)
+    log, resolution, _ = trained(tmp_path / "paused", 12, resume=True)
+    assert resolution == finer and [entry["resolution"] for entry in log][-5:] == [finer] * 5
+    # without the flag an explicit resolution is kept (the end-to-end test below runs so)
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["recipe"]["refine_grid"] is True
 
 
 def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_with_them(tiny_dataset, tmp_path,
@@ -396,3 +472,24 @@ def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_wi
     monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.5)
     log, loop, _ = trained(tmp_path / "paused", 12, resume=True)
     assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
+
+
+def test_refine_grid_keeps_older_recipes_and_is_refused_where_it_cannot_apply(tiny_dataset, tmp_path, capsys):
+    """No `refine_grid` key in config.json unless on (older runs keep their recipe); a
+    non-bool, or on with the vanilla model, is one line and exit 2, nothing written."""
+    from cli_errors import one_line_exit_2
+
+    from nerfgauge.core.errors import InputError
+    from nerfgauge.nerf.config import TrainConfig
+
+    assert "refine_grid" not in TrainConfig(dataset="d", steps=1).to_json()
+    assert "refine_grid" not in TrainConfig(dataset="d", steps=1, refine_grid=False).to_json()
+    assert TrainConfig(dataset="d", steps=1, refine_grid=True).to_json()["refine_grid"] is True
+    for bad in ({"refine_grid": "yes"}, {"refine_grid": 1}, {"refine_grid": True, "model": "vanilla"}):
+        with pytest.raises(InputError, match="refine-grid"):
+            TrainConfig(dataset="d", steps=1, **bad).validate()
+    one_line_exit_2(capsys, ["train", tiny_dataset, "--out", tmp_path / "v", "--steps", "2", "--quiet",
+                             "--model", "vanilla", "--refine-grid", "on"], "--refine-grid on", "compact")
+    one_line_exit_2(capsys, ["train", tiny_dataset, "--out", tmp_path / "b", "--steps", "2", "--quiet",
+                             "--refine-grid", "maybe"], "--refine-grid")
+    assert not (tmp_path / "v").exists() and not (tmp_path / "b").exists()

@@ -370,11 +370,12 @@ def test_the_auto_resolution_is_the_pixel_footprint_at_the_nearest_content_or_th
     aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     c2w = np.tile(np.eye(4), (2, 1, 1))
     c2w[0, :3, 3], c2w[1, :3, 3] = (10.0, 0.0, 0.0), (0.0, 12.0, 0.0)
-    resolution, reason = footprint_resolution(aabb, c2w, 100.0, None)
+    resolution, reason, set_by = footprint_resolution(aabb, c2w, 100.0, None)
     assert resolution == math.ceil(2.0 / ((10.0 - math.sqrt(3.0)) / 100.0))
-    assert "pixel footprint" in reason
-    assert footprint_resolution(aabb, c2w, 100.0, 0.05)[0] == math.ceil(2.0 / 0.025)  # Nyquist of the texture
+    assert "pixel footprint" in reason and set_by == "footprint"
+    resolution, _, set_by = footprint_resolution(aabb, c2w, 100.0, 0.05)
+    assert resolution == math.ceil(2.0 / 0.025) and set_by == "texture"  # Nyquist of the texture
     c2w[1, :3, 3] = (0.2, 0.0, 0.3)
-    resolution, reason = footprint_resolution(aabb, c2w, 100.0, None)
-    assert resolution == MAX_AUTO_RESOLUTION
+    resolution, reason, set_by = footprint_resolution(aabb, c2w, 100.0, None)
+    assert resolution == MAX_AUTO_RESOLUTION and set_by == "cap"
     assert "within the AABB's bounding sphere" in reason and f"capped at {MAX_AUTO_RESOLUTION}" in reason
