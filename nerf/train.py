@@ -610,14 +610,21 @@ def refine_grid_reason(config: TrainConfig, state: LoopState, resolution: int) -
     """config.json's account of whether a run with TrainConfig.refine_grid grew past its
     final grid (`resolution`: the grid it ended with)."""
     when = f"at {100 * FINE_EDGE_POINTS_AT:.0f}% of the budget"
+    finer = refined_resolution(config.final_resolution)
     if resolution > config.final_resolution:
         return (f"{config.final_resolution} -> {resolution} voxels from step {state.edge_points_step}: {when} the "
                 f"final grid had trained {FINE_EDGE_POINTS_MIN_STEPS} steps or more")
+    kept = f"kept {resolution} voxels"
     if not state.edge_points_step:
-        return f"kept {config.final_resolution} voxels: the run ended before {100 * FINE_EDGE_POINTS_AT:.0f}% of its budget"
-    return (f"kept {config.final_resolution} voxels: {when} (step {state.edge_points_step}) the final grid had trained "
-            f"fewer than {FINE_EDGE_POINTS_MIN_STEPS} steps, or the budget left could not give "
-            f"{refined_resolution(config.final_resolution)} voxels {MIN_STEPS_AT_FINER} steps (the growth was undone)")
+        return f"{kept}: the run ended before {100 * FINE_EDGE_POINTS_AT:.0f}% of its budget"
+    if state.last_stage < upsample_count(config.start_resolution, config.final_resolution):
+        return f"{kept}: the budget could not train the footprint's {config.final_resolution} voxels, nor {finer}"
+    not_converged = (f"{when} (step {state.edge_points_step}) the final grid had trained fewer than "
+                     f"{FINE_EDGE_POINTS_MIN_STEPS} steps")
+    undone = f"the budget left could not give {finer} voxels {MIN_STEPS_AT_FINER} steps (its growth was undone)"
+    if config.pixel_filter == "edges":  # the same decision set the edge points: they say which it was
+        return f"{kept}: " + (undone if state.edge_points == FINE_EDGE_POINTS_PER_AXIS else not_converged)
+    return f"{kept}: {not_converged}, or {undone}"
 
 
 def edge_points_reason(state: LoopState) -> str:

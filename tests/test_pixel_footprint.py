@@ -380,6 +380,31 @@ def test_the_refined_grid_is_one_stage_past_the_final_one_within_the_cap_and_onl
     assert refine_grid_for(replace(config, pixel_filter="centre", refine_grid=True), None)[0] is True
 
 
+def test_the_refine_reason_says_what_happened_to_the_grid():
+    """refine_grid_reason names the outcome: grown; the run ended before half; the budget
+    never reached the footprint's grid; for an `edges` run, not converged at half (2 x 2
+    kept) or converged but the finer grid's growth undone (3 x 3 taken); otherwise both."""
+    from nerfgauge.nerf.checkpoint import LoopState
+    from nerfgauge.nerf.config import TrainConfig, upsample_count
+    from nerfgauge.nerf.train import refine_grid_reason
+
+    config = TrainConfig("d", budget_seconds=600.0, pixel_filter="edges", start_resolution=27, final_resolution=109,
+                         refine_grid=True)
+    last = upsample_count(27, 109)
+    decided = LoopState(step=6000, stage=last, last_stage=last, edge_points_step=5000)
+    assert refine_grid_reason(config, replace(decided, stage=last + 1, last_stage=last + 1), 173).startswith(
+        "109 -> 173 voxels from step 5000")
+    assert "ended before 50%" in refine_grid_reason(config, replace(decided, edge_points_step=0), 109)
+    assert "could not train the footprint's 109" in refine_grid_reason(
+        config, replace(decided, stage=last - 1, last_stage=last - 1), 68)
+    not_converged = refine_grid_reason(config, decided, 109)
+    assert "fewer than" in not_converged and "undone" not in not_converged
+    undone = refine_grid_reason(config, replace(decided, edge_points=3), 109)
+    assert "undone" in undone and "fewer than" not in undone
+    either = refine_grid_reason(replace(config, pixel_filter="centre"), decided, 109)
+    assert "fewer than" in either and "undone" in either
+
+
 def test_a_refining_run_grows_its_grid_at_half_the_steps_states_it_renders_and_resumes(tiny_dataset, tmp_path,
                                                                                       monkeypatch):
     """With the bars lowered as below, a 12-step run with --refine-grid on decides at step 6
