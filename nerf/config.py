@@ -42,10 +42,11 @@ TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1, "edges": 1}
 # footprint set one coarse-to-fine stage past it (x STAGE_RATIO, at most MAX_AUTO_RESOLUTION;
 # TrainConfig.refine_grid, `refine_grid_for`): the footprint's grid is what the pixels resolve
 # through one ray, and a model trained through several points a pixel can use a finer one once
-# it has converged. Primitives 128 px at 1 thread, 600 s: 44.48 dB against 44.12 with 3 x 3
+# it has converged. Primitives 128 px at 1 thread, 600 s: 44.54 dB against 44.19 with 3 x 3
 # points on the 109 grid (173 voxels from step 3541 of 5239); far-object 64 px (in no bench;
 # its texture sets a grid finer than its pixels, so the rule leaves it alone): 44.33 refined
-# against 44.97 (BENCHMARKS.md, "A finer grid in the second half").
+# against 44.97; thin 128 px (in no train bench; its grid is the footprint's, 104 -> 165):
+# 47.48 against 45.64 (BENCHMARKS.md, "A finer grid in the second half").
 EDGE_POINTS_PER_AXIS = 2
 FINE_EDGE_POINTS_PER_AXIS = 3
 FINE_EDGE_POINTS_AT = 0.5
