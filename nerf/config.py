@@ -18,7 +18,7 @@ import numpy as np
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisation
-from nerfgauge.nerf.sparse_priors import cameras_inside, sparse_priors_for
+from nerfgauge.nerf.sparse_priors import PRIOR_LEARNING_RATE, cameras_inside, sparse_priors_for
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
@@ -96,6 +96,9 @@ LAST_UPSAMPLE_AT = 0.3  # the grid grows at evenly spaced fractions of the budge
 MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
 
 
+DEFAULT_LEARNING_RATE = 0.1  # TrainConfig.lr's default: voxel grids take DVGO-style large steps
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     dataset: str
@@ -104,7 +107,7 @@ class TrainConfig:
     steps: Optional[int] = None  # stop after this many steps ...
     budget_seconds: Optional[float] = None  # ... or after this much training time
     batch_rays: Optional[int] = None  # rays per compact step; None: BATCH_RAYS[parametrisation]
-    lr: float = 0.1  # voxel grids (DVGO-style large steps); MLP heads use lr_mlp
+    lr: float = DEFAULT_LEARNING_RATE  # voxel grids; MLP heads use lr_mlp; sparse-capture priors: `resolve`
     lr_mlp: float = 5e-3
     background: str = "random"  # training background per ray: random makes alpha learnable
     # compact: None = decide from scene.json (see `resolve`)
@@ -310,6 +313,10 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
     if config.model == "compact":
         updates["sparse_priors"], reasons["sparse_priors"] = sparse_priors_for(
             config.sparse_priors, views_per_point, kind, cameras_inside(aabb, train_c2w), opaque)
+        if updates["sparse_priors"] and config.lr == DEFAULT_LEARNING_RATE:  # not one the API set
+            updates["lr"] = PRIOR_LEARNING_RATE
+            reasons["lr"] = (f"{PRIOR_LEARNING_RATE} with the sparse-capture priors (otherwise "
+                             f"{DEFAULT_LEARNING_RATE}): nerf.sparse_priors.PRIOR_LEARNING_RATE says why")
     per_pixel = TRAIN_PIXEL_SAMPLES[updates["pixel_filter"]]
     for name, (by_kind, reason) in BY_PARAMETRISATION.items():
         if getattr(config, name) is None:

@@ -111,6 +111,25 @@ def test_resolve_states_the_choice_and_config_json_keeps_older_recipes():
     assert vanilla.sparse_priors is None and "sparse_priors" not in reasons  # the compact model's mode
 
 
+def test_a_run_with_the_priors_takes_their_learning_rate_unless_the_api_set_one():
+    """resolve: the priors' runs take PRIOR_LEARNING_RATE (and say so), others keep the
+    default; a learning rate set through the API is kept either way."""
+    from nerfgauge.nerf.config import DEFAULT_LEARNING_RATE
+    from nerfgauge.nerf.sparse_priors import PRIOR_LEARNING_RATE
+
+    aabb = np.array([[-2.0, -2.0, -1.0], [2.0, 2.0, 1.0]])
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1)
+    c2w = np.stack([look_at(0.3 * p, 2 * p) for p in ring])
+    assert PRIOR_LEARNING_RATE != DEFAULT_LEARNING_RATE == TrainConfig(dataset="d").lr
+    sparse, reasons = resolve(TrainConfig(dataset="d", steps=10), None, aabb, c2w, 50.0, 64, views_per_point=3.0)
+    assert sparse.sparse_priors is True and sparse.lr == PRIOR_LEARNING_RATE and "priors" in reasons["lr"]
+    dense, reasons = resolve(TrainConfig(dataset="d", steps=10), None, aabb, c2w, 50.0, 64, views_per_point=40.0)
+    assert dense.lr == DEFAULT_LEARNING_RATE and "lr" not in reasons
+    chosen, _ = resolve(TrainConfig(dataset="d", steps=10, lr=0.05), None, aabb, c2w, 50.0, 64, views_per_point=3.0)
+    assert chosen.sparse_priors is True and chosen.lr == 0.05
+
+
 def test_the_priors_are_refused_for_the_vanilla_model():
     from nerfgauge.core.errors import InputError
 
