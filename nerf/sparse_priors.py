@@ -42,7 +42,8 @@ PRIOR_COLOUR_TV = 3e-3  # ... and of its colour features
 # `nerf.config.resolve`): the priors keep the field from the floaters a larger step would
 # leave, and a sparse capture's few rays a voxel need larger steps to be fitted within the
 # run. bench hard's inside (40 views, 400 steps): 23.28 dB at 0.1, 24.05 at 0.2, 24.11 at 0.3;
-# the same scene from another seed, in no bench (BENCHMARKS.md, "Sparse captures").
+# the same scene from another seed, in no bench: 19.72 at 0.1, 20.98 at 0.3 (BENCHMARKS.md,
+# "A finer grid in the second half": "Inside at 40 views: the priors' learning rate").
 PRIOR_LEARNING_RATE = 0.3
 OPACITY_EPS = 1e-4  # keeps the entropy's logarithms finite at opacity 0 and 1
 
