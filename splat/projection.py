@@ -63,7 +63,7 @@ class Camera:
     @classmethod
     def from_c2w(cls, c2w_gl, intrinsics: Intrinsics, dtype=torch.float32, device="cpu") -> "Camera":
         """From a [4, 4] OpenGL camera-to-world matrix (core.camera's convention)."""
-        c2w = np.asarray(c2w_gl, np.float64)
+        c2w = np.array(c2w_gl, np.float64)  # a copy: the dataset's poses are read-only arrays
         if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
             raise ValueError(f"c2w must be a finite [4, 4] matrix, got {c2w.shape}")
         c2w_cv = c2w @ GL_TO_CV

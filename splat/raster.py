@@ -39,7 +39,7 @@ import numba
 import numpy as np
 import torch
 
-from nerfgauge.splat.tiles import ALPHA_MIN, TILE, tile_grid
+from nerfgauge.splat.tiles import ALPHA_MIN, TILE, pixel_span, tile_grid
 
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
@@ -55,83 +55,105 @@ def _alpha(mx, my, a, b, c, o, px, py):
     return min(ALPHA_MAX, raw), raw, power
 
 
+@numba.njit(cache=True, inline="always")
+def _span_in_tile(centre, half, origin, size):
+    """First and last pixel (inclusive, image coordinates) of the tile starting at `origin`
+    whose centre lies in [centre - half, centre + half]: the Gaussian's footprint box
+    (`tiles.footprint_box`), outside which its alpha is below 1/255."""
+    first, last = pixel_span(centre, half, size)
+    return max(first, origin), min(last, origin + TILE - 1)
+
+
 @numba.njit(parallel=True, cache=True)
-def _forward(means2d, conics, opacities, features, offsets, ids, width, height, out_features, out_t, out_last):
+def _forward(means2d, conics, opacities, features, half_extents, offsets, ids, width, height, out_features, out_t,
+             out_last):
     tiles_x = (width + TILE - 1) // TILE
     n_tiles = offsets.shape[0] - 1
     channels = features.shape[1]
     for t in numba.prange(n_tiles):
         start, end = offsets[t], offsets[t + 1]
-        count = end - start
         x0, y0 = (t % tiles_x) * TILE, (t // tiles_x) * TILE
-        local = np.empty((count, 6))  # mx, my, a, b, c, o of the tile's Gaussians, front to back
-        local_f = np.empty((count, channels))
-        for k in range(count):
-            g = ids[start + k]
-            local[k, 0], local[k, 1] = means2d[g, 0], means2d[g, 1]
-            local[k, 2], local[k, 3], local[k, 4] = conics[g, 0], conics[g, 1], conics[g, 2]
-            local[k, 5] = opacities[g]
-            for ch in range(channels):
-                local_f[k, ch] = features[g, ch]
-        acc = np.empty(channels)
-        for py in range(y0, min(y0 + TILE, height)):
-            for px in range(x0, min(x0 + TILE, width)):
-                acc[:] = 0.0
-                transmittance = 1.0
-                last = 0
-                for k in range(count):
-                    alpha, raw, power = _alpha(local[k, 0], local[k, 1], local[k, 2], local[k, 3], local[k, 4],
-                                               local[k, 5], px + 0.5, py + 0.5)
-                    if power > 0.0 or alpha < ALPHA_MIN:
+        transmittance = np.ones(TILE * TILE)  # per pixel of the tile, row-major
+        acc = np.zeros((TILE * TILE, channels))
+        last = np.full(TILE * TILE, start)  # one past the last pair composited
+        done = np.zeros(TILE * TILE, np.bool_)
+        alive = min(TILE, width - x0) * min(TILE, height - y0)
+        for k in range(start, end):  # Gaussians front to back, each over the pixels of its box
+            g = ids[k]
+            mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
+            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            px0, px1 = _span_in_tile(mx, half_extents[g, 0], x0, width)
+            py0, py1 = _span_in_tile(my, half_extents[g, 1], y0, height)
+            for py in range(py0, py1 + 1):
+                for px in range(px0, px1 + 1):
+                    p = (py - y0) * TILE + (px - x0)
+                    if done[p]:
                         continue
-                    after = transmittance * (1.0 - alpha)
-                    if after < T_MIN:
-                        break
-                    weight = alpha * transmittance
-                    for ch in range(channels):
-                        acc[ch] += weight * local_f[k, ch]
-                    transmittance = after
-                    last = k + 1
-                for ch in range(channels):
-                    out_features[py, px, ch] = acc[ch]
-                out_t[py, px] = transmittance
-                out_last[py, px] = start + last
-
-
-@numba.njit(parallel=True, cache=True)
-def _backward(means2d, conics, opacities, features, offsets, ids, width, height, final_t, last, grad_features,
-              grad_alpha, g_means2d, g_conics, g_opacities, g_features):
-    tiles_x = (width + TILE - 1) // TILE
-    n_tiles = offsets.shape[0] - 1
-    channels = features.shape[1]
-    for t in numba.prange(n_tiles):
-        start, end = offsets[t], offsets[t + 1]
-        x0, y0 = (t % tiles_x) * TILE, (t // tiles_x) * TILE
-        behind = np.empty(channels)  # S: the features behind the current Gaussian, normalised
-        for py in range(y0, min(y0 + TILE, height)):
-            for px in range(x0, min(x0 + TILE, width)):
-                transmittance = final_t[py, px]
-                behind[:] = 0.0
-                behind_alpha = 0.0
-                for k in range(last[py, px] - 1, start - 1, -1):
-                    g = ids[k]
-                    mx, my = means2d[g, 0], means2d[g, 1]
-                    a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opacities[g]
                     alpha, raw, power = _alpha(mx, my, a, b, c, o, px + 0.5, py + 0.5)
                     if power > 0.0 or alpha < ALPHA_MIN:
                         continue
-                    transmittance = transmittance / (1.0 - alpha)  # T_i, before this Gaussian
-                    weight = alpha * transmittance
-                    d_alpha = (1.0 - behind_alpha) * grad_alpha[py, px]
+                    after = transmittance[p] * (1.0 - alpha)
+                    if after < T_MIN:  # this pixel is finished: nothing behind it counts
+                        done[p] = True
+                        alive -= 1
+                        continue
+                    weight = alpha * transmittance[p]
+                    for ch in range(channels):
+                        acc[p, ch] += weight * features[g, ch]
+                    transmittance[p] = after
+                    last[p] = k + 1
+            if alive == 0:
+                break
+        for py in range(y0, min(y0 + TILE, height)):
+            for px in range(x0, min(x0 + TILE, width)):
+                p = (py - y0) * TILE + (px - x0)
+                for ch in range(channels):
+                    out_features[py, px, ch] = acc[p, ch]
+                out_t[py, px] = transmittance[p]
+                out_last[py, px] = last[p]
+
+
+@numba.njit(parallel=True, cache=True)
+def _backward(means2d, conics, opacities, features, half_extents, offsets, ids, width, height, final_t, last,
+              grad_features, grad_alpha, g_means2d, g_conics, g_opacities, g_features):
+    tiles_x = (width + TILE - 1) // TILE
+    n_tiles = offsets.shape[0] - 1
+    channels = features.shape[1]
+    for t in numba.prange(n_tiles):
+        start, end = offsets[t], offsets[t + 1]
+        x0, y0 = (t % tiles_x) * TILE, (t // tiles_x) * TILE
+        transmittance = np.ones(TILE * TILE)
+        behind = np.zeros((TILE * TILE, channels))  # S: the features behind, normalised
+        behind_alpha = np.zeros(TILE * TILE)
+        for py in range(y0, min(y0 + TILE, height)):
+            for px in range(x0, min(x0 + TILE, width)):
+                transmittance[(py - y0) * TILE + (px - x0)] = final_t[py, px]
+        for k in range(end - 1, start - 1, -1):  # back to front
+            g = ids[k]
+            mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
+            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            px0, px1 = _span_in_tile(mx, half_extents[g, 0], x0, width)
+            py0, py1 = _span_in_tile(my, half_extents[g, 1], y0, height)
+            for py in range(py0, py1 + 1):
+                for px in range(px0, px1 + 1):
+                    if k >= last[py, px]:
+                        continue  # behind where the forward stopped
+                    p = (py - y0) * TILE + (px - x0)
+                    alpha, raw, power = _alpha(mx, my, a, b, c, o, px + 0.5, py + 0.5)
+                    if power > 0.0 or alpha < ALPHA_MIN:
+                        continue
+                    transmittance[p] /= 1.0 - alpha  # T_i, before this Gaussian
+                    weight = alpha * transmittance[p]
+                    d_alpha = (1.0 - behind_alpha[p]) * grad_alpha[py, px]
                     for ch in range(channels):
                         f = features[g, ch]
                         g_features[k, ch] += weight * grad_features[py, px, ch]
-                        d_alpha += (f - behind[ch]) * grad_features[py, px, ch]
-                        behind[ch] = alpha * f + (1.0 - alpha) * behind[ch]
-                    behind_alpha = alpha + (1.0 - alpha) * behind_alpha
+                        d_alpha += (f - behind[p, ch]) * grad_features[py, px, ch]
+                        behind[p, ch] = alpha * f + (1.0 - alpha) * behind[p, ch]
+                    behind_alpha[p] = alpha + (1.0 - alpha) * behind_alpha[p]
                     if raw > ALPHA_MAX:
                         continue  # clamped: alpha does not move with o or power
-                    d_alpha *= transmittance
+                    d_alpha *= transmittance[p]
                     g_opacities[k] += np.exp(power) * d_alpha
                     d_power = raw * d_alpha
                     dx, dy = mx - (px + 0.5), my - (py + 0.5)
@@ -148,26 +170,27 @@ def _numpy(tensor: torch.Tensor) -> np.ndarray:
 
 class RasteriseTiles(torch.autograd.Function):
     """(means2d [V, 2], conics [V, 3], opacities [V], features [V, C]) -> (F [H, W, C], A [H, W])
-    with the binning (offsets, ids) of `tiles.bin_gaussians`; differentiable in all four."""
+    with the binning (offsets, ids, half extents) of `tiles.bin_gaussians`; differentiable in
+    the four tensors."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, offsets, ids, width, height):
+    def forward(ctx, means2d, conics, opacities, features, half_extents, offsets, ids, width, height):
         channels = features.shape[1]
         out_features = np.zeros((height, width, channels), _numpy(features).dtype)  # [H, W, C]
         out_t = np.ones((height, width), np.float64)  # [H, W]
         out_last = np.zeros((height, width), np.int64)  # [H, W]: one past the last pair composited
         if len(ids):
-            _forward(_numpy(means2d), _numpy(conics), _numpy(opacities), _numpy(features), offsets, ids, width,
-                     height, out_features, out_t, out_last)
+            _forward(_numpy(means2d), _numpy(conics), _numpy(opacities), _numpy(features), half_extents, offsets, ids,
+                     width, height, out_features, out_t, out_last)
         ctx.save_for_backward(means2d, conics, opacities, features)
-        ctx.binning = (offsets, ids, width, height, out_t, out_last)
+        ctx.binning = (half_extents, offsets, ids, width, height, out_t, out_last)
         alpha = torch.from_numpy((1.0 - out_t).astype(out_features.dtype))
         return torch.from_numpy(out_features), alpha
 
     @staticmethod
     def backward(ctx, grad_features, grad_alpha):
         means2d, conics, opacities, features = ctx.saved_tensors
-        offsets, ids, width, height, out_t, out_last = ctx.binning
+        half_extents, offsets, ids, width, height, out_t, out_last = ctx.binning
         pairs, channels = len(ids), features.shape[1]
         g_means2d, g_conics = np.zeros((pairs, 2)), np.zeros((pairs, 3))  # [M, 2], [M, 3] per (tile, Gaussian)
         g_opacities, g_features = np.zeros(pairs), np.zeros((pairs, channels))  # [M], [M, C]
@@ -176,14 +199,14 @@ class RasteriseTiles(torch.autograd.Function):
         if grad_alpha is None:
             grad_alpha = torch.zeros((height, width), dtype=features.dtype)
         if pairs:
-            _backward(_numpy(means2d), _numpy(conics), _numpy(opacities), _numpy(features), offsets, ids, width,
-                      height, out_t, out_last, _numpy(grad_features).astype(np.float64),
+            _backward(_numpy(means2d), _numpy(conics), _numpy(opacities), _numpy(features), half_extents, offsets,
+                      ids, width, height, out_t, out_last, _numpy(grad_features).astype(np.float64),
                       _numpy(grad_alpha).astype(np.float64), g_means2d, g_conics, g_opacities, g_features)
         index = torch.from_numpy(ids.astype(np.int64))  # [M]
         total = lambda rows, like: torch.zeros((like.shape[0],) + rows.shape[1:], dtype=torch.float64).index_add_(  # noqa: E731
             0, index, torch.from_numpy(rows)).to(like.dtype)
         return (total(g_means2d, means2d), total(g_conics, conics), total(g_opacities, opacities),
-                total(g_features, features), None, None, None, None)
+                total(g_features, features), None, None, None, None, None)
 
 
 def rasterise(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,
@@ -191,11 +214,14 @@ def rasterise(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tens
     """Composite V Gaussians front to back in every tile (module docstring), on the CPU.
 
     means2d: [V, 2] pixel coordinates; conics: [V, 3]; opacities: [V] in [0, 1]; features:
-    [V, C]; binning: (offsets, ids) from `tiles.bin_gaussians` on the same V Gaussians.
+    [V, C]; binning: `tiles.bin_gaussians` of the same V Gaussians.
     Returns F [H, W, C] = sum_i alpha_i T_i f_i and A [H, W] (accumulated alpha), both
     differentiable (the backward is hand-written: `RasteriseTiles`)."""
-    offsets, ids = binning
     tiles_x, tiles_y = tile_grid(width, height)
-    if len(offsets) != tiles_x * tiles_y + 1:
-        raise ValueError(f"binning has {len(offsets) - 1} tiles; a {width} x {height} image has {tiles_x * tiles_y}")
-    return RasteriseTiles.apply(means2d, conics, opacities, features, offsets, ids, int(width), int(height))
+    if len(binning.offsets) != tiles_x * tiles_y + 1:
+        raise ValueError(f"binning has {len(binning.offsets) - 1} tiles; a {width} x {height} image has "
+                         f"{tiles_x * tiles_y}")
+    if binning.half_extents.shape != (means2d.shape[0], 2):
+        raise ValueError(f"binning is of {binning.half_extents.shape[0]} Gaussians, got {means2d.shape[0]}")
+    return RasteriseTiles.apply(means2d, conics, opacities, features, binning.half_extents, binning.offsets,
+                                binning.ids, int(width), int(height))

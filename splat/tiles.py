@@ -17,12 +17,15 @@ the conic never puts a drawn pixel just outside it.
 `bin_gaussians` is a counting sort by tile of the Gaussians taken in depth order, so
 each tile's list is sorted front to back: offsets [n_tiles + 1] and ids [M] (M = the number
 of (tile, Gaussian) pairs: memory grows with the tiles each Gaussian covers, never with
-Gaussians x pixels).
+Gaussians x pixels). The rasteriser visits only the pixels of each Gaussian's box inside a
+tile (`pixel_span`), the same rule, so it evaluates a pair at about its box's area of pixels
+instead of the tile's 256.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -48,7 +51,7 @@ def footprint_box(cov2d_diagonal: torch.Tensor, opacities: torch.Tensor) -> torc
 
 
 @numba.njit(cache=True)
-def _pixel_span(centre: float, half: float, size: int) -> tuple[int, int]:
+def pixel_span(centre: float, half: float, size: int) -> tuple[int, int]:
     """First and last pixel index (inclusive) whose centre i + 0.5 lies in [centre - half,
     centre + half], clipped to [0, size - 1]; (1, 0) when none does."""
     low = centre - half - 0.5
@@ -69,8 +72,8 @@ def _bin(means2d, half_extents, order, width, height, tile):
     counts = np.zeros(tiles_x * tiles_y + 1, np.int64)
     for r in range(n):
         g = order[r]
-        px0, px1 = _pixel_span(means2d[g, 0], half_extents[g, 0], width)
-        py0, py1 = _pixel_span(means2d[g, 1], half_extents[g, 1], height)
+        px0, px1 = pixel_span(means2d[g, 0], half_extents[g, 0], width)
+        py0, py1 = pixel_span(means2d[g, 1], half_extents[g, 1], height)
         if px0 > px1 or py0 > py1 or half_extents[g, 0] <= 0.0:
             spans[r, 0], spans[r, 1] = 1, 0
             continue
@@ -92,14 +95,24 @@ def _bin(means2d, half_extents, order, width, height, tile):
     return offsets, ids
 
 
+class Binning(NamedTuple):
+    """Tile t (row-major, `tile_grid`) holds Gaussians ids[offsets[t]:offsets[t + 1]], front
+    to back: offsets [n_tiles + 1] int64, ids [M] int32; half_extents [V, 2] float64, the
+    footprint boxes the rasteriser limits each Gaussian's pixels to."""
+
+    offsets: np.ndarray
+    ids: np.ndarray
+    half_extents: np.ndarray
+
+
 @torch.no_grad()
 def bin_gaussians(means2d: torch.Tensor, half_extents: torch.Tensor, depths: torch.Tensor, width: int,
-                  height: int) -> tuple[np.ndarray, np.ndarray]:
+                  height: int) -> Binning:
     """Each tile's Gaussians front to back. Not differentiable.
 
     means2d: [V, 2] pixel coordinates; half_extents: [V, 2] (`footprint_box`); depths: [V]
-    camera depths (the sort key; ties keep index order). Returns offsets [n_tiles + 1] int64
-    and ids [M] int32: tile t (row-major, `tile_grid`) holds ids[offsets[t]:offsets[t + 1]]."""
+    camera depths (the sort key; ties keep index order)."""
     order = torch.argsort(depths, stable=True).numpy().astype(np.int64)  # [V]
-    return _bin(means2d.detach().double().numpy(), half_extents.double().numpy(), order, int(width), int(height),
-                TILE)
+    half = np.ascontiguousarray(half_extents.double().numpy())  # [V, 2]
+    offsets, ids = _bin(means2d.detach().double().numpy(), half, order, int(width), int(height), TILE)
+    return Binning(offsets, ids, half)
