@@ -132,11 +132,12 @@ def project(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, came
 
     means: [N, 3] world positions; scales: [N, 3] standard deviations along the Gaussian's
     axes (>= 0; 0 is a flat or point Gaussian, which the low-pass still draws); quats: [N, 4]
-    (w, x, y, z). A Gaussian behind the camera (t_z <= NEAR) still gets finite values (its
-    depth is replaced by NEAR in the divisions) and in_front = False."""
+    (w, x, y, z). A Gaussian behind the camera (t_z <= NEAR), or with a non-finite value or a
+    zero quaternion, gets in_front = False and finite stand-ins in every division (depth 1,
+    scale 0, rotation identity), so neither its values nor its gradients are NaN."""
     t = means @ camera.rotation.T + camera.translation  # [N, 3] camera coordinates (OpenCV axes)
     in_front = (t[:, 2] > NEAR) & torch.isfinite(t).all(-1) & torch.isfinite(scales).all(-1) \
-        & torch.isfinite(quats).all(-1)  # [N]
+        & torch.isfinite(quats).all(-1) & (quats.detach().abs().sum(-1) > 0)  # [N]: a zero quaternion is no rotation
     tz = torch.where(in_front, t[:, 2], torch.full_like(t[:, 2], 1.0))  # [N]: finite divisions for the rest
     tx = torch.where(in_front, t[:, 0], torch.zeros_like(tz))  # [N]
     ty = torch.where(in_front, t[:, 1], torch.zeros_like(tz))  # [N]

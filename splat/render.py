@@ -78,9 +78,11 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
     half = footprint_box(projected.cov2d_diagonal, opacities.detach())  # [N, 2]
     u, v = means2d[:, 0].detach(), means2d[:, 1].detach()  # [N] each
     on_screen = (u + half[:, 0] > 0) & (u - half[:, 0] < width) & (v + half[:, 1] > 0) & (v - half[:, 1] < height)
-    visible = projected.in_front & (half[:, 0] > 0) & on_screen  # [N]
+    count = (sh_degree + 1) ** 2
+    finite = torch.isfinite(opacities.detach()) & torch.isfinite(sh.detach()[:, :count]).flatten(1).all(1)  # [N]
+    visible = projected.in_front & finite & (half[:, 0] > 0) & on_screen  # [N]
     # the reference composites every Gaussian in front of the camera, the tiles the visible ones
-    drawn = (projected.in_front if backend == "reference" else visible).nonzero().squeeze(1)  # [V]
+    drawn = ((projected.in_front & finite) if backend == "reference" else visible).nonzero().squeeze(1)  # [V]
     colours = sh_colour(sh[drawn], means[drawn] - camera.centre, sh_degree)  # [V, 3]
     depths = projected.depths[drawn]  # [V]
     features = torch.cat([colours, depths[:, None]], dim=1)  # [V, 4]
