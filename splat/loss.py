@@ -21,26 +21,40 @@ C2 = 0.03 ** 2
 
 
 def gaussian_window(size: int = WINDOW, sigma: float = SIGMA, dtype=torch.float32) -> torch.Tensor:
-    """Normalised separable Gaussian, as an outer product. Returns [size, size]."""
+    """The normalised 1D Gaussian; the 2D window is its outer product. Returns [size]."""
     x = torch.arange(size, dtype=dtype) - size // 2
     g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = g / g.sum()
-    return g[:, None] * g[None, :]
+    return g / g.sum()
+
+
+def blur(images: torch.Tensor) -> torch.Tensor:
+    """Each channel of [1, C, H, W] convolved with the 11 x 11 window (zero padding), as two
+    1D passes (the window is separable: the same sums as the 2D convolution, 22 taps a pixel
+    instead of 121)."""
+    channels = images.shape[1]
+    g = gaussian_window(dtype=images.dtype).to(images.device)
+    rows = F.conv2d(images, g.view(1, 1, 1, WINDOW).expand(channels, 1, 1, WINDOW), padding=(0, WINDOW // 2),
+                    groups=channels)
+    return F.conv2d(rows, g.view(1, 1, WINDOW, 1).expand(channels, 1, WINDOW, 1), padding=(WINDOW // 2, 0),
+                    groups=channels)
 
 
 def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of two [H, W, C] images in [0, 1] (module docstring). Returns a 0-d tensor."""
+    return ssim_map(image, target).mean()
+
+
+def ssim_map(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-pixel, per-channel SSIM of two [H, W, C] images. Returns [1, C, H, W]."""
     channels = image.shape[-1]
     x, y = image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]  # [1, C, H, W]
-    window = gaussian_window(dtype=image.dtype).to(image.device).expand(channels, 1, WINDOW, WINDOW)
-    blur = lambda t: F.conv2d(t, window, padding=WINDOW // 2, groups=channels)  # noqa: E731
-    mu_x, mu_y = blur(x), blur(y)
-    sigma_x = blur(x * x) - mu_x * mu_x
-    sigma_y = blur(y * y) - mu_y * mu_y
-    sigma_xy = blur(x * y) - mu_x * mu_y
-    ssim_map = ((2 * mu_x * mu_y + C1) * (2 * sigma_xy + C2)) / ((mu_x * mu_x + mu_y * mu_y + C1)
-                                                                 * (sigma_x + sigma_y + C2))
-    return ssim_map.mean()
+    blurred = blur(torch.cat([x, y, x * x, y * y, x * y], dim=1))  # [1, 5C, H, W]: the five local means at once
+    mu_x, mu_y, xx, yy, xy = blurred.split(channels, dim=1)
+    sigma_x = xx - mu_x * mu_x
+    sigma_y = yy - mu_y * mu_y
+    sigma_xy = xy - mu_x * mu_y
+    return ((2 * mu_x * mu_y + C1) * (2 * sigma_xy + C2)) / ((mu_x * mu_x + mu_y * mu_y + C1)
+                                                             * (sigma_x + sigma_y + C2))
 
 
 def photometric_loss(image: torch.Tensor, target: torch.Tensor, ssim_weight: float) -> torch.Tensor:

@@ -35,6 +35,8 @@ Memory: the per-pair gradient rows, M x (6 + C) float64 (M pairs, `tiles`), and 
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 import torch
@@ -43,14 +45,25 @@ from nerfgauge.splat.tiles import ALPHA_MIN, TILE, pixel_span, tile_grid
 
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+CUTOFF_MARGIN = 1e-9
 
 
 @numba.njit(cache=True, inline="always")
-def _alpha(mx, my, a, b, c, o, px, py):
-    """(alpha, raw = o exp(power), power) of one Gaussian at pixel centre (px, py)."""
+def _cutoff(o):
+    """The power below which o exp(power) < 1/255 for certain (CUTOFF_MARGIN short of the
+    exact bound, so no pair near it is skipped unevaluated): saves the exp there."""
+    return math.log(ALPHA_MIN / o) - CUTOFF_MARGIN if o > 0.0 else math.inf
+
+
+@numba.njit(cache=True, inline="always")
+def _alpha(mx, my, a, b, c, o, cutoff, px, py):
+    """(alpha, raw = o exp(power), power) of one Gaussian at pixel centre (px, py); alpha 0
+    where the pair is skipped (power > 0, or below `cutoff`: alpha < 1/255)."""
     dx = mx - px
     dy = my - py
     power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+    if power > 0.0 or power < cutoff:
+        return 0.0, 0.0, power
     raw = o * np.exp(power)
     return min(ALPHA_MAX, raw), raw, power
 
@@ -82,6 +95,7 @@ def _forward(means2d, conics, opacities, features, half_extents, offsets, ids, w
             g = ids[k]
             mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            cutoff = _cutoff(o)
             px0, px1 = _span_in_tile(mx, half_extents[g, 0], x0, width)
             py0, py1 = _span_in_tile(my, half_extents[g, 1], y0, height)
             for py in range(py0, py1 + 1):
@@ -89,8 +103,8 @@ def _forward(means2d, conics, opacities, features, half_extents, offsets, ids, w
                     p = (py - y0) * TILE + (px - x0)
                     if done[p]:
                         continue
-                    alpha, raw, power = _alpha(mx, my, a, b, c, o, px + 0.5, py + 0.5)
-                    if power > 0.0 or alpha < ALPHA_MIN:
+                    alpha, raw, power = _alpha(mx, my, a, b, c, o, cutoff, px + 0.5, py + 0.5)
+                    if alpha < ALPHA_MIN:
                         continue
                     after = transmittance[p] * (1.0 - alpha)
                     if after < T_MIN:  # this pixel is finished: nothing behind it counts
@@ -132,6 +146,7 @@ def _backward(means2d, conics, opacities, features, half_extents, offsets, ids, 
             g = ids[k]
             mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            cutoff = _cutoff(o)
             px0, px1 = _span_in_tile(mx, half_extents[g, 0], x0, width)
             py0, py1 = _span_in_tile(my, half_extents[g, 1], y0, height)
             for py in range(py0, py1 + 1):
@@ -139,8 +154,8 @@ def _backward(means2d, conics, opacities, features, half_extents, offsets, ids, 
                     if k >= last[py, px]:
                         continue  # behind where the forward stopped
                     p = (py - y0) * TILE + (px - x0)
-                    alpha, raw, power = _alpha(mx, my, a, b, c, o, px + 0.5, py + 0.5)
-                    if power > 0.0 or alpha < ALPHA_MIN:
+                    alpha, raw, power = _alpha(mx, my, a, b, c, o, cutoff, px + 0.5, py + 0.5)
+                    if alpha < ALPHA_MIN:
                         continue
                     transmittance[p] /= 1.0 - alpha  # T_i, before this Gaussian
                     weight = alpha * transmittance[p]

@@ -14,8 +14,11 @@ t_z = const lies at ray distance t_z |(x, y, 1)| (x, y the pixel's normalised co
 the expected depth converts per pixel exactly as core.camera.z_depth_from_distance converts
 the ground truth the other way.
 
-Compositors (`backend`): "cpu", the tiled numba rasteriser (`splat.raster`, hand-written
-backward); "reference", the brute-force oracle (`splat.reference`, autograd); "gsplat",
+Backends: "cpu", projection and colour fused in compiled loops (`splat.project_cpu`) and the
+tiled numba rasteriser (`splat.raster`), both with hand-written backwards; "reference", the
+torch projection and colour (`splat.projection`, `splat.sh`) and the brute-force compositor
+(`splat.reference`), all autograd: the oracle, sharing no code with "cpu" but the
+visibility rule; "gsplat",
 gsplat's CUDA `rasterization` (on a CUDA device when gsplat imports: `backend_for`). The
 gsplat path is not exercised by the tests here (no GPU on the machines they ran on); it clamps
 alpha at 0.999 where ours clamps at 0.99, which is its own rasteriser's rule.
@@ -27,6 +30,7 @@ from dataclasses import dataclass
 
 import torch
 
+from nerfgauge.splat.project_cpu import project_and_colour
 from nerfgauge.splat.projection import NEAR, Camera, project
 from nerfgauge.splat.raster import rasterise
 from nerfgauge.splat.reference import composite_reference
@@ -71,7 +75,10 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     width, height = camera.width, camera.height
-    projected = project(means, scales, quats, camera)
+    if backend == "cpu":  # the same maths compiled, one pass each way (splat.project_cpu)
+        projected, all_colours = project_and_colour(means, scales, quats, sh, sh_degree, camera)
+    else:
+        projected, all_colours = project(means, scales, quats, camera), None
     means2d = projected.means2d  # [N, 2]
     if retain_means2d_grad and means2d.requires_grad:
         means2d.retain_grad()
@@ -83,7 +90,10 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
     visible = projected.in_front & finite & (half[:, 0] > 0) & on_screen  # [N]
     # the reference composites every Gaussian in front of the camera, the tiles the visible ones
     drawn = ((projected.in_front & finite) if backend == "reference" else visible).nonzero().squeeze(1)  # [V]
-    colours = sh_colour(sh[drawn], means[drawn] - camera.centre, sh_degree)  # [V, 3]
+    if all_colours is None:
+        colours = sh_colour(sh[drawn], means[drawn] - camera.centre, sh_degree)  # [V, 3]
+    else:
+        colours = all_colours[drawn]  # [V, 3]
     depths = projected.depths[drawn]  # [V]
     features = torch.cat([colours, depths[:, None]], dim=1)  # [V, 4]
     if backend == "reference":
