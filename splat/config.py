@@ -4,16 +4,21 @@ Frozen, saved as RUN/config.json beside the run (with the choices made for "auto
 why, and the run's recipe), as nerf/config.py's TrainConfig is. Defaults are those of
 Kerbl et al. 2023 (the 3DGS reference code's OptimizationParams), except that the schedule is
 in fractions of the run ("progress": steps done / steps, or seconds / budget) instead of
-iterations of a 30,000-step run, so a short CPU budget keeps the paper's proportions:
+iterations of a 30,000-step run, so a short CPU budget keeps the paper's proportions, except
+for what counts views (how many steps gradient statistics gather over, and how many an opacity
+reset needs to recover from), which stays in steps:
 
     position lr   1.6e-4 -> 1.6e-6 (x the cameras' extent), exponential in progress
     SH lr         2.5e-3 (DC), 2.5e-3 / 20 (the rest); opacity 0.05; scale 5e-3; rotation 1e-3
     SH degree     raised by one every 1/30 of the run (1000 of 30,000 iterations) up to 3
     densify       every 100 steps from 1/60 to 1/2 of the run (500 and 15,000 of 30,000):
                   clone or split where the view-space positional gradient averages >= 2e-4
-    opacity reset every 1/10 of the run (3000 of 30,000), while densifying
-    prune         opacity < 0.005; after the first reset also world size > 0.1 x extent or
-                  screen radius > 20 px
+    opacity reset every 3000 steps while densifying (a 30,000-step run: the paper's 4 resets;
+                  a shorter one fewer or none: each costs ~5 dB and hundreds of steps to win
+                  back, measured at 128 px, where a run of 400 steps with resets every tenth
+                  of it never recovered)
+    prune         opacity < 0.005; after 3000 steps (the first reset) also world size > 0.1 x
+                  extent or screen radius > 20 px
     loss          0.8 L1 + 0.2 (1 - SSIM)
 
 `add_arguments` adds the splat-only flags to a parser (`nerfgauge train --model splat`
@@ -48,8 +53,8 @@ class SplatConfig:
     steps: Optional[int] = None  # stop after this many steps ...
     budget_seconds: Optional[float] = None  # ... or after this much training time
     # initial Gaussians: the dataset's COLMAP points of this kind (sparse/0/points3D.txt; auto:
-    # whatever kind the dataset holds, none if it holds none), or `none`: init_count points
-    # uniform in the scene bounds
+    # whatever kind the dataset holds, none if it holds none; at most init_count of them), or
+    # `none`: init_count points uniform in the scene bounds
     init: str = "auto"
     init_count: int = DEFAULT_INIT_COUNT
     sh_degree: int = MAX_SH_DEGREE
@@ -68,7 +73,7 @@ class SplatConfig:
     densify_grad: float = 2e-4  # mean view-space positional gradient (NDC units) that clones or splits
     percent_dense: float = 0.01  # clone when the largest scale is at most this x extent, else split
     prune_opacity: float = 0.005
-    opacity_reset_every: float = 0.1  # progress
+    opacity_reset_every: int = 3000  # steps (while densifying): a reset needs hundreds of steps to recover
     max_screen_radius: float = 20.0  # pixels
     max_world_scale: float = 0.1  # x extent
     max_gaussians: int = 1_000_000  # densification stops growing past this many
@@ -124,7 +129,7 @@ FIELD_RANGES = {
     "lr_sh_dc": LEARNING_RATE, "lr_sh_rest": LEARNING_RATE, "lr_opacity": LEARNING_RATE, "lr_scale": LEARNING_RATE,
     "lr_rotation": LEARNING_RATE, "ssim_weight": FRACTION, "densify_from": FRACTION, "densify_until": FRACTION,
     "densify_every": arguments.STEPS, "densify_grad": arguments.bounded(float, 0, 1e6, above=True),
-    "percent_dense": FRACTION, "prune_opacity": FRACTION, "opacity_reset_every": FRACTION,
+    "percent_dense": FRACTION, "prune_opacity": FRACTION, "opacity_reset_every": arguments.STEPS,
     "max_screen_radius": arguments.bounded(float, 0, 1e6, above=True),
     "max_world_scale": arguments.bounded(float, 0, 1e6, above=True),
     "max_gaussians": arguments.bounded(int, 1, 20_000_000), "eval_every_seconds": arguments.SECONDS,
@@ -143,7 +148,9 @@ OWN_FLAGS = {
     "init": ("--init", None, "splat: initial Gaussians from the dataset's COLMAP points of this kind (surface, sfm, "
                              "random: `nerfgauge export colmap DS --points KIND` makes them), none (--init-count "
                              "random points in the scene bounds), or auto: whatever the dataset holds"),
-    "init_count": ("--init-count", FIELD_RANGES["init_count"], "splat, --init none: how many random points"),
+    "init_count": ("--init-count", FIELD_RANGES["init_count"], "splat: initial Gaussians: at most this many of the "
+                                                               "dataset's points (a seeded subset), or --init none's "
+                                                               "random points"),
     "sh_degree": ("--sh-degree", FIELD_RANGES["sh_degree"], "splat: highest spherical-harmonic degree of the colour"),
     "densify_until": ("--densify-until", FRACTION, "splat: fraction of the run after which Gaussians are no longer "
                                                    "cloned, split or reset"),

@@ -13,7 +13,8 @@ Initialisation (Kerbl et al. 2023, from points with colours): a Gaussian per poi
 with scale the root mean squared distance to its 3 nearest other points, rotation identity,
 opacity 0.1, DC colour the point's colour, higher SH zero. `initial_points` reads the
 dataset's points (sparse/0/points3D.txt, core.colmap_text; their kind is scene.json's
-"points"), or draws `none`'s uniformly in the scene bounds with random colours.
+"points"; at most init_count of them, a seeded subset), or draws `none`'s init_count
+uniformly in the scene bounds with random colours.
 
 `GaussianAdam` is Adam with one parameter group per attribute (each its own learning rate)
 that follows the set as densification clones, splits and prunes it: moments of kept
@@ -159,7 +160,13 @@ def initial_points(ds: Dataset, config: SplatConfig) -> tuple[np.ndarray, np.nda
     xyz, rgb = read_points(text, where), _colours(text, where)
     if len(xyz) == 0:
         raise InputError(f"--init {init}: {where} holds no points")
-    return xyz, rgb, f"{init}: the dataset's {len(xyz)} points ({POINTS_FILE})"
+    if len(xyz) != len(rgb):
+        raise InputError(f"{where}: {len(xyz)} points but {len(rgb)} colours")
+    if len(xyz) <= config.init_count:
+        return xyz, rgb, f"{init}: the dataset's {len(xyz)} points ({POINTS_FILE})"
+    chosen = np.sort(np.random.default_rng([config.seed, POINTS_SEED_TAG]).permutation(len(xyz))[:config.init_count])
+    return xyz[chosen], rgb[chosen], (f"{init}: {config.init_count} of the dataset's {len(xyz)} points "
+                                      f"({POINTS_FILE}; a seeded random subset, --init-count)")
 
 
 class GaussianAdam:
