@@ -178,8 +178,8 @@ def train(dataset, out, config: SplatConfig | None = None, *, overwrite: bool = 
     Returns {"steps", "seconds", "val_psnr", "gaussians", "model_bytes"}."""
     if isinstance(out, str) and not out.strip():
         raise InputError("the run folder is an empty path; give --out RUN")
-    config = dataclasses.replace(config or SplatConfig(budget_seconds=120.0), dataset=str(getattr(dataset, "root",
-                                                                                                  dataset)))
+    root = dataset.root if isinstance(dataset, Dataset) else dataset
+    config = dataclasses.replace(config or SplatConfig(budget_seconds=120.0), dataset=str(root))
     config.validate()
     device = pick_device(config.device)
     backend = backend_for(device)
