@@ -30,7 +30,8 @@ its tile's pixels, and the backward writes per (tile, Gaussian) pair into rows o
 the caller sums per Gaussian (no two threads write one row), so the result does not depend
 on the thread count. Arithmetic inside is float64 whatever the input dtype, outputs are
 rounded once to it: the tests compare float32 renders with a float64 oracle to a few ulps.
-Memory: the per-pair gradient rows, M x (6 + C) float64 (M pairs, `tiles`), and the image.
+Memory: the per-pair gradient rows, M x (6 + C) float64 (M pairs, `tiles`), summed per
+Gaussian afterwards, and the image.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from nerfgauge.splat.tiles import ALPHA_MIN, TILE, pixel_span, tile_grid
 
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+PAIR_FEATURES = 6  # a pair's gradient row: mean (2), conic (3), opacity (1), then the features
 CUTOFF_MARGIN = 1e-9
 
 
@@ -129,7 +131,7 @@ def _forward(means2d, conics, opacities, features, half_extents, offsets, ids, w
 
 @numba.njit(parallel=True, cache=True)
 def _backward(means2d, conics, opacities, features, half_extents, offsets, ids, width, height, final_t, last,
-              grad_features, grad_alpha, g_means2d, g_conics, g_opacities, g_features):
+              grad_features, grad_alpha, g_pairs):
     tiles_x = (width + TILE - 1) // TILE
     n_tiles = offsets.shape[0] - 1
     channels = features.shape[1]
@@ -162,21 +164,31 @@ def _backward(means2d, conics, opacities, features, half_extents, offsets, ids, 
                     d_alpha = (1.0 - behind_alpha[p]) * grad_alpha[py, px]
                     for ch in range(channels):
                         f = features[g, ch]
-                        g_features[k, ch] += weight * grad_features[py, px, ch]
+                        g_pairs[k, PAIR_FEATURES + ch] += weight * grad_features[py, px, ch]
                         d_alpha += (f - behind[p, ch]) * grad_features[py, px, ch]
                         behind[p, ch] = alpha * f + (1.0 - alpha) * behind[p, ch]
                     behind_alpha[p] = alpha + (1.0 - alpha) * behind_alpha[p]
                     if raw > ALPHA_MAX:
                         continue  # clamped: alpha does not move with o or power
                     d_alpha *= transmittance[p]
-                    g_opacities[k] += np.exp(power) * d_alpha
+                    g_pairs[k, 5] += np.exp(power) * d_alpha  # opacity
                     d_power = raw * d_alpha
                     dx, dy = mx - (px + 0.5), my - (py + 0.5)
-                    g_means2d[k, 0] -= d_power * (a * dx + b * dy)
-                    g_means2d[k, 1] -= d_power * (b * dx + c * dy)
-                    g_conics[k, 0] -= 0.5 * d_power * dx * dx
-                    g_conics[k, 1] -= d_power * dx * dy
-                    g_conics[k, 2] -= 0.5 * d_power * dy * dy
+                    g_pairs[k, 0] -= d_power * (a * dx + b * dy)  # mean
+                    g_pairs[k, 1] -= d_power * (b * dx + c * dy)
+                    g_pairs[k, 2] -= 0.5 * d_power * dx * dx  # conic
+                    g_pairs[k, 3] -= d_power * dx * dy
+                    g_pairs[k, 4] -= 0.5 * d_power * dy * dy
+
+
+@numba.njit(cache=True)
+def _sum_pairs(ids, rows, out):
+    """out[g] += rows[k] for every pair k of Gaussian g = ids[k] (serial: rows of one Gaussian
+    come from several tiles)."""
+    for k in range(ids.shape[0]):
+        g = ids[k]
+        for column in range(rows.shape[1]):
+            out[g, column] += rows[k, column]
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
@@ -184,9 +196,9 @@ def _numpy(tensor: torch.Tensor) -> np.ndarray:
 
 
 class RasteriseTiles(torch.autograd.Function):
-    """(means2d [V, 2], conics [V, 3], opacities [V], features [V, C]) -> (F [H, W, C], A [H, W])
+    """(means2d [N, 2], conics [N, 3], opacities [N], features [N, C]) -> (F [H, W, C], A [H, W])
     with the binning (offsets, ids, half extents) of `tiles.bin_gaussians`; differentiable in
-    the four tensors."""
+    the four tensors (zero gradient for Gaussians in no tile)."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, half_extents, offsets, ids, width, height):
@@ -207,8 +219,7 @@ class RasteriseTiles(torch.autograd.Function):
         means2d, conics, opacities, features = ctx.saved_tensors
         half_extents, offsets, ids, width, height, out_t, out_last = ctx.binning
         pairs, channels = len(ids), features.shape[1]
-        g_means2d, g_conics = np.zeros((pairs, 2)), np.zeros((pairs, 3))  # [M, 2], [M, 3] per (tile, Gaussian)
-        g_opacities, g_features = np.zeros(pairs), np.zeros((pairs, channels))  # [M], [M, C]
+        g_pairs = np.zeros((pairs, PAIR_FEATURES + channels))  # [M, 6 + C] per (tile, Gaussian)
         if grad_features is None:
             grad_features = torch.zeros((height, width, channels), dtype=features.dtype)
         if grad_alpha is None:
@@ -216,20 +227,20 @@ class RasteriseTiles(torch.autograd.Function):
         if pairs:
             _backward(_numpy(means2d), _numpy(conics), _numpy(opacities), _numpy(features), half_extents, offsets,
                       ids, width, height, out_t, out_last, _numpy(grad_features).astype(np.float64),
-                      _numpy(grad_alpha).astype(np.float64), g_means2d, g_conics, g_opacities, g_features)
-        index = torch.from_numpy(ids.astype(np.int64))  # [M]
-        total = lambda rows, like: torch.zeros((like.shape[0],) + rows.shape[1:], dtype=torch.float64).index_add_(  # noqa: E731
-            0, index, torch.from_numpy(rows)).to(like.dtype)
-        return (total(g_means2d, means2d), total(g_conics, conics), total(g_opacities, opacities),
-                total(g_features, features), None, None, None, None, None)
+                      _numpy(grad_alpha).astype(np.float64), g_pairs)
+        totals = np.zeros((means2d.shape[0], PAIR_FEATURES + channels))  # [N, 6 + C]
+        _sum_pairs(ids, g_pairs, totals)
+        totals = torch.from_numpy(totals).to(features.dtype)
+        return (totals[:, 0:2], totals[:, 2:5], totals[:, 5], totals[:, PAIR_FEATURES:], None, None, None, None, None)
 
 
 def rasterise(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,
               binning: tuple, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite V Gaussians front to back in every tile (module docstring), on the CPU.
+    """Composite the binned Gaussians front to back in every tile (module docstring), on the CPU.
 
-    means2d: [V, 2] pixel coordinates; conics: [V, 3]; opacities: [V] in [0, 1]; features:
-    [V, C]; binning: `tiles.bin_gaussians` of the same V Gaussians.
+    means2d: [N, 2] pixel coordinates; conics: [N, 3]; opacities: [N] in [0, 1]; features:
+    [N, C]; binning: `tiles.bin_gaussians` of these N Gaussians (those it leaves out, e.g. not
+    drawn, are read nowhere).
     Returns F [H, W, C] = sum_i alpha_i T_i f_i and A [H, W] (accumulated alpha), both
     differentiable (the backward is hand-written: `RasteriseTiles`)."""
     tiles_x, tiles_y = tile_grid(width, height)

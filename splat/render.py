@@ -85,24 +85,22 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
     half = footprint_box(projected.cov2d_diagonal, opacities.detach())  # [N, 2]
     u, v = means2d[:, 0].detach(), means2d[:, 1].detach()  # [N] each
     on_screen = (u + half[:, 0] > 0) & (u - half[:, 0] < width) & (v + half[:, 1] > 0) & (v - half[:, 1] < height)
-    count = (sh_degree + 1) ** 2
-    finite = torch.isfinite(opacities.detach()) & torch.isfinite(sh.detach()[:, :count]).flatten(1).all(1)  # [N]
+    finite = torch.isfinite(opacities.detach())  # [N]; NaN in a colour: project_and_colour says not in front
+    if backend == "reference":
+        finite &= torch.isfinite(sh.detach()[:, :(sh_degree + 1) ** 2]).flatten(1).all(1)
     visible = projected.in_front & finite & (half[:, 0] > 0) & on_screen  # [N]
     # the reference composites every Gaussian in front of the camera, the tiles the visible ones
     drawn = ((projected.in_front & finite) if backend == "reference" else visible).nonzero().squeeze(1)  # [V]
-    if all_colours is None:
-        colours = sh_colour(sh[drawn], means[drawn] - camera.centre, sh_degree)  # [V, 3]
-    else:
-        colours = all_colours[drawn]  # [V, 3]
-    depths = projected.depths[drawn]  # [V]
-    features = torch.cat([colours, depths[:, None]], dim=1)  # [V, 4]
     if backend == "reference":
+        colours = sh_colour(sh[drawn], means[drawn] - camera.centre, sh_degree)  # [V, 3]
+        depths = projected.depths[drawn]  # [V]
+        features = torch.cat([colours, depths[:, None]], dim=1)  # [V, 4]
         out, alpha = composite_reference(means2d[drawn], projected.conics[drawn], opacities[drawn], features, depths,
                                          width, height)
-    else:
-        binning = bin_gaussians(means2d[drawn], half[drawn], depths.detach(), width, height)
-        out, alpha = rasterise(means2d[drawn], projected.conics[drawn], opacities[drawn], features, binning, width,
-                               height)
+    else:  # the tiles index all N Gaussians: no gather here, no scatter in the backward
+        features = torch.cat([all_colours, projected.depths[:, None]], dim=1)  # [N, 4]
+        binning = bin_gaussians(means2d, half, projected.depths, width, height, drawn)
+        out, alpha = rasterise(means2d, projected.conics, opacities, features, binning, width, height)
     radii = torch.where(visible, half.max(dim=1).values, torch.zeros_like(half[:, 0]))  # [N]
     return _finish(out[..., :3], out[..., 3], alpha, camera, background, means2d, radii, visible)
 

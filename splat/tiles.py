@@ -107,12 +107,18 @@ class Binning(NamedTuple):
 
 @torch.no_grad()
 def bin_gaussians(means2d: torch.Tensor, half_extents: torch.Tensor, depths: torch.Tensor, width: int,
-                  height: int) -> Binning:
+                  height: int, drawn: torch.Tensor | None = None) -> Binning:
     """Each tile's Gaussians front to back. Not differentiable.
 
-    means2d: [V, 2] pixel coordinates; half_extents: [V, 2] (`footprint_box`); depths: [V]
-    camera depths (the sort key; ties keep index order)."""
-    order = torch.argsort(depths, stable=True).numpy().astype(np.int64)  # [V]
-    half = np.ascontiguousarray(half_extents.double().numpy())  # [V, 2]
+    means2d: [N, 2] pixel coordinates; half_extents: [N, 2] (`footprint_box`); depths: [N]
+    camera depths (the sort key; ties keep index order); drawn: [V] indices of the Gaussians
+    to bin (None: all N). ids index the N Gaussians."""
+    depths = depths.detach()
+    if drawn is None:
+        order = torch.argsort(depths, stable=True)  # [N]
+    else:
+        order = drawn[torch.argsort(depths[drawn], stable=True)]  # [V]
+    order = order.numpy().astype(np.int64)
+    half = np.ascontiguousarray(half_extents.double().numpy())  # [N, 2]
     offsets, ids = _bin(means2d.detach().double().numpy(), half, order, int(width), int(height), TILE)
     return Binning(offsets, ids, half)
