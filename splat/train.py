@@ -215,8 +215,19 @@ def _rates(config: SplatConfig, extent: float) -> dict:
             "opacity_logits": config.lr_opacity, "sh_dc": config.lr_sh_dc, "sh_rest": config.lr_sh_rest}
 
 
+def warm_up(gaussians: Gaussians, camera: Camera, backend: str) -> None:
+    """Render a copy of the first few Gaussians and take its gradients, so that numba loads
+    (or, after an upgrade, compiles: a minute on a loaded 2-core machine) every kernel before
+    the training clock starts. Touches nothing the run reads afterwards."""
+    count = min(len(gaussians), 64)
+    copy = Gaussians(*(tensor.detach()[:count].clone().requires_grad_(True) for tensor in gaussians.tensors().values()))
+    rendered = copy.render(camera, torch.zeros(3, device=gaussians.means.device), 3, backend, retain_means2d_grad=True)
+    (rendered.rgb.sum() + rendered.depth.sum() + rendered.opacity.sum()).backward()
+
+
 def _train_in(out: Path, config: SplatConfig, gaussians: Gaussians, train_views: Views, val_views: Views,
               extent: float, backend: str, progress: bool) -> dict:
+    warm_up(gaussians, train_views.cameras[0], backend)
     generator = torch.Generator().manual_seed(config.seed)
     adam = GaussianAdam(gaussians, _rates(config, extent))
     stats = DensityStats.zeros(len(gaussians), gaussians.means.device)
