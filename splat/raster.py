@@ -71,6 +71,16 @@ def _alpha(mx, my, a, b, c, o, cutoff, px, py):
 
 
 @numba.njit(cache=True, inline="always")
+def _pair(means2d, conics, opacities, half_extents, g, x0, y0, width, height):
+    """What a (tile at x0, y0; Gaussian g) pair reads: mean, conic, opacity, its exp cutoff,
+    and the pixels of its footprint box inside the tile (first, last in x and y)."""
+    mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
+    px0, px1 = _span_in_tile(mx, half_extents[g, 0], x0, width)
+    py0, py1 = _span_in_tile(my, half_extents[g, 1], y0, height)
+    return mx, my, conics[g, 0], conics[g, 1], conics[g, 2], o, _cutoff(o), px0, px1, py0, py1
+
+
+@numba.njit(cache=True, inline="always")
 def _span_in_tile(centre, half, origin, size):
     """First and last pixel (inclusive, image coordinates) of the tile starting at `origin`
     whose centre lies in [centre - half, centre + half]: the Gaussian's footprint box
@@ -95,11 +105,8 @@ def _forward(means2d, conics, opacities, features, half_extents, offsets, ids, w
         alive = min(TILE, width - x0) * min(TILE, height - y0)
         for k in range(start, end):  # Gaussians front to back, each over the pixels of its box
             g = ids[k]
-            mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
-            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-            cutoff = _cutoff(o)
-            px0, px1 = _span_in_tile(mx, half_extents[g, 0], x0, width)
-            py0, py1 = _span_in_tile(my, half_extents[g, 1], y0, height)
+            mx, my, a, b, c, o, cutoff, px0, px1, py0, py1 = _pair(means2d, conics, opacities, half_extents, g, x0,
+                                                                    y0, width, height)
             for py in range(py0, py1 + 1):
                 for px in range(px0, px1 + 1):
                     p = (py - y0) * TILE + (px - x0)
@@ -146,11 +153,8 @@ def _backward(means2d, conics, opacities, features, half_extents, offsets, ids, 
                 transmittance[(py - y0) * TILE + (px - x0)] = final_t[py, px]
         for k in range(end - 1, start - 1, -1):  # back to front
             g = ids[k]
-            mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
-            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-            cutoff = _cutoff(o)
-            px0, px1 = _span_in_tile(mx, half_extents[g, 0], x0, width)
-            py0, py1 = _span_in_tile(my, half_extents[g, 1], y0, height)
+            mx, my, a, b, c, o, cutoff, px0, px1, py0, py1 = _pair(means2d, conics, opacities, half_extents, g, x0,
+                                                                    y0, width, height)
             for py in range(py0, py1 + 1):
                 for px in range(px0, px1 + 1):
                     if k >= last[py, px]:

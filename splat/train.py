@@ -60,22 +60,21 @@ NOT_RECIPE = ("dataset", "eval_every_seconds", "eval_views", "threads", "device"
 
 
 def pick_device(name: str) -> torch.device:
-    """The torch device for --device (auto: cuda when present and gsplat imports); one line
-    when it cannot be used."""
+    """The torch device for --device: auto (CUDA when present and gsplat imports, else the
+    CPU), cpu, cuda or cuda:N (the forms SplatConfig.validate accepts); one line when the
+    device cannot be used."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() and _gsplat_imports() else "cpu")
-    try:
-        device = torch.device(name)
-    except (RuntimeError, ValueError, TypeError):
-        raise InputError(f"unknown device {name!r}; choose auto, cpu or cuda") from None
-    if device.type == "cuda":
-        if not torch.cuda.is_available():
-            raise InputError(f"device {name!r}: no CUDA GPU is available here; use --device cpu or auto")
-        if not _gsplat_imports():
-            raise InputError(f"device {name!r}: splatting on CUDA rasterises with gsplat, which does not import "
-                             "here (pip install gsplat); use --device cpu")
-    elif device.type != "cpu":
-        raise InputError(f"unsupported device {name!r}; choose auto, cpu or cuda")
+    if name == "cpu":
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise InputError(f"device {name!r}: no CUDA GPU is available here; use --device cpu or auto")
+    if not _gsplat_imports():
+        raise InputError(f"device {name!r}: splatting on CUDA rasterises with gsplat, which does not import here "
+                         "(pip install gsplat); use --device cpu")
+    device = torch.device(name)
+    if device.type != "cuda" or (device.index or 0) >= torch.cuda.device_count():
+        raise InputError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA GPU(s)")
     return device
 
 
