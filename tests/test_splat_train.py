@@ -170,3 +170,19 @@ def test_config_validation_through_the_api(fields, expected):
     with pytest.raises(InputError, match=expected) as error:
         SplatConfig(dataset="d", **fields).validate()
     assert "\n" not in str(error.value)
+
+
+@pytest.mark.slow
+def test_init_random_takes_the_datasets_random_export(tiny_dataset, tmp_path, capsys):
+    """`--init random` starts from the dataset's own random-point export (generate.export),
+    not from points of its own: the run's config says how many it read."""
+    import shutil
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(tiny_dataset, copy)
+    assert main(["export", "colmap", str(copy), "--points", "random:300"]) == 0
+    capsys.readouterr()
+    assert main(["train", str(copy), "--model", "splat", "--steps", "3", "--init", "random", "--out",
+                 str(tmp_path / "run"), "--quiet"]) == 0
+    reasons = json.loads((tmp_path / "run" / "config.json").read_text())["auto_reasons"]
+    assert reasons["init"] == "random: the dataset's 300 points (sparse/0/points3D.txt)"
