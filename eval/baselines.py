@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core import dataset
+from nerfgauge.core import dataset, owned
 from nerfgauge.core.camera import ThinLens, camera_directions, lens_samples, pixel_rays, thin_lens_rays
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_json
@@ -293,7 +293,7 @@ def write_baseline(root, method: str, out, split: str = "test", *, lens: ThinLen
         frames = render_lightfield(ds, split, method.removeprefix("lightfield-"))
     seconds = time.perf_counter() - start
     for stem, image in frames.items():
-        (out / stem).parent.mkdir(parents=True, exist_ok=True)
+        owned.make_folder((out / stem).parent)
         write_png(out / (stem + ".png"), image)
     timing = {"method": method, "split": split, "frames": len(frames), "seconds": seconds,
               "ms_per_frame": 1000.0 * seconds / max(len(frames), 1)}
@@ -321,5 +321,5 @@ def baseline_folder(root, method: str, out, split: str, *, overwrite: bool = Fal
             remove_owned(out, "baseline")
             for parent in made[1:]:
                 with contextlib.suppress(OSError):  # not empty any more: someone else's now
-                    parent.rmdir()
+                    owned.remove_empty_folder(parent)
         raise

@@ -115,7 +115,7 @@ from nerfgauge.eval.metrics import (
 )
 from nerfgauge.eval.uncertainty import EVALUATE_SEED, bootstrap_ci
 
-from nerfgauge.core import dataset
+from nerfgauge.core import dataset, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import check_writable_target, json_from_bytes, read_json, write_json
 from nerfgauge.core.outputs import TOOL
@@ -352,7 +352,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
         # eval.uncertainty: percentile bootstrap over the views, a fresh Generator seeded
         # EVALUATE_SEED per metric (the same file gives the same interval)
         intervals[metric] = bootstrap_ci(column, np.random.default_rng(EVALUATE_SEED)).to_json()
-    out.parent.mkdir(parents=True, exist_ok=True)
+    owned.make_folder(out.parent)
     for stem, colour_err, depth_err in maps:
         write_error_maps(out.parent / "error_maps", stem, colour_err, depth_err)
     document = {"tool": TOOL, "kind": METRICS_KIND, "schema": SCHEMA, "scene": scene, "split": split, "background": background,

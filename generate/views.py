@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core import dataset
+from nerfgauge.core import dataset, owned
 from nerfgauge.core.files import write_json
 from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
 from nerfgauge.generate.degrade import degrade_images
@@ -39,7 +39,7 @@ def view_complete(out: Path, stem: str) -> bool:
 def write_view(out: Path, stem: str, images) -> None:
     """Write one view's nine files; the PNG last is no marker: completeness is all nine."""
     files = {kind: out / rel for kind, rel in dataset.frame_files(stem).items()}
-    files["png"].parent.mkdir(parents=True, exist_ok=True)
+    owned.make_folder(files["png"].parent)
     write_exr(files["exr"], {"RGBA": images.rgba}, {"nerfgauge": "linear RGBA, premultiplied alpha = coverage"})
     write_exr(files["distance"], {"Z": images.distance}, {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
     write_exr(files["z_depth"], {"Z": images.z_depth}, {"nerfgauge_depth": "z_depth", "nerfgauge_miss": "0"})

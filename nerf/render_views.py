@@ -41,7 +41,7 @@ from nerfgauge.nerf.runs import open_run_dataset
 from nerfgauge.nerf.train import pick_device
 from tqdm import tqdm
 
-from nerfgauge.core import arguments
+from nerfgauge.core import arguments, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash
@@ -136,7 +136,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
             (lens_seconds if through_lens else seconds).append(time.perf_counter() - start)
             rgb, opacity, depth = (t.cpu().numpy() for t in (rgb, opacity, depth))
             target = out / stem
-            target.parent.mkdir(parents=True, exist_ok=True)
+            owned.make_folder(target.parent)
             # Expected depth wherever anything was hit (it is normalised by opacity); silhouette
             # pixels with little opacity still carry the depth of what they partly see.
             depth = depth.astype(np.float32).reshape(height, width)

@@ -42,7 +42,7 @@ from nerfgauge.nerf.rendering import composite, render_rays_chunked
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
 from tqdm import tqdm
 
-from nerfgauge.core import bounded
+from nerfgauge.core import bounded, owned
 from nerfgauge.core.dataset import manifest_sha256, open_dataset
 from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
@@ -275,7 +275,7 @@ def _start_over(run_dir: Path) -> None:
     """Remove an earlier attempt's files from our run folder (we hold its lock): its
     model, checkpoint, log and config, and renders folders nerfgauge made inside it."""
     for name in (MODEL, CHECKPOINT, LOG, CONFIG):
-        (run_dir / name).unlink(missing_ok=True)
+        owned.remove_file(run_dir / name)
     for entry in run_dir.iterdir():
         marker = read_marker(entry) if entry.is_dir() and not entry.is_symlink() else None
         if marker is not None and marker["kind"] == "renders":
@@ -420,7 +420,7 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     # config.json states this attempt's settings (the stopping rule may have changed)
     write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
                                   "recipe": recipe})
-    log = (run_dir / LOG).open("a")
+    log = owned.open_append(run_dir / LOG)
     # the scale of the unseen viewpoints' offsets, when the sparse-capture priors are on
     priors = origin_spread(train_rays.origins) if config.sparse_priors else None
     n_rays = config.batch_rays if config.model == "compact" else config.vanilla_batch_rays
@@ -791,7 +791,8 @@ def _truncate_log(path: Path, last_step: int) -> None:
             if number == len(lines):
                 break  # torn by a kill mid-write
             raise InputError(f"{path} line {number} is not JSON; fix or delete the line to resume") from None
-        if not isinstance(entry, dict) or not isinstance(entry.get("step"), int):
+        step = entry.get("step") if isinstance(entry, dict) else None
+        if type(step) is not int or step < 0:  # as the loop writes it: a non-negative int (not a bool)
             raise InputError(f"{path} line {number} has no integer step; fix or delete the line to resume")
         if entry["step"] <= last_step:
             kept.append(line)

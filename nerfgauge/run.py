@@ -21,12 +21,11 @@ folder (only ever one that nerfgauge made).
 from __future__ import annotations
 
 import dataclasses
-import errno
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from nerfgauge.core import arguments
+from nerfgauge.core import arguments, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
@@ -121,12 +120,12 @@ def remove_earlier_outputs(out: Path, model: str) -> None:
     for folder in sorted((out / "seeds").glob("seed-*")) if (out / "seeds").is_dir() else []:  # run --seeds
         remove_owned(folder / "run" / "renders", "renders")
         remove_owned(folder / "run", "run")
-        _remove_empty_folder(folder)
-    _remove_empty_folder(out / "seeds")
+        owned.remove_empty_folder(folder)
+    owned.remove_empty_folder(out / "seeds")
     for folder in sorted((out / "eval" / model).glob("seed-*")) if (out / "eval" / model).is_dir() else []:
         _remove_file(folder / "metrics.json")
         remove_owned(folder / "error_maps", "evaluation")
-        _remove_empty_folder(folder)
+        owned.remove_empty_folder(folder)
     _remove_file(out / "eval" / model / "aggregate.json")
     for method in (model, *METHODS):
         remove_owned(out / "baselines" / method, "baseline")
@@ -135,28 +134,17 @@ def remove_earlier_outputs(out: Path, model: str) -> None:
         _remove_file(out / "eval" / method / "geometry.json")
         _remove_file(out / "eval" / method / "protocols.json")
         _remove_file(out / "eval" / method / "mesh.ply")
-        _remove_empty_folder(out / "eval" / method)
+        owned.remove_empty_folder(out / "eval" / method)
     for name in REPORT_FILES:
         _remove_file(out / name)
     for folder in ("eval", "baselines", "report"):
-        _remove_empty_folder(out / folder)
+        owned.remove_empty_folder(out / folder)
 
 
 def _remove_file(path: Path) -> None:
-    if path.is_symlink() or path.is_file():
-        path.unlink()
-    elif path.exists():
+    if path.exists() and not path.is_symlink() and not path.is_file():
         raise InputError(f"refusing to delete {path}: nerfgauge writes a file there, and it is not one")
-
-
-def _remove_empty_folder(path: Path) -> None:
-    try:
-        path.rmdir()
-    except FileNotFoundError:
-        pass
-    except OSError as error:
-        if error.errno not in (errno.ENOTEMPTY, errno.EEXIST):
-            raise
+    owned.remove_file(path)
 
 
 def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool = True) -> dict:
@@ -212,7 +200,7 @@ def run_pipeline(config: RunConfig, *, overwrite: bool = False, progress: bool =
         if seeds is not None:
             more_seeds(out, train_config, seeds, documents[f"{config.model} NeRF"], progress)
         print("[5/5] report")
-        (out / "report").mkdir(parents=True, exist_ok=True)
+        owned.make_folder(out / "report")
         ours_name = f"{config.model} NeRF"
         protocol_tables = {ours_name: sensitivity(out / "dataset", run_dir / "renders", "test")}
         for method in baselines:
@@ -251,7 +239,7 @@ def more_seeds(out: Path, train_config, seeds: tuple, first: dict, progress: boo
     from nerfgauge.nerf.train import train  # torch
 
     model_eval = out / "eval" / train_config.model
-    (model_eval / f"seed-{seeds[0]}").mkdir(parents=True, exist_ok=True)
+    owned.make_folder(model_eval / f"seed-{seeds[0]}")
     write_json(model_eval / f"seed-{seeds[0]}" / "metrics.json", first)
     documents = [first]
     for index, seed in enumerate(seeds[1:], 2):

@@ -37,18 +37,17 @@ from __future__ import annotations
 import importlib.metadata
 import math
 import platform
-import shutil
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core import arguments
+from nerfgauge.core import arguments, owned
 from nerfgauge.core.colmap import GL_TO_CV
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import write_json
+from nerfgauge.core.files import link_or_copy_atomic, write_json
 from nerfgauge.core.folders import _check_claimable, claim_folder, recipe_hash
 from nerfgauge.core.outputs import stamp
 from nerfgauge.eval.poses import pose_errors, rotation_angle_degrees, umeyama  # noqa: F401 (the maths lives in eval.poses)
@@ -68,7 +67,7 @@ def run_sfm(ds, work: Path, fix_intrinsics: bool = False, colmap_defaults: bool 
     reconstruction or None, names in train order, timings)."""
     pycolmap = require_pycolmap("nerfgauge sfm")
     cameras = ds.cameras("train")
-    (work / "images").mkdir()
+    owned.make_folder(work / "images")
     names = stage_images(ds, work / "images")
     timings = {}
     start = time.perf_counter()
@@ -84,7 +83,7 @@ def run_sfm(ds, work: Path, fix_intrinsics: bool = False, colmap_defaults: bool 
         options.ba_refine_focal_length = False
         options.ba_refine_principal_point = False
         options.ba_refine_extra_params = False
-    (work / "sparse").mkdir()
+    owned.make_folder(work / "sparse")
     start = time.perf_counter()
     reconstructions = pycolmap.incremental_mapping(work / "database.db", work / "images", work / "sparse",
                                                    options=options)
@@ -160,18 +159,11 @@ def sfm_command(root, out, *, overwrite: bool = False, fix_intrinsics: bool = Fa
                          "nerfgauge": importlib.metadata.version("nerfgauge")},
         }, "sfm")
         with claim_folder(out, "sfm", recipe, overwrite=overwrite):
-            shutil.copy2(work / "database.db", out / ".database.db.tmp")
-            (out / ".database.db.tmp").replace(out / "database.db")
-            if (out / "sparse").exists():
-                shutil.rmtree(out / "sparse")
-            best.write_binary(str(_mkdir(out / "sparse" / "0")))
+            link_or_copy_atomic(work / "database.db", out / "database.db")
+            owned.remove_tree(out / "sparse")
+            best.write_binary(str(owned.make_folder(out / "sparse" / "0")))
             write_json(out / "sfm.json", document)
     return document
-
-
-def _mkdir(path: Path) -> Path:
-    path.mkdir(parents=True, exist_ok=True)
-    return path
 
 
 def format_sfm(document: dict) -> str:

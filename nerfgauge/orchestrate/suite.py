@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from nerfgauge.core import bounded, dataset
+from nerfgauge.core import bounded, dataset, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, folder_lock
@@ -396,7 +396,7 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
                                  f"files hash to {record['ground_truth_sha256']}, {manifest_path} recorded {before}; "
                                  "pass --overwrite to record it again (results scored against it are then refused)")
         if manifest_path.is_file():
-            manifest_path.unlink()  # rewritten below once every dataset is complete
+            owned.remove_file(manifest_path)  # rewritten below once every dataset is complete
         for index, entry in enumerate(suite.scenes, 1):
             folder = dataset_dir(out, entry)
             if entry.foreign:
@@ -501,7 +501,7 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
     extras = extras or {}
     results_dir = out / "results" / method
     with folder_lock(out):
-        (results_dir / RESULT_FILE).unlink(missing_ok=True)  # no stale result.json beside new metrics
+        owned.remove_file(results_dir / RESULT_FILE)  # no stale result.json beside new metrics
         rows = {}
         for index, entry in enumerate(entries, 1):
             log(f"[{index}/{len(entries)}] evaluate {method} on {entry.id}"
@@ -552,7 +552,7 @@ def _score_one(suite: Suite, out: Path, entry, record: dict, pred_dir: Path, met
         read = document.get("ground_truth", {}).get("files", {})
         changed = sorted(rel for rel, digest in read.items() if record["files"].get(rel) != digest)
         if changed:
-            metrics_path.unlink(missing_ok=True)
+            owned.remove_file(metrics_path)
             raise InputError(f"ground-truth folder {dataset_dir(out, entry)} ({entry.id}): {changed[0]} "
                              f"changed while it was scored ({len(changed)} files differ from {SUITE_MANIFEST})")
     row = {key: record[key],

@@ -47,6 +47,7 @@ import time
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
+from nerfgauge.core import owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge import nerf as nerf_package
@@ -61,7 +62,7 @@ JOBS = "jobs"  # OUT/jobs/<key>.json: a finished job's record
 
 
 def job_record_path(out, key: str) -> Path:
-    (Path(out) / JOBS).mkdir(parents=True, exist_ok=True)
+    owned.make_folder(Path(out) / JOBS)
     return Path(out) / JOBS / f"{key}.json"
 
 
@@ -93,7 +94,7 @@ def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256
     done = finished(out, job_key, recipe, outputs)
     if done is not None:
         return {**done, "resumed": True}
-    job_record_path(out, job_key).unlink(missing_ok=True)
+    owned.remove_file(job_record_path(out, job_key))
     from nerfgauge.nerf.config import TrainConfig  # torch: only where a job runs
     from nerfgauge.nerf.render_views import render_split  # torch
     from nerfgauge.nerf.train import train as train_run  # torch
@@ -125,7 +126,7 @@ def baseline_job(out: str, job_key: str, dataset: str, manifest_sha256: str, met
     done = finished(out, job_key, recipe, [Path(target)])
     if done is not None:
         return {**done, "resumed": True}
-    job_record_path(out, job_key).unlink(missing_ok=True)
+    owned.remove_file(job_record_path(out, job_key))
     with baseline_folder(dataset, method, target, split, overwrite=True):
         write_baseline(dataset, method, target, split)
     result = {"method": method}
