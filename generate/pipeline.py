@@ -34,7 +34,7 @@ from nerfgauge.generate.mitsuba_scene import instance_names, write_meshes
 from nerfgauge.generate.render import NoiseTarget
 from nerfgauge.generate.variant import CHOICES as VARIANT_CHOICES
 from nerfgauge.generate.variant import resolve_variant
-from nerfgauge.generate.views import pending_views
+from nerfgauge.generate.views import noise_record, pending_views
 from nerfgauge.generate.workers import render_views
 from nerfgauge.scenes import make_scene
 from nerfgauge.scenes.registry import scene_inputs
@@ -463,14 +463,20 @@ NOISE_METHOD = ("two independent passes of spp/2 samples (seeds differ); the ima
                 "rounding error (docs/conventions.md, Noise)")
 
 
+def _noise(path: Path) -> dict:
+    record = noise_record(path)  # checked when the view was rendered or found complete: a change since is refused
+    if record is None:
+        raise InputError(f"{path} is not a noise record nerfgauge wrote; delete it and rerun to render its view again")
+    return record
+
+
 def noise_summary(out: Path, stems: dict, config: GenerateConfig) -> dict:
     """scene.json's "noise": every frame's estimate (from its _noise.json) and per split the
     mean of each frame's dB figure (as PSNR is averaged), spp range, and why there is no
     estimate when there is none."""
     splits = {}
     for split in dataset.SPLITS:
-        frames = [{"name": stem, **read_json(out / dataset.frame_files(stem)["noise"], finite=True)}
-                  for stem in stems[split]]
+        frames = [{"name": stem, **_noise(out / dataset.frame_files(stem)["noise"])} for stem in stems[split]]
         summary = {"frames": frames}
         if frames:
             summary["spp"] = {"min": min(f["spp"] for f in frames), "max": max(f["spp"] for f in frames),
