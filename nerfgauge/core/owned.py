@@ -36,17 +36,21 @@ from nerfgauge.core.errors import InputError
 MARKER = ".nerfgauge.json"  # the ownership marker of a folder nerfgauge made (core.folders writes it)
 
 
-def _nodes(path) -> list[Path]:
+def _nodes(path) -> list[str]:
     """Every folder and file the kernel walks to reach `path`, from "/" down to `path`.
     Relative paths start at the working folder (os.getcwd() is already real); a ".." steps
     up from where the path so far really leads (a link's target's parent, as the kernel does)."""
-    path = Path(path)
-    current = Path("/") if path.is_absolute() else Path(os.getcwd())
-    nodes = [*reversed(current.parents), current] if current != Path("/") else [current]
-    for part in path.parts[1:] if path.is_absolute() else path.parts:
+    path = os.fspath(path)
+    current = "/" if path.startswith("/") else os.getcwd()
+    nodes = ["/"]
+    for part in current.split("/"):
+        if part:
+            nodes.append(os.path.join(nodes[-1], part))
+    current = nodes[-1]
+    for part in path.split("/"):
         if part in ("", "."):
             continue
-        current = Path(os.path.realpath(current)).parent if part == ".." else current / part
+        current = os.path.dirname(os.path.realpath(current)) if part == ".." else os.path.join(current, part)
         nodes.append(current)
     return nodes
 
@@ -59,7 +63,7 @@ def holds_marker(folder) -> bool:
         return False
 
 
-def _is_link(path: Path) -> bool:
+def _is_link(path) -> bool:
     try:
         return stat.S_ISLNK(os.lstat(path).st_mode)
     except OSError:  # absent (about to be made), or under a file: not a link
@@ -73,8 +77,10 @@ def link_below_owner(path, *, last: bool = True) -> tuple[Path, Path] | None:
     nodes = _nodes(path)
     owner = None
     for index, node in enumerate(nodes):
+        if owner is not None and node != owner and not node.startswith(owner.rstrip("/") + "/"):
+            owner = None  # a ".." climbed out of our folder: what follows is judged afresh
         if owner is not None and (last or index < len(nodes) - 1) and _is_link(node):
-            return node, owner
+            return Path(node), Path(owner)
         if owner is None and holds_marker(node):
             owner = node
     return None
