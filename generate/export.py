@@ -347,7 +347,7 @@ def read_journal(root: Path) -> tuple[dict, list]:
     the files the restored manifest lists). InputError, one line, when it is not one an
     export of this dataset wrote; nothing is written here."""
     path = root / JOURNAL
-    refuse = f"; refusing it (delete it and rerun nerfgauge generate for this dataset)"
+    refuse = "; refusing it (delete it and rerun nerfgauge generate for this dataset)"
     journal = read_json(path)
     if set(journal) != {"manifest", "files"} or not isinstance(journal["manifest"], str) \
             or not isinstance(journal["files"], dict):

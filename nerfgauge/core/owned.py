@@ -100,7 +100,7 @@ def check_no_link(path, action: str = "write", *, last: bool = True) -> Path:
 
 def _past(action: str) -> str:
     return {"write": "writes", "delete": "deletes", "rename": "renames", "make": "makes folders",
-            "lock": "locks"}.get(action, action)
+            "lock": "locks", "restore": "restores"}[action]
 
 
 def refuse_links_inside(folder) -> None:
