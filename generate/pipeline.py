@@ -431,6 +431,7 @@ def finish(out: Path, the_plan: Plan) -> None:
     }
     transients.write_masks(out, the_plan, len(instance_names(scene)))
     write_json(out / "scene.json", scene_json)
+    write_json(out / dataset.NERFBASELINES_INFO, dataset.nerfbaselines_info(scene_json))
     write_json(out / holdout.SPARSE_FILE, holdout.sparse_views(poses["train"], stems["train"]))
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
              if p.is_file() and p.name != dataset.MANIFEST and not p.name.startswith(".")]

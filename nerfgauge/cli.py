@@ -28,6 +28,7 @@ import sys
 from nerfgauge import run
 from nerfgauge.core.arguments import document_ranges
 from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
+from nerfgauge.methods import commands as methods
 from nerfgauge.orchestrate import commands as orchestration
 
 STAGES = ("scenes", "generate", "nerf", "eval")  # then orchestration (bench, suite), then run
@@ -55,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue  # a stage without commands yet
         module.register(subparsers)
+    methods.register(subparsers)
     orchestration.register(subparsers)
     run.register(subparsers)
     document_ranges(parser)  # every numeric flag's range in its --help

@@ -113,6 +113,24 @@ def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[Th
     }
 
 
+NERFBASELINES_INFO = "nb-info.json"
+FORWARD_FACING_LAYOUTS = ("forward", "lightfield")  # generate.layouts: cameras looking one way
+
+
+def nerfbaselines_info(scene: dict) -> dict:
+    """nb-info.json: NerfBaselines loads a folder with the loader this names. Without it both
+    its nerfstudio and colmap loaders claim our folders (transforms.json and sparse/0) and it
+    refuses to choose; its colmap loader would also split our train images by LLFF's every
+    8th. Its nerfstudio loader reads transforms.json with our split lists, general
+    intrinsics and distortion. Transparent backgrounds composite onto white, as the
+    NeRF-synthetic scenes it knows do (its "nerf" evaluation protocol)."""
+    transparent = scene["needs"]["background"] == "transparent"
+    layout = scene["camera"]["layout"]
+    return {"loader": "nerfstudio", "id": "nerfgauge", "scene": scene["recipe"],
+            "type": "forward-facing" if layout in FORWARD_FACING_LAYOUTS else "object-centric",
+            **({"background_color": [255, 255, 255], "evaluation_protocol": "nerf"} if transparent else {})}
+
+
 def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses: dict,
                           split_lenses: Optional[dict] = None, split_distortions: Optional[dict] = None) -> dict:
     """transforms.json for nerfstudio. Its depth is z-depth in scene units (nerfstudio
