@@ -23,7 +23,8 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.methods.builtin import builtin_methods
 from nerfgauge.methods.external import MethodFailed, read_spec
 from nerfgauge.methods.interface import Method, Needs, TrainRequest, missing_needs
-from nerfgauge.methods.registry import check_name, resolve
+from nerfgauge.methods.registry import resolve
+from nerfgauge.methods.interface import check_name
 
 PROGRAM = textwrap.dedent('''
     import os, pathlib, shutil, sys, time

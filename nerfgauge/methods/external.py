@@ -53,7 +53,8 @@ from nerfgauge.core import arguments, bounded
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
-from nerfgauge.methods.interface import Method, Needs, Produces, RenderResult, TrainRequest, TrainResult
+from nerfgauge.core.owned import make_folder, open_append
+from nerfgauge.methods.interface import Method, Needs, Produces, RenderResult, TrainRequest, TrainResult, check_name
 from nerfgauge.methods.measure import maxrss_bytes
 
 LAYOUTS = ("nerfgauge", "nerfstudio", "nerfbaselines", "folder")
@@ -164,8 +165,6 @@ def _command(table: dict, key: str, source: str, allowed) -> Command:
 
 
 def parse_spec(data: dict, source: str) -> Spec:
-    from nerfgauge.methods.registry import check_name  # registry imports this module lazily
-
     top = {"name", "summary", "install", "needs", "produces", "environment", "train", "render", "files"}
     unknown = sorted(set(data) - top)
     if unknown:
@@ -247,9 +246,7 @@ def _environment(spec: Spec, values: dict, run: Path) -> dict:
     """The command's environment: ours, its bin folder first on PATH, its variables, and a
     temporary folder inside the run (so what the tool leaves behind stays with the job)."""
     env = dict(os.environ)
-    tmp = run / ".tmp"
-    tmp.mkdir(exist_ok=True)
-    env["TMPDIR"] = str(tmp)
+    env["TMPDIR"] = str(make_folder(run / ".tmp"))
     if spec.bin is not None:
         env["PATH"] = spec.bin + os.pathsep + env.get("PATH", "")
         env["VIRTUAL_ENV"] = str(Path(spec.bin).parent)
@@ -283,8 +280,8 @@ def run_command(argv: list, *, cwd: Path, env: dict, log: Path, timeout: float |
     gives its CPU time and peak memory."""
     argv = [_executable(argv[0], env, method), *argv[1:]]
     start = time.perf_counter()
-    with open(log, "ab") as output:
-        output.write(("$ " + " ".join(argv) + "\n").encode(errors="replace"))
+    with open_append(log) as output:
+        output.write("$ " + " ".join(argv) + "\n")
         output.flush()
         try:
             process = subprocess.Popen(argv, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=output,

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Optional
@@ -27,6 +28,7 @@ from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 
 DEVICES = ("auto", "cpu", "cuda")
+NAME = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")  # a method's name is a folder name (suites: results/<method>/)
 
 
 @dataclass(frozen=True)
@@ -134,6 +136,15 @@ class RenderResult:
     @property
     def ms_per_frame(self) -> float:
         return 1000.0 * self.seconds / max(self.frames, 1)
+
+
+def check_name(name, where: str = "method name") -> str:
+    """`name` if it can name a method (and its folder): lower-case letters, digits, '.', '_'
+    and '-', starting with a letter or digit, at most 64 characters."""
+    if not isinstance(name, str) or not NAME.match(name) or name in (".", ".."):
+        raise InputError(f"{where} {name!r} must be 1-64 lower-case letters, digits, '.', '_' or '-', "
+                         "starting with a letter or digit")
+    return name
 
 
 class Method:

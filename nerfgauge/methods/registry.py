@@ -13,19 +13,9 @@ import re
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.methods.builtin import builtin_methods
-from nerfgauge.methods.interface import Method
+from nerfgauge.methods.interface import Method, check_name
 
-NAME = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
 CLASS_SPEC = re.compile(r"^[A-Za-z_][A-Za-z0-9_.]*:[A-Za-z_][A-Za-z0-9_]*$")
-
-
-def check_name(name, where: str = "method name") -> str:
-    """`name` if it can name a method (and its folder): lower-case letters, digits, '.', '_'
-    and '-', starting with a letter or digit, at most 64 characters."""
-    if not isinstance(name, str) or not NAME.match(name) or name in (".", ".."):
-        raise InputError(f"{where} {name!r} must be 1-64 lower-case letters, digits, '.', '_' or '-', "
-                         "starting with a letter or digit")
-    return name
 
 
 def load_class(spec: str, settings: dict | None = None) -> Method:
