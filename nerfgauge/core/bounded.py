@@ -71,7 +71,8 @@ _OPEN = np.frombuffer(b"[{", np.uint8)
 _CLOSE = np.frombuffer(b"]}", np.uint8)
 
 
-def _size(count: int) -> str:
+def size_text(count: int) -> str:
+    """A byte count for messages: "2 GiB", "16 MiB", "512 bytes"."""
     for unit, shift in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
         if count >= 1 << shift:
             return f"{count / (1 << shift):.3g} {unit}"
@@ -80,7 +81,7 @@ def _size(count: int) -> str:
 
 def check_size(count: int, limit: int, source, what: str) -> None:
     if count > limit:
-        raise InputError(f"{source}: {what} is {_size(count)}, above the limit of {_size(limit)}")
+        raise InputError(f"{source}: {what} is {size_text(count)}, above the limit of {size_text(limit)}")
 
 
 @contextlib.contextmanager
@@ -216,7 +217,7 @@ def inflate_gzip(path, limit: int) -> bytes:
             while block := handle.read(_INFLATE_BLOCK):
                 total += len(block)
                 if total > limit:
-                    raise InputError(f"{path}: inflates to more than {_size(limit)}, the most this file can hold "
+                    raise InputError(f"{path}: inflates to more than {size_text(limit)}, the most this file can hold "
                                      "(refused while inflating)")
                 out.append(block)
     except (OSError, EOFError, zlib.error) as error:

@@ -249,7 +249,12 @@ def file_limit(path, expected_size=None):
     """A limit for bounded.read_bytes: reads and checks the open file's header, then
     returns the most bytes that header's pixels can take (ImageHeader.file_limit)."""
     def limit(handle, size: int) -> int:
-        return check_header(_header_of_file(handle, size, path), path, expected_size).file_limit()
+        header = check_header(_header_of_file(handle, size, path), path, expected_size)
+        if size > header.file_limit():
+            raise InputError(f"{path}: the file is {bounded.size_text(size)}, more than a {header.width}x"
+                             f"{header.height} {header.format} can hold (at most {bounded.size_text(header.file_limit())}: "
+                             f"{IMAGE_FILE_FACTOR} times its pixels stored raw, plus {IMAGE_METADATA_BYTES >> 20} MiB)")
+        return header.file_limit()
     return limit
 
 

@@ -20,17 +20,18 @@ asks the file system where a path really leads.
 - Frames: every frame file_path appears once in the whole dataset (normalised: "./a" is
   "a"): a frame listed twice in a split would be trained on (or scored) twice, and a frame
   in two splits (a test view that is also a training view) makes the scores meaningless.
-- Images: the magic bytes match the extension (PNG 89 50 4E 47 0D 0A 1A 0A, EXR 76 2F 31 01),
-  so JPEG bytes in a .png are refused. The size is read from the header (a PNG's IHDR via
-  Pillow's lazy open, an EXR's dataWindow) and refused BEFORE any pixel is decoded when a
+- Images: the magic bytes match the extension (PNG 89 50 4E 47 0D 0A 1A 0A, JPEG FF D8 FF,
+  EXR 76 2F 31 01), so JPEG bytes in a .png are refused. The size is read from the header
+  (nerfgauge.core.images.image_header: a PNG's IHDR, a JPEG's frame header, an EXR's
+  dataWindow, before the rest of the file is read) and refused BEFORE any pixel is decoded when a
   side exceeds MAX_IMAGE_SIDE = 8192 pixels, the generator's own cap
   (GenerateConfig.validate): at most 8192 * 8192 = 67,108,864 pixels, 1 GiB as float32
   RGBA, and below Pillow's decompression-bomb threshold (89,478,485 pixels), so its
   warning never fires for an image we accept.
 - manifest.json: schema 2 {"schema": 2, "files": {rel: {"sha256": hex, "bytes": n}}};
   schema 1 {"schema": 1, "files": {rel: hex}} (no sizes) is still read. A file read from
-  the dataset must be listed, have the listed size and (unless hashing is off) the listed
-  sha256.
+  the dataset must be listed, have the listed size (compared on the file system before
+  it is read: `content_size`) and (unless hashing is off) the listed sha256.
 """
 
 from __future__ import annotations
