@@ -253,10 +253,13 @@ class Dataset:
 
     Every file is read through one path: its name is confined to the root (no absolute
     paths or `..`; symlinks resolved and required to stay inside), it must be listed in
-    manifest.json, its size must match (schema 2), and its sha256 is computed over the bytes
-    read for decoding (verify_hashes=False skips only the hash). Images are checked before
-    decoding: signature, size at most validate.MAX_IMAGE_SIDE a side, size equal to the
-    transforms' w and h.
+    manifest.json, it must be a regular file whose size (fstat, before anything is read)
+    matches the manifest's (schema 2) and is within a stated cap (MAX_FILE_BYTES; JSON
+    bounded.MAX_JSON_BYTES; an image what its header's pixels can take), and its sha256 is
+    computed over the bytes read for decoding (verify_hashes=False skips only the hash).
+    Images are checked before decoding: signature, size at most validate.MAX_IMAGE_SIDE a
+    side, size equal to the transforms' w and h. Each split's camera is checked by
+    validate.camera, as a foreign folder's is.
     """
 
     def __init__(self, root, *, verify_hashes: bool = True):

@@ -30,7 +30,7 @@ checked on open naming the frame. Files are confined to the folder, their size c
 the file system before they are read (JSON bounded.MAX_JSON_BYTES, COLMAP text
 colmap_text.MAX_TEXT_BYTES, images what their header implies), and hashed as they are read
 (Dataset.files_read: {rel: sha256}): the metrics document records them in place of our
-manifest. A split without frames is refused when it is scored (eval.evaluate).
+manifest. A split without frames is refused when it is scored (eval.predictions).
 
 What such a folder cannot give is named in `UNAVAILABLE` with the reason: depth, hit masks,
 the noise ceiling, co-visibility, instance ids, meshes.
@@ -161,6 +161,9 @@ def _every_eighth(items: list) -> dict:
     ordered = sorted(items)
     return {"train": [x for i, x in enumerate(ordered) if i % TEST_EVERY],
             "test": [x for i, x in enumerate(ordered) if i % TEST_EVERY == 0]}
+
+
+# --- NeRF-synthetic ----------------------------------------------------------------------------
 
 
 def _refuse_unread(document: dict, where: str) -> None:

@@ -123,7 +123,12 @@ class ImageHeader:
 
 
 class _ShortHeader(Exception):
-    """The bytes given end before the header does: read more of the file."""
+    """The header did not parse from the bytes given: read more of the file, or, when there
+    is no more, refuse it for `reason`."""
+
+    def __init__(self, reason: str = "truncated: the file ends inside its header"):
+        super().__init__(reason)
+        self.reason = reason
 
 
 def _unreadable(path, reason: str):
@@ -172,9 +177,10 @@ def _exr_header(data: bytes, path) -> ImageHeader:
     """The header of a single-part EXR (scanlines or tiles), read by nerfgauge.core.complete's parser."""
     try:
         attributes, flags, _ = complete.exr_header(io.BytesIO(data), len(data), path, refuse=_exr_short)
-    except _ShortHeader:
-        if len(data) >= complete.EXR_HEADER_LIMIT:
-            _unreadable(path, f"its EXR header is longer than {complete.EXR_HEADER_LIMIT >> 20} MiB")
+    except _ShortHeader as short:
+        if len(data) >= complete.EXR_HEADER_LIMIT:  # as far as the parser reads: no more to try
+            _unreadable(path, f"{short.reason} (EXR headers longer than {complete.EXR_HEADER_LIMIT >> 20} MiB "
+                              "are not read)")
         raise
     if flags & (_EXR_MULTIPART | _EXR_DEEP):
         _unreadable(path, "multi-part and deep EXR files are not read (one part of scanlines or tiles is)")
@@ -184,9 +190,8 @@ def _exr_header(data: bytes, path) -> ImageHeader:
 
 
 def _exr_short(path, reason: str):
-    if "cut off" in reason or "runs past" in reason:  # the bytes given end inside the header
-        raise _ShortHeader
-    _unreadable(path, reason)
+    """complete.exr_header's refusal while reading: the header may go on past the bytes given."""
+    raise _ShortHeader(reason)
 
 
 _HEADERS = {"PNG": (validate.MAGIC[".png"], _png_header), "JPEG": (validate.MAGIC[".jpg"], _jpeg_header),
@@ -218,8 +223,8 @@ def header_of_bytes(data: bytes, path, expected_size=None) -> ImageHeader:
     """The checked header of an image whose bytes are in `data`."""
     try:
         return check_header(_parse_header(data, path), path, expected_size)
-    except _ShortHeader:
-        _unreadable(path, f"truncated: the file ends inside its header ({len(data)} bytes)")
+    except _ShortHeader as short:
+        _unreadable(path, f"{short.reason} ({len(data)} bytes)")
 
 
 def _header_of_file(handle, size: int, path) -> ImageHeader:
@@ -231,9 +236,9 @@ def _header_of_file(handle, size: int, path) -> ImageHeader:
         data = handle.read(min(budget, IMAGE_METADATA_BYTES))
         try:
             return _parse_header(data, path)
-        except _ShortHeader:
+        except _ShortHeader as short:
             if len(data) == size:
-                _unreadable(path, f"truncated: the file ends inside its header ({size} bytes)")
+                _unreadable(path, f"{short.reason} ({size} bytes)")
             if budget >= IMAGE_METADATA_BYTES:
                 _unreadable(path, f"no image header within its first {IMAGE_METADATA_BYTES >> 20} MiB")
             budget *= 4
