@@ -37,6 +37,7 @@ import pytest
 from fuzzing import exr_bytes, exr_with_data_window, png_declaring, rehash_manifest, run_cli, snapshot, \
     snapshot_changes
 from PIL import Image
+from test_foreign_ground_truth import synthetic_copy  # a NeRF-synthetic folder: camera_angle_x, no manifest
 
 from nerfgauge.core import colmap_text, dataset, images, validate
 from nerfgauge.core.distortion import Distortion
@@ -81,22 +82,6 @@ def refused(folder: Path, argv, *fragments) -> str:
 
 def evaluate_refused(folder: Path, data: str, *fragments, pred: str = "p", extra=()) -> str:
     return refused(folder, ["evaluate", data, "--pred", pred, "--out", "m.json", *extra], *fragments)
-
-
-def blender_copy(ours: Path, out: Path) -> Path:
-    """A NeRF-synthetic folder: transforms_<split>.json with camera_angle_x, extension-less
-    file_path and transform_matrix only, and the PNGs; no manifest, no marker."""
-    for split in ("train", "val", "test"):
-        meta = json.loads((ours / f"transforms_{split}.json").read_text())
-        (out / split).mkdir(parents=True)
-        frames = []
-        for frame in meta["frames"]:
-            stem = frame["file_path"].removeprefix("./")
-            shutil.copy(ours / (stem + ".png"), out / (stem + ".png"))
-            frames.append({"file_path": "./" + stem, "transform_matrix": frame["transform_matrix"]})
-        (out / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": meta["camera_angle_x"],
-                                                                 "frames": frames}))
-    return out
 
 
 def nerfstudio_copy(ours: Path, out: Path, edit=None) -> Path:
@@ -184,7 +169,7 @@ class TestSizeBeforeRead:
     def test_files_without_a_manifest_are_bounded_by_a_stated_cap(self, case, ours, kind):
         """Foreign ground truth and predictions: 2 GiB behind a valid head, refused from fstat."""
         data, pred = "blender", "p"
-        blender_copy(ours, case / "blender")
+        synthetic_copy(ours, case / "blender")
         if kind == "image":  # a valid 32x32 PNG, then a hole: its header caps it at 16 MiB
             target, fragments = case / "blender" / "test" / "r_001.png", ("more than a 32x32 PNG can hold",)
         elif kind == "transforms":
@@ -264,7 +249,7 @@ class TestDecompressionBombs:
                 text = (folder / "sparse" / "0" / "images.txt").read_text().replace("r_002.png", "r_002.jpg")
                 (folder / "sparse" / "0" / "images.txt").write_text(text)
         else:
-            folder = blender_copy(ours, case / "foreign")
+            folder = synthetic_copy(ours, case / "foreign")
             target = folder / "test" / f"r_001.{kind.replace('jpeg', 'jpg')}"
             if kind == "jpeg":
                 (folder / "test" / "r_001.png").unlink()
@@ -277,7 +262,7 @@ class TestDecompressionBombs:
 
     def test_the_10000_pixel_warning_case_prints_one_line_from_the_command(self, case, ours):
         """The warning case end to end in a fresh process (pytest would swallow a warning)."""
-        folder = blender_copy(ours, case / "foreign")
+        folder = synthetic_copy(ours, case / "foreign")
         (folder / "test" / "r_001.png").write_bytes(png_declaring(10000, 10000))
         result = subprocess.run([sys.executable, "-m", "nerfgauge.cli", "evaluate", "foreign", "--pred", "p",
                                  "--out", "m.json"], cwd=case, capture_output=True, text=True, timeout=300)
@@ -585,7 +570,7 @@ class TestEmptySplit:
             rehash_manifest(case / "ds")
         elif layout == "nerf-synthetic":
             data = "blender"
-            blender_copy(ours, case / "blender")
+            synthetic_copy(ours, case / "blender")
             meta = json.loads((case / "blender" / "transforms_test.json").read_text())
             (case / "blender" / "transforms_test.json").write_text(json.dumps({**meta, "frames": []}))
         elif layout == "nerfstudio":
@@ -593,7 +578,7 @@ class TestEmptySplit:
             nerfstudio_copy(ours, case / "ns", lambda meta: meta.update(test_filenames=[]))
         else:  # a split the folder does not have at all
             data, split = "blender", "val"
-            blender_copy(ours, case / "blender")
+            synthetic_copy(ours, case / "blender")
             (case / "blender" / "transforms_val.json").unlink()
         evaluate_refused(case, data, f"split {split} of", "has no frames", extra=("--split", split))
 
@@ -638,7 +623,7 @@ class TestForeignIntrinsics:
 
     def test_camera_angle_x_near_pi_is_refused_as_ours_would_be(self, case, ours):
         """Was accepted for NeRF-synthetic: its focal length came from the angle unchecked."""
-        blender_copy(ours, case / "blender")
+        synthetic_copy(ours, case / "blender")
         meta = json.loads((case / "blender" / "transforms_test.json").read_text())
         (case / "blender" / "transforms_test.json").write_text(json.dumps({**meta, "camera_angle_x": 3.14159}))
         evaluate_refused(case, "blender", "transforms_test.json", "focal lengths off the axis")
