@@ -496,6 +496,14 @@ class TestColmapStructure:
         i = cameras.intrinsics
         np.testing.assert_allclose(np.stack([i.fx * xd + i.cx, i.fy * yd + i.cy], axis=1), theirs, atol=2e-4)
 
+    def test_a_line_longer_than_the_line_cap_is_refused_before_it_is_split(self, case, ours):
+        """A POINTS2D line of 17 MiB (each number would become a Python object)."""
+        folder = colmap_copy(ours, case / "col")
+        text = _read(folder, "images.txt")
+        head = [line for line in image_lines(text) if line.startswith("1 ")][0]
+        _rewrite(folder, "images.txt", text.replace(head + "\n\n", head + "\n" + "1 1 -1 " * ((17 << 20) // 7) + "\n", 1))
+        evaluate_refused(case, "col", "images.txt line 6", "lines of at most 16 MiB")
+
     def test_full_opencv_with_a_rational_term_is_refused_naming_it(self, case, ours):
         folder = colmap_copy(ours, case / "col")
         _rewrite(folder, "cameras.txt", "1 FULL_OPENCV 32 32 40 40 16 16 0 0 0 0 0 0.1 0 0\n")

@@ -46,6 +46,10 @@ from nerfgauge.core.errors import InputError
 # The most bytes of one text file of a model: a real reconstruction's images.txt (the 2D
 # points of hundreds of images) or points3D.txt (a million points) is tens of MB.
 MAX_TEXT_BYTES = 256 << 20
+# The longest line read: a POINTS2D line of an image with 500,000 features (COLMAP extracts
+# at most 8192 by default) at about 30 bytes each. A line is split into its numbers, so a
+# longer one would hold the file's size many times over as Python objects.
+MAX_LINE_BYTES = 16 << 20
 
 # model: (parameter names in COLMAP's order, transforms camera_model)
 MODELS = {
@@ -97,9 +101,13 @@ class Model:
     points: np.ndarray | None  # [n, 3] float64, None without points3D.txt
 
 
-def _lines(data: bytes):
-    """(line number, text) of every line, one at a time (no list of a large file's lines)."""
+def _lines(data: bytes, where: str):
+    """(line number, text) of every line, one at a time (no list of a large file's lines);
+    a line longer than MAX_LINE_BYTES is refused."""
     for number, raw in enumerate(io.BytesIO(data), start=1):
+        if len(raw) > MAX_LINE_BYTES:
+            raise InputError(f"{where} line {number}: {len(raw)} bytes long; lines of at most "
+                             f"{MAX_LINE_BYTES >> 20} MiB are read")
         yield number, raw.decode("utf-8", "replace").rstrip("\r\n")
 
 
@@ -137,7 +145,7 @@ def _column(fields, dtype, where: str, number: int, what: str) -> np.ndarray:
 def read_cameras(data: bytes, where: str) -> dict:
     """cameras.txt -> {camera_id: Camera}; a camera id given twice is refused."""
     cameras = {}
-    for number, line in _records(_lines(data)):
+    for number, line in _records(_lines(data, where)):
         fields = line.split()
         if len(fields) < 4:
             raise InputError(f"{where} line {number}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[], got {_shown(line)}")
@@ -172,7 +180,7 @@ def read_images(data: bytes, where: str) -> list:
     """images.txt -> [Image] in file order, each image line followed by its POINTS2D line
     (module docstring). Image ids and names given twice are refused."""
     images, ids, names = [], {}, {}
-    lines = _lines(data)
+    lines = _lines(data, where)
     for number, line in _records(lines):
         fields = line.split()
         if len(fields) < 10:
@@ -223,7 +231,7 @@ def read_points(data: bytes, where: str, images: list) -> tuple:
     name an image of `images` and one of its 2D points."""
     points, ids = [], {}
     counts = {image.image_id: image.points2d for image in images}
-    for number, line in _records(_lines(data)):
+    for number, line in _records(_lines(data, where)):
         fields = line.split()
         if len(fields) < 8:
             raise InputError(f"{where} line {number}: expected POINT3D_ID X Y Z R G B ERROR TRACK[], got {_shown(line)}")
