@@ -214,6 +214,23 @@ class TestSizeBeforeRead:
         assert not [path for path in hashed if path.endswith("/test/r_001.png")]
         assert [path for path in hashed if path.endswith("/test/r_000.png")]
 
+    def test_a_header_behind_large_metadata_is_still_found(self, tmp_path):
+        """The header is read in growing steps (4 KiB, 16 KiB, ...): a JPEG whose frame header
+        follows 260 KB of EXIF segments reads as Pillow reads it; past 16 MiB it is refused."""
+        import io
+        buffer = io.BytesIO()
+        pixels = np.random.default_rng(0).integers(0, 256, (20, 30, 3), np.uint8)
+        Image.fromarray(pixels).save(buffer, "JPEG", quality=95)
+        data = buffer.getvalue()
+        segment = b"\xff\xe1" + struct.pack(">H", 65000) + b"\0" * 64998
+        path = tmp_path / "exif.jpg"
+        path.write_bytes(data[:2] + segment * 4 + data[2:])
+        assert images.image_header(path) == images.ImageHeader("JPEG", 30, 20, 3, 1800)
+        np.testing.assert_array_equal(images.read_jpeg(path), np.asarray(Image.open(io.BytesIO(data))) / np.float32(255))
+        path.write_bytes(data[:2] + segment * 260 + data[2:])
+        with pytest.raises(InputError, match="no image header within its first 16 MiB"):
+            images.image_header(path)
+
     def test_hashing_streams(self, tmp_path):
         """sha256_file holds one 1 MiB block at a time, not the file (traced by tracemalloc)."""
         path = tmp_path / "big"

@@ -228,9 +228,9 @@ def header_of_bytes(data: bytes, path, expected_size=None) -> ImageHeader:
 
 
 def _header_of_file(handle, size: int, path) -> ImageHeader:
-    """The header of an open image file, reading 64 KiB, then 4 times more while the header
-    goes on, up to IMAGE_METADATA_BYTES."""
-    budget = 1 << 16
+    """The header of an open image file, reading 4 KiB (a PNG's header is 33 bytes, ours EXR's
+    about 400), then 4 times more while the header goes on, up to IMAGE_METADATA_BYTES."""
+    budget = 1 << 12
     while True:
         handle.seek(0)
         data = handle.read(min(budget, IMAGE_METADATA_BYTES))
