@@ -4,6 +4,7 @@ checkpoints load with weights_only=True, bad input is refused with exit code 2."
 from __future__ import annotations
 
 import json
+import math
 import shutil
 
 import numpy as np
@@ -133,6 +134,7 @@ def test_bad_training_input(small_dataset, tmp_path, capsys):
     shutil.copytree(small_dataset, resized)
     meta = json.loads((resized / "transforms_train.json").read_text())
     meta["w"] = 40
+    meta["camera_angle_x"] = 2 * math.atan(20 / meta["fl_x"])  # agrees with w and fl_x (validate.camera)
     (resized / "transforms_train.json").write_text(json.dumps(meta))
     dataset.write_manifest(resized, dataset.read_manifest(resized))  # vouch for the edit: test the size check
     one_line_exit_2(capsys, ["train", str(resized), "--out", str(tmp_path / "r5"), "--steps", "5"], "32x32")

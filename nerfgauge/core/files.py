@@ -117,8 +117,9 @@ def json_from_bytes(data: bytes, path, *, finite: bool = False) -> dict:
 
 
 def sha256_file(path) -> str:
+    """sha256 of a regular file, read as a stream of 1 MiB blocks (never whole)."""
     digest = hashlib.sha256()
-    with open(path, "rb") as handle:
+    with bounded.open_regular(path) as (handle, _):
         for block in iter(lambda: handle.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
