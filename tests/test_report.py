@@ -216,3 +216,29 @@ def test_report_in_headless_chromium(report, tmp_path):
         assert console_errors(tools) == []
     finally:
         tools.close()
+
+
+PAGE_WIDTH = """(function () {
+  return [document.documentElement.scrollWidth, window.innerWidth,
+          Array.prototype.map.call(document.querySelectorAll("table.sortable"),
+                                   function (t) { return t.getBoundingClientRect().right <= window.innerWidth
+                                                         || t.parentElement.scrollWidth > t.parentElement.clientWidth; })];
+})()"""
+
+
+@pytest.mark.parametrize("width", [1280, 800, 400])
+def test_report_fits_the_page_in_headless_chromium(report, tmp_path, width):
+    """The page never scrolls sideways: a table wider than the window scrolls inside its own box."""
+    browser = _browser()
+    if browser is None:
+        pytest.skip("no Chromium or Chrome on PATH (apt-get install chromium) to load report.html in")
+    page, _ = report
+    tools = DevTools(browser, tmp_path / "profile")
+    try:
+        session = open_page(tools, page.as_uri())
+        tools.send("Emulation.setDeviceMetricsOverride", {"width": width, "height": 900, "deviceScaleFactor": 1,
+                                                          "mobile": False}, session=session)
+        page_width, window, tables = evaluate_js(tools, session, PAGE_WIDTH)
+        assert window == width and page_width <= window and tables and all(tables)
+    finally:
+        tools.close()
