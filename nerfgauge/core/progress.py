@@ -74,7 +74,9 @@ class PlainProgress:
 
     def line(self) -> str:
         """tqdm's text for the current state, as one line without a bar."""
-        return tqdm.format_meter(self.n, self.total, self.clock() - self.start, prefix=self.desc, unit=self.unit,
+        # a time budget counts float seconds: a tenth is enough to read
+        n, total = (round(value, 1) if isinstance(value, float) else value for value in (self.n, self.total))
+        return tqdm.format_meter(n, total, self.clock() - self.start, prefix=self.desc, unit=self.unit,
                                  postfix=self.postfix or None, ncols=0)
 
     def _print(self) -> None:
