@@ -23,7 +23,7 @@ from pathlib import Path
 
 REPOSITORY = Path(__file__).resolve().parents[2]
 MARKER = re.compile(r"<!-- generated: ([a-z-]+) -->")
-USAGE_COLUMNS = "100"  # argparse wraps usage at the terminal width: one width for every build
+USAGE_COLUMNS = "72"  # argparse wraps usage at the terminal width: one width for every build
 
 
 def commands(parser: argparse.ArgumentParser, path: tuple = ()) -> dict:
