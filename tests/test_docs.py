@@ -291,3 +291,11 @@ def test_the_cli_reference_lists_every_command_and_flag():
         assert f"## nerfgauge {' '.join(path)}\n" in page
         for flag in flags - {"-h", "--help"}:
             assert f"`{flag}" in page, (path, flag)
+
+
+@pytest.mark.slow  # generates a 32-px dataset and trains 20 steps
+def test_the_readme_python_block_runs(tmp_path, monkeypatch, capsys):
+    (block,) = [b for b in blocks(REPOSITORY / "README.md") if b["info"] == "python"]
+    monkeypatch.chdir(tmp_path)
+    exec(compile(block["body"], str(REPOSITORY / "README.md"), "exec"), {"__name__": "__main__"})
+    assert re.fullmatch(r"PSNR -?\d+\.\d dB\n", capsys.readouterr().out)
