@@ -2,7 +2,7 @@
 
 - Every `nerfgauge ...` command the docs show (in bash blocks and in inline code) names a
   command that exists, and every `--flag` beside it exists on that command; a `--flag` named
-  alone must exist on some command (or be another tool's, listed in FOREIGN_FLAGS). The
+  alone must exist on some command (or be another tool's: FOREIGN_FLAGS in the hook). The
   flags come from the same walk of `nerfgauge.cli.build_parser()` that writes the site's
   command reference (docs/hooks/reference.py), so a renamed flag fails here and changes
   that page.
@@ -45,15 +45,6 @@ SMALL = {"--res": "24", "--views": "6", "--val-views": "1", "--test-views": "2",
 SIZE_REPLACED = {"--budget-seconds": "--steps"}  # a time budget becomes a step count
 VERDICTS = {("check",): {0, 1, 4}}  # exit codes that are answers, not failures
 
-# Flags of other tools that the docs name in passing (pip, dask, nerfstudio, chromium ...).
-FOREIGN_FLAGS = {"--no-deps", "--nthreads", "--nworkers", "--port", "--depth-unit-scale-factor", "--load-config",
-                 "--output-path", "--split", "--data", "--method", "--output", "--checkpoint", "--durations",
-                 "--dist", "--headless", "--remote-debugging-pipe", "--fuzz-seed", "--strict", "--disable-pip-version-check",
-                 "--align", "--correct_scale"}
-
-FENCE = re.compile(r"(?P<marker><!--\s*test:\s*(?P<what>[^>]*?)\s*-->\s*\n)?```(?P<info>[^\n]*)\n(?P<body>.*?)\n```",
-                   re.S)
-INLINE = re.compile(r"(?<!`)`([^`\n]+)`(?!`)")
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 
 
@@ -65,6 +56,7 @@ def _reference():
 
 
 REFERENCE = _reference()
+FENCE = REFERENCE.FENCE
 
 
 def _commands() -> dict:
@@ -74,7 +66,6 @@ def _commands() -> dict:
 
 
 COMMANDS = _commands()
-ALL_FLAGS = set().union(*COMMANDS.values())
 
 
 def doc_pages(include_log: bool = False) -> list[Path]:
@@ -89,81 +80,29 @@ def blocks(page: Path) -> list[dict]:
             for m in FENCE.finditer(page.read_text())]
 
 
-def command_lines(body: str) -> list[str]:
-    """The body's logical lines (continuations joined), comments dropped."""
-    lines, pending = [], ""
-    for line in body.splitlines():
-        line = pending + line.strip()
-        if line.endswith("\\"):
-            pending = line[:-1] + " "
-            continue
-        pending = ""
-        if line and not line.startswith("#"):
-            lines.append(line)
-    return lines
-
-
-def _tokens(line: str) -> list[str]:
-    line = line.split(" #", 1)[0]
-    try:
-        return shlex.split(line)
-    except ValueError:
-        return line.split()
+command_lines = REFERENCE.command_lines
+_tokens = REFERENCE.tokens_of
+flags_named = REFERENCE.flags_named
 
 
 def command_of(tokens: list[str]):
-    """(command path, the tokens after it) of a `nerfgauge ...` token list; path None if unknown."""
-    words = [t for t in tokens[1:] if not t.startswith("-")]
-    for length in (2, 1):
-        path = tuple(words[:length])
-        if path in COMMANDS:
-            return path, tokens[1 + tokens[1:].index(path[-1]) + 1:]
-    return None, tokens[1:]
-
-
-def flags_named(tokens: list[str]) -> list[str]:
-    found = []
-    for token in tokens:
-        for part in re.split(r"[\[\]|()]", token):
-            if re.fullmatch(r"--[a-z][a-z0-9-]*(=.*)?", part):
-                found.append(part.split("=", 1)[0])
-    return found
-
-
-def named_commands():
-    """(page, text) of every `nerfgauge ...` the docs show: bash lines and inline code."""
-    for page in doc_pages():
-        text = page.read_text()
-        for block in blocks(page):
-            if block["info"].split()[:1] in (["bash"], ["sh"], ["console"]):
-                for line in command_lines(block["body"]):
-                    yield page, line
-        for span in INLINE.findall(FENCE.sub("", text)):
-            yield page, span
+    return REFERENCE.command_of(tokens, COMMANDS)
 
 
 def test_every_command_and_flag_the_docs_name_exists():
     wrong, checked = [], 0
-    for page, text in named_commands():
-        tokens = _tokens(text)
-        if tokens[:1] == ["nerfgauge"] and len(tokens) > 1:
-            checked += 1
-            path, rest = command_of(tokens)
-            name = page.relative_to(REPOSITORY)
-            if path is None:
-                if tokens[1] not in {"COMMAND", "--help", "-h"}:
-                    wrong.append(f"{name}: `{text}`: no command `nerfgauge {' '.join(tokens[1:3])}`")
-                continue
-            wrong += [f"{name}: `{text}`: `nerfgauge {' '.join(path)}` has no {flag}"
-                      for flag in flags_named(rest) if flag not in COMMANDS[path]]
-        else:
-            wrong += [f"{page.relative_to(REPOSITORY)}: `{text}`: no command has {flag}"
-                      for flag in flags_named(tokens) if flag not in ALL_FLAGS | FOREIGN_FLAGS]
+    for page in doc_pages():
+        problems, count = REFERENCE.stale(page.read_text(), COMMANDS)
+        wrong += [f"{page.relative_to(REPOSITORY)}: {problem}" for problem in problems]
+        checked += count
     assert not wrong, "the docs name commands or flags the CLI does not have:\n" + "\n".join(sorted(set(wrong)))
     assert checked >= 100  # the docs' commands were found (README and docs/ show well over 100)
 
 
 def test_the_flag_check_can_fail():
+    page = "Train: `nerfgauge train data --steps 5 --no-such-flag 3`; alone: `--frobnicate`.\n"
+    assert REFERENCE.stale(page, COMMANDS) == (["`nerfgauge train data --steps 5 --no-such-flag 3`: `nerfgauge train` "
+                                                "has no --no-such-flag", "`--frobnicate`: no command has --frobnicate"], 1)
     tokens = _tokens("nerfgauge train data/prim --out runs/prim --budget-seconds 120 --no-such-flag 3")
     path, rest = command_of(tokens)
     assert path == ("train",) and [f for f in flags_named(rest) if f not in COMMANDS[path]] == ["--no-such-flag"]

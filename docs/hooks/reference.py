@@ -9,6 +9,11 @@ A page holds a marker where generated Markdown goes:
 - `<!-- generated: layers -->`: which layer may import which, and the edges allowed against
   the order with their reasons, read from tests/test_layers.py (the test that enforces them).
 
+And every page is checked as it is built: a `nerfgauge ...` command it shows (in a bash
+block or inline code) must exist with every `--flag` beside it, and a `--flag` named alone
+must exist on some command (or be another tool's, FOREIGN_FLAGS); else a warning, which
+`mkdocs build --strict` turns into a failed build. tests/test_docs.py runs the same check.
+
 mkdocs.yml names this file under `hooks:`; tests/test_docs.py imports it by path.
 """
 
@@ -17,8 +22,10 @@ from __future__ import annotations
 import argparse
 import html
 import importlib.util
+import logging
 import os
 import re
+import shlex
 from pathlib import Path
 
 REPOSITORY = Path(__file__).resolve().parents[2]
@@ -138,6 +145,102 @@ def layers_markdown() -> str:
 GENERATORS = {"cli": cli_markdown, "exit-codes": exit_codes_markdown, "layers": layers_markdown}
 
 
+# Flags of other tools that the docs name in passing (pip, dask, nerfstudio, NerfBaselines, evo ...).
+FOREIGN_FLAGS = {"--no-deps", "--nthreads", "--nworkers", "--port", "--depth-unit-scale-factor", "--load-config",
+                 "--output-path", "--split", "--data", "--method", "--output", "--checkpoint", "--durations",
+                 "--dist", "--headless", "--remote-debugging-pipe", "--fuzz-seed", "--strict",
+                 "--disable-pip-version-check", "--align", "--correct_scale"}
+FENCE = re.compile(r"(?P<marker><!--\s*test:\s*(?P<what>[^>]*?)\s*-->\s*\n)?```(?P<info>[^\n]*)\n(?P<body>.*?)\n```",
+                   re.S)
+INLINE = re.compile(r"(?<!`)`([^`\n]+)`(?!`)")
+
+
+def command_lines(body: str) -> list[str]:
+    """A shell block's logical lines (continuations joined), comments dropped."""
+    lines, pending = [], ""
+    for line in body.splitlines():
+        line = pending + line.strip()
+        if line.endswith("\\"):
+            pending = line[:-1] + " "
+            continue
+        pending = ""
+        if line and not line.startswith("#"):
+            lines.append(line)
+    return lines
+
+
+def tokens_of(line: str) -> list[str]:
+    line = line.split(" #", 1)[0]
+    try:
+        return shlex.split(line)
+    except ValueError:
+        return line.split()
+
+
+def command_of(tokens: list[str], known: dict):
+    """(command path, the tokens after it) of a `nerfgauge ...` token list; path None if unknown."""
+    words = [t for t in tokens[1:] if not t.startswith("-")]
+    for length in (2, 1):
+        path = tuple(words[:length])
+        if path in known:
+            return path, tokens[1 + tokens[1:].index(path[-1]) + 1:]
+    return None, tokens[1:]
+
+
+def flags_named(tokens: list[str]) -> list[str]:
+    found = []
+    for token in tokens:
+        for part in re.split(r"[\[\]|()]", token):
+            if re.fullmatch(r"--[a-z][a-z0-9-]*(=.*)?", part):
+                found.append(part.split("=", 1)[0])
+    return found
+
+
+def shown_commands(markdown: str) -> list[str]:
+    """Every command line of the page's shell blocks and every inline code span."""
+    shown = [line for match in FENCE.finditer(markdown) if match["info"].split()[:1] in (["bash"], ["sh"], ["console"])
+             for line in command_lines(match["body"])]
+    return shown + INLINE.findall(FENCE.sub("", markdown))
+
+
+def stale(markdown: str, known: dict) -> tuple[list[str], int]:
+    """(what the page names that the CLI does not have, how many nerfgauge commands it shows).
+    known: {command path: its flags} (commands() and flags())."""
+    every = set().union(*known.values())
+    wrong, checked = [], 0
+    for text in shown_commands(markdown):
+        tokens = tokens_of(text)
+        if tokens[:1] == ["nerfgauge"] and len(tokens) > 1:
+            checked += 1
+            path, rest = command_of(tokens, known)
+            if path is None:
+                if tokens[1] not in {"COMMAND", "--help", "-h"}:
+                    wrong.append(f"`{text}`: no command `nerfgauge {' '.join(tokens[1:3])}`")
+                continue
+            wrong += [f"`{text}`: `nerfgauge {' '.join(path)}` has no {flag}"
+                      for flag in flags_named(rest) if flag not in known[path]]
+        else:
+            wrong += [f"`{text}`: no command has {flag}" for flag in flags_named(tokens)
+                      if flag not in every | FOREIGN_FLAGS]
+    return wrong, checked
+
+
+_KNOWN = {}
+
+
+def known_commands() -> dict:
+    """{command path: its flags}, from nerfgauge.cli.build_parser() (once a build)."""
+    if not _KNOWN:
+        from nerfgauge.cli import build_parser  # the package: only when the site is built or tested
+
+        _KNOWN.update({path: flags(parser) for path, parser in commands(build_parser()).items()})
+    return _KNOWN
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
-    """mkdocs: replace each marker with its generated Markdown."""
+    """mkdocs: warn about commands and flags the CLI does not have (the lab notebook, dated
+    studies of earlier code, excepted), then replace each marker with its generated Markdown."""
+    if not page.file.src_uri.startswith("log/"):
+        for problem in stale(markdown, known_commands())[0]:
+            logging.getLogger("mkdocs.plugins.nerfgauge").warning(f"{page.file.src_uri}: {problem}")
     return MARKER.sub(lambda match: GENERATORS[match.group(1)](), markdown)
