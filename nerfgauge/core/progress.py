@@ -68,6 +68,7 @@ class PlainProgress:
         self.closed = False
         self.lines = 0  # printed so far
         self.printed_n = None  # the count the last line showed
+        self._print()  # where it starts: a log shows the step began (and its total) before any is done
 
     def _fraction(self):
         return self.n / self.total if self.total else None
