@@ -81,7 +81,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
-from tqdm import tqdm
+from nerfgauge.core.progress import progress
 from nerfgauge.eval.error_maps import (
     colour_error,
     depth_relative_error,
@@ -323,7 +323,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     depths = reference_depths(ds) if held_out and holds_out(ds, split) and ds.has("depth") else None  # the train views', read once
     index_of = {stem: index for index, stem in enumerate(cameras.stems)}
     frames, maps = [], []
-    for stem, files in tqdm(found.items(), desc=f"evaluate {split}", unit="frame", disable=None, leave=False):
+    for stem, files in progress(found.items(), desc=f"evaluate {split}", unit="frame", enabled=None, leave=False):
         try:
             values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
                                                         BACKGROUNDS[background], depth_kind, lpips_batch,

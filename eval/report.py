@@ -281,9 +281,15 @@ document.querySelectorAll("table.sortable").forEach(function (table) {
 })();
 </script>"""
 
-STYLE = """<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto}table{border-collapse:collapse;margin-bottom:1em}
-td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}td:first-child,th:first-child{text-align:left}
-table.sortable th{cursor:pointer;background:#f4f4f4}img{max-width:100%}</style>"""
+# The page never scrolls sideways (issue 51): the body keeps a readable width with a margin,
+# a table wider than it scrolls inside its own box (div.table), headers wrap, numbers do not,
+# and figures shrink to the width.
+STYLE = """<meta name='viewport' content='width=device-width, initial-scale=1'>
+<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}
+div.table{overflow-x:auto;margin-bottom:1em}table{border-collapse:collapse;font-size:90%}
+td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}td{white-space:nowrap}
+th{vertical-align:bottom;min-width:4em}td:first-child,th:first-child{text-align:left}
+table.sortable th{cursor:pointer;background:#f4f4f4}img{max-width:100%;height:auto}</style>"""
 
 
 def sortable_table_html(table: list) -> str:
@@ -291,7 +297,7 @@ def sortable_table_html(table: list) -> str:
     head, *body = table
     header = "".join(f"<th>{html.escape(str(h))}</th>" for h in head)
     rows = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in body)
-    return f"<table class='sortable'><thead><tr>{header}</tr></thead><tbody>{rows}</tbody></table>"
+    return f"<div class='table'><table class='sortable'><thead><tr>{header}</tr></thead><tbody>{rows}</tbody></table></div>"
 
 
 def page_html(title: str, body: str, notes: list[str] = ()) -> bytes:

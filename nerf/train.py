@@ -40,10 +40,10 @@ from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, render_rays_chunked
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
-from tqdm import tqdm
 
 from nerfgauge.core import bounded, owned
 from nerfgauge.core.dataset import manifest_sha256, open_dataset
+from nerfgauge.core.progress import note, progress as progress_bar
 from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
@@ -427,9 +427,9 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     total = config.steps if config.steps is not None else config.budget_seconds
     # A time budget advances the bar in training seconds; steps/s and PSNR ride in the postfix.
     time_format = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
-    bar = tqdm(total=total, unit="step" if config.steps else "s", desc=f"train {config.model}",
-               disable=not progress, dynamic_ncols=True, initial=state.step if config.steps else 0,
-               bar_format=None if config.steps else time_format)
+    bar = progress_bar(total=total, unit="step" if config.steps else "s", desc=f"train {config.model}",
+                       enabled=progress, initial=state.step if config.steps else 0,
+                       bar_format=None if config.steps else time_format)
     last_psnr = float("nan")
     losses = []  # since the last log entry
     # the step of the checkpoint on disk, and when (wall clock) it was written
@@ -485,22 +485,22 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                     undo_growth(training, trial)
                     model = training.model
                     if progress:
-                        tqdm.write(f"keeping the {model.field.resolution}-voxel grid: the budget would give the "
-                                   f"{finer}-voxel one about {projected:.0f} steps at its measured rate "
-                                   f"(< {MIN_STEPS_AT_FINER})")
+                        note(f"keeping the {model.field.resolution}-voxel grid: the budget would give the "
+                             f"{finer}-voxel one about {projected:.0f} steps at its measured rate "
+                             f"(< {MIN_STEPS_AT_FINER})")
                 trial = None  # judged: the growth stands or is undone
             if state.colour_head == 0 and model.has_grid and state.stage == state.last_stage \
                     and state.stage_steps >= MIN_STAGE_STEPS:  # the final grid has settled: add the head now
                 state.colour_head = 1 if config.colour_head else -1
                 if progress and config.colour_head:
-                    tqdm.write(f"adding the residual colour head at step {state.step}")
+                    note(f"adding the residual colour head at step {state.step}")
             if (refine := refinement_due(config, state, fraction_done, trial)) is not None:
                 state.edge_points_step = state.step  # decided, either way
                 if refine and config.pixel_filter == "edges":
                     state.edge_points = FINE_EDGE_POINTS_PER_AXIS
                     if progress:
-                        tqdm.write(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
-                                   f"from step {state.step}")
+                        note(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
+                             f"from step {state.step}")
                 at_final_grid = state.stage == upsample_count(config.start_resolution, config.final_resolution)
                 if refine and config.refine_grid and at_final_grid \
                         and refined_resolution(config.final_resolution) > model.field.resolution:
@@ -509,8 +509,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                     # budget undid that growth is not at the final grid: no second trial.)
                     state.last_stage += 1
                     if progress:
-                        tqdm.write(f"growing the grid to {refined_resolution(config.final_resolution)} voxels "
-                                   f"from step {state.step}")
+                        note(f"growing the grid to {refined_resolution(config.final_resolution)} voxels "
+                             f"from step {state.step}")
             loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
             if not (math.isfinite(loss) and gradients_finite):
                 raise NumericalError(
