@@ -34,7 +34,7 @@ import threading
 import time
 from pathlib import Path
 
-from nerfgauge.core.errors import InputError
+from nerfgauge.core.errors import InputError, raise_floating_point_warnings
 from nerfgauge.core.folders import recipe_hash
 from nerfgauge.generate.views import load_mitsuba_scene, render_one, view_complete, write_view
 
@@ -194,6 +194,7 @@ def dask_client(scheduler: str):
             with local_cluster(value, threads_per_worker=1, processes=True) as cluster, Client(cluster) as client:
                 # N workers share this machine's cores instead of each taking all of them.
                 client.run(set_render_threads, max(1, (os.cpu_count() or 1) // value))
+                client.run(raise_floating_point_warnings)  # as in this process (core.errors); ours to set
                 yield client
             return
         check_scheduler(value)
