@@ -26,6 +26,7 @@ and one that answers random bytes raised whatever its deserialiser met (a 6 EiB 
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import importlib.util
 import os
@@ -93,9 +94,10 @@ def local_cluster(workers: int, **options):
     in_process = options.get("processes") is False  # workers as threads, over dask's in-process comm: no host
     with dask.config.set({"distributed.scheduler.http.routes": list(HTTP_ROUTES),
                           "distributed.worker.http.routes": list(HTTP_ROUTES)}), \
-            LocalCluster(n_workers=workers, host=None if in_process else LOOPBACK, dashboard_address=None, worker_dashboard_address=None,
+            LocalCluster(n_workers=workers, host=None if in_process else LOOPBACK, dashboard_address=None,
+                         worker_dashboard_address=None, silence_logs=50,
                          scheduler_kwargs={"dashboard": False, "dashboard_address": f"{LOOPBACK}:0"},
-                         silence_logs=50, **options) as cluster:
+                         **options) as cluster:
         yield cluster
 
 
@@ -110,8 +112,6 @@ def check_scheduler(address: str, timeout: float | None = None) -> dict:
     when the answer is not dask's protocol, or when it comes from something other than a
     scheduler (a worker's address). Runs on a thread of its own, so a caller inside an
     event loop (Jupyter) can use it."""
-    import asyncio
-
     from distributed.comm import connect  # dask: an optional extra (callers checked require_dask)
     from distributed.security import Security  # dask
 
