@@ -43,7 +43,6 @@ from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, 
 from tqdm import tqdm
 
 from nerfgauge.core import bounded
-from nerfgauge.core.arguments import is_number
 from nerfgauge.core.dataset import manifest_sha256, open_dataset
 from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
@@ -127,6 +126,22 @@ def psnr_on_white(model, rays, device, max_rays: int) -> float:
     target = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:])
     per_view = ((pred - target) ** 2).view(rays.n_views, -1).mean(dim=1).clamp_min(1e-10)
     return float((-10 * torch.log10(per_view)).mean())
+
+
+def logged_val_psnr(path: Path, step: int) -> float:
+    """The val PSNR that log.jsonl at `path` holds for `step` (its last entry of that step);
+    NaN when it holds none that is a finite number. Read on resume, after the log is cut
+    back to the checkpoint: a finished run resumed reported `val PSNR nan` for want of it."""
+    found = math.nan
+    for line in (path.read_text(errors="replace").splitlines() if path.is_file() else []):
+        try:
+            entry = bounded.loads_json(line, path) if line.strip() else None
+        except (json.JSONDecodeError, InputError):  # a torn last line (resume cut the rest back)
+            continue
+        value = entry.get("val_psnr") if isinstance(entry, dict) and entry.get("step") == step else None
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            found = float(value)
+    return found
 
 
 def budget_decides_growth(config: TrainConfig, state: LoopState) -> bool:
@@ -414,11 +429,8 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     if state.colour_head == 1 and config.colour_head is None:  # resumed: an earlier rule added the head
         config = dataclasses.replace(config, colour_head=True)
         reasons["colour_head"] = "added before the run was resumed (checkpoint.pt's loop state)"
-    last_psnr = float("nan")  # the latest val PSNR point (a resumed run's from its log)
     if saved is not None:
-        last_psnr = _truncate_log(run_dir / LOG, state.step).get(state.logged_step, last_psnr)
-        if state.logged_step == state.step and not math.isfinite(last_psnr):
-            state.logged_step = -1  # its point is not in the log: measured again below (it only reads the model)
+        _truncate_log(run_dir / LOG, state.step)
     else:
         write_bytes_atomic(run_dir / LOG, b"")
     # config.json states this attempt's settings (the stopping rule may have changed)
@@ -434,6 +446,11 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     bar = tqdm(total=total, unit="step" if config.steps else "s", desc=f"train {config.model}",
                disable=not progress, dynamic_ncols=True, initial=state.step if config.steps else 0,
                bar_format=None if config.steps else time_format)
+    last_psnr = float("nan")
+    if saved is not None:  # resumed: its latest val PSNR point is in the log (a finished run has nothing left to measure)
+        last_psnr = logged_val_psnr(run_dir / LOG, state.logged_step)
+        if state.logged_step == state.step and not math.isfinite(last_psnr):
+            state.logged_step = -1  # the log lost that point: measured again below (it only reads the model)
     losses = []  # since the last log entry
     # the step of the checkpoint on disk, and when (wall clock) it was written
     checkpointed_step = state.step if saved is not None else None
@@ -779,15 +796,14 @@ def pixel_sample_offsets(n_pixels: int, per_pixel: int, generator: torch.Generat
     return centres[:, None, :].expand(per_pixel, n_pixels, 2).reshape(-1, 2)
 
 
-def _truncate_log(path: Path, last_step: int) -> dict:
+def _truncate_log(path: Path, last_step: int) -> None:
     """Drop log entries past the checkpoint being resumed (checkpoints are rarer than log
     points), so the resumed run's entries continue the curve instead of repeating steps.
     A torn last line (the writer was killed mid-line) is dropped; a damaged line before
-    it is an InputError. Returns {step: val PSNR} of the kept entries with a finite one
-    (a finished run resumed reports its last point, not NaN)."""
+    it is an InputError."""
     lines = [line for line in (path.read_text(errors="replace").split("\n") if path.is_file() else [])
              if line.strip()]
-    kept, psnr = [], {}
+    kept = []
     for number, line in enumerate(lines, 1):
         try:
             entry = bounded.loads_json(line, path)
@@ -799,10 +815,7 @@ def _truncate_log(path: Path, last_step: int) -> dict:
             raise InputError(f"{path} line {number} has no integer step; fix or delete the line to resume")
         if entry["step"] <= last_step:
             kept.append(line)
-            if is_number(entry.get("val_psnr")):
-                psnr[entry["step"]] = float(entry["val_psnr"])
     write_bytes_atomic(path, "".join(line + "\n" for line in kept).encode())
-    return psnr
 
 
 def _save_checkpoint(run_dir: Path, training: Training, config: TrainConfig, recipe: dict) -> None:

@@ -29,9 +29,9 @@ import os
 import sys
 
 from nerfgauge import run
+from nerfgauge.core import errors
 from nerfgauge.core.arguments import document_ranges
-from nerfgauge.core.errors import (InputError, NumericalError, floating_point_warnings_raise, input_error_from_os,
-                                   is_floating_point_error)
+from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
 from nerfgauge.orchestrate import commands as orchestration
 
 STAGES = ("scenes", "generate", "nerf", "eval")  # then orchestration (bench, suite), then run
@@ -94,7 +94,7 @@ def main(argv=None) -> int:
     command = " ".join(str(part) for part in (args.command, getattr(args, "bench_kind", None)) if part)
     debug = bool(os.environ.get("NERFGAUGE_DEBUG"))
     try:
-        with floating_point_warnings_raise():
+        with errors.floating_point_warnings_raise():
             code = args.func(args)
         sys.stdout.flush()  # a reader that left shows here (BrokenPipeError), not at interpreter exit
     except KeyboardInterrupt:
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
             return _fail(command, "error", _one_line(error) or type(error).__name__, 2)
         if isinstance(error, NumericalError):
             return _fail(command, "numerical error", _one_line(error), 3)
-        if is_floating_point_error(error):
+        if errors.is_floating_point_error(error):
             return _fail(command, "numerical error", f"{_one_line(error)} (NaN or inf where nerfgauge expected none: "
                                                       "a bug, please report it; NERFGAUGE_DEBUG=1 shows where)", 3)
         if isinstance(error, MemoryError):
