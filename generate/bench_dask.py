@@ -14,15 +14,13 @@ import tempfile
 import time
 from pathlib import Path
 
-from nerfgauge.generate.distributed import dask_client, set_render_threads, wait_for_workers
+from nerfgauge.generate.distributed import dask_client, local_cluster, set_render_threads, wait_for_workers
 from nerfgauge.generate.pipeline import GenerateConfig, generate
 
 
 def views_per_second(config: GenerateConfig, workers: int, folder: Path) -> float:
     """generate `config` on a fresh LocalCluster of `workers` single-threaded workers."""
-    from distributed import LocalCluster  # dask: an optional extra
-
-    with LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=":0", silence_logs=50) as cluster:
+    with local_cluster(workers, threads_per_worker=1) as cluster:
         with dask_client(cluster.scheduler_address) as client:
             wait_for_workers(client, workers)
             client.run(set_render_threads, 1)

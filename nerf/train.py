@@ -128,6 +128,22 @@ def psnr_on_white(model, rays, device, max_rays: int) -> float:
     return float((-10 * torch.log10(per_view)).mean())
 
 
+def logged_val_psnr(path: Path, step: int) -> float:
+    """The val PSNR that log.jsonl at `path` holds for `step` (its last entry of that step);
+    NaN when it holds none that is a finite number. Read on resume, after the log is cut
+    back to the checkpoint: a finished run resumed reported `val PSNR nan` for want of it."""
+    found = math.nan
+    for line in (path.read_text(errors="replace").splitlines() if path.is_file() else []):
+        try:
+            entry = bounded.loads_json(line, path) if line.strip() else None
+        except (json.JSONDecodeError, InputError):  # a torn last line (resume cut the rest back)
+            continue
+        value = entry.get("val_psnr") if isinstance(entry, dict) and entry.get("step") == step else None
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            found = float(value)
+    return found
+
+
 def budget_decides_growth(config: TrainConfig, state: LoopState) -> bool:
     """Whether the growth from `state.stage` is the budget's to decide (a trial, then keep
     or undo): only for a time budget's compact model, in BUDGET_DECIDES_IN, for the last
@@ -431,6 +447,10 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
                        enabled=progress, initial=state.step if config.steps else 0,
                        bar_format=None if config.steps else time_format)
     last_psnr = float("nan")
+    if saved is not None:  # resumed: its latest val PSNR point is in the log (a finished run has nothing left to measure)
+        last_psnr = logged_val_psnr(run_dir / LOG, state.logged_step)
+        if state.logged_step == state.step and not math.isfinite(last_psnr):
+            state.logged_step = -1  # the log lost that point: measured again below (it only reads the model)
     losses = []  # since the last log entry
     # the step of the checkpoint on disk, and when (wall clock) it was written
     checkpointed_step = state.step if saved is not None else None

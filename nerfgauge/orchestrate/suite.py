@@ -77,7 +77,7 @@ from nerfgauge.eval.evaluate import BACKGROUNDS, evaluate
 from nerfgauge.eval.metrics import METRIC_NAMES
 from nerfgauge.eval.uncertainty import aggregate_runs
 from nerfgauge.eval.predictions import DEPTH_SUFFIXES
-from nerfgauge.generate.distributed import parse_scheduler
+from nerfgauge.generate.distributed import check_reachable
 from nerfgauge.generate.pipeline import GenerateConfig, generate
 from nerfgauge.scenes.registry import RECIPES
 
@@ -378,7 +378,7 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
     cluster (generate.distributed); None renders here."""
     out = Path(out)
     if scheduler is not None:
-        parse_scheduler(scheduler)  # a malformed address is one line before anything is written
+        check_reachable(scheduler)  # a malformed or unreachable address is one line before anything is written
     for entry in suite.scenes:
         if not entry.foreign:
             suite.generate_config(entry).validate()

@@ -30,7 +30,7 @@ from nerfgauge.core.files import write_json
 from nerfgauge.orchestrate.suite import (OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite,
                                          seed_folder)
 from nerfgauge.core.dataset import open_dataset
-from nerfgauge.generate.distributed import parse_scheduler
+from nerfgauge.generate.distributed import check_reachable, parse_scheduler
 from nerfgauge.orchestrate.suite_jobs import baseline_job, run_jobs, train_job
 from nerfgauge.orchestrate.suite_report import write_leaderboard
 
@@ -87,7 +87,7 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     share of this machine's cores on local:N)."""
     out = Path(out)
     if scheduler is not None:
-        parse_scheduler(scheduler)  # a malformed address is one line before anything is written
+        check_reachable(scheduler)  # a malformed or unreachable address is one line before anything is written
     seeds = None if seeds is None else tuple(arguments.check_seeds(seeds))
     threads, why = training_threads(suite, scheduler, threads)
     start = time.perf_counter()
