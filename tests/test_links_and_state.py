@@ -280,6 +280,9 @@ def raw_calls(path: Path) -> list:
                 raw = True
             if func.attr == "open" and owner != "os":  # Path.open(mode) writing
                 raw = _writing_mode(node, 0)
+            if (owner, func.attr) == ("os", "open"):  # os.open(path, flags): raw when the flags write
+                flags = ast.get_source_segment(source, node.args[1]) if len(node.args) > 1 else ""
+                raw = any(flag in flags for flag in ("O_WRONLY", "O_RDWR", "O_CREAT", "O_TRUNC", "O_APPEND"))
         elif isinstance(func, ast.Name) and func.id == "open":  # open(path, mode) writing
             raw = _writing_mode(node, 1)
         if raw:
@@ -318,8 +321,9 @@ class TestNoRawWrites:
                           "p.unlink()\nshutil.rmtree(p)\nos.replace(a, b)\np.replace(q)\np.mkdir()\n"
                           "open(p, 'w')\np.open('a')\np.write_bytes(b'')\nimage.save(p)\ntorch.save(x, p)\n"
                           "fig.savefig(p)\nos.remove(p)\nos.link(a, b)\n"
-                          "s.replace('a', 'b')\nopen(p)\np.open()\nitems.remove(3)\n")
-        assert [line for line, _ in raw_calls(sample)] == list(range(2, 15))
+                          "os.open(p, os.O_WRONLY | os.O_CREAT)\n"
+                          "s.replace('a', 'b')\nopen(p)\np.open()\nitems.remove(3)\nos.open(p, os.O_RDONLY)\n")
+        assert [line for line, _ in raw_calls(sample)] == list(range(2, 16))
 
 
 # --------------------------------------------------------------------------------------
