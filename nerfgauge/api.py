@@ -28,7 +28,7 @@ from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError, os_errors_as_input_errors
 from nerfgauge.core.outputs import check_output_file
 from nerfgauge.eval import check as gate
-from nerfgauge.eval.evaluate import METRICS_KIND, evaluate as evaluate_split
+from nerfgauge.eval.evaluate import METRICS_KIND, EvaluateConfig, evaluate as evaluate_split
 
 
 def _split_options(function: str, options: dict, config_class, run_settings: dict,
@@ -107,9 +107,10 @@ def render(run_dir, split: str = "test", *, out=None, threads=None, progress: bo
 
 
 @os_errors_as_input_errors()
-def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = "white",
-             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True,
-             overwrite: bool = False, protocol: str = "nerfgauge") -> dict:
+def evaluate(dataset, pred, out=None, split: str = EvaluateConfig.split, *,
+             background: str = EvaluateConfig.background, depth_kind: str = EvaluateConfig.depth_kind,
+             pred_format: str = EvaluateConfig.pred_format, held_out: bool = EvaluateConfig.held_out,
+             overwrite: bool = False, protocol: str = EvaluateConfig.protocol) -> dict:
     """Score the renders in `pred` against `dataset`'s `split`; write metrics.json (to `out`,
     default PRED/metrics.json) and error maps beside it. Returns the metrics document
     ({"schema", "scene", "split", "mean", "std", "ci95", "count", "frames", "timing", ...}).

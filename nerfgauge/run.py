@@ -351,7 +351,7 @@ def geometry_step(dataset_root: Path, run_dir: Path, eval_dir: Path) -> tuple[di
 def register(subparsers) -> None:
     defaults = RunConfig()
     parser = subparsers.add_parser("run", help="generate, train, render, evaluate, baselines and report in one go",
-                                   description="The train-and-evaluate pipeline (about 3 minutes on 2 CPU cores "
+                                   description="The train-and-evaluate pipeline (about 3.5 minutes on 2 CPU cores "
                                                "with the defaults). Takes every generator and training option "
                                                "(as `nerfgauge generate` and `nerfgauge train`) and evaluate's "
                                                "scoring ones.")
