@@ -33,9 +33,9 @@ def _word(name: str, value) -> object:
 
 def add_train_arguments(parser: argparse.ArgumentParser, defaults: TrainConfig | None = None, *,
                         seed: bool = True) -> argparse.ArgumentParser:
-    """Add the training options to `parser` (dest: the field's name). defaults: a TrainConfig
-    whose values are the defaults, else TrainConfig's own. seed: add --seed (False where the
-    command's --seed is another stage's and trains too)."""
+    """Add the training options to `parser` (or an argument group of one; dest: the field's
+    name). defaults: a TrainConfig whose values are the defaults, else TrainConfig's own.
+    seed: add --seed (False where the command's --seed is another stage's and trains too)."""
     d = TrainConfig(dataset=".") if defaults is None else defaults
 
     def add(name: str, *more, **options) -> None:

@@ -359,8 +359,9 @@ def register(subparsers) -> None:
     parser.add_argument("--out", type=arguments.path, default=Path(defaults.out),
                         help=f"output folder (default {defaults.out})")
     add_generate_arguments(parser, defaults.generate_config(), need_test_views=True)  # every generator option, defined once
-    add_train_arguments(parser, seed=False)  # ... every training option (--seed is the generator's: it trains too)
-    add_scoring_arguments(parser)  # ... and how the renders are scored
+    # ... every training option (--seed is the generator's: it seeds the training too)
+    add_train_arguments(parser.add_argument_group("training (as nerfgauge train)"), seed=False)
+    add_scoring_arguments(parser.add_argument_group("scoring (as nerfgauge evaluate)"))  # ... and how renders are scored
     parser.add_argument("--seeds", type=arguments.seeds, default=None, metavar="K|A,B,...",
                         help="train K times (training seeds 0..K-1) or with the listed seeds, on the one dataset of "
                              "--seed; every run is kept and eval/MODEL/aggregate.json gives the 95%% interval over "
