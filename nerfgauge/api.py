@@ -29,6 +29,7 @@ from nerfgauge.core.errors import InputError, os_errors_as_input_errors
 from nerfgauge.core.outputs import check_output_file
 from nerfgauge.eval import check as gate
 from nerfgauge.eval.evaluate import METRICS_KIND, EvaluateConfig, evaluate as evaluate_split
+from nerfgauge.eval.options import SCORING
 
 
 def _split_options(function: str, options: dict, config_class, run_settings: dict,
@@ -162,7 +163,6 @@ def run_pipeline(scene: str = "primitives", out="nerfgauge-run", **options) -> d
     field of that name shadows, go in train_options) and overwrite=False, progress=False.
     Returns {"metrics": path of metrics.json, "report": path of report.html, "train": summary}.
     """
-    from nerfgauge.eval.options import SCORING
     from nerfgauge.generate.pipeline import GenerateConfig  # trimesh: each stage loads on first use
     from nerfgauge.nerf.config import TrainConfig  # each stage loads on first use
     from nerfgauge.run import RunConfig  # trimesh, and torch when it runs
