@@ -242,8 +242,13 @@ def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small
     """With the trial's bar out of reach the run still takes the growths the budget does
     not decide, undoes the last one after its trial and its log says so; with no bar it
     grows as a --steps run does. (The bar and the steps a stage needs are patched so the
-    decision does not depend on this machine's speed, and the trial ends within the budget.)"""
+    decision does not depend on this machine's speed, and the trial ends within the budget;
+    training time is read from a clock that advances 0.05 s a step, so a loaded machine runs
+    the same 80 steps as an idle one.)"""
+    import time
+
     import nerfgauge.nerf.schedule as schedule_module
+    import nerfgauge.nerf.train as train_module
     from nerfgauge.nerf.config import refined_resolution
     from nerfgauge.nerf.schedule import Schedule
 
@@ -251,6 +256,17 @@ def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small
     monkeypatch.setattr(schedule_module, "MIN_STAGE_STEPS", 3)
     monkeypatch.setattr(schedule_module, "GROWTH_TRIAL_WARMUP", 1)
     monkeypatch.setattr(schedule_module, "GROWTH_TRIAL_STEPS", 3)
+
+    class StepClock:  # each step's start and end are one reading apart: 0.05 s of training a step
+        now = 0.0
+
+        def perf_counter(self):
+            self.now += 0.05
+            return self.now
+
+        monotonic = staticmethod(time.monotonic)  # checkpoints keep the wall clock
+
+    monkeypatch.setattr(train_module, "time", StepClock())
     run = tmp_path / "budget"
     assert main(["train", str(small_dataset), "--out", str(run), "--budget-seconds", "4", "--quiet"]) == 0
     config = json.loads((run / "config.json").read_text())
