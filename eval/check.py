@@ -442,6 +442,30 @@ def validate_metrics(data, source: str = "metrics") -> dict:
     return data
 
 
+def validate_scores(data, source: str = "metrics") -> dict:
+    """validate_metrics, and the parts a report reads beside them: `std` (finite or null per
+    metric), `frames` (objects with a string `name`, every metric finite or null), `notes`
+    (strings), `noise.psnr_ceiling` and `timing.ms_per_frame` (finite or null). Returns
+    `data` unchanged; InputError (one line naming the field) otherwise."""
+    validate_metrics(data, source)
+    for name in ("std", "notes", "noise", "timing"):
+        if data.get(name) is not None and not isinstance(data[name], dict):
+            raise InputError(f"{source}: '{name}' must be an object, got {_shown(data[name])}")
+    _finite_values(data.get("std") or {}, "std", source)
+    if not all(isinstance(note, str) for note in (data.get("notes") or {}).values()):
+        raise InputError(f"{source}: notes must be strings")
+    _finite_values({"psnr_ceiling": (data.get("noise") or {}).get("psnr_ceiling")}, "noise", source)
+    _finite_values({"ms_per_frame": (data.get("timing") or {}).get("ms_per_frame")}, "timing", source)
+    frames = data.get("frames")
+    if not isinstance(frames, list) or not all(isinstance(frame, dict) and isinstance(frame.get("name"), str)
+                                               for frame in frames):
+        raise InputError(f"{source}: frames must be a list of objects with a name, got {_shown(frames)}")
+    for frame in frames:
+        _finite_values({key: value for key, value in frame.items() if key in METRIC_NAMES}, f"frames[{frame['name']}]",
+                       source)
+    return data
+
+
 def _finite_values(table: dict, name: str, source: str) -> None:
     """Every value of `table` null or a finite number: a NaN or infinite score is not a
     score (exit 2, not a failed bound)."""

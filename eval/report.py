@@ -373,13 +373,19 @@ def per_view_table(documents: dict) -> list[list[str]]:
 REPORT_FIGURES = ("grid.png", "curve.png", "cameras.png")  # what write_report draws beside report.html
 
 
-def remove_previous(paths) -> None:
+def remove_previous(paths, root) -> None:
     """Delete the files a report is about to write, before it draws anything, so a report
-    that fails leaves none of the previous one looking current. A path that is a folder
-    (or a link to one) is the user's: InputError, nothing deleted. Links are removed as
-    links, never followed."""
+    that fails leaves none of the previous one looking current. Each path lies under `root`
+    (the folder the command owns); a folder between them that is a symbolic link would lead
+    the deletion elsewhere, and a path that is a folder is the user's: InputError, nothing
+    deleted. A file that is a link is removed as a link, never followed."""
+    root = Path(root)
     paths = [Path(path) for path in paths]
     for path in paths:
+        parents = path.relative_to(root).parents  # "a/b/c.png": a/b, a, "."
+        for parent in (root / rel for rel in parents if str(rel) != "."):
+            if parent.is_symlink():
+                raise InputError(f"refusing to remove {path}: {parent} is a symbolic link")
         if path.is_dir() and not path.is_symlink():
             raise InputError(f"refusing to replace {path}: it is a folder")
     for path in paths:
@@ -399,7 +405,8 @@ def write_report(out, title: str, dataset_root, renders, documents: dict, *, log
     out = Path(out)
     folder = out.parent if figures is None else Path(figures)
     folder.mkdir(parents=True, exist_ok=True)
-    remove_previous([out, *(folder / name for name in REPORT_FIGURES)])  # a failure below leaves no old report
+    remove_previous([out], out.parent)  # a failure below leaves no old report
+    remove_previous([folder / name for name in REPORT_FIGURES], folder)
     background = (1.0, 1.0, 1.0) if documents[ours].get("background", "white") == "white" else (0.0, 0.0, 0.0)
     image_grid(dataset_root, renders, folder / "grid.png", split=split, frames=frames, background=background)
     curves = {ours: read_log(log_path)} if log_path is not None and Path(log_path).is_file() else {}
