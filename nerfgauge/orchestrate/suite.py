@@ -61,7 +61,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib.resources
-import math
 import re
 import time
 import tomllib
@@ -79,7 +78,7 @@ from nerfgauge.eval.check import finite_number
 from nerfgauge.eval.geometry import SUMMARY_NAMES
 from nerfgauge.eval.evaluate import BACKGROUNDS, evaluate
 from nerfgauge.eval.metrics import METRIC_NAMES
-from nerfgauge.eval.uncertainty import aggregate_runs
+from nerfgauge.eval.uncertainty import aggregate_runs, mean_of
 from nerfgauge.eval.predictions import DEPTH_SUFFIXES
 from nerfgauge.generate.distributed import parse_scheduler
 from nerfgauge.generate.pipeline import CONFIG as CONFIG_FILE, GenerateConfig, generate
@@ -762,7 +761,7 @@ def _score_one(suite: Suite, out: Path, entry, record: dict, pred_dir: Path, met
 def _mean_of(runs: list, name: str):
     """The mean of a cost figure over the runs that have it (None when none has)."""
     values = [run[name] for run in runs if isinstance(run.get(name), (int, float)) and not isinstance(run.get(name), bool)]
-    return math.fsum(values) / len(values) if values else None
+    return mean_of(values, f"the runs' mean {name}") if values else None
 
 
 def _mean_geometry(runs: list):

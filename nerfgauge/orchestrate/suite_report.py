@@ -34,7 +34,6 @@ moves a number before comparing ours with a published one.
 from __future__ import annotations
 
 import html
-import math
 
 import numpy as np
 from pathlib import Path
@@ -46,7 +45,7 @@ from nerfgauge.orchestrate import suite_robustness
 from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results, read_suite_folder, suite_from_folder
 from nerfgauge.eval.check import ScoringProtocol, protocol_of_metrics, validate_scores
 from nerfgauge.eval.metrics import METRIC_NAMES
-from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, aggregate_runs,
+from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, aggregate_runs, mean_of,
                                         paired_comparison, run_matrix, suite_interval)
 from nerfgauge.eval.protocols import suite_sensitivity, sensitivity_rows
 from nerfgauge.eval.report import (PROTOCOL_CAPTION, REPORT_FIGURES, page_html, remove_previous,
@@ -127,7 +126,7 @@ def leaderboard(suite: Suite, out) -> dict:
         method["mean"], method["scenes_scored"], method["ci95"] = {}, {}, {}
         for name in columns:
             defined = [s["values"][name] for s in method["scenes"].values() if isinstance(s["values"].get(name), (int, float))]
-            method["mean"][name] = math.fsum(defined) / len(defined) if defined else None
+            method["mean"][name] = mean_of(defined, f"{name_of_method}: mean {name} over datasets") if defined else None
             method["scenes_scored"][name] = len(defined)
             if name in METRIC_NAMES:  # the suite mean's interval (eval.uncertainty.suite_interval)
                 tables = [run_matrix(docs, name)[0] for _, docs in documents.get(name_of_method, {}).values()]
