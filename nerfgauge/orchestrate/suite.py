@@ -54,6 +54,22 @@ folder lives); suite.json's "folders" holds where it was found. Methods that nee
 a folder lacks (our NeRF's runs are bound to a manifest; the nearest baseline needs scene
 bounds; light-field baselines a camera grid) are skipped there with the reason (result.json
 "skipped", the leaderboard's n/a cells); metrics it cannot give are null ("unavailable").
+
+State files are data, never instructions (suite.json, suite-manifest.json, result.json,
+jobs/<key>.json; anyone who can write the folder can rewrite them, hashes included):
+- every name that becomes a path (the suite's name, dataset ids, methods) passes
+  `folder_name` where it enters and again wherever a file gives it back;
+- suite.json's definition is parsed by the suite file's own checks (`suite_from_definition`),
+  and its sha256 is recomputed from it and compared with the hashes other files hold (the
+  folder marker `suite generate` wrote from the suite file, the suite manifest, each
+  result.json), never with the one suite.json states about itself; each recipe entry is
+  compared with the config.json of the dataset it names (hashed in that dataset's
+  manifest, whose own hash the suite manifest holds);
+- the suite manifest, result.json and job records are checked field by field
+  (`check_suite_manifest`, `check_result`, `job_result`), and every path they hold must be
+  the one their writer makes (results/<method>/<id>/...), so nothing outside is read;
+  derived figures (aggregates over seeds) are recomputed, not read back.
+A malformed or inconsistent file is one line, exit 2.
 """
 
 from __future__ import annotations

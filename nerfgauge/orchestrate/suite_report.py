@@ -12,8 +12,9 @@ the mean over the datasets where the value is defined; `scenes` says over how ma
 Uncertainty (eval.uncertainty, docs/conventions.md "Uncertainty"): each dataset's table
 gives the PSNR's 95% interval: for a method run once, copied from metrics.json's `ci95`
 (bootstrap over the views, as `nerfgauge evaluate` wrote it); for a method run with seeds
-(`suite run --seeds`), from results/<method>/<id>/aggregate.json (two-level bootstrap over
-seeds, then views), with the seeds, each seed's PSNR and their std (the run-to-run
+(`suite run --seeds`), from the aggregate of its per-seed metrics.json files (two-level
+bootstrap over seeds, then views; recomputed as evaluate_suite computed aggregate.json,
+which is not read back), with the seeds, each seed's PSNR and their std (the run-to-run
 spread). The mean row's interval is `suite_interval` (each dataset's two-level resample,
 averaged over the datasets; a fresh np.random.default_rng(EVALUATE_SEED) per method and
 metric). The paired table compares our NeRF (OURS) with each other method on each dataset
@@ -24,6 +25,11 @@ interval (seeds then views resampled once for both methods; a fresh
 np.random.default_rng(EVALUATE_SEED) per comparison, 10000 resamples), the two-sided
 Wilcoxon signed-rank p-value on the per-view differences averaged over seeds, and whether
 it is significant at 0.05.
+
+Every metrics.json is checked before use (eval.check.validate_scores: finite numbers, the
+suite's protocol and split), method and dataset names are drawn as text in figures
+(eval.report.plain_text) and escaped in Markdown and HTML, and a report is made anew or
+not at all (`write_leaderboard` removes the previous one first).
 
 One table is recomputed, on purpose: the protocol-sensitivity table scores the same
 renders under each scoring protocol the field uses (eval.protocols: ours, NerfBaselines',
