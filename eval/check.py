@@ -267,15 +267,16 @@ def finite_number(value) -> bool:
         return False
 
 
-def _shown(value, limit: int = 40) -> str:
-    """repr(value), cut to `limit` characters (a 400-digit integer stays one short line)."""
+def shown(value, limit: int = 40) -> str:
+    """repr(value), cut to `limit` characters, for one-line messages (a 400-digit integer
+    or a forged 1 MB string stays one short line)."""
     text = repr(value)
     return text if len(text) <= limit else text[:limit] + "..."
 
 
 def _choice(value, known, what: str, source: str) -> str:
     if not isinstance(value, str) or value not in known:
-        raise InputError(f"{source}: {what} must be one of {', '.join(known)}, got {_shown(value)}")
+        raise InputError(f"{source}: {what} must be one of {', '.join(known)}, got {shown(value)}")
     return value
 
 
@@ -304,7 +305,7 @@ def _protocol_table(table, source: str) -> ScoringProtocol:
     protocol's own, else white), depth_kind (default distance)."""
     where = f"{source}: [{PROTOCOL_TABLE}]"
     if not isinstance(table, dict):
-        raise InputError(f"{where} must be a table (name, background, depth_kind), got {_shown(table)}")
+        raise InputError(f"{where} must be a table (name, background, depth_kind), got {shown(table)}")
     unknown = sorted(set(table) - set(PROTOCOL_KEYS))
     if unknown:
         raise InputError(f"{where}: unknown key {unknown[0]!r}; known: {', '.join(PROTOCOL_KEYS)}")
@@ -373,7 +374,7 @@ def parse_thresholds(data: dict, source: str = "thresholds") -> dict[str, dict[s
                 if key == "on":
                     continue
                 if not finite_number(value):
-                    raise InputError(f"{where}.{key} must be a finite number, got {_shown(value)}")
+                    raise InputError(f"{where}.{key} must be a finite number, got {shown(value)}")
             low, high = entry.get("min"), entry.get("max")
             if low is not None and high is not None and low > high:
                 raise InputError(f"{where}: min {low} is greater than max {high}")
@@ -422,22 +423,22 @@ def validate_metrics(data, source: str = "metrics") -> dict:
     _finite_values(mean, "mean", source)
     geometry = data.get("geometry", {})
     if not isinstance(geometry, dict):
-        raise InputError(f"{source}: 'geometry' must be an object of values, got {_shown(geometry)}")
+        raise InputError(f"{source}: 'geometry' must be an object of values, got {shown(geometry)}")
     _finite_values(geometry, "geometry", source)
     training = data.get("training", {})
     if training is not None and not isinstance(training, dict):
         raise InputError(f"{source}: 'training' must be an object (steps, seconds, steps_per_second), "
-                         f"got {_shown(training)}")
+                         f"got {shown(training)}")
     _finite_values({key: value for key, value in (training or {}).items() if key in TRAINING_NUMBERS}, "training",
                    source)
     intervals = data.get("ci95", {})
     if not isinstance(intervals, dict):
-        raise InputError(f"{source}: 'ci95' must be an object of [low, high] intervals, got {_shown(intervals)}")
+        raise InputError(f"{source}: 'ci95' must be an object of [low, high] intervals, got {shown(intervals)}")
     for metric, value in intervals.items():
         if value is not None and not (isinstance(value, list) and len(value) == 2 and all(map(finite_number, value))
                                       and value[0] <= value[1]):
             raise InputError(f"{source}: ci95.{metric} must be [low, high] finite numbers with low <= high or null, "
-                             f"got {_shown(value)}")
+                             f"got {shown(value)}")
     protocol_of_metrics(data, source)
     return data
 
@@ -450,7 +451,7 @@ def validate_scores(data, source: str = "metrics") -> dict:
     validate_metrics(data, source)
     for name in ("std", "notes", "noise", "timing"):
         if data.get(name) is not None and not isinstance(data[name], dict):
-            raise InputError(f"{source}: '{name}' must be an object, got {_shown(data[name])}")
+            raise InputError(f"{source}: '{name}' must be an object, got {shown(data[name])}")
     _finite_values(data.get("std") or {}, "std", source)
     if not all(isinstance(note, str) for note in (data.get("notes") or {}).values()):
         raise InputError(f"{source}: notes must be strings")
@@ -459,7 +460,7 @@ def validate_scores(data, source: str = "metrics") -> dict:
     frames = data.get("frames")
     if not isinstance(frames, list) or not all(isinstance(frame, dict) and isinstance(frame.get("name"), str)
                                                for frame in frames):
-        raise InputError(f"{source}: frames must be a list of objects with a name, got {_shown(frames)}")
+        raise InputError(f"{source}: frames must be a list of objects with a name, got {shown(frames)}")
     for frame in frames:
         _finite_values({key: value for key, value in frame.items() if key in METRIC_NAMES}, f"frames[{frame['name']}]",
                        source)
@@ -472,7 +473,7 @@ def _finite_values(table: dict, name: str, source: str) -> None:
     for metric, value in table.items():
         if value is not None and not finite_number(value):
             reason = " (not finite: a score that is no number cannot be checked)" if _is_number(value) else ""
-            raise InputError(f"{source}: {name}.{metric} must be a number or null, got {_shown(value)}{reason}")
+            raise InputError(f"{source}: {name}.{metric} must be a number or null, got {shown(value)}{reason}")
 
 
 def load_metrics(path) -> dict:
@@ -600,7 +601,7 @@ def _check_one(scene: str, metric: str, kind: str, limit: float, mean: dict, not
     if value is None:
         return fail(None, f"{label} is null in the metrics file (not measured) but has a bound")
     if not finite_number(value):  # validate_metrics refuses these in a file; the same for the API's tables
-        raise InputError(f"{label} is {_shown(value)}, not a finite number: it cannot be checked against a bound")
+        raise InputError(f"{label} is {shown(value)}, not a finite number: it cannot be checked against a bound")
     value = float(value)
     margin = value - limit if kind == "min" else limit - value
     passed = margin >= 0

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import pytest
 from suite_toml import suite_toml
+from test_suite import one_line_error, run
 
 from nerfgauge.cli import main
 from nerfgauge.core.errors import InputError
@@ -37,19 +38,6 @@ from nerfgauge.core.files import json_bytes, read_json, write_json
 
 TINY_DATASET = {"width": 16, "height": 16, "views": 4, "val_views": 0, "test_views": 2, "spp": 2}
 OWN_OUTPUTS = ("leaderboard.json", "leaderboard.md", "leaderboard.html", "robustness.png", ".nerfgauge.lock")
-
-
-def run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
-def one_line_error(code, err, *words):
-    assert code == 2, err
-    assert len(err.strip().splitlines()) == 1, err
-    for word in words:
-        assert word in err, err
 
 
 def snapshot(root: Path) -> dict:

@@ -90,7 +90,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.folders import MARKER, claim_folder, folder_lock, read_marker
 from nerfgauge.eval.baselines import METHODS
-from nerfgauge.eval.check import finite_number
+from nerfgauge.eval.check import finite_number, shown
 from nerfgauge.eval.geometry import SUMMARY_NAMES
 from nerfgauge.eval.evaluate import BACKGROUNDS, evaluate
 from nerfgauge.eval.metrics import METRIC_NAMES
@@ -218,28 +218,22 @@ def folder_name(value, what: str) -> str:
     suite-manifest.json, result.json, job records), so a name read back is exactly a name
     that could have entered."""
     if not isinstance(value, str) or not value:
-        raise InputError(f"{what} must be a folder name (a non-empty string), got {_shown(value)}")
+        raise InputError(f"{what} must be a folder name (a non-empty string), got {shown(value)}")
     try:
         size = len(value.encode("utf-8"))
     except UnicodeEncodeError:
-        raise InputError(f"{what} must be a folder name in UTF-8, got {_shown(value)}") from None
+        raise InputError(f"{what} must be a folder name in UTF-8, got {shown(value)}") from None
     if any(char == "/" or unicodedata.category(char) == "Cc" for char in value) or value.startswith("."):
         raise InputError(f"{what} must be a folder name (no '/', NUL or control characters, not starting with '.'), "
-                         f"got {_shown(value)}")
+                         f"got {shown(value)}")
     if size > NAME_BYTES:
         raise InputError(f"{what} must be a folder name of at most {NAME_BYTES} bytes, got {size}")
     return value
 
 
-def _shown(value, limit: int = 60) -> str:
-    """repr(value) cut to `limit` characters, for one-line messages."""
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit] + "..."
-
-
 def _seed(value, where: str) -> int:
     if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-        raise InputError(f"{where}: seed must be a non-negative integer, got {_shown(value)}")
+        raise InputError(f"{where}: seed must be a non-negative integer, got {shown(value)}")
     return value
 
 
@@ -259,12 +253,12 @@ def suite_from_definition(recorded: dict, source: str) -> Suite:
     "folders" where each was found (checked again: a folder, not a nerfgauge dataset)."""
     definition = recorded.get("definition")
     if not isinstance(definition, dict):
-        raise InputError(f"{source}: no suite definition (an object), got {_shown(definition)}")
+        raise InputError(f"{source}: no suite definition (an object), got {shown(definition)}")
     where = f"{source} definition"
     _check_fields(definition, {"name", "version", "description", "train", "protocol", "scenes"}, where)
     folders = recorded.get("folders", {})
     if not isinstance(folders, dict):
-        raise InputError(f"{source}: folders must be an object of id: path, got {_shown(folders)}")
+        raise InputError(f"{source}: folders must be an object of id: path, got {shown(folders)}")
 
     def folder_entry(raw: dict, at: str) -> SceneEntry:
         _check_fields(raw, {"id", "folder"}, f"{at} (a folder entry)")
@@ -272,7 +266,7 @@ def suite_from_definition(recorded: dict, source: str) -> Suite:
         path = folders.get(entry_id)
         if not isinstance(path, str) or "\0" in path or not Path(path).is_absolute():
             raise InputError(f"{source}: folders.{entry_id} must be the absolute path of the folder entry, "
-                             f"got {_shown(path)}")
+                             f"got {shown(path)}")
         return _ground_truth_folder(entry_id, raw.get("folder"), Path(path), at)
 
     return _suite({**definition, "dataset": {}}, where, {}, folder_entry, recorded=True)
@@ -289,13 +283,13 @@ def _suite(data: dict, source: str, dataset_defaults: dict, folder_entry, record
             raise InputError(f"{source}: missing field {field}")
     name, version = data["name"], data["version"]
     if not isinstance(name, str) or not name.strip():
-        raise InputError(f"{source}: name must be a non-empty string, got {_shown(name)}")
+        raise InputError(f"{source}: name must be a non-empty string, got {shown(name)}")
     folder_name(name, f"{source}: name")
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-        raise InputError(f"{source}: version must be a positive integer, got {_shown(version)}")
+        raise InputError(f"{source}: version must be a positive integer, got {shown(version)}")
     description = data.get("description", "")
     if not isinstance(description, str):
-        raise InputError(f"{source}: description must be a string, got {_shown(description)}")
+        raise InputError(f"{source}: description must be a string, got {shown(description)}")
     train = _table(data, "train", source)
     _check_fields(train, {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "seed", "budget_seconds"},
                   f"{source} [train]")
@@ -303,24 +297,24 @@ def _suite(data: dict, source: str, dataset_defaults: dict, folder_entry, record
     _check_fields(protocol, set(PROTOCOL_KEYS), f"{source} [protocol]")
     for key, kind in PROTOCOL_KEYS.items():
         if key in protocol and not isinstance(protocol[key], kind):
-            raise InputError(f"{source}: protocol.{key} must be a {kind.__name__}, got {_shown(protocol[key])}")
+            raise InputError(f"{source}: protocol.{key} must be a {kind.__name__}, got {shown(protocol[key])}")
     if protocol["background"] not in BACKGROUNDS or protocol["depth_kind"] not in DEPTH_SUFFIXES:
         raise InputError(f"{source}: protocol.background must be one of {', '.join(BACKGROUNDS)} and "
                          f"protocol.depth_kind one of {', '.join(DEPTH_SUFFIXES)}")
     if protocol["split"] not in dataset.SPLITS:
         raise InputError(f"{source}: protocol.split must be one of {', '.join(dataset.SPLITS)}, "
-                         f"got {_shown(protocol['split'])}")
+                         f"got {shown(protocol['split'])}")
     protocol.setdefault("baselines", [])
     for method in protocol["baselines"]:
         if not isinstance(method, str) or method not in METHODS:
-            raise InputError(f"{source}: protocol.baselines: unknown baseline {_shown(method)}; known: {', '.join(METHODS)}")
+            raise InputError(f"{source}: protocol.baselines: unknown baseline {shown(method)}; known: {', '.join(METHODS)}")
     if "geometry" in protocol:
         geometry = protocol["geometry"]
         _check_fields(geometry, set(GEOMETRY_KEYS), f"{source} protocol.geometry")
         for key in GEOMETRY_KEYS:
             if not isinstance(geometry.get(key), int) or isinstance(geometry.get(key), bool) or geometry[key] < 2:
                 raise InputError(f"{source}: protocol.geometry.{key} must be an integer >= 2, "
-                                 f"got {_shown(geometry.get(key))}")
+                                 f"got {shown(geometry.get(key))}")
     scenes = data.get("scenes")
     if scenes is None:
         raise InputError(f"{source}: missing field [[scenes]]")
@@ -358,7 +352,7 @@ def _recipe_entry(raw: dict, dataset_defaults: dict, train: dict, where: str) ->
         if field not in raw:
             raise InputError(f"{where}: missing field {field}")
     if not isinstance(raw["scene"], str) or raw["scene"] not in RECIPES:
-        raise InputError(f"{where}: unknown scene {_shown(raw['scene'])}; known: {', '.join(RECIPES)}")
+        raise InputError(f"{where}: unknown scene {shown(raw['scene'])}; known: {', '.join(RECIPES)}")
     seed = _seed(raw["seed"], where)
     entry_id = folder_name(raw.get("id", raw["scene"]), f"{where}: id")
     settings = {**dataset_defaults, **{key: value for key, value in raw.items() if key in GENERATE_FIELDS}}
@@ -382,7 +376,7 @@ def _folder_entry(raw: dict, where: str, base) -> SceneEntry:
     _check_fields(raw, {"id", "folder"}, f"{where} (a folder entry)")
     folder = raw["folder"]
     if not isinstance(folder, str) or not folder.strip() or "\0" in folder:
-        raise InputError(f"{where}: folder must be a path, got {_shown(folder)}")
+        raise InputError(f"{where}: folder must be a path, got {shown(folder)}")
     path = Path(folder).expanduser()
     if not path.is_absolute():
         path = Path(base if base is not None else ".") / path
@@ -395,7 +389,7 @@ def _ground_truth_folder(entry_id, folder, path: Path, where: str) -> SceneEntry
     folder name, the folder (as written) a string, the path a folder that is not a
     nerfgauge dataset (those are listed by recipe)."""
     if not isinstance(folder, str) or not folder.strip() or "\0" in folder:
-        raise InputError(f"{where}: folder must be a path, got {_shown(folder)}")
+        raise InputError(f"{where}: folder must be a path, got {shown(folder)}")
     entry_id = folder_name(entry_id, f"{where}: id")
     if not path.is_dir():
         raise InputError(f"{where}: folder {folder!r} not found (looked for {path})")
@@ -597,18 +591,18 @@ def check_suite_manifest(document: dict, suite: Suite, where: str) -> dict:
     check_same_suite(suite, document, where)
     datasets = document.get("datasets")
     if not isinstance(datasets, dict):
-        raise InputError(f"{where}: datasets must be an object of id: record, got {_shown(datasets)}")
+        raise InputError(f"{where}: datasets must be an object of id: record, got {shown(datasets)}")
     ids = {entry.id for entry in suite.scenes}
     extra = sorted(set(datasets) - ids)
     if extra:
-        raise InputError(f"{where} lists a dataset the suite does not have: {_shown(extra[0])}")
+        raise InputError(f"{where} lists a dataset the suite does not have: {shown(extra[0])}")
     for entry in suite.scenes:
         record = datasets.get(entry.id)
         at = f"{where}: datasets.{entry.id}"
         if record is None:
             raise InputError(f"{where} lists no dataset {entry.id!r}")
         if not isinstance(record, dict):
-            raise InputError(f"{at} must be an object, got {_shown(record)}")
+            raise InputError(f"{at} must be an object, got {shown(record)}")
         if entry.foreign != ("ground_truth_sha256" in record):
             raise InputError(f"{where}: dataset {entry.id!r} was recorded as "
                              f"{'a folder' if 'ground_truth_sha256' in record else 'a recipe'}; regenerate with "
@@ -618,17 +612,17 @@ def check_suite_manifest(document: dict, suite: Suite, where: str) -> dict:
                                  "files"}, at)
             _sha256(record["ground_truth_sha256"], f"{at}.ground_truth_sha256")
             if not isinstance(record["path"], str):
-                raise InputError(f"{at}.path must be a path, got {_shown(record['path'])}")
+                raise InputError(f"{at}.path must be a path, got {shown(record['path'])}")
         else:
             _check_keys(record, {"path", "scene", "seed", "manifest_sha256", "files"}, at)
             _sha256(record["manifest_sha256"], f"{at}.manifest_sha256")
             expected = {"path": f"datasets/{entry.id}", "scene": entry.scene, "seed": entry.seed}
             for key, value in expected.items():
                 if record[key] != value or isinstance(record[key], bool):
-                    raise InputError(f"{at}.{key} is {_shown(record[key])}, the suite's entry says {value!r}")
+                    raise InputError(f"{at}.{key} is {shown(record[key])}, the suite's entry says {value!r}")
         files = record["files"]
         if not isinstance(files, dict) or not all(isinstance(rel, str) for rel in files):
-            raise InputError(f"{at}.files must be an object of path: sha256, got {_shown(files)}")
+            raise InputError(f"{at}.files must be an object of path: sha256, got {shown(files)}")
         for rel, digest in files.items():
             _sha256(digest, f"{at}.files.{rel}")
     return document
@@ -642,7 +636,7 @@ def _check_keys(record: dict, keys: set, where: str) -> None:
 
 def _sha256(value, where: str) -> str:
     if not isinstance(value, str) or not SHA256.fullmatch(value):
-        raise InputError(f"{where} must be a sha256 (64 hex digits), got {_shown(value)}")
+        raise InputError(f"{where} must be a sha256 (64 hex digits), got {shown(value)}")
     return value
 
 
@@ -823,19 +817,19 @@ def check_result(result: dict, suite: Suite, manifest: dict, path: Path) -> dict
     rows, ids = result.get("datasets"), {entry.id for entry in suite.scenes}
     if not isinstance(rows, dict) or not set(rows) <= ids:
         raise InputError(f"{path}: datasets must be an object of the suite's dataset ids, got "
-                         f"{_shown(sorted(set(rows) - ids)[0] if isinstance(rows, dict) else rows)}")
+                         f"{shown(sorted(set(rows) - ids)[0] if isinstance(rows, dict) else rows)}")
     skipped = result.get("skipped", {})
     if not isinstance(skipped, dict) or not set(skipped) <= ids or not all(isinstance(v, str) for v in skipped.values()):
-        raise InputError(f"{path}: skipped must be an object of dataset id: reason, got {_shown(skipped)}")
+        raise InputError(f"{path}: skipped must be an object of dataset id: reason, got {shown(skipped)}")
     if "seeds" in result:
         _seeds(result["seeds"], f"{path}: seeds")
     if not isinstance(result.get("pred_root", ""), str) or "\0" in result.get("pred_root", ""):
-        raise InputError(f"{path}: pred_root must be a path, got {_shown(result.get('pred_root'))}")
+        raise InputError(f"{path}: pred_root must be a path, got {shown(result.get('pred_root'))}")
     base = f"results/{method}"
     for entry_id, row in rows.items():
         at = f"{path}: datasets.{entry_id}"
         if not isinstance(row, dict):
-            raise InputError(f"{at} must be an object, got {_shown(row)}")
+            raise InputError(f"{at} must be an object, got {shown(row)}")
         record = manifest["datasets"][entry_id]
         key = identity_key(record)
         if row.get(key) != record[key]:
@@ -846,10 +840,10 @@ def check_result(result: dict, suite: Suite, manifest: dict, path: Path) -> dict
         if "runs" in row:
             runs = row["runs"]
             if not isinstance(runs, list) or not runs or not all(isinstance(run, dict) for run in runs):
-                raise InputError(f"{at}.runs must be a non-empty list of runs, got {_shown(runs)}")
+                raise InputError(f"{at}.runs must be a non-empty list of runs, got {shown(runs)}")
             seeds = _seeds([run.get("seed") for run in runs], f"{at}.runs' seeds")
             if row.get("seeds") != seeds:
-                raise InputError(f"{at}.seeds is {_shown(row.get('seeds'))}, its runs' seeds are {seeds}")
+                raise InputError(f"{at}.seeds is {shown(row.get('seeds'))}, its runs' seeds are {seeds}")
             for run, seed in zip(runs, seeds):
                 _expect(run.get("metrics"), f"{base}/{entry_id}/{seed_folder(seed)}/metrics.json", f"{at}.runs.metrics")
                 _costs(run, f"{at}.runs[seed {seed}]")
@@ -864,12 +858,12 @@ def _expect(value, expected: str, where: str) -> None:
     """A path a record holds must be the one its writer makes (a path relative to the suite
     folder: anything else could lead out of it)."""
     if value != expected:
-        raise InputError(f"{where} must be {expected!r}, got {_shown(value)}")
+        raise InputError(f"{where} must be {expected!r}, got {shown(value)}")
 
 
 def _seeds(value, where: str) -> list:
     if not isinstance(value, list):
-        raise InputError(f"{where} must be a list of seeds, got {_shown(value)}")
+        raise InputError(f"{where} must be a list of seeds, got {shown(value)}")
     try:
         return arguments.check_seeds(value)
     except InputError as error:
@@ -881,7 +875,7 @@ def _costs(row: dict, where: str) -> None:
     for name in COST_FIELDS:
         value = row.get(name)
         if value is not None and not (finite_number(value) and value >= 0):
-            raise InputError(f"{where}.{name} must be a number >= 0 or null, got {_shown(value)}")
+            raise InputError(f"{where}.{name} must be a number >= 0 or null, got {shown(value)}")
     check_geometry(row.get("geometry"), f"{where}.geometry")
 
 
@@ -891,15 +885,15 @@ def check_geometry(value, where: str):
     if value is None:
         return value
     if not isinstance(value, dict):
-        raise InputError(f"{where} must be an object or null, got {_shown(value)}")
+        raise InputError(f"{where} must be an object or null, got {shown(value)}")
     if "n/a" in value:
         if set(value) != {"n/a"} or not isinstance(value["n/a"], str):
-            raise InputError(f"{where}: n/a must be alone, with its reason, got {_shown(value)}")
+            raise InputError(f"{where}: n/a must be alone, with its reason, got {shown(value)}")
         return value
     for name, figure in value.items():
         if name not in SUMMARY_NAMES or (figure is not None and not finite_number(figure)):
             raise InputError(f"{where}.{name} must be a geometry figure ({', '.join(SUMMARY_NAMES[:2])}, ...) "
-                             f"holding a finite number or null, got {_shown(figure)}")
+                             f"holding a finite number or null, got {shown(figure)}")
     return value
 
 
@@ -912,7 +906,7 @@ def job_result(record: dict, recipe: dict, path) -> dict:
     result = record.get("result")
     where = f"{path}: result"
     if not isinstance(result, dict):
-        raise InputError(f"{where} must be an object, got {_shown(result)}; delete the record to run the job again")
+        raise InputError(f"{where} must be an object, got {shown(result)}; delete the record to run the job again")
     if recipe["kind"] == "baseline":
         _expect(result, {"method": recipe["method"]}, where)
         return result
@@ -921,10 +915,10 @@ def job_result(record: dict, recipe: dict, path) -> dict:
     _costs(result, where)
     for name, low in (("model_bytes", 0), ("steps", 1), ("threads", 1)):
         if not isinstance(result[name], int) or isinstance(result[name], bool) or result[name] < low:
-            raise InputError(f"{where}.{name} must be an integer >= {low}, got {_shown(result[name])}")
+            raise InputError(f"{where}.{name} must be an integer >= {low}, got {shown(result[name])}")
     arguments.THREADS.check(result["threads"], f"{where}.threads")
     if result["seed"] != recipe["seed"] or isinstance(result["seed"], bool):
-        raise InputError(f"{where}.seed is {_shown(result['seed'])}, the job's seed is {recipe['seed']}")
+        raise InputError(f"{where}.seed is {shown(result['seed'])}, the job's seed is {recipe['seed']}")
     if recipe.get("geometry") is None and result["geometry"] is not None:
         raise InputError(f"{where}.geometry must be null: the suite's protocol scores no geometry")
     return result
