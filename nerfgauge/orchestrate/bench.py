@@ -28,7 +28,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
 from nerfgauge.eval.evaluate import evaluate
-from nerfgauge.eval.report import ceiling_cell, read_log
+from nerfgauge.eval.report import ceiling_cell, plain_text, read_log
 from nerfgauge.generate.benchmark import mitsuba_render_seconds
 from nerfgauge.generate.pipeline import GenerateConfig, generate
 from nerfgauge.scenes import make_scene
@@ -209,15 +209,17 @@ def pareto_plots(rows: list, out: Path) -> None:
     test_by_time, test_by_steps = figure.add_subplot(2, 2, 3), figure.add_subplot(2, 2, 4)
     done = [r for r in rows if "error" not in r]
     for r in done:
-        label = f"{r['scene']}: {r['variant']} ({r['budget']:g} s)"
+        label = plain_text(f"{r['scene']}: {r['variant']} ({r['budget']:g} s)")  # a mesh:PATH scene may hold $
         log = read_log(r["log"])
         by_time.plot([e["seconds"] for e in log], [e["val_psnr"] for e in log], marker=".", label=label)
         by_size.scatter([r["model_mb"]], [r["val_psnr"]], label=label)
     for scene, variant in dict.fromkeys((r["scene"], r["variant"]) for r in done if r["psnr"] is not None):
         line = sorted((r for r in done if (r["scene"], r["variant"]) == (scene, variant) and r["psnr"] is not None),
                       key=lambda r: r["budget"])
-        test_by_time.plot([r["train_seconds"] for r in line], [r["psnr"] for r in line], marker="o", label=f"{scene}: {variant}")
-        test_by_steps.plot([r["steps"] for r in line], [r["psnr"] for r in line], marker="o", label=f"{scene}: {variant}")
+        test_by_time.plot([r["train_seconds"] for r in line], [r["psnr"] for r in line], marker="o",
+                          label=plain_text(f"{scene}: {variant}"))
+        test_by_steps.plot([r["steps"] for r in line], [r["psnr"] for r in line], marker="o",
+                           label=plain_text(f"{scene}: {variant}"))
     by_time.set(xlabel="training seconds", ylabel="val PSNR, centre rays (dB)", title="PSNR against training time (each run)")
     by_size.set(xlabel="saved model (MB)", ylabel="final val PSNR (dB)", title="PSNR against model size", xscale="log")
     test_by_time.set(xlabel="training seconds (the budget)", ylabel="test PSNR (dB)",

@@ -52,6 +52,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge import nerf as nerf_package
 from nerfgauge.core.folders import recipe_hash
+from nerfgauge.orchestrate.suite import job_result
 from nerfgauge.eval import baselines as baselines_module
 from nerfgauge.eval.baselines import baseline_folder, write_baseline
 from nerfgauge.eval.geometry import score_geometry, summary
@@ -72,13 +73,10 @@ def finished(out, key: str, recipe: dict, outputs) -> dict | None:
     path = job_record_path(out, key)
     if not path.is_file():
         return None
-    try:
-        record = read_json(path, finite=True)
-    except (InputError, ValueError):
-        return None
+    record = read_json(path, finite=True)  # a record is data: malformed is one line (orchestrate.suite.job_result)
     if record.get("recipe") != recipe_hash(recipe) or not all(Path(p).exists() for p in outputs):
         return None
-    return record.get("result")
+    return job_result(record, recipe, path)
 
 
 def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256: str, run_dir: str, renders: str,
