@@ -1,12 +1,11 @@
 """eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`),
-`baseline` (`eval.baselines`), `geometry` (`eval.geometry`, `eval.normals`) and `lpips`
-(`eval.lpips_commands`). `bench` and `suite` are registered by `nerfgauge.orchestrate.commands`,
-`mesh` by `nerf.commands`.
+`geometry` (`eval.geometry`, `eval.normals`) and `lpips` (`eval.lpips_commands`). `baseline`
+is the methods' (`nerfgauge.methods.commands`); `bench` and `suite` are registered by
+`nerfgauge.orchestrate`, `mesh` by `nerf.commands`.
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Output
-folders are claimed with `core.folders.claim_folder` (marker and lock): `baseline --out
-DIR` as a "baseline", bench folders as "bench". Output files (`evaluate --out`, `--ns-eval`,
+folders are claimed with `core.folders.claim_folder` (marker and lock). Output files (`evaluate --out`, `--ns-eval`,
 `--nerfbaselines`, `check --junit`, `mesh -o`, `geometry -o`) go through
 `core.outputs.check_output_file` before anything is computed: a new path or a nerfgauge file
 of the same kind; `--overwrite` also replaces a nerfgauge file of another kind.
@@ -16,13 +15,11 @@ import dataclasses
 from pathlib import Path
 
 from nerfgauge.core import arguments
-from nerfgauge.core.camera import ThinLens
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.core.outputs import check_output_file, claim_output_file, stamp
 from nerfgauge.eval import lpips_commands
-from nerfgauge.eval.baselines import METHODS, baseline_folder, write_baseline
 from nerfgauge.eval.calibrate import THRESHOLDS_KIND, calibrate, proposal_toml
 from nerfgauge.eval.check import run_check as check
 from nerfgauge.eval.evaluate import METRICS_KIND, EvaluateConfig, evaluate, format_means
@@ -36,7 +33,6 @@ from nerfgauge.nerf.runs import open_run_dataset
 def register(subparsers) -> None:
     register_check(subparsers)
     register_evaluate(subparsers)
-    register_baseline(subparsers)
     register_geometry(subparsers)
     lpips_commands.register(subparsers)
 
@@ -196,49 +192,6 @@ def score_renders(dataset, pred: Path, config: EvaluateConfig, out, extra: dict,
                                                                             pred_dir=pred, method_name=method),
                                                      OUTPUT_KINDS["nerfbaselines"]))
             print(f"NerfBaselines results -> {extra['nerfbaselines']}")
-    return 0
-
-
-def register_baseline(subparsers) -> None:
-    parser = subparsers.add_parser(
-        "baseline",
-        help="render a split with a non-learned baseline (nearest view, two-plane light field)",
-        description="Render a split with a baseline from the lecture and write the frames as PNG named after "
-                    "the dataset's frames, plus timing.json; score them with `nerfgauge evaluate`.",
-    )
-    parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
-    parser.add_argument("--method", choices=METHODS, required=True,
-                        help="nearest: closest training view; lightfield-*: two-plane light field "
-                             "(datasets made with --layout lightfield)")
-    parser.add_argument("--out", type=arguments.path, required=True, metavar="DIR",
-                        help="folder for the renders (new, empty, or an earlier baseline folder)")
-    parser.add_argument("--split", default="test", help="split to render (default test)")
-    parser.add_argument("--evaluate", action="store_true", help="then score the renders (writes DIR/metrics.json)")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace a baseline folder made from another dataset, method or split")
-    parser.add_argument("--aperture", type=arguments.APERTURE, default=None, metavar="RADIUS",
-                        help="refocus: lens radius for every frame (default: each frame's own lens)")
-    parser.add_argument("--focus-distance", type=arguments.DISTANCE, default=None, metavar="D",
-                        help="refocus: focus distance for every frame (with --aperture)")
-    parser.add_argument("--lens-samples", type=arguments.LENS_SAMPLES, default=64, metavar="N",
-                        help="refocus: lens samples per pixel (default 64)")
-    parser.set_defaults(func=run_baseline)
-
-
-def run_baseline(args) -> int:
-    lens = None
-    if args.aperture is not None or args.focus_distance is not None:
-        if args.method != "refocus" or args.aperture is None or args.focus_distance is None:
-            raise InputError("--aperture and --focus-distance go together, with --method refocus")
-        lens = ThinLens(args.aperture, args.focus_distance)
-    with baseline_folder(args.dataset, args.method, args.out, args.split, overwrite=args.overwrite,
-                         options=None if lens is None else lens.to_json() | {"samples": args.lens_samples}):
-        timing = write_baseline(args.dataset, args.method, args.out, split=args.split, lens=lens,
-                                samples=args.lens_samples)
-        print(f"{args.out}: {timing['frames']} frames by {args.method} ({timing['ms_per_frame']:.1f} ms per frame)")
-        if args.evaluate:  # the renders just written, ours in naming and depth: only the split is the baseline's
-            return score_renders(args.dataset, args.out, EvaluateConfig(split=args.split), None, {},
-                                 overwrite=args.overwrite)
     return 0
 
 

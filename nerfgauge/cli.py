@@ -2,7 +2,8 @@
 
 Each stage package has a `commands.py` with `register(subparsers)`, which adds its
 subcommands and sets `func` (called with the parsed arguments, returns an exit code);
-so do the orchestration layer (`nerfgauge.orchestrate.commands`: bench, suite) and
+so do the methods (`nerfgauge.methods.commands`, `nerfgauge.methods.sfm`), the benches
+(`nerfgauge.orchestrate.bench.commands`), the suites (`nerfgauge.orchestrate.suite.commands`) and
 `nerfgauge.run` (run). Heavy imports (mitsuba, torch) happen inside those functions, so
 `nerfgauge --help` and argument errors are instant.
 
@@ -33,7 +34,9 @@ from nerfgauge.core import errors
 from nerfgauge.core.arguments import document_ranges
 from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
 from nerfgauge.methods import commands as methods
-from nerfgauge.orchestrate import commands as orchestration
+from nerfgauge.methods import sfm
+from nerfgauge.orchestrate.suite import commands as suite_commands
+from nerfgauge.orchestrate.bench import commands as bench
 
 STAGES = ("scenes", "generate", "nerf", "eval")  # then orchestration (bench, suite), then run
 
@@ -61,7 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
             continue  # a stage without commands yet
         module.register(subparsers)
     methods.register(subparsers)
-    orchestration.register(subparsers)
+    bench.register(subparsers)
+    suite_commands.register(subparsers)
+    sfm.register(subparsers)
     run.register(subparsers)
     document_ranges(parser)  # every numeric flag's range in its --help
     return parser

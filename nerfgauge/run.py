@@ -30,7 +30,7 @@ from nerfgauge.core import arguments, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
-from nerfgauge.eval.baselines import METHODS, baseline_folder, write_baseline
+from nerfgauge.methods.baselines import METHODS, baseline_folder, write_baseline
 from nerfgauge.eval.evaluate import EvaluateConfig, evaluate, format_means
 from nerfgauge.eval.geometry import format_geometry, score_geometry, summary as geometry_summary
 from nerfgauge.eval.options import SCORING, add_scoring_arguments, evaluate_fields

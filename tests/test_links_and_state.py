@@ -254,11 +254,11 @@ ALLOWED = {
     ("eval/lpips.py", "torch.save({key"): "torch writes atomic_path's temporary (the converted weights)",
     ("eval/lpips.py", "Path(tmp).write_text"): "the checksum into atomic_path's temporary",
     ("eval/report.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary (a figure)",
-    ("nerfgauge/orchestrate/bench.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary",
-    ("nerfgauge/orchestrate/suite_robustness.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary",
+    ("nerfgauge/orchestrate/bench/train.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary",
+    ("nerfgauge/orchestrate/suite/robustness.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary",
     ("nerfgauge/core/scratch.py", "owned.rename(new, folder)"):
         "core.owned's own rename (the lint knows calls by their name only)",
-    ("nerfgauge/orchestrate/sfm.py", "best.write_binary(str(owned.make_folder("):
+    ("nerfgauge/methods/sfm.py", "best.write_binary(str(owned.make_folder("):
         "pycolmap writes its model into a folder core.owned just made (checked for links)",
 }
 

@@ -372,7 +372,7 @@ class TestIntegrity:
         tmpdir.mkdir()
         # the child stops after features and matching, while its scratch folder holds the database
         child = subprocess.Popen([sys.executable, "-c", (
-            "import sys, time\nimport nerfgauge.orchestrate.sfm as sfm\n"
+            "import sys, time\nimport nerfgauge.methods.sfm as sfm\n"
             "original = sfm.run_sfm\n"
             "def paused(ds, work, *args):\n"
             "    (work / 'images').mkdir()\n"

@@ -169,7 +169,7 @@ class TestStateFilesAreData:
     def test_one_validator_for_an_id_in_a_suite_file_and_read_back(self, tmp_path, bad):
         """The suite file and suite.json refuse the same ids with the same words (one
         function), and accept the same (a name with $ and a backslash, non-ASCII)."""
-        from nerfgauge.orchestrate.suite import parse_suite, suite_from_definition
+        from nerfgauge.orchestrate.suite.definition import parse_suite, suite_from_definition
 
         def suite_file(entry_id):
             data = tomllib.loads(suite_toml("tiny", TINY_DATASET, {"steps": 10}))
@@ -386,7 +386,7 @@ class TestUserStringsAreText:
 
     def test_the_figures_draw_hostile_names(self, tmp_path):
         from nerfgauge.eval.report import plot_curves
-        from nerfgauge.orchestrate.suite_robustness import plot
+        from nerfgauge.orchestrate.suite.robustness import plot
 
         names = [r"m$\frac$x", "$", r"a\$b$c"]
         plot_curves({names[0]: [{"seconds": 0.0, "val_psnr": 10.0}, {"seconds": 1.0, "val_psnr": 12.0}]},

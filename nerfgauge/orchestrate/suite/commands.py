@@ -1,5 +1,5 @@
-"""`nerfgauge suite`: benchmark suites (nerfgauge/orchestrate/suite.py), run
-(nerfgauge/orchestrate/suite_run.py) and the leaderboard (nerfgauge/orchestrate/suite_report.py).
+"""`nerfgauge suite`: benchmark suites (nerfgauge/orchestrate/suite/definition.py), run
+(nerfgauge/orchestrate/suite/run.py) and the leaderboard (nerfgauge/orchestrate/suite/report.py).
 
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
@@ -15,9 +15,9 @@ folder's marker, suite manifest and datasets (orchestrate.suite.suite_from_folde
 from __future__ import annotations
 
 from nerfgauge.core import arguments
-from nerfgauge.orchestrate.suite import builtin_suites, evaluate_suite, generate_suite, load_suite
-from nerfgauge.orchestrate.suite_report import write_leaderboard
-from nerfgauge.orchestrate.suite_run import run_suite
+from nerfgauge.orchestrate.suite.definition import builtin_suites, evaluate_suite, generate_suite, load_suite
+from nerfgauge.orchestrate.suite.report import write_leaderboard
+from nerfgauge.orchestrate.suite.run import run_suite
 
 
 def register(subparsers) -> None:

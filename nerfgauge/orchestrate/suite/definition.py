@@ -12,7 +12,7 @@ path ending in .toml):
     [train]                        # required: our NeRF (TrainConfig fields but dataset and
     steps = 80 ...                 #   seed); steps is required (reproducible)
     [protocol]                     # required: split, background, depth_kind; optional
-    split = "test" ...             #   baselines (eval.baselines.METHODS; the lightfield ones
+    split = "test" ...             #   baselines (methods.baselines.METHODS; the lightfield ones
                                    #   run on lightfield layouts only) and geometry
                                    #   {resolution, samples} (our NeRF's mesh scored)
     [[scenes]]                     # at least one: scene (a registered recipe) and seed are
@@ -89,7 +89,7 @@ from nerfgauge.core import arguments, bounded, dataset, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.folders import MARKER, claim_folder, folder_lock, read_marker
-from nerfgauge.eval.baselines import METHODS
+from nerfgauge.methods.baselines import METHODS
 from nerfgauge.eval.check import finite_number, shown
 from nerfgauge.eval.geometry import SUMMARY_NAMES
 from nerfgauge.eval.evaluate import BACKGROUNDS, evaluate
@@ -166,7 +166,7 @@ class Suite:
 
 def builtin_suites() -> dict:
     """{name: path-like} of the suites shipped with nerfgauge."""
-    folder = importlib.resources.files("nerfgauge.orchestrate.suites")
+    folder = importlib.resources.files("nerfgauge.orchestrate.suite.builtin")
     return {item.name[:-5]: item for item in sorted(folder.iterdir(), key=lambda i: i.name) if item.name.endswith(".toml")}
 
 
@@ -898,7 +898,7 @@ def check_geometry(value, where: str):
 
 
 def job_result(record: dict, recipe: dict, path) -> dict:
-    """The result a finished job's record (OUT/jobs/<key>.json, orchestrate.suite_jobs) holds,
+    """The result a finished job's record (OUT/jobs/<key>.json, orchestrate.suite.jobs) holds,
     checked as the job wrote it: a baseline's {"method"}; a training's train_seconds,
     model_bytes, steps, steps_per_second, seed (the job's), threads and geometry (none when
     the protocol scores none). InputError naming the record otherwise: a record is data

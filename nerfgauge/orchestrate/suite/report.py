@@ -47,8 +47,8 @@ from pathlib import Path
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import MARKER, folder_lock, read_marker
-from nerfgauge.orchestrate import suite_robustness
-from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results, read_suite_folder, suite_from_folder
+from nerfgauge.orchestrate.suite import robustness as suite_robustness
+from nerfgauge.orchestrate.suite.definition import OURS, Suite, dataset_dir, read_results, read_suite_folder, suite_from_folder
 from nerfgauge.eval.check import ScoringProtocol, protocol_of_metrics, validate_scores
 from nerfgauge.eval.metrics import METRIC_NAMES
 from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, aggregate_runs, mean_of,
@@ -147,7 +147,7 @@ def leaderboard(suite: Suite, out) -> dict:
 
 PAIRED_METRIC = "psnr"
 ROBUSTNESS_CAPTION = ("Robustness: each method's score against the level of one train-view degradation "
-                      "(orchestrate.suite_robustness; docs/conventions.md, Degradations)")
+                      "(orchestrate.suite.robustness; docs/conventions.md, Degradations)")
 PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views and seeds; 95% "
                   f"paired bootstrap interval over seeds, then views; two-sided Wilcoxon signed-rank test on the "
                   f"per-view differences at {LEVEL_ALPHA:g})")

@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.orchestrate.bench import claim_bench_folder, run_child
+from nerfgauge.orchestrate.bench.common import claim_bench_folder, run_child
 from nerfgauge.eval.report import read_log
 
 from nerfgauge.core import arguments

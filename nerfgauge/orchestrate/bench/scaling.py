@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.orchestrate.bench import claim_bench_folder, first_time_reaching, run_child, write_png_figure
+from nerfgauge.orchestrate.bench.common import claim_bench_folder, first_time_reaching, run_child, write_png_figure
 
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
