@@ -119,7 +119,8 @@ def _figure(width: float, height: float):
     return Figure(figsize=(width, height), dpi=110)
 
 
-def _save(figure, out) -> None:
+def save_png(figure, out) -> None:
+    """A matplotlib Figure as PNG at `out`, through the atomic writer (every figure we draw)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib
 
     with atomic_path(out) as tmp:
@@ -155,7 +156,7 @@ def plot_curves(curves: dict, out, baselines: dict | None = None, finals: dict |
     if axes.get_legend_handles_labels()[0]:
         axes.legend(fontsize=8)
     figure.tight_layout()
-    _save(figure, out)
+    save_png(figure, out)
 
 
 GRID_COLUMNS = (("ground truth", None, None), ("prediction", None, None),
@@ -234,7 +235,7 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
     for col, image in images.items():
         bar = figure.colorbar(image, ax=list(grid[:, col]), orientation="horizontal", fraction=0.08, pad=0.04)
         bar.ax.tick_params(labelsize=6)
-    _save(figure, out)
+    save_png(figure, out)
 
 
 def frusta_plot(dataset_root, out, splits=("train", "test"), bounds=None) -> None:
@@ -284,7 +285,7 @@ def frusta_plot(dataset_root, out, splits=("train", "test"), bounds=None) -> Non
     axes.set_zlabel("z")
     axes.set_title("cameras and scene bounds", fontsize=9)
     axes.legend(fontsize=8, loc="upper left")
-    _save(figure, out)
+    save_png(figure, out)
 
 
 def _data_uri(path) -> str:
@@ -466,8 +467,7 @@ def geometry_histogram(distances: dict, document: dict, out) -> None:
     axes.set_ylabel("density")
     axes.legend()
     figure.tight_layout()
-    with atomic_path(out) as tmp:
-        FigureCanvasAgg(figure).print_png(str(tmp))
+    save_png(figure, out)
 
 
 # --- defocus: methods against the thin-lens truth at several apertures ---------------------
@@ -519,4 +519,4 @@ def focus_rows(datasets: dict, preds: dict, stem: str, out, background=(1.0, 1.0
             if crop is not None:
                 tile = tile[crop[0]:crop[1], crop[2]:crop[3]]
             axes.imshow(np.clip(tile, 0, 1), interpolation="nearest")
-    _save(figure, out)
+    save_png(figure, out)

@@ -68,13 +68,13 @@ def test_the_plots_draw_each_budgets_test_psnr_against_seconds_and_steps(tmp_pat
                      "train_seconds": budget + 0.5, "steps": steps, "model_mb": 1.0, "log": log})
     rows.append({"scene": "s", "variant": "vanilla", "budget": 30, "error": "exit 2"})
     drawn = {}
-    original = bench.write_png_figure
+    original = bench.save_png
 
     def keep(figure, path):
         drawn["axes"], drawn["texts"] = figure.axes, [text.get_text() for text in figure.texts]
         original(figure, path)
 
-    monkeypatch.setattr(bench, "write_png_figure", keep)
+    monkeypatch.setattr(bench, "save_png", keep)
     bench.pareto_plots(rows, tmp_path)
     by_time, by_steps = drawn["axes"][2], drawn["axes"][3]
     (time_line,), (steps_line,) = by_time.get_lines(), by_steps.get_lines()

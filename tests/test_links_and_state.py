@@ -254,8 +254,6 @@ ALLOWED = {
     ("eval/lpips.py", "torch.save({key"): "torch writes atomic_path's temporary (the converted weights)",
     ("eval/lpips.py", "Path(tmp).write_text"): "the checksum into atomic_path's temporary",
     ("eval/report.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary (a figure)",
-    ("nerfgauge/orchestrate/bench/train.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary",
-    ("nerfgauge/orchestrate/suite/robustness.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary",
     ("nerfgauge/core/scratch.py", "owned.rename(new, folder)"):
         "core.owned's own rename (the lint knows calls by their name only)",
     ("nerfgauge/methods/sfm.py", "best.write_binary(str(owned.make_folder("):

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import sys
 
-from nerfgauge.core.files import atomic_path
 from nerfgauge.core.folders import claim_folder, recipe_hash
 from nerfgauge.methods.measure import run_process
 
@@ -22,14 +21,6 @@ def claim_bench_folder(out, bench: str):
     of the same bench continues in it (each case replaces its own outputs), another bench's
     folder or anyone else's is refused."""
     return claim_folder(out, "bench", recipe_hash({"bench": bench}))
-
-
-def write_png_figure(figure, path) -> None:
-    """Save a matplotlib Figure as PNG through the atomic writer."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib: only when a figure is drawn
-
-    with atomic_path(path) as tmp:
-        FigureCanvasAgg(figure).print_png(str(tmp))
 
 
 def run_child(argv: list) -> tuple[int, float, float]:

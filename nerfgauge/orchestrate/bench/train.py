@@ -11,12 +11,12 @@ import time
 from pathlib import Path
 
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import atomic_path, write_bytes_atomic, write_json
+from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.core.folders import remove_owned
 from nerfgauge.eval.evaluate import evaluate
-from nerfgauge.eval.report import ceiling_cell, plain_text, read_log
+from nerfgauge.eval.report import ceiling_cell, plain_text, read_log, save_png
 from nerfgauge.generate.pipeline import GenerateConfig, generate
-from nerfgauge.orchestrate.bench.common import claim_bench_folder, first_time_reaching, run_child, write_png_figure
+from nerfgauge.orchestrate.bench.common import claim_bench_folder, first_time_reaching, run_child
 from nerfgauge.scenes import make_scene
 
 # variant name -> (model, extra `nerfgauge train` arguments). The vanilla NeRF logs its
@@ -173,4 +173,4 @@ def pareto_plots(rows: list, out: Path) -> None:
         test_by_steps.legend(fontsize=7, loc="lower right")
     figure.text(0.01, 0.01, VAL_AGAINST_TEST, fontsize=8, va="bottom", wrap=True)
     figure.tight_layout(rect=(0, 0.05, 1, 1))
-    write_png_figure(figure, out / "pareto.png")
+    save_png(figure, out / "pareto.png")

@@ -21,8 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from nerfgauge.core.files import atomic_path
-from nerfgauge.eval.report import plain_text
+from nerfgauge.eval.report import plain_text, save_png
 from nerfgauge.generate.degrade import FIELDS
 from nerfgauge.generate.pipeline import GenerateConfig
 
@@ -92,7 +91,6 @@ def rows(document: dict) -> list[list[str]]:
 
 def plot(document: dict, out) -> None:
     """robustness.png: PSNR against level, one panel per curve, one line per method."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib: only when a figure is drawn
     from matplotlib.figure import Figure  # matplotlib
 
     curves = document["curves"]
@@ -110,5 +108,4 @@ def plot(document: dict, out) -> None:
         if k == 1:
             axes.legend(fontsize=7)
     figure.tight_layout()
-    with atomic_path(out) as tmp:
-        FigureCanvasAgg(figure).print_png(str(tmp))
+    save_png(figure, out)
