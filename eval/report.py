@@ -58,23 +58,24 @@ def plain_text(text) -> str:
 LOG_NUMBERS = ("seconds", "val_psnr", "step")  # what a figure reads from a log line
 
 
-def read_log(path) -> list[dict]:
+def read_log(path, *, finite: bool = True) -> list[dict]:
     """A run's log.jsonl: one JSON object per line (val PSNR against training seconds);
     InputError (one line naming the line) when a line is not an object or a value the
-    figures read is not a finite number or null."""
+    figures read is not a finite number or null. finite=False keeps NaN and infinities
+    (the hard scenes' audit counts them)."""
     entries = []
     for number, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
         if not line.strip():
             continue
         try:
-            entry = bounded.loads_json(line, path, parse_constant=_refuse_constant(path, number))
+            entry = bounded.loads_json(line, path, parse_constant=_refuse_constant(path, number) if finite else None)
         except json.JSONDecodeError as error:
             raise InputError(f"{path} line {number} is not valid JSON: {error}") from None
         if not isinstance(entry, dict):
             raise InputError(f"{path} line {number}: expected a JSON object, got {type(entry).__name__}")
         for key in LOG_NUMBERS:
             value = entry.get(key)
-            if value is not None and not finite_number(value):
+            if value is not None and not (finite_number(value) or not finite and isinstance(value, float)):
                 raise InputError(f"{path} line {number}: {key} must be a finite number or null, got {value!r:.40}")
         entries.append(entry)
     return entries
