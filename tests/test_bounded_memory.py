@@ -176,7 +176,7 @@ class TestNearestViews:
         """`nerfgauge baseline --method nearest`: 3,000 query x 3,000 train cameras would be a
         216 MB offset array at once (plus its norm); in blocks of POSE_PAIRS the peak stays
         under 100 MB, and the answer equals the argmin of the whole pose_distance matrix."""
-        from nerfgauge.eval.baselines import nearest_views, pose_distance
+        from nerfgauge.methods.baselines import nearest_views, pose_distance
 
         rng = np.random.default_rng(3)
         query, train = random_poses(3000, rng), random_poses(3000, rng)
