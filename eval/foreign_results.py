@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from nerfgauge.eval.metrics import METRIC_NAMES
+from nerfgauge.core import bounded
 from nerfgauge.core.dataset import FRAME_SUFFIXES
 
 PROTOCOL = "nerfgauge-v1"
@@ -105,7 +106,7 @@ def files_hash(paths) -> str:
     """One sha256 over the bytes of `paths`, in order (NerfBaselines' get_predictions_sha)."""
     digest = hashlib.sha256()
     for path in paths:
-        with open(path, "rb") as handle:
+        with bounded.open_regular(path) as (handle, _):  # a stream of 1 MiB blocks; regular files only
             for block in iter(lambda: handle.read(1 << 20), b""):
                 digest.update(block)
     return digest.hexdigest()

@@ -27,13 +27,15 @@ is missing).
 Matching images to the split's frames (nerfstudio, nerfbaselines, folder): by file stem
 when any image is named after a frame (then every image must be, and every frame must have
 one: the names that do not match are reported), else by natural sort order (then the
-counts must be equal). Sizes are checked when each image is read. Every problem is an
-InputError with one line.
+counts must be equal). A split without frames is refused (nothing would be scored). Every
+image's header is read first and its size checked against the ground truth's, and the
+file's size against what that header's pixels can take, before it is read or decoded
+(nerfgauge.core.images); depth files are bounded by the frame's size
+(nerfgauge.core.bounded). Every problem is an InputError with one line.
 """
 
 from __future__ import annotations
 
-import io
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +46,7 @@ import numpy as np
 from nerfgauge.core import bounded, dataset, validate
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json
-from nerfgauge.core.images import linear_to_srgb, read_exr, read_png
+from nerfgauge.core.images import image_header, linear_to_srgb, read_exr, read_jpeg, read_png
 
 FORMATS = ("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
@@ -116,12 +118,20 @@ def _sized(values: np.ndarray, path: Path, intrinsics) -> np.ndarray:
     return values
 
 
+def _header_sized(path: Path, intrinsics) -> None:
+    """An image prediction's header (read alone) states the ground truth's size: checked
+    before the file is read or decoded."""
+    header = image_header(path)
+    _sized(np.empty((header.height, header.width, 0)), path, intrinsics)
+
+
 def read_colour(path: Path, intrinsics) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """(sRGB [H, W, 3] in [0, 1], straight alpha [H, W] or None) from a PNG, JPEG or EXR."""
+    _header_sized(path, intrinsics)
     if path.suffix.lower() in (".jpg", ".jpeg"):
-        return read_jpeg(path, intrinsics), None
+        return read_jpeg(path, expected_size=intrinsics).astype(np.float64), None
     if path.suffix == ".exr":
-        channels, _ = read_exr(path)
+        channels, _ = read_exr(path, expected_size=intrinsics)
         if "RGBA" in channels or "RGB" in channels:
             image = channels.get("RGBA", channels.get("RGB"))
         elif {"R", "G", "B"} <= set(channels):
@@ -135,7 +145,7 @@ def read_colour(path: Path, intrinsics) -> tuple[np.ndarray, Optional[np.ndarray
         straight = np.divide(image[..., :3], image[..., 3:4], out=np.zeros_like(image[..., :3]),
                              where=image[..., 3:4] > 0)  # [H, W, 3]
         return linear_to_srgb(straight), alpha
-    image = _sized(read_png(path).astype(np.float64), path, intrinsics)
+    image = _sized(read_png(path, expected_size=intrinsics).astype(np.float64), path, intrinsics)
     if image.ndim == 2:
         image = image[..., None]
     if image.shape[-1] in (1, 2):  # gray (+ alpha)
@@ -150,7 +160,8 @@ def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.n
     elif path.suffix == ".npy":  # at most [H, W, 1] values: the header is checked before reading
         values = bounded.read_npy(path, max_elements=intrinsics.width * intrinsics.height)
     elif path.suffix == ".exr":
-        channels, header = read_exr(path)
+        _header_sized(path, intrinsics)
+        channels, header = read_exr(path, expected_size=intrinsics)
         if len(channels) != 1:
             raise InputError(f"{path} should hold one channel, has {sorted(channels)}")
         (values,) = channels.values()
@@ -158,7 +169,8 @@ def read_plane(path: Path, intrinsics, depth_kind: Optional[str] = None) -> np.n
         if depth_kind and stored is not None and stored != DEPTH_HEADER[depth_kind]:
             raise InputError(f"{path} holds {stored} but --depth-kind {depth_kind} compares {DEPTH_HEADER[depth_kind]}")
     else:
-        values = read_png(path)
+        _header_sized(path, intrinsics)
+        values = read_png(path, expected_size=intrinsics)
     values = np.asarray(values)
     if values.ndim == 3 and values.shape[-1] == 1:
         values = values[..., 0]
@@ -300,23 +312,6 @@ def read_info(pred_dir: Path) -> dict:
 # --- reading foreign files ------------------------------------------------------------
 
 
-def read_jpeg(path: Path, intrinsics) -> np.ndarray:
-    """A JPEG as sRGB [H, W, 3] float64 in [0, 1]; the header's size checked before decoding."""
-    from PIL import Image, JpegImagePlugin  # PIL's JPEG plugin: only for JPEG predictions
-
-    try:
-        data = Path(path).read_bytes()
-        with JpegImagePlugin.JpegImageFile(io.BytesIO(data)) as image:
-            validate.image_size(*image.size, path)
-            validate.header_matches(*image.size, intrinsics, path)
-            array = np.asarray(image.convert("RGB"))
-    except InputError:
-        raise
-    except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as error:
-        raise InputError(f"cannot read image {path}: {error}") from None
-    return array.astype(np.float64) / 255.0
-
-
 def read_depth_file(path: Path, max_elements: int = validate.MAX_IMAGE_SIDE ** 2) -> np.ndarray:
     """nerfstudio raw-depth (.npy.gz, [H, W] or [H, W, 1]) or NerfBaselines depth (.bin:
     int32 height, width, float16 values) as a float64 array. max_elements: the most depth
@@ -354,6 +349,9 @@ def locate_predictions(ds: dataset.Dataset, pred_dir: Path, split: str, pred_for
     """{stem: PredictionFiles} for every frame of `split`, in `pred_format` (FORMATS;
     "auto" detects it); an InputError naming the frames without a prediction."""
     stems = ds.cameras(split).stems
+    if not stems:  # nothing would be scored, and an empty score is not a result
+        raise InputError(f"split {split} of {ds.root} has no frames, so there is nothing to score "
+                         f"(splits with frames: {', '.join(ds.splits) or 'none'})")
     if pred_format not in FORMATS:
         raise InputError(f"unknown prediction format {pred_format!r}; choose one of {', '.join(FORMATS)}")
     if pred_format == "auto":

@@ -45,8 +45,8 @@ def register_export(subparsers) -> None:
 
 def run_export(args) -> int:
     result = export_command(args.dataset, args.points)
-    print(f"{args.dataset}: COLMAP model in sparse/0 with {result['points']} {result['kind']} points "
-          f"({result['seconds']:.1f} s)")
+    points = result["without_points"] or f"with {result['points']} {result['kind']} points"
+    print(f"{args.dataset}: COLMAP model in sparse/0 {points} ({result['seconds']:.1f} s)")
     return 0
 
 
@@ -55,8 +55,8 @@ def run(args) -> int:
     result = generate(config, args.out, workers=args.workers, overwrite=args.overwrite, progress=not args.quiet,
                       scheduler=args.scheduler, points=args.points)
     rendered, export = result["views_rendered"], result.get("export")
-    exported = (f"; COLMAP model with {export['points']} {export['kind']} points in {export['seconds']:.1f} s"
-                if export else "")
+    points = export and (export.get("without_points") or f"with {export['points']} {export['kind']} points")
+    exported = f"; COLMAP model {points} in {export['seconds']:.1f} s" if export else ""
     print(f"{args.out}: {rendered} views rendered in {result['seconds']:.1f} s "
           f"({result['variant']}; Mitsuba render {result['render_seconds']:.1f} s{exported})"
           if rendered else f"{args.out}: complete, nothing to render{exported}")

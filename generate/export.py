@@ -27,6 +27,19 @@ is written last, hashing every file. Before removing the manifest, a rollback jo
 (`.nerfgauge-export.json`: the manifest and the JSON files about to be replaced) is written:
 a kill in between leaves a dataset without a manifest, which readers refuse in one line,
 and the next `export colmap` (or `generate` with the same recipe) restores and redoes it.
+
+The journal is data, not instructions: it may hold only the two files an export replaces
+(transforms.json, scene.json), each a JSON object, and a manifest that parses, names only
+relative paths inside the dataset (no `..`, no absolute path, no link), lists both files
+with the hashes of the journal's own texts, and whose every other entry outside images/
+and sparse/0/ matches the file on disk (hashes recomputed). A journal that is not so is
+refused in one line and nothing is restored; a valid one is restored, and the manifest
+written is the one the export writes for that list (hashed from the files, not copied).
+
+A scene whose geometry no train view resolves (meshes smaller than a pixel's footprint, or
+out of every view) gets its model without points and the reason in scene.json "points",
+as a scene with no geometry does: the default `--points surface` never fails a dataset
+after its views are rendered.
 """
 
 from __future__ import annotations
@@ -38,11 +51,11 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core import colmap
+from nerfgauge.core import colmap, owned, validate
 from nerfgauge.core import dataset as dataset_module
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import json_bytes, json_from_bytes, read_json, write_bytes_atomic
+from nerfgauge.core.files import json_bytes, json_from_bytes, link_or_copy_atomic, read_json, write_bytes_atomic
 from nerfgauge.core.folders import folder_lock, read_marker
 from nerfgauge.generate import points as points_module
 
@@ -50,6 +63,9 @@ MODEL_DIR = "sparse/0"
 IMAGES_DIR = "images"
 PLY = f"{MODEL_DIR}/points3D.ply"
 JOURNAL = ".nerfgauge-export.json"  # hidden: not part of the manifest; exists only during an export
+JOURNALED = ("scene.json", "transforms.json")  # the files an export replaces: all its journal may hold
+NO_GEOMETRY = "no points: the scene has no geometry to sample"
+NO_VISIBLE_SURFACE = "no points: no train view resolves the ground-truth meshes, so there is no surface to sample"
 POINTS_NOTE = {
     "surface": "samples of the ground-truth meshes (uniform by area) that some train view sees; colour: mean of the "
                "8-bit sRGB train PNG pixels of the first 4 train views (in order) that see each",
@@ -112,7 +128,7 @@ def stage_images(ds: Dataset, folder: Path) -> list[str]:
     names = []
     for stem in cameras.stems:
         name = image_name(stem)
-        (folder / name).write_bytes(ds.read_bytes(stem + ".png", stem))
+        write_bytes_atomic(folder / name, ds.read_bytes(stem + ".png", stem))
         names.append(name)
     return names
 
@@ -132,12 +148,19 @@ def sfm_options(pycolmap, intrinsics):
     return reader, extraction, matching
 
 
+MATCH_BLOCK = 50  # images per block of exhaustive matching (COLMAP's default, stated)
+
+
 def extract_and_match(pycolmap, database: Path, image_dir: Path, names, intrinsics) -> None:
     reader, extraction, matching = sfm_options(pycolmap, intrinsics)
     pycolmap.set_random_seed(0)
     pycolmap.extract_features(database, image_dir, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
-    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    # every pair of images is matched, a block of MATCH_BLOCK images against another at a time
+    # (COLMAP caches the features of a few blocks): memory does not grow with the image count
+    pairing = pycolmap.ExhaustivePairingOptions()
+    pairing.block_size = MATCH_BLOCK
+    pycolmap.match_exhaustive(database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
 
 
 def sfm_points(ds: Dataset, count, seed: int) -> points_module.InitialPoints:
@@ -149,13 +172,13 @@ def sfm_points(ds: Dataset, count, seed: int) -> points_module.InitialPoints:
                          f"are distorted ({cameras.distortion.to_text()}); use --points surface or random")
     with tempfile.TemporaryDirectory(prefix="nerfgauge-sfm-") as work:
         work = Path(work)
-        (work / "images").mkdir()
+        owned.make_folder(work / "images")
         names = stage_images(ds, work / "images")
         extract_and_match(pycolmap, work / "database.db", work / "images", names, cameras.intrinsics)
         known = work / "known"
         colmap.write_model(known, [colmap.pinhole_camera(cameras.intrinsics)], colmap.model_images(cameras.c2w, names),
                            colmap.Points.make(np.zeros((0, 3)), np.zeros((0, 3))))
-        (work / "triangulated").mkdir()
+        owned.make_folder(work / "triangulated")
         options = pycolmap.IncrementalPipelineOptions()
         options.num_threads = 1
         reconstruction = pycolmap.triangulate_points(pycolmap.Reconstruction(known), work / "database.db",
@@ -192,16 +215,7 @@ def _link_or_copy(source: Path, target: Path) -> None:
         raise InputError(f"refusing to replace {target}: it is not a regular file")
     if target.is_file() and os.path.samefile(source, target):
         return  # already the link (rename(2) between two links of one file would do nothing)
-    tmp = target.with_name(f".{target.name}.tmp{os.getpid()}")
-    try:
-        if tmp.exists():
-            tmp.unlink()
-        os.link(source, tmp)
-        os.replace(tmp, target)
-    except OSError:
-        if tmp.exists():
-            tmp.unlink()
-        write_bytes_atomic(target, source.read_bytes())
+    link_or_copy_atomic(source, target)
 
 
 def export_colmap(root, spec="surface", *, progress=None) -> dict:
@@ -230,11 +244,16 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
     else:  # a scene with no geometry (hard scene `empty`): nothing to sample or measure against
         vertices = faces = None
         if spec.kind == "surface":
-            spec, note = points_module.parse_spec("none"), "no points: the scene has no geometry to sample"
+            spec, note = points_module.parse_spec("none"), NO_GEOMETRY
     initial = compute_points(ds, spec, seed, vertices, faces)
+    if spec.kind == "surface" and not len(initial.xyz):  # geometry, but no train view resolves it (`tiny` at 24 px)
+        spec, note = points_module.parse_spec("none"), NO_VISIBLE_SURFACE
+        initial = compute_points(ds, spec, seed, vertices, faces)
     if vertices is None:
         distance_record = {"mean": None, "p90": None, "max": None,
                            "method": "none: the scene has no ground-truth meshes"}
+    elif not len(initial.xyz):
+        distance_record = {"mean": None, "p90": None, "max": None, "method": "none: no points"}
     else:
         diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
         distance = points_module.distance_to_surface(initial.xyz, vertices, faces,
@@ -280,16 +299,18 @@ def export_colmap(root, spec="surface", *, progress=None) -> dict:
                         {"transforms.json": json_bytes(transforms), "scene.json": json_bytes(scene)},
                         ds.manifest_files)
     return {"points": int(len(initial.xyz)), "kind": spec.kind, "seconds": time.perf_counter() - start,
-            "distance_mean": scene["points"]["distance_to_surface"]["mean"]}
+            "distance_mean": scene["points"]["distance_to_surface"]["mean"],
+            "without_points": (f"without points ({note.removeprefix('no points: ')})"
+                               if note in (NO_GEOMETRY, NO_VISIBLE_SURFACE) else None)}
 
 
 def _replace_in_dataset(root: Path, files: dict, links: dict, replaced: dict, listed_before) -> None:
     """New files, then manifest removed, replaced files, stale export files removed, manifest
     last, listing what the old one listed (minus what was removed) and the new files."""
     for rel, data in files.items():
-        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        owned.make_folder((root / rel).parent)
         write_bytes_atomic(root / rel, data)
-    (root / IMAGES_DIR).mkdir(exist_ok=True)
+    owned.make_folder(root / IMAGES_DIR)
     for name, source in links.items():
         _link_or_copy(source, root / IMAGES_DIR / name)
     manifest = root / dataset_module.MANIFEST
@@ -297,7 +318,7 @@ def _replace_in_dataset(root: Path, files: dict, links: dict, replaced: dict, li
         journal = {"manifest": manifest.read_text(),
                    "files": {rel: (root / rel).read_text() for rel in replaced if (root / rel).is_file()}}
         write_bytes_atomic(root / JOURNAL, json_bytes(journal))
-        manifest.unlink()
+        owned.remove_file(manifest)
     for rel, data in replaced.items():
         write_bytes_atomic(root / rel, data)
     keep = set(files) | {f"{IMAGES_DIR}/{name}" for name in links}
@@ -306,12 +327,11 @@ def _replace_in_dataset(root: Path, files: dict, links: dict, replaced: dict, li
         for path in sorted(folder.iterdir()):
             rel = path.relative_to(root).as_posix()
             if rel not in keep and not path.name.startswith(".") and (path.is_file() or path.is_symlink()):
-                path.unlink()
+                owned.remove_file(path)
                 removed.add(rel)
     listed = (set(listed_before) - removed - {dataset_module.MANIFEST}) | keep | set(replaced)
     dataset_module.write_manifest(root, sorted(listed))
-    if (root / JOURNAL).is_file():
-        (root / JOURNAL).unlink()
+    owned.remove_file(root / JOURNAL)
 
 
 def roll_back(root: Path) -> bool:
@@ -321,12 +341,61 @@ def roll_back(root: Path) -> bool:
     journal_path = root / JOURNAL
     if not journal_path.is_file() or (root / dataset_module.MANIFEST).is_file():
         return False
-    journal = read_json(journal_path)
-    for rel, text in journal["files"].items():
-        write_bytes_atomic(root / rel, text.encode())
-    write_bytes_atomic(root / dataset_module.MANIFEST, journal["manifest"].encode())
-    journal_path.unlink()
+    texts, listed = read_journal(root)
+    for rel, data in texts.items():
+        write_bytes_atomic(root / rel, data)
+    dataset_module.write_manifest(root, listed)
+    owned.remove_file(journal_path)
     return True
+
+
+def read_journal(root: Path) -> tuple[dict, list]:
+    """The rollback journal checked as data (module docstring): ({name: bytes} to restore,
+    the files the restored manifest lists). InputError, one line, when it is not one an
+    export of this dataset wrote; nothing is written here."""
+    path = root / JOURNAL
+    refuse = "; refusing it (delete it and rerun nerfgauge generate for this dataset)"
+    journal = read_json(path)
+    if set(journal) != {"manifest", "files"} or not isinstance(journal["manifest"], str) \
+            or not isinstance(journal["files"], dict):
+        raise InputError(f"{path} is not an export journal (expected {{\"manifest\": text, \"files\": "
+                         f"{{name: text}}}}, got keys {sorted(journal)[:4]}){refuse}")
+    texts = {}
+    for rel, text in journal["files"].items():
+        if rel not in JOURNALED:
+            raise InputError(f"{path} names {rel!r}; an export journal holds only {' and '.join(JOURNALED)}{refuse}")
+        if not isinstance(text, str):
+            raise InputError(f"{path}: {rel} should be the file's text, got {type(text).__name__}{refuse}")
+        texts[rel] = text.encode()
+        json_from_bytes(texts[rel], f"{path} ({rel})", finite=True)  # a JSON object, or one line
+    where = f"{path} (manifest)"
+    entries = validate.manifest(json_from_bytes(journal["manifest"].encode(), where, finite=True), where)
+    listed = []
+    for rel, entry in entries.items():  # relative, no "..": validate.manifest; no link: here
+        owned.check_no_link(root / rel, "restore")
+        validate.confine(root.resolve(), rel, where)
+        exported = rel.startswith((f"{MODEL_DIR}/", f"{IMAGES_DIR}/"))
+        if rel in texts:
+            data = texts[rel]
+        elif exported:  # rewritten by the export being undone, and by the one that follows
+            if (root / rel).is_file():
+                listed.append(rel)
+            continue
+        else:
+            try:
+                data = (root / rel).read_bytes()
+            except OSError:
+                raise InputError(f"{where} lists {rel}, which is not a readable file in {root}{refuse}") from None
+        try:
+            validate.content(data, entry, root / rel)
+        except InputError:
+            raise InputError(f"{where} does not match {rel} (sha256 or size differ from the file's content), so "
+                             f"it is not the manifest of this dataset{refuse}") from None
+        listed.append(rel)
+    missing = sorted(set(texts) - set(entries))
+    if missing:
+        raise InputError(f"{where} does not list {missing[0]}, which the journal restores{refuse}")
+    return texts, sorted(listed)
 
 
 def export_current(root, spec) -> bool:

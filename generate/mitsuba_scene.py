@@ -10,6 +10,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from nerfgauge.core import owned
 from nerfgauge.generate.ply import write_ply
 from nerfgauge.scenes.description import (
     Conductor,
@@ -67,7 +68,7 @@ def instance_names(scene) -> list:
 
 def write_meshes(scene, folder: Path) -> dict:
     """Write every ground-truth mesh as `folder/<name>.ply`. Returns {name: path}."""
-    folder.mkdir(parents=True, exist_ok=True)
+    owned.make_folder(folder)
     paths = {}
     for name, mesh in ground_truth_meshes(scene).items():
         paths[name] = folder / f"{name}.ply"

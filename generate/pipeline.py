@@ -34,12 +34,12 @@ from nerfgauge.generate.mitsuba_scene import instance_names, write_meshes
 from nerfgauge.generate.render import NoiseTarget
 from nerfgauge.generate.variant import CHOICES as VARIANT_CHOICES
 from nerfgauge.generate.variant import resolve_variant
-from nerfgauge.generate.views import pending_views
+from nerfgauge.generate.views import noise_record, pending_views
 from nerfgauge.generate.workers import render_views
 from nerfgauge.scenes import make_scene
 from nerfgauge.scenes.registry import scene_inputs
 
-from nerfgauge.core import arguments, dataset
+from nerfgauge.core import arguments, dataset, owned
 from nerfgauge.core.camera import Intrinsics, ThinLens, check_lens
 from nerfgauge.core.distortion import Distortion, parse_distortion
 from nerfgauge.core.errors import InputError
@@ -304,6 +304,8 @@ def plan(config: GenerateConfig) -> Plan:
     lightfield = layouts.lightfield_plane(spec, scene.aabb) if spec.layout == "lightfield" else None
     stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
              for split in dataset.SPLITS}
+    if config.motion_model() is not None:  # a path the sub-frames cannot sample is refused before rendering
+        motion.check_paths(poses["train"], config.motion_model(), scene.aabb, config.seed, intrinsics, stems["train"])
     return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield,
                 scene_inputs(scene), renderer_versions(),
                 extrapolation and holdout.frame_record(extrapolation, stems["test"]),
@@ -431,6 +433,7 @@ def finish(out: Path, the_plan: Plan) -> None:
     }
     transients.write_masks(out, the_plan, len(instance_names(scene)))
     write_json(out / "scene.json", scene_json)
+    write_json(out / dataset.NERFBASELINES_INFO, dataset.nerfbaselines_info(scene_json))
     write_json(out / holdout.SPARSE_FILE, holdout.sparse_views(poses["train"], stems["train"]))
     files = [p.relative_to(out).as_posix() for p in sorted(out.rglob("*"))
              if p.is_file() and p.name != dataset.MANIFEST and not p.name.startswith(".")]
@@ -463,14 +466,20 @@ NOISE_METHOD = ("two independent passes of spp/2 samples (seeds differ); the ima
                 "rounding error (docs/conventions.md, Noise)")
 
 
+def _noise(path: Path) -> dict:
+    record = noise_record(path)  # checked when the view was rendered or found complete: a change since is refused
+    if record is None:
+        raise InputError(f"{path} is not a noise record nerfgauge wrote; delete it and rerun to render its view again")
+    return record
+
+
 def noise_summary(out: Path, stems: dict, config: GenerateConfig) -> dict:
     """scene.json's "noise": every frame's estimate (from its _noise.json) and per split the
     mean of each frame's dB figure (as PSNR is averaged), spp range, and why there is no
     estimate when there is none."""
     splits = {}
     for split in dataset.SPLITS:
-        frames = [{"name": stem, **read_json(out / dataset.frame_files(stem)["noise"], finite=True)}
-                  for stem in stems[split]]
+        frames = [{"name": stem, **_noise(out / dataset.frame_files(stem)["noise"])} for stem in stems[split]]
         summary = {"frames": frames}
         if frames:
             summary["spp"] = {"min": min(f["spp"] for f in frames), "max": max(f["spp"] for f in frames),
@@ -527,7 +536,7 @@ def _generate_claimed(out: Path, the_plan: Plan, recipe: dict, workers: int, pro
     write_meshes(the_plan.scene, out / "meshes")  # before any worker loads them
     todo = pending_views(out, the_plan)
     if todo and (out / dataset.MANIFEST).is_file():
-        (out / dataset.MANIFEST).unlink()  # views are missing: the dataset is not complete
+        owned.remove_file(out / dataset.MANIFEST)  # views are missing: the dataset is not complete
     render_seconds = render_views(out, the_plan, todo, workers=workers, progress=progress, client=client)
     finished = bool(todo) or not (out / dataset.MANIFEST).is_file()
     if finished:

@@ -8,19 +8,22 @@ workers (generate.workers) and its dask tasks (generate.distributed) share these
 
 from __future__ import annotations
 
+import math
+import numbers
 import time
 from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core import dataset
-from nerfgauge.core.files import write_json
+from nerfgauge.core import dataset, owned
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.images import premultiplied_to_png_rgba, write_exr, write_png
 from nerfgauge.generate.degrade import degrade_images
 from nerfgauge.generate.mitsuba_scene import scene_dict
 from nerfgauge.generate.motion import render_motion_view
 from nerfgauge.generate import transients
-from nerfgauge.generate.render import render_view
+from nerfgauge.generate.render import BACKGROUNDS, render_view
 from nerfgauge.generate.variant import use_variant
 
 SPLIT_SEED_OFFSET = {"train": 0, "val": 1_000_000, "test": 2_000_000}
@@ -33,13 +36,48 @@ def view_seed(config_seed: int, split: str, index: int) -> int:
 
 
 def view_complete(out: Path, stem: str) -> bool:
-    return all((out / rel).is_file() for rel in dataset.frame_files(stem).values())
+    """All nine files are there and the noise record is one render.noise_estimate writes
+    (`noise_record`): a resumed view whose record is not is rendered again, not trusted."""
+    files = dataset.frame_files(stem)
+    return all((out / rel).is_file() for rel in files.values()) and noise_record(out / files["noise"]) is not None
+
+
+NOISE_KEYS = {"spp", "passes", "png_quantisation_mse", "noise_psnr", "psnr_ceiling"}  # render.noise_estimate's
+NOISE_PSNR_KEYS = {"linear", *(f"srgb_{name}" for name in BACKGROUNDS)}
+
+
+def noise_record(path: Path) -> dict | None:
+    """A view's _noise.json re-validated as render.noise_estimate makes it (its keys, spp a
+    positive whole number that its passes add up to, every figure a finite number, `reason`
+    exactly when there is no estimate); None when it is not one. It is state scene.json is
+    built from on a resumed run, so it is data to check, not to trust."""
+    try:
+        record = read_json(path, finite=True)
+    except (InputError, OSError):
+        return None
+
+    def figures(value, keys) -> bool:
+        return isinstance(value, dict) and set(value) == keys and all(
+            isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in value.values())
+
+    spp, passes, estimate = record.get("spp"), record.get("passes"), record.get("noise_psnr")
+    whole = [spp] + (passes if isinstance(passes, list) else [])
+    if not (isinstance(passes, list) and len(passes) in (1, 2) and all(type(n) is int and n > 0 for n in whole)
+            and sum(passes) == spp and figures(record.get("png_quantisation_mse"), set(BACKGROUNDS))):
+        return None
+    if estimate is None:
+        ok = set(record) == NOISE_KEYS | {"reason"} and record["psnr_ceiling"] is None \
+            and isinstance(record["reason"], str)
+    else:
+        ok = set(record) == NOISE_KEYS and figures(estimate, NOISE_PSNR_KEYS) \
+            and figures(record["psnr_ceiling"], set(BACKGROUNDS))
+    return record if ok else None
 
 
 def write_view(out: Path, stem: str, images) -> None:
     """Write one view's nine files; the PNG last is no marker: completeness is all nine."""
     files = {kind: out / rel for kind, rel in dataset.frame_files(stem).items()}
-    files["png"].parent.mkdir(parents=True, exist_ok=True)
+    owned.make_folder(files["png"].parent)
     write_exr(files["exr"], {"RGBA": images.rgba}, {"nerfgauge": "linear RGBA, premultiplied alpha = coverage"})
     write_exr(files["distance"], {"Z": images.distance}, {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
     write_exr(files["z_depth"], {"Z": images.z_depth}, {"nerfgauge_depth": "z_depth", "nerfgauge_miss": "0"})

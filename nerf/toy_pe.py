@@ -25,6 +25,7 @@ import torch
 from nerfgauge.nerf.encoding import encoded_size, positional_encoding
 from torch import nn
 
+from nerfgauge.core import owned
 from nerfgauge.core.files import atomic_path, write_json
 from nerfgauge.core.outputs import png_kind_info
 
@@ -191,7 +192,8 @@ def save_comparison(result: ToyPEResult, path: Path) -> None:
     """Write the comparison PNG and a JSON of the config and PSNRs (atomically: temporary name, fsync, rename)."""
     from PIL import Image  # PIL: only when the figure is written
 
-    path.parent.mkdir(parents=True, exist_ok=True)
+    owned.make_folder(path.parent)
+
     def finite(value):  # a perfect fit has infinite PSNR, which JSON cannot hold: null
         return value if math.isfinite(value) else None
 

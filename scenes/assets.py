@@ -443,12 +443,14 @@ def texture_from_image(source: str, image, base_color) -> TextureImage:
 
 
 def read_image(path: Path, data: bytes):
-    from PIL import Image  # PIL: only when an asset carries an image
+    from nerfgauge.core.images import open_pillow  # Pillow and OpenEXR: only when an asset carries an image
 
     try:
-        image = Image.open(io.BytesIO(data))
+        image = open_pillow(data, path)
         image.load()
         return image
+    except InputError as error:
+        raise InputError(f"cannot read texture {path}: {error}") from None
     except Exception as error:  # PIL raises several types for bad images
         detail = ("unknown image format" if type(error).__name__ == "UnidentifiedImageError"
                   else str(error).splitlines()[0] if str(error).strip() else type(error).__name__)

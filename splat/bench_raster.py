@@ -27,8 +27,8 @@ import numba
 import numpy as np
 import torch
 
-from nerfgauge.core.colmap_text import read_points
 from nerfgauge.core.dataset import Dataset
+from nerfgauge.splat.gaussians import read_dataset_points
 from nerfgauge.splat.projection import Camera, project
 from nerfgauge.splat.raster import ALPHA_MAX, T_MIN, rasterise
 from nerfgauge.splat.tiles import ALPHA_MIN, TILE, bin_gaussians, footprint_box, tile_grid
@@ -80,7 +80,7 @@ def torch_tiles(means2d, conics, opacities, features, binning, width, height):
 
 
 def scene(dataset: Dataset, count: int, seed: int = 0):
-    points = read_points(dataset.read_bytes("sparse/0/points3D.txt").decode(), "points3D.txt")
+    points, _ = read_dataset_points(dataset)
     generator = torch.Generator().manual_seed(seed)
     chosen = torch.randperm(len(points), generator=generator)[:count].numpy()
     means = torch.tensor(points[chosen], dtype=torch.float32)

@@ -20,7 +20,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json
 from nerfgauge.splat import config as splat_config
 
-DEFAULT_BUDGET = 120.0  # seconds, as `nerfgauge train` gives a NeRF
+MODEL = splat_config.MODEL
 TRAIN_SHARED = splat_config.SHARED + ("model",)
 RENDER_SHARED = ("run", "split", "out", "overwrite", "threads", "dataset", "quiet")
 NOT_OURS = "splat_not_ours"  # parser default: {dest: (flag, default)} of the NeRF-only flags
@@ -69,11 +69,13 @@ def is_splat_source(path) -> bool:
         return False
 
 
-def run_train(args: argparse.Namespace) -> int:
+def run_train(args: argparse.Namespace, default_budget: float) -> int:
+    """`nerfgauge train --model splat`; a run given neither --steps nor --budget-seconds trains
+    `default_budget` seconds (the caller's: nerf.config's one default budget)."""
     _refuse_not_ours(args)
     from nerfgauge.splat.train import train  # torch: kept off `nerfgauge --help`'s import path
 
-    config = splat_config.config_from_arguments(args, DEFAULT_BUDGET)
+    config = splat_config.config_from_arguments(args, default_budget)
     summary = train(args.dataset, args.out, config, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
           f"{summary['gaussians']} Gaussians ({summary['model_bytes'] / 1e6:.2f} MB)")

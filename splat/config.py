@@ -142,7 +142,10 @@ FLAGS = {"eval_every_seconds": "--eval-every"}
 # --------------------------------------------------------------------------------------
 # flags: the splat-only ones (the rest are shared with `nerfgauge train`'s NeRF models)
 
-SHARED = ("dataset", "out", "budget_seconds", "steps", "seed", "threads", "device", "overwrite", "quiet", "eval_every")
+# argparse dests of the flags `nerfgauge train` shares with the NeRF models (nerf.options names
+# each after its TrainConfig field)
+SHARED = ("dataset", "out", "budget_seconds", "steps", "seed", "threads", "device", "overwrite", "quiet",
+          "eval_every_seconds")
 # field: (flag, type, help); each default is SplatConfig's, shown in --help
 OWN_FLAGS = {
     "init": ("--init", None, "splat: initial Gaussians from the dataset's COLMAP points of this kind (surface, sfm, "
@@ -186,4 +189,4 @@ def config_from_arguments(args: argparse.Namespace, default_budget: float) -> Sp
         budget = default_budget
     own = {field: getattr(args, f"splat_{field}") for field in OWN_FLAGS if getattr(args, f"splat_{field}") is not None}
     return SplatConfig(dataset=str(args.dataset), seed=args.seed, steps=args.steps, budget_seconds=budget,
-                       threads=args.threads, device=args.device, eval_every_seconds=args.eval_every, **own)
+                       threads=args.threads, device=args.device, eval_every_seconds=args.eval_every_seconds, **own)

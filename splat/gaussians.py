@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from nerfgauge.core.colmap_text import read_points
+from nerfgauge.core import colmap_text
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.splat.config import SplatConfig
@@ -38,7 +38,9 @@ from nerfgauge.splat.render import Rendered, render
 from nerfgauge.splat.sh import rgb_to_dc
 
 ATTRIBUTES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
-POINTS_FILE = "sparse/0/points3D.txt"
+SPARSE = "sparse/0"  # the dataset's COLMAP model (generate.export)
+MODEL_FILES = ("cameras.txt", "images.txt", "points3D.txt")
+POINTS_FILE = f"{SPARSE}/points3D.txt"
 INITIAL_OPACITY = 0.1
 NEIGHBOURS = 3
 MIN_SQUARED_SPACING = 1e-7  # the 3DGS code's floor: coincident points get a tiny, finite scale
@@ -111,22 +113,16 @@ def initial_gaussians(xyz: np.ndarray, rgb: np.ndarray) -> GaussianArrays:
                           np.full(n, logit(INITIAL_OPACITY), np.float32), sh.astype(np.float32))
 
 
-def _colours(text: str, where: str) -> np.ndarray:
-    """points3D.txt's R G B columns (core.colmap_text.read_points keeps positions only), in
-    the same order, as [N, 3] in [0, 1]."""
-    rows = []
-    for number, line in enumerate(text.splitlines(), start=1):
-        fields = line.split()
-        if not fields or fields[0].startswith("#"):
-            continue
-        try:
-            rows.append([int(value) for value in fields[4:7]])
-        except ValueError:
-            raise InputError(f"{where} line {number}: R G B must be integers, got {' '.join(fields[4:7])!r}") from None
-    colours = np.asarray(rows, np.float64).reshape(-1, 3)
+def read_dataset_points(ds: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz [N, 3], rgb [N, 3] in [0, 1]) of the dataset's COLMAP model (SPARSE), read and
+    cross-checked as any COLMAP model is (core.colmap_text.read_model: cameras, images,
+    tracks)."""
+    texts = {name: ds.read_bytes(f"{SPARSE}/{name}", limit=colmap_text.MAX_TEXT_BYTES) for name in MODEL_FILES}
+    model = colmap_text.read_model(texts, {name: str(ds.root / SPARSE / name) for name in MODEL_FILES})
+    colours = model.colours
     if colours.size and (colours.min() < 0 or colours.max() > 255):
-        raise InputError(f"{where}: point colours must be 0 to 255")
-    return colours / 255.0
+        raise InputError(f"{ds.root / POINTS_FILE}: point colours must be 0 to 255")
+    return model.points, colours / 255.0
 
 
 def dataset_points_kind(ds: Dataset) -> str | None:
@@ -155,13 +151,9 @@ def initial_points(ds: Dataset, config: SplatConfig) -> tuple[np.ndarray, np.nda
         have = f"holds {held} points" if held else "holds no COLMAP points"
         raise InputError(f"--init {init}: dataset {ds.root} {have} (scene.json \"points\"); add them with "
                          f"`nerfgauge export colmap {ds.root} --points {init}`, or pass --init auto or none")
-    where = str(ds.root / POINTS_FILE)
-    text = ds.read_bytes(POINTS_FILE).decode("utf-8", errors="replace")
-    xyz, rgb = read_points(text, where), _colours(text, where)
+    xyz, rgb = read_dataset_points(ds)
     if len(xyz) == 0:
-        raise InputError(f"--init {init}: {where} holds no points")
-    if len(xyz) != len(rgb):
-        raise InputError(f"{where}: {len(xyz)} points but {len(rgb)} colours")
+        raise InputError(f"--init {init}: {ds.root / POINTS_FILE} holds no points")
     if len(xyz) <= config.init_count:
         return xyz, rgb, f"{init}: the dataset's {len(xyz)} points ({POINTS_FILE})"
     chosen = np.sort(np.random.default_rng([config.seed, POINTS_SEED_TAG]).permutation(len(xyz))[:config.init_count])

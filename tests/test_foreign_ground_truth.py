@@ -83,7 +83,7 @@ def colmap_copy(ours, out):
             poses["images/" + name[:-4]] = c2w_gl
             image_id += 1
     (out / "sparse" / "0" / "images.txt").write_text("\n".join(lines) + "\n")
-    (out / "sparse" / "0" / "points3D.txt").write_text("# 3D point list\n1 0.1 0.2 0.3 255 0 0 0.5 1 0 2 0\n")
+    (out / "sparse" / "0" / "points3D.txt").write_text("# 3D point list\n1 0.1 0.2 0.3 255 0 0 0.5\n")  # no track: the images have no 2D points
     return out, poses
 
 

@@ -11,6 +11,9 @@ what an uninterrupted run makes, byte for byte (datasets) or tensor for tensor (
   seeded delay), rerun with --resume (plainly when no checkpoint was written yet); every
   tensor of model.pt equals the uninterrupted run's (torch.equal) at the same threads.
 - a second writer while the first holds the folder: one line, exit 2, the first unharmed.
+- linked variants (issue 47): after the kill a symbolic link to a user's folder is planted
+  inside the folder (generate: train/; train: log.jsonl); the rerun is refused with one
+  line naming the link, and the user's folder is unchanged (paths, sizes, mtimes, contents).
 
 Commands run as subprocesses (`python -m nerfgauge.cli`). The unmarked tests (one kill per
 worker count, one training kill) run in CI every time; the `slow` matrix adds moments.
@@ -29,7 +32,7 @@ import time
 from pathlib import Path
 
 import pytest
-from fuzzing import run_cli
+from fuzzing import run_cli, snapshot, snapshot_changes
 
 LOCK = ".nerfgauge.lock"  # holds the writer's PID: differs between runs by design
 GENERATE = ["generate", "primitives", "--res", "64", "--views", "4", "--val-views", "1", "--test-views", "1",
@@ -216,6 +219,46 @@ def test_generate_kill_matrix(tmp_path, reference_dataset, workers):
     assert landed.count("killed") >= len(moments) - 1, dict(zip(moments, landed))
 
 
+def plant_link(path: Path, user: Path) -> dict:
+    """Move `path` (a folder or file of ours) into the user's folder `user` beside a file of
+    their own, and put a symbolic link to it in its place. Returns the user's folder's
+    snapshot: paths, sizes and mtimes, with every file's sha256."""
+    user.mkdir()
+    (user / "my_notes.txt").write_text("the user's own notes\n")
+    moved = user / path.name
+    os.rename(path, moved)
+    path.symlink_to(moved, target_is_directory=moved.is_dir())
+    return user_state(user)
+
+
+def user_state(user: Path) -> dict:
+    return {"stat": snapshot([user]), "sha256": tree_digest(user)}
+
+
+def assert_refused_naming(done: subprocess.CompletedProcess, link: Path, repro: str) -> None:
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2 and len(lines) == 1 and "Traceback" not in done.stderr \
+        and f"{link} is a symbolic link" in lines[0], \
+        f"rerun with a planted link: exit {done.returncode}, stderr {done.stderr[-600:]!r}\n  {repro}"
+
+
+def test_generate_killed_then_a_planted_link_is_refused_and_its_target_kept(tmp_path):
+    """kill -9 after a view, train/ moved to a user's folder and linked back: the rerun (which
+    would render the missing views into train/) is refused, the user's folder unchanged."""
+    folder = tmp_path / "ds"
+    argv = GENERATE + ["--out", folder, "--workers", "1"]
+    repro = f"nerfgauge {' '.join(map(str, argv))} & (kill -9 after 1 view; train/ -> a user's folder); rerun"
+    process = subprocess.Popen(command(argv), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               start_new_session=True)
+    landed, survivors = kill_when(process, lambda: views_on_disk(folder / "train") >= 1)
+    assert landed and not survivors, f"killed {landed}, survivors {survivors}\n  {repro}"
+    before = plant_link(folder / "train", tmp_path / "user")
+    rerun = subprocess.run(command(argv), cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert_refused_naming(rerun, folder / "train", repro)
+    after = user_state(tmp_path / "user")
+    assert after == before, f"the link's target changed: {snapshot_changes(before['stat'], after['stat'])}\n  {repro}"
+
+
 def test_second_writer_is_refused_and_the_first_finishes(tmp_path):
     """Concurrent writers: while one generate holds the folder, the same command in this
     process exits 2 with one line naming the holder; the first then finishes, complete.
@@ -345,3 +388,20 @@ def test_train_kill_matrix(tmp_path, tiny_dataset, reference_model):
     landed = [kill_train_and_resume(tmp_path / f"run-{i}", tiny_dataset, w, d, reference_model)
               for i, (w, d) in enumerate(moments)]
     assert landed.count("killed") >= len(moments) - 1, dict(zip(moments, landed))
+
+
+def test_train_killed_then_a_planted_link_is_refused_and_its_target_kept(tmp_path, tiny_dataset):
+    """kill -9 after a checkpoint, log.jsonl moved to a user's folder and linked back: --resume
+    (which would truncate and append to the log) is refused, the user's file unchanged."""
+    run = tmp_path / "run"
+    argv = train_argv(tiny_dataset, run)
+    repro = f"nerfgauge {' '.join(map(str, argv))} & (kill -9 after checkpoint 1; log.jsonl -> a user's file); --resume"
+    process = subprocess.Popen(command(argv), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               start_new_session=True)
+    landed, survivors = kill_when(process, lambda: checkpoint_identity(run) is not None)
+    assert landed and not survivors, f"killed {landed}, survivors {survivors}\n  {repro}"
+    before = plant_link(run / "log.jsonl", tmp_path / "user")
+    rerun = subprocess.run(command(argv + ["--resume"]), cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert_refused_naming(rerun, run / "log.jsonl", repro)
+    after = user_state(tmp_path / "user")
+    assert after == before, f"the link's target changed: {snapshot_changes(before['stat'], after['stat'])}\n  {repro}"

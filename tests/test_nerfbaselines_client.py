@@ -88,3 +88,36 @@ def test_their_results_tooling_reads_our_results_json(ds, tmp_path, capsys):
     listed = nb_results._list_dataset_results(tmp_path, dataset="nerfgauge")
     assert [(data["dataset"], data["render_dataset_metadata"]["scene"], data["nb_info"]["method"])
             for _, data in listed] == [("nerfgauge", "primitives", "pred")]
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_their_load_dataset_reads_our_dataset_by_its_path(ds, split):
+    """As `nerfbaselines train --data PATH` does: `load_dataset(PATH, split)` with no loader
+    named. Our nb-info.json names their nerfstudio loader (both it and their colmap loader
+    would claim the folder otherwise); every frame of the split, with our cameras."""
+    from nerfbaselines.datasets import load_dataset
+
+    theirs = load_dataset(str(ds), split, features=frozenset({"color"}), load_features=False)
+    ours = dataset.Dataset(ds)
+    intr = ours.intrinsics(split)
+    assert [str(p) for p in theirs["image_paths"]] == [str(ds / (s + ".png")) for s in ours.frames(split)]
+    cams = theirs["cameras"]
+    np.testing.assert_array_equal(cams.image_sizes, [[intr.width, intr.height]] * len(ours.frames(split)))
+    np.testing.assert_allclose(cams.intrinsics, [[intr.fx, intr.fy, intr.cx, intr.cy]] * len(ours.frames(split)),
+                               rtol=1e-6)
+    expected = ours.c2w(split)[:, :3, :4] @ np.diag([1.0, -1.0, -1.0, 1.0])
+    np.testing.assert_allclose(cams.poses, expected, atol=1e-5)
+    assert theirs["metadata"]["background_color"].tolist() == [255, 255, 255]
+    assert theirs["metadata"]["evaluation_protocol"] == "nerf"
+
+
+def test_their_load_dataset_reads_a_non_square_dataset(tmp_path, make_dataset):
+    """Their Blender loader assumes square images centred at w/2 (it would put cy at w/2);
+    the nerfstudio loader that nb-info.json names reads our intrinsics as written."""
+    from nerfbaselines.datasets import load_dataset
+
+    ds = make_dataset(tmp_path / "wide", views=4, val_views=1, test_views=2, width=40, height=24)
+    theirs = load_dataset(str(ds), "test", features=frozenset({"color"}), load_features=False)
+    intr = dataset.Dataset(ds).intrinsics("test")
+    np.testing.assert_allclose(theirs["cameras"].intrinsics[0], [intr.fx, intr.fy, 20.0, 12.0], rtol=1e-6)
+    np.testing.assert_array_equal(theirs["cameras"].image_sizes[0], [40, 24])

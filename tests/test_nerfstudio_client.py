@@ -176,3 +176,31 @@ def test_their_dataparsers_read_a_degraded_dataset_with_the_perturbed_train_pose
     out = parse(nerfstudio_colmap, ds, Path("sparse/0"), "as-is")
     poses[:, :3, :4] = out.cameras.camera_to_worlds.numpy().astype(np.float64)
     np.testing.assert_allclose(poses, noisy, rtol=0, atol=ATOL)
+
+
+@pytest.mark.parametrize("split", ["train", "val", "test"])
+def test_ns_train_data_path_reads_every_split(ds, split):
+    """As `ns-train nerfacto --data PATH` does: their default dataparser (nerfstudio-data) on
+    the folder with nothing else named reads transforms.json, each split's frames by our split
+    lists, with our intrinsics and, undone their scale and transform, our poses."""
+    try:
+        parser_module = importlib.import_module("nerfstudio.data.dataparsers.nerfstudio_dataparser")
+    except ImportError as error:
+        pytest.skip(f"nerfstudio's nerfstudio-data dataparser is not importable ({error})")
+    from nerfgauge.core.dataset import Dataset
+
+    out = parser_module.NerfstudioDataParserConfig(data=ds).setup().get_dataparser_outputs(split=split)
+    ours = Dataset(ds)
+    assert [p.relative_to(ds).with_suffix("").as_posix() for p in out.image_filenames] == list(ours.frames(split))
+    intr = ours.intrinsics(split)
+    cams = out.cameras
+    np.testing.assert_allclose([cams.fx[0].item(), cams.fy[0].item(), cams.cx[0].item(), cams.cy[0].item()],
+                               [intr.fx, intr.fy, intr.cx, intr.cy], rtol=1e-6)
+    # their camera_to_worlds = scale * (T @ c2w) with T, scale in dataparser_transform/scale
+    transform = homogeneous(out.dataparser_transform.numpy())
+    for k, c2w in enumerate(ours.c2w(split)):
+        theirs = homogeneous(cams.camera_to_worlds[k].numpy())
+        theirs[:3, 3] /= out.dataparser_scale
+        expected = transform @ c2w
+        np.testing.assert_allclose(theirs[:3, :3], expected[:3, :3], atol=ATOL)
+        np.testing.assert_allclose(theirs[:3, 3], expected[:3, 3], atol=ATOL * 10)

@@ -18,9 +18,8 @@ import math
 
 import numpy as np
 import pytest
-from nerfgauge.eval.evaluate import evaluate, format_means
+from nerfgauge.eval.evaluate import evaluate
 from nerfgauge.eval.metrics import (
-    METRIC_NAMES,
     PSNR_CAP_DB,
     depth_metrics,
     opacity_iou,
@@ -219,14 +218,15 @@ def test_evaluate_frames_smaller_than_the_ssim_window(tmp_path, height, width):
     strict_json(pred / "metrics.json")
 
 
-def test_evaluate_an_empty_split_writes_nulls(tmp_path):
+def test_evaluate_an_empty_split_is_refused(tmp_path):
+    """Issue 47: a split without frames was scored as a success (nulls, exit 0); now refused,
+    nothing written (tests/test_bounded_reads.py::TestEmptySplit covers every format)."""
     root = hand_dataset(tmp_path / "ds", [])
     pred = tmp_path / "pred"
     pred.mkdir()
-    doc = evaluate(root, pred)
-    assert doc["frames"] == [] and all(doc["mean"][m] is None and doc["count"][m] == 0 for m in METRIC_NAMES)
-    strict_json(pred / "metrics.json")
-    assert "0/0" in format_means(doc)
+    with pytest.raises(InputError, match="split test of .* has no frames"):
+        evaluate(root, pred)
+    assert list(pred.iterdir()) == []
 
 
 @pytest.fixture

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import shutil
 import struct
 import zlib
@@ -184,7 +185,9 @@ def test_huge_width_and_height_fail_before_any_allocation(ds_root, capsys):
 
 
 def test_image_size_must_match_the_transforms(ds_root):
-    edit_json(ds_root / "transforms_test.json", lambda m: m.update(w=40, cx=20.0))
+    # camera_angle_x follows w, so the transforms agree with themselves (validate.camera)
+    edit_json(ds_root / "transforms_test.json",
+              lambda m: m.update(w=40, cx=20.0, camera_angle_x=2 * math.atan(20.0 / m["fl_x"])))
     vouch(ds_root)
     with pytest.raises(InputError, match="test/r_000.png is 32x32, but the transforms say 40x32"):
         Dataset(ds_root).image("test", 0)

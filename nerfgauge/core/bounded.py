@@ -7,7 +7,10 @@ given. Each reader here refuses, with one InputError line naming the file and th
 before the expensive step:
 
 - size: the file (or the bytes already read) is at most a named limit, checked on the
-  file's size before it is read, so a huge file is never read into memory;
+  size the file system gives for the opened descriptor (fstat) before anything is read,
+  so a huge file is never read into memory; the limit may be a function of the opened
+  file (a manifest's record of its size, or a cap an image's header implies), and only a
+  regular file is opened (a FIFO would block, a device never end);
 - nesting: the brackets of a JSON or TOML text (outside strings and comments) nest at
   most MAX_NESTING deep, counted by a linear scan before the parser runs; the parsed
   TOML (whose dotted keys nest without brackets) is measured again after parsing;
@@ -23,18 +26,20 @@ UnicodeDecodeError), so each caller keeps its own message for a malformed file.
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import io
 import json
 import os
 import re
+import stat
 import tomllib
 import zlib
 from pathlib import Path
 
 import numpy as np
 
-from nerfgauge.core.errors import InputError
+from nerfgauge.core.errors import InputError, input_error_from_os
 
 # Ten times deeper than any document nerfgauge reads or writes (the deepest, a scene file
 # or a metrics.json, nests 5 levels), and far below the ~1000 levels at which Python's
@@ -66,7 +71,8 @@ _OPEN = np.frombuffer(b"[{", np.uint8)
 _CLOSE = np.frombuffer(b"]}", np.uint8)
 
 
-def _size(count: int) -> str:
+def size_text(count: int) -> str:
+    """A byte count for messages: "2 GiB", "16 MiB", "512 bytes"."""
     for unit, shift in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
         if count >= 1 << shift:
             return f"{count / (1 << shift):.3g} {unit}"
@@ -75,22 +81,46 @@ def _size(count: int) -> str:
 
 def check_size(count: int, limit: int, source, what: str) -> None:
     if count > limit:
-        raise InputError(f"{source}: {what} is {_size(count)}, above the limit of {_size(limit)}")
+        raise InputError(f"{source}: {what} is {size_text(count)}, above the limit of {size_text(limit)}")
 
 
-def read_bytes(path, limit: int, what: str = "file") -> bytes:
-    """The bytes of `path`, refused (InputError) when it is larger than `limit` (checked
-    on its size before reading, and on what was read: a file may grow meanwhile)."""
+@contextlib.contextmanager
+def open_regular(path):
+    """Yield (binary file, size in bytes from fstat) for `path`, refused (InputError)
+    unless it is a regular file. Opened without blocking (O_NONBLOCK), so a FIFO is refused
+    instead of waiting for a writer; a device or socket is refused too (/dev/zero would
+    never end)."""
     path = Path(path)
     try:
-        with open(path, "rb") as handle:
-            check_size(os.fstat(handle.fileno()).st_size, limit, path, what)
-            data = handle.read(limit + 1)
+        descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         raise InputError(f"missing file: {path}") from None
-    except IsADirectoryError:
-        raise InputError(f"{path} is a folder, expected a file") from None
-    check_size(len(data), limit, path, what)
+    except OSError as error:
+        raise input_error_from_os(error) from None
+    with os.fdopen(descriptor, "rb") as handle:
+        status = os.fstat(descriptor)
+        if stat.S_ISDIR(status.st_mode):
+            raise InputError(f"{path} is a folder, expected a file")
+        if not stat.S_ISREG(status.st_mode):
+            raise InputError(f"{path} is not a regular file (a device, FIFO or socket); refused")
+        yield handle, status.st_size
+
+
+def read_bytes(path, limit, what: str = "file") -> bytes:
+    """The bytes of `path`, refused (InputError) when it is larger than `limit`, checked
+    on the opened file's size (fstat) before reading, and on what was read (a file may
+    grow meanwhile). limit: bytes, or limit(handle, size) -> bytes, called with the opened
+    file and its size before anything else is read: it may compare the size with a record
+    (a manifest) or read a header to derive the cap, and raise InputError itself."""
+    with open_regular(path) as (handle, size):
+        try:
+            cap = limit(handle, size) if callable(limit) else limit
+            check_size(size, cap, path, what)
+            handle.seek(0)
+            data = handle.read(min(size, cap) + 1)  # one byte more shows a file that grew past the cap
+        except OSError as error:
+            raise input_error_from_os(error) from None
+    check_size(len(data), cap, path, what)
     return data
 
 
@@ -183,15 +213,13 @@ def inflate_gzip(path, limit: int) -> bytes:
     """The inflated content of a gzip file, refused as soon as it passes `limit` bytes."""
     out, total = [], 0
     try:
-        with gzip.open(path, "rb") as handle:
+        with open_regular(path) as (raw, _), gzip.GzipFile(fileobj=raw, mode="rb") as handle:
             while block := handle.read(_INFLATE_BLOCK):
                 total += len(block)
                 if total > limit:
-                    raise InputError(f"{path}: inflates to more than {_size(limit)}, the most this file can hold "
+                    raise InputError(f"{path}: inflates to more than {size_text(limit)}, the most this file can hold "
                                      "(refused while inflating)")
                 out.append(block)
-    except FileNotFoundError:
-        raise InputError(f"missing file: {path}") from None
     except (OSError, EOFError, zlib.error) as error:
         raise InputError(f"{path}: not a readable gzip file ({error})") from None
     return b"".join(out)

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfgauge.core import owned
 from nerfgauge.core.camera import Intrinsics
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
@@ -279,8 +280,7 @@ def model_files(cameras, images, points: Points) -> dict:
 
 def write_model(folder, cameras, images, points: Points) -> list[Path]:
     """Write the six files into `folder` (atomically each). Returns their paths."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = owned.make_folder(folder)
     written = []
     for name, data in model_files(cameras, images, points).items():
         write_bytes_atomic(folder / name, data)

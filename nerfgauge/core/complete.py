@@ -86,21 +86,27 @@ def _png_complete(handle, size: int, shown) -> None:
         at = end
 
 
-def exr_header(handle, size: int, shown) -> tuple[dict, int, int]:
+def exr_header(handle, size: int, shown, refuse=_refuse) -> tuple[dict, int, int]:
     """({attribute name: (type, raw bytes)}, version flags, offset of the first byte after
-    the header) of an open EXR file (single-part headers)."""
+    the header) of an open EXR file (single-part headers). refuse(shown, reason): raises;
+    a reader passes its own (the default says a write did not complete)."""
     handle.seek(0)
     data = handle.read(min(size, EXR_HEADER_LIMIT))
     if len(data) < 8 or data[:4] != EXR_MAGIC:
-        _refuse(shown, "EXR signature missing")
+        refuse(shown, "EXR signature missing")
     flags = struct.unpack("<I", data[4:8])[0]
     attributes, at = {}, 8
+
+    def cut_short(what: str) -> str:
+        if len(data) >= size:  # the whole file was read: it ends inside its header
+            return f"EXR file is truncated inside its header ({size} bytes): {what}"
+        return f"EXR header is longer than the {EXR_HEADER_LIMIT} bytes read: {what}"
 
     def text():
         nonlocal at
         end = data.find(b"\0", at)
         if end < 0:
-            _refuse(shown, f"EXR header is cut off at byte {len(data)} of {size}")
+            refuse(shown, cut_short("a name has no end"))
         value, at = data[at:end], end + 1
         return value
 
@@ -110,19 +116,19 @@ def exr_header(handle, size: int, shown) -> tuple[dict, int, int]:
             return attributes, flags, at
         kind = text()
         if at + 4 > len(data):
-            _refuse(shown, f"EXR header is cut off at byte {len(data)} of {size}")
+            refuse(shown, cut_short(f"the size of attribute {name.decode(errors='replace')!r} is cut off"))
         length = struct.unpack("<i", data[at:at + 4])[0]
         at += 4
         if length < 0 or at + length > len(data):
-            _refuse(shown, f"EXR attribute {name.decode(errors='replace')!r} runs past the end of the header")
+            refuse(shown, cut_short(f"attribute {name.decode(errors='replace')!r} runs past its end"))
         attributes[name.decode(errors="replace")] = (kind.decode(errors="replace"), data[at:at + length])
         at += length
 
 
-def exr_data_window(attributes: dict, shown) -> tuple[int, int]:
+def exr_data_window(attributes: dict, shown, refuse=_refuse) -> tuple[int, int]:
     kind, raw = attributes.get("dataWindow", (None, b""))
     if kind != "box2i" or len(raw) != 16:
-        _refuse(shown, "EXR header has no dataWindow")
+        refuse(shown, "EXR header has no dataWindow")
     x0, y0, x1, y1 = struct.unpack("<iiii", raw)
     return x1 - x0 + 1, y1 - y0 + 1
 

@@ -36,20 +36,20 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import io
+import os
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from PIL import Image, JpegImagePlugin
+from PIL import Image
 
-from nerfgauge.core import foreign_dataset, validate
+from nerfgauge.core import bounded, foreign_dataset, images, validate
 from nerfgauge.core.camera import Intrinsics, SplitCameras, ThinLens  # SplitCameras: read here, defined with the cameras
 from nerfgauge.core.distortion import Distortion
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.folders import MARKER
 from nerfgauge.core.files import atomic_path, json_from_bytes, read_json, sha256_file, write_json
-from nerfgauge.core.images import read_exr, read_exr_single, read_png
+from nerfgauge.core.images import read_colour, read_exr, read_exr_single, read_png
 
 SPLITS = ("train", "val", "test")
 SPARSE_VIEWS = "sparse_views.json"  # nested lists of train views (docs/conventions.md, "Extrapolation splits")
@@ -70,6 +70,12 @@ FRAME_SUFFIXES = {
 # and the noise estimate): readers say so in one line instead of failing the dataset.
 OPTIONAL_FRAME_KINDS = ("instance", "albedo", "noise")
 DEPTH_KINDS = {"distance": "ray_distance", "z": "z_depth"}
+# The largest file a dataset's reader reads without a tighter cap of its own (images have
+# the cap their header implies, JSON bounded.MAX_JSON_BYTES): an EXR of the generator's
+# largest image (8192 px a side, RGBA float32) stored uncompressed is 1 GiB; meshes are
+# far smaller. Checked on the file's size before it is read, as the manifest's size is.
+MAX_FILE_BYTES = validate.MAX_DECODED_BYTES + (64 << 20)
+IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg")
 
 
 def frame_stem(split: str, index: int, count: int) -> str:
@@ -111,6 +117,24 @@ def synthetic_transforms(intrinsics: Intrinsics, stems, poses, lens: Optional[Th
                     "mask_path": "./" + stem + FRAME_SUFFIXES["mask"]} | _lens_entry(lens)
                    for stem, pose in zip(stems, poses)],
     }
+
+
+NERFBASELINES_INFO = "nb-info.json"
+FORWARD_FACING_LAYOUTS = ("forward", "lightfield")  # generate.layouts: cameras looking one way
+
+
+def nerfbaselines_info(scene: dict) -> dict:
+    """nb-info.json: NerfBaselines loads a folder with the loader this names. Without it both
+    its nerfstudio and colmap loaders claim our folders (transforms.json and sparse/0) and it
+    refuses to choose; its colmap loader would also split our train images by LLFF's every
+    8th. Its nerfstudio loader reads transforms.json with our split lists, general
+    intrinsics and distortion. Transparent backgrounds composite onto white, as the
+    NeRF-synthetic scenes it knows do (its "nerf" evaluation protocol)."""
+    transparent = scene["needs"]["background"] == "transparent"
+    layout = scene["camera"]["layout"]
+    return {"loader": "nerfstudio", "id": "nerfgauge", "scene": scene["recipe"],
+            "type": "forward-facing" if layout in FORWARD_FACING_LAYOUTS else "object-centric",
+            **({"background_color": [255, 255, 255], "evaluation_protocol": "nerf"} if transparent else {})}
 
 
 def nerfstudio_transforms(intrinsics: Intrinsics, split_stems: dict, split_poses: dict,
@@ -178,14 +202,17 @@ def write_manifest(root: Path, relative_paths) -> None:
 
 def verify_manifest(root) -> list[str]:
     """Relative paths whose content no longer matches manifest.json (missing, moved out of
-    the dataset through a symlink, resized or changed all count)."""
+    the dataset through a symlink, resized or changed all count). The size is compared on
+    the file system first; only a file of the recorded size is hashed, as a stream."""
     root = Path(root)
     real_root = root.resolve()
     changed = []
     for rel, entry in read_manifest(root).items():
         try:
-            data = validate.confine(real_root, rel).read_bytes()
-            validate.content(data, entry, root / rel)
+            path = validate.confine(real_root, rel)
+            validate.content_size(os.stat(path).st_size, entry, root / rel)
+            if sha256_file(path) != entry.sha256:
+                changed.append(rel)
         except (InputError, OSError):
             changed.append(rel)
     return changed
@@ -244,10 +271,13 @@ class Dataset:
 
     Every file is read through one path: its name is confined to the root (no absolute
     paths or `..`; symlinks resolved and required to stay inside), it must be listed in
-    manifest.json, its size must match (schema 2), and its sha256 is computed over the bytes
-    read for decoding (verify_hashes=False skips only the hash). Images are checked before
-    decoding: signature, size at most validate.MAX_IMAGE_SIDE a side, size equal to the
-    transforms' w and h.
+    manifest.json, it must be a regular file whose size (fstat, before anything is read)
+    matches the manifest's (schema 2) and is within a stated cap (MAX_FILE_BYTES; JSON
+    bounded.MAX_JSON_BYTES; an image what its header's pixels can take), and its sha256 is
+    computed over the bytes read for decoding (verify_hashes=False skips only the hash).
+    Images are checked before decoding: signature, size at most validate.MAX_IMAGE_SIDE a
+    side, size equal to the transforms' w and h. Each split's camera is checked by
+    validate.camera, as a foreign folder's is.
     """
 
     def __init__(self, root, *, verify_hashes: bool = True):
@@ -290,33 +320,43 @@ class Dataset:
 
     # --- files --------------------------------------------------------------------------
 
-    def read_bytes(self, rel: str, what: str = "") -> bytes:
+    def read_bytes(self, rel: str, what: str = "", limit=MAX_FILE_BYTES) -> bytes:
         """The bytes of the dataset file `rel` (relative POSIX path), confined to the root
-        and checked against the manifest. what: the frame, named in errors."""
+        and checked against the manifest. what: the frame, named in errors. limit: the most
+        bytes read, or a function of the open file (bounded.read_bytes). The file's size
+        is compared with the manifest's record, then with `limit`, on the file system
+        before anything is read: a file that grew to gigabytes is refused unread."""
         label = f"{what}: " if what else ""
         rel = validate.relative_path(rel, f"{label}{rel!r} in dataset {self.root}")
         path = validate.confine(self._real_root, rel, what)
-        if self._manifest is None:  # a foreign folder: no manifest to check against; hashed as read
-            try:
-                data = path.read_bytes()
-            except OSError as error:
-                raise InputError(f"{label}cannot read {self.root / rel}: {error.strerror or error}") from None
-            self.files_read[rel] = hashlib.sha256(data).hexdigest()
-            return data
-        entry = self._manifest.get(rel)
-        if entry is None:
-            raise InputError(f"{label}{self.root / rel} is not listed in {self.root / MANIFEST}")
+        shown = self.root / rel
+        entry = None
+        if self._manifest is not None:
+            entry = self._manifest.get(rel)
+            if entry is None:
+                raise InputError(f"{label}{shown} is not listed in {self.root / MANIFEST}")
+            if not path.exists():
+                raise InputError(f"{label}{shown} is listed in {MANIFEST} but missing")
+
+        def checked(handle, size: int) -> int:
+            if entry is not None:
+                validate.content_size(size, entry, shown)
+            return limit(handle, size) if callable(limit) else limit
+
         try:
-            data = path.read_bytes()
-        except FileNotFoundError:
-            raise InputError(f"{label}{self.root / rel} is listed in {MANIFEST} but missing") from None
-        except OSError as error:
-            raise InputError(f"{label}cannot read {self.root / rel}: {error.strerror or error}") from None
-        validate.content(data, entry, self.root / rel, self.verify_hashes)
+            data = bounded.read_bytes(path, checked, "dataset file")
+        except InputError as error:
+            message = str(error)
+            raise InputError(message if message.startswith(label) else label + message) from None
+        if entry is None:  # a foreign folder: no manifest to check against; hashed as read
+            self.files_read[rel] = hashlib.sha256(data).hexdigest()
+        else:
+            validate.content(data, entry, shown, self.verify_hashes)
         return data
 
     def _read_json(self, rel: str, finite: bool) -> dict:
-        return json_from_bytes(self.read_bytes(rel), self.root / rel, finite=finite)  # the bytes verified
+        data = self.read_bytes(rel, limit=bounded.MAX_JSON_BYTES)
+        return json_from_bytes(data, self.root / rel, finite=finite)  # the bytes verified
 
     def _read_transforms(self, split: str, name: str) -> SplitCameras:
         where = str(self.root / name)
@@ -324,10 +364,7 @@ class Dataset:
         frames = meta.get("frames")
         if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
             raise InputError(f"{where}: 'frames' must be a list of objects")
-        intrinsics = validate.intrinsics(meta, where)
-        distortion = Distortion.from_json(meta, where)
-        if distortion is not None:
-            distortion.check_image(intrinsics, f"{where}: camera_model {meta.get('camera_model')}")
+        intrinsics, distortion = validate.camera(meta, frames, where)  # the same checks as foreign folders'
         stems, poses, lenses, exact = [], [], [], []
         for k, frame in enumerate(frames):
             if "file_path" not in frame or "transform_matrix" not in frame:
@@ -348,16 +385,21 @@ class Dataset:
             self._exact_poses[split].flags.writeable = False
         return SplitCameras(split, tuple(stems), c2w, intrinsics, tuple(lenses) if any(lenses) else (), distortion)
 
-    def frame_file(self, stem: str, kind: str, decode):
+    def frame_file(self, stem: str, kind: str, decode, expected_size=None):
         """decode(path, verified bytes) of the frame's file of `kind` (a FRAME_SUFFIXES
-        key); errors name the frame."""
+        key); errors name the frame. An image's header is checked (its size against
+        `expected_size`, Intrinsics or (width, height)) and its size on disk against what
+        that header's pixels can take before it is read (nerfgauge.core.images); other
+        files are bounded by bounded.MAX_JSON_BYTES."""
         rel = stem + FRAME_SUFFIXES[kind]
         if self.foreign is not None:
             rel = self.foreign.images.get(stem) if kind == "png" else None
             if rel is None:
                 raise InputError(f"frame {stem}: the {self.foreign.format} folder {self.root} has no {kind} file "
                                  f"({self.unavailable_reason(kind)})")
-        data = self.read_bytes(rel, f"frame {stem}")
+        is_image = Path(rel).suffix.lower() in IMAGE_SUFFIXES
+        limit = images.file_limit(self.root / rel, expected_size) if is_image else bounded.MAX_JSON_BYTES
+        data = self.read_bytes(rel, f"frame {stem}", limit)
         try:
             return decode(self.root / rel, data)
         except InputError as error:
@@ -427,7 +469,7 @@ class Dataset:
     def rgba_of(self, stem: str, intrinsics: Intrinsics) -> np.ndarray:
         """The frame's PNG (a foreign folder's PNG or JPEG) as straight-alpha sRGB in [0, 1];
         an image without alpha gets alpha 1. Returns [H, W, 4] float32."""
-        image = self.frame_file(stem, "png", lambda path, data: _decode_colour(path, data, intrinsics))
+        image = self.frame_file(stem, "png", lambda path, data: read_colour(path, data, intrinsics), intrinsics)
         if image.ndim == 2:
             image = image[..., None]
         if image.shape[-1] in (1, 2):  # gray (+ alpha)
@@ -441,16 +483,16 @@ class Dataset:
         if kind not in DEPTH_KINDS:
             raise InputError(f"unknown depth kind {kind!r}; choose distance or z")
         return self.frame_file(stem, "distance" if kind == "distance" else "z_depth",
-                               lambda path, data: read_exr_single(path, data, intrinsics))
+                               lambda path, data: read_exr_single(path, data, intrinsics), intrinsics)
 
     def mask_of(self, stem: str, intrinsics: Intrinsics) -> np.ndarray:
         """Pixels whose centre ray hits geometry. Returns [H, W] bool."""
-        mask = self.frame_file(stem, "mask", lambda path, data: read_png(path, data, intrinsics))
+        mask = self.frame_file(stem, "mask", lambda path, data: read_png(path, data, intrinsics), intrinsics)
         return (mask if mask.ndim == 2 else mask[..., 0]) > 0.5
 
     def instance_of(self, stem: str, intrinsics: Intrinsics) -> np.ndarray:
         """The frame's 16-bit instance PNG as integer ids. Returns [H, W] int64."""
-        ids = self.frame_file(stem, "instance", lambda path, data: read_png(path, data, intrinsics))
+        ids = self.frame_file(stem, "instance", lambda path, data: read_png(path, data, intrinsics), intrinsics)
         if ids.ndim != 2:
             raise InputError(f"frame {stem}: instance image must be one 16-bit channel, got shape {ids.shape}")
         return np.rint(ids.astype(np.float64) * 65535.0).astype(np.int64)
@@ -474,7 +516,7 @@ class Dataset:
                 return np.stack([channels[c] for c in "RGBA"], axis=-1)
             raise InputError(f"{path} has no RGBA channels (has {sorted(channels)})")
 
-        return self.frame_file(self._stem(split, index), "exr", decode)
+        return self.frame_file(self._stem(split, index), "exr", decode, self.intrinsics(split))
 
     def depth(self, split: str, index: int, kind: str = "distance") -> np.ndarray:
         """[H, W] float32, 0 = miss; kind "distance" (along the ray) or "z" (optical axis)."""
@@ -488,7 +530,7 @@ class Dataset:
                 raise InputError(f"{path} has no X, Y, Z channels (has {sorted(channels)})")
             return np.stack([channels[c] for c in "XYZ"], axis=-1)
 
-        return self.frame_file(self._stem(split, index), "normals", decode)
+        return self.frame_file(self._stem(split, index), "normals", decode, self.intrinsics(split))
 
     def mask(self, split: str, index: int) -> np.ndarray:
         """[H, W] bool: the pixel-centre ray hits geometry."""
@@ -563,7 +605,7 @@ class Dataset:
                 raise InputError(f"{path} has no R, G, B channels (has {sorted(channels)})")
             return np.stack([channels[c] for c in "RGB"], axis=-1)
 
-        return self.frame_file(self._stem(split, index), "albedo", decode)
+        return self.frame_file(self._stem(split, index), "albedo", decode, self.intrinsics(split))
 
     def noise(self, split: str, index: int) -> dict:
         """The frame's noise estimate (docs/conventions.md, "Noise"): spp, passes,
@@ -577,18 +619,3 @@ def open_dataset(root) -> Dataset:
     """`root` itself if it is a Dataset already, else Dataset(root): the one adapter for
     callers that are handed either; everything else reads through Dataset's methods."""
     return root if isinstance(root, Dataset) else Dataset(root)
-
-
-def _decode_colour(path, data: bytes, intrinsics: Intrinsics) -> np.ndarray:
-    """A PNG, or (foreign folders) a JPEG, as float32 in [0, 1]; the header's size checked first."""
-    if Path(path).suffix.lower() not in (".jpg", ".jpeg"):
-        return read_png(path, data, intrinsics)  # its signature checked against its extension
-    try:
-        with JpegImagePlugin.JpegImageFile(io.BytesIO(data)) as image:
-            validate.image_size(*image.size, path)
-            validate.header_matches(*image.size, intrinsics, path)
-            return np.asarray(image.convert("RGB")).astype(np.float32) / 255.0
-    except InputError:
-        raise
-    except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as error:
-        raise InputError(f"cannot read image {path}: {error}") from None

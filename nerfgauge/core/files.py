@@ -1,5 +1,9 @@
 """Files as every stage writes and reads them: atomic writes, canonical JSON, hashes.
 
+Nothing is written through a symbolic link below a folder nerfgauge owns: `atomic_path`
+checks its target with `core.owned.check_no_link` (the other writes, deletes and renames
+go through core.owned's helpers, which make the same check).
+
 Every write goes to a temporary name in the same folder, is flushed to disk, checked, and
 only then renamed into place, so a file that exists is complete: bytes we wrote must all be
 on disk (`check_size`), and a file a library wrote must not be empty and, for PNG and EXR,
@@ -17,6 +21,7 @@ from pathlib import Path
 
 from nerfgauge.core import bounded, complete
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.owned import check_no_link
 
 
 def check_writable_target(path) -> Path:
@@ -38,10 +43,11 @@ def atomic_path(path, verify=None):
     """Yield a temporary sibling of `path`; when the block succeeds, flush it to disk
     (fsync), check it, and rename it to `path`, so a file that exists is complete even
     after a power cut or on a full disk. The temporary is removed if anything fails.
+    A symbolic link on the way to `path` below a folder of ours is refused (core.owned).
 
     verify(tmp, path): the check (raising `complete.IncompleteWrite`); default
     `complete.check_complete` (not empty; PNG and EXR structurally whole)."""
-    path = check_writable_target(path)
+    path = check_no_link(check_writable_target(path))
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         yield tmp
@@ -65,6 +71,18 @@ def write_bytes_atomic(path, data: bytes) -> None:
     """Write `data` to `path` atomically; every byte must be on disk before the rename."""
     with atomic_path(path, verify=lambda tmp, shown: complete.check_size(tmp, len(data), shown)) as tmp:
         tmp.write_bytes(data)
+
+
+def link_or_copy_atomic(source, target) -> None:
+    """`target` becomes a hard link to `source` (a byte copy where the file system has
+    none), atomically and checked like any write (atomic_path)."""
+    with atomic_path(target) as tmp:
+        if os.path.lexists(tmp):  # left by an earlier process of this PID: link(2) will not replace it
+            tmp.unlink()
+        try:
+            os.link(source, tmp)
+        except OSError:  # another file system, or one without hard links: copy the bytes
+            tmp.write_bytes(Path(source).read_bytes())
 
 
 def json_bytes(obj) -> bytes:
@@ -99,8 +117,9 @@ def json_from_bytes(data: bytes, path, *, finite: bool = False) -> dict:
 
 
 def sha256_file(path) -> str:
+    """sha256 of a regular file, read as a stream of 1 MiB blocks (never whole)."""
     digest = hashlib.sha256()
-    with open(path, "rb") as handle:
+    with bounded.open_regular(path) as (handle, _):
         for block in iter(lambda: handle.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()

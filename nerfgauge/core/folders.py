@@ -9,6 +9,11 @@ A command that writes into a folder holds an advisory lock on it (`fcntl.flock` 
 `.nerfgauge.lock`), so a second process exits with a one-line error naming the holder's
 PID instead of interleaving writes; only the lock holder removes stale temporary files.
 The lock is released when the process ends, however it ends (the kernel drops flocks).
+
+Taking a folder (`claim_folder`, `folder_lock`) refuses it when it holds a symbolic link
+anywhere inside (core.owned.refuse_links_inside): nothing is written through a link inside
+our folders, and a link planted between two runs is named before any work. `--overwrite`
+deletes such a link as a link (never its target) with the rest of the folder's content.
 """
 
 from __future__ import annotations
@@ -19,13 +24,13 @@ import fcntl
 import fnmatch
 import hashlib
 import os
-import shutil
 from pathlib import Path
 
+from nerfgauge.core import owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import json_bytes, read_json, write_json
+from nerfgauge.core.owned import MARKER
 
-MARKER = ".nerfgauge.json"
 LOCK = ".nerfgauge.lock"
 KINDS = ("dataset", "run", "renders", "baseline", "evaluation", "pipeline", "suite", "bench", "sfm")
 TEMPORARY_GLOB = ".*.tmp*"  # files.atomic_path's temporary names
@@ -62,8 +67,8 @@ def _describe(folder: Path) -> str:
 def remove_owned(folder, kind: str) -> None:
     """Delete a folder nerfgauge made, of `kind`; refuse anything else.
 
-    Symlinks are never followed: a link as `folder` is refused, links inside it are
-    removed as links (shutil.rmtree's fd-based walk on Linux)."""
+    Symlinks are never followed: a link as `folder` (or on the way to it, inside a folder
+    of ours) is refused, links inside it are removed as links (core.owned.remove_tree)."""
     folder = Path(folder)
     if folder.is_symlink():
         raise InputError(f"refusing to delete {folder}: it is a symbolic link")
@@ -77,7 +82,7 @@ def remove_owned(folder, kind: str) -> None:
                          f"(it holds {_describe(folder)})")
     if marker["kind"] != kind:
         raise InputError(f"refusing to delete {folder}: it holds a nerfgauge {marker['kind']}, not a {kind}")
-    shutil.rmtree(folder)
+    owned.remove_tree(folder)
 
 
 def _check_claimable(folder: Path, kind: str, recipe: str | None, overwrite: bool) -> str:
@@ -132,9 +137,9 @@ def _empty_owned(folder: Path) -> None:
         if entry.name == LOCK:
             continue
         if entry.is_dir() and not entry.is_symlink():
-            shutil.rmtree(entry)
+            owned.remove_tree(entry)
         else:
-            entry.unlink()
+            owned.remove_file(entry)  # a link planted inside goes as a link, its target untouched
 
 
 @contextlib.contextmanager
@@ -144,19 +149,23 @@ def claim_folder(folder, kind: str, recipe: str | None, *, overwrite: bool = Fal
 
     Checked before anything is written (a folder that is not ours is refused untouched, and
     so is any folder inside a dataset folder), then again under the lock. Stale temporaries of killed writers are removed under the
-    lock. Nothing is deleted from a folder without our marker of the same kind."""
+    lock. Nothing is deleted from a folder without our marker of the same kind; a folder
+    kept (resumed) holding a symbolic link anywhere inside is refused (core.owned)."""
     folder = Path(folder)
     _refuse_inside_a_dataset(folder)
     _check_claimable(folder, kind, recipe, overwrite)
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except FileExistsError:
-        raise InputError(f"output path {folder} exists and is not a folder") from None
-    with folder_lock(folder):
+        owned.make_folder(folder)
+    except InputError:
+        if folder.exists() and not folder.is_dir():
+            raise InputError(f"output path {folder} exists and is not a folder") from None
+        raise
+    with folder_lock(folder, check_links=False):
         state = _check_claimable(folder, kind, recipe, overwrite)
         if state == "replace":
             _empty_owned(folder)
             state = "replaced"
+        owned.refuse_links_inside(folder)
         if state != "resume":
             write_marker(folder, kind, recipe)
         remove_temporaries(folder)
@@ -164,14 +173,14 @@ def claim_folder(folder, kind: str, recipe: str | None, *, overwrite: bool = Fal
 
 
 @contextlib.contextmanager
-def folder_lock(folder):
+def folder_lock(folder, *, check_links: bool = True):
     """Hold the folder's advisory write lock for the block; InputError if another process holds it.
 
-    The holder's PID is written into the lock file so the refusal can name it."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / LOCK
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    The holder's PID is written into the lock file so the refusal can name it. check_links:
+    once locked, refuse the folder if it holds a symbolic link anywhere inside
+    (core.owned.refuse_links_inside; claim_folder checks after an --overwrite emptied it)."""
+    folder = owned.make_folder(folder)
+    fd = owned.open_lock(folder / LOCK)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -183,6 +192,8 @@ def folder_lock(folder):
                              "wait for it to finish or stop it") from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        if check_links:
+            owned.refuse_links_inside(folder)
         yield folder
     finally:
         os.close(fd)  # closing drops the flock; the file stays (removing it would race)
@@ -198,6 +209,6 @@ def remove_temporaries(folder) -> int:
         subfolders[:] = [name for name in subfolders if not (Path(parent) / name / MARKER).is_file()]
         for name in names:
             if fnmatch.fnmatch(name, TEMPORARY_GLOB):
-                (Path(parent) / name).unlink()
+                owned.remove_file(Path(parent) / name)
                 removed += 1
     return removed

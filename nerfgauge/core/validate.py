@@ -7,6 +7,12 @@ asks the file system where a path really leads.
 - Paths: a path read from a dataset file is relative, has no `..`, and resolves (symlinks
   followed, `Path.resolve`) inside the dataset root.
 - Intrinsics: fl_x, fl_y finite and > 0; cx, cy finite; w, h integers in [1, MAX_IMAGE_SIDE].
+- A split's camera (`camera`, for our transforms and every foreign format alike): one per
+  split, from the document's keys and each frame's own (nerfstudio's per-frame w, h, fl_x,
+  fl_y, cx, cy, camera_model, k1..k4, p1, p2), which must agree across the split; the
+  intrinsics as above; camera_angle_x in (0, pi) and, with fl_x, agreeing with it; the
+  lens distortion (OPENCV, OPENCV_FISHEYE) one-to-one over the image, and no coefficient
+  under a pinhole model.
 - scene.json: bounds [[x, y, z], [x, y, z]], finite, min < max on every axis; needs an
   object (finest_texture_period finite > 0 or null, view_dependent a boolean).
 - Poses: 4x4 finite; rotation orthonormal (max |R^T R - I| <= POSE_TOLERANCE) with
@@ -14,17 +20,18 @@ asks the file system where a path really leads.
 - Frames: every frame file_path appears once in the whole dataset (normalised: "./a" is
   "a"): a frame listed twice in a split would be trained on (or scored) twice, and a frame
   in two splits (a test view that is also a training view) makes the scores meaningless.
-- Images: the magic bytes match the extension (PNG 89 50 4E 47 0D 0A 1A 0A, EXR 76 2F 31 01),
-  so JPEG bytes in a .png are refused. The size is read from the header (a PNG's IHDR via
-  Pillow's lazy open, an EXR's dataWindow) and refused BEFORE any pixel is decoded when a
+- Images: the magic bytes match the extension (PNG 89 50 4E 47 0D 0A 1A 0A, JPEG FF D8 FF,
+  EXR 76 2F 31 01), so JPEG bytes in a .png are refused. The size is read from the header
+  (nerfgauge.core.images.image_header: a PNG's IHDR, a JPEG's frame header, an EXR's
+  dataWindow, before the rest of the file is read) and refused BEFORE any pixel is decoded when a
   side exceeds MAX_IMAGE_SIDE = 8192 pixels, the generator's own cap
   (GenerateConfig.validate): at most 8192 * 8192 = 67,108,864 pixels, 1 GiB as float32
   RGBA, and below Pillow's decompression-bomb threshold (89,478,485 pixels), so its
   warning never fires for an image we accept.
 - manifest.json: schema 2 {"schema": 2, "files": {rel: {"sha256": hex, "bytes": n}}};
   schema 1 {"schema": 1, "files": {rel: hex}} (no sizes) is still read. A file read from
-  the dataset must be listed, have the listed size and (unless hashing is off) the listed
-  sha256.
+  the dataset must be listed, have the listed size (compared on the file system before
+  it is read: `content_size`) and (unless hashing is off) the listed sha256.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ from typing import Optional
 import numpy as np
 
 from nerfgauge.core.camera import Intrinsics
+from nerfgauge.core.distortion import Distortion
 from nerfgauge.core.errors import InputError
 
 MAX_IMAGE_SIDE = 8192
@@ -57,7 +65,7 @@ MAX_RADIANCE = float(np.finfo(np.float32).max) / 2.0**74
 # EXR header may declare any number of channels; 1000 channels of 8192^2 would be 256 GiB.
 MAX_DECODED_BYTES = MAX_IMAGE_SIDE * MAX_IMAGE_SIDE * 4 * 4
 POSE_TOLERANCE = 1e-4
-MAGIC = {".png": b"\x89PNG\r\n\x1a\n", ".exr": b"\x76\x2f\x31\x01"}
+MAGIC = {".png": b"\x89PNG\r\n\x1a\n", ".exr": b"\x76\x2f\x31\x01", ".jpg": b"\xff\xd8\xff", ".jpeg": b"\xff\xd8\xff"}
 _OTHER_FORMATS = {b"\xff\xd8\xff": "JPEG", b"GIF8": "GIF", b"BM": "BMP", b"RIFF": "RIFF/WebP",
                   b"II*\x00": "TIFF", b"MM\x00*": "TIFF", b"\x89PNG": "PNG", b"\x76\x2f\x31\x01": "EXR"}
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
@@ -139,6 +147,82 @@ def intrinsics(meta: dict, where: str) -> Intrinsics:
     return Intrinsics(width, height, fx, fy, cx, cy)
 
 
+# The keys that state a camera in a transforms document; nerfstudio reads each per frame too.
+CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_model", "k1", "k2", "k3", "k4", "p1", "p2")
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+PINHOLE_MODELS = (None, "PINHOLE", "SIMPLE_PINHOLE")
+ANGLE_TOLERANCE = 1e-3  # relative: camera_angle_x against fl_x, where a document gives both
+
+
+def camera(meta: dict, frames: list, where: str, frame_names=None, image_size=None) -> tuple:
+    """The one camera of a split: (Intrinsics, Distortion or None), checked.
+
+    meta: the transforms document; frames: the split's frame objects, each of which may
+    state any CAMERA_KEYS itself (nerfstudio's rule: the frame's value wins over the
+    document's). Every frame must give the same camera: nerfgauge renders and scores one
+    camera per split, so a frame that differs is refused naming the key and the frame,
+    never ignored. frame_names: how errors name the frames (default their index).
+    image_size(): (width, height) from the first image's header, for NeRF-synthetic
+    documents that state only camera_angle_x (fx = fy = w / (2 tan(angle / 2)), cx = w / 2,
+    cy = h / 2, as the Blender loaders of NeRF, nerfstudio and NerfBaselines take them).
+    """
+    names = list(frame_names) if frame_names is not None else [str(k) for k in range(len(frames))]
+    top = {key: meta[key] for key in CAMERA_KEYS if key in meta}
+    cameras = [top | {key: frame[key] for key in CAMERA_KEYS if key in frame} for frame in frames]
+    stated = cameras[0] if cameras else top
+    for name, other in zip(names[1:], cameras[1:]):
+        # `is` first: a document's own NaN is the same object in every frame (refused below, as NaN)
+        key = next((key for key in CAMERA_KEYS if not (other.get(key) is stated.get(key)
+                                                       or other.get(key) == stated.get(key))), None)
+        if key is not None:
+            raise InputError(f"{where}: frame {name} has {key}={other.get(key)!r} but frame {names[0]} has "
+                             f"{stated.get(key)!r}; nerfgauge scores one camera per split (give each camera its "
+                             "own split, or undistort and resize the images to one camera)")
+    stated = dict(stated)
+    angle = None
+    if "camera_angle_x" in meta:
+        angle = _real(meta["camera_angle_x"], "camera_angle_x", where)
+        if not 0 < angle < math.pi:
+            raise InputError(f"{where}: camera_angle_x must be in (0, pi), got {angle}")
+    if angle is not None and not any(key in stated for key in ("fl_x", "fl_y", "cx", "cy")):
+        if "w" in stated or "h" in stated or image_size is None:
+            width, height = _side(stated.get("w"), "w", where), _side(stated.get("h"), "h", where)
+        else:
+            width, height = image_size()
+        focal = 0.5 * width / math.tan(0.5 * angle)
+        stated.update(w=width, h=height, fl_x=focal, fl_y=focal, cx=width / 2.0, cy=height / 2.0)
+    if angle is None and not any(key in stated for key in ("fl_x", "fl_y", "cx", "cy")) and image_size is not None:
+        raise InputError(f"{where}: needs camera_angle_x (or w, h, fl_x, fl_y, cx, cy)")
+    checked = intrinsics(stated, where)
+    if angle is not None:
+        implied = 0.5 * checked.width / math.tan(0.5 * angle)
+        if abs(implied - checked.fx) > ANGLE_TOLERANCE * checked.fx:
+            raise InputError(f"{where}: camera_angle_x {angle:.6g} means fl_x {implied:.6g} at w "
+                             f"{checked.width}, but fl_x is {checked.fx:.6g}")
+    return checked, lens_distortion(stated, checked, where)
+
+
+def lens_distortion(stated: dict, checked: Intrinsics, where: str) -> Optional[Distortion]:
+    """A camera's lens distortion from its camera_model and k1..k4, p1, p2 (None for a
+    pinhole), checked one-to-one over the image. A coefficient other than 0 under a
+    pinhole model (or without a camera_model) is refused: it would be ignored."""
+    model = stated.get("camera_model")
+    if model in PINHOLE_MODELS:
+        for key in DISTORTION_KEYS:
+            if key in stated and _real(stated[key], key, where) != 0.0:
+                raise InputError(f"{where}: {key}={stated[key]!r} under camera_model {model or '(none given)'}, "
+                                 "which has no distortion; state camera_model OPENCV or OPENCV_FISHEYE, or "
+                                 "undistort the images")
+        return None
+    distortion = Distortion.from_json(stated, where)
+    if distortion is not None:
+        distortion.check_image(checked, f"{where}: camera_model {model}")
+    return distortion
+
+
+BOUNDS_LIMIT = 1e9
+
+
 def bounds(value, where: str) -> np.ndarray:
     """[[xmin, ymin, zmin], [xmax, ymax, zmax]] -> [2, 3] float64, finite, min < max."""
     try:
@@ -149,6 +233,11 @@ def bounds(value, where: str) -> np.ndarray:
         raise InputError(f"{where}: bounds must be [[x, y, z], [x, y, z]] of numbers, got {value!r}")
     if not np.isfinite(array).all():
         raise InputError(f"{where}: bounds hold NaN or inf: {array.tolist()}")
+    if np.abs(array).max() > BOUNDS_LIMIT:
+        # Training samples rays in float32 across the box: beyond this its steps are not
+        # representable (at 1e308 the extent itself overflows to inf).
+        raise InputError(f"{where}: bounds reach {np.abs(array).max():.3g}, beyond the +-{BOUNDS_LIMIT:.0e} "
+                         f"scene units nerfgauge can sample: {array.tolist()}")
     if not (array[0] < array[1]).all():
         axes = ", ".join("xyz"[k] for k in np.flatnonzero(~(array[0] < array[1])))
         raise InputError(f"{where}: bounds need min < max on every axis, not on {axes}: {array.tolist()}")
@@ -227,7 +316,7 @@ def radiance(values, where: str) -> None:
 
 
 def image_magic(data: bytes, path) -> None:
-    """The leading bytes of `data` match the extension of `path` (.png or .exr)."""
+    """The leading bytes of `data` match the extension of `path` (.png, .jpg/.jpeg or .exr)."""
     suffix = os.path.splitext(str(path))[1].lower()
     magic = MAGIC.get(suffix)
     if magic is None or data.startswith(magic):
@@ -292,9 +381,14 @@ def manifest(document: dict, path) -> dict:
     return entries
 
 
+def content_size(size: int, entry: ManifestEntry, path) -> None:
+    """A file of `size` bytes has the size the manifest recorded (schema 2; schema 1 has none)."""
+    if entry.size is not None and size != entry.size:
+        raise InputError(f"{path} changed since the manifest was written ({size} bytes, manifest says {entry.size})")
+
+
 def content(data: bytes, entry: ManifestEntry, path, check_hash: bool = True) -> None:
     """`data` (a file's bytes) has the size and sha256 the manifest recorded."""
-    if entry.size is not None and len(data) != entry.size:
-        raise InputError(f"{path} changed since the manifest was written ({len(data)} bytes, manifest says {entry.size})")
+    content_size(len(data), entry, path)
     if check_hash and hashlib.sha256(data).hexdigest() != entry.sha256:
         raise InputError(f"{path} changed since the manifest was written (sha256 differs)")
