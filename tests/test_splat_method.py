@@ -58,3 +58,17 @@ def test_a_job_trains_renders_and_is_scored_with_depth(tiny_dataset, tmp_path):
     assert rendered.frames == 2 and rendered.pred_format == "nerfgauge"
     scores = evaluate(tiny_dataset, rendered.out, split="test")
     assert math.isfinite(scores["mean"]["psnr"]) and math.isfinite(scores["mean"]["depth_absrel"])
+
+
+def test_the_initial_points_suite_reads_as_a_builtin_suite():
+    """orchestrate/suite/builtin/splat-init.toml: the datasets and scoring of the experiment
+    (its splat arms wait for the suite format's [[methods]]: the file's header)."""
+    from nerfgauge.orchestrate.suite.definition import builtin_suites, load_suite
+
+    assert "splat-init" in builtin_suites()
+    suite = load_suite("splat-init")
+    assert [entry.scene for entry in suite.scenes] == ["primitives", "glossy", "checker-fine"]
+    for entry in suite.scenes:
+        assert (entry.dataset["width"], entry.dataset["views"], entry.dataset["test_views"]) == (128, 100, 20)
+    for init in ("surface", "sfm", "random", "none"):  # each arm a setting the method takes
+        assert resolve("splat").config(TrainRequest(dataset="d", run="r", steps=3000, settings={"init": init})).init == init
