@@ -40,7 +40,7 @@ def test_a_run_writes_its_config_log_and_gaussians(splat_run, tiny_dataset):
     assert config["auto_reasons"]["init"].startswith("surface: the dataset's 256 points")
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert log[0]["step"] == 0 and log[-1]["step"] == 200 and len(log) >= 2
-    assert log[-1]["val_psnr"] > log[0]["val_psnr"] + 3  # it learns (measured: 18.7 -> 22.9 dB)
+    assert log[-1]["val_psnr"] > log[0]["val_psnr"] + 3  # it learns (measured: 18.7 -> 23.5 dB)
     assert log[-1]["gaussians"] > 256  # and densifies
     gaussians = read_ply(run / "gaussians.ply")
     assert len(gaussians) == summary["gaussians"] and summary["steps"] == 200
