@@ -36,7 +36,8 @@ CAPPED = textwrap.dedent("""
     import numpy as np
     import scipy.spatial, trimesh  # what the geometry scoring loads lazily
     from nerfgauge.cli import main
-    from nerfgauge.eval.geometry import PointSet, Surface, compare, distance_backend
+    from nerfgauge.core.surface import PointSet, Surface
+    from nerfgauge.eval.geometry import compare, distance_backend
     assert distance_backend() == "bvh", distance_backend()
     status = dict(line.split(":", 1) for line in open("/proc/self/status"))
     limit = int(status["VmSize"].split()[0]) * 1024 + int(sys.argv[1])
