@@ -53,9 +53,6 @@ ALLOWED = {
         "`nerfgauge geometry --run RUN` loads the run's model to score its normals",
     ("nerfgauge.eval.commands", "nerfgauge.nerf.runs"):
         "`nerfgauge geometry --run RUN` reads the run with the dataset it was trained on, checked against its record",
-    ("nerfgauge.generate.points", "nerfgauge.eval.geometry"):
-        "the COLMAP export's surface points sample the ground-truth surface the evaluator scores against "
-        "(eval.geometry reads the meshes through the manifest): one definition of that surface",
     ("nerfgauge.eval.check", "nerfgauge.scenes.registry"):
         "the gate refuses a scene name no recipe has (the registry lists the recipes)",
     ("nerfgauge.nerf.commands", "nerfgauge.splat.commands"):
