@@ -83,14 +83,12 @@ def in_nerfstudio(ns_env: Path, args: list, tmp_path: Path, **variables) -> subp
 # --- the command lines, parsed by nerfstudio itself --------------------------------------------
 
 
-def command_line(name: str, which: str, device: str, settings=None) -> list:
-    from nerfgauge.methods.external import _argv, _context, _text
+JOB = {"dataset": "/data/ds", "run": "/runs/r", "seed": 7, "steps": 30, "budget_seconds": "", "threads": 2,
+       "split": "test", "out": "/renders", "config": "/runs/r/config.yml"}
 
-    method = resolve(name, settings)
-    values = {"dataset": "/data/ds", "run": "/runs/r", "seed": 7, "steps": 30, "budget_seconds": "", "threads": 2,
-              "device": device, "split": "test", "out": "/renders", "config": "/runs/r/config.yml",
-              **_context(method.spec), **{k: _text(v) for k, v in method.settings.items()}}
-    return _argv(getattr(method.spec, which), values, device, name)
+
+def command_line(name: str, which: str, device: str, settings=None) -> list:
+    return resolve(name, settings).command_line(which, {**JOB, "device": device}, device)
 
 
 def test_the_specs_command_lines_parse_with_nerfstudios_own_parsers(ns_env, tmp_path):

@@ -97,15 +97,13 @@ def test_nerfbaselines_trains_its_own_schedule(tiny_dataset, tmp_path):
 # --- the tools' own parsers ------------------------------------------------------------------
 
 
-def filled(method: ExternalMethod, which: str, device: str = "auto", **extra) -> list[str]:
-    """A spec's command line as the harness fills it, for a job on `device`."""
-    from nerfgauge.methods.external import _argv, _context
+JOB = {"dataset": "/data/ds", "run": "/runs/r", "seed": 7, "steps": 30, "budget_seconds": "", "threads": 2,
+       "split": "test", "out": "/renders", "config": "/runs/r/config.yml", "checkpoint": "/runs/r/out/checkpoint-30"}
 
-    values = {"dataset": "/data/ds", "run": "/runs/r", "seed": 7, "steps": 30, "budget_seconds": "", "threads": 2,
-              "device": device, "split": "test", "out": "/renders", "config": "/runs/r/config.yml",
-              "checkpoint": "/runs/r/out/checkpoint-30", **_context(method.spec),
-              **{k: str(v) for k, v in method.settings.items()}, **extra}
-    return _argv(getattr(method.spec, which), values, device, method.name)
+
+def filled(method: ExternalMethod, which: str, device: str = "auto") -> list[str]:
+    """A spec's command line as the harness fills it, for a job on `device`."""
+    return method.command_line(which, {**JOB, "device": device}, device)
 
 
 @pytest.mark.skipif(importlib.util.find_spec("nerfbaselines") is None,

@@ -425,11 +425,6 @@ def fill(template: str, values: dict) -> str:
     return template.format_map(values)
 
 
-def _text(value) -> str:
-    """A placeholder's value as an argument: True/False as Python (and tyro) spell them."""
-    return str(value)
-
-
 def _context(spec: Spec) -> dict:
     folder = environment_folder(spec)
     return {"env": "" if folder is None else str(folder), "spec_folder": str(spec.folder.resolve())}
@@ -473,8 +468,6 @@ def _prepare(spec: Spec, values: dict) -> None:
 
             try:
                 write_torchvision_alexnet(folder)
-            except MethodFailed:
-                raise
             except InputError as error:
                 raise MethodFailed(spec.name, f"prepare.{step}: {error}") from None
 
@@ -619,7 +612,13 @@ class ExternalMethod(Method):
                 "threads": request.threads or 2, "device": request.device}, settings
 
     def placeholders(self, job: dict, settings: dict) -> dict:
-        return {**job, **{name: _text(value) for name, value in settings.items()}, **_context(self.spec)}
+        """Every placeholder of a job (settings as str spells them: True/False, as Python and tyro do)."""
+        return {**job, **{name: str(value) for name, value in settings.items()}, **_context(self.spec)}
+
+    def command_line(self, which: str, values: dict, device: str) -> list:
+        """The `which` ("train" or "render") command run on `device` with these placeholders
+        and the method's settings (what `nerfgauge methods` users and tests check)."""
+        return _argv(getattr(self.spec, which), {**values, **self.placeholders({}, self.settings)}, device, self.name)
 
     def train(self, request: TrainRequest) -> TrainResult:
         job, settings = self.job(request)
