@@ -39,7 +39,7 @@ def render(args: list) -> dict:
     command = tyro.cli(Commands, args=args)
     return {"command": type(command).__name__, "load_config": str(command.load_config), "data": str(command.data),
             "output_path": str(command.output_path), "split": command.split,
-            "rendered_output_names": command.rendered_output_names}
+            "rendered_output_names": command.rendered_output_names, "image_format": command.image_format}
 
 
 if __name__ == "__main__":

@@ -115,7 +115,8 @@ def test_the_specs_command_lines_parse_with_nerfstudios_own_parsers(ns_env, tmp_
         assert (parsed["experiment_name"], parsed["timestamp"]) == ("splatfacto", "run")
     for parsed, names in ((render_nerfacto, ["rgba", "raw-depth"]), (render_splat, ["rgb"])):
         assert parsed == {"command": "DatasetRender", "load_config": "/runs/r/config.yml", "data": "/data/ds",
-                          "output_path": "/renders", "split": "test", "rendered_output_names": names}
+                          "output_path": "/renders", "split": "test", "rendered_output_names": names,
+                          "image_format": "png"}
 
 
 # --- LPIPS offline -------------------------------------------------------------------------------

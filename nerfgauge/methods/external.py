@@ -395,8 +395,8 @@ def environment_folder(spec: Spec) -> Path | None:
         return Path(spec.bin).parent
     if spec.environment is None:
         return None
-    chosen = os.environ.get(environment_variable(spec.environment))
-    return Path(os.path.expanduser(chosen)) if chosen else environments_root() / spec.environment
+    chosen = os.environ.get(environment_variable(spec.environment))  # relative: to where we run, not the tool
+    return Path(os.path.expanduser(chosen)).absolute() if chosen else environments_root() / spec.environment
 
 
 def bin_folder(spec: Spec) -> Path | None:

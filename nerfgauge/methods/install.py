@@ -56,20 +56,17 @@ def _state(folder: Path, wanted: dict) -> str:
 
 
 def _empty(folder: Path) -> None:
-    """Everything in an environment we built, except the lock we hold; the record last."""
-    for entry in sorted(folder.iterdir(), key=lambda p: p.name == ENVIRONMENT_RECORD):
-        if entry.name == LOCK:
-            continue
-        if entry.is_dir() and not entry.is_symlink():
-            owned.remove_tree(entry)
-        else:
-            owned.remove_file(entry)  # a venv's links go as links
+    """Everything in an environment we built but the lock we hold and the record (already
+    saying "building", so a deletion cut short leaves a folder still known as ours)."""
+    for entry in folder.iterdir():
+        if entry.name not in (LOCK, ENVIRONMENT_RECORD):
+            remove = owned.remove_tree if entry.is_dir() and not entry.is_symlink() else owned.remove_file
+            remove(entry)  # a venv's links go as links
 
 
 def _command_environment() -> dict:
     """Ours, without what would make the new environment's interpreter see our packages."""
-    env = {key: value for key, value in os.environ.items() if key not in (*DROPPED_VARIABLES, "VIRTUAL_ENV")}
-    return env
+    return {key: value for key, value in os.environ.items() if key not in (*DROPPED_VARIABLES, "VIRTUAL_ENV")}
 
 
 def install_environment(method: ExternalMethod, folder=None, *, log=None) -> tuple[Path, bool]:
@@ -89,8 +86,8 @@ def install_environment(method: ExternalMethod, folder=None, *, log=None) -> tup
     with folder_lock(folder, check_links=False):  # a venv holds links (bin/python)
         if _state(folder, wanted) == "complete":  # another install finished while we waited
             return folder, False
-        _empty(folder)
         write_json(folder / ENVIRONMENT_RECORD, {**wanted, "state": "building"})
+        _empty(folder)
         values = {"env": str(folder), "python": sys.executable}
         for index, template in enumerate(spec.install, 1):
             argv = [fill(arg, values) for arg in template]
