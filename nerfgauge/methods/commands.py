@@ -10,6 +10,8 @@ import json
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.methods.builtin import builtin_methods
+from nerfgauge.methods.external import ExternalMethod
+from nerfgauge.methods.install import install_environment, where_it_looks
 from nerfgauge.methods.registry import resolve, shipped_specs
 
 INSTALL = "install"  # the verb: `nerfgauge methods install METHOD`
@@ -61,9 +63,6 @@ def _run(args) -> int:
 
 
 def _install(args) -> int:
-    from nerfgauge.methods.external import ExternalMethod
-    from nerfgauge.methods.install import install_environment, where_it_looks
-
     if len(args.specs) != 2:
         raise InputError("give one method: nerfgauge methods install METHOD [--env DIR]")
     method = resolve(args.specs[1])

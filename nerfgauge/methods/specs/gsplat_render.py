@@ -53,9 +53,9 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cuda")
     args = parser.parse_args(argv)
 
-    import torch
-    from gsplat import rasterization
-    from PIL import Image
+    import torch  # torch, gsplat, PIL: the gsplat environment's, imported when it renders (frames() needs numpy only)
+    from gsplat import rasterization  # gsplat: see above
+    from PIL import Image  # PIL: see above
 
     splats = torch.load(args.ckpt, map_location=args.device, weights_only=True)["splats"]
     colours = torch.cat([splats["sh0"], splats["shN"]], 1)  # [N, K, 3]
