@@ -19,9 +19,10 @@ import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 
+from nerfgauge.core.errors import raise_floating_point_warnings
 from nerfgauge.generate.distributed import render_on_cluster
 from nerfgauge.generate.views import load_mitsuba_scene, render_one, write_view
-from tqdm import tqdm
+from nerfgauge.core.progress import progress as progress_bar
 
 _WORKER = {}  # per worker process: the loaded scene (set once by the pool initializer)
 
@@ -31,8 +32,7 @@ def render_views(out, the_plan, todo, *, workers: int = 1, progress: bool = True
     (a distributed.Client, see generate.distributed) if given, else here or on `workers`
     local processes. Returns seconds spent rendering (summed over processes)."""
     total = sum(len(s) for s in the_plan.stems.values())
-    bar = tqdm(total=total, initial=total - len(todo), unit="view", desc="generate", disable=not progress,
-               dynamic_ncols=True)
+    bar = progress_bar(total=total, initial=total - len(todo), unit="view", desc="generate", enabled=progress)
     try:
         if client is not None and todo:
             return render_on_cluster(client, out, the_plan, todo, bar)
@@ -92,6 +92,7 @@ def die_with_parent(parent_pid: int) -> None:
 
 def _init_worker(out, the_plan, parent_pid):
     die_with_parent(parent_pid)
+    raise_floating_point_warnings()  # as in the parent (core.errors): raised, never printed by a worker
     _WORKER["mi"], _WORKER["scene"] = load_mitsuba_scene(out, the_plan)
     _WORKER["out"], _WORKER["plan"] = out, the_plan
 

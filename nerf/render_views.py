@@ -39,7 +39,7 @@ from nerfgauge.nerf.data import split_rays
 from nerfgauge.nerf.frames import EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, lens_frame, render_frame, rgba_png
 from nerfgauge.nerf.runs import open_run_dataset
 from nerfgauge.nerf.train import pick_device
-from tqdm import tqdm
+from nerfgauge.core.progress import progress as progress_bar
 
 from nerfgauge.core import arguments, owned
 from nerfgauge.core.errors import InputError
@@ -120,7 +120,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     height, width = cameras.intrinsics.height, cameras.intrinsics.width
     seconds, lens_seconds = [], []
     try:
-        for index, stem in enumerate(tqdm(cameras.stems, desc=f"render {split}", unit="frame", disable=not progress)):
+        for index, stem in enumerate(progress_bar(cameras.stems, desc=f"render {split}", unit="frame", enabled=progress)):
             origins, directions = split_rays(cameras, index)
             if index == 0:  # warm-up: first-call allocations are not the model's speed
                 render_frame(model, origins.to(device), directions.to(device), pool, parts)

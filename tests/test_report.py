@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from nerfgauge.core.images import read_exr_single, read_png, write_exr, write_png
-from nerfgauge.eval.baselines import write_baseline
+from nerfgauge.methods.baselines import write_baseline
 from nerfgauge.eval.evaluate import evaluate
 from nerfgauge.eval.report import per_view_table, write_report
 
@@ -185,34 +185,60 @@ COLUMN_VALUES = """(function (col) {
 })(%d)"""
 
 
-def test_report_in_headless_chromium(report, tmp_path):
+@pytest.fixture
+def chromium(tmp_path):
+    """A headless Chromium over DevTools, closed after the test; skipped, saying why, without one."""
     browser = _browser()
     if browser is None:
         pytest.skip("no Chromium or Chrome on PATH (apt-get install chromium) to load report.html in")
-    page, documents = report
     tools = DevTools(browser, tmp_path / "profile")
     try:
-        # The check can fail: a page with a script error is seen.
-        broken = tmp_path / "broken.html"
-        broken.write_text("<!doctype html><html><head><link rel='icon' href='data:,'></head><body>"
-                          "<script>undefinedFunction()</script></body></html>")
-        open_page(tools, broken.as_uri())
-        assert any("undefinedFunction" in str(error) for error in console_errors(tools))
-        tools.events.clear()
-
-        session = open_page(tools, page.as_uri())
-        column = evaluate_js(tools, session, PER_VIEW_COLUMN)
-        assert column >= 2
-        before = evaluate_js(tools, session, COLUMN_VALUES % column)
-        assert len(before) == 6 and before != sorted(before)  # written in frame order, not PSNR order
-        click = f"document.querySelectorAll('table.sortable')[1].tHead.rows[0].cells[{column}].click()"
-        evaluate_js(tools, session, click)
-        assert evaluate_js(tools, session, COLUMN_VALUES % column) == sorted(before)
-        evaluate_js(tools, session, click)  # again: descending
-        assert evaluate_js(tools, session, COLUMN_VALUES % column) == sorted(before, reverse=True)
-        images = evaluate_js(tools, session, "Array.prototype.map.call(document.images, "
-                                             "function (i) { return i.complete && i.naturalWidth > 0; })")
-        assert images == [True, True, True]
-        assert console_errors(tools) == []
+        yield tools
     finally:
         tools.close()
+
+
+def test_report_in_headless_chromium(report, tmp_path, chromium):
+    page, documents = report
+    tools = chromium
+    # The check can fail: a page with a script error is seen.
+    broken = tmp_path / "broken.html"
+    broken.write_text("<!doctype html><html><head><link rel='icon' href='data:,'></head><body>"
+                      "<script>undefinedFunction()</script></body></html>")
+    open_page(tools, broken.as_uri())
+    assert any("undefinedFunction" in str(error) for error in console_errors(tools))
+    tools.events.clear()
+
+    session = open_page(tools, page.as_uri())
+    column = evaluate_js(tools, session, PER_VIEW_COLUMN)
+    assert column >= 2
+    before = evaluate_js(tools, session, COLUMN_VALUES % column)
+    assert len(before) == 6 and before != sorted(before)  # written in frame order, not PSNR order
+    click = f"document.querySelectorAll('table.sortable')[1].tHead.rows[0].cells[{column}].click()"
+    evaluate_js(tools, session, click)
+    assert evaluate_js(tools, session, COLUMN_VALUES % column) == sorted(before)
+    evaluate_js(tools, session, click)  # again: descending
+    assert evaluate_js(tools, session, COLUMN_VALUES % column) == sorted(before, reverse=True)
+    images = evaluate_js(tools, session, "Array.prototype.map.call(document.images, "
+                                         "function (i) { return i.complete && i.naturalWidth > 0; })")
+    assert images == [True, True, True]
+    assert console_errors(tools) == []
+
+
+PAGE_WIDTH = """(function () {
+  return [document.documentElement.scrollWidth, window.innerWidth,
+          Array.prototype.map.call(document.querySelectorAll("table.sortable"),
+                                   function (t) { return t.getBoundingClientRect().right <= window.innerWidth
+                                                         || t.parentElement.scrollWidth > t.parentElement.clientWidth; })];
+})()"""
+
+
+@pytest.mark.parametrize("width", [1280, 800, 400])
+def test_report_fits_the_page_in_headless_chromium(report, chromium, width):
+    """The page never scrolls sideways: a table wider than the window scrolls inside its own box."""
+    page, _ = report
+    session = open_page(chromium, page.as_uri())
+    chromium.send("Emulation.setDeviceMetricsOverride", {"width": width, "height": 900, "deviceScaleFactor": 1,
+                                                         "mobile": False}, session=session)
+    page_width, window, tables = evaluate_js(chromium, session, PAGE_WIDTH)
+    assert window == width and page_width <= window and tables and all(tables)

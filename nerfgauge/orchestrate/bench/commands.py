@@ -1,0 +1,224 @@
+"""`nerfgauge bench NAME`: every benchmark (the modules of this package), one subcommand each.
+
+Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
+errors); comma-separated lists are checked item by item (`core.arguments.comma_separated`). Bench output
+folders are claimed with `core.folders.claim_folder` as "bench" folders (marker and lock).
+The bench modules generate datasets and train models; they import torch (nerf) inside
+their functions, so importing them here keeps `nerfgauge --help` free of torch and Mitsuba.
+"""
+
+from pathlib import Path
+
+from nerfgauge.core import arguments
+from nerfgauge.generate.options import parse_resolution
+from nerfgauge.orchestrate.bench.colmap import bench_colmap
+from nerfgauge.orchestrate.bench.dask import bench_dask
+from nerfgauge.orchestrate.bench.generate import bench_generate
+from nerfgauge.orchestrate.bench.hard import HardConfig, bench_hard, table_markdown as hard_table_markdown
+from nerfgauge.orchestrate.bench.lens import run_lens_bench
+from nerfgauge.orchestrate.bench.lpips import bench_lpips
+from nerfgauge.orchestrate.bench.read import bench_read, table_markdown as read_table_markdown
+from nerfgauge.orchestrate.bench.scaling import ScalingConfig, bench_scaling, report_markdown
+from nerfgauge.orchestrate.bench.targets import bench_targets, targets_command, targets_markdown
+from nerfgauge.orchestrate.bench.train import VARIANTS, bench_train, speedups, table_markdown
+from nerfgauge.scenes import HARD_SCENES
+
+
+def register(subparsers) -> None:
+    sides, view_counts = (arguments.comma_separated(arguments.IMAGE_SIDE, distinct=True),
+                          arguments.comma_separated(arguments.VIEWS, distinct=True))
+    parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants, scaling",
+                                   description="Benchmarks measured in one run on this machine (see BENCHMARKS.md). "
+                                               "Each writes into its own --out folder (a nerfgauge bench folder).")
+    kinds = parser.add_subparsers(dest="bench_kind", metavar="KIND", required=True)
+    gen = kinds.add_parser("generate", help="generator time against Mitsuba's own render time")
+    gen.add_argument("--scene", default="primitives")
+    gen.add_argument("--views", type=arguments.VIEWS, default=100)
+    gen.add_argument("--res", default="128")
+    gen.add_argument("--spp", type=arguments.SPP, default=64)
+    gen.add_argument("--repeats", type=arguments.REPEATS, default=1,
+                     help="repeat and report each run (the machine is noisy)")
+    gen.set_defaults(func=run_bench_generate)
+    train = kinds.add_parser("train", help="scenes x variants x budgets: PSNR, SSIM, depth, time, size, memory")
+    train.add_argument("--scenes", type=arguments.names, default=("primitives",), help="comma-separated scene names")
+    train.add_argument("--variants", type=arguments.names, default=("compact", "vanilla"),
+                       help="comma-separated, from: " + ", ".join(_variant_names()))
+    train.add_argument("--budgets", type=arguments.comma_separated(arguments.SECONDS, distinct=True), default=(30.0, 120.0),
+                       help="comma-separated training seconds (default 30,120)")
+    train.add_argument("--res", default="128")
+    train.add_argument("--views", type=arguments.VIEWS, default=100)
+    train.add_argument("--out", type=arguments.path, default=Path("bench-out/train"),
+                       help="bench folder (default bench-out/train): train.json/.md, pareto.png, datasets/, runs/")
+    train.set_defaults(func=run_bench_train)
+    scaling = kinds.add_parser("scaling", help="NeRF time-to-PSNR and render time against resolution and views; "
+                                               "generation time against views and spp")
+    scaling.add_argument("--scene", default="primitives")
+    scaling.add_argument("--resolutions", type=sides, default=(64, 128, 256),
+                         help="comma-separated square resolutions, each at --views views (default 64,128,256)")
+    scaling.add_argument("--views", type=arguments.VIEWS, default=100,
+                         help="train views of the --resolutions cases (default 100)")
+    scaling.add_argument("--view-counts", type=view_counts, default=(25, 50, 100),
+                         help="comma-separated train-view counts, each at --view-counts-res (default 25,50,100)")
+    scaling.add_argument("--view-counts-res", type=arguments.IMAGE_SIDE, default=128,
+                         help="resolution of the --view-counts cases (default 128)")
+    scaling.add_argument("--budget-seconds", type=arguments.SECONDS, default=120.0, metavar="T",
+                         help="training seconds per case (default 120)")
+    scaling.add_argument("--target-psnr", type=arguments.TARGET_PSNR, default=30.0, metavar="DB",
+                         help="report the time to this val PSNR (default 30)")
+    scaling.add_argument("--gen-views", type=view_counts, default=(25, 50, 100),
+                         help="generation: train-view counts at --gen-views-spp")
+    scaling.add_argument("--gen-views-spp", type=arguments.SPP, default=64,
+                         help="spp of the --gen-views cases (default 64)")
+    scaling.add_argument("--gen-spp", type=arguments.comma_separated(arguments.SPP, distinct=True), default=(16, 64, 256),
+                         help="generation: spp values at --gen-spp-views views")
+    scaling.add_argument("--gen-spp-views", type=arguments.VIEWS, default=50,
+                         help="views of the --gen-spp cases (default 50)")
+    scaling.add_argument("--gen-res", type=arguments.IMAGE_SIDE, default=128,
+                         help="resolution of the generation cases (default 128)")
+    scaling.add_argument("--out", type=arguments.path, default=Path("bench-out/scaling"),
+                         help="writes scaling.json/.md/.png; reruns replace the cases' datasets and runs")
+    scaling.set_defaults(func=run_bench_scaling)
+    hard = kinds.add_parser("hard", help="the hard scenes through generate, brief training and evaluate, "
+                                         "audited for NaN/inf")
+    hard.add_argument("--scenes", type=arguments.names, default=None, help="comma-separated scene names (default: every hard scene)")
+    hard.add_argument("--res", default="64")
+    hard.add_argument("--views", type=arguments.VIEWS, default=40)
+    hard.add_argument("--test-views", type=arguments.VIEWS, default=8)
+    hard.add_argument("--spp", type=arguments.SPP, default=64)
+    hard.add_argument("--steps", type=arguments.STEPS, default=400, help="training steps per scene (default 400)")
+    hard.add_argument("--out", type=arguments.path, default=Path("bench-out/hard"))
+    hard.set_defaults(func=run_bench_hard)
+    targets = kinds.add_parser("targets", help="the reference NeRF's targets (issue 34) in one command: primitives "
+                                               "at 120 and 600 s, geometry, exact scores, bench hard, a room")
+    targets.add_argument("--skip", type=arguments.names, default=(),
+                         help="comma-separated parts to leave out: train, geometry, exact_geometry, hard, inside_check")
+    targets.add_argument("--out", type=arguments.path, default=Path("bench-out/targets"),
+                         help="bench folder (default bench-out/targets): targets.json/.md and each part's folder")
+    targets.set_defaults(func=run_bench_targets)
+    lens = kinds.add_parser("lens", help="defocus: the NeRF through a thin lens against refocused light fields and "
+                                         "the nearest view, at several apertures")
+    lens.add_argument("--scene", default="primitives")
+    lens.add_argument("--views", type=arguments.VIEWS, default=64, help="training grid (a square, default 64 = 8x8)")
+    lens.add_argument("--test-views", type=arguments.VIEWS, default=6)
+    lens.add_argument("--res", type=arguments.IMAGE_SIDE, default=96)
+    lens.add_argument("--spp", type=arguments.SPP, default=64)
+    lens.add_argument("--radius", type=arguments.DISTANCE, default=3.5, help="camera plane's distance from the scene centre")
+    lens.add_argument("--focus-distance", type=arguments.DISTANCE, default=None, help="default: --radius")
+    lens.add_argument("--apertures", type=arguments.comma_separated(arguments.DISTANCE), default=(0.1, 0.2),
+                      help="comma-separated aperture radii, scene units (default 0.1,0.2)")
+    lens.add_argument("--budget-seconds", type=arguments.SECONDS, default=120.0)
+    lens.add_argument("--aperture-samples", type=arguments.LENS_SAMPLES, default=16)
+    lens.add_argument("--threads", type=arguments.THREADS, default=2)
+    lens.add_argument("--out", type=arguments.path, default=Path("bench-out/lens"))
+    lens.set_defaults(func=run_bench_lens)
+    read = kinds.add_parser("read", help="what validating a dataset on load costs: sizes only against sizes + sha256")
+    read.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    read.add_argument("--split", default="train", help="split to read (default train)")
+    read.add_argument("--repeats", type=arguments.REPEATS, default=15, help="best of this many (default 15)")
+    read.set_defaults(func=run_bench_read)
+    colmap = kinds.add_parser("colmap", help="what the COLMAP export adds to generate: runs with and without it, "
+                                             "interleaved")
+    colmap.add_argument("--pairs", type=arguments.REPEATS, default=3, help="(with, without) pairs (default 3)")
+    colmap.add_argument("--res", type=arguments.IMAGE_SIDE, default=128)
+    colmap.add_argument("--views", type=arguments.VIEWS, default=100)
+    colmap.add_argument("--points", default="surface", help="the export's --points (default surface)")
+    colmap.add_argument("--out", type=arguments.path, default=Path("bench-out/colmap"),
+                        help="bench folder: colmap.json and the runs' datasets")
+    colmap.set_defaults(func=run_bench_colmap)
+    dask = kinds.add_parser("dask", help="views per second on a local dask cluster of 1 and of 2 workers")
+    dask.add_argument("--views", type=arguments.VIEWS, default=60)
+    dask.add_argument("--res", type=arguments.IMAGE_SIDE, default=96)
+    dask.add_argument("--spp", type=arguments.SPP, default=64)
+    dask.add_argument("--workers", type=arguments.comma_separated(arguments.WORKERS, distinct=True), default=(1, 2),
+                      help="comma-separated worker counts (default 1,2)")
+    dask.add_argument("--out", type=arguments.path, default=Path("bench-out/dask"),
+                      help="bench folder: dask.json and the runs' datasets")
+    dask.set_defaults(func=run_bench_dask)
+    lpips = kinds.add_parser("lpips", help="LPIPS-Alex speed on random image pairs, as evaluate batches them")
+    lpips.add_argument("--frames", type=arguments.VIEWS, default=100)
+    lpips.add_argument("--res", type=arguments.IMAGE_SIDE, default=128)
+    lpips.add_argument("--repeats", type=arguments.REPEATS, default=3)
+    lpips.set_defaults(func=run_bench_lpips)
+
+
+def run_bench_colmap(args) -> int:
+    document = bench_colmap(args.out, args.pairs, args.res, args.views, args.points)
+    print(f"export adds {100 * (document['ratio_of_means'] - 1):+.1f}% (ratio of means {document['ratio_of_means']:.3f}, "
+          f"of medians {document['ratio_of_medians']:.3f}); the export's own share {100 * document['export_share']:.1f}%")
+    return 0
+
+
+def run_bench_dask(args) -> int:
+    bench_dask(args.out, args.views, args.res, args.spp, tuple(args.workers))
+    return 0
+
+
+def run_bench_lpips(args) -> int:
+    times = bench_lpips(args.frames, args.res, args.repeats)
+    print(f"LPIPS-Alex, {args.frames} frames of {args.res} px: " + ", ".join(f"{t:.2f}" for t in times)
+          + f" s (best {min(times):.2f} s)")
+    return 0
+
+
+def run_bench_lens(args) -> int:
+    run_lens_bench(args.out, scene=args.scene, views=args.views, test_views=args.test_views, res=args.res,
+                   spp=args.spp, radius=args.radius, focus_distance=args.focus_distance, apertures=args.apertures,
+                   budget_seconds=args.budget_seconds, aperture_samples=args.aperture_samples, threads=args.threads)
+    print(f"bench lens: {args.out}")
+    return 0
+
+
+def _variant_names():
+    return list(VARIANTS)
+
+
+def run_bench_generate(args) -> int:
+    width, height = parse_resolution(args.res)
+    print("| run | views | res | spp | variant | s/view (generator) | s/view (Mitsuba render) | overhead ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    for repeat in range(args.repeats):
+        r = bench_generate(args.scene, args.views, width, height, args.spp)
+        print(f"| {repeat + 1} | {r['views']} | {width}x{height} | {r['spp']} | {r['variant']} | "
+              f"{r['seconds_per_view']:.4f} | {r['mitsuba_seconds_per_view']:.4f} | {r['overhead_ratio']:.3f} |")
+    return 0
+
+
+def run_bench_train(args) -> int:
+    width, height = parse_resolution(args.res)
+    rows = bench_train(args.out, list(args.scenes), list(args.variants), list(args.budgets), width, height, args.views)
+    print(table_markdown(rows))
+    print("\n".join(speedups(rows)))
+    print(f"table: {args.out / 'train.md'}; plots: {args.out / 'pareto.png'}")
+    return 0
+
+
+def run_bench_scaling(args) -> int:
+    config = ScalingConfig(
+        scene=args.scene, resolutions=args.resolutions, views=args.views, view_counts=args.view_counts,
+        view_counts_res=args.view_counts_res, budget_seconds=args.budget_seconds, target_psnr=args.target_psnr,
+        gen_views=args.gen_views, gen_views_spp=args.gen_views_spp, gen_spp=args.gen_spp,
+        gen_spp_views=args.gen_spp_views, gen_res=args.gen_res)
+    document = bench_scaling(config, args.out)
+    print(report_markdown(document))
+    print(f"data: {args.out / 'scaling.json'}; plots: {args.out / 'scaling.png'}")
+    return 0
+
+
+def run_bench_hard(args) -> int:
+    width, height = parse_resolution(args.res)
+    scenes = tuple(HARD_SCENES) if args.scenes is None else args.scenes
+    config = HardConfig(scenes, width, height, args.views, args.test_views, args.spp, args.steps)
+    rows = bench_hard(config, args.out)
+    print(hard_table_markdown(rows, config.command(args.out)))
+    return 0 if all(row["finite"] for row in rows) else 1
+
+
+def run_bench_targets(args) -> int:
+    rows = bench_targets(args.out, tuple(args.skip))
+    print(targets_markdown(rows, targets_command(args.out, tuple(args.skip))))
+    return 0
+
+
+def run_bench_read(args) -> int:
+    print(read_table_markdown(bench_read(args.dataset, args.split, args.repeats)))
+    return 0

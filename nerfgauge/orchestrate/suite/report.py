@@ -1,0 +1,461 @@
+"""`nerfgauge suite report DIR`: the leaderboard of a suite folder, as JSON, Markdown and
+HTML, and a report.html per dataset (eval.report.write_report).
+
+Numbers are copied from the metrics.json files `suite evaluate` wrote with eval.evaluate
+(the function behind `nerfgauge evaluate`), never recomputed, so a method's leaderboard
+entry for a dataset equals its single-run `nerfgauge evaluate` numbers exactly. Columns:
+every metric of eval.metrics.METRIC_NAMES that has a value somewhere (metrics added there
+show up here), then our NeRF's geometry where scored (eval.geometry.summary), then cost:
+training seconds, model size, render milliseconds per frame. The mean row of a method is
+the mean over the datasets where the value is defined; `scenes` says over how many.
+
+Uncertainty (eval.uncertainty, docs/conventions.md "Uncertainty"): each dataset's table
+gives the PSNR's 95% interval: for a method run once, copied from metrics.json's `ci95`
+(bootstrap over the views, as `nerfgauge evaluate` wrote it); for a method run with seeds
+(`suite run --seeds`), from the aggregate of its per-seed metrics.json files (two-level
+bootstrap over seeds, then views; recomputed as evaluate_suite computed aggregate.json,
+which is not read back), with the seeds, each seed's PSNR and their std (the run-to-run
+spread). The mean row's interval is `suite_interval` (each dataset's two-level resample,
+averaged over the datasets; a fresh np.random.default_rng(EVALUATE_SEED) per method and
+metric). The paired table compares our NeRF (OURS) with each other method on each dataset
+both scored, on the per-frame PSNR of their metrics.json files matched by frame name and
+per seed (`pair_runs`: a method run once, the baselines, is repeated for every seed):
+mean difference OURS - method over the (seed, view) cells, its 95% paired bootstrap
+interval (seeds then views resampled once for both methods; a fresh
+np.random.default_rng(EVALUATE_SEED) per comparison, 10000 resamples), the two-sided
+Wilcoxon signed-rank p-value on the per-view differences averaged over seeds, and whether
+it is significant at 0.05.
+
+Every metrics.json is checked before use (eval.check.validate_scores: finite numbers, the
+suite's protocol and split), method and dataset names are drawn as text in figures
+(eval.report.plain_text) and escaped in Markdown and HTML, and a report is made anew or
+not at all (`write_leaderboard` removes the previous one first).
+
+One table is recomputed, on purpose: the protocol-sensitivity table scores the same
+renders under each scoring protocol the field uses (eval.protocols: ours, NerfBaselines',
+nerfstudio's ns-eval) and gives the spread, so a reader sees how much the protocol alone
+moves a number before comparing ours with a published one.
+"""
+
+from __future__ import annotations
+
+import html
+
+import numpy as np
+from pathlib import Path
+
+from nerfgauge.core.errors import InputError
+from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
+from nerfgauge.core.folders import MARKER, folder_lock, read_marker
+from nerfgauge.orchestrate.suite import robustness as suite_robustness
+from nerfgauge.orchestrate.suite.definition import OURS, Suite, dataset_dir, read_results, read_suite_folder, suite_from_folder
+from nerfgauge.eval.check import ScoringProtocol, protocol_of_metrics, validate_scores
+from nerfgauge.eval.metrics import METRIC_NAMES
+from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, aggregate_runs, mean_of,
+                                        paired_comparison, run_matrix, suite_interval)
+from nerfgauge.eval.protocols import suite_sensitivity, sensitivity_rows
+from nerfgauge.eval.report import (PROTOCOL_CAPTION, REPORT_FIGURES, page_html, remove_previous,
+                                  sortable_table_html, write_report)
+
+GEOMETRY_COLUMNS = ("geometry_chamfer_l1", "geometry_fscore_1pct", "normal_angle_mean")
+COST_COLUMNS = ("train_seconds", "model_bytes", "ms_per_frame")
+LOWER_IS_BETTER_PREFIXES = ("depth_absrel", "depth_rmse", "depth_mae", "geometry_chamfer", "geometry_accuracy",
+                            "geometry_completeness", "normal_angle", "lpips", "train_seconds", "model_bytes",
+                            "ms_per_frame")
+LABELS = {"psnr": "PSNR dB", "ssim": "SSIM", "psnr_foreground": "fg PSNR dB", "depth_absrel": "depth AbsRel",
+          "depth_rmse": "depth RMSE", "depth_mae": "depth MAE", "depth_delta1": "depth δ<1.25",
+          "opacity_iou": "opacity IoU", "geometry_chamfer_l1": "Chamfer-L1", "geometry_fscore_1pct": "F@1%",
+          "normal_angle_mean": "normal err °", "train_seconds": "train s", "model_bytes": "model MB",
+          "ms_per_frame": "render ms/frame"}
+
+
+def metric_names() -> tuple:
+    return tuple(METRIC_NAMES)
+
+
+def scores(suite: Suite, out: Path, rel: str) -> dict:
+    """A metrics.json of the suite folder (rel: a path check_result accepted), checked as
+    eval.check.validate_scores checks one, and scored under the suite's protocol (ours, its
+    background and depth kind) on its split: the leaderboard ranks like with like."""
+    path = out / rel
+    document = validate_scores(read_json(path, finite=True), str(path))
+    wanted = ScoringProtocol(background=suite.protocol["background"], depth_kind=suite.protocol["depth_kind"])
+    scored = protocol_of_metrics(document, str(path))
+    if scored != wanted or document.get("split") != suite.protocol["split"]:
+        raise InputError(f"{path} was scored under protocol {scored} on split {document.get('split')!r}; the suite "
+                         f"scores under {wanted} on {suite.protocol['split']!r}: evaluate again")
+    return document
+
+
+def leaderboard(suite: Suite, out) -> dict:
+    """The leaderboard document from the suite folder's results (checked by read_results).
+    A seeded method's aggregate is recomputed from its per-seed metrics.json files
+    (eval.uncertainty.aggregate_runs, as evaluate_suite computed aggregate.json), so
+    aggregate.json is never read back."""
+    out = Path(out)
+    results = read_results(suite, out)
+    methods, documents = {}, {}
+    for method, result in results.items():
+        scenes = {}
+        for entry in suite.scenes:
+            row = result["datasets"].get(entry.id)
+            if row is None:
+                continue
+            document = scores(suite, out, row["metrics"])
+            runs = row.get("runs")
+            if runs:  # suite run --seeds: every seed's metrics.json, and their aggregate
+                docs = [scores(suite, out, run["metrics"]) for run in runs]
+                aggregate = aggregate_runs(docs, [run["seed"] for run in runs],
+                                           [m for m in METRIC_NAMES if m in docs[0]["mean"]])
+                documents.setdefault(method, {})[entry.id] = ([run["seed"] for run in runs], docs)
+                values = {name: aggregate["mean"].get(name) for name in document["mean"]}
+                spread = {"seeds": [run["seed"] for run in runs], "aggregate": row["aggregate"],
+                          "psnr_per_seed": aggregate["per_seed"].get("psnr"),
+                          "psnr_seed_std": aggregate["seed_std"].get("psnr"),
+                          "psnr_variance": aggregate["variance"].get("psnr")}
+                interval = aggregate["ci95"].get("psnr")
+            else:
+                documents.setdefault(method, {})[entry.id] = (None, [document])
+                values, spread = dict(document["mean"]), {}
+                interval = (document.get("ci95") or {}).get("psnr")
+            geometry = row.get("geometry") or {}
+            values.update({key: geometry.get(key) for key in GEOMETRY_COLUMNS})
+            values.update({"train_seconds": row.get("train_seconds"), "model_bytes": row.get("model_bytes"),
+                           "ms_per_frame": row.get("ms_per_frame")})
+            scenes[entry.id] = {"values": values, "frames": len(document["frames"]),
+                                "psnr_ci95": interval, **spread,
+                                "geometry_na": geometry.get("n/a"), "metrics": row["metrics"]}
+        methods[method] = {"scenes": scenes, **({"skipped": dict(result["skipped"])} if result.get("skipped") else {})}
+    columns = [name for name in (*metric_names(), *GEOMETRY_COLUMNS, *COST_COLUMNS)
+               if any(isinstance(s["values"].get(name), (int, float)) for m in methods.values() for s in m["scenes"].values())]
+    for name_of_method, method in methods.items():
+        method["mean"], method["scenes_scored"], method["ci95"] = {}, {}, {}
+        for name in columns:
+            defined = [s["values"][name] for s in method["scenes"].values() if isinstance(s["values"].get(name), (int, float))]
+            method["mean"][name] = mean_of(defined, f"{name_of_method}: mean {name} over datasets") if defined else None
+            method["scenes_scored"][name] = len(defined)
+            if name in METRIC_NAMES:  # the suite mean's interval (eval.uncertainty.suite_interval)
+                tables = [run_matrix(docs, name)[0] for _, docs in documents.get(name_of_method, {}).values()]
+                interval = suite_interval(tables, np.random.default_rng(EVALUATE_SEED)) if tables else None
+                method["ci95"][name] = None if interval is None else interval.to_json()
+    unavailable = unavailable_metrics(suite, out, results)
+    paired = paired_comparisons(documents, [e.id for e in suite.scenes])
+    return {**suite.identity(), "schema": 1, "columns": columns, "scenes": [e.id for e in suite.scenes],
+            "methods": methods, **({"unavailable": unavailable} if unavailable else {}),
+            **({"paired": paired} if paired["rows"] else {})}
+
+
+PAIRED_METRIC = "psnr"
+ROBUSTNESS_CAPTION = ("Robustness: each method's score against the level of one train-view degradation "
+                      "(orchestrate.suite.robustness; docs/conventions.md, Degradations)")
+PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views and seeds; 95% "
+                  f"paired bootstrap interval over seeds, then views; two-sided Wilcoxon signed-rank test on the "
+                  f"per-view differences at {LEVEL_ALPHA:g})")
+
+
+def paired_comparisons(documents: dict, scenes: list, reference: str = OURS, metric: str = PAIRED_METRIC) -> dict:
+    """{"metric", "reference", "level", "alpha", "test", "resamples", "seed", "rows": [...]}:
+    one row per (dataset, method other than `reference`) that both scored: {"scene",
+    "method", "views", "mean_difference" (reference - method), "ci95", "p_value",
+    "significant", "degenerate"} from eval.uncertainty.paired_comparison on the per-frame
+    values matched by frame name (the reference's order; frames either leaves undefined
+    are left out), one row per training seed paired by `pair_runs` (by seed; a method run
+    once, without a seed, repeated for every seed of the other), so the differences are
+    per (seed, view) and the interval resamples seeds then views. documents: {method:
+    {scene id: (seeds or None, [metrics.json document per seed])}}."""
+    rows = []
+    for scene in scenes:
+        ours = documents.get(reference, {}).get(scene)
+        if ours is None:
+            continue
+        for method, by_scene in documents.items():
+            theirs = by_scene.get(scene)
+            if method == reference or theirs is None:
+                continue
+            pairs = pair_runs(ours, theirs)
+            if pairs is None:
+                continue
+            seeds, our_docs, their_docs = pairs
+            their_names = {frame["name"] for frame in their_docs[0]["frames"]}
+            names = [frame["name"] for frame in our_docs[0]["frames"] if frame["name"] in their_names]
+            result = paired_comparison(run_matrix(our_docs, metric, names)[0], run_matrix(their_docs, metric, names)[0],
+                                       np.random.default_rng(EVALUATE_SEED))
+            rows.append({"scene": scene, "method": method, "views": result["n_views"], "seeds": seeds,
+                         **{key: result[key] for key in ("mean_difference", "ci95", "p_value", "significant",
+                                                         "degenerate")}})
+    return {"metric": metric, "reference": reference, "difference": f"{reference} - method", "level": LEVEL,
+            "alpha": LEVEL_ALPHA, "test": "Wilcoxon signed-rank, two-sided (scipy.stats.wilcoxon, exact for n <= 50)",
+            "resamples": RESAMPLES, "seed": EVALUATE_SEED, "rows": rows}
+
+
+def pair_runs(ours: tuple, theirs: tuple):
+    """(seeds, our documents, their documents) paired run by run: by seed where both were run
+    with seeds (the seeds both have, in our order); a method run once without a seed (the
+    baselines: deterministic functions of the dataset) is paired with every seed of the
+    other, its one document repeated. None when two seeded methods share no seed."""
+    (our_seeds, our_docs), (their_seeds, their_docs) = ours, theirs
+    if our_seeds is not None and their_seeds is not None:
+        common = [seed for seed in our_seeds if seed in their_seeds]
+        if not common:
+            return None
+        return (common, [our_docs[our_seeds.index(s)] for s in common],
+                [their_docs[their_seeds.index(s)] for s in common])
+    if our_seeds is None and their_seeds is None:
+        return None, our_docs, their_docs
+    if our_seeds is None:
+        return their_seeds, our_docs * len(their_docs), their_docs
+    return our_seeds, our_docs, their_docs * len(our_docs)
+
+
+def paired_rows(paired: dict) -> list[list[str]]:
+    """The paired table, a header row first."""
+    rows = [["dataset", "method", "seeds", "views", "Δ PSNR dB", "95% CI", "Wilcoxon p",
+             f"significant at {paired['alpha']:g}"]]
+    for row in paired["rows"]:
+        ci = row["ci95"]
+        mark = "–" if row["significant"] is None else "yes" if row["significant"] else "no (not significant)"
+        seeds = row.get("seeds")
+        rows.append([row["scene"], row["method"], "1 (no seed)" if seeds is None else str(len(seeds)), str(row["views"]),
+                     "–" if row["mean_difference"] is None else f"{row['mean_difference']:+.2f}",
+                     "–" if ci is None else f"[{ci[0]:+.2f}, {ci[1]:+.2f}]" + (" (1 view)" if row["degenerate"] else ""),
+                     "–" if row["p_value"] is None else f"{row['p_value']:.3g}", mark])
+    return rows
+
+
+def unavailable_metrics(suite: Suite, out: Path, results: dict) -> dict:
+    """{id: {metric: reason}} of folder entries (ground truth nerfgauge did not write): the
+    metrics their metrics.json says are unavailable (shown as not defined)."""
+    unavailable = {}
+    for entry in suite.scenes:
+        if not entry.foreign:
+            continue
+        for result in results.values():
+            row = result["datasets"].get(entry.id)
+            if row is not None:
+                notes = scores(suite, out, row["metrics"]).get("notes") or {}
+                unavailable[entry.id] = {metric: note.removeprefix("unavailable: ") for metric, note in sorted(notes.items())
+                                         if isinstance(note, str) and note.startswith("unavailable: ")}
+                break
+    return unavailable
+
+
+def _cell(name: str, value) -> str:
+    if not isinstance(value, (int, float)):
+        return "–"
+    if name == "model_bytes":
+        return f"{value / 1e6:.2f}"
+    if name in ("psnr", "psnr_foreground", "train_seconds", "ms_per_frame", "normal_angle_mean") or name.startswith("psnr"):
+        return f"{value:.2f}"
+    return f"{value:.4f}"
+
+
+def _label(name: str) -> str:
+    return LABELS.get(name, name) + (" ↓" if name.startswith(LOWER_IS_BETTER_PREFIXES) else "")
+
+
+def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
+    """(title, rows with a header row first): the means, then one table per dataset."""
+    columns = board["columns"]
+    n = len(board["scenes"])
+    head = ["method", "scenes"] + [_label(c) for c in columns] + ["PSNR 95% CI"]
+    mean_rows = [head]
+    for method, data in board["methods"].items():
+        mean_rows.append([method, f"{len(data['scenes'])}/{n}" if len(data["scenes"]) != n else str(n)]
+                         + [_cell(c, data["mean"].get(c)) for c in columns]
+                         + [_interval((data.get("ci95") or {}).get("psnr"))])
+    result = [(f"mean over datasets ({n})", mean_rows)]
+    for scene in board["scenes"]:
+        rows = [["method", "frames"] + [_label(c) for c in columns]
+                + ["PSNR 95% CI", "seeds", "PSNR per seed (std)", "PSNR variance: seed / view / residual"]]
+        for method, data in board["methods"].items():
+            entry = data["scenes"].get(scene)
+            if entry is None:
+                reason = data.get("skipped", {}).get(scene)
+                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * (len(columns) + 4))
+            else:
+                rows.append([method, str(entry["frames"])] + [_cell(c, entry["values"].get(c)) for c in columns]
+                            + [_interval(entry.get("psnr_ci95")), _seeds(entry), _per_seed(entry),
+                               _variance(entry.get("psnr_variance"))])
+        result.append((scene, rows))
+    return result
+
+
+def _interval(ci) -> str:
+    return "–" if ci is None else f"[{ci[0]:.2f}, {ci[1]:.2f}]"
+
+
+def _seeds(entry: dict) -> str:
+    seeds = entry.get("seeds")
+    return "1 (no seed)" if seeds is None else ",".join(map(str, seeds))
+
+
+def _variance(split) -> str:
+    """eval.uncertainty.variance_split's components (dB²) and the seeds' share."""
+    if not split or split.get("var_seed") is None or split.get("var_residual") is None:
+        return "–"
+    share = split.get("seed_share")
+    return (f"{split['var_seed']:.3g} / {split['var_view']:.3g} / {split['var_residual']:.3g}"
+            + ("" if share is None else f" (seeds {100 * share:.0f}%)"))
+
+
+def _per_seed(entry: dict) -> str:
+    """Each seed's PSNR and the sample std of those (the run-to-run spread)."""
+    values = entry.get("psnr_per_seed")
+    if not values:
+        return "–"
+    std = entry.get("psnr_seed_std")
+    return " ".join("–" if v is None else f"{v:.2f}" for v in values) + ("" if std is None else f" (±{std:.2f})")
+
+
+def protocol_sensitivity(suite: Suite, out) -> dict:
+    """{method: eval.protocols sensitivity document over the suite's datasets}: every
+    method's renders (result.json's pred_root/<dataset id>) under each protocol. Render
+    folders that are gone are left out (the leaderboard's numbers do not need them)."""
+    entries = {}
+    for method, result in read_results(suite, out).items():
+        root = result.get("pred_root")
+        seeds = result.get("seeds")  # seeded runs: the first seed's renders stand for the method
+        base = Path(root) / f"seed-{seeds[0]}" if root and seeds else Path(root or ".")
+        pairs = [(dataset_dir(out, entry), base / entry.id) for entry in suite.scenes
+                 if root and entry.id in result.get("datasets", {}) and (base / entry.id).is_dir()]
+        entries[method] = pairs
+    return suite_sensitivity(entries, split=suite.protocol["split"], background=suite.protocol["background"])
+
+
+def unavailable_line(notes: dict) -> str:
+    """One line: which metrics a folder entry cannot give and why (grouped by reason)."""
+    by_reason = {}
+    for metric, reason in notes.items():
+        by_reason.setdefault(reason, []).append(metric)
+    return "Unavailable on this ground truth (not defined, –): " + "; ".join(
+        f"{', '.join(metrics)}: {reason}" for reason, metrics in by_reason.items()) + "."
+
+
+def _md_row(cells) -> str:
+    """One Markdown table row; a `|` or `\\` in a cell (a method named a|b) is escaped so it
+    stays one cell."""
+    return "| " + " | ".join(str(cell).replace("\\", "\\\\").replace("|", "\\|") for cell in cells) + " |"
+
+
+def markdown(board: dict) -> str:
+    lines = [f"# Leaderboard: suite {board['suite']} v{board['version']}", "",
+             f"suite sha256 `{board['suite_sha256']}`; ↓ lower is better; – not defined or not applicable; "
+             "means are over the datasets where a value is defined (leaderboard.json: scenes_scored).", ""]
+    for title, rows in tables(board):
+        lines += [f"## {title}", "", _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [_md_row(row) for row in rows[1:]]
+        lines.append("")
+        if title in board.get("unavailable", {}):
+            lines += [unavailable_line(board["unavailable"][title]), ""]
+    if board.get("paired"):
+        rows = paired_rows(board["paired"])
+        lines += [f"## {PAIRED_CAPTION}", "", _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [_md_row(row) for row in rows[1:]]
+        lines.append("")
+    if board.get("robustness"):
+        rows = suite_robustness.rows(board["robustness"])
+        lines += [f"## {ROBUSTNESS_CAPTION}", "", f"![robustness curves]({suite_robustness.PLOT})", "",
+                  _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [_md_row(row) for row in rows[1:]]
+        lines.append("")
+    sensitivity = board.get("protocol_sensitivity")
+    if sensitivity:
+        rows = sensitivity_rows(sensitivity)
+        lines += [f"## {PROTOCOL_CAPTION}", "", _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [_md_row(row) for row in rows[1:]]
+        lines.append("")
+    return "\n".join(lines)
+
+
+LEADERBOARD_FILES = ("leaderboard.json", "leaderboard.md", "leaderboard.html", suite_robustness.PLOT)
+
+
+def write_leaderboard(suite: Suite | None, out, *, log=print, reports: bool = True) -> dict:
+    """leaderboard.json, .md and .html in `out`, and report/<id>/report.html per dataset.
+    suite: None reads it from out/suite.json (orchestrate.suite.suite_from_folder).
+
+    Made anew or not at all: in a folder whose marker says it is a nerfgauge suite, under
+    its write lock, the previous leaderboard files, robustness.png and every
+    report/<id>/'s report.html and figures are removed before anything is read or computed,
+    so a report that fails (a malformed state file, a figure that cannot be drawn) leaves
+    nothing that looks current. A folder without that marker is refused untouched."""
+    out = Path(out)
+    marker = read_marker(out) if out.is_dir() else None
+    if marker is None or marker["kind"] != "suite":
+        raise InputError(f"{out} is not a suite folder (no suite marker {MARKER}); make it with nerfgauge suite generate")
+    with folder_lock(out):
+        reports_root = out / "report"
+        ids = (sorted(p.name for p in reports_root.iterdir() if p.is_dir() and not p.is_symlink())
+               if reports_root.is_dir() and not reports_root.is_symlink() else [])
+        remove_previous([out / name for name in LEADERBOARD_FILES]
+                        + [reports_root / entry_id / name for entry_id in ids
+                           for name in ("report.html", *REPORT_FIGURES)])
+        if suite is None:
+            suite = suite_from_folder(out)
+        read_suite_folder(suite, out)
+        return _write_leaderboard(suite, out, log, reports)
+
+
+def _write_leaderboard(suite: Suite, out: Path, log, reports: bool) -> dict:
+    board = leaderboard(suite, out)
+    board["protocol_sensitivity"] = protocol_sensitivity(suite, out)
+    curves = suite_robustness.robustness(suite, board)  # score against degradation level, when the suite has levels
+    if curves is not None:
+        board["robustness"] = curves
+        suite_robustness.plot(curves, out / suite_robustness.PLOT)
+    links = {}
+    if reports:
+        for entry in suite.scenes:
+            page = scene_report(suite, out, entry, board)
+            if page is not None:
+                links[entry.id] = page.relative_to(out).as_posix()
+    write_json(out / "leaderboard.json", board)
+    write_bytes_atomic(out / "leaderboard.md", markdown(board).encode())
+    sections = []
+    for title, rows in tables(board):
+        link = f" (<a href='{html.escape(links[title])}'>report</a>)" if title in links else ""
+        sections.append(f"<h2>{html.escape(title)}{link}</h2>" + sortable_table_html(rows))
+        if title in board.get("unavailable", {}):
+            sections.append(f"<p>{html.escape(unavailable_line(board['unavailable'][title]))}</p>")
+    if board.get("paired"):
+        sections.append(f"<h2>{html.escape(PAIRED_CAPTION)}</h2>" + sortable_table_html(paired_rows(board["paired"])))
+    if board.get("robustness"):
+        sections.append(f"<h2>{html.escape(ROBUSTNESS_CAPTION)}</h2><img src='{suite_robustness.PLOT}' "
+                        f"alt='robustness curves'>" + sortable_table_html(suite_robustness.rows(board["robustness"])))
+    if board["protocol_sensitivity"]:
+        sections.append(f"<h2>{html.escape(PROTOCOL_CAPTION)}</h2>"
+                        + sortable_table_html(sensitivity_rows(board["protocol_sensitivity"])))
+    notes = [f"suite sha256 {board['suite_sha256']}", "↓ lower is better; – not defined or not applicable; "
+             "means are over the datasets where a value is defined (leaderboard.json: scenes_scored); "
+             "click a column header to sort."]
+    write_bytes_atomic(out / "leaderboard.html",
+                       page_html(f"nerfgauge leaderboard: {board['suite']} v{board['version']}", "".join(sections), notes))
+    log(markdown(board).split("\n## ", 2)[1].split("\n", 1)[1] if len(board["scenes"]) else "")
+    log(f"leaderboard: {out / 'leaderboard.md'}, {out / 'leaderboard.html'}, {out / 'leaderboard.json'}")
+    return board
+
+
+def scene_report(suite: Suite, out: Path, entry, board: dict):
+    """report/<id>/report.html: our NeRF against the baselines on one dataset, when our
+    NeRF's renders are in the suite folder (suite run). Returns its path or None."""
+    seeds = board["methods"].get(OURS, {}).get("scenes", {}).get(entry.id, {}).get("seeds")
+    where = f"seed-{seeds[0]}/{entry.id}" if seeds else entry.id  # seeded: the first seed's run is shown
+    renders = out / "predictions" / OURS / where
+    if (entry.foreign or OURS not in board["methods"] or entry.id not in board["methods"][OURS]["scenes"]
+            or not renders.is_dir()):  # a folder entry: no run of ours (suite_run.skipped_on_folder)
+        return None
+    documents, baselines = {}, {}
+    for method, data in board["methods"].items():
+        scene = data["scenes"].get(entry.id)
+        if scene is not None:
+            documents[method] = scores(suite, out, scene["metrics"])
+            if method != OURS:
+                baselines[method] = documents[method]
+    target = out / "report" / entry.id / "report.html"
+    write_report(target, f"{suite.name} v{suite.version}: {entry.id}", dataset_dir(out, entry), renders,
+                 documents, log_path=out / "runs" / where / "log.jsonl", ours=OURS,
+                 train_seconds=board["methods"][OURS]["scenes"][entry.id]["values"].get("train_seconds"),
+                 notes=[f"scene {entry.scene}, seed {entry.seed}, {entry.dataset.get('width')}x"
+                        f"{entry.dataset.get('height')}, split {suite.protocol['split']}"
+                        + (f"; training seed {seeds[0]} of {len(seeds)} shown (leaderboard: all)" if seeds else "")])
+    return target
