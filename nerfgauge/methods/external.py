@@ -478,10 +478,12 @@ def _executable(argv0: str, env: dict, method: str) -> str:
                                "see the spec's install lines)")
 
 
-def run_command(argv: list, *, cwd: Path, env: dict, log: Path, timeout: float | None, method: str) -> Finished:
+def run_command(argv: list, *, cwd: Path, env: dict, log: Path, timeout: float | None, method: str,
+                limit: str = "twice its budget") -> Finished:
     """Run argv (no shell) in its own process group with stdout and stderr in `log`
-    (measure.run_process: its own wall, CPU and peak memory; stopped past `timeout`);
-    MethodFailed with the reason when it cannot start, is stopped or exits non-zero."""
+    (measure.run_process: its own wall, CPU and peak memory; stopped past `timeout`, which
+    `limit` names in the reason); MethodFailed with the reason when it cannot start, is
+    stopped or exits non-zero."""
     argv = [_executable(argv[0], env, method), *argv[1:]]
     with open_append(log) as output:
         output.write("$ " + " ".join(argv) + "\n")
@@ -491,7 +493,7 @@ def run_command(argv: list, *, cwd: Path, env: dict, log: Path, timeout: float |
         except OSError as error:
             raise MethodFailed(method, f"cannot start {argv[0]}: {error.strerror or error}") from None
     if finished.stopped:
-        raise MethodFailed(method, f"ran past {timeout:g} s (twice its budget) and was stopped; log: {log}")
+        raise MethodFailed(method, f"ran past {timeout:g} s ({limit}) and was stopped; log: {log}")
     if finished.status != 0:
         raise MethodFailed(method, f"{Path(argv[0]).name} exited with status {finished.status}; log: {log}")
     return finished
@@ -562,9 +564,10 @@ class ExternalMethod(Method):
         with claim_folder(run, "run", recipe):
             env = _environment(self.spec, values, run)
             _prepare(self.spec, values)
-            timeout = (OVERRUN * request.budget_seconds if request.budget_seconds is not None
-                       else self.spec.train.timeout_seconds)
-            finished = run_command(argv, cwd=run, env=env, log=run / "train.log", timeout=timeout, method=self.name)
+            budgeted = request.budget_seconds is not None
+            timeout = OVERRUN * request.budget_seconds if budgeted else self.spec.train.timeout_seconds
+            finished = run_command(argv, cwd=run, env=env, log=run / "train.log", timeout=timeout, method=self.name,
+                                   limit="twice its budget" if budgeted else "its spec's train.timeout_seconds")
             find_files(self.spec, run)  # the files rendering needs are there
             result = TrainResult(seconds=finished.seconds, steps=request.steps, cpu_seconds=finished.cpu_seconds,
                                  peak_memory_bytes=finished.peak_memory_bytes,
@@ -589,7 +592,7 @@ class ExternalMethod(Method):
             _prepare(self.spec, values)
             finished = run_command(_argv(self.spec.render, values, job["device"], self.name), cwd=run, env=env,
                                    log=run / f"render-{split}.log", timeout=self.spec.render.timeout_seconds,
-                                   method=self.name)
+                                   method=self.name, limit="its spec's render.timeout_seconds")
         renders = Path(fill(self.spec.renders, values))
         frames = _count_images(renders)
         if frames == 0:
