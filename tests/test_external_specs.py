@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +48,22 @@ def test_specs_sharing_an_environment_install_it_the_same_way():
     assert all(len(lines) == 1 for lines in by_environment.values()), by_environment
 
 
+DOCS = Path(__file__).resolve().parent.parent / "docs" / "how-to" / "methods"
+
+
+@pytest.mark.parametrize("name", sorted(shipped_specs()))
+def test_each_shipped_spec_has_a_page_showing_its_install_lines_as_they_are(name):
+    """docs/how-to/methods/NAME.md shows the spec's install lines in a bash block, ENV for the
+    environment's folder and the spec folder as the repository names it: a spec whose lines
+    change fails here until its page shows the new ones."""
+    page = DOCS / f"{name}.md"
+    assert page.is_file(), f"{page} documents {name}"
+    blocks = re.findall(r"```bash\n(.*?)```", page.read_text(), re.S)
+    shown = [[line for line in block.splitlines() if line.strip()] for block in blocks]
+    assert resolve(name).spec.install_lines("ENV", "nerfgauge/methods/specs") in shown
+    assert f"nerfgauge methods install {name}" in page.read_text()
+
+
 @pytest.mark.parametrize("name", SHIPPED)
 def test_a_shipped_spec_keeps_the_tool_inside_the_run_folder(name):
     """What the tool writes to its home, caches and config goes into the run folder."""
@@ -63,10 +80,12 @@ def test_the_methods_command_lists_the_shipped_specs_with_their_install_lines(ca
     rows = {row["name"]: row for row in json.loads(capsys.readouterr().out)}
     assert set(SHIPPED) <= set(rows) and "compact" in rows
     assert rows["nerfacto"]["environment"] == str(tmp_path / "ns")
-    assert rows["nerfacto"]["install"][-1] == f"{tmp_path / 'ns'}/bin/python -m pip install nerfstudio==1.1.5"
+    constraints = SPECS_FOLDER.resolve() / "nerfstudio-constraints.txt"  # {spec_folder}: where the spec is
+    assert rows["nerfacto"]["install"][-1] == (f"{tmp_path / 'ns'}/bin/python -m pip install torch==2.14.1 "
+                                               f"torchvision==0.29.1 nerfstudio==1.1.5 --constraint {constraints}")
     assert main(["methods"]) == 0
     text = capsys.readouterr().out
-    assert "install: nerfgauge methods install splatfacto" in text and "pip install nerfstudio==1.1.5" in text
+    assert "install: nerfgauge methods install splatfacto" in text and "nerfstudio==1.1.5 --constraint" in text
 
 
 def test_a_named_environment_is_found_by_its_variable_or_in_the_data_folder(monkeypatch, tmp_path):

@@ -437,9 +437,10 @@ def test_a_method_with_its_own_schedule_takes_no_steps(tiny_dataset, tmp_path):
 # --- named environments and their install ------------------------------------------------------
 
 
-def env_spec(tmp_path, install_lines: list) -> Path:
-    """A spec whose environment "toolbox" is built by `install_lines` (python -c programs)."""
-    install = json.dumps([[sys.executable, "-c", code, "{env}"] for code in install_lines])
+def env_spec(tmp_path, install_lines: list, extra_arguments=()) -> Path:
+    """A spec whose environment "toolbox" is built by `install_lines` (python -c programs,
+    given {env} and then `extra_arguments`)."""
+    install = json.dumps([[sys.executable, "-c", code, "{env}", *extra_arguments] for code in install_lines])
     return echo_spec(tmp_path, f'install = {install}\n[environment]\nname = "toolbox"\n'
                                'variables = { MARK = "{env}" }\n'
                                '[train]\ncommand = ["tool", PROGRAM]\n[render]\ncommand = ["tool"]\n'
@@ -490,6 +491,29 @@ def test_an_interrupted_install_is_never_taken_for_a_complete_one(tmp_path, caps
     assert main(["methods", "install", str(fixed), "--env", str(target)]) == 0
     assert "environment installed" in capsys.readouterr().out and (target / "bin" / "tool").is_file()
     assert json.loads((target / "nerfgauge-environment.json").read_text())["state"] == "complete"
+
+
+def test_a_file_beside_the_spec_that_its_install_names_is_part_of_the_environment(tmp_path, capsys):
+    """{spec_folder}/pins.txt (a constraints file): the same file, nothing to do; another
+    content, built again; no such file, one line before anything runs."""
+    from nerfgauge.cli import main
+
+    target, pins = tmp_path / "env", tmp_path / "pins.txt"
+    copy = MAKE_TOOL + "; (b.parent / 'pins-used').write_text(pathlib.Path(sys.argv[2]).read_text())"
+    spec = str(env_spec(tmp_path, [copy], ["{spec_folder}/pins.txt"]))
+    pins.write_text("tool==1\n")
+    assert main(["methods", "install", spec, "--env", str(target)]) == 0
+    assert (target / "pins-used").read_text() == "tool==1\n" and "environment installed" in capsys.readouterr().out
+    assert main(["methods", "install", spec, "--env", str(target)]) == 0
+    assert "already installed" in capsys.readouterr().out
+    pins.write_text("tool==2\n")
+    assert main(["methods", "install", spec, "--env", str(target)]) == 0
+    assert (target / "pins-used").read_text() == "tool==2\n" and "environment installed" in capsys.readouterr().out
+    pins.unlink()
+    assert main(["methods", "install", spec, "--env", str(target)]) == 2
+    error = capsys.readouterr().err
+    assert f"its install lines name {pins}, which is not a file" in error and "\n" not in error.strip()
+    assert (target / "pins-used").read_text() == "tool==2\n"  # refused before anything was touched
 
 
 def test_install_refuses_a_folder_it_did_not_build_untouched(tmp_path, capsys):

@@ -35,9 +35,10 @@ Placeholders, replaced in every argument and variable: {dataset} {run} {seed} {s
 {budget_seconds} {threads} {device} {env} (the environment's folder) {spec_folder} (the
 folder of the spec file: scripts shipped beside it) and the [settings] names; rendering
 adds {split} {out} and the [files] entries (a glob inside the run folder that must match
-exactly one file); install lines take {env} and {python} (this interpreter: `{python} -m
-venv {env}`). An unknown placeholder is refused when the spec is read, not when the
-command runs.
+exactly one file); install lines take {env}, {python} (this interpreter: `{python} -m
+venv {env}`) and {spec_folder} (a constraints file shipped beside the spec: the
+environment's record holds each such file's hash, so changing one rebuilds it). An unknown
+placeholder is refused when the spec is read, not when the command runs.
 
 A named environment lives in $NERFGAUGE_ENV_<NAME> (the name upper-cased, '-' and '.' as
 '_') when that is set, else in $XDG_DATA_HOME/nerfgauge/envs/<name> (default
@@ -89,7 +90,7 @@ LENGTHS = ("steps", "seconds", "both", "own")  # own: the tool trains its own sc
 CONTEXT_PLACEHOLDERS = ("env", "spec_folder")  # where the tool and the spec's own files are
 TRAIN_PLACEHOLDERS = ("dataset", "run", "seed", "steps", "budget_seconds", "threads", "device", *CONTEXT_PLACEHOLDERS)
 RENDER_PLACEHOLDERS = (*TRAIN_PLACEHOLDERS, "split", "out")
-INSTALL_PLACEHOLDERS = ("env", "python")
+INSTALL_PLACEHOLDERS = ("env", "python", "spec_folder")
 PREPARE_STEPS = ("torchvision_alexnet",)
 SETTING_TYPES = (bool, int, float, str)
 OVERRUN = 2.0  # a command is stopped once it has run this many times its budget
@@ -147,12 +148,14 @@ class Spec:
                 "variables": self.variables, "environment": self.environment, "settings": self.settings,
                 "prepare": self.prepare}
 
-    def install_lines(self, env: Path | None = None) -> list[str]:
+    def install_lines(self, env: Path | str | None = None, spec_folder: Path | str | None = None) -> list[str]:
         """The install lines as a user would type them into a shell: {env} as `env` (the
-        folder the method looks in), {python} as python3."""
+        folder the method looks in), {python} as python3, {spec_folder} as `spec_folder`
+        (default: the spec's own folder)."""
         if isinstance(self.install, str):
             return [self.install] if self.install else []
-        values = {"env": "{env}" if env is None else str(env), "python": "python3"}
+        values = {"env": "{env}" if env is None else str(env), "python": "python3",
+                  "spec_folder": str(self.folder.resolve() if spec_folder is None else spec_folder)}
         return [shlex.join(fill(arg, values) for arg in argv) for argv in self.install]
 
 

@@ -3,9 +3,10 @@ lines (nerfgauge.methods.external: an argument list each, {env} and {python} rep
 without a shell), into DIR or where the method looks for it (external.environment_folder).
 
 An environment we build holds ENVIRONMENT_RECORD, written twice: "building" before the first
-line runs and "complete" (with the lines) after the last, so a build that was cut short is
-never taken for a complete one. Installing again:
-- complete, from the same lines: nothing to do;
+line runs and "complete" (with the lines, and the sha256 of each file they name inside the
+spec's folder: a constraints file) after the last, so a build that was cut short is never
+taken for a complete one. Installing again:
+- complete, from the same lines and files: nothing to do;
 - ours but incomplete, or built from other lines: emptied and built again;
 - a folder that is not empty and holds no record (the user's own environment): refused
   untouched (point the method at it with $NERFGAUGE_ENV_<NAME> instead).
@@ -23,7 +24,7 @@ from pathlib import Path
 
 from nerfgauge.core import owned
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import read_json, write_json
+from nerfgauge.core.files import read_json, sha256_file, write_json
 from nerfgauge.core.folders import LOCK, folder_lock
 from nerfgauge.methods.external import (DROPPED_VARIABLES, ExternalMethod, environment_folder, environment_variable,
                                         fill)
@@ -33,7 +34,22 @@ ENVIRONMENT_RECORD = "nerfgauge-environment.json"
 
 def _record(spec) -> dict:
     return {"tool": "nerfgauge", "environment": spec.environment or spec.name,
-            "install": [list(argv) for argv in spec.install]}
+            "install": [list(argv) for argv in spec.install], "files": _named_files(spec)}
+
+
+def _named_files(spec) -> dict:
+    """{argument: sha256} of each file an install line names inside the spec's folder
+    ({spec_folder}/...): its content is part of what the environment is built from."""
+    folder = spec.folder.resolve()
+    named = {}
+    for argv in spec.install:
+        for arg in argv:
+            if "{spec_folder}" in arg:
+                path = Path(fill(arg, {"spec_folder": str(folder), "env": "", "python": ""}))
+                if not path.is_file():
+                    raise InputError(f"method {spec.name}: its install lines name {path}, which is not a file")
+                named[arg] = sha256_file(path)
+    return named
 
 
 def _state(folder: Path, wanted: dict) -> str:
@@ -88,7 +104,7 @@ def install_environment(method: ExternalMethod, folder=None, *, log=None) -> tup
             return folder, False
         write_json(folder / ENVIRONMENT_RECORD, {**wanted, "state": "building"})
         _empty(folder)
-        values = {"env": str(folder), "python": sys.executable}
+        values = {"env": str(folder), "python": sys.executable, "spec_folder": str(spec.folder.resolve())}
         for index, template in enumerate(spec.install, 1):
             argv = [fill(arg, values) for arg in template]
             print(f"nerfgauge methods install {spec.name} ({index}/{len(spec.install)}): {shlex.join(argv)}",
