@@ -128,34 +128,20 @@ def test_a_training_past_twice_its_budget_is_stopped_with_its_reason_and_writes_
     assert world["changes"]() == []
 
 
-def test_a_render_past_its_timeout_is_stopped_with_its_reason_and_writes_only_its_job(world, tiny_dataset):
+@pytest.mark.parametrize("mode, timeout, cause", [
+    ("hang", 0.5, "ran past 0.5 s (its spec's render.timeout_seconds) and was stopped; log: {log}"),
+    ("exit", None, "{program} exited with status 3; log: {log}"),
+    ("nothing", None, "its render command wrote no images under {renders}"),
+])
+def test_a_render_that_fails_gives_its_reason_and_writes_only_its_job(world, tiny_dataset, mode, timeout, cause):
+    """Stopped past its timeout, exited non-zero, or wrote no renders."""
     run, renders = world["job"] / "run", world["job"] / "renders"
-    method = world["method"]("train", "hang", render_timeout=0.5)
+    method = world["method"]("train", mode, render_timeout=timeout)
     method.train(TrainRequest(dataset=tiny_dataset, run=run, steps=1))
     with pytest.raises(MethodFailed) as error:
         method.render(run, tiny_dataset, "test", renders)
-    one_line(error.value, "ran past 0.5 s (its spec's render.timeout_seconds) and was stopped", run / "render-test.log")
-    contained(run, "hang")
-    assert world["changes"]() == []
-
-
-def test_a_render_that_exits_non_zero_fails_with_its_reason_and_writes_only_its_job(world, tiny_dataset):
-    run, renders = world["job"] / "run", world["job"] / "renders"
-    method = world["method"]("train", "exit")
-    method.train(TrainRequest(dataset=tiny_dataset, run=run, steps=1))
-    with pytest.raises(MethodFailed) as error:
-        method.render(run, tiny_dataset, "test", renders)
-    one_line(error.value, "exited with status 3", run / "render-test.log")
-    contained(run, "exit")
-    assert world["changes"]() == []
-
-
-def test_a_render_that_writes_no_renders_fails_with_its_reason_and_writes_only_its_job(world, tiny_dataset):
-    run, renders = world["job"] / "run", world["job"] / "renders"
-    method = world["method"]("train", "nothing")
-    method.train(TrainRequest(dataset=tiny_dataset, run=run, steps=1))
-    with pytest.raises(MethodFailed) as error:
-        method.render(run, tiny_dataset, "test", renders)
-    assert error.value.method == "failing" and error.value.reason == f"its render command wrote no images under {renders}"
-    contained(run, "nothing")
+    reason = cause.format(log=run / "render-test.log", renders=renders, program=Path(sys.executable).name)
+    assert error.value.method == "failing" and error.value.reason == reason
+    assert str(error.value) == f"method failing: {error.value.reason}" and "\n" not in str(error.value)
+    contained(run, mode)
     assert world["changes"]() == []
