@@ -478,19 +478,26 @@ def test_a_named_environment_is_installed_and_used_by_its_method(tiny_dataset, t
     assert f"set NERFGAUGE_ENV_TOOLBOX={tmp_path / 'elsewhere'}" in capsys.readouterr().out
 
 
-def test_an_interrupted_install_is_never_taken_for_a_complete_one(tmp_path, capsys):
+def test_an_interrupted_install_is_never_taken_for_a_complete_one(tiny_dataset, tmp_path, capsys, monkeypatch):
     from nerfgauge.cli import main
 
     target = tmp_path / "env"
+    monkeypatch.setenv("NERFGAUGE_ENV_TOOLBOX", str(target))
     failing = env_spec(tmp_path, [MAKE_TOOL, "import sys; sys.exit(4)"])
     assert main(["methods", "install", str(failing), "--env", str(target)]) == 2
     error = capsys.readouterr().err
     assert "line 2 of 2" in error and "exited with status 4" in error and "\n" not in error.strip()
     assert json.loads((target / "nerfgauge-environment.json").read_text())["state"] == "building"
+    # its bin/tool was made by the first line, but the method refuses the half-built environment
+    assert (target / "bin" / "tool").is_file()
+    with pytest.raises(MethodFailed, match=f"its environment {target} is incomplete .*install toolbox` again"):
+        resolve(str(failing)).train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
+    assert not (tmp_path / "run").exists()
     fixed = env_spec(tmp_path, [MAKE_TOOL])  # the same folder, built again from scratch
     assert main(["methods", "install", str(fixed), "--env", str(target)]) == 0
     assert "environment installed" in capsys.readouterr().out and (target / "bin" / "tool").is_file()
     assert json.loads((target / "nerfgauge-environment.json").read_text())["state"] == "complete"
+    resolve(str(fixed)).train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
 
 
 def test_a_file_beside_the_spec_that_its_install_names_is_part_of_the_environment(tmp_path, capsys):

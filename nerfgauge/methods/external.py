@@ -96,6 +96,7 @@ SETTING_TYPES = (bool, int, float, str)
 OVERRUN = 2.0  # a command is stopped once it has run this many times its budget
 RESULT = "method.json"  # RUN/method.json: the spec, the request and what training cost
 ENV_VARIABLE_PREFIX = "NERFGAUGE_ENV_"
+ENVIRONMENT_RECORD = "nerfgauge-environment.json"  # in an environment `nerfgauge methods install` built
 DROPPED_VARIABLES = ("PYTHONPATH", "PYTHONHOME")  # ours, not the tool's interpreter's
 
 
@@ -404,8 +405,21 @@ def bin_folder(spec: Spec) -> Path | None:
 
 
 def _check_installed(spec: Spec) -> None:
+    """The spec's environment is there; one we build must be complete (an install cut short
+    leaves its record saying "building"). A folder without our record is the user's own."""
     folder = bin_folder(spec)
-    if folder is None or folder.is_dir():
+    if folder is None:
+        return
+    record = folder.parent / ENVIRONMENT_RECORD
+    if folder.is_dir():
+        if record.is_file() and not record.is_symlink():
+            try:
+                complete = read_json(record).get("state") == "complete"
+            except InputError:
+                complete = False
+            if not complete:
+                raise MethodFailed(spec.name, f"its environment {folder.parent} is incomplete (an install was cut "
+                                              f"short): run `nerfgauge methods install {spec.name}` again")
         return
     if spec.environment is not None:
         raise MethodFailed(spec.name, f"its environment {folder.parent} is not installed: run `nerfgauge methods "

@@ -26,10 +26,8 @@ from nerfgauge.core import owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, sha256_file, write_json
 from nerfgauge.core.folders import LOCK, folder_lock
-from nerfgauge.methods.external import (DROPPED_VARIABLES, ExternalMethod, environment_folder, environment_variable,
-                                        fill)
-
-ENVIRONMENT_RECORD = "nerfgauge-environment.json"
+from nerfgauge.methods.external import (DROPPED_VARIABLES, ENVIRONMENT_RECORD, ExternalMethod, environment_folder,
+                                        environment_variable, fill)
 
 
 def _record(spec) -> dict:
