@@ -132,7 +132,7 @@ def test_a_training_past_twice_its_budget_is_stopped_with_its_reason_and_writes_
     ("hang", 0.5, "ran past 0.5 s (its spec's render.timeout_seconds) and was stopped; log: {log}"),
     ("exit", None, "{program} exited with status 3; log: {log}"),
     ("nothing", None, "its render command wrote no images under {renders}"),
-])
+], ids=["stopped", "exit-non-zero", "no-renders"])
 def test_a_render_that_fails_gives_its_reason_and_writes_only_its_job(world, tiny_dataset, mode, timeout, cause):
     """Stopped past its timeout, exited non-zero, or wrote no renders."""
     run, renders = world["job"] / "run", world["job"] / "renders"
