@@ -90,6 +90,7 @@ from nerfgauge.eval.error_maps import (
 from nerfgauge.eval.extrapolation import extrapolation_gap, format_gap
 from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.lpips import MIN_SIDE, NOT_AVAILABLE, LpipsBatch, load_lpips
+from nerfgauge.eval.lpips_cache import features_source
 from nerfgauge.eval import protocols as protocols_module
 from nerfgauge.eval.protocols import image_scores, prepare
 from nerfgauge.eval.predictions import (
@@ -399,7 +400,7 @@ def lpips_scorer(intrinsics):
     if min(intrinsics.width, intrinsics.height) < MIN_SIDE:
         return None, f"n/a (LPIPS-Alex needs images of at least {MIN_SIDE} px)"
     model = load_lpips()
-    return (None, NOT_AVAILABLE) if model is None else (LpipsBatch(model), None)
+    return (None, NOT_AVAILABLE) if model is None else (LpipsBatch(model, features_source(model)), None)
 
 
 def format_means(document: dict) -> str:

@@ -32,7 +32,7 @@ from nerfgauge.core.files import json_bytes, read_json, write_json
 from nerfgauge.core.owned import MARKER
 
 LOCK = ".nerfgauge.lock"
-KINDS = ("dataset", "run", "renders", "baseline", "evaluation", "pipeline", "suite", "bench", "sfm")
+KINDS = ("dataset", "run", "renders", "baseline", "evaluation", "pipeline", "suite", "bench", "sfm", "cache")
 TEMPORARY_GLOB = ".*.tmp*"  # files.atomic_path's temporary names
 
 
@@ -170,6 +170,21 @@ def claim_folder(folder, kind: str, recipe: str | None, *, overwrite: bool = Fal
             write_marker(folder, kind, recipe)
         remove_temporaries(folder)
         yield state
+
+
+def adopt_shared_folder(folder, kind: str) -> Path:
+    """Make `folder` (absent, empty, or ours of `kind`) a folder of ours that several
+    processes use at once without a write lock (a cache: each file in it is written
+    atomically on its own). Refused like claim_folder, before anything is written: a link
+    as the folder, a folder inside a dataset, a non-empty folder without our marker or of
+    another kind, a symbolic link anywhere inside (core.owned). Returns the folder."""
+    folder = Path(folder)
+    _refuse_inside_a_dataset(folder)
+    if _check_claimable(folder, kind, None, overwrite=False) == "new":
+        owned.make_folder(folder)
+        write_marker(folder, kind, None)  # two processes adopting at once write the same marker
+    owned.refuse_links_inside(folder)
+    return folder
 
 
 @contextlib.contextmanager
