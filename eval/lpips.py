@@ -66,6 +66,7 @@ NORMALISE_EPS = 1e-10
 # follows conv1 and conv2. The linear layers weigh the five ReLU outputs' channels.
 CONVS = ((3, 64, 11, 4, 2), (64, 192, 5, 1, 2), (192, 384, 3, 1, 1), (384, 256, 3, 1, 1), (256, 256, 3, 1, 1))
 CHANNELS = tuple(conv[1] for conv in CONVS)
+ALEX_POOL_BEFORE = (1, 2)  # the 3x3 stride-2 max-pools: before conv 2 and 3
 # VGG16's 13 feature convolutions (3x3, stride 1, padding 1); a 2x2 stride-2 max-pool comes
 # before conv 2, 4, 7 and 10; LPIPS taps the ReLU after conv 1, 3, 6, 9 and 12.
 VGG_CONVS = tuple((cin, cout, 3, 1, 1) for cin, cout in (
@@ -322,7 +323,7 @@ def _build_module(net: str = "alex"):
             x = (x - self.shift) / self.scale
             outputs = []
             for i, conv in enumerate(self.convs):
-                if self.net == "alex" and i in (1, 2):  # 3x3 stride-2 max-pools after conv1 and conv2
+                if self.net == "alex" and i in ALEX_POOL_BEFORE:  # 3x3 stride-2 max-pools after conv1 and conv2
                     x = nn.functional.max_pool2d(x, kernel_size=3, stride=2)
                 if self.net == "vgg" and i in VGG_POOL_BEFORE:
                     x = nn.functional.max_pool2d(x, kernel_size=2, stride=2)

@@ -23,7 +23,7 @@ the protocol's mapping (background, uint8 round trip) and LPIPS' [-1, 1] scaling
 as the network sees it.
 
 An entry is data, never trusted: `<key>.lpips` is a fixed header (MAGIC, a 4-byte length,
-bounded JSON naming the key, layout, shapes, memory order and the body's sha256) and the
+bounded JSON naming the key, layout, shapes, memory order and the body's crc32) and the
 float32 body, read with numpy (no pickle), through O_NOFOLLOW, refused unless the file's
 size is the one the expected shapes imply and its key, shapes, order and digest are
 right and every value lies in [0, 1] (unit-normalised ReLU outputs; NaN fails). A refused
@@ -53,6 +53,7 @@ import sys
 import threading
 import time
 import weakref
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -62,7 +63,7 @@ import numpy as np
 from nerfgauge.core import bounded, complete, folders, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path
-from nerfgauge.eval.lpips import cache_dir
+from nerfgauge.eval.lpips import ALEX_POOL_BEFORE, VGG_POOL_BEFORE, VGG_TAPS, cache_dir
 
 FOLDER_ENV = "NERFGAUGE_LPIPS_CACHE"
 CAP_ENV = "NERFGAUGE_LPIPS_CACHE_GB"
@@ -74,6 +75,7 @@ DEFAULT_CAP_GB = 8.0
 FEATURE_LAYOUT = 1  # what an entry's body means (unit features, float32, in memory order); bump on change
 MAGIC = b"nerfgauge lpips features\n"
 MAX_HEADER_BYTES = 1 << 16
+BODY_ALIGNMENT = 64  # bytes: the body starts at a multiple of it, so read tensors are aligned as fresh ones
 SUFFIX = ".lpips"
 ENTRY_NAME = re.compile(r"[0-9a-f]{64}\.lpips")
 STALE_TEMPORARY_SECONDS = 24 * 3600  # a killed writer's temporary (`.<entry>.tmp<pid>`) older than this goes
@@ -141,13 +143,22 @@ def entry_key(model, images) -> str:
 
 
 def expected_shapes(model, shape) -> list[tuple]:
-    """The shapes of model.unit_features for an input of `shape`, from a pass on torch's
-    meta device (no arithmetic, no data: the network's own layers decide)."""
-    import torch  # torch: only when LPIPS is scored
-
-    with torch.device("meta"):
-        meta = type(model)()
-        return [tuple(f.shape) for f in meta.unit_features(torch.empty(tuple(shape)))]
+    """The shapes of model.unit_features for an input of `shape` ([N, 3, H, W]): from its
+    convolutions' own kernel, stride and padding and the max-pools eval.lpips puts between
+    them (tests/test_lpips_cache.py holds them to a real pass). Not a pass on torch's meta
+    device: that imports torch._dynamo, 5 s."""
+    n, _, height, width = shape
+    sides, shapes = [height, width], []
+    for i, conv in enumerate(model.convs):
+        if model.net == "alex" and i in ALEX_POOL_BEFORE:
+            sides = [(side - 3) // 2 + 1 for side in sides]  # 3x3, stride 2
+        if model.net == "vgg" and i in VGG_POOL_BEFORE:
+            sides = [side // 2 for side in sides]  # 2x2, stride 2
+        sides = [(side + 2 * pad - k) // stride + 1
+                 for side, k, stride, pad in zip(sides, conv.kernel_size, conv.stride, conv.padding)]
+        if model.net == "alex" or i in VGG_TAPS:
+            shapes.append((n, conv.out_channels, *sides))
+    return shapes
 
 
 # --- one entry on disk ----------------------------------------------------------------------------
@@ -175,12 +186,13 @@ def write_entry(path: Path, key: str, features: list) -> int:
     """Store `features` (canonical tensors) at `path` atomically; returns its size."""
     orders = [_memory_order(f) for f in features]
     bodies = [np.ascontiguousarray(f.permute(o).numpy()) for f, o in zip(features, orders)]
-    digest = hashlib.sha256()
+    checksum = 0
     for body in bodies:
-        digest.update(memoryview(body).cast("B"))
+        checksum = zlib.crc32(memoryview(body).cast("B"), checksum)
     header = json.dumps({"key": key, "layout": FEATURE_LAYOUT, "dtype": "<f4",
                          "shapes": [list(f.shape) for f in features], "orders": orders,
-                         "body_sha256": digest.hexdigest()}).encode()
+                         "body_crc32": checksum}).encode()
+    header += b" " * (-(len(MAGIC) + 4 + len(header)) % BODY_ALIGNMENT)  # JSON allows trailing blanks
     size = len(MAGIC) + 4 + len(header) + sum(body.nbytes for body in bodies)
     with _write_lock, atomic_path(path, verify=lambda tmp, shown: complete.check_size(tmp, size, shown)) as tmp:
         with open(tmp, "wb") as handle:
@@ -212,28 +224,33 @@ def _read_regular(path: Path, limit: int):
             raise BadEntry("not a regular file")
         if status.st_size > limit:
             raise BadEntry(f"{status.st_size} bytes, more than the {limit} its shapes allow")
-        data = bytearray(status.st_size)
-        if handle.readinto(data) != status.st_size:
+        data = np.empty(status.st_size, np.uint8)  # not bytearray(n): zero-filling 300 MB first costs as much as reading it
+        if handle.readinto(memoryview(data)) != status.st_size:
             raise BadEntry("shorter than its size")
-        os.utime(descriptor)  # least recently used: a hit is a use
+        try:
+            os.utime(descriptor)  # least recently used: a hit is a use
+        except PermissionError:  # a cache shared read-only: used, never reordered
+            pass
     return data
 
 
 def read_entry(path: Path, key: str, shapes: list) -> Optional[list]:
     """The features stored at `path` for `key` with these shapes (canonical tensors), None
     when there is no entry; BadEntry (saying why) when the file is not that entry."""
+    import torch  # torch: only when LPIPS is scored
+
     body_bytes = 4 * sum(math.prod(shape) for shape in shapes)
     data = _read_regular(path, len(MAGIC) + 4 + MAX_HEADER_BYTES + body_bytes)
     if data is None:
         return None
-    if data[:len(MAGIC)] != MAGIC or len(data) < len(MAGIC) + 4:
+    if len(data) < len(MAGIC) + 4 or data[:len(MAGIC)].tobytes() != MAGIC:
         raise BadEntry("not an LPIPS feature file")
     (length,) = struct.unpack_from("<I", data, len(MAGIC))
     start = len(MAGIC) + 4 + length
     if length > MAX_HEADER_BYTES or len(data) != start + body_bytes:
         raise BadEntry(f"{len(data)} bytes, not the {len(MAGIC) + 4 + length + body_bytes} of its shapes")
     try:
-        header = bounded.loads_json(bytes(data[len(MAGIC) + 4:start]), path, limit=MAX_HEADER_BYTES)
+        header = bounded.loads_json(data[len(MAGIC) + 4:start].tobytes(), path, limit=MAX_HEADER_BYTES)
     except (InputError, ValueError) as error:
         raise BadEntry(f"unreadable header ({str(error).splitlines()[0]})") from None
     if not isinstance(header, dict) or header.get("key") != key or header.get("layout") != FEATURE_LAYOUT \
@@ -246,18 +263,17 @@ def read_entry(path: Path, key: str, shapes: list) -> Optional[list]:
             any(not isinstance(o, list) or sorted(o) != list(range(len(s))) for o, s in zip(orders, shapes)):
         raise BadEntry("no memory order of its dimensions")
     body = memoryview(data)[start:]
-    if hashlib.sha256(body).hexdigest() != header.get("body_sha256"):
-        raise BadEntry("its values fail their sha256")
-    values = np.frombuffer(data, np.dtype("<f4"), offset=start)
+    if zlib.crc32(body) != header.get("body_crc32"):  # catches accidents (a writer of the folder could forge any)
+        raise BadEntry("its values fail their crc32")
+    values = data[start:].view(np.dtype("<f4"))  # the body starts 64-byte aligned (write_entry pads the header)
+    low, high = (float(v) for v in torch.from_numpy(values).aminmax())  # one pass over the contiguous body
+    if not (low >= 0.0 and high <= 1.0):  # NaN fails both
+        raise BadEntry(f"values outside [0, 1] ({low}, {high})")
     features, offset = [], 0
     for shape, order in zip(shapes, orders):
         count = math.prod(shape)
         features.append(_from_buffer(values[offset:offset + count], shape, order))
         offset += count
-    for feature in features:
-        low, high = (float(v) for v in feature.aminmax())
-        if not (low >= 0.0 and high <= 1.0):  # NaN fails both
-            raise BadEntry(f"values outside [0, 1] ({low}, {high})")
     return features
 
 
