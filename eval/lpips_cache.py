@@ -116,7 +116,7 @@ def _note(message: str) -> None:
 
 
 def weights_digest(model) -> str:
-    """sha256 of the model's weights: every state-dict entry's name, dtype, shape and bytes."""
+    """sha256 of the model's weights: every parameter's and buffer's name, dtype, shape and bytes."""
     digest = _weights_digests.get(model)
     if digest is None:
         hasher = hashlib.sha256()
