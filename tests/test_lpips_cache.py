@@ -101,8 +101,10 @@ def lpips_columns(document: dict) -> dict:
 # --- exactness ----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("protocol, nets", [("nerfgauge", {"lpips": "alex"}),
-                                            ("nerfbaselines", {"lpips": "vgg", "lpips_alex": "alex"})])
+@pytest.mark.parametrize("protocol, nets", [
+    ("nerfgauge", {"lpips": "alex"}),
+    pytest.param("nerfbaselines", {"lpips": "vgg", "lpips_alex": "alex"}, marks=pytest.mark.slow),  # ~20 s: VGG
+])
 def test_lpips_is_the_same_bit_for_bit_with_and_without_the_cache(tiny_dataset, methods, models, xdg, tmp_path,
                                                                    monkeypatch, protocol, nets):
     from nerfgauge.core import dataset
@@ -402,7 +404,7 @@ WRITER = """
 import sys, numpy as np, torch
 from pathlib import Path
 from nerfgauge.eval import lpips_cache as C
-shapes = [(2, 64, 40, 40), (2, 192, 20, 20)]
+shapes = [(2, 64, 24, 24), (2, 192, 12, 12)]
 rng = np.random.default_rng(0)
 features = [torch.from_numpy(rng.random(s, dtype=np.float32)) for s in shapes]
 for _ in range(int(sys.argv[2])):
@@ -410,12 +412,13 @@ for _ in range(int(sys.argv[2])):
 """
 
 
+@pytest.mark.slow  # two Python processes importing torch: ~20 s on this shared machine
 def test_two_processes_writing_one_entry_leave_a_whole_one(tmp_path):
     path = tmp_path / f"{'0' * 64}.lpips"
-    shapes = [(2, 64, 40, 40), (2, 192, 20, 20)]
+    shapes = [(2, 64, 24, 24), (2, 192, 12, 12)]
     rng = np.random.default_rng(0)
     expected = [torch.from_numpy(rng.random(s, dtype=np.float32)) for s in shapes]
-    writers = [subprocess.Popen([sys.executable, "-c", WRITER, str(path), "40"]) for _ in range(2)]
+    writers = [subprocess.Popen([sys.executable, "-c", WRITER, str(path), "20"]) for _ in range(2)]
     reads = 0
     while any(w.poll() is None for w in writers):
         got = C.read_entry(path, "k" * 64, shapes)  # a BadEntry here would be a torn write
@@ -431,6 +434,7 @@ def test_two_processes_writing_one_entry_leave_a_whole_one(tmp_path):
 # --- the benchmark -------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # seven evaluates with VGG
 def test_bench_function_and_cli(tiny_dataset, xdg, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv(C.FOLDER_ENV, str(tmp_path / "users-cache"))
     result = B.bench_lpips_cache(tiny_dataset, protocol="nerfbaselines", work=tmp_path / "work", uncached=True,
