@@ -59,8 +59,28 @@ One table per scene, one entry per metric, each an inline table with `min` and/o
 
 Each bound is one check. Its margin is `value - min` or `max - value`: positive or zero
 passes. A metric that is null or missing in metrics.json while it has a bound fails, with
-the reason (for lpips without its weights: "lpips is n/a (install: nerfgauge lpips install)"); so does NaN. `--scene NAME` checks the metrics against NAME's bounds instead of
+the reason (for lpips without its weights: "lpips is n/a (install: nerfgauge lpips install)").
+A value that is not a finite number (NaN, Infinity, an integer beyond float range) is no
+score at all: the metrics file is malformed, exit 2 with one line, not a failed bound (exit
+1). `--scene NAME` checks the metrics against NAME's bounds instead of
 those of the scene the metrics file names (e.g. a `random` run with another seed).
+
+Protocols: scores are compared only with bounds measured under the same scoring protocol
+(`ScoringProtocol`: eval.protocols' name, nerfgauge, nerfbaselines or ns-eval; the
+background colour is composited onto; the depth kind). A thresholds file states its own in a
+`[protocol]` table (`check --calibrate` writes it from its runs)::
+
+    [protocol]
+    name = "nerfgauge"          # eval.protocols.PROTOCOLS
+    background = "white"        # default: the protocol's own (ns-eval: black), else white
+    depth_kind = "distance"     # default distance
+
+A file without one (written before protocols were recorded) is read as ours, nerfgauge on
+white with ray distance, and the first line of the output says so. metrics.json states its
+protocol in "protocol", "protocol_background" (else "background") and "depth_kind" (one
+without them, from before protocols existed, is ours on white with ray distance). A
+metrics file scored under another protocol than its bounds is refused (exit 2, one line
+naming both), and so is `check --calibrate` over runs of mixed protocols.
 
 Geometry bounds are checked only against a metrics.json that has a `geometry` table.
 One thresholds file serves both kinds of metrics file: `nerfgauge run` writes the table
@@ -79,8 +99,9 @@ metrics.json (written by `nerfgauge evaluate`; `nerfgauge run` adds `geometry`),
      "geometry": {"geometry_fscore_1pct": 0.30, "normal_angle_mean": 28.2, ...},
      "std": {...}, "ci95": {"psnr": [30.6, 31.8], ...}, "frames": [...], "timing": {...}}
 
-Only `schema`, `scene`, `mean`, `geometry` and `ci95` ({metric: [low, high] or null},
-`nerfgauge evaluate`) are read here.
+Only `schema`, `scene`, `mean`, `geometry`, `ci95` ({metric: [low, high] or null},
+`nerfgauge evaluate`), `training` and the protocol fields are read here; every number read
+must be finite.
 """
 
 from __future__ import annotations
@@ -89,13 +110,15 @@ import json
 import math
 import sys
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 import tomllib
 from nerfgauge.eval.geometry import SUMMARY_NAMES
-from nerfgauge.eval.metrics import METRIC_NAMES as IMAGE_METRIC_NAMES
+from nerfgauge.eval.metrics import BACKGROUNDS, METRIC_NAMES as IMAGE_METRIC_NAMES
+from nerfgauge.eval.predictions import DEPTH_SUFFIXES
+from nerfgauge.eval.protocols import DEFAULT as DEFAULT_PROTOCOL_NAME, PROTOCOLS
 
 from nerfgauge.core import bounded
 from nerfgauge.core.errors import InputError
@@ -115,6 +138,33 @@ TRAINING_KEY = "training"  # a table's calibrated training, not a metric (check 
 UNDER_TRAINED_FRACTION = 0.5  # fewer steps than this share of the calibration's: under-trained
 EXIT_UNDER_TRAINED = 4  # a bound failed on a run that got under half the calibrated steps
 JUNIT_KIND = "junit"  # the JUnit file's mark, `<!-- nerfgauge-kind: junit -->` (core.outputs)
+PROTOCOL_TABLE = "protocol"  # thresholds' [protocol]: what the bounds were measured under
+PROTOCOL_KEYS = ("name", "background", "depth_kind")
+TRAINING_NUMBERS = ("steps", "seconds", "steps_per_second", "budget_seconds", "seed")  # metrics.json training, read here
+
+
+@dataclass(frozen=True)
+class ScoringProtocol:
+    """What a score was measured under: eval.protocols' protocol, the background colour
+    the images were composited onto, and the depth kind. Two scores are comparable only
+    under equal protocols. recorded: False for a thresholds file without [protocol] (read
+    as ours)."""
+
+    name: str = DEFAULT_PROTOCOL_NAME
+    background: str = "white"
+    depth_kind: str = "distance"
+    recorded: bool = field(default=True, compare=False)
+
+    def __str__(self) -> str:
+        return f"{self.name} (colour on {self.background}, depth {self.depth_kind})"
+
+    def to_toml(self) -> str:
+        """The [protocol] table of a thresholds file."""
+        return (f"[{PROTOCOL_TABLE}]\nname = \"{self.name}\"\nbackground = \"{self.background}\"\n"
+                f"depth_kind = \"{self.depth_kind}\"\n")
+
+
+OURS = ScoringProtocol()
 
 
 @dataclass(frozen=True)
@@ -125,6 +175,7 @@ class Bound:
     min: Optional[float] = None
     max: Optional[float] = None
     on: str = "mean"  # "ci95": min against the interval's lower end, max against its upper end
+    protocol: ScoringProtocol = OURS  # what the bound was measured under (the file's [protocol])
 
 
 @dataclass(frozen=True)
@@ -205,13 +256,92 @@ def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def finite_number(value) -> bool:
+    """An int or float (not a bool) that is a finite float: not NaN or +-inf, and not an
+    integer beyond float range (JSON integers are unbounded; float(10**400) overflows)."""
+    if not _is_number(value):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
+def shown(value, limit: int = 40) -> str:
+    """repr(value), cut to `limit` characters, for one-line messages (a 400-digit integer
+    or a forged 1 MB string stays one short line)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def _choice(value, known, what: str, source: str) -> str:
+    if not isinstance(value, str) or value not in known:
+        raise InputError(f"{source}: {what} must be one of {', '.join(known)}, got {shown(value)}")
+    return value
+
+
+def protocol_of_metrics(document: dict, source: str = "metrics") -> ScoringProtocol:
+    """The protocol a metrics.json was scored under (module docstring): "protocol",
+    "protocol_background" (else "background") and "depth_kind"; absent fields are ours
+    (files from before protocols were recorded). InputError when they are unknown or
+    contradict the protocol (ns-eval scores on black)."""
+    name = _choice(document.get("protocol", DEFAULT_PROTOCOL_NAME), PROTOCOLS, "protocol", source)
+    background = _choice(document.get("protocol_background", document.get("background", "white")), BACKGROUNDS,
+                         "protocol_background", source)
+    fixed = PROTOCOLS[name].background
+    if fixed is not None and BACKGROUNDS[background] != tuple(fixed):
+        raise InputError(f"{source}: protocol {name} composites onto {_background_name(fixed)}, but the file says "
+                         f"{background}")
+    depth_kind = _choice(document.get("depth_kind", "distance"), DEPTH_SUFFIXES, "depth_kind", source)
+    return ScoringProtocol(name, background, depth_kind)
+
+
+def _background_name(colour) -> str:
+    return next(name for name, value in BACKGROUNDS.items() if value == tuple(colour))
+
+
+def _protocol_table(table, source: str) -> ScoringProtocol:
+    """A thresholds file's [protocol] table: name (required), background (default: the
+    protocol's own, else white), depth_kind (default distance)."""
+    where = f"{source}: [{PROTOCOL_TABLE}]"
+    if not isinstance(table, dict):
+        raise InputError(f"{where} must be a table (name, background, depth_kind), got {shown(table)}")
+    unknown = sorted(set(table) - set(PROTOCOL_KEYS))
+    if unknown:
+        raise InputError(f"{where}: unknown key {unknown[0]!r}; known: {', '.join(PROTOCOL_KEYS)}")
+    if "name" not in table:
+        raise InputError(f"{where} has no name; give one of {', '.join(PROTOCOLS)}")
+    fixed = PROTOCOLS.get(table["name"]).background if table["name"] in PROTOCOLS else None
+    document = {"protocol": table["name"], "depth_kind": table.get("depth_kind", "distance"),
+                "protocol_background": table.get("background", "white" if fixed is None else _background_name(fixed))}
+    return protocol_of_metrics(document, where)
+
+
+def check_protocol(metrics: dict, bounds: list, metrics_source: str = "metrics",
+                   thresholds_source: str = "thresholds") -> ScoringProtocol:
+    """The metrics' protocol when it is the one every bound was measured under; InputError
+    (one line naming both) otherwise: scores of different protocols are not comparable."""
+    scored = protocol_of_metrics(metrics, metrics_source)
+    for bound in bounds:
+        if bound.protocol != scored:
+            raise InputError(f"{metrics_source} was scored under protocol {scored}, but the bounds of "
+                             f"{thresholds_source} were measured under {bound.protocol}: scores of different "
+                             f"protocols are not comparable (score with nerfgauge evaluate --protocol "
+                             f"{bound.protocol.name}, or calibrate thresholds under {scored.name})")
+    return scored
+
+
 def parse_thresholds(data: dict, source: str = "thresholds") -> dict[str, dict[str, Bound]]:
     """Validate parsed TOML: {table name: {metric: Bound}}, in file order.
 
     Raises InputError naming the offending table, metric or key.
     """
     tables: dict[str, dict[str, Bound]] = {}
+    protocol = (_protocol_table(data[PROTOCOL_TABLE], source) if PROTOCOL_TABLE in data
+                else ScoringProtocol(recorded=False))
     for scene, table in data.items():
+        if scene == PROTOCOL_TABLE:
+            continue
         if scene in METRIC_NAMES:
             raise InputError(f"{source}: metric {scene!r} is outside a scene table; "
                              f"put it under [scene] or [\"{DEFAULT_TABLE}\"]")
@@ -243,14 +373,14 @@ def parse_thresholds(data: dict, source: str = "thresholds") -> dict[str, dict[s
             for key, value in entry.items():
                 if key == "on":
                     continue
-                if not _is_number(value) or not math.isfinite(value):
-                    raise InputError(f"{where}.{key} must be a finite number, got {value!r}")
+                if not finite_number(value):
+                    raise InputError(f"{where}.{key} must be a finite number, got {shown(value)}")
             low, high = entry.get("min"), entry.get("max")
             if low is not None and high is not None and low > high:
                 raise InputError(f"{where}: min {low} is greater than max {high}")
             bounds[metric] = Bound(metric,
                                    None if low is None else float(low),
-                                   None if high is None else float(high), on)
+                                   None if high is None else float(high), on, protocol)
         tables[scene] = bounds
     return tables
 
@@ -262,7 +392,7 @@ def _training_entry(entry, where: str) -> "Training":
     steps, speed = entry["steps"], entry["steps_per_second"]
     if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
         raise InputError(f"{where}.steps must be a positive integer, got {steps!r}")
-    if not _is_number(speed) or not math.isfinite(speed) or speed <= 0:
+    if not finite_number(speed) or speed <= 0:
         raise InputError(f"{where}.steps_per_second must be a positive number, got {speed!r}")
     return Training(steps, float(speed))
 
@@ -290,27 +420,60 @@ def validate_metrics(data, source: str = "metrics") -> dict:
     mean = data.get("mean")
     if not isinstance(mean, dict):
         raise InputError(f"{source}: 'mean' must be an object of metric values, got {mean!r}")
-    for metric, value in mean.items():
-        if value is not None and not _is_number(value):
-            raise InputError(f"{source}: mean.{metric} must be a number or null, got {value!r}")
+    _finite_values(mean, "mean", source)
     geometry = data.get("geometry", {})
     if not isinstance(geometry, dict):
-        raise InputError(f"{source}: 'geometry' must be an object of values, got {geometry!r}")
-    for metric, value in geometry.items():
-        if value is not None and not _is_number(value):
-            raise InputError(f"{source}: geometry.{metric} must be a number or null, got {value!r}")
+        raise InputError(f"{source}: 'geometry' must be an object of values, got {shown(geometry)}")
+    _finite_values(geometry, "geometry", source)
     training = data.get("training", {})
-    if not isinstance(training, dict):
-        raise InputError(f"{source}: 'training' must be an object (steps, seconds, steps_per_second), got {training!r}")
+    if training is not None and not isinstance(training, dict):
+        raise InputError(f"{source}: 'training' must be an object (steps, seconds, steps_per_second), "
+                         f"got {shown(training)}")
+    _finite_values({key: value for key, value in (training or {}).items() if key in TRAINING_NUMBERS}, "training",
+                   source)
     intervals = data.get("ci95", {})
     if not isinstance(intervals, dict):
-        raise InputError(f"{source}: 'ci95' must be an object of [low, high] intervals, got {intervals!r}")
+        raise InputError(f"{source}: 'ci95' must be an object of [low, high] intervals, got {shown(intervals)}")
     for metric, value in intervals.items():
-        if value is not None and not (isinstance(value, list) and len(value) == 2 and all(map(_is_number, value))
+        if value is not None and not (isinstance(value, list) and len(value) == 2 and all(map(finite_number, value))
                                       and value[0] <= value[1]):
-            raise InputError(f"{source}: ci95.{metric} must be [low, high] numbers with low <= high or null, "
-                             f"got {value!r}")
+            raise InputError(f"{source}: ci95.{metric} must be [low, high] finite numbers with low <= high or null, "
+                             f"got {shown(value)}")
+    protocol_of_metrics(data, source)
     return data
+
+
+def validate_scores(data, source: str = "metrics") -> dict:
+    """validate_metrics, and the parts a report reads beside them: `std` (finite or null per
+    metric), `frames` (objects with a string `name`, every metric finite or null), `notes`
+    (strings), `noise.psnr_ceiling` and `timing.ms_per_frame` (finite or null). Returns
+    `data` unchanged; InputError (one line naming the field) otherwise."""
+    validate_metrics(data, source)
+    for name in ("std", "notes", "noise", "timing"):
+        if data.get(name) is not None and not isinstance(data[name], dict):
+            raise InputError(f"{source}: '{name}' must be an object, got {shown(data[name])}")
+    _finite_values(data.get("std") or {}, "std", source)
+    if not all(isinstance(note, str) for note in (data.get("notes") or {}).values()):
+        raise InputError(f"{source}: notes must be strings")
+    _finite_values({"psnr_ceiling": (data.get("noise") or {}).get("psnr_ceiling")}, "noise", source)
+    _finite_values({"ms_per_frame": (data.get("timing") or {}).get("ms_per_frame")}, "timing", source)
+    frames = data.get("frames")
+    if not isinstance(frames, list) or not all(isinstance(frame, dict) and isinstance(frame.get("name"), str)
+                                               for frame in frames):
+        raise InputError(f"{source}: frames must be a list of objects with a name, got {shown(frames)}")
+    for frame in frames:
+        _finite_values({key: value for key, value in frame.items() if key in METRIC_NAMES}, f"frames[{frame['name']}]",
+                       source)
+    return data
+
+
+def _finite_values(table: dict, name: str, source: str) -> None:
+    """Every value of `table` null or a finite number: a NaN or infinite score is not a
+    score (exit 2, not a failed bound)."""
+    for metric, value in table.items():
+        if value is not None and not finite_number(value):
+            reason = " (not finite: a score that is no number cannot be checked)" if _is_number(value) else ""
+            raise InputError(f"{source}: {name}.{metric} must be a number or null, got {shown(value)}{reason}")
 
 
 def load_metrics(path) -> dict:
@@ -406,9 +569,12 @@ def evaluate_bounds(scene: str, mean: dict, bounds: list[Bound], geometry: Optio
     return results
 
 
-def check_metrics(metrics: dict, bounds: list[Bound], source: str = "thresholds") -> list[CheckResult]:
+def check_metrics(metrics: dict, bounds: list[Bound], source: str = "thresholds",
+                  metrics_source: str = "metrics") -> list[CheckResult]:
     """The checks of a validated metrics document against `bounds`; InputError when every
-    one would be skipped (nothing would be checked)."""
+    one would be skipped (nothing would be checked) or when the metrics were scored under
+    another protocol than the bounds (`check_protocol`)."""
+    check_protocol(metrics, bounds, metrics_source, source)
     notes = metrics.get("notes") if isinstance(metrics.get("notes"), dict) else {}
     results = evaluate_bounds(metrics["scene"], metrics["mean"], bounds, metrics.get("geometry"), notes,
                               metrics.get("ci95"))
@@ -434,9 +600,9 @@ def _check_one(scene: str, metric: str, kind: str, limit: float, mean: dict, not
         return fail(None, f"{label} is {notes[metric]} but has a bound")
     if value is None:
         return fail(None, f"{label} is null in the metrics file (not measured) but has a bound")
+    if not finite_number(value):  # validate_metrics refuses these in a file; the same for the API's tables
+        raise InputError(f"{label} is {shown(value)}, not a finite number: it cannot be checked against a bound")
     value = float(value)
-    if math.isnan(value):
-        return fail(value, f"{label} is NaN")
     margin = value - limit if kind == "min" else limit - value
     passed = margin >= 0
     reason = "" if passed else (
@@ -521,11 +687,14 @@ def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[st
     if scene is not None and not known_scene(scene):
         raise InputError(f"unknown scene {scene!r} for --scene; known: {_known_scenes_text()}")
     bounds = bounds_for_scene(tables, table_scene, str(thresholds_path))
-    results = check_metrics(metrics, bounds, str(thresholds_path))
+    results = check_metrics(metrics, bounds, str(thresholds_path), str(metrics_path))
+    protocol = bounds[0].protocol  # one per file, and the metrics' own (check_metrics refused others)
 
     via = "" if table_scene == metrics["scene"] else f" (bounds of scene {table_scene})"
+    note = "" if protocol.recorded else (f"; note: {thresholds_path} records no [{PROTOCOL_TABLE}] (written before "
+                                         "protocols were recorded): read as ours")
     print(f"checking {metrics_path} (scene {metrics['scene']}, split {metrics.get('split', '?')}) "
-          f"against {thresholds_path}{via}", file=out)
+          f"against {thresholds_path}{via}, protocol {protocol}{note}", file=out)
     print(format_table(results), file=out)
     failed, skipped = sum(not r.passed for r in results), sum(r.skipped for r in results)
     print(f"{len(results)} checks: {len(results) - failed - skipped} passed, {failed} failed"
@@ -537,7 +706,7 @@ def run_check(metrics_path, thresholds_path, junit_path=None, scene: Optional[st
     if short is not None:
         print(short, file=out)
     properties = {"metrics": str(metrics_path), "thresholds": str(thresholds_path), "scene": metrics["scene"],
-                  "bounds_scene": table_scene}
+                  "bounds_scene": table_scene, "protocol": str(protocol)}
     if line is not None:
         properties["training"] = line
     if short is not None:

@@ -1,32 +1,31 @@
 """eval's subcommands: `check` (the CI gate, format in `eval.check`), `evaluate` (`eval.evaluate`),
-`baseline` (`eval.baselines`), `geometry` (`eval.geometry`, `eval.normals`) and `lpips`
-(`eval.lpips_commands`). `bench` and `suite` are registered by `nerfgauge.orchestrate.commands`,
-`mesh` by `nerf.commands`.
+`geometry` (`eval.geometry`, `eval.normals`) and `lpips` (`eval.lpips_commands`). `baseline`
+is the methods' (`nerfgauge.methods.commands`); `bench` and `suite` are registered by
+`nerfgauge.orchestrate`, `mesh` by `nerf.commands`.
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`comma_separated`). Output
-folders are claimed with `core.folders.claim_folder` (marker and lock): `baseline --out
-DIR` as a "baseline", bench folders as "bench". Output files (`evaluate --out`, `--ns-eval`,
+folders are claimed with `core.folders.claim_folder` (marker and lock). Output files (`evaluate --out`, `--ns-eval`,
 `--nerfbaselines`, `check --junit`, `mesh -o`, `geometry -o`) go through
 `core.outputs.check_output_file` before anything is computed: a new path or a nerfgauge file
 of the same kind; `--overwrite` also replaces a nerfgauge file of another kind.
 """
 
+import dataclasses
 from pathlib import Path
 
 from nerfgauge.core import arguments
-from nerfgauge.core.camera import ThinLens
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.core.outputs import check_output_file, claim_output_file, stamp
 from nerfgauge.eval import lpips_commands
-from nerfgauge.eval.baselines import METHODS, baseline_folder, write_baseline
 from nerfgauge.eval.calibrate import THRESHOLDS_KIND, calibrate, proposal_toml
 from nerfgauge.eval.check import run_check as check
-from nerfgauge.eval.evaluate import METRICS_KIND, evaluate, format_means
+from nerfgauge.eval.evaluate import METRICS_KIND, EvaluateConfig, evaluate, format_means
 from nerfgauge.eval.foreign_results import nerfbaselines_document, ns_eval_document
 from nerfgauge.eval.geometry import format_geometry, score_geometry
+from nerfgauge.eval.options import add_evaluate_arguments, evaluate_fields
 from nerfgauge.eval.pose_scores import KIND as POSES_KIND, format_pose_scores, score_poses
 from nerfgauge.nerf.runs import open_run_dataset
 
@@ -34,7 +33,6 @@ from nerfgauge.nerf.runs import open_run_dataset
 def register(subparsers) -> None:
     register_check(subparsers)
     register_evaluate(subparsers)
-    register_baseline(subparsers)
     register_geometry(subparsers)
     lpips_commands.register(subparsers)
 
@@ -85,8 +83,7 @@ def run_check(args) -> int:
         raise InputError("check needs METRICS.json and --thresholds FILE (or --calibrate RESULTS... --out FILE)")
     if args.out is not None or args.calibrate_metrics is not None:
         raise InputError("--out and --metrics go with --calibrate")
-    return check(args.metrics, args.thresholds, junit_path=args.junit, scene=args.scene,
-                 overwrite=getattr(args, "overwrite", False))
+    return check(args.metrics, args.thresholds, junit_path=args.junit, scene=args.scene, overwrite=args.overwrite)
 
 
 def run_calibrate(args) -> int:
@@ -128,25 +125,10 @@ def register_evaluate(subparsers) -> None:
                              "(eval/pose_scores.py)")
     parser.add_argument("--poses-out", type=arguments.path, metavar="FILE",
                         help="where --poses writes its document (default pose_errors.json beside POSES.json)")
-    parser.add_argument("--split", default="test", help="split to score (default test)")
     parser.add_argument("--out", type=arguments.path, metavar="FILE", help="metrics file (default DIR/metrics.json); "
                         "error maps go to error_maps/ beside it. FILE must be new or a metrics file nerfgauge "
                         "wrote (a rerun replaces it); never a user's file or a file in a dataset folder")
-    parser.add_argument("--background", choices=("white", "black"), default="white",
-                        help="composite RGBA onto this colour before PSNR/SSIM (default white)")
-    parser.add_argument("--protocol", default="nerfgauge", metavar="NAME",
-                        help="how renders are scored: nerfgauge (ours, default), nerfbaselines (their Blender 'nerf' "
-                             "protocol: white, uint8, dm_pix SSIM, LPIPS-VGG), ns-eval (nerfstudio's: black, float, "
-                             "torchmetrics SSIM, LPIPS-Alex); eval/protocols.py")
-    parser.add_argument("--depth-kind", choices=("distance", "z"), default="distance",
-                        help="what predicted depth holds: ray distance (default) or z-depth")
-    parser.add_argument("--pred-format", choices=("auto", "nerfgauge", "nerfstudio", "nerfbaselines", "folder"),
-                        default="auto", help="how DIR names its files: ours, ns-render dataset output, NerfBaselines "
-                                             "predictions, or a plain folder of images (default: detect; eval/predictions.py)")
-    parser.add_argument("--no-held-out", dest="held_out", action="store_false",
-                        help="skip the co-visible and depth-resolved scores (psnr_covisible, psnr_capture_bound, "
-                             "depth_absrel_resolved): "
-                             "their pass costs about 0.12 us per hit test pixel and train view")
+    add_evaluate_arguments(parser)  # the evaluate settings, defined once (eval.options; `run` takes the scoring ones)
     parser.add_argument("--ns-eval", type=arguments.path, metavar="FILE",
                         help="also write nerfstudio's ns-eval JSON (checkpoint: RUN/model.pt for RUN/renders); "
                              "new, or one nerfgauge wrote, as for --out")
@@ -164,89 +146,52 @@ OUTPUT_KINDS = {"ns-eval": "ns-eval", "nerfbaselines": "nerfbaselines-results"} 
 
 
 def run_evaluate(args) -> int:
-    poses = getattr(args, "poses", None)
-    if args.pred is None and poses is None:
+    if args.pred is None and args.poses is None:
         raise InputError("the following arguments are required: --pred (or --poses POSES.json)")
-    if poses is not None:
-        poses_out = getattr(args, "poses_out", None) or Path(poses).parent / "pose_errors.json"
-        check_output_file(poses_out, POSES_KIND, overwrite=getattr(args, "overwrite", False))
-        pose_document = score_poses(args.dataset, poses)  # before --pred's work: bad poses write nothing
+    if args.poses is not None:
+        poses_out = args.poses_out or Path(args.poses).parent / "pose_errors.json"
+        check_output_file(poses_out, POSES_KIND, overwrite=args.overwrite)
+        pose_document = score_poses(args.dataset, args.poses)  # before --pred's work: bad poses write nothing
         write_json(poses_out, stamp(pose_document, POSES_KIND))
         print(f"{format_pose_scores(pose_document)} -> {poses_out}")
         if args.pred is None:
             return 0
-    out = args.out if args.out is not None else args.pred / "metrics.json"
-    extra = {"ns-eval": getattr(args, "ns_eval", None), "nerfbaselines": getattr(args, "nerfbaselines", None)}
-    overwrite = getattr(args, "overwrite", False)
+    return score_renders(args.dataset, args.pred, EvaluateConfig(**evaluate_fields(args)), args.out,
+                         {"ns-eval": args.ns_eval, "nerfbaselines": args.nerfbaselines}, overwrite=args.overwrite,
+                         method_name=args.method_name)
+
+
+def score_renders(dataset, pred: Path, config: EvaluateConfig, out, extra: dict, *, overwrite: bool,
+                  method_name: str | None = None) -> int:
+    """Score `pred` against `dataset` as `config` says into `out` (default PRED/metrics.json),
+    print the table, and write the `extra` documents ({"ns-eval" | "nerfbaselines": FILE or
+    None}) naming the method `method_name` (default: PRED's name). Every output is checked
+    (core.outputs) before anything is computed."""
+    out = out if out is not None else pred / "metrics.json"
     check_output_file(out, METRICS_KIND, overwrite=overwrite)  # refused before anything is computed or written
     for name, target in extra.items():
         if target is not None:
             check_output_file(target, OUTPUT_KINDS[name], overwrite=overwrite)
-    document = evaluate(args.dataset, args.pred, split=args.split, out=out, background=args.background,
-                        depth_kind=args.depth_kind, pred_format=getattr(args, "pred_format", "auto"),
-                        held_out=getattr(args, "held_out", True), protocol=getattr(args, "protocol", "nerfgauge"))
+    document = evaluate(dataset, pred, out=out, **dataclasses.asdict(config))
     print(f"scene {document['scene']}, split {document['split']}, {len(document['frames'])} frames, "
           f"protocol {document['protocol']} (colour on {document['protocol_background']}, "
           f"LPIPS-{document['lpips_net']}), "
           f"background {document['background']}, depth {document['depth_kind']} -> {out}")
     print(format_means(document))
     if any(path is not None for path in extra.values()):
-        method = getattr(args, "method_name", None) or Path(args.pred).resolve().name
-        model = Path(args.pred).resolve().parent / "model.pt"  # RUN/renders of `nerfgauge render`
-        checkpoint = str(model) if model.is_file() else str(args.pred)
+        method = method_name or Path(pred).resolve().name
+        model = Path(pred).resolve().parent / "model.pt"  # RUN/renders of `nerfgauge render`
+        checkpoint = str(model) if model.is_file() else str(pred)
         if extra["ns-eval"] is not None:
             write_json(extra["ns-eval"], stamp(ns_eval_document(document, experiment_name=document["scene"],
                                                                 method_name=method, checkpoint=checkpoint),
                                                OUTPUT_KINDS["ns-eval"]))
             print(f"ns-eval results -> {extra['ns-eval']}")
         if extra["nerfbaselines"] is not None:
-            write_json(extra["nerfbaselines"], stamp(nerfbaselines_document(document, dataset_root=args.dataset,
-                                                                            pred_dir=args.pred, method_name=method),
+            write_json(extra["nerfbaselines"], stamp(nerfbaselines_document(document, dataset_root=dataset,
+                                                                            pred_dir=pred, method_name=method),
                                                      OUTPUT_KINDS["nerfbaselines"]))
             print(f"NerfBaselines results -> {extra['nerfbaselines']}")
-    return 0
-
-
-def register_baseline(subparsers) -> None:
-    parser = subparsers.add_parser(
-        "baseline",
-        help="render a split with a non-learned baseline (nearest view, two-plane light field)",
-        description="Render a split with a baseline from the lecture and write the frames as PNG named after "
-                    "the dataset's frames, plus timing.json; score them with `nerfgauge evaluate`.",
-    )
-    parser.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
-    parser.add_argument("--method", choices=METHODS, required=True,
-                        help="nearest: closest training view; lightfield-*: two-plane light field "
-                             "(datasets made with --layout lightfield)")
-    parser.add_argument("--out", type=arguments.path, required=True, metavar="DIR",
-                        help="folder for the renders (new, empty, or an earlier baseline folder)")
-    parser.add_argument("--split", default="test", help="split to render (default test)")
-    parser.add_argument("--evaluate", action="store_true", help="then score the renders (writes DIR/metrics.json)")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace a baseline folder made from another dataset, method or split")
-    parser.add_argument("--aperture", type=arguments.APERTURE, default=None, metavar="RADIUS",
-                        help="refocus: lens radius for every frame (default: each frame's own lens)")
-    parser.add_argument("--focus-distance", type=arguments.DISTANCE, default=None, metavar="D",
-                        help="refocus: focus distance for every frame (with --aperture)")
-    parser.add_argument("--lens-samples", type=arguments.LENS_SAMPLES, default=64, metavar="N",
-                        help="refocus: lens samples per pixel (default 64)")
-    parser.set_defaults(func=run_baseline)
-
-
-def run_baseline(args) -> int:
-    lens = None
-    if args.aperture is not None or args.focus_distance is not None:
-        if args.method != "refocus" or args.aperture is None or args.focus_distance is None:
-            raise InputError("--aperture and --focus-distance go together, with --method refocus")
-        lens = ThinLens(args.aperture, args.focus_distance)
-    with baseline_folder(args.dataset, args.method, args.out, args.split, overwrite=args.overwrite,
-                         options=None if lens is None else lens.to_json() | {"samples": args.lens_samples}):
-        timing = write_baseline(args.dataset, args.method, args.out, split=args.split, lens=lens,
-                                samples=args.lens_samples)
-        print(f"{args.out}: {timing['frames']} frames by {args.method} ({timing['ms_per_frame']:.1f} ms per frame)")
-        if args.evaluate:
-            args.pred, args.out, args.background, args.depth_kind = args.out, None, "white", "distance"
-            return run_evaluate(args)
     return 0
 
 
@@ -302,7 +247,7 @@ def run_geometry(args) -> int:
             whole_surface = True
             surface_note = (f"unavailable: the surface the cameras see needs ground-truth depth "
                             f"({probe.unavailable_reason('depth')}); the whole surface is scored")
-    with claim_output_file(out, recipe, "geometry", getattr(args, "overwrite", False)):
+    with claim_output_file(out, recipe, "geometry", args.overwrite):
         document, _ = score_geometry(args.dataset, args.pred_mesh, args.pred_depth, split=args.split,
                                      taus=tuple(args.tau), samples=args.samples, seed=args.seed,
                                      whole_surface=whole_surface)

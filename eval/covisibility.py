@@ -47,6 +47,10 @@ from nerfgauge.eval.geometry import seen_in_view
 REFERENCE_SPLIT = "train"
 RESOLVED_RELATIVE_DEPTH = 0.05  # this relative depth change of a resolved pixel's point ...
 RESOLVED_SHIFT_PX = 0.5  # ... moves it at least this far between two train views that see it
+# (reference view, held-out pixel) pairs judged at once: a frame's pixels are taken in blocks
+# of VIEW_PIXEL_PAIRS / views, so memory (1 B a pair, 24 B a seen pair) does not grow with
+# views x pixels (200 views of an 800 x 800 frame: 128M pairs, 3 GB of directions at once)
+VIEW_PIXEL_PAIRS = 1 << 21
 
 
 @dataclass(frozen=True)
@@ -113,12 +117,20 @@ def held_out_pixels(ds: Dataset, split: str, index: int, depths: list, mask: np.
     hit = mask & (distance > 0)  # [H, W]
     origins, directions = cameras.rays(index)  # [H, W, 3] each, through the split's distortion if any
     points = origins[hit] + directions[hit] * distance[hit][:, None]  # [n, 3]
-    seen = views_seeing(points, ds.normals(split, index)[hit].astype(np.float64), ds, depths, reference)
+    normals = ds.normals(split, index)[hit].astype(np.float64)  # [n, 3]
     reference_cameras = ds.exact_cameras(reference)
-    parallax = parallax_pixels(points, seen, reference_cameras.c2w[:, :3, 3],
-                               max(reference_cameras.intrinsics.fx, reference_cameras.intrinsics.fy))
+    centres = reference_cameras.c2w[:, :3, 3]
+    focal = max(reference_cameras.intrinsics.fx, reference_cameras.intrinsics.fy)
+    seen_any, parallax = np.zeros(len(points), bool), np.zeros(len(points))
+    # the pixels in blocks: seen is [views, pixels], and parallax_pixels keeps 24 B per seen pair
+    block = max(1, VIEW_PIXEL_PAIRS // max(1, len(centres)))
+    for start in range(0, len(points), block):
+        part = slice(start, start + block)
+        seen = views_seeing(points[part], normals[part], ds, depths, reference)
+        seen_any[part] = seen.any(axis=0)
+        parallax[part] = parallax_pixels(points[part], seen, centres, focal)
     covisible, resolved = np.ones(hit.shape, bool), np.zeros(hit.shape, bool)
-    covisible[hit] = seen.any(axis=0)
+    covisible[hit] = seen_any
     resolved[hit] = parallax >= RESOLVED_SHIFT_PX / RESOLVED_RELATIVE_DEPTH
     return HeldOutPixels(covisible, resolved)
 

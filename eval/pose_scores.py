@@ -34,6 +34,11 @@ from nerfgauge.eval import poses
 
 KIND = "pose-errors"
 MIN_CAMERAS = 3
+# Camera centres farther than this from their world's origin are refused: the squared
+# distances that the spread, the ATE and the unaligned errors sum overflow float64 (1.8e308)
+# near 1e154 (poses scaled by 1e200 were a LinAlgError traceback). The alignment itself
+# works at any scale (eval.poses.umeyama).
+MAX_CENTRE = 1e150
 
 
 def exact_train_poses(ds: Dataset) -> tuple[tuple, np.ndarray, np.ndarray]:
@@ -69,7 +74,15 @@ def read_method_poses(path, train: tuple) -> dict:
         if stem in out:
             raise InputError(f"{path}: {stem} is listed twice")
         out[stem] = validate.pose(frame["transform_matrix"], stem, str(path))
+        _check_centre(out[stem], f"{path}: {stem}")
     return out
+
+
+def _check_centre(c2w: np.ndarray, where: str) -> None:
+    distance = float(np.abs(c2w[:3, 3]).max())
+    if distance > MAX_CENTRE:
+        raise InputError(f"{where}: camera centre {c2w[:3, 3].tolist()} is beyond {MAX_CENTRE:g} of the origin "
+                         "(squared distances overflow float64); scale the poses down")
 
 
 def _per_camera(stems, errors: dict, raw: dict) -> list:
@@ -105,7 +118,12 @@ def score_poses(dataset_root, poses_path) -> dict:
                          f"{MIN_CAMERAS} (a similarity is fitted to the camera centres)")
     names = [stems[k] for k in present]
     estimated = np.stack([method[stem] for stem in names])
-    document = score_pose_arrays(names, exact[present], estimated)
+    for k in present:
+        _check_centre(exact[k], f"dataset {ds.root}: {stems[k]}")
+    try:
+        document = score_pose_arrays(names, exact[present], estimated)
+    except InputError as error:  # centres that leave the alignment undetermined: say whose
+        raise InputError(f"{poses_path}: {error}") from None
     scale, rotation, translation = (document["alignment"]["scale"], np.array(document["alignment"]["rotation"]),
                                     np.array(document["alignment"]["translation"]))
     test = ds.cameras("test")

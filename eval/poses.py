@@ -8,6 +8,13 @@ method's world to the dataset's: x_gt = s Q x_est + t.
 - Alignment (umeyama): argmin over (s, Q, t) of sum_i |c_gt_i - (s Q c_est_i + t)|^2, closed
   form (Umeyama, PAMI 1991): with mu the means, Sigma = (1/n) sum (c_gt - mu_gt)(c_est - mu_est)^T
   = U D V^T, S = diag(1, 1, det(U) det(V)), Q = U S V^T, s = tr(D S) / var_est, t = mu_gt - s Q mu_est.
+  The minimiser is unique only when Sigma has rank 2 or more: centres that coincide leave
+  s and Q free, centres on one line leave the rotation about that line free, so either set
+  of centres coinciding or collinear (within COINCIDENT and COLLINEAR) is an InputError
+  naming which and why (`check_alignable`), never an arbitrary alignment. Each set is scaled
+  by a power of two before the sums (exact: the results are those of the plain formula), so
+  centres anywhere in float64's range do not overflow their squares; s, Q, t are checked
+  finite before they are used.
 - Aligned pose: R'_i = Q R_est_i, c'_i = s Q c_est_i + t (align_c2w).
 - Rotation error (deg): angle(R_gt_i^T R'_i) = atan2(|vee(M - M^T)|, tr M - 1).
 - Translation error: |c'_i - c_gt_i| (scene units), also over the spread of the exact
@@ -29,11 +36,60 @@ from __future__ import annotations
 
 import numpy as np
 
+from nerfgauge.core.errors import InputError
 
-def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+
+# Degenerate centres (module docstring). COINCIDENT: the centres' RMS spread below this
+# fraction of their largest coordinate is float64 rounding of one point (1e-16 relative),
+# with room for the rounding of any pose arithmetic before us. COLLINEAR: a spread off the
+# best line below this fraction of the spread along it determines the rotation about that
+# line only to about this many radians, which is noise, not an alignment.
+COINCIDENT = 1e-9
+COLLINEAR = 1e-6
+
+
+def _power_of_two_scale(points: np.ndarray) -> float:
+    """2^k near the largest |coordinate| of `points` (1 for all zeros): dividing by it is exact."""
+    largest = float(np.abs(points).max()) if points.size else 0.0
+    return float(np.ldexp(1.0, np.frexp(largest)[1])) if largest > 0 else 1.0
+
+
+def principal_spreads(points: np.ndarray) -> np.ndarray:
+    """RMS spread of points [n, 3] along their principal axes, largest first. [3]."""
+    centred = points - points.mean(axis=0)
+    return np.linalg.svd(centred / np.sqrt(len(points)), compute_uv=False)
+
+
+def check_alignable(points: np.ndarray, name: str, unit: float = 1.0) -> None:
+    """InputError (one line, naming `name` and why) when the centres `points` [n, 3] (in
+    multiples of `unit`, which the message undoes) leave a similarity fitted to them
+    undetermined: fewer than 3, coinciding or on one line (module docstring)."""
+    if len(points) < 3:
+        raise InputError(f"the {name} camera centres are {len(points)}: fitting a similarity needs 3 that are not "
+                         "on one line")
+    spreads = principal_spreads(points)
+    largest = float(np.abs(points).max())
+    if spreads[0] <= COINCIDENT * largest or largest == 0:
+        raise InputError(f"the {name} camera centres coincide (spread {spreads[0] * unit:.3g} of coordinates up to "
+                         f"{largest * unit:.3g}): a similarity aligning them has no determined scale or rotation")
+    if spreads[1] <= COLLINEAR * spreads[0]:
+        raise InputError(f"the {name} camera centres lie on one line (spread {spreads[1] * unit:.3g} off it against "
+                         f"{spreads[0] * unit:.3g} along it): the rotation about that line of a similarity aligning "
+                         "them is not determined")
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, names: tuple = ("source", "target")
+            ) -> tuple[float, np.ndarray, np.ndarray]:
     """(s, Q, t) minimising sum |target - (s Q source + t)|^2 over similarities (module
-    docstring). source, target: [n, 3], n >= 3 not collinear. Returns (float, [3, 3], [3])."""
+    docstring). source, target: [n, 3] finite, each set neither coinciding nor on one line
+    (InputError naming it by `names` otherwise). Returns (float, [3, 3], [3]), finite."""
     source, target = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    if not (np.isfinite(source).all() and np.isfinite(target).all()):
+        raise InputError(f"the {names[0]} or {names[1]} camera centres are not finite")
+    source_unit, target_unit = _power_of_two_scale(source), _power_of_two_scale(target)
+    source, target = source / source_unit, target / target_unit  # exact; order-1 coordinates
+    check_alignable(source, names[0], source_unit)
+    check_alignable(target, names[1], target_unit)
     mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)  # [3]
     xs, xt = source - mu_s, target - mu_t  # [n, 3]
     variance = (xs ** 2).sum() / len(source)
@@ -43,8 +99,13 @@ def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, 
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
         sign[2, 2] = -1
     rotation = u @ sign @ vt
-    scale = float(np.trace(np.diag(d) @ sign) / variance) if variance > 0 else 1.0
-    return scale, rotation, mu_t - scale * rotation @ mu_s
+    scale = float(np.trace(np.diag(d) @ sign) / variance)
+    translation = (mu_t - scale * rotation @ mu_s) * target_unit
+    scale = scale * target_unit / source_unit
+    if not (np.isfinite(scale) and scale > 0 and np.isfinite(rotation).all() and np.isfinite(translation).all()):
+        raise InputError(f"the similarity aligning the {names[0]} camera centres to the {names[1]} ones is not "
+                         f"finite and positive (scale {scale!r}): their scales differ by more than float64 holds")
+    return scale, rotation, translation
 
 
 def rotation_angle_degrees(rotation: np.ndarray) -> np.ndarray:
@@ -93,7 +154,8 @@ def per_camera_errors(gt_c2w: np.ndarray, est_c2w: np.ndarray, align: bool = Tru
     after the Umeyama alignment of the centres (align) or as given. Returns
     {"rotation_degrees", "translation", "alignment": (s, Q, t)}."""
     gt_c2w, est_c2w = np.asarray(gt_c2w, np.float64), np.asarray(est_c2w, np.float64)
-    similarity = umeyama(est_c2w[:, :3, 3], gt_c2w[:, :3, 3]) if align else (1.0, np.eye(3), np.zeros(3))
+    similarity = umeyama(est_c2w[:, :3, 3], gt_c2w[:, :3, 3], ("recovered", "exact")) if align \
+        else (1.0, np.eye(3), np.zeros(3))
     aligned = align_c2w(est_c2w, *similarity)
     rotation = rotation_angle_degrees(np.swapaxes(gt_c2w[:, :3, :3], 1, 2) @ aligned[:, :3, :3])
     translation = np.linalg.norm(aligned[:, :3, 3] - gt_c2w[:, :3, 3], axis=1)
@@ -105,6 +167,34 @@ def ate_rmse(translation_errors: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.asarray(translation_errors, np.float64) ** 2)))
 
 
+PAIR_BLOCK = 1 << 16  # camera pairs of the RPE held at once (~600 B each)
+
+
+def relative_pose_squares(gt_c2w: np.ndarray, aligned_c2w: np.ndarray) -> tuple[int, float, float]:
+    """RPE over every pair (i < j) of n cameras (module docstring): (pairs, sum of squared
+    rotation errors in degrees^2, sum of squared translation errors). The pairs are taken
+    PAIR_BLOCK / n rows i at a time, so memory does not grow with n^2 (5000 registered
+    images: 12.5M pairs, ~7 GB at once). gt_c2w, aligned_c2w: [n, 4, 4]."""
+    count = len(gt_c2w)
+    gt_r, gt_c = gt_c2w[:, :3, :3], gt_c2w[:, :3, 3]
+    est_r, est_c = aligned_c2w[:, :3, :3], aligned_c2w[:, :3, 3]
+    pairs, rotation_squares, translation_squares = 0, 0.0, 0.0
+    rows = max(1, PAIR_BLOCK // max(1, count))
+    for start in range(0, count, rows):
+        i, j = np.nonzero(np.arange(start, min(start + rows, count))[:, None] < np.arange(count)[None, :])
+        i += start  # [p] and [p]: the pairs i < j of these rows
+        gt_rel_r = np.transpose(gt_r[i], (0, 2, 1)) @ gt_r[j]
+        est_rel_r = np.transpose(est_r[i], (0, 2, 1)) @ est_r[j]
+        rotation = rotation_angle_degrees(np.transpose(gt_rel_r, (0, 2, 1)) @ est_rel_r)
+        gt_rel_t = np.einsum("nji,nj->ni", gt_r[i], gt_c[j] - gt_c[i])
+        est_rel_t = np.einsum("nji,nj->ni", est_r[i], est_c[j] - est_c[i])
+        translation = np.linalg.norm(gt_rel_t - est_rel_t, axis=1)
+        pairs += len(i)
+        rotation_squares += float((rotation ** 2).sum())
+        translation_squares += float((translation ** 2).sum())
+    return pairs, rotation_squares, translation_squares
+
+
 def pose_errors(gt_c2w: np.ndarray, est_c2w: np.ndarray) -> tuple[dict, tuple]:
     """Errors of recovered camera-to-world poses est_c2w [n, 4, 4] (any consistent axes)
     against gt_c2w [n, 4, 4] after a Sim(3) alignment of the centres: a summary dict
@@ -113,18 +203,9 @@ def pose_errors(gt_c2w: np.ndarray, est_c2w: np.ndarray) -> tuple[dict, tuple]:
     errors = per_camera_errors(gt_c2w, est_c2w)
     scale, rotation, translation = errors["alignment"]
     aligned = errors["aligned"]
-    gt_centres, aligned_centres, aligned_rotations = gt_c2w[:, :3, 3], aligned[:, :3, 3], aligned[:, :3, :3]
     rotation_error, translation_error = errors["rotation_degrees"], errors["translation"]
     spread = camera_spread(gt_c2w)
-    i, j = np.triu_indices(len(gt_c2w), k=1)
-    rpe_rotation, rpe_translation = np.zeros(0), np.zeros(0)
-    if len(i):
-        gt_rel_r = np.transpose(gt_c2w[i, :3, :3], (0, 2, 1)) @ gt_c2w[j, :3, :3]
-        est_rel_r = np.transpose(aligned_rotations[i], (0, 2, 1)) @ aligned_rotations[j]
-        rpe_rotation = rotation_angle_degrees(np.transpose(gt_rel_r, (0, 2, 1)) @ est_rel_r)
-        gt_rel_t = np.einsum("nji,nj->ni", gt_c2w[i, :3, :3], gt_centres[j] - gt_centres[i])
-        est_rel_t = np.einsum("nji,nj->ni", aligned_rotations[i], aligned_centres[j] - aligned_centres[i])
-        rpe_translation = np.linalg.norm(gt_rel_t - est_rel_t, axis=1)
+    pairs, rotation_squares, translation_squares = relative_pose_squares(gt_c2w, aligned)
 
     def stats(values):
         if not len(values):
@@ -139,7 +220,7 @@ def pose_errors(gt_c2w: np.ndarray, est_c2w: np.ndarray) -> tuple[dict, tuple]:
         "translation_error_over_spread": stats(translation_error / spread) if spread > 0 else None,
         "camera_spread": spread,
         "ate_rmse": ate_rmse(translation_error),
-        "rpe": {"pairs": int(len(i)),
-                "rotation_rmse_degrees": float(np.sqrt((rpe_rotation ** 2).mean())) if len(i) else None,
-                "translation_rmse": float(np.sqrt((rpe_translation ** 2).mean())) if len(i) else None},
+        "rpe": {"pairs": pairs,
+                "rotation_rmse_degrees": float(np.sqrt(rotation_squares / pairs)) if pairs else None,
+                "translation_rmse": float(np.sqrt(translation_squares / pairs)) if pairs else None},
     }, (scale, rotation, translation)

@@ -61,10 +61,13 @@ SENSITIVITY_METRICS = ("psnr", "ssim", "lpips")
 
 @dataclass(frozen=True)
 class Protocol:
-    """How renders are scored. background: RGB in [0, 1], or None for evaluate's
-    --background; quantise: round-trip through uint8 (truncating) before scoring; ssim: which
-    SSIM; lpips_net: the network of the "lpips" metric; extra_lpips: {metric name: net}
-    also reported (NerfBaselines' lpips_vgg protocol keeps AlexNet as "lpips_alex")."""
+    """How renders are scored. background: RGB in [0, 1] the protocol composites onto, or
+    None where it composites onto the evaluation's (evaluate's --background: ours;
+    `composited_on`); float64: composite in float64 as eval.metrics.composite, no clipping
+    (ours), else in float32 and clipped to [0, 1] as the other tools do; quantise: round-trip
+    through uint8 (truncating) before scoring; ssim: which SSIM; lpips_net: the network of
+    the "lpips" metric; extra_lpips: {metric name: net} also reported (NerfBaselines'
+    lpips_vgg protocol keeps AlexNet as "lpips_alex")."""
 
     name: str
     background: Optional[tuple]
@@ -74,10 +77,17 @@ class Protocol:
     extra_lpips: tuple = ()
     their_name: Optional[str] = None  # the protocol's own name in its tool's results JSON
     source: str = ""
+    float64: bool = False
+
+    def composited_on(self, evaluation_background) -> tuple:
+        """The RGB this protocol composites colour onto when the evaluation composites onto
+        `evaluation_background` (RGB)."""
+        return tuple(evaluation_background) if self.background is None else self.background
 
 
 PROTOCOLS = {
-    "nerfgauge": Protocol("nerfgauge", None, False, "skimage", "alex", source="docs/conventions.md (Metrics)"),
+    "nerfgauge": Protocol("nerfgauge", None, False, "skimage", "alex", source="docs/conventions.md (Metrics)",
+                          float64=True),
     "nerfbaselines": Protocol("nerfbaselines", (1.0, 1.0, 1.0), True, "dm_pix", "vgg", (("lpips_alex", "alex"),),
                               their_name="nerf",
                               source="nerfbaselines/evaluation.py NerfEvaluationProtocol; nerfbaselines/utils.py "
@@ -123,14 +133,15 @@ def prepare(protocol: Protocol, pred_rgb, pred_alpha, gt_rgba, background=(1.0, 
         pred_rgb: [H, W, 3] the prediction's straight colour in [0, 1].
         pred_alpha: [H, W] its opacity, or None for an RGB prediction (taken as rendered).
         gt_rgba: [H, W, 4] the ground truth, straight alpha (an opaque dataset: alpha 1).
-        background: RGB for protocols that take evaluate's --background ("nerfgauge").
+        background: the evaluation's RGB, for protocols that take it ("nerfgauge").
     """
-    if protocol.background is None:  # ours: float64, as eval.metrics.composite
+    colour = protocol.composited_on(background)
+    if protocol.float64:  # as eval.metrics.composite
         pred = np.asarray(pred_rgb, np.float64) if pred_alpha is None else \
-            composite(np.concatenate([pred_rgb, np.asarray(pred_alpha)[..., None]], -1), background)
-        return pred, composite(gt_rgba, background)
-    pred = _composite32(pred_rgb, pred_alpha, protocol.background)
-    gt = _composite32(np.asarray(gt_rgba)[..., :3], np.asarray(gt_rgba)[..., 3], protocol.background)
+            composite(np.concatenate([pred_rgb, np.asarray(pred_alpha)[..., None]], -1), colour)
+        return pred, composite(gt_rgba, colour)
+    pred = _composite32(pred_rgb, pred_alpha, colour)
+    gt = _composite32(np.asarray(gt_rgba)[..., :3], np.asarray(gt_rgba)[..., 3], colour)
     if protocol.quantise:
         pred, gt = _uint8_truncate(pred), _uint8_truncate(gt)
     return np.clip(pred, 0.0, 1.0), np.clip(gt, 0.0, 1.0)
@@ -210,6 +221,11 @@ def image_scores(protocol: Protocol, pred, gt) -> dict:
     scores = {"psnr": psnr32(pred, gt), "ssim": ssim}
     # a value a protocol's own formula leaves undefined (NaN) is not a score: None, as for ours
     return {key: value if value is None or math.isfinite(value) else None for key, value in scores.items()}
+
+
+def background_name(rgb) -> str:
+    """The name (eval.metrics.BACKGROUNDS) of a background colour."""
+    return {colour: name for name, colour in BACKGROUNDS.items()}[tuple(rgb)]
 
 
 def lpips_scorers(protocol: Protocol, intrinsics) -> tuple[dict, dict]:

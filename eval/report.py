@@ -4,17 +4,26 @@ speed-vs-error curve, an image grid, and one self-contained report.html that sho
 Inputs are files only (metrics.json documents, a run's log.jsonl, render folders), so
 any method's results can be reported the same way. Figures use matplotlib's object API
 (Figure + Agg canvas): no global backend is switched.
+
+Every string a user chose that a figure draws (method names, scene and dataset ids, frame
+names, paths) goes through `plain_text` first: matplotlib reads text between two `$` as
+mathtext, so a method named `m$\\frac$x` raised a parse error while the figure was saved.
+A report is made anew or not at all: `write_report` removes the previous report.html and
+the figures it is about to draw before drawing anything, so a report that fails leaves no
+earlier report that looks current.
 """
 
 from __future__ import annotations
 
 import base64
 import html
+import json
 from pathlib import Path
 
 import numpy as np
 from nerfgauge.eval.covisibility import held_out_pixels, holds_out, reference_depths
 from nerfgauge.eval.error_maps import colour_error, depth_relative_error
+from nerfgauge.eval.check import finite_number
 from nerfgauge.eval.evaluate import NOISE_FLOOR_DB
 from nerfgauge.eval.geometry import summary
 from nerfgauge.eval.metrics import METRIC_NAMES, composite
@@ -38,9 +47,44 @@ TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("ps
                  ("opacity_iou", "opacity IoU", "{:.4f}"), ("lpips", "LPIPS (Alex)", "{:.4f}"))
 
 
-def read_log(path) -> list[dict]:
-    """A run's log.jsonl: one JSON object per line (val PSNR against training seconds)."""
-    return [bounded.loads_json(line, path) for line in Path(path).read_text().splitlines() if line.strip()]
+def plain_text(text) -> str:
+    """`text` as matplotlib draws it literally: every `$` escaped, so no part is read as
+    mathtext (matplotlib shows an escaped dollar as `$`; a string with no unescaped `$`
+    is never mathtext). The one way a user's string (a method, scene or frame name, a
+    path) enters a figure's label, title, tick or legend."""
+    return str(text).replace("$", r"\$")
+
+
+LOG_NUMBERS = ("seconds", "val_psnr", "step")  # what a figure reads from a log line
+
+
+def read_log(path, *, finite: bool = True) -> list[dict]:
+    """A run's log.jsonl: one JSON object per line (val PSNR against training seconds);
+    InputError (one line naming the line) when a line is not an object or a value the
+    figures read is not a finite number or null. finite=False keeps NaN and infinities
+    (the hard scenes' audit counts them)."""
+    entries = []
+    for number, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            entry = bounded.loads_json(line, path, parse_constant=_refuse_constant(path, number) if finite else None)
+        except json.JSONDecodeError as error:
+            raise InputError(f"{path} line {number} is not valid JSON: {error}") from None
+        if not isinstance(entry, dict):
+            raise InputError(f"{path} line {number}: expected a JSON object, got {type(entry).__name__}")
+        for key in LOG_NUMBERS:
+            value = entry.get(key)
+            if value is not None and not (finite_number(value) or not finite and isinstance(value, float)):
+                raise InputError(f"{path} line {number}: {key} must be a finite number or null, got {value!r:.40}")
+        entries.append(entry)
+    return entries
+
+
+def _refuse_constant(path, number: int):
+    def refuse(constant):
+        raise InputError(f"{path} line {number} holds {constant}, which is not valid JSON")
+    return refuse
 
 
 def ceiling_cell(psnr, ceiling) -> str:
@@ -76,7 +120,8 @@ def _figure(width: float, height: float):
     return Figure(figsize=(width, height), dpi=110)
 
 
-def _save(figure, out) -> None:
+def save_png(figure, out) -> None:
+    """A matplotlib Figure as PNG at `out`, through the atomic writer (every figure we draw)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib
 
     with atomic_path(out) as tmp:
@@ -93,16 +138,18 @@ def plot_curves(curves: dict, out, baselines: dict | None = None, finals: dict |
     for label, entries in curves.items():
         points = [(e["seconds"], e["val_psnr"]) for e in entries if e.get("val_psnr") is not None]
         if points:
-            axes.plot(*zip(*points), marker="o", markersize=3, label=f"{label} (validation)")
+            axes.plot(*zip(*points), marker="o", markersize=3, label=plain_text(f"{label} (validation)"))
     for label, (seconds, value) in (finals or {}).items():
         if value is not None and seconds is not None:
-            axes.plot([seconds], [value], marker="*", markersize=12, linestyle="none", label=f"{label} (test)")
+            axes.plot([seconds], [value], marker="*", markersize=12, linestyle="none",
+                      label=plain_text(f"{label} (test)"))
     for k, (label, value) in enumerate((baselines or {}).items()):
         if value is None:
             continue
         colour = f"C{(k + 3) % 10}"
         axes.axhline(value, color=colour, linestyle="--", linewidth=1)
-        axes.plot([0.0], [value], marker="s", color=colour, linestyle="none", label=f"{label} (test, no training)")
+        axes.plot([0.0], [value], marker="s", color=colour, linestyle="none",
+                  label=plain_text(f"{label} (test, no training)"))
     axes.set_xlabel("training seconds")
     axes.set_ylabel("PSNR (dB)")
     axes.set_title("speed against error")
@@ -110,7 +157,7 @@ def plot_curves(curves: dict, out, baselines: dict | None = None, finals: dict |
     if axes.get_legend_handles_labels()[0]:
         axes.legend(fontsize=8)
     figure.tight_layout()
-    _save(figure, out)
+    save_png(figure, out)
 
 
 GRID_COLUMNS = (("ground truth", None, None), ("prediction", None, None),
@@ -176,9 +223,9 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
             if row == 0:
                 axes.set_title(label, fontsize=7)
             if col == 0:
-                axes.set_ylabel(stem, fontsize=7)
+                axes.set_ylabel(plain_text(stem), fontsize=7)
             if tile is None:
-                axes.text(0.5, 0.5, "no depth" if col < len(GRID_COLUMNS) - 1 else f"{split}: not held out",
+                axes.text(0.5, 0.5, "no depth" if col < len(GRID_COLUMNS) - 1 else plain_text(f"{split}: not held out"),
                           ha="center", va="center", fontsize=7, transform=axes.transAxes)
                 continue
             if cmap is None:
@@ -189,7 +236,7 @@ def image_grid(dataset_root, pred_dir, out, split: str = "test", frames: int = 3
     for col, image in images.items():
         bar = figure.colorbar(image, ax=list(grid[:, col]), orientation="horizontal", fraction=0.08, pad=0.04)
         bar.ax.tick_params(labelsize=6)
-    _save(figure, out)
+    save_png(figure, out)
 
 
 def frusta_plot(dataset_root, out, splits=("train", "test"), bounds=None) -> None:
@@ -227,7 +274,7 @@ def frusta_plot(dataset_root, out, splits=("train", "test"), bounds=None) -> Non
                 axes.plot(*zip(apex, corner), color=colour, linewidth=0.5)
             loop = np.vstack([quad, quad[:1]])
             axes.plot(loop[:, 0], loop[:, 1], loop[:, 2], color=colour, linewidth=0.7)
-        axes.plot([], [], color=colour, label=f"{split} ({len(cameras.stems)})")
+        axes.plot([], [], color=colour, label=plain_text(f"{split} ({len(cameras.stems)})"))
         points.append(cameras.c2w[:, :3, 3])
     allpoints = np.concatenate(points) if points else np.zeros((1, 3))
     middle, radius = (allpoints.max(0) + allpoints.min(0)) / 2, max(np.ptp(allpoints, axis=0).max() / 2, 1e-6) * 1.1
@@ -239,7 +286,7 @@ def frusta_plot(dataset_root, out, splits=("train", "test"), bounds=None) -> Non
     axes.set_zlabel("z")
     axes.set_title("cameras and scene bounds", fontsize=9)
     axes.legend(fontsize=8, loc="upper left")
-    _save(figure, out)
+    save_png(figure, out)
 
 
 def _data_uri(path) -> str:
@@ -331,6 +378,24 @@ def per_view_table(documents: dict) -> list[list[str]]:
     return table
 
 
+REPORT_FIGURES = ("grid.png", "curve.png", "cameras.png")  # what write_report draws beside report.html
+
+
+def remove_previous(paths) -> None:
+    """Delete the files a report is about to write, before it draws anything, so a report
+    that fails leaves none of the previous one looking current. All are checked first:
+    a path that is a folder is the user's (InputError, nothing deleted); the deletion
+    itself is core.owned's (a link on the way below a folder of ours is refused, a file
+    that is a link is removed as a link)."""
+    paths = [Path(path) for path in paths]
+    for path in paths:
+        if path.is_dir() and not path.is_symlink():
+            raise InputError(f"refusing to replace {path}: it is a folder")
+        owned.check_no_link(path, "delete", last=False)
+    for path in paths:
+        owned.remove_file(path)
+
+
 def write_report(out, title: str, dataset_root, renders, documents: dict, *, log_path=None, ours: str,
                  train_seconds=None, notes=(), split: str = "test", frames: int = 3, figures=None,
                  extra_images=None, protocol_tables: dict | None = None) -> Path:
@@ -343,6 +408,7 @@ def write_report(out, title: str, dataset_root, renders, documents: dict, *, log
     out = Path(out)
     folder = out.parent if figures is None else Path(figures)
     owned.make_folder(folder)
+    remove_previous([out, *(folder / name for name in REPORT_FIGURES)])  # a failure below leaves no old report
     background = (1.0, 1.0, 1.0) if documents[ours].get("background", "white") == "white" else (0.0, 0.0, 0.0)
     image_grid(dataset_root, renders, folder / "grid.png", split=split, frames=frames, background=background)
     curves = {ours: read_log(log_path)} if log_path is not None and Path(log_path).is_file() else {}
@@ -402,8 +468,7 @@ def geometry_histogram(distances: dict, document: dict, out) -> None:
     axes.set_ylabel("density")
     axes.legend()
     figure.tight_layout()
-    with atomic_path(out) as tmp:
-        FigureCanvasAgg(figure).print_png(str(tmp))
+    save_png(figure, out)
 
 
 # --- defocus: methods against the thin-lens truth at several apertures ---------------------
@@ -444,7 +509,7 @@ def focus_rows(datasets: dict, preds: dict, stem: str, out, background=(1.0, 1.0
             if row == 0:
                 axes.set_title(f"aperture {aperture:g}", fontsize=8)
             if col == 0:
-                axes.set_ylabel(name, fontsize=8)
+                axes.set_ylabel(plain_text(name), fontsize=8)
             if name == "ground truth":
                 tile = composite(ds.rgba_of(stem, intrinsics).astype(np.float64), bg)
             elif aperture in preds[name]:
@@ -455,4 +520,4 @@ def focus_rows(datasets: dict, preds: dict, stem: str, out, background=(1.0, 1.0
             if crop is not None:
                 tile = tile[crop[0]:crop[1], crop[2]:crop[3]]
             axes.imshow(np.clip(tile, 0, 1), interpolation="nearest")
-    _save(figure, out)
+    save_png(figure, out)

@@ -38,6 +38,10 @@ Conventions (docs/conventions.md, "Uncertainty"), stated once here:
   several dB), and the t-test's p-value rests on normality at the small view counts
   (8-50) of a test split; the signed-rank test needs only a distribution symmetric about
   its median under the null.
+- Finite in, finite out: every mean, interval end, spread and variance returned is checked
+  finite (`finite_result`); values so large that a sum leaves float range (two views at
+  1e308) raise InputError naming what overflowed, never an inf that a JSON writer then
+  refuses with a traceback. `mean_of` is the mean of a list of numbers under the same rule.
 """
 
 from __future__ import annotations
@@ -56,6 +60,25 @@ LEVEL_ALPHA = 0.05  # the significance level of the paired test
 # `nerfgauge evaluate`'s ci95: np.random.default_rng(EVALUATE_SEED), a fresh Generator per
 # metric, so a metric's interval does not depend on which other metrics were scored.
 EVALUATE_SEED = 0
+
+
+def finite_result(values: dict, what: str) -> dict:
+    """`values` ({name: number, None or a list of them}) when every number is finite;
+    InputError naming `what` and the first that is not (finite inputs whose sums overflow)."""
+    for name, value in values.items():
+        for item in value if isinstance(value, (list, tuple)) else [value]:
+            if item is not None and not math.isfinite(item):
+                raise InputError(f"{what}: the {name} is beyond float range ({item}); the values it comes from are "
+                                 "too large to average")
+    return values
+
+
+def mean_of(values, what: str) -> float:
+    """The mean of finite numbers (math.fsum / n), InputError when it leaves float range."""
+    try:
+        return finite_result({"mean": math.fsum(values) / len(values)}, what)["mean"]
+    except OverflowError:  # fsum raises on an intermediate overflow
+        raise InputError(f"{what}: the mean is beyond float range; the values are too large to average") from None
 
 
 def as_matrix(values) -> np.ndarray:
@@ -122,9 +145,10 @@ def resampled_means(matrix: np.ndarray, seed_index: np.ndarray, view_index: np.n
     defined = ~np.isnan(matrix)
     filled = np.where(defined, matrix, 0.0)
     cs, cv = _counts(seed_index, n_seeds), _counts(view_index, n_views)
-    numerator = ((cs @ filled) * cv).sum(axis=1)  # [resamples]
+    with np.errstate(over="ignore", invalid="ignore"):  # overflowed sums give inf: callers refuse it (finite_result)
+        numerator = ((cs @ filled) * cv).sum(axis=1)  # [resamples]
     denominator = ((cs @ defined.astype(np.float64)) * cv).sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         return np.where(denominator > 0, numerator / np.where(denominator > 0, denominator, 1.0), np.nan)
 
 
@@ -140,11 +164,14 @@ def bootstrap_ci(values, rng: np.random.Generator, resamples: int = RESAMPLES, l
     n_seeds, n_views = matrix.shape if matrix.size else (0, 0)
     if matrix.size == 0:
         return Interval(None, None, None, 0, 0, resamples, True)
-    mean = float(np.nanmean(matrix))
+    with np.errstate(over="ignore", invalid="ignore"):
+        mean = float(np.nanmean(matrix))
     seed_index, view_index = draw_indices(rng, n_seeds, n_views, resamples)
     means = resampled_means(matrix, seed_index, view_index)
     tail = 100.0 * (1.0 - level) / 2.0
-    low, high = np.nanpercentile(means, [tail, 100.0 - tail])
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused just below, by name
+        low, high = np.nanpercentile(means, [tail, 100.0 - tail])
+    finite_result({"mean": mean, "interval": [float(low), float(high)]}, "bootstrap interval")
     degenerate = n_seeds == 1 and n_views == 1
     return Interval(mean, float(low), float(high), n_seeds, n_views, resamples, degenerate)
 
@@ -176,22 +203,23 @@ def variance_split(values) -> dict:
     n_seeds, n_views = matrix.shape if matrix.size else (0, 0)
     out = {"var_seed": None, "var_view": None, "var_residual": None, "seed_share": None,
            "n_seeds": n_seeds, "n_views": n_views}
-    if n_seeds >= 2 and n_views >= 2:
-        grand = matrix.mean()
-        seed_means, view_means = matrix.mean(axis=1), matrix.mean(axis=0)
-        ms_seed = n_views * float(((seed_means - grand) ** 2).sum()) / (n_seeds - 1)
-        ms_view = n_seeds * float(((view_means - grand) ** 2).sum()) / (n_views - 1)
-        residual = matrix - seed_means[:, None] - view_means[None, :] + grand
-        ms_res = float((residual ** 2).sum()) / ((n_seeds - 1) * (n_views - 1))
-        out.update(var_seed=max(0.0, (ms_seed - ms_res) / n_views), var_view=max(0.0, (ms_view - ms_res) / n_seeds),
-                   var_residual=ms_res)
-        total = out["var_seed"] + out["var_view"] + ms_res
-        out["seed_share"] = out["var_seed"] / total if total > 0 else None
-    elif n_seeds == 1 and n_views >= 2:
-        out["var_view"] = float(matrix[0].var(ddof=1))
-    elif n_views == 1 and n_seeds >= 2:
-        out["var_seed"] = float(matrix[:, 0].var(ddof=1))
-    return out
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused by name below
+        if n_seeds >= 2 and n_views >= 2:
+            grand = matrix.mean()
+            seed_means, view_means = matrix.mean(axis=1), matrix.mean(axis=0)
+            ms_seed = n_views * float(((seed_means - grand) ** 2).sum()) / (n_seeds - 1)
+            ms_view = n_seeds * float(((view_means - grand) ** 2).sum()) / (n_views - 1)
+            residual = matrix - seed_means[:, None] - view_means[None, :] + grand
+            ms_res = float((residual ** 2).sum()) / ((n_seeds - 1) * (n_views - 1))
+            out.update(var_seed=max(0.0, (ms_seed - ms_res) / n_views), var_view=max(0.0, (ms_view - ms_res) / n_seeds),
+                       var_residual=ms_res)
+            total = out["var_seed"] + out["var_view"] + ms_res
+            out["seed_share"] = out["var_seed"] / total if total > 0 else None
+        elif n_seeds == 1 and n_views >= 2:
+            out["var_view"] = float(matrix[0].var(ddof=1))
+        elif n_views == 1 and n_seeds >= 2:
+            out["var_seed"] = float(matrix[:, 0].var(ddof=1))
+    return finite_result(out, "variance split")
 
 
 def wilcoxon_p(differences) -> Optional[float]:
@@ -225,7 +253,8 @@ def paired_comparison(a, b, rng: np.random.Generator, resamples: int = RESAMPLES
     ma, mb = as_matrix(a), as_matrix(b)
     if ma.shape != mb.shape:
         raise InputError(f"paired comparison needs the same seeds and views, got shapes {ma.shape} and {mb.shape}")
-    d = ma - mb  # NaN where either is undefined
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow to inf is refused by as_matrix below
+        d = ma - mb  # NaN where either is undefined
     interval = bootstrap_ci(d, rng, resamples, level)
     matrix = defined_matrix(d)
     per_view = np.nanmean(matrix, axis=0) if matrix.size else np.zeros(0)
@@ -283,14 +312,17 @@ def aggregate_runs(documents: list, seeds: list, metrics, bootstrap_seed: int = 
             continue
         interval = bootstrap_ci(rows, np.random.default_rng(bootstrap_seed))
         matrix = as_matrix(rows)
-        per_seed = [None if np.isnan(row).all() else float(np.nanmean(row)) for row in matrix]
-        defined = [value for value in per_seed if value is not None]
+        with np.errstate(over="ignore", invalid="ignore"):  # refused by name below
+            per_seed = [None if np.isnan(row).all() else float(np.nanmean(row)) for row in matrix]
+            defined = [value for value in per_seed if value is not None]
+            seed_std = float(np.std(defined, ddof=1)) if len(defined) >= 2 else None
         out["mean"][metric] = interval.mean
         out["ci95"][metric] = interval.to_json()
         out["per_seed"][metric] = per_seed
-        out["seed_std"][metric] = float(np.std(defined, ddof=1)) if len(defined) >= 2 else None
+        out["seed_std"][metric] = seed_std
         out["seed_range"][metric] = [min(defined), max(defined)] if defined else None
         out["variance"][metric] = variance_split(rows)
+        finite_result({"per-seed mean": per_seed, "seed std": out["seed_std"][metric]}, f"aggregate of {metric}")
     return out
 
 
@@ -310,11 +342,14 @@ def suite_interval(tables: list, rng: np.random.Generator, resamples: int = RESA
     means = np.zeros(resamples)
     for matrix in matrices:
         seed_index, view_index = draw_indices(rng, matrix.shape[0], matrix.shape[1], resamples)
-        means += resampled_means(matrix, seed_index, view_index)
-    means /= len(matrices)
-    tail = 100.0 * (1.0 - level) / 2.0
-    low, high = np.nanpercentile(means, [tail, 100.0 - tail])
-    mean = float(np.mean([np.nanmean(m) for m in matrices]))
+        with np.errstate(over="ignore", invalid="ignore"):
+            means += resampled_means(matrix, seed_index, view_index)
+    with np.errstate(over="ignore", invalid="ignore"):
+        means /= len(matrices)
+        tail = 100.0 * (1.0 - level) / 2.0
+        low, high = np.nanpercentile(means, [tail, 100.0 - tail])
+        mean = float(np.mean([np.nanmean(m) for m in matrices]))
+    finite_result({"mean": mean, "interval": [float(low), float(high)]}, "suite interval")
     degenerate = all(m.shape == (1, 1) for m in matrices)
     return Interval(mean, float(low), float(high), max(m.shape[0] for m in matrices),
                     max(m.shape[1] for m in matrices), resamples, degenerate)

@@ -4,7 +4,9 @@
                                   SLURM, dask-kubernetes, ...); its workers must have
                                   nerfgauge installed and see the output folder at the
                                   same path (a shared filesystem)
-    --scheduler local:N           an in-process LocalCluster of N worker processes
+    --scheduler local:N           an in-process LocalCluster of N worker processes, listening
+                                  on the loopback interface only and without Dask's HTTP
+                                  dashboard (`local_cluster`)
 
 Each view is one task, named by the recipe hash and the view, whose function renders the
 view with the seed of (seed, split, index) and writes its files through the atomic writers
@@ -14,10 +16,17 @@ and the dataset equals a single-process run byte for byte. A task that raises is
 `RETRIES` times (dask `retries=`); a task whose worker dies is rescheduled by the scheduler
 (up to its `distributed.scheduler.allowed-failures`, 3 by default). Dask is imported only
 here, only with --scheduler (the `dask` extra: pip install 'nerfgauge[dask]').
+
+A running scheduler is asked who it is before the Client connects (`check_scheduler`): the
+connection, dask's handshake and the scheduler's `identity` reply must all arrive within
+CONNECT_TIMEOUT_SECONDS, and the reply must come from a scheduler. dask's own connect bounds
+only the TCP connection: a server that accepts and then says nothing held `Client()` forever,
+and one that answers random bytes raised whatever its deserialiser met (a 6 EiB allocation).
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import importlib.util
 import os
@@ -26,12 +35,16 @@ import threading
 import time
 from pathlib import Path
 
-from nerfgauge.core.errors import InputError
+from nerfgauge.core.errors import InputError, raise_floating_point_warnings
 from nerfgauge.core.folders import recipe_hash
 from nerfgauge.generate.views import load_mitsuba_scene, render_one, view_complete, write_view
 
 RETRIES = 2  # a task that raises runs up to 3 times
+# A remote scheduler must be connected to and answer who it is within this many seconds,
+# or the command stops with one line (README: "a scheduler that cannot be reached within 5 s").
 CONNECT_TIMEOUT_SECONDS = 5.0
+LOOPBACK = "127.0.0.1"  # where a local cluster's scheduler, nannies, workers and HTTP servers listen
+HTTP_ROUTES = ("distributed.http.health",)  # all a local cluster's HTTP servers serve (local_cluster)
 LOCAL_PREFIX = "local:"
 ADDRESS = re.compile(r"^(tcp|tls|ws|wss|ucx)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
 INSTALL_HINT = "pip install 'nerfgauge[dask]' (or dask[distributed])"
@@ -62,14 +75,108 @@ def require_dask() -> None:
 
 
 @contextlib.contextmanager
+def local_cluster(workers: int, **options):
+    """A dask LocalCluster of `workers` processes, for the block, that listens on the
+    loopback interface only and serves no dashboard. The one way nerfgauge starts a local
+    cluster (generate and suite run through `dask_client`, the dask bench); `options` go to
+    LocalCluster.
+
+    Dask's defaults exposed the cluster: its dashboard binds every interface when given a
+    bare port (":0") and shows anyone who can reach the machine the cluster's identity,
+    logs and call stacks. Here the scheduler, nannies and workers listen on 127.0.0.1; the
+    Bokeh dashboard is off; the HTTP servers dask starts anyway (scheduler and workers)
+    bind 127.0.0.1 on a free port and serve only the health check (no logs, call stacks,
+    metrics or cluster info), set before the nannies start their workers (which inherit
+    the configuration)."""
+    import dask  # dask: an optional extra (callers checked require_dask)
+    from distributed import LocalCluster  # dask
+
+    in_process = options.get("processes") is False  # workers as threads, over dask's in-process comm: no host
+    with dask.config.set({"distributed.scheduler.http.routes": list(HTTP_ROUTES),
+                          "distributed.worker.http.routes": list(HTTP_ROUTES)}), \
+            LocalCluster(n_workers=workers, host=None if in_process else LOOPBACK, dashboard_address=None,
+                         worker_dashboard_address=None, silence_logs=50,
+                         scheduler_kwargs={"dashboard": False, "dashboard_address": f"{LOOPBACK}:0"},
+                         **options) as cluster:
+        yield cluster
+
+
+def _reason(error: BaseException) -> str:
+    return f"{type(error).__name__}: {(str(error).splitlines() or [''])[0]}".rstrip(": ")
+
+
+def check_scheduler(address: str, timeout: float | None = None) -> dict:
+    """The `identity` of the dask scheduler at `address` (its type, id, workers ...), asked
+    over a fresh connection whose connect, handshake and reply all fit in `timeout` seconds
+    (default CONNECT_TIMEOUT_SECONDS). InputError, one line, when nothing answers in time,
+    when the answer is not dask's protocol, or when it comes from something other than a
+    scheduler (a worker's address). Runs on a thread of its own, so a caller inside an
+    event loop (Jupyter) can use it."""
+    from distributed.comm import connect  # dask: an optional extra (callers checked require_dask)
+    from distributed.security import Security  # dask
+
+    timeout = CONNECT_TIMEOUT_SECONDS if timeout is None else float(timeout)
+
+    async def identity():
+        comm = await connect(address, timeout=timeout, **Security().get_connection_args("client"))
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    async def bounded():
+        return await asyncio.wait_for(identity(), timeout)
+
+    outcome = {}
+
+    def run():
+        try:
+            outcome["reply"] = asyncio.run(bounded())
+        except BaseException as error:  # reported below, on the caller's thread
+            outcome["error"] = error
+
+    thread = threading.Thread(target=run, name="nerfgauge-scheduler-probe", daemon=True)
+    thread.start()
+    thread.join(timeout + 5.0)  # wait_for ends the probe at `timeout`; the margin only guards that promise
+    error = outcome.get("error")
+    if thread.is_alive() or isinstance(error, asyncio.TimeoutError):
+        raise InputError(f"cannot reach the dask scheduler at {address} within {timeout:g} s (it did not answer "
+                         f"dask's handshake in time)")
+    if isinstance(error, OSError):  # refused, unreachable, DNS: dask retried until the deadline
+        raise InputError(f"cannot reach the dask scheduler at {address} within {timeout:g} s ({_reason(error)})")
+    if error is not None:  # whatever the bytes made dask's deserialiser do
+        raise InputError(f"{address} did not answer as a dask scheduler does ({_reason(error)}); "
+                         "is it a dask scheduler's address?")
+    reply = outcome.get("reply")
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if not isinstance(kind, str) or "Scheduler" not in kind:
+        what = f"a dask {kind}" if isinstance(kind, str) else f"a {type(reply).__name__}"
+        raise InputError(f"{address} is not a dask scheduler (asked who it is, it answered as {what}); "
+                         "give the scheduler's address")
+    return reply
+
+
+def check_reachable(scheduler: str) -> None:
+    """Before a command writes anything: `scheduler` well formed (parse_scheduler), and a
+    running scheduler's address answering as one within CONNECT_TIMEOUT_SECONDS
+    (check_scheduler); dask installed either way. InputError, one line, otherwise."""
+    kind, value = parse_scheduler(scheduler)
+    require_dask()
+    if kind == "address":
+        check_scheduler(value)
+
+
+@contextlib.contextmanager
 def dask_client(scheduler: str):
     """A distributed.Client on `scheduler` for the duration of the block. A LocalCluster of
-    N single-threaded worker processes for local:N (closed afterwards); a running cluster is
-    only disconnected from. Unreachable addresses fail within CONNECT_TIMEOUT_SECONDS."""
+    N single-threaded worker processes for local:N (`local_cluster`: loopback only, no
+    dashboard; closed afterwards); a running cluster is checked first (`check_scheduler`:
+    within CONNECT_TIMEOUT_SECONDS) and only disconnected from."""
     kind, value = parse_scheduler(scheduler)
     require_dask()
     import dask  # dask: an optional extra (require_dask says so)
-    from distributed import Client, LocalCluster  # dask
+    from distributed import Client  # dask
 
     # Quiet: the progress bar and our one-line errors are the user's view of the cluster.
     # A local cluster's workers: without the Nanny's MALLOC_TRIM_THRESHOLD_=65536 (glibc then
@@ -84,18 +191,18 @@ def dask_client(scheduler: str):
                           "distributed.nanny.pre-spawn-environ": environ}):
         if kind == "local":
             # One thread per worker: Mitsuba's LLVM backend already uses every core it is given.
-            with LocalCluster(n_workers=value, threads_per_worker=1, processes=True, dashboard_address=":0",
-                              silence_logs=50) as cluster, Client(cluster) as client:
+            with local_cluster(value, threads_per_worker=1, processes=True) as cluster, Client(cluster) as client:
                 # N workers share this machine's cores instead of each taking all of them.
                 client.run(set_render_threads, max(1, (os.cpu_count() or 1) // value))
+                client.run(raise_floating_point_warnings)  # as in this process (core.errors); ours to set
                 yield client
             return
+        check_scheduler(value)
         try:
             client = Client(value, timeout=CONNECT_TIMEOUT_SECONDS)
         except (OSError, TimeoutError) as error:
-            reason = (str(error).splitlines() or [type(error).__name__])[0]
             raise InputError(f"cannot reach the dask scheduler at {value} within {CONNECT_TIMEOUT_SECONDS:g} s "
-                             f"({reason})") from None
+                             f"({_reason(error)})") from None
         with client:
             yield client
 

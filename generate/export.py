@@ -148,12 +148,19 @@ def sfm_options(pycolmap, intrinsics):
     return reader, extraction, matching
 
 
+MATCH_BLOCK = 50  # images per block of exhaustive matching (COLMAP's default, stated)
+
+
 def extract_and_match(pycolmap, database: Path, image_dir: Path, names, intrinsics) -> None:
     reader, extraction, matching = sfm_options(pycolmap, intrinsics)
     pycolmap.set_random_seed(0)
     pycolmap.extract_features(database, image_dir, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
-    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    # every pair of images is matched, a block of MATCH_BLOCK images against another at a time
+    # (COLMAP caches the features of a few blocks): memory does not grow with the image count
+    pairing = pycolmap.ExhaustivePairingOptions()
+    pairing.block_size = MATCH_BLOCK
+    pycolmap.match_exhaustive(database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
 
 
 def sfm_points(ds: Dataset, count, seed: int) -> points_module.InitialPoints:

@@ -23,9 +23,17 @@ equal parts of the window (t_k = start + exposure (k + 1/2) / K): the mean of K 
 with the view's spp in two passes like any view (so the stored image is less noisy than a
 sharp one, and its noise estimate stays valid: pass A of the view is the mean of the
 sub-frames' passes A). K is the smallest count that keeps the image motion within one
-sub-frame at most MAX_SUBFRAME_MOTION_PX (the largest motion of the scene's bounding-box
-corners and centre between the window's ends, plus the rotation's f * angle), at most
-MAX_SUBFRAMES. Sub-frame k renders with seed (view seed + k * SUBFRAME_SEED_STRIDE).
+sub-frame at most MAX_SUBFRAME_MOTION_PX: the image motion over a window is the fastest
+image speed, along the exposed part of the path, of 27 points of the scene's bounding box
+(corners, edge and face centres, centre) while they are in or near the image, times the
+exposure, and at least the rotation's f * angle (`image_motion`). A view that needs more than
+MAX_SUBFRAMES sub-frames is refused before anything renders (`check_paths`), and so is one
+whose path carries a visible point of the box from the image to behind the camera between
+two samples (its image motion has no bound). The measure used to be the motion between the
+window's two ends, and a point behind the camera at either end (NaN) was left out: a path
+long enough to take the scene behind the camera at both ends measured 0 px and rendered one
+sub-frame, the sharp mid-frame image, while the transforms recorded the motion.
+Sub-frame k renders with seed (view seed + k * SUBFRAME_SEED_STRIDE).
 Global shutter: sub-frame k is an ordinary render of pose(t_k). Rolling shutter: every sample
 gets its own row's pose (render.render_samples with a ray map; scalar_rgb: the per-sample
 loop of generate.distorted).
@@ -40,13 +48,23 @@ from typing import Optional
 
 import numpy as np
 
+from nerfgauge.core import arguments
 from nerfgauge.core.camera import project
 from nerfgauge.core.errors import InputError
 
 MOTION_TAG = 0x4D4F54  # "MOT": the per-view path generator's stream
 SUBFRAME_SEED_STRIDE = 0xC2B2AE35  # odd: sub-frame k renders with seed + k * stride
 MAX_SUBFRAME_MOTION_PX = 0.5
-MAX_SUBFRAMES = 64
+MAX_SUBFRAMES = 64  # at most 32 px of image motion per exposure: more is refused, never under-sampled
+SPEED_STEPS = 256  # steps along the exposed part of a path at which the image speed is measured
+ON_IMAGE_MARGIN = 1.0  # a point within this many image sizes of the image counts as visible
+# The path's ranges, checked for the command line and the API alike and shown in --help.
+# Travel is in scene diagonals per frame: cameras sit within a few diagonals of the scene, so
+# a camera that moves ten in one frame has gone through or past it (and check_paths refuses
+# far less at any resolution); 1e308 overflowed the recorded path to inf after every view
+# had rendered. Rotation: at most a full turn per frame.
+TRAVEL = arguments.bounded(float, 0, 10)
+ROTATION_DEGREES = arguments.bounded(float, 0, 360)
 USAGE = ("--motion-blur must be TRAVEL or travel=T,rotation=DEG,exposure=E,readout=R (travel: the camera's path "
          "over the frame as a fraction of the scene's bounding-box diagonal; rotation in degrees; exposure and "
          "readout as fractions of the frame)")
@@ -68,8 +86,10 @@ class MotionBlur:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise InputError(f"--motion-blur {name} must be a finite number, got {value!r}")
-        if self.travel < 0 or self.rotation < 0 or self.readout < 0:
-            raise InputError(f"--motion-blur travel, rotation and readout must be >= 0, got {self.to_text()}")
+        TRAVEL.check(self.travel, "--motion-blur travel (scene diagonals per frame)")
+        ROTATION_DEGREES.check(self.rotation, "--motion-blur rotation (degrees per frame)")
+        if self.readout < 0:
+            raise InputError(f"--motion-blur readout must be >= 0, got {self.to_text()}")
         if not 0 < self.exposure <= 1:
             raise InputError(f"--motion-blur exposure must be in (0, 1] (a fraction of the frame), got {self.exposure!r}")
         if self.exposure + self.readout > 1 + 1e-12:
@@ -142,6 +162,13 @@ class CameraPath:
     distance: float
     angle: float
 
+    def __post_init__(self):
+        values = (self.c2w_mid, self.direction, self.axis, self.distance, self.angle)
+        if not all(np.isfinite(np.asarray(value, np.float64)).all() for value in values):
+            raise InputError(f"the camera path of a moving view is not finite (travel {self.distance!r} scene units, "
+                             f"rotation {self.angle!r} rad from a pose with centre {np.asarray(self.c2w_mid)[:3, 3]}); "
+                             "check the scene's bounds and --motion-blur")
+
     def pose(self, t: float) -> np.ndarray:
         """c2w at frame time t in [0, 1]. [4, 4]."""
         s = float(t) - 0.5
@@ -168,25 +195,66 @@ def view_path(c2w_mid: np.ndarray, blur: MotionBlur, aabb: np.ndarray, config_se
                       math.radians(blur.rotation))
 
 
-def subframe_count(path: CameraPath, blur: MotionBlur, intrinsics, aabb: np.ndarray) -> int:
-    """K (module docstring): the largest image motion over one row's window, in pixels,
-    divided by MAX_SUBFRAME_MOTION_PX, rounded up; 1 for a still camera."""
+def box_points(aabb: np.ndarray) -> np.ndarray:
+    """The 27 points of a box: corners, edge centres, face centres and centre. [27, 3]."""
+    lo, hi = np.asarray(aabb[0], np.float64), np.asarray(aabb[1], np.float64)
+    axes = [np.array([lo[i], (lo[i] + hi[i]) / 2, hi[i]]) for i in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def image_motion(path: CameraPath, blur: MotionBlur, intrinsics, aabb: np.ndarray) -> float:
+    """The largest image motion over one row's exposure, in pixels (module docstring): the
+    fastest image speed of the box's points (`box_points`) along the exposed part of the
+    path (every row's window: [1/2 - (readout + exposure)/2, 1/2 + (readout + exposure)/2],
+    SPEED_STEPS steps), counted while a point is in or near the image (ON_IMAGE_MARGIN),
+    times the exposure; at least f * the rotation over the exposure. inf when a point near
+    the image at one step is behind the camera at the next (the path runs into the scene)."""
+    half = (blur.readout + blur.exposure) / 2
+    times = np.linspace(0.5 - half, 0.5 + half, SPEED_STEPS + 1)
+    points = box_points(aabb)
+    u, v = np.empty((len(times), len(points))), np.empty((len(times), len(points)))
+    for k, t in enumerate(times):
+        u[k], v[k], _ = project(points, path.pose(t), intrinsics)
+    ahead = np.isfinite(u) & np.isfinite(v)  # [T, P]
+    margin_u, margin_v = ON_IMAGE_MARGIN * intrinsics.width, ON_IMAGE_MARGIN * intrinsics.height
+    with np.errstate(invalid="ignore"):  # NaN behind the camera compares False: not near the image
+        near = ahead & (u > -margin_u) & (u < intrinsics.width + margin_u) & (v > -margin_v) \
+            & (v < intrinsics.height + margin_v)
+    if ((near[:-1] & ~ahead[1:]) | (~ahead[:-1] & near[1:])).any():
+        return math.inf
+    counted = ahead[:-1] & ahead[1:] & (near[:-1] | near[1:])  # [T - 1, P]
+    step = np.where(counted, np.hypot(np.diff(np.where(ahead, u, 0.0), axis=0),
+                                      np.diff(np.where(ahead, v, 0.0), axis=0)), 0.0)
+    speed = float(step.max()) * SPEED_STEPS / (2 * half) if step.size else 0.0  # pixels per frame
+    return max(speed * blur.exposure, max(intrinsics.fx, intrinsics.fy) * path.angle * blur.exposure)
+
+
+def subframe_count(path: CameraPath, blur: MotionBlur, intrinsics, aabb: np.ndarray, view: str = "a view") -> int:
+    """K (module docstring): the image motion over one row's window (`image_motion`) over
+    MAX_SUBFRAME_MOTION_PX, rounded up; 1 for a still camera. More than MAX_SUBFRAMES, or a
+    path into the scene, is an InputError naming `view` and the limit."""
     if blur.is_still:
         return 1
-    lo, hi = np.asarray(aabb[0], np.float64), np.asarray(aabb[1], np.float64)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-                       + [(lo + hi) / 2])
-    start, end = 0.5 - blur.exposure / 2, 0.5 + blur.exposure / 2  # a row's window, about its centre
-    shift = 0.0
-    for centre in (0.5 - blur.readout / 2, 0.5, 0.5 + blur.readout / 2):
-        a, b = start + centre - 0.5, end + centre - 0.5
-        ua, va, _ = project(corners, path.pose(a), intrinsics)
-        ub, vb, _ = project(corners, path.pose(b), intrinsics)
-        moved = np.hypot(ub - ua, vb - va)
-        if np.isfinite(moved).any():
-            shift = max(shift, float(np.nanmax(moved)))
-    shift = max(shift, max(intrinsics.fx, intrinsics.fy) * path.angle * blur.exposure)
-    return int(min(MAX_SUBFRAMES, max(1, math.ceil(shift / MAX_SUBFRAME_MOTION_PX))))
+    motion = image_motion(path, blur, intrinsics, aabb)
+    if not math.isfinite(motion):
+        raise InputError(f"--motion-blur {blur.to_text()}: {view}'s camera runs into the scene during its exposure "
+                         "(a point of the scene's box goes from the image to behind the camera), an image motion no "
+                         "number of sub-frames samples; lower the travel or rotation")
+    count = max(1, math.ceil(motion / MAX_SUBFRAME_MOTION_PX))
+    if count > MAX_SUBFRAMES:
+        raise InputError(f"--motion-blur {blur.to_text()}: {view}'s image moves {motion:.1f} px during its exposure; "
+                         f"sampled at {MAX_SUBFRAME_MOTION_PX:g} px per sub-frame that needs {count} sub-frames, more "
+                         f"than the limit of {MAX_SUBFRAMES} ({MAX_SUBFRAMES * MAX_SUBFRAME_MOTION_PX:g} px); lower the "
+                         "travel, rotation, exposure or resolution")
+    return count
+
+
+def check_paths(poses, blur: MotionBlur, aabb: np.ndarray, config_seed: int, intrinsics, names) -> list:
+    """Every moving view's sub-frame count, before anything renders: the paths of the views
+    with mid-frame poses `poses` [n, 4, 4] (named `names`) finite, and each within
+    MAX_SUBFRAMES sub-frames (subframe_count's InputError otherwise). Returns the counts."""
+    return [subframe_count(view_path(pose, blur, aabb, config_seed, index), blur, intrinsics, aabb, name)
+            for index, (pose, name) in enumerate(zip(poses, names))]
 
 
 def subframe_times(blur: MotionBlur, count: int, height: int) -> np.ndarray:

@@ -14,7 +14,7 @@ import re
 
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
-from nerfgauge.generate import degrade
+from nerfgauge.generate import degrade, motion
 from nerfgauge.generate.holdout import SCALE, parse_scales
 from nerfgauge.generate.layouts import LAYOUTS
 from nerfgauge.generate.pipeline import MAX_NOISE_PSNR, NOISE_PSNR, GenerateConfig
@@ -50,6 +50,19 @@ def _scales(text: str) -> tuple:
 
 
 _scales.range = SCALE  # each scale's range, shown in --help
+
+
+def _motion_blur(text: str) -> str:
+    """--motion-blur's argparse type: the spec checked (generate.motion.MotionBlur: travel and
+    rotation within their ranges, the shutter inside the frame) and kept as written."""
+    try:
+        motion.parse_motion_blur(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--motion-blur").lstrip(": ")) from None
+    return text
+
+
+_motion_blur.range = motion.TRAVEL  # shown in --help; the fuzz of numeric flags draws travels outside it
 
 
 def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
@@ -109,11 +122,13 @@ def add_generate_arguments(parser: argparse.ArgumentParser, defaults=None, *,
                              "distorted pixel grid): opencv:K1,K2,P1,P2[,K3] (OpenCV radial-tangential) or "
                              "fisheye:K1,K2,K3,K4 (OpenCV fisheye); depth, normals and masks follow the same rays; "
                              "val and test views stay pinhole")
-    parser.add_argument("--motion-blur", default=d.motion_blur, metavar="SPEC",
-                        help="train views taken by a moving camera: TRAVEL (the path over the frame as a fraction of "
-                             "the scene's diagonal) or travel=T,rotation=DEG,exposure=E,readout=R (exposure and "
-                             "rolling-shutter readout as fractions of the frame); the colour integrates the exposure, "
-                             "the transform and depth are the sharp mid-frame pose's")
+    parser.add_argument("--motion-blur", type=_motion_blur, default=d.motion_blur, metavar="SPEC",
+                        help=f"train views taken by a moving camera: TRAVEL (the path over the frame as a fraction of "
+                             f"the scene's diagonal, {motion.TRAVEL.text}) or travel=T,rotation=DEG,exposure=E,readout=R "
+                             f"(rotation in degrees, {motion.ROTATION_DEGREES.text}; exposure and rolling-shutter "
+                             f"readout as fractions of the frame); the colour integrates the exposure over at most "
+                             f"{motion.MAX_SUBFRAMES} sub-frames of {motion.MAX_SUBFRAME_MOTION_PX:g} px of image motion "
+                             f"each (more is refused), the transform and depth are the sharp mid-frame pose's")
     parser.add_argument("--holdout", default=d.holdout, metavar="AXIS:MIN:MAX",
                         help="hold out a sector of camera directions, azimuth:A:B or elevation:A:B degrees: train and "
                              "val views outside it; test views half inside (extrapolation), half outside "

@@ -304,6 +304,8 @@ def plan(config: GenerateConfig) -> Plan:
     lightfield = layouts.lightfield_plane(spec, scene.aabb) if spec.layout == "lightfield" else None
     stems = {split: [dataset.frame_stem(split, i, len(poses[split])) for i in range(len(poses[split]))]
              for split in dataset.SPLITS}
+    if config.motion_model() is not None:  # a path the sub-frames cannot sample is refused before rendering
+        motion.check_paths(poses["train"], config.motion_model(), scene.aabb, config.seed, intrinsics, stems["train"])
     return Plan(config, scene, intrinsics, spec, poses, stems, resolve_variant(config.variant), lightfield,
                 scene_inputs(scene), renderer_versions(),
                 extrapolation and holdout.frame_record(extrapolation, stems["test"]),

@@ -35,7 +35,7 @@ import numpy as np
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.outputs import ply_mark
-from nerfgauge.eval.geometry import ground_truth_surface
+from nerfgauge.eval.geometry import ground_truth_surface, point_triangle_distance
 
 KINDS = ("surface", "sfm", "random", "none")
 DEFAULT_COUNT = {"surface": None, "random": None, "sfm": None, "none": 0}  # None: default_count (sfm: all)
@@ -142,38 +142,6 @@ def face_normals(vertices, faces) -> np.ndarray:
     triangles = vertices[faces]
     cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
     return cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
-
-
-def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Exact distance from points p [n, 3] to triangles (a, b, c) [n, 3] each, row by row
-    (Ericson, Real-Time Collision Detection 5.1.5: the closest point by Voronoi region)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v_in, w_in = vb / denom, vc / denom
-        closest = a + v_in[:, None] * ab + w_in[:, None] * ac  # inside the face
-        regions = [
-            (d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (d6 >= 0) & (d5 <= d6),
-            (vc <= 0) & (d1 >= 0) & (d3 <= 0), (vb <= 0) & (d2 >= 0) & (d6 <= 0),
-            (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0),
-        ]
-        on_ab = a + (d1 / (d1 - d3))[:, None] * ab
-        on_ac = a + (d2 / (d2 - d6))[:, None] * ac
-        on_bc = b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None] * (c - b)
-    # Later regions must not override earlier ones: apply in reverse order of precedence.
-    for mask, point in reversed(list(zip(regions, (a, b, c, on_ab, on_ac, on_bc)))):
-        closest = np.where(mask[:, None], point, closest)
-    distance = np.linalg.norm(p - closest, axis=1)
-    degenerate = ~np.isfinite(distance)  # zero-area triangle: nearest of its vertices
-    if degenerate.any():
-        distance[degenerate] = np.min([np.linalg.norm(p[degenerate] - q[degenerate], axis=1) for q in (a, b, c)], axis=0)
-    return distance
 
 
 def distance_to_surface(points: np.ndarray, vertices, faces, rng, known_faces=None) -> np.ndarray:

@@ -19,6 +19,7 @@ import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 
+from nerfgauge.core.errors import raise_floating_point_warnings
 from nerfgauge.generate.distributed import render_on_cluster
 from nerfgauge.generate.views import load_mitsuba_scene, render_one, write_view
 from nerfgauge.core.progress import progress as progress_bar
@@ -91,6 +92,7 @@ def die_with_parent(parent_pid: int) -> None:
 
 def _init_worker(out, the_plan, parent_pid):
     die_with_parent(parent_pid)
+    raise_floating_point_warnings()  # as in the parent (core.errors): raised, never printed by a worker
     _WORKER["mi"], _WORKER["scene"] = load_mitsuba_scene(out, the_plan)
     _WORKER["out"], _WORKER["plan"] = out, the_plan
 

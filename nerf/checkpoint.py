@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from nerfgauge.nerf.config import EDGE_POINTS_PER_AXIS, FLAGS, TrainConfig, step_ratio_of
+from nerfgauge.nerf.config import FLAGS, TrainConfig, step_ratio_of
+from nerfgauge.nerf.schedule import EDGE_POINTS_PER_AXIS
 from nerfgauge.nerf.grid_field import VoxelGridField, node_mask
 from nerfgauge.nerf.models import CompactNeRF, VanillaNeRF
 from nerfgauge.nerf.parametrisation import Space
@@ -45,15 +46,15 @@ class LoopState:
 
     step, seconds: steps and training seconds done (validation and checkpointing excluded);
     next_eval: the training second of the next val PSNR point; logged_step: the step of the
-    last log entry; visibility_done: visibility measurements done (of train.VISIBILITY_AT);
+    last log entry; visibility_done: visibility measurements done (of schedule.VISIBILITY_AT);
     stage: coarse-to-fine growths done; stage_steps, stage_seconds: steps and seconds at
     this resolution; last_stage: the finest stage the run will take (a time budget stops
     growing when a finer grid could not be trained); colour_head: the residual colour head's
     decision (TrainConfig.colour_head), made once the final grid has trained MIN_STAGE_STEPS
     steps: 0 not yet, 1 added, -1 not; edge_points: rays per axis through an `edges` run's
-    edge pixels (nerf.config.EDGE_POINTS_PER_AXIS, then FINE_EDGE_POINTS_PER_AXIS), and
+    edge pixels (nerf.schedule.EDGE_POINTS_PER_AXIS, then FINE_EDGE_POINTS_PER_AXIS), and
     edge_points_step the step the half-budget refinement (those points, and a grid past the
-    final one: last_stage + 1) was decided at (0: not yet; train.refinement_due)."""
+    final one: last_stage + 1) was decided at (0: not yet; schedule.Schedule.refinement_due)."""
 
     step: int = 0
     seconds: float = 0.0

@@ -14,7 +14,9 @@ from nerfgauge.core.arguments import path
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
 from nerfgauge.core.outputs import check_output_file, claim_output_file
+from nerfgauge.nerf.config import TrainConfig
 from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
+from nerfgauge.nerf.options import add_train_arguments, train_fields
 
 
 def register(subparsers) -> None:
@@ -89,89 +91,20 @@ def _add_train(subparsers) -> None:
                     "was stopped before its first checkpoint; otherwise pass --resume or --overwrite.")
     parser.add_argument("dataset", type=path, help="a complete dataset folder (with manifest.json)")
     parser.add_argument("--out", type=path, required=True, metavar="RUN", help="run folder")
-    parser.add_argument("--model", choices=("compact", "vanilla"), default="compact")
-    budget = parser.add_mutually_exclusive_group()
-    budget.add_argument("--budget-seconds", type=arguments.SECONDS, default=None, metavar="T",
-                        help="training time (default 120)")
-    budget.add_argument("--steps", type=arguments.STEPS, default=None, metavar="N",
-                        help="training steps instead of a time budget")
-    parser.add_argument("--seed", type=arguments.SEED, default=0)
+    add_train_arguments(parser)  # every training option, defined once (nerf.options; `run` adds them too)
     again = parser.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue RUN from its checkpoint (with --steps N: bit-identical to an uninterrupted "
                             "N-step run at the same --threads)")
     again.add_argument("--overwrite", action="store_true", help="replace the run in RUN (only a nerfgauge run folder)")
-    parser.add_argument("--checkpoint-every", type=arguments.STEPS, default=None, metavar="STEPS",
-                        help="write RUN/checkpoint.pt every STEPS steps (default: at most once a minute of wall "
-                             "time), and always at the end")
-    parser.add_argument("--view-dependent", choices=("auto", "on", "off"), default="auto",
-                        help="view-dependent colour (auto: from scene.json)")
-    parser.add_argument("--parametrisation", default="auto", metavar="KIND",
-                        help="where the grid lives: bounded (the scene's AABB), contracted (mip-NeRF 360 "
-                             "contraction: unbounded and inside-out scenes) or forward (angles and log-depth: "
-                             "forward-facing captures); auto (default) decides from the cameras and bounds and "
-                             "says why in RUN/config.json")
-    parser.add_argument("--resolution", type=arguments.GRID_RESOLUTION, default=None,
-                        help="final grid resolution (auto: pixel footprint)")
-    parser.add_argument("--step-ratio", type=arguments.STEP_RATIO, default=None, metavar="VOXELS",
-                        help="ray-marching step while training, in voxels (auto: 0.5, 1 in contracted space)")
-    parser.add_argument("--batch-rays", type=arguments.BATCH_RAYS, default=None, metavar="N",
-                        help="rays per training step (auto: 4096, 2048 in contracted space)")
-    parser.add_argument("--pixel-filter", choices=("auto", "centre", "box", "jitter", "edges"), default="auto",
-                        help="what a training pixel is compared as: box, the mean of 2 x 2 stratified rays through "
-                             "it, as the ground truth averages the pixel's area (4x the rays a step, as many "
-                             "pixels); edges, the box on the target's edge pixels and the centre ray elsewhere; "
-                             "centre, its centre ray; jitter, one ray through a random point of it; auto (default): "
-                             "edges (BENCHMARKS.md, \"Edge pixels\")")
-    parser.add_argument("--quantise", choices=("fp16", "int8"), default="fp16",
-                        help="saved model's grid values: fp16 (default) or int8 with a per-channel scale (~half size)")
-    parser.add_argument("--no-prune", action="store_true", help="keep and save every grid node, not only those of occupied cells "
-                        "(a dense grid: the ablation of sparse storage)")
-    parser.add_argument("--no-occupancy", action="store_true", help="disable empty-space skipping")
-    parser.add_argument("--tv-weight", type=arguments.WEIGHT, default=0.0, help="total-variation weight on density")
-    parser.add_argument("--eval-every", type=arguments.SECONDS, default=10.0, metavar="SECONDS",
-                        help="training seconds between val PSNR points in log.jsonl (default 10)")
-    parser.add_argument("--threads", type=arguments.THREADS, default=2, help="torch CPU threads (default 2)")
-    parser.add_argument("--device", default="auto", help="auto (cuda when present), cpu, cuda or cuda:N")
-    parser.add_argument("--sparse", type=arguments.VIEWS, default=None, metavar="N",
-                        help="train on the dataset's fixed sparse list of N views (sparse_views.json: 3, 6, 9, 12 "
-                             "or 24, by farthest-point sampling on the camera centres)")
-    parser.add_argument("--sparse-priors", choices=("auto", "on", "off"), default="auto",
-                        help="priors on rays from unseen viewpoints (opacity entropy, distortion, total variation) "
-                             "for sparse captures; auto (default): on for an open capture from inside the scene whose points "
-                             "are each in fewer than 9 train images (BENCHMARKS.md, \"Sparse captures\")")
-    parser.add_argument("--colour-head", choices=("auto", "on", "off"), default="auto",
-                        help="a residual colour head (12 features and a small MLP, no view direction) added to a "
-                             "diffuse grid once its final size has trained 100 steps, for colour that varies inside a "
-                             "voxel; auto (default): off, since at equal time it gained nothing measured "
-                             "(BENCHMARKS.md, \"Colour that grows with the budget\")")
-    parser.add_argument("--refine-grid", choices=("auto", "on", "off"), default="auto",
-                        help="grow the grid one coarse-to-fine stage past its final resolution (x1.59) at half the "
-                             "budget when the final grid has trained 1000 steps by then; auto (default): on for an "
-                             "edges run whose resolution the pixel footprint set (BENCHMARKS.md, \"A finer grid in the second half\")")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run_train)
 
 
 def _run_train(args) -> int:
-    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
-    from nerfgauge.nerf.train import train  # torch
+    from nerfgauge.nerf.train import train  # torch: kept off `nerfgauge --help`'s import path
 
-    budget = args.budget_seconds
-    if budget is None and args.steps is None:
-        budget = 120.0
-    view_dependent = {"auto": None, "on": True, "off": False}[args.view_dependent]
-    config = TrainConfig(dataset=str(args.dataset), model=args.model, seed=args.seed, steps=args.steps,
-                         budget_seconds=budget, view_dependent=view_dependent, final_resolution=args.resolution,
-                         prune=not args.no_prune, quantise=args.quantise, occupancy=not args.no_occupancy, tv_weight=args.tv_weight,
-                         threads=args.threads, device=args.device, eval_every_seconds=args.eval_every,
-                         parametrisation=None if args.parametrisation == "auto" else args.parametrisation,
-                         checkpoint_every=args.checkpoint_every, step_ratio=args.step_ratio,
-                         batch_rays=args.batch_rays, sparse=args.sparse,
-                         sparse_priors={"auto": None, "on": True, "off": False}[args.sparse_priors],
-                         colour_head={"auto": None, "on": True, "off": False}[args.colour_head],
-                         refine_grid={"auto": None, "on": True, "off": False}[args.refine_grid],
-                         pixel_filter=None if args.pixel_filter == "auto" else args.pixel_filter)
+    config = TrainConfig(dataset=str(args.dataset), **train_fields(args))
     summary = train(config, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"{args.out}: {summary['steps']} steps in {summary['seconds']:.1f} s, val PSNR {summary['val_psnr']:.2f} dB, "
           f"model {summary['model_bytes'] / 1e6:.2f} MB"
@@ -267,8 +200,7 @@ def _run_mesh(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".ply":
         raise InputError(f"-o {out}: the mesh is written as PLY; name it *.ply")
-    with claim_output_file(out, {"mesh": str(args.run), "resolution": args.resolution}, "mesh",
-                           getattr(args, "overwrite", False)):
+    with claim_output_file(out, {"mesh": str(args.run), "resolution": args.resolution}, "mesh", args.overwrite):
         mesh = mesh_from_run(args.run, args.resolution, cull=not args.no_cull, level=args.level)
         write_bytes_atomic(out, ply_bytes(mesh.vertices, mesh.faces))
     print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces ({mesh.faces_culled} unseen dropped), "

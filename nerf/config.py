@@ -2,7 +2,10 @@
 
 `TrainConfig` is frozen and saved as RUN/config.json. Fields left as None ("auto") are
 resolved from the dataset's scene.json by `resolve`, and every resolved choice is written
-with the reason it was made, so a run states what it modelled and why.
+with the reason it was made, so a run states what it modelled and why. A field the command
+line sets names its flag in its metadata (`FLAGS`; nerf.options adds the flags, and
+`nerfgauge train` and `nerfgauge run` both take them). This module imports no torch, so
+the flags' defaults come from here without slowing `nerfgauge --help`.
 """
 
 from __future__ import annotations
@@ -10,47 +13,20 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
 
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
-from nerfgauge.nerf.parametrisation import PARAMETRISATIONS, choose_parametrisation
-from nerfgauge.nerf.sparse_priors import PRIOR_LEARNING_RATE, cameras_inside, sparse_priors_for
+from nerfgauge.nerf.schedule import (FINE_EDGE_POINTS_AT, FINE_EDGE_POINTS_MIN_STEPS, STAGE_RATIO, START_VOXELS,
+                                     start_resolution_for, upsample_count)
 
 MODELS = ("compact", "vanilla")
 BACKGROUNDS = ("random", "white", "black")
 # TrainConfig.pixel_filter -> training rays per pixel, averaged before the loss (nerf.train)
 TRAIN_PIXEL_SAMPLES = {"box": 4, "jitter": 1, "centre": 1, "edges": 1}
-# ... and on the `edges` filter's edge pixels (nerfgauge.core.pixel_edges): rays through the
-# centres of a k x k grid of cells, k = EDGE_POINTS_PER_AXIS (2 x 2, as the box render) at
-# first. When FINE_EDGE_POINTS_AT of the budget (steps or seconds) is gone, a run whose
-# final grid has trained FINE_EDGE_POINTS_MIN_STEPS steps by then takes
-# k = FINE_EDGE_POINTS_PER_AXIS for the rest (nerf.train.refinement_due). A sharp
-# field's box mean wants more than 2 x 2 points (the k x k midpoint rule puts a straight
-# step edge's coverage up to 1/(2k) off: a quarter of the step for 2 x 2, a sixth for
-# 3 x 3), and the model fits the points it is trained through. Its steps cost 1.5-1.9x,
-# which only a model converged at its final grid, with budget left, repays. Primitives
-# 128 px at 1 thread, 600 s, switched at half the budget 1189 steps into the final grid:
-# 44.17 dB against 43.89 with 2 x 2 throughout and 44.01 with 3 x 3 throughout; 120 s,
-# switched at half the budget 268 steps into it: 38.38 against 39.55; far-object 64 px
-# (in no bench), 600 s: 45.24 against 44.68 (BENCHMARKS.md, "Finer points in the second
-# half").
-# The same decision grows the grid of an `edges` run whose final resolution the pixel
-# footprint set one coarse-to-fine stage past it (x STAGE_RATIO, at most MAX_AUTO_RESOLUTION;
-# TrainConfig.refine_grid, `refine_grid_for`): the footprint's grid is what the pixels resolve
-# through one ray, and a model trained through several points a pixel can use a finer one once
-# it has converged. Primitives 128 px at 1 thread, 600 s: 44.54 dB against 44.19 with 3 x 3
-# points on the 109 grid (173 voxels from step 3541 of 5239); far-object 64 px (in no bench;
-# its texture sets a grid finer than its pixels, so the rule leaves it alone): 44.33 refined
-# against 44.97; thin 128 px (in no train bench; its grid is the footprint's, 104 -> 165):
-# 47.48 against 45.64 (BENCHMARKS.md, "A finer grid in the second half").
-EDGE_POINTS_PER_AXIS = 2
-FINE_EDGE_POINTS_PER_AXIS = 3
-FINE_EDGE_POINTS_AT = 0.5
-FINE_EDGE_POINTS_MIN_STEPS = 1000
 # The automatic filter is `edges` while edge pixels are at most this share of the training
 # pixels: their extra rays then at most double the rays a step (1 + 3 x 1/3). Bench and
 # suite scenes hold 9-24% (primitives 128 px 12.6%); forward-near at 64 px 75% and
@@ -84,49 +60,52 @@ BATCH_RAYS = {"bounded": 4096, "contracted": 2048, "forward": 4096}
 BY_PARAMETRISATION = {"step_ratio": (STEP_RATIOS, "marching steps of {} voxel"),
                       "batch_rays": (BATCH_RAYS, "{} rays a step")}
 UNBOUNDED_MAX_RESOLUTION = 192  # contracted / forward grids (every cell of them is in view)
-# Coarse to fine: each stage grows the grid by this factor, from a start grid of about
-# START_VOXELS, in at least MIN_UPSAMPLES stages. A start of a quarter of the final grid
-# (three stages) was the rule until a 218-voxel final grid started at 54: at 256 px its
-# 120 s run took 1546 steps to 38.0 dB, where a ladder from 34 took 2182 to 38.75
-# (BENCHMARKS.md). The start grid only has to find where matter is, not resolve it.
-STAGE_RATIO = 4 ** (1 / 3)
-START_VOXELS = 32
-MIN_UPSAMPLES = 3
-LAST_UPSAMPLE_AT = 0.3  # the grid grows at evenly spaced fractions of the budget up to this ...
-MIN_STAGE_STEPS = 100  # ... once the coarser grid had this many steps (short budgets need them)
-
-
 DEFAULT_LEARNING_RATE = 0.1  # TrainConfig.lr's default: voxel grids take DVGO-style large steps
+# The one default budget: a run given neither a step count nor a time budget trains this
+# many seconds (`nerfgauge train`, `nerfgauge run`, the API and the benches alike).
+DEFAULT_BUDGET_SECONDS = 120.0
+# A flag's words for a field's values that are not plain: "auto" is None, which `resolve`
+# decides from the data; a switch's on and off are True and False.
+AUTO = {"auto": None}
+SWITCH = {"auto": None, "on": True, "off": False}
+
+
+def _flag(flag: str, default=None, words: Optional[dict] = None):
+    """A TrainConfig field the command line sets with `flag` (nerf.options adds it; messages
+    name it, `FLAGS`); words: the flag's words for values that are not plain (AUTO, SWITCH)."""
+    return field(default=default, metadata={"flag": flag, **({"words": words} if words else {})})
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     dataset: str
-    model: str = "compact"
-    seed: int = 0
-    steps: Optional[int] = None  # stop after this many steps ...
-    budget_seconds: Optional[float] = None  # ... or after this much training time
-    batch_rays: Optional[int] = None  # rays per compact step; None: BATCH_RAYS[parametrisation]
+    model: str = _flag("--model", "compact")
+    seed: int = _flag("--seed", 0)
+    steps: Optional[int] = _flag("--steps")  # stop after this many steps ...
+    # ... or after this much training time; with neither, DEFAULT_BUDGET_SECONDS (`__post_init__`)
+    budget_seconds: Optional[float] = _flag("--budget-seconds")
+    batch_rays: Optional[int] = _flag("--batch-rays")  # rays per compact step; None: BATCH_RAYS[parametrisation]
     lr: float = DEFAULT_LEARNING_RATE  # voxel grids; MLP heads use lr_mlp; sparse-capture priors: `resolve`
     lr_mlp: float = 5e-3
     background: str = "random"  # training background per ray: random makes alpha learnable
     # compact: None = decide from scene.json (see `resolve`)
-    view_dependent: Optional[bool] = None
+    view_dependent: Optional[bool] = _flag("--view-dependent", words=SWITCH)
     # bounded | contracted | forward (nerf.parametrisation); None = from cameras and bounds
-    parametrisation: Optional[str] = None
-    final_resolution: Optional[int] = None  # voxels along the AABB's longest side
+    parametrisation: Optional[str] = _flag("--parametrisation", words=AUTO)
+    final_resolution: Optional[int] = _flag("--resolution")  # voxels along the AABB's longest side
     start_resolution: Optional[int] = None
-    prune: bool = True
-    quantise: str = "fp16"  # saved model's grid values: fp16, or int8 with a per-channel scale
-    occupancy: bool = True  # empty-space skipping
-    tv_weight: float = 0.0
+    prune: bool = _flag("--no-prune", True)
+    quantise: str = _flag("--quantise", "fp16")  # saved model's grid values: fp16, or int8 with a per-channel scale
+    occupancy: bool = _flag("--no-occupancy", True)  # empty-space skipping
+    tv_weight: float = _flag("--tv-weight", 0.0)
     distortion_weight: float = 1e-3  # mip-NeRF 360 distortion loss: solid surfaces, exact depth
-    step_ratio: Optional[float] = None  # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
+    # ray-marching step in voxels; None: STEP_RATIOS[parametrisation]
+    step_ratio: Optional[float] = _flag("--step-ratio")
     # What a training pixel's colour is compared as: "centre", its centre ray; "box", the mean
     # of 2 x 2 stratified rays through the pixel, as the ground truth's box filter averages its
     # area; "edges", the box on the target's edge pixels and the centre ray elsewhere;
     # "jitter", one ray through a random point of it. None: `pixel_filter_for`.
-    pixel_filter: Optional[str] = None
+    pixel_filter: Optional[str] = _flag("--pixel-filter", words=AUTO)
     feature_channels: int = 12  # view-dependent colour: grid features fed to a small MLP
     # vanilla (the original NeRF, Mildenhall et al. 2020)
     n_coarse: int = 64
@@ -135,17 +114,17 @@ class TrainConfig:
     depth: int = 8
     vanilla_batch_rays: int = 1024
     # logging
-    eval_every_seconds: float = 10.0  # val PSNR points along the way (training clock)
+    eval_every_seconds: float = _flag("--eval-every", 10.0)  # val PSNR points along the way (training clock)
     eval_views: int = 4
     eval_rays: int = 8192  # val pixels per PSNR point (a fixed strided subset of eval_views)
     # checkpoint.pt every this many steps (and at step 0 and the end); None: at most once a
     # minute of wall time (and at the end)
-    checkpoint_every: Optional[int] = None
-    threads: int = 2
-    device: str = "auto"
+    checkpoint_every: Optional[int] = _flag("--checkpoint-every")
+    threads: int = _flag("--threads", 2)
+    device: str = _flag("--device", "auto")
     # train on the dataset's sparse list of this many views (sparse_views.json; nerf.data);
     # None: every train view. Left out of config.json when None, so older runs keep their recipe.
-    sparse: Optional[int] = None
+    sparse: Optional[int] = _flag("--sparse")
     # How an `edges` run's frames are rendered, chosen at the end of training on the val
     # views (nerf.train.choose_render_filter), one of RENDER_FILTERS. None: not chosen (any
     # other filter renders by its own rule). Left out of config.json when None; not part of
@@ -154,27 +133,33 @@ class TrainConfig:
     # priors on rays from unseen viewpoints (nerf.sparse_priors; the compact model's): None:
     # on for a sparse capture from inside the scene (`sparse_priors_for`). Left out of
     # config.json when False, so runs made before the mode keep their recipe.
-    sparse_priors: Optional[bool] = None
+    sparse_priors: Optional[bool] = _flag("--sparse-priors", words=SWITCH)
     # a residual colour head on a diffuse grid (nerf.grid_field.add_residual_head), added
-    # once the final grid has trained MIN_STAGE_STEPS steps. None (auto): not added
-    # (`colour_head_for` says why). Left out of config.json while None, so older runs keep
-    # their recipe.
-    colour_head: Optional[bool] = None
+    # once the final grid has trained nerf.schedule.MIN_STAGE_STEPS steps. None (auto): not
+    # added (`colour_head_for` says why). Left out of config.json while None, so older runs
+    # keep their recipe.
+    colour_head: Optional[bool] = _flag("--colour-head", words=SWITCH)
     # one coarse-to-fine stage past final_resolution (`refined_resolution`) from half the
-    # budget, when the final grid has converged by then (nerf.train.refinement_due; a time
-    # budget's growth trial still judges it). None: `refine_grid_for`. Left out of
+    # budget, when the final grid has converged by then (nerf.schedule.Schedule.refinement_due;
+    # a time budget's growth trial still judges it). None: `refine_grid_for`. Left out of
     # config.json when None or False, so runs made before it keep their recipe.
-    refine_grid: Optional[bool] = None
+    refine_grid: Optional[bool] = _flag("--refine-grid", words=SWITCH)
+
+    def __post_init__(self) -> None:
+        if self.steps is None and self.budget_seconds is None:  # the one default budget
+            object.__setattr__(self, "budget_seconds", DEFAULT_BUDGET_SECONDS)
 
     def validate(self) -> None:
         """One-line InputError for anything a run cannot use (the API path: the CLI's
         argument types already refuse NaN, inf and non-positive counts)."""
+        from nerfgauge.nerf.parametrisation import PARAMETRISATIONS  # torch: kept off `nerfgauge --help`'s import path
+
         if not isinstance(self.dataset, str) or not self.dataset.strip():
             raise InputError(f"dataset must be a non-empty path, got {self.dataset!r}")
         if self.model not in MODELS:
             raise InputError(f"unknown model {self.model!r}; choose one of {', '.join(MODELS)}")
-        if (self.steps is None) == (self.budget_seconds is None):
-            raise InputError("give exactly one of --steps N or --budget-seconds T")
+        if self.steps is not None and self.budget_seconds is not None:
+            raise InputError("give one of --steps N or --budget-seconds T, not both")
         if self.quantise not in ("fp16", "int8"):
             raise InputError(f"unknown --quantise {self.quantise!r}; choose fp16 or int8")
         if self.pixel_filter is not None and self.pixel_filter not in PIXEL_FILTERS:
@@ -218,11 +203,8 @@ class TrainConfig:
         return out
 
 
-# CLI flag of a config field, for messages that name what the user typed
-FLAGS = {"eval_every_seconds": "--eval-every", "final_resolution": "--resolution", "tv_weight": "--tv-weight",
-         "threads": "--threads", "view_dependent": "--view-dependent", "parametrisation": "--parametrisation",
-         "step_ratio": "--step-ratio", "batch_rays": "--batch-rays", "pixel_filter": "--pixel-filter",
-         "sparse_priors": "--sparse-priors", "colour_head": "--colour-head", "refine_grid": "--refine-grid"}
+# {field: its command-line flag} (the fields' metadata), for messages that name what the user typed
+FLAGS = {item.name: item.metadata["flag"] for item in dataclasses.fields(TrainConfig) if "flag" in item.metadata}
 
 
 SAMPLES_PER_RAY = arguments.bounded(int, 1, 4096)  # the vanilla NeRF's coarse and fine samples
@@ -277,6 +259,9 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
     that are edge pixels (`pixel_filter_for`), None when unknown. views_per_point: the
     median number of train images holding a point of the box (nerf.sparse_priors), None
     when unknown."""
+    from nerfgauge.nerf.parametrisation import choose_parametrisation  # torch: kept off `nerfgauge --help`'s import path
+    from nerfgauge.nerf.sparse_priors import PRIOR_LEARNING_RATE, cameras_inside, sparse_priors_for  # torch
+
     reasons = {}
     updates = {}
     kind, reasons["parametrisation"] = choose_parametrisation(config.parametrisation, aabb, train_c2w, opaque)
@@ -391,7 +376,7 @@ def refined_resolution(final: int) -> int:
 
 def refine_grid_for(config: TrainConfig, resolution_set_by: Optional[str]) -> tuple[bool, str]:
     """Whether a run grows its grid past the final resolution once it has converged (at
-    half the budget; nerf.train.refinement_due), and why: as set; else for a compact `edges`
+    half the budget; nerf.schedule.Schedule.refinement_due), and why: as set; else for a compact `edges`
     run whose final resolution is the pixel footprint's (`resolution_set_by`, from
     `footprint_resolution`; None when set on the command line or not a bounded grid).
     `config`: resolved (its pixel filter and final resolution). The footprint's grid is
@@ -424,23 +409,3 @@ def step_ratio_of(config: TrainConfig) -> float:
     if config.step_ratio is not None:
         return config.step_ratio
     return STEP_RATIOS[config.parametrisation or "bounded"]
-
-
-def start_resolution_for(final: int, steps: Optional[int] = None) -> int:
-    """The start grid of a coarse-to-fine ladder to `final` voxels: final / STAGE_RATIO^n
-    for the n that lands nearest START_VOXELS (n >= MIN_UPSAMPLES), at least 16 and at most
-    the final grid (a final grid under 16 trains at one size; it used to start at 16 and shrink).
-    A run of a fixed number of `steps` takes at most max(MIN_UPSAMPLES, steps / 2 /
-    MIN_STAGE_STEPS) stages: each waits for MIN_STAGE_STEPS steps, so more would leave the
-    final grid less than half the run (bench hard's 400 steps: three stages, as before the
-    longer ladder, not five that never reached a 256 grid)."""
-    stages = max(MIN_UPSAMPLES, round(math.log(final / START_VOXELS) / math.log(STAGE_RATIO)))
-    if steps is not None:
-        stages = min(stages, max(MIN_UPSAMPLES, steps // (2 * MIN_STAGE_STEPS)))
-    return min(final, max(16, round(final / 4 ** (stages / 3))))  # = STAGE_RATIO ** stages, exact at 3
-
-
-def upsample_count(start: int, final: int) -> int:
-    """Coarse-to-fine stages after the start grid: geometric steps of about STAGE_RATIO,
-    at least MIN_UPSAMPLES (a start equal to the final grid takes them too, at one size)."""
-    return max(MIN_UPSAMPLES, round(math.log(max(final / start, 1.0)) / math.log(STAGE_RATIO)))

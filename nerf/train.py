@@ -29,16 +29,14 @@ import numpy as np
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import (EDGE_POINTS_PER_AXIS, FINE_EDGE_POINTS_AT, FINE_EDGE_POINTS_MIN_STEPS,
-                                   FINE_EDGE_POINTS_PER_AXIS, LAST_UPSAMPLE_AT, MIN_STAGE_STEPS, RENDER_FILTERS,
-                                   TRAIN_PIXEL_SAMPLES, TrainConfig, refined_resolution, resolve,
-                                   upsample_count)
+from nerfgauge.nerf.config import RENDER_FILTERS, TRAIN_PIXEL_SAMPLES, TrainConfig, refined_resolution, resolve
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import box_frame, pixel_offsets
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, render_rays_chunked
+from nerfgauge.nerf.schedule import FINE_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER, Schedule, upsample_count
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
 
 from nerfgauge.core import bounded, owned
@@ -48,29 +46,9 @@ from nerfgauge.core.errors import InputError, NumericalError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
 
-OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
 HEAD_SEED_OFFSET = 2  # the residual colour head's hidden layer: seed + 2 (seed + 1 draws the model's)
-# A time budget keeps a finer grid only if it can still give it this many steps: the finer
-# grid trains GROWTH_TRIAL_STEPS steps first, timed, and the growth is undone when its
-# measured rate times the seconds left falls short. Measured on primitives, 120 s, 2 CPU
-# cores (BENCHMARKS.md): at 256 px the 218 grid got ~640 steps and scored 37.5 dB, the 137
-# grid it skipped to ~1300-1500 steps and 38.7, so the bar sits between. (A projection from
-# the coarser grid's rate times the resolution ratio, used before, was 35% pessimistic from
-# the 68 grid at 128 px: the 109 grid ran at 0.84x its rate, not 0.62x, and two idle 120-s
-# runs split 41.32 / 39.33 dB on which side of the bar it fell.)
-MIN_STEPS_AT_FINER = 800
-# ... and only for the last growth: earlier stages are cheap (a 76-voxel grid costs a
-# fraction of a 218 one), and a bar set on primitives' rates kept far-reaching's
-# contracted grid at its 30-voxel start (20.8 dB, against 22.8 at 48 voxels).
-BUDGET_DECIDES_LAST_GROWTHS = 1
-# ... and only in these spaces. In contracted space the final grid (at most 192) is what
-# the inner ball needs to be sharp, and it wins with few steps: far-reaching 128 px, 120 s
-# scored 27.35 dB with the 192 grid's ~170 steps (the projection said ~173) against 26.83
-# with the 121 grid the bar kept (BENCHMARKS.md).
-BUDGET_DECIDES_IN = ("bounded", "forward")
-GROWTH_TRIAL_WARMUP = 5  # steps of a new grid not timed: the first allocate its rows and moments
-GROWTH_TRIAL_STEPS = 40  # steps timed after them; ~3 s of a 120-s budget at 128 px
-VISIBILITY_AT = (0.4, 0.7, 1.0)  # fractions where hidden cells are measured and skipped
+# When the grid grows, when a growth is on trial, when hidden cells are measured and what is
+# refined at half the budget: nerf.schedule.
 VISIBILITY_RAY_STRIDE = 4  # every 4th training ray is enough to see every visible cell ...
 # ... up to this many rays (100 views of 128 px). Beyond it, measuring costs more than the
 # steps it saves (25 s a measurement at 256 px, of a 120 s budget): the stride grows and
@@ -128,14 +106,20 @@ def psnr_on_white(model, rays, device, max_rays: int) -> float:
     return float((-10 * torch.log10(per_view)).mean())
 
 
-def budget_decides_growth(config: TrainConfig, state: LoopState) -> bool:
-    """Whether the growth from `state.stage` is the budget's to decide (a trial, then keep
-    or undo): only for a time budget's compact model, in BUDGET_DECIDES_IN, for the last
-    BUDGET_DECIDES_LAST_GROWTHS growths. A --steps run's schedule is fixed by its step
-    count, so it stays reproducible."""
-    if config.budget_seconds is None or config.model != "compact" or config.parametrisation not in BUDGET_DECIDES_IN:
-        return False
-    return state.stage >= upsample_count(config.start_resolution, config.final_resolution) - BUDGET_DECIDES_LAST_GROWTHS
+def logged_val_psnr(path: Path, step: int) -> float:
+    """The val PSNR that log.jsonl at `path` holds for `step` (its last entry of that step);
+    NaN when it holds none that is a finite number. Read on resume, after the log is cut
+    back to the checkpoint: a finished run resumed reported `val PSNR nan` for want of it."""
+    found = math.nan
+    for line in (path.read_text(errors="replace").splitlines() if path.is_file() else []):
+        try:
+            entry = bounded.loads_json(line, path) if line.strip() else None
+        except (json.JSONDecodeError, InputError):  # a torn last line (resume cut the rest back)
+            continue
+        value = entry.get("val_psnr") if isinstance(entry, dict) and entry.get("step") == step else None
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            found = float(value)
+    return found
 
 
 def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int, int]:
@@ -150,23 +134,6 @@ def visibility_sampling(n_rays: int, samples_per_ray: float = 0.0) -> tuple[int,
     if stride == VISIBILITY_RAY_STRIDE:
         return stride, 1
     return stride | 1, max(1, round(math.sqrt(stride / VISIBILITY_RAY_STRIDE)))
-
-
-def upsample_at(config: TrainConfig, stage: int) -> float:
-    """Fraction of the budget where the grid grows from `stage` to the next: evenly spaced
-    up to LAST_UPSAMPLE_AT (0.1, 0.2, 0.3 for three stages), so the final grid always
-    trains for the last 70%."""
-    return LAST_UPSAMPLE_AT * (stage + 1) / upsample_count(config.start_resolution, config.final_resolution)
-
-
-def resolution_at(config: TrainConfig, stage: int) -> int:
-    """Coarse to fine: geometric steps from start (stage 0) to final resolution; the stage
-    after it is the refined grid (`refined_resolution`, TrainConfig.refine_grid)."""
-    ratio = config.final_resolution / config.start_resolution
-    stages = upsample_count(config.start_resolution, config.final_resolution)
-    if stage > stages:
-        return refined_resolution(config.final_resolution)
-    return int(round(config.start_resolution * ratio ** (stage / stages)))
 
 
 def make_optimizer(model: RadianceModel, config: TrainConfig) -> torch.optim.Adam:
@@ -345,21 +312,6 @@ def begin_growth_trial(training: Training) -> GrowthTrial:
     return GrowthTrial(model, optimizer, dataclasses.replace(training.loop))
 
 
-def steps_on_trial(config: TrainConfig, state: LoopState, trial: GrowthTrial) -> float | None:
-    """The steps the finer grid on trial would get in all: those done, plus its measured
-    rate over the GROWTH_TRIAL_STEPS after the warm-up times the budget's seconds left.
-    None until those steps are timed (it records when the timed steps begin)."""
-    if trial.timed_from is None:
-        if state.stage_steps >= GROWTH_TRIAL_WARMUP:
-            trial.timed_from = state.stage_seconds
-        return None
-    timed = state.stage_seconds - trial.timed_from
-    if state.stage_steps < GROWTH_TRIAL_WARMUP + GROWTH_TRIAL_STEPS or timed <= 0:
-        return None
-    rate = (state.stage_steps - GROWTH_TRIAL_WARMUP) / timed
-    return state.stage_steps + rate * max(config.budget_seconds - state.seconds, 0.0)
-
-
 def undo_growth(training: Training, trial: GrowthTrial) -> None:
     """Back to the coarser grid as it was before the trial, which becomes the final one.
     The step count, training seconds and ray generator run on: the trial's time was spent."""
@@ -389,7 +341,10 @@ def _start_training(run_dir: Path, config: TrainConfig, aabb, space, device, sav
 
 
 def _measure_visibility(training: Training, train_rays, device) -> None:
-    """Mark the grid cells training rays can see; with a sparse grid, free the rest."""
+    """Mark the grid cells training rays can see; with a sparse grid, free the rest. Counted
+    as one of the schedule's measurements (LoopState.visibility_done) and as training time:
+    it speeds training up."""
+    start = time.perf_counter()
     model = training.model
     probe = max(1, train_rays.origins.shape[0] // VISIBILITY_PROBE_RAYS)
     samples_per_ray = model.samples_per_ray(train_rays.origins[::probe].to(device),
@@ -399,6 +354,129 @@ def _measure_visibility(training: Training, train_rays, device) -> None:
                              block=block)
     if model.sparse:
         free_unoccupied(model, training.optimizer)
+    training.loop.visibility_done += 1
+    training.loop.seconds += time.perf_counter() - start
+
+
+def _write_config(run_dir: Path, config: TrainConfig, reasons: dict, space, recipe: dict) -> None:
+    """RUN/config.json: the resolved settings, why each automatic one was chosen, the space
+    and the recipe."""
+    write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
+                                  "recipe": recipe})
+
+
+def _progress_bar(config: TrainConfig, state: LoopState, progress: bool):
+    """Steps for a --steps run; a time budget advances the bar in training seconds, with
+    steps/s and PSNR in the postfix (core.progress: plain lines when not on a terminal)."""
+    time_format = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
+    return progress_bar(total=config.steps if config.steps is not None else config.budget_seconds,
+                        unit="step" if config.steps else "s", desc=f"train {config.model}", enabled=progress,
+                        initial=state.step if config.steps else 0, bar_format=None if config.steps else time_format)
+
+
+def _log_point(log, bar, training: Training, config: TrainConfig, schedule: Schedule, val_rays, device,
+               losses: list) -> float:
+    """One log.jsonl entry: val PSNR at this step, the mean loss since the last entry (then
+    cleared), and the grid's state. Val PSNR points are scheduled on training seconds; they
+    only read the model (no generator, no parameter, no cached state the step uses), so where
+    they fall never changes a steps-run's trajectory. Returns the PSNR."""
+    model, state = training.model, training.loop
+    psnr = psnr_on_white(model, val_rays, device, config.eval_rays)
+    entry = {"step": state.step, "seconds": round(state.seconds, 3), "val_psnr": psnr,
+             "steps_per_second": state.step / max(state.seconds, 1e-9),
+             "loss": sum(losses) / len(losses) if losses else None}
+    losses.clear()
+    if config.pixel_filter == "edges":
+        entry["edge_points"] = state.edge_points
+    if model.has_grid:
+        entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean()),
+                  "final_resolution": schedule.resolution_at(state.last_stage)}
+    log.write(json.dumps(entry) + "\n"), log.flush()
+    state.next_eval = state.seconds + config.eval_every_seconds
+    state.logged_step = state.step
+    bar.set_postfix(psnr=f"{psnr:.2f}", steps_per_s=f"{entry['steps_per_second']:.1f}", refresh=False)
+    return psnr
+
+
+@dataclass
+class CheckpointClock:
+    """When checkpoint.pt was last written: its step (None: not in this attempt) and the
+    wall-clock time (time.monotonic)."""
+
+    step: int | None
+    wall: float
+
+    def save_if_due(self, run_dir: Path, training: Training, config: TrainConfig, recipe: dict,
+                    finished: bool) -> None:
+        """Every --checkpoint-every steps, else once CHECKPOINT_EVERY_WALL_SECONDS of wall
+        time have passed; always at the end (`finished`); never twice at one step."""
+        state = training.loop
+        if config.checkpoint_every is not None:
+            due = state.step % config.checkpoint_every == 0
+        else:
+            due = time.monotonic() - self.wall >= CHECKPOINT_EVERY_WALL_SECONDS
+        if (due or finished) and self.step != state.step:
+            _save_checkpoint(run_dir, training, config, recipe)
+            self.step, self.wall = state.step, time.monotonic()
+
+
+def _follow_schedule(training: Training, schedule: Schedule, trial: GrowthTrial | None, fraction_done: float,
+                     progress: bool) -> GrowthTrial | None:
+    """Apply what the schedule decides before this step: grow the grid (a time budget's last
+    growth on trial), judge a growth on trial, decide the colour head, and at half the budget
+    refine (finer edge points, a grid past the final one). Returns the growth on trial, if any."""
+    state = training.loop
+    if schedule.growth_due(state, fraction_done):
+        if schedule.growth_on_trial(state):
+            trial = begin_growth_trial(training)
+        state.stage += 1
+        state.stage_steps, state.stage_seconds = 0, 0.0
+    elif trial is not None:
+        trial.timed_from, projected = schedule.steps_on_trial(state, trial.timed_from)
+        if projected is not None:
+            if not schedule.keeps_growth(projected):
+                finer = training.model.field.resolution
+                undo_growth(training, trial)
+                if progress:
+                    note(f"keeping the {training.model.field.resolution}-voxel grid: the budget would give "
+                               f"the {finer}-voxel one about {projected:.0f} steps at its measured rate "
+                               f"(< {MIN_STEPS_AT_FINER})")
+            trial = None  # judged: the growth stands or is undone
+    if schedule.colour_head_due(state):  # the final grid has settled: add the head now, or never
+        state.colour_head = 1 if schedule.colour_head else -1
+        if progress and schedule.colour_head:
+            note(f"adding the residual colour head at step {state.step}")
+    if (refine := schedule.refinement_due(state, fraction_done, trial is not None)) is not None:
+        state.edge_points_step = state.step  # decided, either way
+        if refine and schedule.edges:
+            state.edge_points = FINE_EDGE_POINTS_PER_AXIS
+            if progress:
+                note(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
+                           f"from step {state.step}")
+        if refine and schedule.grows_past_final(state):
+            # the growth comes as any other at the next step (`growth_due`), on trial for a
+            # time budget like the last growth
+            state.last_stage += 1
+            if progress:
+                note(f"growing the grid to {schedule.refined_resolution} voxels from step {state.step}")
+    return trial
+
+
+def _step(training: Training, config: TrainConfig, schedule: Schedule, train_rays, n_rays: int, device,
+          fraction_done: float, priors, run_dir: Path) -> float:
+    """One training step at the grid the schedule's stage wants (occupancy refreshed when
+    due): its loss. A non-finite loss or gradient is a NumericalError (nothing updated)."""
+    if training.model.has_grid:
+        _grow_grid(training, config, schedule.resolution_at(training.loop.stage))
+        if schedule.occupancy_due(training.loop):
+            training.model.update_occupancy()
+    loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
+    if not (math.isfinite(loss) and gradients_finite):
+        raise NumericalError(
+            f"training diverged at step {training.loop.step}: loss {loss}, gradients "
+            f"{'finite' if gradients_finite else 'not finite'}; the parameters were not updated and "
+            f"{run_dir / CHECKPOINT} holds the last saved state")
+    return loss
 
 
 def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, aabb, train_rays, val, device,
@@ -407,134 +485,68 @@ def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, a
     val: (val_cameras, val_rays) of `prepare_run`. progress: show a progress bar."""
     torch.set_num_threads(config.threads)
     aabb, space = aabb
-    val_cameras, val_rays = val
     training = _start_training(run_dir, config, aabb, space, device, saved)
-    model, state = training.model, training.loop
+    state = training.loop
     if state.colour_head == 1 and config.colour_head is None:  # resumed: an earlier rule added the head
         config = dataclasses.replace(config, colour_head=True)
         reasons["colour_head"] = "added before the run was resumed (checkpoint.pt's loop state)"
+    schedule = Schedule.for_run(config, grid=training.model.has_grid,
+                                refined_resolution=refined_resolution(config.final_resolution))
     if saved is not None:
         _truncate_log(run_dir / LOG, state.step)
     else:
         write_bytes_atomic(run_dir / LOG, b"")
-    # config.json states this attempt's settings (the stopping rule may have changed)
-    write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
-                                  "recipe": recipe})
+    _write_config(run_dir, config, reasons, space, recipe)  # this attempt's settings (the stopping rule may differ)
     log = owned.open_append(run_dir / LOG)
     # the scale of the unseen viewpoints' offsets, when the sparse-capture priors are on
     priors = origin_spread(train_rays.origins) if config.sparse_priors else None
     n_rays = config.batch_rays if config.model == "compact" else config.vanilla_batch_rays
-    total = config.steps if config.steps is not None else config.budget_seconds
-    # A time budget advances the bar in training seconds; steps/s and PSNR ride in the postfix.
-    time_format = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
-    bar = progress_bar(total=total, unit="step" if config.steps else "s", desc=f"train {config.model}",
-                       enabled=progress, initial=state.step if config.steps else 0,
-                       bar_format=None if config.steps else time_format)
+    bar = _progress_bar(config, state, progress)
     last_psnr = float("nan")
+    if saved is not None:  # resumed: its latest val PSNR point is in the log (a finished run has nothing left to measure)
+        last_psnr = logged_val_psnr(run_dir / LOG, state.logged_step)
+        if state.logged_step == state.step and not math.isfinite(last_psnr):
+            state.logged_step = -1  # the log lost that point: measured again below (it only reads the model)
     losses = []  # since the last log entry
-    # the step of the checkpoint on disk, and when (wall clock) it was written
-    checkpointed_step = state.step if saved is not None else None
-    last_checkpoint = time.monotonic() if saved is not None else -math.inf
+    checkpoints = CheckpointClock(state.step, time.monotonic()) if saved is not None else CheckpointClock(None, -math.inf)
     trial = None  # the last growth while the budget decides whether to keep it (GrowthTrial)
     try:
         while True:
-            fraction_done = state.step / config.steps if config.steps else state.seconds / config.budget_seconds
-            if model.has_grid and state.visibility_done < len(VISIBILITY_AT) \
-                    and fraction_done >= VISIBILITY_AT[state.visibility_done]:
-                start = time.perf_counter()
+            fraction_done = schedule.fraction_done(state)
+            if schedule.visibility_due(state, fraction_done):
                 _measure_visibility(training, train_rays, device)
-                state.visibility_done += 1
-                state.seconds += time.perf_counter() - start  # part of training: it speeds it up
-            # Val PSNR points are scheduled on training seconds; they only read the model
-            # (no generator, no parameter, no cached state the step uses), so where they
-            # fall never changes a steps-run's trajectory.
             if state.logged_step != state.step and (state.seconds >= state.next_eval or fraction_done >= 1):
-                last_psnr = psnr_on_white(model, val_rays, device, config.eval_rays)
-                entry = {"step": state.step, "seconds": round(state.seconds, 3), "val_psnr": last_psnr,
-                         "steps_per_second": state.step / max(state.seconds, 1e-9),
-                         "loss": sum(losses) / len(losses) if losses else None}
-                losses.clear()
-                if config.pixel_filter == "edges":
-                    entry["edge_points"] = state.edge_points
-                if model.has_grid:
-                    entry |= {"resolution": model.field.resolution, "occupied": float(model.occupancy.float().mean()),
-                              "final_resolution": resolution_at(config, state.last_stage)}
-                log.write(json.dumps(entry) + "\n"), log.flush()
-                state.next_eval = state.seconds + config.eval_every_seconds
-                state.logged_step = state.step
-                bar.set_postfix(psnr=f"{last_psnr:.2f}", steps_per_s=f"{entry['steps_per_second']:.1f}", refresh=False)
-            if config.checkpoint_every is not None:
-                due = state.step % config.checkpoint_every == 0
-            else:
-                due = time.monotonic() - last_checkpoint >= CHECKPOINT_EVERY_WALL_SECONDS
-            if (due or fraction_done >= 1) and checkpointed_step != state.step:
-                _save_checkpoint(run_dir, training, config, recipe)
-                checkpointed_step, last_checkpoint = state.step, time.monotonic()
+                last_psnr = _log_point(log, bar, training, config, schedule, val[1], device, losses)
+            checkpoints.save_if_due(run_dir, training, config, recipe, finished=fraction_done >= 1)
             if fraction_done >= 1:
                 break
             start = time.perf_counter()
-            if state.stage < state.last_stage and fraction_done >= upsample_at(config, state.stage) \
-                    and state.stage_steps >= MIN_STAGE_STEPS:
-                if budget_decides_growth(config, state):
-                    trial = begin_growth_trial(training)
-                state.stage += 1
-                state.stage_steps, state.stage_seconds = 0, 0.0
-            elif trial is not None and (projected := steps_on_trial(config, state, trial)) is not None:
-                if projected < MIN_STEPS_AT_FINER:
-                    finer = model.field.resolution
-                    undo_growth(training, trial)
-                    model = training.model
-                    if progress:
-                        note(f"keeping the {model.field.resolution}-voxel grid: the budget would give the "
-                             f"{finer}-voxel one about {projected:.0f} steps at its measured rate "
-                             f"(< {MIN_STEPS_AT_FINER})")
-                trial = None  # judged: the growth stands or is undone
-            if state.colour_head == 0 and model.has_grid and state.stage == state.last_stage \
-                    and state.stage_steps >= MIN_STAGE_STEPS:  # the final grid has settled: add the head now
-                state.colour_head = 1 if config.colour_head else -1
-                if progress and config.colour_head:
-                    note(f"adding the residual colour head at step {state.step}")
-            if (refine := refinement_due(config, state, fraction_done, trial)) is not None:
-                state.edge_points_step = state.step  # decided, either way
-                if refine and config.pixel_filter == "edges":
-                    state.edge_points = FINE_EDGE_POINTS_PER_AXIS
-                    if progress:
-                        note(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
-                             f"from step {state.step}")
-                at_final_grid = state.stage == upsample_count(config.start_resolution, config.final_resolution)
-                if refine and config.refine_grid and at_final_grid \
-                        and refined_resolution(config.final_resolution) > model.field.resolution:
-                    # the growth comes through the coarse-to-fine branch above at the next
-                    # step, on trial for a time budget like the last growth. (A run whose
-                    # budget undid that growth is not at the final grid: no second trial.)
-                    state.last_stage += 1
-                    if progress:
-                        note(f"growing the grid to {refined_resolution(config.final_resolution)} voxels "
-                             f"from step {state.step}")
-            loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
-            if not (math.isfinite(loss) and gradients_finite):
-                raise NumericalError(
-                    f"training diverged at step {state.step}: loss {loss}, gradients "
-                    f"{'finite' if gradients_finite else 'not finite'}; the parameters were not updated and "
-                    f"{run_dir / CHECKPOINT} holds the last saved state")
-            losses.append(loss)
+            trial = _follow_schedule(training, schedule, trial, fraction_done, progress)
+            losses.append(_step(training, config, schedule, train_rays, n_rays, device, fraction_done, priors, run_dir))
             elapsed = time.perf_counter() - start
             state.step += 1
             state.stage_steps += 1
             state.stage_seconds += elapsed
             state.seconds += elapsed
-            bar.update(1 if config.steps else min(elapsed, total - bar.n))
+            bar.update(1 if config.steps else min(elapsed, bar.total - bar.n))
     finally:
         bar.close()
         log.close()
+    return _finish(run_dir, training, config, reasons, space, recipe, schedule, val, device, last_psnr)
+
+
+def _finish(run_dir: Path, training: Training, config: TrainConfig, reasons: dict, space, recipe: dict,
+            schedule: Schedule, val, device, last_psnr: float) -> dict:
+    """After the loop: config.json's account of what the schedule decided and, for an
+    `edges` run, its render filter; model.pt. Returns train's summary."""
+    model, state = training.model, training.loop
     if config.refine_grid:
-        reasons["refine_grid"] = refine_grid_reason(config, state, model.field.resolution)
+        reasons["refine_grid"] = schedule.refine_grid_reason(state, model.field.resolution)
     if config.pixel_filter == "edges":
-        reasons["edge_points"] = edge_points_reason(state)
-        config, reasons["render_filter"] = choose_render_filter(model, config, val_cameras, val_rays, device)
+        reasons["edge_points"] = schedule.edge_points_reason(state)
+        config, reasons["render_filter"] = choose_render_filter(model, config, *val, device)
     if config.refine_grid or config.pixel_filter == "edges":
-        write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
-                                      "recipe": recipe})
+        _write_config(run_dir, config, reasons, space, recipe)
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
     return {"steps": state.step, "seconds": state.seconds, "val_psnr": last_psnr, "model_bytes": size,
             "resolution": model.field.resolution if model.has_grid else None}
@@ -568,12 +580,11 @@ def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) 
         f"rays on edge pixels; 1: the centre ray): {scores}")
 
 
-def _grow_grid(training: Training, config: TrainConfig) -> None:
-    """Coarse to fine: upsample the grid to its stage's resolution when it is not there
-    yet, add the residual colour head once it is decided (LoopState.colour_head), and give
-    Adam the new parameters (fresh moments) at the current learning rates."""
+def _grow_grid(training: Training, config: TrainConfig, wanted: int) -> None:
+    """Coarse to fine: upsample the grid to its stage's resolution (`wanted`) when it is not
+    there yet, add the residual colour head once it is decided (LoopState.colour_head), and
+    give Adam the new parameters (fresh moments) at the current learning rates."""
     model = training.model
-    wanted = resolution_at(config, training.loop.stage)
     add_head = training.loop.colour_head == 1 and model.field.head is None
     if wanted == model.field.resolution and not add_head:
         return
@@ -589,58 +600,6 @@ def _grow_grid(training: Training, config: TrainConfig) -> None:
         group["lr"] = rate
 
 
-def refinement_due(config: TrainConfig, state: LoopState, fraction_done: float,
-                   trial: GrowthTrial | None) -> bool | None:
-    """Whether a converged run refines from now on: an `edges` run's edge pixels train
-    through FINE_EDGE_POINTS_PER_AXIS^2 points instead of 2 x 2, and a run with
-    TrainConfig.refine_grid grows its grid one stage past the final one (nerf.config says
-    why and what it measured). Decided once, at the first step at or past
-    FINE_EDGE_POINTS_AT of the budget (after any growth on trial is judged), yes when the
-    final grid has trained FINE_EDGE_POINTS_MIN_STEPS steps by then. A run that reaches
-    that bar only later has too little budget left for the slower steps to repay
-    (primitives 120 s reached it with 13% of the budget left). Returns None when there is
-    nothing to decide (neither applies, decided already, too early, a trial pending)."""
-    if not (config.pixel_filter == "edges" or config.refine_grid) or state.edge_points_step or trial is not None \
-            or fraction_done < FINE_EDGE_POINTS_AT:
-        return None
-    return state.stage == state.last_stage and state.stage_steps >= FINE_EDGE_POINTS_MIN_STEPS
-
-
-def refine_grid_reason(config: TrainConfig, state: LoopState, resolution: int) -> str:
-    """config.json's account of whether a run with TrainConfig.refine_grid grew past its
-    final grid (`resolution`: the grid it ended with)."""
-    when = f"at {100 * FINE_EDGE_POINTS_AT:.0f}% of the budget"
-    finer = refined_resolution(config.final_resolution)
-    if resolution > config.final_resolution:
-        return (f"{config.final_resolution} -> {resolution} voxels from step {state.edge_points_step}: {when} the "
-                f"final grid had trained {FINE_EDGE_POINTS_MIN_STEPS} steps or more")
-    kept = f"kept {resolution} voxels"
-    if not state.edge_points_step:
-        return f"{kept}: the run ended before {100 * FINE_EDGE_POINTS_AT:.0f}% of its budget"
-    if state.last_stage < upsample_count(config.start_resolution, config.final_resolution):
-        return f"{kept}: the budget could not train the footprint's {config.final_resolution} voxels, nor {finer}"
-    not_converged = (f"{when} (step {state.edge_points_step}) the final grid had trained fewer than "
-                     f"{FINE_EDGE_POINTS_MIN_STEPS} steps")
-    undone = f"the budget left could not give {finer} voxels {MIN_STEPS_AT_FINER} steps (its growth was undone)"
-    if config.pixel_filter == "edges":  # the same decision set the edge points: they say which it was
-        return f"{kept}: " + (undone if state.edge_points == FINE_EDGE_POINTS_PER_AXIS else not_converged)
-    return f"{kept}: {not_converged}, or {undone}"
-
-
-def edge_points_reason(state: LoopState) -> str:
-    """config.json's account of the points an `edges` run trained its edge pixels through."""
-    when = f"at {100 * FINE_EDGE_POINTS_AT:.0f}% of the budget"
-    if state.edge_points != EDGE_POINTS_PER_AXIS:
-        return (f"{EDGE_POINTS_PER_AXIS} x {EDGE_POINTS_PER_AXIS} to step {state.edge_points_step}, then "
-                f"{state.edge_points} x {state.edge_points}: {when} the final grid had trained "
-                f"{FINE_EDGE_POINTS_MIN_STEPS} steps or more")
-    if state.edge_points_step:
-        return (f"{state.edge_points} x {state.edge_points} throughout: {when} (step {state.edge_points_step}) "
-                f"the final grid had trained fewer than {FINE_EDGE_POINTS_MIN_STEPS} steps")
-    return (f"{state.edge_points} x {state.edge_points} throughout: the run ended before "
-            f"{100 * FINE_EDGE_POINTS_AT:.0f}% of its budget")
-
-
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,
                 fraction_done: float, priors: float | None = None) -> tuple[float, bool]:
     """One optimiser step on `n_rays` random training rays. fraction_done: of the steps or
@@ -649,11 +608,6 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
     Returns (loss, whether every gradient was finite); a step with a non-finite gradient
     leaves the parameters alone."""
     model, generator, state = training.model, training.generator, training.loop
-    if model.has_grid:
-        _grow_grid(training, config)
-        # all cells live while coarse, unless the budget keeps the start grid to the end
-        if state.step % OCCUPANCY_EVERY == 0 and (state.stage >= 1 or state.last_stage == 0):
-            model.update_occupancy()
     optimizer = training.optimizer
     for group in optimizer.param_groups:
         group["lr"] = group["base_lr"] * LR_FINAL_FRACTION ** fraction_done

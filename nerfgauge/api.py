@@ -28,7 +28,8 @@ from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError, os_errors_as_input_errors
 from nerfgauge.core.outputs import check_output_file
 from nerfgauge.eval import check as gate
-from nerfgauge.eval.evaluate import METRICS_KIND, evaluate as evaluate_split
+from nerfgauge.eval.evaluate import METRICS_KIND, EvaluateConfig, evaluate as evaluate_split
+from nerfgauge.eval.options import SCORING
 
 
 def _split_options(function: str, options: dict, config_class, run_settings: dict,
@@ -80,11 +81,12 @@ def generate_dataset(scene: str, /, out, **options) -> Path:
 def train(dataset, /, out, **options) -> dict:
     """Train a NeRF on `dataset` into the run folder `out`.
 
-    options: TrainConfig fields (model, seed, steps or budget_seconds (exactly one), batch_rays,
+    options: TrainConfig fields (model, seed, steps or budget_seconds (at most one; neither:
+    nerf.config.DEFAULT_BUDGET_SECONDS), batch_rays,
     view_dependent, final_resolution, threads, device, ...) and resume=False, progress=False.
     Returns the summary: {"steps", "seconds", "val_psnr", "model_bytes"}.
     """
-    from nerfgauge.nerf.config import TrainConfig  # torch: each stage loads on first use
+    from nerfgauge.nerf.config import TrainConfig  # each stage loads on first use
     from nerfgauge.nerf.train import train as train_run  # torch
 
     fields, settings = _split_options("train", options, TrainConfig, {"resume": False, "progress": False},
@@ -106,9 +108,10 @@ def render(run_dir, split: str = "test", *, out=None, threads=None, progress: bo
 
 
 @os_errors_as_input_errors()
-def evaluate(dataset, pred, out=None, split: str = "test", *, background: str = "white",
-             depth_kind: str = "distance", pred_format: str = "auto", held_out: bool = True,
-             overwrite: bool = False, protocol: str = "nerfgauge") -> dict:
+def evaluate(dataset, pred, out=None, split: str = EvaluateConfig.split, *,
+             background: str = EvaluateConfig.background, depth_kind: str = EvaluateConfig.depth_kind,
+             pred_format: str = EvaluateConfig.pred_format, held_out: bool = EvaluateConfig.held_out,
+             overwrite: bool = False, protocol: str = EvaluateConfig.protocol) -> dict:
     """Score the renders in `pred` against `dataset`'s `split`; write metrics.json (to `out`,
     default PRED/metrics.json) and error maps beside it. Returns the metrics document
     ({"schema", "scene", "split", "mean", "std", "ci95", "count", "frames", "timing", ...}).
@@ -151,22 +154,32 @@ def run_pipeline(scene: str = "primitives", out="nerfgauge-run", **options) -> d
     baselines and report under `out`.
 
     options: RunConfig fields (width, height, views, val_views, test_views, spp, layout,
-    model, budget_seconds, steps, seed, variant, workers), every other GenerateConfig field
+    model, budget_seconds (default: TrainConfig's), steps, seed, variant, workers,
+    generate_options, train_options, evaluate_options), every other GenerateConfig field
     (fov, elevation, radius, sampling, max_depth, noise_psnr, max_spp, ...: as for
-    generate_dataset) and overwrite=False, progress=False.
+    generate_dataset), the scoring EvaluateConfig fields (background, protocol, held_out: as
+    for evaluate), every other TrainConfig field (threads, final_resolution, pixel_filter,
+    ...: as for train; TrainConfig's width and background, which a RunConfig or scoring
+    field of that name shadows, go in train_options) and overwrite=False, progress=False.
     Returns {"metrics": path of metrics.json, "report": path of report.html, "train": summary}.
     """
     from nerfgauge.generate.pipeline import GenerateConfig  # trimesh: each stage loads on first use
+    from nerfgauge.nerf.config import TrainConfig  # each stage loads on first use
     from nerfgauge.run import RunConfig  # trimesh, and torch when it runs
     from nerfgauge.run import run_pipeline as run_stages  # (the same module)
 
-    run_fields = {field.name for field in dataclasses.fields(RunConfig)}
-    generator = {field.name: None for field in dataclasses.fields(GenerateConfig)
-                 if field.name not in run_fields and field.name != "scene"}
+    def field_names(config_class) -> set:
+        return {field.name for field in dataclasses.fields(config_class)}
+
+    # each stage's options dict and the names it takes: a name goes to the first that has it
+    generator = field_names(GenerateConfig) - field_names(RunConfig) - {"scene"}
+    trainer = field_names(TrainConfig) - field_names(RunConfig) - generator - set(SCORING) - {"dataset"}
+    stages = {"generate_options": generator, "evaluate_options": set(SCORING), "train_options": trainer}
     fields, settings = _split_options("run_pipeline", options, RunConfig,
-                                      {"overwrite": False, "progress": False, **generator}, first="scene")
-    extra = {name: options[name] for name in generator if name in options}
+                                      {"overwrite": False, "progress": False,
+                                       **dict.fromkeys(generator | set(SCORING) | trainer)}, first="scene")
     config = RunConfig(scene=scene, out=str(out), **fields)
-    if extra:
-        config = dataclasses.replace(config, generate_options={**config.generate_options, **extra})
+    config = dataclasses.replace(config, **{stage: {**getattr(config, stage),
+                                                    **{name: options[name] for name in names if name in options}}
+                                            for stage, names in stages.items()})
     return run_stages(config, overwrite=settings["overwrite"], progress=settings["progress"])

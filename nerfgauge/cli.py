@@ -2,14 +2,18 @@
 
 Each stage package has a `commands.py` with `register(subparsers)`, which adds its
 subcommands and sets `func` (called with the parsed arguments, returns an exit code);
-so do the orchestration layer (`nerfgauge.orchestrate.commands`: bench, suite) and
+so do the methods (`nerfgauge.methods.commands`, `nerfgauge.methods.sfm`), the benches
+(`nerfgauge.orchestrate.bench.commands`), the suites (`nerfgauge.orchestrate.suite.commands`) and
 `nerfgauge.run` (run). Heavy imports (mitsuba, torch) happen inside those functions, so
 `nerfgauge --help` and argument errors are instant.
 
 Exit codes: 0 done; 2 bad input, one line on stderr: an argument error, an `InputError`,
 an OS error on the user's paths (no space, permission, read-only, not a folder ...,
 naming the path and the reason), or an allocation too large for this machine; 3 NaN or inf
-where finite numbers are required (`NumericalError`), one line; 130 interrupted; 141
+where finite numbers are required (`NumericalError`), one line, and so is a numpy
+floating-point overflow, invalid value or division by zero that no code expected (every
+command runs in core.errors.floating_point_warnings_raise: the warning is raised where it
+happens instead of printing lines and letting NaN travel on); 130 interrupted; 141
 (silently) when stdout's reader has gone, as `| head` does.
 Commands may return 1 for "ran, and the result failed" (`check`, `bench hard`), and `check`
 4 for "failed, but the run was under-trained": it got fewer than half the training steps the
@@ -26,10 +30,13 @@ import os
 import sys
 
 from nerfgauge import run
+from nerfgauge.core import errors
 from nerfgauge.core.arguments import document_ranges
 from nerfgauge.core.errors import InputError, NumericalError, input_error_from_os
 from nerfgauge.methods import commands as methods
-from nerfgauge.orchestrate import commands as orchestration
+from nerfgauge.methods import sfm
+from nerfgauge.orchestrate.suite import commands as suite_commands
+from nerfgauge.orchestrate.bench import commands as bench
 
 STAGES = ("scenes", "generate", "nerf", "eval")  # then orchestration (bench, suite), then run
 
@@ -57,7 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
             continue  # a stage without commands yet
         module.register(subparsers)
     methods.register(subparsers)
-    orchestration.register(subparsers)
+    bench.register(subparsers)
+    suite_commands.register(subparsers)
+    sfm.register(subparsers)
     run.register(subparsers)
     document_ranges(parser)  # every numeric flag's range in its --help
     return parser
@@ -92,7 +101,8 @@ def main(argv=None) -> int:
     command = " ".join(str(part) for part in (args.command, getattr(args, "bench_kind", None)) if part)
     debug = bool(os.environ.get("NERFGAUGE_DEBUG"))
     try:
-        code = args.func(args)
+        with errors.floating_point_warnings_raise():
+            code = args.func(args)
         sys.stdout.flush()  # a reader that left shows here (BrokenPipeError), not at interpreter exit
     except KeyboardInterrupt:
         print(f"nerfgauge {command}: interrupted", file=sys.stderr)
@@ -111,6 +121,9 @@ def main(argv=None) -> int:
             return _fail(command, "error", _one_line(error) or type(error).__name__, 2)
         if isinstance(error, NumericalError):
             return _fail(command, "numerical error", _one_line(error), 3)
+        if errors.is_floating_point_error(error):
+            return _fail(command, "numerical error", f"{_one_line(error)} (NaN or inf where nerfgauge expected none: "
+                                                      "a bug, please report it; NERFGAUGE_DEBUG=1 shows where)", 3)
         if isinstance(error, MemoryError):
             detail = _one_line(error)
             return _fail(command, "error", f"out of memory{': ' + detail if detail else ''} "

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from nerfgauge.eval.baselines import (
+from nerfgauge.methods.baselines import (
     LightField,
     pose_distance,
     render_lightfield,

@@ -3,7 +3,7 @@
 import json
 
 import pytest
-from nerfgauge.orchestrate.bench import speedups, table_markdown
+from nerfgauge.orchestrate.bench.train import speedups, table_markdown
 
 from nerfgauge.cli import main
 
@@ -46,7 +46,7 @@ def test_table_has_a_row_per_run_and_marks_missing_metrics():
 
 
 def test_bench_read_times_both_verification_modes(tiny_dataset):
-    from nerfgauge.orchestrate.bench_read import READS, bench_read, table_markdown
+    from nerfgauge.orchestrate.bench.read import READS, bench_read, table_markdown
 
     rows = bench_read(tiny_dataset, "train", repeats=1)
     assert [row["read"] for row in rows] == list(READS)
@@ -59,7 +59,7 @@ def test_the_plots_draw_each_budgets_test_psnr_against_seconds_and_steps(tmp_pat
     the steps panels; the PNG is written whole."""
     from PIL import Image
 
-    from nerfgauge.orchestrate import bench
+    from nerfgauge.orchestrate.bench import train as bench
 
     rows = []
     for budget, steps, psnr in ((120, 4000, 41.0), (30, 900, 37.0), (600, 16000, 43.0)):
@@ -68,13 +68,13 @@ def test_the_plots_draw_each_budgets_test_psnr_against_seconds_and_steps(tmp_pat
                      "train_seconds": budget + 0.5, "steps": steps, "model_mb": 1.0, "log": log})
     rows.append({"scene": "s", "variant": "vanilla", "budget": 30, "error": "exit 2"})
     drawn = {}
-    original = bench.write_png_figure
+    original = bench.save_png
 
     def keep(figure, path):
         drawn["axes"], drawn["texts"] = figure.axes, [text.get_text() for text in figure.texts]
         original(figure, path)
 
-    monkeypatch.setattr(bench, "write_png_figure", keep)
+    monkeypatch.setattr(bench, "save_png", keep)
     bench.pareto_plots(rows, tmp_path)
     by_time, by_steps = drawn["axes"][2], drawn["axes"][3]
     (time_line,), (steps_line,) = by_time.get_lines(), by_steps.get_lines()
@@ -103,7 +103,7 @@ def test_bench_targets_judges_each_target_from_its_figures():
     4.01 MB model fails 4 MB, bench hard's scenes 0.05 dB below their figures are within
     0.1 dB and one 0.2 dB below is not, inside at 23.99 misses 24, the room's automatic pick
     scores as its forced self."""
-    from nerfgauge.orchestrate.bench_targets import REFERENCE_HARD, target_rows
+    from nerfgauge.orchestrate.bench.targets import REFERENCE_HARD, target_rows
 
     hard = {scene: {"mean": {"psnr": figure - 0.05}} for scene, figure in REFERENCE_HARD.items()}
     hard["inside"] = {"mean": {"psnr": 23.99}}
@@ -132,7 +132,7 @@ def test_bench_targets_keeps_a_skipped_parts_earlier_figures(tmp_path):
     """A rerun with every part skipped measures nothing and judges the figures the folder's
     targets.json already holds (budgets back as numbers, so 600 s is compared with 120 s);
     the command it records says what was skipped."""
-    from nerfgauge.orchestrate.bench_targets import bench_targets
+    from nerfgauge.orchestrate.bench.targets import bench_targets
 
     out = tmp_path / "targets"
     everything = ("train", "geometry", "exact_geometry", "hard", "inside_check")

@@ -8,8 +8,8 @@ from dataclasses import asdict
 
 import numpy as np
 import pytest
-from nerfgauge.orchestrate.bench import first_time_reaching
-from nerfgauge.orchestrate.bench_scaling import (
+from nerfgauge.orchestrate.bench.common import first_time_reaching
+from nerfgauge.orchestrate.bench.scaling import (
     ScalingConfig,
     generation_fits,
     growth,
@@ -176,7 +176,7 @@ def test_detail_finer_than_the_common_resolution_does_not_count(tiny_dataset, tm
     on the 2x coarser common pixels they match exactly (the 100 dB cap)."""
     from nerfgauge.core import dataset
     from nerfgauge.core.images import read_png, write_png
-    from nerfgauge.orchestrate.bench_scaling import psnr_at_common_resolution
+    from nerfgauge.orchestrate.bench.scaling import psnr_at_common_resolution
     from nerfgauge.eval.evaluate import evaluate
     from nerfgauge.eval.metrics import PSNR_CAP_DB
 
@@ -200,7 +200,7 @@ def test_detail_finer_than_the_common_resolution_does_not_count(tiny_dataset, tm
 
 
 def test_the_verdict_line_names_each_finer_capture_that_scored_worse():
-    from nerfgauge.orchestrate.bench_scaling import finer_never_worse_line
+    from nerfgauge.orchestrate.bench.scaling import finer_never_worse_line
 
     def row(resolution, score):
         return {"resolution": resolution, "common_resolution": 64, "psnr_at_common": score}

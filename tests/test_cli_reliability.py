@@ -425,7 +425,7 @@ def test_one_bench_does_not_write_into_another_bench_folder(tmp_path, capsys):
     out = tmp_path / "b"
     out.mkdir()
     write_marker(out, "bench", None)
-    from nerfgauge.orchestrate.bench import claim_bench_folder
+    from nerfgauge.orchestrate.bench.common import claim_bench_folder
 
     with claim_bench_folder(tmp_path / "s", "scaling"):
         pass

@@ -284,7 +284,7 @@ def test_export_refuses_folders_nerfgauge_did_not_generate(tmp_path, capsys):
 
 
 def test_umeyama_recovers_a_known_similarity_and_agrees_with_pycolmap():
-    from nerfgauge.orchestrate.sfm import umeyama
+    from nerfgauge.methods.sfm import umeyama
 
     rng = np.random.default_rng(7)
     source = rng.normal(size=(30, 3))
@@ -304,7 +304,7 @@ def test_umeyama_recovers_a_known_similarity_and_agrees_with_pycolmap():
 
 
 def test_scoring_the_exact_model_moved_by_a_similarity_gives_zero_error(colmap_dataset):
-    from nerfgauge.orchestrate.sfm import score
+    from nerfgauge.methods.sfm import score
 
     model = pycolmap.Reconstruction(colmap_dataset / "sparse" / "0")
     q = np.array([0.2, -0.1, 0.4, 0.9])

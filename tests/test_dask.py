@@ -117,11 +117,11 @@ def test_a_task_is_idempotent(tmp_path, make_dataset):
 
 @needs_dask
 def test_a_task_failing_after_its_retries_is_one_clear_error(tmp_path):
-    from distributed import Client, LocalCluster
+    from distributed import Client
     from tqdm import tqdm
 
     the_plan = plan(GenerateConfig(**TINY))
-    with LocalCluster(n_workers=1, processes=False, dashboard_address=":0", silence_logs=50) as cluster, \
+    with distributed.local_cluster(1, processes=False) as cluster, \
             Client(cluster) as client, tqdm(disable=True) as bar:
         # no meshes in the folder: loading the scene fails on every try
         with pytest.raises(InputError, match=r"view train/r_000 failed on the dask cluster after its retries"):
@@ -148,7 +148,7 @@ def test_local_cluster_gives_the_single_process_bytes(tmp_path, capsys):
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="kills a worker process by PID")
 def test_a_worker_killed_mid_generation_still_gives_the_single_process_bytes(tmp_path):
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     config = GenerateConfig(views=60, val_views=0, test_views=2, width=32, height=32, spp=16)
     generate(config, tmp_path / "clean", progress=False)
@@ -165,7 +165,7 @@ def test_a_worker_killed_mid_generation_still_gives_the_single_process_bytes(tmp
         killed["views"], killed["pid"] = views_done(), pids[0]
         os.kill(pids[0], signal.SIGKILL)  # both workers are rendering: one of them dies mid-view
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0", silence_logs=50) as cluster, \
+    with distributed.local_cluster(2, threads_per_worker=1) as cluster, \
             Client(cluster) as watcher:
         distributed.wait_for_workers(watcher, 2)
         killer = threading.Thread(target=kill_a_worker, args=(sorted(watcher.run(os.getpid).values()),))

@@ -447,27 +447,61 @@ def _open3d_imports() -> bool:
 def _backends():
     return [pytest.param("open3d", marks=pytest.mark.skipif(not _open3d_imports(),
                                                             reason="open3d (the geometry extra) does not import")),
-            "trimesh"]
+            "bvh"]
+
+
+# float64 throughout (bvh): only rounding, ~1e-15 of the coordinates; open3d computes in
+# float32 on coordinates relative to the mesh's centre: ~1e-7 of the distances
+TOLERANCE = {"open3d": {"rtol": 1e-5, "atol": 2e-6}, "bvh": {"rtol": 1e-12, "atol": 1e-12}}
 
 
 @pytest.mark.parametrize("backend", _backends())
 def test_surface_distance_equals_the_brute_force_oracle(backend):
-    """Points near and far, inside and outside a bumpy closed mesh: the distance to the
-    surface equals Ericson's brute force within float32's precision (open3d computes in
-    float32 on coordinates relative to the mesh's centre: ~1e-7 of its size of 2)."""
+    """Points near and far (50 units from a mesh of size 2), inside and outside a bumpy
+    closed mesh, and its own vertices: the distance to the surface equals Ericson's brute
+    force."""
     from nerfgauge.eval.geometry import SurfaceDistance
 
     rng = np.random.default_rng(11)
     vertices, faces = sphere(subdivisions=2)
     vertices = vertices * rng.uniform(0.8, 1.2, (len(vertices), 1)) + [3.0, -1.0, 0.5]  # not centred, not convex
+    directions = rng.normal(size=(300, 3))
     queries = np.concatenate([rng.normal(size=(1500, 3)) * 0.05 + vertices[rng.integers(len(vertices), size=1500)],
-                              rng.normal(size=(500, 3)) * 3.0 + [3.0, -1.0, 0.5]])
+                              rng.normal(size=(500, 3)) * 3.0 + [3.0, -1.0, 0.5],
+                              50 * directions / np.linalg.norm(directions, axis=1, keepdims=True) + [3.0, -1.0, 0.5],
+                              vertices[:40]])
     expected, _ = _closest_on_triangles(queries, vertices[faces])
     distance, triangle = SurfaceDistance(vertices, faces, backend).query(queries)
-    np.testing.assert_allclose(distance, expected, rtol=1e-5, atol=2e-6)
+    np.testing.assert_allclose(distance, expected, **TOLERANCE[backend])
     # the triangle returned is a closest one
     own = np.array([_closest_on_triangles(q[None], vertices[faces][t][None])[0][0] for q, t in zip(queries, triangle)])
-    np.testing.assert_allclose(own, expected, rtol=1e-5, atol=2e-6)
+    np.testing.assert_allclose(own, expected, **TOLERANCE[backend])
+
+
+def test_bvh_distance_to_flat_and_sliver_triangles_equals_the_segments():
+    """Zero-area triangles (three collinear corners, two equal corners, one point) are the
+    union of their edges, and slivers of sine 1e-9 within 1e-9 of it: the distances equal
+    the nearest of the three segments' (an independent closed form: the clamped projection
+    onto each segment)."""
+    from nerfgauge.eval.geometry import SurfaceDistance
+
+    rng = np.random.default_rng(5)
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0],  # collinear
+                         [0, 1, 0], [0, 1, 0],  # two equal corners (with vertex 1)
+                         [3, 3, 3],  # one point
+                         [0, 0, 1], [2, 0, 1], [1, 1e-9, 1]], np.float64)  # a sliver of width 1e-9
+    faces = np.array([[0, 1, 2], [3, 4, 1], [5, 5, 5], [6, 7, 8]], np.int64)
+    queries = rng.normal(size=(400, 3)) * 2
+
+    def segment(p, a, b):
+        t = np.clip(((p - a) @ (b - a)) / max((b - a) @ (b - a), 1e-300), 0, 1)
+        return np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1)
+
+    per_face = [np.min([segment(queries, vertices[f[i]], vertices[f[(i + 1) % 3]]) for i in range(3)], axis=0)
+                for f in faces]
+    expected = np.min(per_face, axis=0)
+    distance, _ = SurfaceDistance(vertices, faces, "bvh").query(queries)
+    np.testing.assert_allclose(distance, expected, rtol=1e-8, atol=1e-8)
 
 
 def _cube(half):
@@ -544,8 +578,8 @@ def test_displaced_mesh_scores_equal_an_independent_exact_computation():
                                (gt.points[subset], pred_mesh, distances["completeness"][subset])):
         expected, _ = _closest_on_triangles(queries, mesh.vertices[mesh.faces])
         np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-6)
-    # the means against the other backend (float64, independent code): within 0.5%
-    other = "trimesh" if SurfaceDistance(gt_mesh.vertices, gt_mesh.faces).backend == "open3d" else None
+    # the means against the other backend (independent code): within 0.5%
+    other = "bvh" if SurfaceDistance(gt_mesh.vertices, gt_mesh.faces).backend == "open3d" else None
     if other:
         accuracy = SurfaceDistance(gt_mesh.vertices, gt_mesh.faces, other).query(pred.points[:20_000])[0].mean()
         assert distances["accuracy"][:20_000].mean() == pytest.approx(accuracy, rel=5e-3)

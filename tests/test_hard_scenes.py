@@ -158,7 +158,7 @@ def test_hdr_keeps_its_emitters_visible_and_other_scenes_hide_the_sky(mi):
 def test_hard_scene_survives_generate_train_render_evaluate(tmp_path, scene):
     """A tiny pipeline per hard scene: it must finish, every number it writes must be
     finite, and every metric must be defined or have no pixel to score."""
-    from nerfgauge.orchestrate.bench_hard import all_finite, audit
+    from nerfgauge.orchestrate.bench.hard import all_finite, audit
 
     from nerfgauge.run import RunConfig, run_pipeline
 
@@ -179,7 +179,7 @@ def test_hard_scene_survives_generate_train_render_evaluate(tmp_path, scene):
 
 
 def test_bench_hard_refuses_bad_settings_before_running(tmp_path):
-    from nerfgauge.orchestrate.bench_hard import HardConfig, bench_hard
+    from nerfgauge.orchestrate.bench.hard import HardConfig, bench_hard
 
     for config, message in [(HardConfig(("thin", "no-such-scene")), "unknown scene 'no-such-scene'"),
                             (HardConfig(("thin",), steps=0), "--steps must be an integer from 1 to"),
@@ -201,14 +201,14 @@ def _found(**overrides):
                                        {"render_depth_non_finite": 5}, {"log_entries": 0},
                                        {"undefined": ["ssim"]}, {"metrics_error": "holds NaN"}])
 def test_any_single_failure_makes_a_run_not_finite(overrides):
-    from nerfgauge.orchestrate.bench_hard import all_finite
+    from nerfgauge.orchestrate.bench.hard import all_finite
 
     assert all_finite(_found())
     assert not all_finite(_found(**overrides))
 
 
 def test_audit_finds_nan_in_a_dataset_exr_and_a_log(tmp_path):
-    from nerfgauge.orchestrate.bench_hard import audit
+    from nerfgauge.orchestrate.bench.hard import audit
 
     from nerfgauge.core.images import write_exr
 
@@ -228,7 +228,7 @@ def test_audit_finds_nan_in_a_dataset_exr_and_a_log(tmp_path):
 
 
 def test_bench_hard_table_marks_failures_and_unscored_metrics():
-    from nerfgauge.orchestrate.bench_hard import table_markdown
+    from nerfgauge.orchestrate.bench.hard import table_markdown
 
     rows = [_found(scene="empty", finite=True, mean={"psnr": 100.0, "opacity_iou": 1.0},
                    no_pixels=["depth_absrel", "psnr_foreground"], steps_per_second=60.0, resolution=53),

@@ -212,7 +212,7 @@ def test_train_on_a_sparse_list(holdout_dataset, tmp_path):
 def test_suites_take_the_options():
     """A suite's [dataset] passes the new GenerateConfig fields through (and [train] sparse);
     bad values are the suite file's one-line errors."""
-    from nerfgauge.orchestrate.suite import parse_suite
+    from nerfgauge.orchestrate.suite.definition import parse_suite
 
     data = {"name": "ext", "version": 1,
             "dataset": {"width": 16, "height": 16, "views": 12, "val_views": 1, "test_views": 2, "spp": 4,

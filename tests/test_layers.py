@@ -35,7 +35,7 @@ MAY_IMPORT = {
     "nerfgauge.generate": ("nerfgauge.scenes", *CORE),
     "nerfgauge.nerf": CORE,
     "nerfgauge.eval": CORE,
-    "nerfgauge.methods": (*STAGES, *CORE),  # methods run the stages (nerf trains, eval.baselines renders)
+    "nerfgauge.methods": (*STAGES, *CORE),  # methods run the stages (nerf trains, methods.baselines renders)
     "nerfgauge.orchestrate": ("nerfgauge.methods", *STAGES, *CORE),
     "nerfgauge.run": ("nerfgauge.methods", *STAGES, *CORE),
     "nerfgauge.api": ("nerfgauge.run", "nerfgauge.methods", *STAGES, *CORE),

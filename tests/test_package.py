@@ -48,7 +48,7 @@ def test_wheel_installs_only_the_nerfgauge_package(tmp_path):
         assert any(name.startswith(f"nerfgauge/{package}/") and name.endswith(".py") for name in names), package
     for module in ("nerfgauge/__init__.py", "nerfgauge/api.py", "nerfgauge/cli.py", "nerfgauge/generate/variant.py",
                    "nerfgauge/eval/check.py", "nerfgauge/nerf/train.py", "nerfgauge/scenes/registry.py",
-                   "nerfgauge/orchestrate/suites/smoke.toml"):
+                   "nerfgauge/orchestrate/suite/builtin/smoke.toml"):
         assert module in names, module
     assert not any(name.startswith("nerfgauge/tests/") for name in names)
     entry_points = next(name for name in names if name.endswith(".dist-info/entry_points.txt"))

@@ -329,45 +329,20 @@ def test_an_edges_run_renders_by_its_chosen_filter(tiny_dataset, tmp_path):
         assert timing["pixel_samples"] == samples and timing.get("edges_only", False) == (samples > 1)
 
 
-def test_a_run_refines_only_when_half_the_budget_finds_the_final_grid_trained():
-    """refinement_due decides once, at the first step at or past FINE_EDGE_POINTS_AT with
-    no growth on trial: yes when the run is at its last stage with
-    FINE_EDGE_POINTS_MIN_STEPS steps there, no otherwise; None (nothing to decide) before,
-    while a trial runs, once decided, or for a run with neither the edges filter nor a grid
-    to refine."""
-    from nerfgauge.nerf.checkpoint import LoopState
-    from nerfgauge.nerf.config import FINE_EDGE_POINTS_AT as AT, FINE_EDGE_POINTS_MIN_STEPS as STEPS
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.train import refinement_due
-
-    config = TrainConfig("d", budget_seconds=600.0, pixel_filter="edges")
-    ready = LoopState(step=5000, stage=3, last_stage=3, stage_steps=STEPS)
-    assert refinement_due(config, ready, AT, None) is True
-    assert refinement_due(config, ready, AT - 1e-6, None) is None
-    assert refinement_due(config, replace(ready, stage_steps=STEPS - 1), AT, None) is False
-    assert refinement_due(config, replace(ready, stage=2), AT, None) is False  # a coarser grid
-    assert refinement_due(config, ready, 0.99, object()) is None  # the last growth is on trial
-    assert refinement_due(config, replace(ready, edge_points_step=4000), 0.99, None) is None  # decided
-    for other in ("centre", "box", "jitter"):
-        assert refinement_due(replace(config, pixel_filter=other), ready, 0.99, None) is None
-        assert refinement_due(replace(config, pixel_filter=other, refine_grid=True), ready, AT, None) is True
-
-
 def test_the_refined_grid_is_one_stage_past_the_final_one_within_the_cap_and_only_for_automatic_resolutions():
     """refined_resolution: final x STAGE_RATIO, rounded, at most MAX_AUTO_RESOLUTION and never
     below the final grid; resolution_at's stage after the ladder is it. refine_grid_for: as
     set; else on only for a compact `edges` run whose resolution is automatic and not at the
     cap, set by the pixel footprint (not the texture, the cap or the user), and its reason
     names the grids."""
-    from nerfgauge.nerf.config import (MAX_AUTO_RESOLUTION, STAGE_RATIO, TrainConfig, refine_grid_for,
-                                       refined_resolution, upsample_count)
-    from nerfgauge.nerf.train import resolution_at
+    from nerfgauge.nerf.config import MAX_AUTO_RESOLUTION, TrainConfig, refine_grid_for, refined_resolution
+    from nerfgauge.nerf.schedule import STAGE_RATIO, Schedule
 
     assert refined_resolution(109) == round(109 * STAGE_RATIO) == 173
     assert refined_resolution(200) == MAX_AUTO_RESOLUTION and refined_resolution(MAX_AUTO_RESOLUTION) == MAX_AUTO_RESOLUTION
     config = TrainConfig("d", budget_seconds=600.0, pixel_filter="edges", start_resolution=27, final_resolution=109)
-    stages = upsample_count(27, 109)
-    assert [resolution_at(config, stage) for stage in (0, stages, stages + 1)] == [27, 109, 173]
+    schedule = Schedule.for_run(config, grid=True, refined_resolution=refined_resolution(109))
+    assert [schedule.resolution_at(stage) for stage in (0, schedule.stages, schedule.stages + 1)] == [27, 109, 173]
     on, why = refine_grid_for(config, "footprint")
     assert on is True and "109 -> 173 voxels" in why
     assert refine_grid_for(config, None)[0] is False  # the user's resolution is kept
@@ -380,31 +355,6 @@ def test_the_refined_grid_is_one_stage_past_the_final_one_within_the_cap_and_onl
     assert refine_grid_for(replace(config, pixel_filter="centre", refine_grid=True), None)[0] is True
 
 
-def test_the_refine_reason_says_what_happened_to_the_grid():
-    """refine_grid_reason names the outcome: grown; the run ended before half; the budget
-    never reached the footprint's grid; for an `edges` run, not converged at half (2 x 2
-    kept) or converged but the finer grid's growth undone (3 x 3 taken); otherwise both."""
-    from nerfgauge.nerf.checkpoint import LoopState
-    from nerfgauge.nerf.config import TrainConfig, upsample_count
-    from nerfgauge.nerf.train import refine_grid_reason
-
-    config = TrainConfig("d", budget_seconds=600.0, pixel_filter="edges", start_resolution=27, final_resolution=109,
-                         refine_grid=True)
-    last = upsample_count(27, 109)
-    decided = LoopState(step=6000, stage=last, last_stage=last, edge_points_step=5000)
-    assert refine_grid_reason(config, replace(decided, stage=last + 1, last_stage=last + 1), 173).startswith(
-        "109 -> 173 voxels from step 5000")
-    assert "ended before 50%" in refine_grid_reason(config, replace(decided, edge_points_step=0), 109)
-    assert "could not train the footprint's 109" in refine_grid_reason(
-        config, replace(decided, stage=last - 1, last_stage=last - 1), 68)
-    not_converged = refine_grid_reason(config, decided, 109)
-    assert "fewer than" in not_converged and "undone" not in not_converged
-    undone = refine_grid_reason(config, replace(decided, edge_points=3), 109)
-    assert "undone" in undone and "fewer than" not in undone
-    either = refine_grid_reason(replace(config, pixel_filter="centre"), decided, 109)
-    assert "fewer than" in either and "undone" in either
-
-
 def test_a_refining_run_grows_its_grid_at_half_the_steps_states_it_renders_and_resumes(tiny_dataset, tmp_path,
                                                                                       monkeypatch):
     """With the bars lowered as below, a 12-step run with --refine-grid on decides at step 6
@@ -413,13 +363,14 @@ def test_a_refining_run_grows_its_grid_at_half_the_steps_states_it_renders_and_r
     before the decision and resumed grows at the same step as the uninterrupted one."""
     import json
 
+    import nerfgauge.nerf.schedule as schedule_module
     import nerfgauge.nerf.train as train_module
     from nerfgauge.nerf.checkpoint import load_checked
     from nerfgauge.nerf.config import TrainConfig, refined_resolution
     from nerfgauge.nerf.render_views import render_split
 
-    monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 1)
-    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_MIN_STEPS", 2)
+    monkeypatch.setattr(schedule_module, "MIN_STAGE_STEPS", 1)
+    monkeypatch.setattr(schedule_module, "FINE_EDGE_POINTS_MIN_STEPS", 2)
     finer = refined_resolution(16)
     assert finer == 25
     config = TrainConfig(dataset=str(tiny_dataset), steps=12, pixel_filter="edges", start_resolution=16,
@@ -442,10 +393,10 @@ def test_a_refining_run_grows_its_grid_at_half_the_steps_states_it_renders_and_r
     assert frames and len(frames) == len(list((tiny_dataset / "test").glob("r_???.png")))
     log, resolution, _ = trained(tmp_path / "run", 16, resume=True)
     assert resolution == finer and {entry["resolution"] for entry in log if entry["step"] >= 12} == {finer}
-    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.9)
+    monkeypatch.setattr(schedule_module, "FINE_EDGE_POINTS_AT", 0.9)
     log, resolution, saved = trained(tmp_path / "paused", 4)
     assert resolution == 16 and saved["auto_reasons"]["refine_grid"].startswith("kept 16 voxels: the run ended before")
-    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.5)
+    monkeypatch.setattr(schedule_module, "FINE_EDGE_POINTS_AT", 0.5)
     log, resolution, _ = trained(tmp_path / "paused", 12, resume=True)
     assert resolution == finer and [entry["resolution"] for entry in log][-5:] == [finer] * 5
     # without the flag an explicit resolution is kept (the end-to-end test below runs so)
@@ -461,11 +412,12 @@ def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_wi
     before it decides at the same step as the uninterrupted run."""
     import json
 
+    import nerfgauge.nerf.schedule as schedule_module
     import nerfgauge.nerf.train as train_module
     from nerfgauge.nerf.config import TrainConfig
 
-    monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 1)
-    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_MIN_STEPS", 2)
+    monkeypatch.setattr(schedule_module, "MIN_STAGE_STEPS", 1)
+    monkeypatch.setattr(schedule_module, "FINE_EDGE_POINTS_MIN_STEPS", 2)
     config = TrainConfig(dataset=str(tiny_dataset), steps=12, pixel_filter="edges", start_resolution=16,
                          final_resolution=16, eval_every_seconds=1e-9, threads=1)
 
@@ -490,11 +442,11 @@ def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_wi
     assert reason.startswith("2 x 2 throughout: at 50% of the budget (step 2) the final grid had trained fewer")
     # a run stopped before its decision (the bar moved past its end) and resumed decides as
     # the uninterrupted run did
-    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.9)
+    monkeypatch.setattr(schedule_module, "FINE_EDGE_POINTS_AT", 0.9)
     log, loop, reason = trained(tmp_path / "paused", 4)
     assert loop["edge_points_step"] == 0
     assert reason.startswith("2 x 2 throughout: the run ended before 90% of its budget")
-    monkeypatch.setattr(train_module, "FINE_EDGE_POINTS_AT", 0.5)
+    monkeypatch.setattr(schedule_module, "FINE_EDGE_POINTS_AT", 0.5)
     log, loop, _ = trained(tmp_path / "paused", 12, resume=True)
     assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
 

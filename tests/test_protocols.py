@@ -70,6 +70,26 @@ def test_nerfbaselines_pair_is_white_composited_and_truncated():
     assert black[0, 1, 0] == 0.0 and black[1, 0, 0] == np.float32(0.25)
 
 
+def test_our_protocol_is_an_ordinary_record_on_the_evaluations_background():
+    """Ours is a Protocol like the others (no None sentinel in evaluate): it composites onto
+    the evaluation's background, in float64 and unclipped, exactly as eval.metrics.composite
+    does (the independent statement of our convention); the others keep their own."""
+    from nerfgauge.eval.metrics import BACKGROUNDS, composite
+
+    ours = P.get(P.DEFAULT)
+    assert isinstance(ours, P.Protocol) and ours.float64 and not ours.quantise
+    rgb = np.array([[[0.5, 0.25, 1.0], [0.1, 0.2, 0.3]]])
+    alpha = np.array([[0.5, 1.0]])
+    gt = np.array([[[0.2, 0.4, 0.6, 0.75], [0.0, 0.0, 0.0, 0.0]]])
+    for name, colour in BACKGROUNDS.items():
+        pred, gt_out = P.prepare(ours, rgb, alpha, gt, colour)
+        assert pred.dtype == np.float64 and np.array_equal(pred, composite(np.concatenate([rgb, alpha[..., None]], -1),
+                                                                            colour))
+        assert np.array_equal(gt_out, composite(gt, colour))
+        assert P.background_name(ours.composited_on(colour)) == name
+        assert P.background_name(P.get("ns-eval").composited_on(colour)) == "black"
+
+
 def _dm_pix_reference(a, b):
     """dm_pix.ssim as its docstring states it, written out with np.convolve (a slow oracle)."""
     k, sigma = 11, 1.5

@@ -14,7 +14,7 @@ from nerfgauge.cli import main
 from nerfgauge.core import dataset
 from nerfgauge.core.camera import Intrinsics, ThinLens
 from nerfgauge.core.images import read_png
-from nerfgauge.eval.baselines import LightField
+from nerfgauge.methods.baselines import LightField
 from test_thinlens import blur_radius_px, second_moment
 
 
@@ -137,7 +137,7 @@ def test_report_rows_and_aperture_table(lens_lightfield, tmp_path, capsys):
 def test_refocus_any_lens_overrides_the_frames(lens_lightfield, tmp_path):
     """write_baseline(lens=...) refocuses every frame at that aperture and focus: aperture 0
     at the light field's focal plane is the quadrilinear light field (the same 16 samples)."""
-    from nerfgauge.eval.baselines import write_baseline
+    from nerfgauge.methods.baselines import write_baseline
 
     focal = LightField(lens_lightfield).focal_distance
     timing = write_baseline(lens_lightfield, "refocus", tmp_path / "r0", lens=ThinLens(0.0, focal), samples=8)

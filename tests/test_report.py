@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from nerfgauge.core.images import read_exr_single, read_png, write_exr, write_png
-from nerfgauge.eval.baselines import write_baseline
+from nerfgauge.methods.baselines import write_baseline
 from nerfgauge.eval.evaluate import evaluate
 from nerfgauge.eval.report import per_view_table, write_report
 

@@ -1,6 +1,6 @@
 """The robustness suite (issue 35 item 7): suites set degradation fields per entry like any
 GenerateConfig field, and the leaderboard draws each method's score against the level
-(orchestrate.suite_robustness). The tiny suite below runs end to end in seconds; the
+(orchestrate.suite.robustness). The tiny suite below runs end to end in seconds; the
 built-in `robustness` suite is the slow test."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from suite_toml import suite_toml
 from nerfgauge.cli import main
 from nerfgauge.core.files import read_json
 from nerfgauge.core.errors import InputError
-from nerfgauge.orchestrate.suite import load_suite, parse_suite
-from nerfgauge.orchestrate.suite_robustness import robustness
+from nerfgauge.orchestrate.suite.definition import load_suite, parse_suite
+from nerfgauge.orchestrate.suite.robustness import robustness
 
 ENTRIES = ({"id": "clean"}, {"id": "pose-2", "pose_noise_rotation": 2.0}, {"id": "pose-4", "pose_noise_rotation": 4.0},
            {"id": "ev-1", "exposure_ev": 1.0}, {"id": "both", "exposure_ev": 1.0, "vignetting": 0.2})

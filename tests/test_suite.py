@@ -1,4 +1,4 @@
-"""Benchmark suites (nerfgauge/orchestrate/suite.py, suite_run.py, suite_report.py): definitions, the suite
+"""Benchmark suites (nerfgauge/orchestrate/suite/definition.py, suite/run.py, suite/report.py): definitions, the suite
 folder and its manifest, results tied to a suite version, and the leaderboard's numbers."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from suite_toml import suite_toml
 
 from nerfgauge.cli import main
 from nerfgauge.core.files import read_json, write_json
-from nerfgauge.orchestrate.suite import SUITE_MANIFEST, load_suite
+from nerfgauge.orchestrate.suite.definition import SUITE_MANIFEST, load_suite
 
 TINY_DATASET = {"width": 16, "height": 16, "views": 4, "val_views": 0, "test_views": 2, "spp": 2}
 

@@ -16,7 +16,7 @@ from PIL import Image
 from nerfgauge.cli import main
 from nerfgauge.core.files import read_json
 from nerfgauge.core.images import read_png
-from nerfgauge.orchestrate.suite import SUITE_MANIFEST, files_sha256, load_suite
+from nerfgauge.orchestrate.suite.definition import SUITE_MANIFEST, files_sha256, load_suite
 from suite_toml import suite_toml
 from test_suite import one_line_error, run
 

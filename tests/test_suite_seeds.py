@@ -292,8 +292,8 @@ def test_run_with_seeds_keeps_every_run_and_aggregates_them(tmp_path, capsys):
     (2, "tcp://10.0.0.5:8786", None, None, 2),  # a remote cluster's workers have their own cores
 ])
 def test_training_threads_share_a_local_clusters_cores(monkeypatch, cores, scheduler, given, suite_threads, expected):
-    from nerfgauge.orchestrate import suite_run
-    from nerfgauge.orchestrate.suite import load_suite
+    from nerfgauge.orchestrate.suite import run as suite_run
+    from nerfgauge.orchestrate.suite.definition import load_suite
     monkeypatch.setattr(suite_run.os, "sched_getaffinity", lambda pid: set(range(cores)), raising=False)
     suite = load_suite("smoke")
     train = {key: value for key, value in suite.train.items() if key != "threads"}

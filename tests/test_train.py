@@ -10,8 +10,6 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from cli_errors import one_line_exit_2
 
 from nerfgauge.cli import main
@@ -206,44 +204,6 @@ def test_resume_refuses_another_parametrisation(small_dataset, tmp_path, capsys)
                              "--parametrisation", "ndcx"], "unknown parametrisation 'ndcx'")
 
 
-def test_the_budget_decides_only_its_last_growths_in_bounded_and_forward_space():
-    """A --steps run never trials a growth (its schedule stays reproducible); nor does a
-    budget for growths before the last BUDGET_DECIDES_LAST_GROWTHS, nor in contracted space."""
-    import dataclasses
-
-    from nerfgauge.nerf.checkpoint import LoopState
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.train import BUDGET_DECIDES_LAST_GROWTHS, budget_decides_growth
-
-    config = TrainConfig("d", budget_seconds=120.0, final_resolution=108, start_resolution=27,
-                         parametrisation="bounded")
-    last = LoopState(stage=3 - BUDGET_DECIDES_LAST_GROWTHS)
-    assert budget_decides_growth(config, last)
-    assert not budget_decides_growth(dataclasses.replace(config, budget_seconds=None, steps=500), last)
-    assert not budget_decides_growth(config, dataclasses.replace(last, stage=last.stage - 1))
-    assert not budget_decides_growth(dataclasses.replace(config, parametrisation="contracted"), last)
-    assert budget_decides_growth(dataclasses.replace(config, parametrisation="forward"), last)
-
-
-def test_a_growth_on_trial_is_judged_by_its_own_measured_rate():
-    """The finer grid's steps in all = steps done + (timed steps / their seconds) x the
-    budget's seconds left; the warm-up steps are not timed, and nothing is judged before
-    GROWTH_TRIAL_STEPS are timed."""
-    from nerfgauge.nerf.checkpoint import LoopState
-    from nerfgauge.nerf.config import TrainConfig
-    from nerfgauge.nerf.train import GROWTH_TRIAL_STEPS, GROWTH_TRIAL_WARMUP, GrowthTrial, steps_on_trial
-
-    config = TrainConfig("d", budget_seconds=120.0, parametrisation="bounded")
-    trial = GrowthTrial(None, None, LoopState())
-    warm = LoopState(stage_steps=GROWTH_TRIAL_WARMUP, stage_seconds=2.0, seconds=40.0)
-    assert steps_on_trial(config, warm, trial) is None and trial.timed_from == 2.0
-    early = LoopState(stage_steps=GROWTH_TRIAL_WARMUP + GROWTH_TRIAL_STEPS - 1, stage_seconds=5.0, seconds=43.0)
-    assert steps_on_trial(config, early, trial) is None
-    done = LoopState(stage_steps=GROWTH_TRIAL_WARMUP + GROWTH_TRIAL_STEPS, stage_seconds=6.0, seconds=44.0)
-    rate = GROWTH_TRIAL_STEPS / (6.0 - 2.0)
-    assert steps_on_trial(config, done, trial) == pytest.approx(done.stage_steps + rate * (120.0 - 44.0))
-
-
 def test_an_undone_growth_restores_the_coarser_model_and_its_optimiser_exactly():
     """Undo gives back the parameters and Adam moments from before the trial, with the
     optimiser on the restored parameters (not the trial's), and the coarser stage becomes
@@ -282,14 +242,31 @@ def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small
     """With the trial's bar out of reach the run still takes the growths the budget does
     not decide, undoes the last one after its trial and its log says so; with no bar it
     grows as a --steps run does. (The bar and the steps a stage needs are patched so the
-    decision does not depend on this machine's speed, and the trial ends within the budget.)"""
-    import nerfgauge.nerf.train as train_module
-    from nerfgauge.nerf.config import TrainConfig, upsample_count
+    decision does not depend on this machine's speed, and the trial ends within the budget;
+    training time is read from a clock that advances 0.05 s a step, so a loaded machine runs
+    the same 80 steps as an idle one.)"""
+    import time
 
-    monkeypatch.setattr(train_module, "MIN_STEPS_AT_FINER", min_steps)
-    monkeypatch.setattr(train_module, "MIN_STAGE_STEPS", 3)
-    monkeypatch.setattr(train_module, "GROWTH_TRIAL_WARMUP", 1)
-    monkeypatch.setattr(train_module, "GROWTH_TRIAL_STEPS", 3)
+    import nerfgauge.nerf.schedule as schedule_module
+    import nerfgauge.nerf.train as train_module
+    from nerfgauge.nerf.config import refined_resolution
+    from nerfgauge.nerf.schedule import Schedule
+
+    monkeypatch.setattr(schedule_module, "MIN_STEPS_AT_FINER", min_steps)
+    monkeypatch.setattr(schedule_module, "MIN_STAGE_STEPS", 3)
+    monkeypatch.setattr(schedule_module, "GROWTH_TRIAL_WARMUP", 1)
+    monkeypatch.setattr(schedule_module, "GROWTH_TRIAL_STEPS", 3)
+
+    class StepClock:  # each step's start and end are one reading apart: 0.05 s of training a step
+        now = 0.0
+
+        def perf_counter(self):
+            self.now += 0.05
+            return self.now
+
+        monotonic = staticmethod(time.monotonic)  # checkpoints keep the wall clock
+
+    monkeypatch.setattr(train_module, "time", StepClock())
     run = tmp_path / "budget"
     assert main(["train", str(small_dataset), "--out", str(run), "--budget-seconds", "4", "--quiet"]) == 0
     config = json.loads((run / "config.json").read_text())
@@ -301,64 +278,12 @@ def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small
         assert saved == final
         assert log[-1]["final_resolution"] == final
     else:
-        ladder = TrainConfig("d", steps=1, start_resolution=start, final_resolution=final)
-        kept = train_module.resolution_at(ladder, upsample_count(start, final)
-                                          - train_module.BUDGET_DECIDES_LAST_GROWTHS)
+        ladder = Schedule.for_run(TrainConfig("d", steps=1, start_resolution=start, final_resolution=final),
+                                  grid=True, refined_resolution=refined_resolution(final))
+        kept = ladder.resolution_at(ladder.stages - schedule_module.BUDGET_DECIDES_LAST_GROWTHS)
         assert start <= kept < final
         assert log[-1]["resolution"] == kept == saved
         assert log[-1]["final_resolution"] == kept
-
-
-@settings(max_examples=300, deadline=None)
-@given(final=st.integers(4, 1024))
-def test_the_coarse_to_fine_ladder_starts_near_32_voxels_and_grows_geometrically(final):
-    """The default ladder: start grid near START_VOXELS (never above it by more than one
-    half-stage, never under 16), stages of about STAGE_RATIO each ending exactly at the
-    final grid, and growth at evenly spaced budget fractions ending at LAST_UPSAMPLE_AT.
-    Final grids up to 160 voxels keep the three-stage quarter-start ladder (32 * 4^(3.5/3)
-    = 161 is where a fourth stage lands nearer 32)."""
-    from nerfgauge.nerf.config import MIN_UPSAMPLES, STAGE_RATIO, START_VOXELS, start_resolution_for, upsample_count
-    from nerfgauge.nerf.train import LAST_UPSAMPLE_AT, resolution_at, upsample_at
-
-    start = start_resolution_for(final)
-    config = TrainConfig("d", steps=1, final_resolution=final, start_resolution=start)
-    stages = upsample_count(start, final)
-    ladder = [resolution_at(config, k) for k in range(stages + 1)]
-    assert ladder[0] == start and ladder[-1] == final
-    assert all(a <= b for a, b in zip(ladder, ladder[1:]))
-    assert min(16, final) <= start <= max(16, START_VOXELS * STAGE_RATIO ** 0.5 + 1)
-    if final >= 4 * 16:  # no clamp at 16: each stage is about STAGE_RATIO (half a stage of slack each way)
-        step = (final / start) ** (1 / stages)
-        assert STAGE_RATIO ** 0.5 <= step <= STAGE_RATIO ** 1.5
-    if final <= 160:
-        assert stages == MIN_UPSAMPLES and start == min(final, max(16, round(final / 4)))
-    fractions = [upsample_at(config, k) for k in range(stages)]
-    assert all(0 < a < b for a, b in zip(fractions, fractions[1:]))
-    assert fractions[-1] == pytest.approx(LAST_UPSAMPLE_AT)
-
-
-@settings(max_examples=300, deadline=None)
-@given(final=st.integers(16, 1024), steps=st.integers(1, 5000))
-def test_a_fixed_step_run_takes_only_the_stages_it_can_train(final, steps):
-    """Each stage waits for MIN_STAGE_STEPS steps, so a --steps run's ladder has at most
-    max(MIN_UPSAMPLES, steps / 2 / MIN_STAGE_STEPS) stages (its final grid gets at least
-    half the run once that is over MIN_UPSAMPLES stages), never more than the budget
-    ladder, and still ends at the final grid; resolve picks that start."""
-    import numpy as np
-
-    from nerfgauge.nerf.config import MIN_STAGE_STEPS, MIN_UPSAMPLES, resolve, start_resolution_for, upsample_count
-
-    start = start_resolution_for(final, steps)
-    stages = upsample_count(start, final)
-    assert stages <= max(MIN_UPSAMPLES, steps // (2 * MIN_STAGE_STEPS))
-    assert stages <= upsample_count(start_resolution_for(final), final)
-    assert start <= final
-    aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-    c2w = np.tile(np.eye(4), (2, 1, 1))
-    c2w[:, :3, 3] = [[0, 0, 4], [4, 0, 0]]
-    resolved, _ = resolve(TrainConfig("d", steps=steps, final_resolution=final, parametrisation="bounded"), None,
-                          aabb, c2w, 100.0, 64)
-    assert resolved.start_resolution == start
 
 
 def test_the_auto_resolution_is_the_pixel_footprint_at_the_nearest_content_or_the_cap():

@@ -97,11 +97,16 @@ def exr_header(handle, size: int, shown, refuse=_refuse) -> tuple[dict, int, int
     flags = struct.unpack("<I", data[4:8])[0]
     attributes, at = {}, 8
 
+    def cut_short(what: str) -> str:
+        if len(data) >= size:  # the whole file was read: it ends inside its header
+            return f"EXR file is truncated inside its header ({size} bytes): {what}"
+        return f"EXR header is longer than the {EXR_HEADER_LIMIT} bytes read: {what}"
+
     def text():
         nonlocal at
         end = data.find(b"\0", at)
         if end < 0:
-            refuse(shown, f"EXR header is cut off at byte {len(data)} of {size}")
+            refuse(shown, cut_short("a name has no end"))
         value, at = data[at:end], end + 1
         return value
 
@@ -111,11 +116,11 @@ def exr_header(handle, size: int, shown, refuse=_refuse) -> tuple[dict, int, int
             return attributes, flags, at
         kind = text()
         if at + 4 > len(data):
-            refuse(shown, f"EXR header is cut off at byte {len(data)} of {size}")
+            refuse(shown, cut_short(f"the size of attribute {name.decode(errors='replace')!r} is cut off"))
         length = struct.unpack("<i", data[at:at + 4])[0]
         at += 4
         if length < 0 or at + length > len(data):
-            refuse(shown, f"EXR attribute {name.decode(errors='replace')!r} runs past the end of the header")
+            refuse(shown, cut_short(f"attribute {name.decode(errors='replace')!r} runs past its end"))
         attributes[name.decode(errors="replace")] = (kind.decode(errors="replace"), data[at:at + length])
         at += length
 

@@ -11,12 +11,23 @@ denied, read-only file system, a path under a regular file, a missing folder) is
 user's environment, not a bug: `input_error_from_os` turns it into an `InputError` naming
 the path and the reason, and `os_errors_as_input_errors()` does so for a block. The CLI and
 the Python API both use them, so both report the same line.
+
+numpy's floating-point warnings ("overflow encountered in multiply", "invalid value
+encountered in divide", "divide by zero encountered in log") printed extra stderr lines
+beside the one line, and let a NaN or inf travel on. Inside `floating_point_warnings_raise()`
+(the `nerfgauge` command runs every command in it; worker processes call
+`raise_floating_point_warnings()`) each is raised where it happens, in every thread, as a
+RuntimeWarning exception (`is_floating_point_error`): an overflow nobody expected is a bug,
+reported as one line (exit 3; NERFGAUGE_DEBUG=1: the traceback). Code that expects inf or
+NaN says so where it computes them, with `np.errstate(...="ignore")`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno as errno_codes
+import re
+import warnings
 
 
 class InputError(ValueError):
@@ -50,3 +61,26 @@ def os_errors_as_input_errors():
         yield
     except OSError as error:
         raise input_error_from_os(error) from error
+
+
+FLOATING_POINT_WARNING = r"(overflow|invalid value|divide by zero) encountered"  # numpy's messages' start
+
+
+def raise_floating_point_warnings() -> None:
+    """From now on, in this process: numpy's floating-point warnings are raised (module docstring)."""
+    warnings.filterwarnings("error", message=FLOATING_POINT_WARNING, category=RuntimeWarning)
+
+
+@contextlib.contextmanager
+def floating_point_warnings_raise():
+    """numpy's floating-point warnings raised inside the block, in every thread; the
+    warning filters as they were afterwards."""
+    with warnings.catch_warnings():
+        raise_floating_point_warnings()
+        yield
+
+
+def is_floating_point_error(error: BaseException) -> bool:
+    """A numpy floating-point warning raised as an exception, or numpy's FloatingPointError."""
+    return isinstance(error, FloatingPointError) or (
+        isinstance(error, RuntimeWarning) and re.match(FLOATING_POINT_WARNING, str(error)) is not None)

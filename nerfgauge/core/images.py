@@ -31,6 +31,7 @@ hashes them against the manifest first), so a file is read once.
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import os
 import struct
@@ -369,7 +370,20 @@ def write_exr(path, channels: dict, attributes: dict | None = None) -> None:
             break
     with atomic_path(path, verify=_verified_image(width, height, names)) as tmp:
         with OpenEXR.File(header, arrays) as exr:
-            exr.write(str(tmp))
+            try:
+                exr.write(str(tmp))
+            except RuntimeError as error:  # OpenEXR's IO errors carry the OS's text, not its errno
+                raise _os_error_from_openexr(error, path) from None
+
+
+def _os_error_from_openexr(error: RuntimeError, path) -> OSError:
+    """The OSError an OpenEXR write failure stands for (its message names the OS's
+    strerror, e.g. "No space left on device"), so that the CLI reports a full disk as one."""
+    message = str(error)
+    for number in sorted(errno.errorcode):
+        if os.strerror(number) in message:
+            return OSError(number, os.strerror(number), str(path))
+    return OSError(errno.EIO, f"OpenEXR could not write it: {message}", str(path))
 
 
 # Scanlines per chunk of each EXR compression (the header's "compression" byte), from the

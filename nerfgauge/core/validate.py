@@ -220,6 +220,9 @@ def lens_distortion(stated: dict, checked: Intrinsics, where: str) -> Optional[D
     return distortion
 
 
+BOUNDS_LIMIT = 1e9
+
+
 def bounds(value, where: str) -> np.ndarray:
     """[[xmin, ymin, zmin], [xmax, ymax, zmax]] -> [2, 3] float64, finite, min < max."""
     try:
@@ -230,6 +233,11 @@ def bounds(value, where: str) -> np.ndarray:
         raise InputError(f"{where}: bounds must be [[x, y, z], [x, y, z]] of numbers, got {value!r}")
     if not np.isfinite(array).all():
         raise InputError(f"{where}: bounds hold NaN or inf: {array.tolist()}")
+    if np.abs(array).max() > BOUNDS_LIMIT:
+        # Training samples rays in float32 across the box: beyond this its steps are not
+        # representable (at 1e308 the extent itself overflows to inf).
+        raise InputError(f"{where}: bounds reach {np.abs(array).max():.3g}, beyond the +-{BOUNDS_LIMIT:.0e} "
+                         f"scene units nerfgauge can sample: {array.tolist()}")
     if not (array[0] < array[1]).all():
         axes = ", ".join("xyz"[k] for k in np.flatnonzero(~(array[0] < array[1])))
         raise InputError(f"{where}: bounds need min < max on every axis, not on {axes}: {array.tolist()}")

@@ -1,5 +1,5 @@
 """nerfgauge's own methods behind the method interface: the compact and the vanilla NeRF
-(nerf/), and the non-learned baselines (eval.baselines).
+(nerf/), and the non-learned baselines (methods.baselines).
 
 torch is imported inside the functions that train or render, so listing the methods
 (`nerfgauge methods`) stays instant.
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json
-from nerfgauge.eval.baselines import baseline_folder, write_baseline
+from nerfgauge.methods.baselines import baseline_folder, write_baseline
 from nerfgauge.methods.interface import Method, Needs, Produces, RenderResult, TrainRequest, TrainResult
 from nerfgauge.methods.measure import measured
 
@@ -72,7 +72,7 @@ class NeRF(Method):
 
 
 class Baseline(Method):
-    """A non-learned baseline (eval.baselines): nothing to train; it renders from the
+    """A non-learned baseline (methods.baselines): nothing to train; it renders from the
     training images directly."""
 
     learned = False

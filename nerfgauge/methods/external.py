@@ -39,14 +39,9 @@ on with their other jobs.
 from __future__ import annotations
 
 import glob
-import json
 import os
 import re
-import signal
 import string
-import subprocess
-import sys
-import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,14 +52,13 @@ from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
 from nerfgauge.core.owned import make_folder, open_append
 from nerfgauge.methods.interface import Method, Needs, Produces, RenderResult, TrainRequest, TrainResult, check_name
-from nerfgauge.methods.measure import maxrss_bytes
+from nerfgauge.methods.measure import Finished, run_process
 
 LAYOUTS = ("nerfgauge", "nerfstudio", "nerfbaselines", "folder")
 LENGTHS = ("steps", "seconds", "both")
 TRAIN_PLACEHOLDERS = ("dataset", "run", "seed", "steps", "budget_seconds", "threads", "device")
 RENDER_PLACEHOLDERS = (*TRAIN_PLACEHOLDERS, "split", "out")
 OVERRUN = 2.0  # a command is stopped once it has run this many times its budget
-POLL_SECONDS = 0.05
 RESULT = "method.json"  # RUN/method.json: the spec, the request and what training cost
 
 
@@ -268,87 +262,23 @@ def _executable(argv0: str, env: dict, method: str) -> str:
                                "see the spec's install lines)")
 
 
-@dataclass(frozen=True)
-class Finished:
-    seconds: float
-    cpu_seconds: float
-    peak_memory_bytes: int | None  # None: the launcher was stopped before it could report
-    status: int  # exit status, or -signal when stopped
-
-
-# The command is started by a small launcher (a fresh interpreter without site packages) that
-# forks it and reports its os.wait4 usage through a pipe. A child forked (or vforked) straight
-# from this process would carry this process's resident set into its own peak: Linux records
-# the old image's high-water mark at exec, so a command started from a 2 GB harness would
-# report at least 2 GB. The launcher's own peak (about 10 MB) is the floor of the figure.
-LAUNCHER = """
-import json, os, sys
-pid = os.fork()
-if pid == 0:
-    try:
-        os.execv(sys.argv[2], sys.argv[2:])
-    finally:
-        os._exit(127)
-_, status, usage = os.wait4(pid, 0)
-os.write(int(sys.argv[1]), json.dumps({"cpu_seconds": usage.ru_utime + usage.ru_stime, "maxrss": usage.ru_maxrss,
-                                       "status": os.waitstatus_to_exitcode(status)}).encode())
-os._exit(os.waitstatus_to_exitcode(status) % 256)
-"""
-
-
 def run_command(argv: list, *, cwd: Path, env: dict, log: Path, timeout: float | None, method: str) -> Finished:
-    """Run argv (no shell) in its own process group with stdout and stderr in `log`; stop
-    the group once it runs past `timeout` seconds. The command's own resource usage
-    (os.wait4, through LAUNCHER) gives its CPU time and peak memory."""
+    """Run argv (no shell) in its own process group with stdout and stderr in `log`
+    (measure.run_process: its own wall, CPU and peak memory; stopped past `timeout`);
+    MethodFailed with the reason when it cannot start, is stopped or exits non-zero."""
     argv = [_executable(argv[0], env, method), *argv[1:]]
-    start = time.perf_counter()
-    report, report_write = os.pipe()
     with open_append(log) as output:
         output.write("$ " + " ".join(argv) + "\n")
         output.flush()
         try:
-            process = subprocess.Popen([sys.executable, "-I", "-S", "-c", LAUNCHER, str(report_write), *argv],
-                                       cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=output,
-                                       stderr=subprocess.STDOUT, start_new_session=True, pass_fds=(report_write,))
+            finished = run_process(argv, cwd=cwd, env=env, stdout=output, timeout=timeout)
         except OSError as error:
-            os.close(report)
             raise MethodFailed(method, f"cannot start {argv[0]}: {error.strerror or error}") from None
-        finally:
-            os.close(report_write)
-    stopped = False
-    while True:
-        pid, status, usage = os.wait4(process.pid, os.WNOHANG)
-        if pid:
-            break
-        if timeout is not None and time.perf_counter() - start > timeout and not stopped:
-            stopped = True
-            _stop_group(process.pid)
-        time.sleep(POLL_SECONDS)
-    process.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait again
-    _stop_group(process.pid)  # anything the command left running in its group
-    seconds = time.perf_counter() - start
-    with os.fdopen(report, "rb") as pipe:
-        measured = json.loads(pipe.read() or b"{}")
-    finished = Finished(seconds, measured.get("cpu_seconds", usage.ru_utime + usage.ru_stime),
-                        maxrss_bytes(_Usage(measured["maxrss"])) if "maxrss" in measured else None,
-                        measured.get("status", process.returncode))  # -N: the command died of signal N
-    if stopped:
+    if finished.stopped:
         raise MethodFailed(method, f"ran past {timeout:g} s (twice its budget) and was stopped; log: {log}")
     if finished.status != 0:
         raise MethodFailed(method, f"{Path(argv[0]).name} exited with status {finished.status}; log: {log}")
     return finished
-
-
-@dataclass(frozen=True)
-class _Usage:
-    ru_maxrss: int
-
-
-def _stop_group(pid: int) -> None:
-    try:
-        os.killpg(pid, signal.SIGKILL)
-    except (ProcessLookupError, PermissionError):
-        pass
 
 
 def find_files(spec: Spec, run: Path) -> dict:

@@ -1,5 +1,4 @@
-"""The orchestration commands: `bench` (the benchmarks: `orchestrate.bench`, `bench_scaling`,
-`bench_hard`, `bench_lens`, `bench_read`, `bench_targets`) and `suite` (`orchestrate.suite_commands`).
+"""`nerfgauge bench NAME`: every benchmark (the modules of this package), one subcommand each.
 
 Numeric flags use `core.arguments` types (NaN, inf and non-positive counts are argument
 errors); comma-separated lists are checked item by item (`core.arguments.comma_separated`). Bench output
@@ -12,23 +11,21 @@ from pathlib import Path
 
 from nerfgauge.core import arguments
 from nerfgauge.generate.options import parse_resolution
-from nerfgauge.orchestrate import sfm, suite_commands
-from nerfgauge.orchestrate.bench import VARIANTS, bench_generate, bench_train, speedups, table_markdown
-from nerfgauge.orchestrate.bench_hard import HardConfig, bench_hard, table_markdown as hard_table_markdown
-from nerfgauge.orchestrate.bench_lens import run_lens_bench
-from nerfgauge.orchestrate.bench_read import bench_read, table_markdown as read_table_markdown
-from nerfgauge.orchestrate.bench_scaling import ScalingConfig, bench_scaling, report_markdown
-from nerfgauge.orchestrate.bench_targets import bench_targets, targets_command, targets_markdown
+from nerfgauge.orchestrate.bench.colmap import bench_colmap
+from nerfgauge.orchestrate.bench.dask import bench_dask
+from nerfgauge.orchestrate.bench.generate import bench_generate
+from nerfgauge.orchestrate.bench.hard import HardConfig, bench_hard, table_markdown as hard_table_markdown
+from nerfgauge.orchestrate.bench.lens import run_lens_bench
+from nerfgauge.orchestrate.bench.lpips import bench_lpips
+from nerfgauge.orchestrate.bench.lpips_cache import bench_lpips_cache, summary as lpips_cache_summary
+from nerfgauge.orchestrate.bench.read import bench_read, table_markdown as read_table_markdown
+from nerfgauge.orchestrate.bench.scaling import ScalingConfig, bench_scaling, report_markdown
+from nerfgauge.orchestrate.bench.targets import bench_targets, targets_command, targets_markdown
+from nerfgauge.orchestrate.bench.train import VARIANTS, bench_train, speedups, table_markdown
 from nerfgauge.scenes import HARD_SCENES
 
 
 def register(subparsers) -> None:
-    register_bench(subparsers)
-    suite_commands.register(subparsers)
-    sfm.register(subparsers)
-
-
-def register_bench(subparsers) -> None:
     sides, view_counts = (arguments.comma_separated(arguments.IMAGE_SIDE, distinct=True),
                           arguments.comma_separated(arguments.VIEWS, distinct=True))
     parser = subparsers.add_parser("bench", help="speed against error: generator overhead, training variants, scaling",
@@ -120,6 +117,68 @@ def register_bench(subparsers) -> None:
     read.add_argument("--split", default="train", help="split to read (default train)")
     read.add_argument("--repeats", type=arguments.REPEATS, default=15, help="best of this many (default 15)")
     read.set_defaults(func=run_bench_read)
+    colmap = kinds.add_parser("colmap", help="what the COLMAP export adds to generate: runs with and without it, "
+                                             "interleaved")
+    colmap.add_argument("--pairs", type=arguments.REPEATS, default=3, help="(with, without) pairs (default 3)")
+    colmap.add_argument("--res", type=arguments.IMAGE_SIDE, default=128)
+    colmap.add_argument("--views", type=arguments.VIEWS, default=100)
+    colmap.add_argument("--points", default="surface", help="the export's --points (default surface)")
+    colmap.add_argument("--out", type=arguments.path, default=Path("bench-out/colmap"),
+                        help="bench folder: colmap.json and the runs' datasets")
+    colmap.set_defaults(func=run_bench_colmap)
+    dask = kinds.add_parser("dask", help="views per second on a local dask cluster of 1 and of 2 workers")
+    dask.add_argument("--views", type=arguments.VIEWS, default=60)
+    dask.add_argument("--res", type=arguments.IMAGE_SIDE, default=96)
+    dask.add_argument("--spp", type=arguments.SPP, default=64)
+    dask.add_argument("--workers", type=arguments.comma_separated(arguments.WORKERS, distinct=True), default=(1, 2),
+                      help="comma-separated worker counts (default 1,2)")
+    dask.add_argument("--out", type=arguments.path, default=Path("bench-out/dask"),
+                      help="bench folder: dask.json and the runs' datasets")
+    dask.set_defaults(func=run_bench_dask)
+    lpips = kinds.add_parser("lpips", help="LPIPS-Alex speed on random image pairs, as evaluate batches them")
+    lpips.add_argument("--frames", type=arguments.VIEWS, default=100)
+    lpips.add_argument("--res", type=arguments.IMAGE_SIDE, default=128)
+    lpips.add_argument("--repeats", type=arguments.REPEATS, default=3)
+    lpips.set_defaults(func=run_bench_lpips)
+    cache = kinds.add_parser("lpips-cache", help="what the ground truth's LPIPS feature cache saves: a second method "
+                                                 "scored against the same ground truth, against the first")
+    cache.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    cache.add_argument("--protocol", default="nerfbaselines", help="evaluate's --protocol (default nerfbaselines)")
+    cache.add_argument("--split", default="test", help="split to score (default test)")
+    cache.add_argument("--repeats", type=arguments.REPEATS, default=1,
+                       help="(first, second) pairs, each with a fresh cache; the median ratio (default 1)")
+    cache.add_argument("--uncached", action="store_true", help="also time the first method with the cache off")
+    cache.add_argument("--out", type=arguments.path, default=Path("bench-out/lpips-cache"),
+                       help="bench folder (default bench-out/lpips-cache): lpips-cache.json/.png, the methods' "
+                            "renders and evaluations")
+    cache.set_defaults(func=run_bench_lpips_cache)
+
+
+def run_bench_colmap(args) -> int:
+    document = bench_colmap(args.out, args.pairs, args.res, args.views, args.points)
+    print(f"export adds {100 * (document['ratio_of_means'] - 1):+.1f}% (ratio of means {document['ratio_of_means']:.3f}, "
+          f"of medians {document['ratio_of_medians']:.3f}); the export's own share {100 * document['export_share']:.1f}%")
+    return 0
+
+
+def run_bench_dask(args) -> int:
+    bench_dask(args.out, args.views, args.res, args.spp, tuple(args.workers))
+    return 0
+
+
+def run_bench_lpips(args) -> int:
+    times = bench_lpips(args.frames, args.res, args.repeats)
+    print(f"LPIPS-Alex, {args.frames} frames of {args.res} px: " + ", ".join(f"{t:.2f}" for t in times)
+          + f" s (best {min(times):.2f} s)")
+    return 0
+
+
+def run_bench_lpips_cache(args) -> int:
+    result = bench_lpips_cache(args.dataset, args.out, protocol=args.protocol, split=args.split,
+                               uncached=args.uncached, repeats=args.repeats)
+    print(lpips_cache_summary(result))
+    print(f"bench lpips-cache: {args.out / 'lpips-cache.json'}, {args.out / 'lpips-cache.png'}")
+    return 0
 
 
 def run_bench_lens(args) -> int:

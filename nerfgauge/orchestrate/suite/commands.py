@@ -1,21 +1,23 @@
-"""`nerfgauge suite`: benchmark suites (nerfgauge/orchestrate/suite.py), run
-(nerfgauge/orchestrate/suite_run.py) and the leaderboard (nerfgauge/orchestrate/suite_report.py).
+"""`nerfgauge suite`: benchmark suites (nerfgauge/orchestrate/suite/definition.py), run
+(nerfgauge/orchestrate/suite/run.py) and the leaderboard (nerfgauge/orchestrate/suite/report.py).
 
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
     nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...] [--seeds K|A,B,...]
     nerfgauge suite run SUITE --out DIR [--overwrite] [--seeds K|A,B,...] [--scheduler ADDRESS] [--threads T]
-    nerfgauge suite report DIR
+    nerfgauge suite report DIR [--suite SUITE]
 
-SUITE is a built-in name (`suite list`) or a path to a .toml file.
+SUITE is a built-in name (`suite list`) or a path to a .toml file. `suite report` without
+--suite reads the suite from DIR/suite.json, checked as a suite file is and against the
+folder's marker, suite manifest and datasets (orchestrate.suite.suite_from_folder).
 """
 
 from __future__ import annotations
 
 from nerfgauge.core import arguments
-from nerfgauge.orchestrate.suite import builtin_suites, evaluate_suite, generate_suite, load_suite, suite_from_folder
-from nerfgauge.orchestrate.suite_report import write_leaderboard
-from nerfgauge.orchestrate.suite_run import run_suite
+from nerfgauge.orchestrate.suite.definition import builtin_suites, evaluate_suite, generate_suite, load_suite
+from nerfgauge.orchestrate.suite.report import write_leaderboard
+from nerfgauge.orchestrate.suite.run import run_suite
 
 
 def register(subparsers) -> None:
@@ -63,6 +65,9 @@ def register(subparsers) -> None:
     run.set_defaults(func=run_run)
     report = kinds.add_parser("report", help="the leaderboard (Markdown, HTML, JSON) and per-dataset reports")
     report.add_argument("dir", type=arguments.path, metavar="DIR", help="the suite folder")
+    report.add_argument("--suite", default=None, metavar="SUITE",
+                        help="check the folder against this suite (built-in name or .toml) instead of the definition "
+                             "its suite.json records")
     report.set_defaults(func=run_report)
 
 
@@ -97,5 +102,5 @@ def run_run(args) -> int:
 
 
 def run_report(args) -> int:
-    write_leaderboard(suite_from_folder(args.dir), args.dir)
+    write_leaderboard(load_suite(args.suite) if getattr(args, "suite", None) else None, args.dir)
     return 0

@@ -14,14 +14,14 @@ built-in `robustness` suite crosses pose noise and exposure with levels this way
 The leaderboard gets "robustness": {"curves": [{"group", "field", "levels": [...],
 "entries": [...], "scores": {method: {metric: [value per level or None]}}}], "combined": [...]},
 a table (one row per curve, method and level) and robustness.png (PSNR against level, one
-panel per curve, one line per method).
+panel per curve, one line per method; method names drawn as text, eval.report.plain_text).
 """
 
 from __future__ import annotations
 
 import dataclasses
 
-from nerfgauge.core.files import atomic_path
+from nerfgauge.eval.report import plain_text, save_png
 from nerfgauge.generate.degrade import FIELDS
 from nerfgauge.generate.pipeline import GenerateConfig
 
@@ -91,7 +91,6 @@ def rows(document: dict) -> list[list[str]]:
 
 def plot(document: dict, out) -> None:
     """robustness.png: PSNR against level, one panel per curve, one line per method."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib: only when a figure is drawn
     from matplotlib.figure import Figure  # matplotlib
 
     curves = document["curves"]
@@ -101,13 +100,12 @@ def plot(document: dict, out) -> None:
         for method, scores in curve["scores"].items():
             points = [(level, value) for level, value in zip(curve["levels"], scores["psnr"]) if value is not None]
             if points:
-                axes.plot(*zip(*points), marker="o", label=method)
-        axes.set_xlabel(f"{curve['field']} ({curve['unit']})")
+                axes.plot(*zip(*points), marker="o", label=plain_text(method))
+        axes.set_xlabel(plain_text(f"{curve['field']} ({curve['unit']})"))
         axes.set_ylabel("test PSNR (dB)")
-        axes.set_title(curve["group"], fontsize=9)
+        axes.set_title(plain_text(curve["group"]), fontsize=9)
         axes.grid(alpha=0.3)
         if k == 1:
             axes.legend(fontsize=7)
     figure.tight_layout()
-    with atomic_path(out) as tmp:
-        FigureCanvasAgg(figure).print_png(str(tmp))
+    save_png(figure, out)

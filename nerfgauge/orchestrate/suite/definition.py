@@ -12,7 +12,7 @@ path ending in .toml):
     [train]                        # required: our NeRF (TrainConfig fields but dataset and
     steps = 80 ...                 #   seed); steps is required (reproducible)
     [protocol]                     # required: split, background, depth_kind; optional
-    split = "test" ...             #   baselines (eval.baselines.METHODS; the lightfield ones
+    split = "test" ...             #   baselines (methods.baselines.METHODS; the lightfield ones
                                    #   run on lightfield layouts only) and geometry
                                    #   {resolution, samples} (our NeRF's mesh scored)
     [[scenes]]                     # at least one: scene (a registered recipe) and seed are
@@ -54,6 +54,22 @@ folder lives); suite.json's "folders" holds where it was found. Methods that nee
 a folder lacks (our NeRF's runs are bound to a manifest; the nearest baseline needs scene
 bounds; light-field baselines a camera grid) are skipped there with the reason (result.json
 "skipped", the leaderboard's n/a cells); metrics it cannot give are null ("unavailable").
+
+State files are data, never instructions (suite.json, suite-manifest.json, result.json,
+jobs/<key>.json; anyone who can write the folder can rewrite them, hashes included):
+- every name that becomes a path (the suite's name, dataset ids, methods) passes
+  `folder_name` where it enters and again wherever a file gives it back;
+- suite.json's definition is parsed by the suite file's own checks (`suite_from_definition`),
+  and its sha256 is recomputed from it and compared with the hashes other files hold (the
+  folder marker `suite generate` wrote from the suite file, the suite manifest, each
+  result.json), never with the one suite.json states about itself; each recipe entry is
+  compared with the config.json of the dataset it names (hashed in that dataset's
+  manifest, whose own hash the suite manifest holds);
+- the suite manifest, result.json and job records are checked field by field
+  (`check_suite_manifest`, `check_result`, `job_result`), and every path they hold must be
+  the one their writer makes (results/<method>/<id>/...), so nothing outside is read;
+  derived figures (aggregates over seeds) are recomputed, not read back.
+A malformed or inconsistent file is one line, exit 2.
 """
 
 from __future__ import annotations
@@ -61,24 +77,27 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib.resources
-import math
+import re
 import time
 import tomllib
+import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from nerfgauge.core import bounded, dataset, owned
+from nerfgauge.core import arguments, bounded, dataset, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
-from nerfgauge.core.folders import claim_folder, folder_lock
-from nerfgauge.eval.baselines import METHODS
+from nerfgauge.core.folders import MARKER, claim_folder, folder_lock, read_marker
+from nerfgauge.methods.baselines import METHODS
+from nerfgauge.eval.check import finite_number, shown
+from nerfgauge.eval.geometry import SUMMARY_NAMES
 from nerfgauge.eval.evaluate import BACKGROUNDS, evaluate
 from nerfgauge.eval.metrics import METRIC_NAMES
-from nerfgauge.eval.uncertainty import aggregate_runs
+from nerfgauge.eval.uncertainty import aggregate_runs, mean_of
 from nerfgauge.eval.predictions import DEPTH_SUFFIXES
-from nerfgauge.generate.distributed import parse_scheduler
-from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.generate.distributed import check_reachable
+from nerfgauge.generate.pipeline import CONFIG as CONFIG_FILE, GenerateConfig, generate
 from nerfgauge.scenes.registry import RECIPES
 
 SUITE_FILE = "suite.json"
@@ -91,6 +110,9 @@ REQUIRED = {"dataset": ("width", "height", "views", "test_views", "spp"), "train
             "protocol": ("split", "background", "depth_kind")}
 PROTOCOL_KEYS = {"split": str, "background": str, "depth_kind": str, "baselines": list, "geometry": dict}
 GEOMETRY_KEYS = ("resolution", "samples")
+GENERATE_FIELDS = frozenset(f.name for f in dataclasses.fields(GenerateConfig)) - {"scene", "seed"}
+NAME_BYTES = 255  # NAME_MAX: the longest name of one folder or file
+SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
 @dataclass(frozen=True)
@@ -144,7 +166,7 @@ class Suite:
 
 def builtin_suites() -> dict:
     """{name: path-like} of the suites shipped with nerfgauge."""
-    folder = importlib.resources.files("nerfgauge.orchestrate.suites")
+    folder = importlib.resources.files("nerfgauge.orchestrate.suite.builtin")
     return {item.name[:-5]: item for item in sorted(folder.iterdir(), key=lambda i: i.name) if item.name.endswith(".toml")}
 
 
@@ -187,25 +209,87 @@ def _check_fields(values: dict, allowed: set, where: str) -> None:
         raise InputError(f"{where}: unknown field {unknown[0]!r}; known: {', '.join(sorted(allowed))}")
 
 
+def folder_name(value, what: str) -> str:
+    """`value` when it can name one folder or file of a suite folder (a suite's name, a
+    dataset id, a method): a non-empty string of at most NAME_BYTES bytes in UTF-8, without
+    '/', NUL or another control character, not starting with '.' (so not '.' or '..').
+    InputError naming `what` otherwise. The one check of such a name, where it enters (the
+    suite file, --method) and wherever a state file gives it back (suite.json,
+    suite-manifest.json, result.json, job records), so a name read back is exactly a name
+    that could have entered."""
+    if not isinstance(value, str) or not value:
+        raise InputError(f"{what} must be a folder name (a non-empty string), got {shown(value)}")
+    try:
+        size = len(value.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise InputError(f"{what} must be a folder name in UTF-8, got {shown(value)}") from None
+    if any(char == "/" or unicodedata.category(char) == "Cc" for char in value) or value.startswith("."):
+        raise InputError(f"{what} must be a folder name (no '/', NUL or control characters, not starting with '.'), "
+                         f"got {shown(value)}")
+    if size > NAME_BYTES:
+        raise InputError(f"{what} must be a folder name of at most {NAME_BYTES} bytes, got {size}")
+    return value
+
+
+def _seed(value, where: str) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise InputError(f"{where}: seed must be a non-negative integer, got {shown(value)}")
+    return value
+
+
 def parse_suite(data: dict, source: str, base=None) -> Suite:
-    """base: the folder relative `folder` entries are resolved against (the .toml's)."""
+    """A suite file's parsed TOML, every field checked. base: the folder relative `folder`
+    entries are resolved against (the .toml's)."""
+    _check_fields(data, {"name", "version", "description", "dataset", "train", "protocol", "scenes"}, source)
+    dataset_defaults = _table(data, "dataset", source)
+    _check_fields(dataset_defaults, GENERATE_FIELDS, f"{source} [dataset]")
+    return _suite(data, source, dataset_defaults, lambda raw, where: _folder_entry(raw, where, base))
+
+
+def suite_from_definition(recorded: dict, source: str) -> Suite:
+    """The suite a suite.json records, checked exactly as `parse_suite` checks a suite file
+    (the same functions, field by field): its definition holds each entry's dataset
+    settings in full (no [dataset] defaults), a folder entry's folder as written, and
+    "folders" where each was found (checked again: a folder, not a nerfgauge dataset)."""
+    definition = recorded.get("definition")
+    if not isinstance(definition, dict):
+        raise InputError(f"{source}: no suite definition (an object), got {shown(definition)}")
+    where = f"{source} definition"
+    _check_fields(definition, {"name", "version", "description", "train", "protocol", "scenes"}, where)
+    folders = recorded.get("folders", {})
+    if not isinstance(folders, dict):
+        raise InputError(f"{source}: folders must be an object of id: path, got {shown(folders)}")
+
+    def folder_entry(raw: dict, at: str) -> SceneEntry:
+        _check_fields(raw, {"id", "folder"}, f"{at} (a folder entry)")
+        entry_id = folder_name(raw.get("id"), f"{at}: id")
+        path = folders.get(entry_id)
+        if not isinstance(path, str) or "\0" in path or not Path(path).is_absolute():
+            raise InputError(f"{source}: folders.{entry_id} must be the absolute path of the folder entry, "
+                             f"got {shown(path)}")
+        return _ground_truth_folder(entry_id, raw.get("folder"), Path(path), at)
+
+    return _suite({**definition, "dataset": {}}, where, {}, folder_entry, recorded=True)
+
+
+def _suite(data: dict, source: str, dataset_defaults: dict, folder_entry, recorded: bool = False) -> Suite:
+    """The fields parse_suite and suite_from_definition share: name, version, description,
+    [train], [protocol] and the entries (a recorded definition's entries carry every
+    dataset setting; folder_entry(raw, where) reads a folder entry)."""
     from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
 
-    _check_fields(data, {"name", "version", "description", "dataset", "train", "protocol", "scenes"}, source)
     for field in ("name", "version"):
         if field not in data:
             raise InputError(f"{source}: missing field {field}")
     name, version = data["name"], data["version"]
-    if not isinstance(name, str) or not name.strip() or "/" in name:
-        raise InputError(f"{source}: name must be a non-empty string without '/', got {name!r}")
+    if not isinstance(name, str) or not name.strip():
+        raise InputError(f"{source}: name must be a non-empty string, got {shown(name)}")
+    folder_name(name, f"{source}: name")
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-        raise InputError(f"{source}: version must be a positive integer, got {version!r}")
+        raise InputError(f"{source}: version must be a positive integer, got {shown(version)}")
     description = data.get("description", "")
     if not isinstance(description, str):
-        raise InputError(f"{source}: description must be a string, got {description!r}")
-    dataset_defaults = _table(data, "dataset", source)
-    generate_fields = {f.name for f in dataclasses.fields(GenerateConfig)} - {"scene", "seed"}
-    _check_fields(dataset_defaults, generate_fields, f"{source} [dataset]")
+        raise InputError(f"{source}: description must be a string, got {shown(description)}")
     train = _table(data, "train", source)
     _check_fields(train, {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "seed", "budget_seconds"},
                   f"{source} [train]")
@@ -213,22 +297,24 @@ def parse_suite(data: dict, source: str, base=None) -> Suite:
     _check_fields(protocol, set(PROTOCOL_KEYS), f"{source} [protocol]")
     for key, kind in PROTOCOL_KEYS.items():
         if key in protocol and not isinstance(protocol[key], kind):
-            raise InputError(f"{source}: protocol.{key} must be a {kind.__name__}, got {protocol[key]!r}")
+            raise InputError(f"{source}: protocol.{key} must be a {kind.__name__}, got {shown(protocol[key])}")
     if protocol["background"] not in BACKGROUNDS or protocol["depth_kind"] not in DEPTH_SUFFIXES:
         raise InputError(f"{source}: protocol.background must be one of {', '.join(BACKGROUNDS)} and "
                          f"protocol.depth_kind one of {', '.join(DEPTH_SUFFIXES)}")
     if protocol["split"] not in dataset.SPLITS:
-        raise InputError(f"{source}: protocol.split must be one of {', '.join(dataset.SPLITS)}, got {protocol['split']!r}")
+        raise InputError(f"{source}: protocol.split must be one of {', '.join(dataset.SPLITS)}, "
+                         f"got {shown(protocol['split'])}")
     protocol.setdefault("baselines", [])
     for method in protocol["baselines"]:
-        if method not in METHODS:
-            raise InputError(f"{source}: protocol.baselines: unknown baseline {method!r}; known: {', '.join(METHODS)}")
+        if not isinstance(method, str) or method not in METHODS:
+            raise InputError(f"{source}: protocol.baselines: unknown baseline {shown(method)}; known: {', '.join(METHODS)}")
     if "geometry" in protocol:
         geometry = protocol["geometry"]
         _check_fields(geometry, set(GEOMETRY_KEYS), f"{source} protocol.geometry")
         for key in GEOMETRY_KEYS:
             if not isinstance(geometry.get(key), int) or isinstance(geometry.get(key), bool) or geometry[key] < 2:
-                raise InputError(f"{source}: protocol.geometry.{key} must be an integer >= 2, got {geometry.get(key)!r}")
+                raise InputError(f"{source}: protocol.geometry.{key} must be an integer >= 2, "
+                                 f"got {shown(geometry.get(key))}")
     scenes = data.get("scenes")
     if scenes is None:
         raise InputError(f"{source}: missing field [[scenes]]")
@@ -238,60 +324,78 @@ def parse_suite(data: dict, source: str, base=None) -> Suite:
     for k, raw in enumerate(scenes):
         where = f"{source} scenes[{k}]"
         if "folder" in raw:
-            entry = _folder_entry(raw, where, base)
-            if entry.id in ids:
-                raise InputError(f"{where}: id {entry.id!r} is used twice; give each entry its own id")
-            ids.add(entry.id)
-            entries.append(entry)
-            continue
-        _check_fields(raw, generate_fields | {"id", "scene", "seed"}, where)
-        for field in ("scene", "seed"):
-            if field not in raw:
-                raise InputError(f"{where}: missing field {field}")
-        if raw["scene"] not in RECIPES:
-            raise InputError(f"{where}: unknown scene {raw['scene']!r}; known: {', '.join(RECIPES)}")
-        if not isinstance(raw["seed"], int) or isinstance(raw["seed"], bool) or raw["seed"] < 0:
-            raise InputError(f"{where}: seed must be a non-negative integer, got {raw['seed']!r}")
-        entry_id = raw.get("id", raw["scene"])
-        if not isinstance(entry_id, str) or not entry_id or "/" in entry_id or entry_id.startswith("."):
-            raise InputError(f"{where}: id must be a folder name, got {entry_id!r}")
-        if entry_id in ids:
-            raise InputError(f"{where}: id {entry_id!r} is used twice; give each entry its own id")
-        ids.add(entry_id)
-        settings = {**dataset_defaults, **{key: value for key, value in raw.items() if key in generate_fields}}
-        if isinstance(settings.get("elevation"), list):
-            settings["elevation"] = tuple(settings["elevation"])
-        entry = SceneEntry(entry_id, raw["scene"], raw["seed"], settings)
-        try:
-            config = GenerateConfig(scene=entry.scene, seed=entry.seed, **settings)
-            config.validate()
-            TrainConfig(dataset=".", seed=entry.seed, **train).validate()
-        except (TypeError, ValueError) as error:
-            raise InputError(f"{where}: {error}") from None
-        except InputError as error:
-            raise InputError(f"{where}: {error}") from None
+            entry = folder_entry(raw, where)
+        elif recorded:
+            _check_fields(raw, {"id", "scene", "seed", "dataset"}, where)
+            settings = raw.get("dataset")
+            if not isinstance(settings, dict) or "id" not in raw:
+                raise InputError(f"{where}: a recorded entry needs its id and its dataset settings (an object)")
+            _check_fields(settings, GENERATE_FIELDS, f"{where} dataset")
+            entry = _recipe_entry({**settings, **{key: raw[key] for key in ("id", "scene", "seed") if key in raw}},
+                                  dataset_defaults, train, where)
+        else:
+            entry = _recipe_entry(raw, dataset_defaults, train, where)
+        if entry.id in ids:
+            raise InputError(f"{where}: id {entry.id!r} is used twice; give each entry its own id")
+        ids.add(entry.id)
         entries.append(entry)
     return Suite(name, version, description, train, protocol, tuple(entries), source)
+
+
+def _recipe_entry(raw: dict, dataset_defaults: dict, train: dict, where: str) -> SceneEntry:
+    """A [[scenes]] entry rendered from a recipe: scene, seed, id (default: the scene) and
+    any [dataset] key overriding the defaults; GenerateConfig and TrainConfig validate it."""
+    from nerfgauge.nerf.config import TrainConfig  # torch: as in _suite
+
+    _check_fields(raw, GENERATE_FIELDS | {"id", "scene", "seed"}, where)
+    for field in ("scene", "seed"):
+        if field not in raw:
+            raise InputError(f"{where}: missing field {field}")
+    if not isinstance(raw["scene"], str) or raw["scene"] not in RECIPES:
+        raise InputError(f"{where}: unknown scene {shown(raw['scene'])}; known: {', '.join(RECIPES)}")
+    seed = _seed(raw["seed"], where)
+    entry_id = folder_name(raw.get("id", raw["scene"]), f"{where}: id")
+    settings = {**dataset_defaults, **{key: value for key, value in raw.items() if key in GENERATE_FIELDS}}
+    missing = [field for field in REQUIRED["dataset"] if field not in settings]
+    if missing:
+        raise InputError(f"{where}: missing field dataset.{missing[0]}")
+    if isinstance(settings.get("elevation"), list):
+        settings["elevation"] = tuple(settings["elevation"])
+    entry = SceneEntry(entry_id, raw["scene"], seed, settings)
+    try:
+        config = GenerateConfig(scene=entry.scene, seed=entry.seed, **settings)
+        config.validate()
+        TrainConfig(dataset=".", seed=entry.seed, **train).validate()
+    except (TypeError, ValueError) as error:  # InputError is a ValueError
+        raise InputError(f"{where}: {str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
+    return entry
 
 
 def _folder_entry(raw: dict, where: str, base) -> SceneEntry:
     """A [[scenes]] entry naming a ground-truth folder nerfgauge did not write."""
     _check_fields(raw, {"id", "folder"}, f"{where} (a folder entry)")
     folder = raw["folder"]
-    if not isinstance(folder, str) or not folder.strip():
-        raise InputError(f"{where}: folder must be a path, got {folder!r}")
+    if not isinstance(folder, str) or not folder.strip() or "\0" in folder:
+        raise InputError(f"{where}: folder must be a path, got {shown(folder)}")
     path = Path(folder).expanduser()
     if not path.is_absolute():
         path = Path(base if base is not None else ".") / path
     path = path.resolve()
+    return _ground_truth_folder(raw.get("id", path.name), folder, path, where)
+
+
+def _ground_truth_folder(entry_id, folder, path: Path, where: str) -> SceneEntry:
+    """A folder entry's checks, on first entry and read back from suite.json: the id a
+    folder name, the folder (as written) a string, the path a folder that is not a
+    nerfgauge dataset (those are listed by recipe)."""
+    if not isinstance(folder, str) or not folder.strip() or "\0" in folder:
+        raise InputError(f"{where}: folder must be a path, got {shown(folder)}")
+    entry_id = folder_name(entry_id, f"{where}: id")
     if not path.is_dir():
         raise InputError(f"{where}: folder {folder!r} not found (looked for {path})")
     if (path / dataset.MANIFEST).is_file() or (path / dataset.MARKER).exists():
         raise InputError(f"{where}: folder {path} is a nerfgauge dataset; folder entries are for ground truth "
                          f"nerfgauge did not write (list our scenes by recipe: scene and seed)")
-    entry_id = raw.get("id", path.name)
-    if not isinstance(entry_id, str) or not entry_id or "/" in entry_id or entry_id.startswith("."):
-        raise InputError(f"{where}: id must be a folder name, got {entry_id!r}")
     return SceneEntry(entry_id, None, 0, {}, folder=folder, path=str(path))
 
 
@@ -378,7 +482,7 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
     cluster (generate.distributed); None renders here."""
     out = Path(out)
     if scheduler is not None:
-        parse_scheduler(scheduler)  # a malformed address is one line before anything is written
+        check_reachable(scheduler)  # a malformed or unreachable address is one line before anything is written
     for entry in suite.scenes:
         if not entry.foreign:
             suite.generate_config(entry).validate()
@@ -388,7 +492,7 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
         write_json(out / SUITE_FILE, {**suite.identity(), "schema": SCHEMA, "definition": suite.definition(),
                                       **folders})
         manifest_path = out / SUITE_MANIFEST
-        previous = read_json(manifest_path) if manifest_path.is_file() else {"datasets": {}}
+        previous = _previous_manifest(suite, manifest_path, overwrite)
         for entry_id, record in foreign.items():  # a folder changed under recorded results: say so
             before = previous["datasets"].get(entry_id, {}).get("ground_truth_sha256")
             if before is not None and before != record["ground_truth_sha256"] and not overwrite:
@@ -416,6 +520,20 @@ def generate_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool
     return document
 
 
+def _previous_manifest(suite: Suite, path: Path, overwrite: bool) -> dict:
+    """The suite manifest a resumed `suite generate` finds (what it may skip), checked as
+    read_suite_folder checks it; none yet: no datasets. A malformed one is refused (one line)
+    unless overwrite, which records every dataset again."""
+    if not path.is_file():
+        return {"datasets": {}}
+    try:
+        return check_suite_manifest(read_json(path, finite=True), suite, str(path))
+    except InputError as error:
+        if overwrite:
+            return {"datasets": {}}
+        raise InputError(f"{error}; pass --overwrite to record every dataset again") from None
+
+
 def _unchanged(folder: Path, recorded) -> bool:
     """The dataset is complete and its manifest is the one recorded, every file verifying."""
     manifest = folder / dataset.MANIFEST
@@ -432,32 +550,111 @@ def dataset_record(out: Path, entry: SceneEntry) -> dict:
 
 
 def read_suite_folder(suite: Suite, out) -> dict:
-    """The suite manifest of a complete suite folder made from `suite`; InputError otherwise,
-    also when a dataset's manifest.json no longer has the hash the suite manifest recorded."""
+    """The suite manifest of a complete suite folder made from `suite`; InputError otherwise.
+    Nothing a file says about itself is taken on its word: the suite's sha256 (recomputed
+    from `suite`) must be the one the folder's marker and the suite manifest record (and
+    suite.json, which also holds the definition it hashes); the manifest is checked field by
+    field (`check_suite_manifest`); each dataset's manifest.json must hash to the recorded
+    sha256 and its config.json (checked against that manifest) must hold the generate
+    settings of the suite's entry; each folder entry's files are hashed again."""
     out = Path(out)
     if not (out / SUITE_FILE).is_file():
         raise InputError(f"{out} is not a suite folder (no {SUITE_FILE}); make it with nerfgauge suite generate")
     check_same_suite(suite, read_json(out / SUITE_FILE), str(out / SUITE_FILE))
+    marker = read_marker(out)
+    if marker is None or marker.get("kind") != "suite" or marker.get("recipe") != suite.sha256:
+        raise InputError(f"{out / MARKER} records {'no suite' if marker is None or marker.get('kind') != 'suite' else 'suite sha256 ' + str(marker.get('recipe'))[:12] + '...'}, "
+                         f"not this suite's ({suite.sha256[:12]}...): the folder was made from another definition; "
+                         "regenerate with nerfgauge suite generate --overwrite")
     if not (out / SUITE_MANIFEST).is_file():
         raise InputError(f"suite folder {out} is incomplete (no {SUITE_MANIFEST}); finish it with nerfgauge suite generate")
-    manifest = read_json(out / SUITE_MANIFEST, finite=True)
-    check_same_suite(suite, manifest, str(out / SUITE_MANIFEST))
+    manifest = check_suite_manifest(read_json(out / SUITE_MANIFEST, finite=True), suite, str(out / SUITE_MANIFEST))
     for entry in suite.scenes:
-        record = manifest.get("datasets", {}).get(entry.id)
-        path = dataset_dir(out, entry) / dataset.MANIFEST
-        if record is None:
-            raise InputError(f"{out / SUITE_MANIFEST} lists no dataset {entry.id!r}")
-        if entry.foreign or "ground_truth_sha256" in record:
-            if not (entry.foreign and "ground_truth_sha256" in record):
-                raise InputError(f"{out / SUITE_MANIFEST}: dataset {entry.id!r} was recorded as "
-                                 f"{'a folder' if 'ground_truth_sha256' in record else 'a recipe'}; regenerate with "
-                                 "nerfgauge suite generate --overwrite")
+        record = manifest["datasets"][entry.id]
+        if entry.foreign:
             check_folder(entry, record, str(out / SUITE_MANIFEST))
             continue
-        if not path.is_file() or sha256_file(path) != record.get("manifest_sha256"):
+        path = dataset_dir(out, entry) / dataset.MANIFEST
+        if not path.is_file() or sha256_file(path) != record["manifest_sha256"]:
             raise InputError(f"dataset {dataset_dir(out, entry)}: its manifest hash differs from the one in "
                              f"{out / SUITE_MANIFEST}; regenerate with nerfgauge suite generate --overwrite")
+        check_dataset_recipe(suite, out, entry)
     return manifest
+
+
+def check_suite_manifest(document: dict, suite: Suite, where: str) -> dict:
+    """`document` (a suite-manifest.json) when it is this suite's and every record is what
+    generate_suite writes: one per entry and no other, a recipe's {path
+    "datasets/<id>", scene, seed, manifest_sha256, files}, a folder's {path, folder,
+    format, split_rule, unavailable, ground_truth_sha256, files}, every sha256 64 hex
+    digits. InputError (one line naming the field) otherwise."""
+    check_same_suite(suite, document, where)
+    datasets = document.get("datasets")
+    if not isinstance(datasets, dict):
+        raise InputError(f"{where}: datasets must be an object of id: record, got {shown(datasets)}")
+    ids = {entry.id for entry in suite.scenes}
+    extra = sorted(set(datasets) - ids)
+    if extra:
+        raise InputError(f"{where} lists a dataset the suite does not have: {shown(extra[0])}")
+    for entry in suite.scenes:
+        record = datasets.get(entry.id)
+        at = f"{where}: datasets.{entry.id}"
+        if record is None:
+            raise InputError(f"{where} lists no dataset {entry.id!r}")
+        if not isinstance(record, dict):
+            raise InputError(f"{at} must be an object, got {shown(record)}")
+        if entry.foreign != ("ground_truth_sha256" in record):
+            raise InputError(f"{where}: dataset {entry.id!r} was recorded as "
+                             f"{'a folder' if 'ground_truth_sha256' in record else 'a recipe'}; regenerate with "
+                             "nerfgauge suite generate --overwrite")
+        if entry.foreign:
+            _check_keys(record, {"path", "folder", "format", "split_rule", "unavailable", "ground_truth_sha256",
+                                 "files"}, at)
+            _sha256(record["ground_truth_sha256"], f"{at}.ground_truth_sha256")
+            if not isinstance(record["path"], str):
+                raise InputError(f"{at}.path must be a path, got {shown(record['path'])}")
+        else:
+            _check_keys(record, {"path", "scene", "seed", "manifest_sha256", "files"}, at)
+            _sha256(record["manifest_sha256"], f"{at}.manifest_sha256")
+            expected = {"path": f"datasets/{entry.id}", "scene": entry.scene, "seed": entry.seed}
+            for key, value in expected.items():
+                if record[key] != value or isinstance(record[key], bool):
+                    raise InputError(f"{at}.{key} is {shown(record[key])}, the suite's entry says {value!r}")
+        files = record["files"]
+        if not isinstance(files, dict) or not all(isinstance(rel, str) for rel in files):
+            raise InputError(f"{at}.files must be an object of path: sha256, got {shown(files)}")
+        for rel, digest in files.items():
+            _sha256(digest, f"{at}.files.{rel}")
+    return document
+
+
+def _check_keys(record: dict, keys: set, where: str) -> None:
+    if set(record) != keys:
+        missing, unknown = sorted(keys - set(record)), sorted(set(record) - keys)
+        raise InputError(f"{where}: " + (f"missing field {missing[0]}" if missing else f"unknown field {unknown[0]!r}"))
+
+
+def _sha256(value, where: str) -> str:
+    if not isinstance(value, str) or not SHA256.fullmatch(value):
+        raise InputError(f"{where} must be a sha256 (64 hex digits), got {shown(value)}")
+    return value
+
+
+def check_dataset_recipe(suite: Suite, out, entry: SceneEntry) -> None:
+    """The suite's entry against the dataset it names: the dataset's config.json (its
+    recipe, hashed against the dataset's own manifest) must hold the entry's generate
+    settings, so a definition edited in suite.json (its hashes recomputed to match) is
+    caught by the datasets it claims to describe."""
+    folder = dataset_dir(out, entry)
+    listed = dataset.read_manifest(folder).get(CONFIG_FILE)
+    path = folder / CONFIG_FILE
+    if listed is None or not path.is_file() or path.is_symlink() or sha256_file(path) != listed.sha256:
+        raise InputError(f"dataset {folder}: {CONFIG_FILE} is missing or differs from its manifest; regenerate with "
+                         "nerfgauge suite generate --overwrite")
+    recorded = read_json(path, finite=True).get("config")
+    if recorded != suite.generate_config(entry).to_json():
+        raise InputError(f"dataset {folder} was generated from other settings than the suite's entry {entry.id!r} "
+                         f"({CONFIG_FILE} differs); regenerate with nerfgauge suite generate --overwrite")
 
 
 # --- results ----------------------------------------------------------------------------
@@ -482,8 +679,7 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
     means, the two-level bootstrap interval over seeds and views, the per-seed spread and
     the variance split. extras may then be {id: {seed: {...}}}."""
     out, pred_root = Path(out), Path(pred_root)
-    if not method or "/" in method or method.startswith("."):
-        raise InputError(f"--method must be a folder name, got {method!r}")
+    folder_name(method, "--method")
     manifest = read_suite_folder(suite, out)
     if not pred_root.is_dir():
         raise InputError(f"prediction folder not found: {pred_root}")
@@ -575,7 +771,7 @@ def _score_one(suite: Suite, out: Path, entry, record: dict, pred_dir: Path, met
 def _mean_of(runs: list, name: str):
     """The mean of a cost figure over the runs that have it (None when none has)."""
     values = [run[name] for run in runs if isinstance(run.get(name), (int, float)) and not isinstance(run.get(name), bool)]
-    return math.fsum(values) / len(values) if values else None
+    return mean_of(values, f"the runs' mean {name}") if values else None
 
 
 def _mean_geometry(runs: list):
@@ -588,24 +784,15 @@ def _mean_geometry(runs: list):
 
 def read_results(suite: Suite, out) -> dict:
     """{method: result.json} of every method in out/results/, each checked against the suite
-    folder: another suite version, definition or dataset manifest hash is refused. A method
-    may lack some datasets (shown as not applicable)."""
+    folder (`check_result`): another suite version, definition or dataset manifest hash is
+    refused, and so is a malformed record. A method may lack some datasets (shown as not
+    applicable)."""
     out = Path(out)
     manifest = read_suite_folder(suite, out)
     results = {}
     folder = out / "results"
     for path in sorted(folder.glob(f"*/{RESULT_FILE}")) if folder.is_dir() else []:
-        result = read_json(path, finite=True)
-        check_same_suite(suite, result, str(path))
-        for entry in suite.scenes:
-            row = result.get("datasets", {}).get(entry.id)
-            if row is None:  # a method that does not apply to this dataset (light-field baselines)
-                continue
-            key = identity_key(manifest["datasets"][entry.id])
-            if row.get(key) != manifest["datasets"][entry.id][key]:
-                what = "ground-truth files hash" if key == "ground_truth_sha256" else "manifest hash"
-                raise InputError(f"{path}: dataset {entry.id} was scored against a dataset whose {what} "
-                                 f"differs from {out / SUITE_MANIFEST}; evaluate again")
+        result = check_result(read_json(path, finite=True), suite, manifest, path)
         results[result["method"]] = result
     if not results:
         raise InputError(f"{out} holds no results yet (no results/<method>/{RESULT_FILE}); "
@@ -613,23 +800,139 @@ def read_results(suite: Suite, out) -> dict:
     return results
 
 
+COST_FIELDS = ("ms_per_frame", "train_seconds", "model_bytes", "steps", "steps_per_second")
+
+
+def check_result(result: dict, suite: Suite, manifest: dict, path: Path) -> dict:
+    """A results/<method>/result.json as evaluate_suite writes it, or InputError (one line
+    naming the field): this suite's identity; its method the folder's name (folder_name);
+    only the suite's datasets; each row scored against the recorded dataset; every path in
+    it exactly the one evaluate_suite writes under results/<method>/<id>/ (so no file
+    outside it is read); seeds as --seeds takes them; costs and geometry finite numbers or
+    null; skipped reasons strings."""
+    check_same_suite(suite, result, str(path))
+    method = folder_name(result.get("method"), f"{path}: method")
+    if method != path.parent.name:
+        raise InputError(f"{path} is for method {method!r}, but lies in results/{path.parent.name}/")
+    rows, ids = result.get("datasets"), {entry.id for entry in suite.scenes}
+    if not isinstance(rows, dict) or not set(rows) <= ids:
+        raise InputError(f"{path}: datasets must be an object of the suite's dataset ids, got "
+                         f"{shown(sorted(set(rows) - ids)[0] if isinstance(rows, dict) else rows)}")
+    skipped = result.get("skipped", {})
+    if not isinstance(skipped, dict) or not set(skipped) <= ids or not all(isinstance(v, str) for v in skipped.values()):
+        raise InputError(f"{path}: skipped must be an object of dataset id: reason, got {shown(skipped)}")
+    if "seeds" in result:
+        _seeds(result["seeds"], f"{path}: seeds")
+    if not isinstance(result.get("pred_root", ""), str) or "\0" in result.get("pred_root", ""):
+        raise InputError(f"{path}: pred_root must be a path, got {shown(result.get('pred_root'))}")
+    base = f"results/{method}"
+    for entry_id, row in rows.items():
+        at = f"{path}: datasets.{entry_id}"
+        if not isinstance(row, dict):
+            raise InputError(f"{at} must be an object, got {shown(row)}")
+        record = manifest["datasets"][entry_id]
+        key = identity_key(record)
+        if row.get(key) != record[key]:
+            what = "ground-truth files hash" if key == "ground_truth_sha256" else "manifest hash"
+            raise InputError(f"{path}: dataset {entry_id} was scored against a dataset whose {what} "
+                             f"differs from {SUITE_MANIFEST}; evaluate again")
+        _costs(row, at)
+        if "runs" in row:
+            runs = row["runs"]
+            if not isinstance(runs, list) or not runs or not all(isinstance(run, dict) for run in runs):
+                raise InputError(f"{at}.runs must be a non-empty list of runs, got {shown(runs)}")
+            seeds = _seeds([run.get("seed") for run in runs], f"{at}.runs' seeds")
+            if row.get("seeds") != seeds:
+                raise InputError(f"{at}.seeds is {shown(row.get('seeds'))}, its runs' seeds are {seeds}")
+            for run, seed in zip(runs, seeds):
+                _expect(run.get("metrics"), f"{base}/{entry_id}/{seed_folder(seed)}/metrics.json", f"{at}.runs.metrics")
+                _costs(run, f"{at}.runs[seed {seed}]")
+            _expect(row.get("metrics"), runs[0]["metrics"], f"{at}.metrics")
+            _expect(row.get("aggregate"), f"{base}/{entry_id}/{AGGREGATE_FILE}", f"{at}.aggregate")
+        else:
+            _expect(row.get("metrics"), f"{base}/{entry_id}/metrics.json", f"{at}.metrics")
+    return result
+
+
+def _expect(value, expected: str, where: str) -> None:
+    """A path a record holds must be the one its writer makes (a path relative to the suite
+    folder: anything else could lead out of it)."""
+    if value != expected:
+        raise InputError(f"{where} must be {expected!r}, got {shown(value)}")
+
+
+def _seeds(value, where: str) -> list:
+    if not isinstance(value, list):
+        raise InputError(f"{where} must be a list of seeds, got {shown(value)}")
+    try:
+        return arguments.check_seeds(value)
+    except InputError as error:
+        raise InputError(f"{where}: {error}") from None
+
+
+def _costs(row: dict, where: str) -> None:
+    """A row's cost figures finite numbers >= 0 or null, its geometry a table of them."""
+    for name in COST_FIELDS:
+        value = row.get(name)
+        if value is not None and not (finite_number(value) and value >= 0):
+            raise InputError(f"{where}.{name} must be a number >= 0 or null, got {shown(value)}")
+    check_geometry(row.get("geometry"), f"{where}.geometry")
+
+
+def check_geometry(value, where: str):
+    """Our NeRF's geometry figures as a job or a result records them: null, {"n/a": reason},
+    or {figure of eval.geometry.SUMMARY_NAMES: finite number or null}."""
+    if value is None:
+        return value
+    if not isinstance(value, dict):
+        raise InputError(f"{where} must be an object or null, got {shown(value)}")
+    if "n/a" in value:
+        if set(value) != {"n/a"} or not isinstance(value["n/a"], str):
+            raise InputError(f"{where}: n/a must be alone, with its reason, got {shown(value)}")
+        return value
+    for name, figure in value.items():
+        if name not in SUMMARY_NAMES or (figure is not None and not finite_number(figure)):
+            raise InputError(f"{where}.{name} must be a geometry figure ({', '.join(SUMMARY_NAMES[:2])}, ...) "
+                             f"holding a finite number or null, got {shown(figure)}")
+    return value
+
+
+def job_result(record: dict, recipe: dict, path) -> dict:
+    """The result a finished job's record (OUT/jobs/<key>.json, orchestrate.suite.jobs) holds,
+    checked as the job wrote it: a baseline's {"method"}; a training's train_seconds,
+    model_bytes, steps, steps_per_second, seed (the job's), threads and geometry (none when
+    the protocol scores none). InputError naming the record otherwise: a record is data
+    that flows into result.json and the leaderboard."""
+    result = record.get("result")
+    where = f"{path}: result"
+    if not isinstance(result, dict):
+        raise InputError(f"{where} must be an object, got {shown(result)}; delete the record to run the job again")
+    if recipe["kind"] == "baseline":
+        _expect(result, {"method": recipe["method"]}, where)
+        return result
+    _check_keys(result, {"train_seconds", "model_bytes", "steps", "steps_per_second", "seed", "threads", "geometry"},
+                where)
+    _costs(result, where)
+    for name, low in (("model_bytes", 0), ("steps", 1), ("threads", 1)):
+        if not isinstance(result[name], int) or isinstance(result[name], bool) or result[name] < low:
+            raise InputError(f"{where}.{name} must be an integer >= {low}, got {shown(result[name])}")
+    arguments.THREADS.check(result["threads"], f"{where}.threads")
+    if result["seed"] != recipe["seed"] or isinstance(result["seed"], bool):
+        raise InputError(f"{where}.seed is {shown(result['seed'])}, the job's seed is {recipe['seed']}")
+    if recipe.get("geometry") is None and result["geometry"] is not None:
+        raise InputError(f"{where}.geometry must be null: the suite's protocol scores no geometry")
+    return result
+
+
 def suite_from_folder(out) -> Suite:
-    """The suite a folder was made from, as recorded in its suite.json."""
+    """The suite a folder was made from, as its suite.json records it: the definition parsed
+    as a suite file is (suite_from_definition), its sha256 recomputed from that (the one
+    suite.json states covers itself, so proves nothing) and checked against the folder's
+    marker and suite manifest by read_suite_folder, which every reader calls."""
     path = Path(out) / SUITE_FILE
     if not path.is_file():
         raise InputError(f"{out} is not a suite folder (no {SUITE_FILE}); make it with nerfgauge suite generate")
     recorded = read_json(path, finite=True)
-    definition = recorded.get("definition")
-    if not isinstance(definition, dict):
-        raise InputError(f"{path}: no suite definition")
-    scenes = definition.get("scenes", [])
-    try:
-        folders = recorded.get("folders", {})
-        entries = tuple(SceneEntry(s["id"], None, 0, {}, folder=s["folder"], path=folders[s["id"]]) if "folder" in s
-                        else SceneEntry(s["id"], s["scene"], s["seed"], s["dataset"]) for s in scenes)
-        suite = Suite(definition["name"], definition["version"], definition.get("description", ""),
-                      definition["train"], definition["protocol"], entries, str(path))
-    except (KeyError, TypeError) as error:
-        raise InputError(f"{path}: malformed suite definition ({error!r})") from None
+    suite = suite_from_definition(recorded, str(path))
     check_same_suite(suite, recorded, str(path))
     return suite

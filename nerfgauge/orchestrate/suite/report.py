@@ -12,8 +12,9 @@ the mean over the datasets where the value is defined; `scenes` says over how ma
 Uncertainty (eval.uncertainty, docs/conventions.md "Uncertainty"): each dataset's table
 gives the PSNR's 95% interval: for a method run once, copied from metrics.json's `ci95`
 (bootstrap over the views, as `nerfgauge evaluate` wrote it); for a method run with seeds
-(`suite run --seeds`), from results/<method>/<id>/aggregate.json (two-level bootstrap over
-seeds, then views), with the seeds, each seed's PSNR and their std (the run-to-run
+(`suite run --seeds`), from the aggregate of its per-seed metrics.json files (two-level
+bootstrap over seeds, then views; recomputed as evaluate_suite computed aggregate.json,
+which is not read back), with the seeds, each seed's PSNR and their std (the run-to-run
 spread). The mean row's interval is `suite_interval` (each dataset's two-level resample,
 averaged over the datasets; a fresh np.random.default_rng(EVALUATE_SEED) per method and
 metric). The paired table compares our NeRF (OURS) with each other method on each dataset
@@ -25,6 +26,11 @@ np.random.default_rng(EVALUATE_SEED) per comparison, 10000 resamples), the two-s
 Wilcoxon signed-rank p-value on the per-view differences averaged over seeds, and whether
 it is significant at 0.05.
 
+Every metrics.json is checked before use (eval.check.validate_scores: finite numbers, the
+suite's protocol and split), method and dataset names are drawn as text in figures
+(eval.report.plain_text) and escaped in Markdown and HTML, and a report is made anew or
+not at all (`write_leaderboard` removes the previous one first).
+
 One table is recomputed, on purpose: the protocol-sensitivity table scores the same
 renders under each scoring protocol the field uses (eval.protocols: ours, NerfBaselines',
 nerfstudio's ns-eval) and gives the spread, so a reader sees how much the protocol alone
@@ -34,19 +40,22 @@ moves a number before comparing ours with a published one.
 from __future__ import annotations
 
 import html
-import math
 
 import numpy as np
 from pathlib import Path
 
+from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
-from nerfgauge.orchestrate import suite_robustness
-from nerfgauge.orchestrate.suite import OURS, Suite, dataset_dir, read_results
+from nerfgauge.core.folders import MARKER, folder_lock, read_marker
+from nerfgauge.orchestrate.suite import robustness as suite_robustness
+from nerfgauge.orchestrate.suite.definition import OURS, Suite, dataset_dir, read_results, read_suite_folder, suite_from_folder
+from nerfgauge.eval.check import ScoringProtocol, protocol_of_metrics, validate_scores
 from nerfgauge.eval.metrics import METRIC_NAMES
-from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, paired_comparison, run_matrix,
-                                        suite_interval)
+from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, aggregate_runs, mean_of,
+                                        paired_comparison, run_matrix, suite_interval)
 from nerfgauge.eval.protocols import suite_sensitivity, sensitivity_rows
-from nerfgauge.eval.report import PROTOCOL_CAPTION, page_html, sortable_table_html, write_report
+from nerfgauge.eval.report import (PROTOCOL_CAPTION, REPORT_FIGURES, page_html, remove_previous,
+                                  sortable_table_html, write_report)
 
 GEOMETRY_COLUMNS = ("geometry_chamfer_l1", "geometry_fscore_1pct", "normal_angle_mean")
 COST_COLUMNS = ("train_seconds", "model_bytes", "ms_per_frame")
@@ -64,8 +73,25 @@ def metric_names() -> tuple:
     return tuple(METRIC_NAMES)
 
 
+def scores(suite: Suite, out: Path, rel: str) -> dict:
+    """A metrics.json of the suite folder (rel: a path check_result accepted), checked as
+    eval.check.validate_scores checks one, and scored under the suite's protocol (ours, its
+    background and depth kind) on its split: the leaderboard ranks like with like."""
+    path = out / rel
+    document = validate_scores(read_json(path, finite=True), str(path))
+    wanted = ScoringProtocol(background=suite.protocol["background"], depth_kind=suite.protocol["depth_kind"])
+    scored = protocol_of_metrics(document, str(path))
+    if scored != wanted or document.get("split") != suite.protocol["split"]:
+        raise InputError(f"{path} was scored under protocol {scored} on split {document.get('split')!r}; the suite "
+                         f"scores under {wanted} on {suite.protocol['split']!r}: evaluate again")
+    return document
+
+
 def leaderboard(suite: Suite, out) -> dict:
-    """The leaderboard document from the suite folder's results (checked by read_results)."""
+    """The leaderboard document from the suite folder's results (checked by read_results).
+    A seeded method's aggregate is recomputed from its per-seed metrics.json files
+    (eval.uncertainty.aggregate_runs, as evaluate_suite computed aggregate.json), so
+    aggregate.json is never read back."""
     out = Path(out)
     results = read_results(suite, out)
     methods, documents = {}, {}
@@ -75,11 +101,12 @@ def leaderboard(suite: Suite, out) -> dict:
             row = result["datasets"].get(entry.id)
             if row is None:
                 continue
-            document = read_json(out / row["metrics"], finite=True)
+            document = scores(suite, out, row["metrics"])
             runs = row.get("runs")
             if runs:  # suite run --seeds: every seed's metrics.json, and their aggregate
-                aggregate = read_json(out / row["aggregate"], finite=True)
-                docs = [read_json(out / run["metrics"], finite=True) for run in runs]
+                docs = [scores(suite, out, run["metrics"]) for run in runs]
+                aggregate = aggregate_runs(docs, [run["seed"] for run in runs],
+                                           [m for m in METRIC_NAMES if m in docs[0]["mean"]])
                 documents.setdefault(method, {})[entry.id] = ([run["seed"] for run in runs], docs)
                 values = {name: aggregate["mean"].get(name) for name in document["mean"]}
                 spread = {"seeds": [run["seed"] for run in runs], "aggregate": row["aggregate"],
@@ -105,7 +132,7 @@ def leaderboard(suite: Suite, out) -> dict:
         method["mean"], method["scenes_scored"], method["ci95"] = {}, {}, {}
         for name in columns:
             defined = [s["values"][name] for s in method["scenes"].values() if isinstance(s["values"].get(name), (int, float))]
-            method["mean"][name] = math.fsum(defined) / len(defined) if defined else None
+            method["mean"][name] = mean_of(defined, f"{name_of_method}: mean {name} over datasets") if defined else None
             method["scenes_scored"][name] = len(defined)
             if name in METRIC_NAMES:  # the suite mean's interval (eval.uncertainty.suite_interval)
                 tables = [run_matrix(docs, name)[0] for _, docs in documents.get(name_of_method, {}).values()]
@@ -120,7 +147,7 @@ def leaderboard(suite: Suite, out) -> dict:
 
 PAIRED_METRIC = "psnr"
 ROBUSTNESS_CAPTION = ("Robustness: each method's score against the level of one train-view degradation "
-                      "(orchestrate.suite_robustness; docs/conventions.md, Degradations)")
+                      "(orchestrate.suite.robustness; docs/conventions.md, Degradations)")
 PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views and seeds; 95% "
                   f"paired bootstrap interval over seeds, then views; two-sided Wilcoxon signed-rank test on the "
                   f"per-view differences at {LEVEL_ALPHA:g})")
@@ -205,7 +232,7 @@ def unavailable_metrics(suite: Suite, out: Path, results: dict) -> dict:
         for result in results.values():
             row = result["datasets"].get(entry.id)
             if row is not None:
-                notes = read_json(out / row["metrics"], finite=True).get("notes", {})
+                notes = scores(suite, out, row["metrics"]).get("notes") or {}
                 unavailable[entry.id] = {metric: note.removeprefix("unavailable: ") for metric, note in sorted(notes.items())
                                          if isinstance(note, str) and note.startswith("unavailable: ")}
                 break
@@ -304,39 +331,72 @@ def unavailable_line(notes: dict) -> str:
         f"{', '.join(metrics)}: {reason}" for reason, metrics in by_reason.items()) + "."
 
 
+def _md_row(cells) -> str:
+    """One Markdown table row; a `|` or `\\` in a cell (a method named a|b) is escaped so it
+    stays one cell."""
+    return "| " + " | ".join(str(cell).replace("\\", "\\\\").replace("|", "\\|") for cell in cells) + " |"
+
+
 def markdown(board: dict) -> str:
     lines = [f"# Leaderboard: suite {board['suite']} v{board['version']}", "",
              f"suite sha256 `{board['suite_sha256']}`; ↓ lower is better; – not defined or not applicable; "
              "means are over the datasets where a value is defined (leaderboard.json: scenes_scored).", ""]
     for title, rows in tables(board):
-        lines += [f"## {title}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
-        lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
+        lines += [f"## {title}", "", _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [_md_row(row) for row in rows[1:]]
         lines.append("")
         if title in board.get("unavailable", {}):
             lines += [unavailable_line(board["unavailable"][title]), ""]
     if board.get("paired"):
         rows = paired_rows(board["paired"])
-        lines += [f"## {PAIRED_CAPTION}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
-        lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
+        lines += [f"## {PAIRED_CAPTION}", "", _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [_md_row(row) for row in rows[1:]]
         lines.append("")
     if board.get("robustness"):
         rows = suite_robustness.rows(board["robustness"])
         lines += [f"## {ROBUSTNESS_CAPTION}", "", f"![robustness curves]({suite_robustness.PLOT})", "",
-                  "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
-        lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
+                  _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [_md_row(row) for row in rows[1:]]
         lines.append("")
     sensitivity = board.get("protocol_sensitivity")
     if sensitivity:
         rows = sensitivity_rows(sensitivity)
-        lines += [f"## {PROTOCOL_CAPTION}", "", "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
-        lines += ["| " + " | ".join(row) + " |" for row in rows[1:]]
+        lines += [f"## {PROTOCOL_CAPTION}", "", _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [_md_row(row) for row in rows[1:]]
         lines.append("")
     return "\n".join(lines)
 
 
-def write_leaderboard(suite: Suite, out, *, log=print, reports: bool = True) -> dict:
-    """leaderboard.json, .md and .html in `out`, and report/<id>/report.html per dataset."""
+LEADERBOARD_FILES = ("leaderboard.json", "leaderboard.md", "leaderboard.html", suite_robustness.PLOT)
+
+
+def write_leaderboard(suite: Suite | None, out, *, log=print, reports: bool = True) -> dict:
+    """leaderboard.json, .md and .html in `out`, and report/<id>/report.html per dataset.
+    suite: None reads it from out/suite.json (orchestrate.suite.suite_from_folder).
+
+    Made anew or not at all: in a folder whose marker says it is a nerfgauge suite, under
+    its write lock, the previous leaderboard files, robustness.png and every
+    report/<id>/'s report.html and figures are removed before anything is read or computed,
+    so a report that fails (a malformed state file, a figure that cannot be drawn) leaves
+    nothing that looks current. A folder without that marker is refused untouched."""
     out = Path(out)
+    marker = read_marker(out) if out.is_dir() else None
+    if marker is None or marker["kind"] != "suite":
+        raise InputError(f"{out} is not a suite folder (no suite marker {MARKER}); make it with nerfgauge suite generate")
+    with folder_lock(out):
+        reports_root = out / "report"
+        ids = (sorted(p.name for p in reports_root.iterdir() if p.is_dir() and not p.is_symlink())
+               if reports_root.is_dir() and not reports_root.is_symlink() else [])
+        remove_previous([out / name for name in LEADERBOARD_FILES]
+                        + [reports_root / entry_id / name for entry_id in ids
+                           for name in ("report.html", *REPORT_FIGURES)])
+        if suite is None:
+            suite = suite_from_folder(out)
+        read_suite_folder(suite, out)
+        return _write_leaderboard(suite, out, log, reports)
+
+
+def _write_leaderboard(suite: Suite, out: Path, log, reports: bool) -> dict:
     board = leaderboard(suite, out)
     board["protocol_sensitivity"] = protocol_sensitivity(suite, out)
     curves = suite_robustness.robustness(suite, board)  # score against degradation level, when the suite has levels
@@ -388,7 +448,7 @@ def scene_report(suite: Suite, out: Path, entry, board: dict):
     for method, data in board["methods"].items():
         scene = data["scenes"].get(entry.id)
         if scene is not None:
-            documents[method] = read_json(out / scene["metrics"], finite=True)
+            documents[method] = scores(suite, out, scene["metrics"])
             if method != OURS:
                 baselines[method] = documents[method]
     target = out / "report" / entry.id / "report.html"

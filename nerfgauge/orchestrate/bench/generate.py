@@ -1,5 +1,6 @@
-"""Mitsuba's own render time for a dataset's views: the yardstick for the generator's
-overhead (`nerfgauge bench generate`). Renders the same views, keeps nothing."""
+"""`nerfgauge bench generate`: the generator's whole time against Mitsuba's own render time
+for the same views (the overhead ratio), seconds per view. Mitsuba's time renders the same
+views and keeps nothing."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import time
 from pathlib import Path
 
 from nerfgauge.generate.mitsuba_scene import scene_dict, write_meshes
-from nerfgauge.generate.pipeline import GenerateConfig, plan
+from nerfgauge.generate.pipeline import GenerateConfig, generate, plan
 from nerfgauge.generate.views import SPLIT_SEED_OFFSET, view_seed
 from nerfgauge.generate.render import render_rgba
 from nerfgauge.generate.variant import use_variant
@@ -31,3 +32,16 @@ def mitsuba_render_seconds(config: GenerateConfig) -> dict:
                         view_seed(config.seed, split, index))
         seconds = time.perf_counter() - start
     return {"views": len(views), "seconds": seconds, "variant": the_plan.variant}
+
+
+def bench_generate(scene: str, views: int, width: int, height: int, spp: int) -> dict:
+    config = GenerateConfig(scene=scene, views=views, val_views=0, test_views=0, width=width, height=height, spp=spp)
+    mitsuba = mitsuba_render_seconds(config)
+    with tempfile.TemporaryDirectory() as folder:
+        start = time.perf_counter()
+        generate(config, Path(folder) / "dataset", progress=False)
+        total = time.perf_counter() - start
+    return {"scene": scene, "views": views, "resolution": [width, height], "spp": spp, "variant": mitsuba["variant"],
+            "generator_seconds": total, "mitsuba_seconds": mitsuba["seconds"],
+            "seconds_per_view": total / views, "mitsuba_seconds_per_view": mitsuba["seconds"] / views,
+            "overhead_ratio": total / mitsuba["seconds"]}

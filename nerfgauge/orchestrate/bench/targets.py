@@ -28,7 +28,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from nerfgauge.orchestrate.bench import claim_bench_folder, run_child
+from nerfgauge.orchestrate.bench.common import claim_bench_folder, run_child
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json

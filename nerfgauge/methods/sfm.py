@@ -28,8 +28,11 @@ them; `umeyama` is tested against a known random similarity and against pycolmap
 estimator (estimate_sim3d) in tests/test_colmap.py.
 
 The output folder (kind "sfm") holds sfm.json ("tool": "nerfgauge", "kind": "sfm"), the
-feature database and the reconstruction (sparse/0, COLMAP binary). Everything is computed in
-a temporary folder first: bad input, too few matches or no reconstruction write nothing.
+feature database and the reconstruction (sparse/0, COLMAP binary). The folder is claimed
+(and locked) first; everything is computed in a scratch folder inside it
+(`.sfm-work-*.scratch`, core.scratch: removed at the end, and by the next run after a
+kill -9; nothing goes to TMPDIR), then moved into place, sfm.json last. Bad input, too few
+matches or no reconstruction leave nothing (a folder that was there before stays, empty).
 """
 
 from __future__ import annotations
@@ -37,7 +40,6 @@ from __future__ import annotations
 import importlib.metadata
 import math
 import platform
-import tempfile
 import time
 from pathlib import Path
 
@@ -48,13 +50,15 @@ from nerfgauge.core.colmap import GL_TO_CV
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import link_or_copy_atomic, write_json
-from nerfgauge.core.folders import _check_claimable, claim_folder, recipe_hash
+from nerfgauge.core.folders import _check_claimable, _empty_owned, claim_folder, recipe_hash
 from nerfgauge.core.outputs import stamp
+from nerfgauge.core.scratch import scratch_folder
 from nerfgauge.eval.poses import pose_errors, rotation_angle_degrees, umeyama  # noqa: F401 (the maths lives in eval.poses)
 from nerfgauge.generate import points as points_module
 from nerfgauge.generate.export import check_exportable, extract_and_match, require_pycolmap, stage_images
 
 SCHEMA = 1
+SCRATCH = "sfm-work"  # OUT/.sfm-work-XXXXXXXX.scratch while it runs (core.scratch)
 MIN_REGISTERED = 3  # a similarity needs three non-collinear centres
 # COLMAP's mapper wants 100 inliers to start and 30 to register an image: more than the
 # ~40 SIFT features of a 128 px view of a synthetic scene hold. These thresholds (recorded in
@@ -136,9 +140,24 @@ def sfm_command(root, out, *, overwrite: bool = False, fix_intrinsics: bool = Fa
                           "colmap_defaults": colmap_defaults,
                           "pycolmap": pycolmap.__version__, "schema": SCHEMA})
     _check_claimable(out, "sfm", recipe, overwrite)  # refuse before the work, not after it
+    existed = out.exists()
+    with claim_folder(out, "sfm", recipe, overwrite=overwrite):  # held for the whole run: one sfm per folder
+        try:
+            return _sfm_claimed(pycolmap, ds, out, fix_intrinsics, colmap_defaults)
+        except BaseException:
+            if not (out / "sfm.json").is_file():  # no result here: leave nothing (the lock file of a folder
+                _empty_owned(out)                  # that was there before aside)
+                if not existed:
+                    owned.remove_tree(out)
+            raise
+
+
+def _sfm_claimed(pycolmap, ds, out: Path, fix_intrinsics: bool, colmap_defaults: bool) -> dict:
+    """sfm_command's work in the claimed folder `out`: computed in a scratch folder inside it
+    (core.scratch: removed at the end, and by the next run after a kill -9; never TMPDIR),
+    then the results moved into place, sfm.json last."""
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="nerfgauge-sfm-") as work:
-        work = Path(work)
+    with scratch_folder(out, SCRATCH) as work:
         best, names, timings, reconstructions = run_sfm(ds, work, fix_intrinsics, colmap_defaults)
         if best is None:
             raise InputError(f"dataset {ds.root}: structure from motion found no reconstruction (too few matches "
@@ -158,11 +177,11 @@ def sfm_command(root, out, *, overwrite: bool = False, fix_intrinsics: bool = Fa
                          "numpy": np.__version__, "python": platform.python_version(),
                          "nerfgauge": importlib.metadata.version("nerfgauge")},
         }, "sfm")
-        with claim_folder(out, "sfm", recipe, overwrite=overwrite):
-            link_or_copy_atomic(work / "database.db", out / "database.db")
-            owned.remove_tree(out / "sparse")
-            best.write_binary(str(owned.make_folder(out / "sparse" / "0")))
-            write_json(out / "sfm.json", document)
+        owned.remove_file(out / "sfm.json")  # an earlier result of this recipe stops looking current
+        link_or_copy_atomic(work / "database.db", out / "database.db")
+        owned.remove_tree(out / "sparse")
+        best.write_binary(str(owned.make_folder(out / "sparse" / "0")))
+        write_json(out / "sfm.json", document)
     return document
 
 

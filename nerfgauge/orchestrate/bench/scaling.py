@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.orchestrate.bench import claim_bench_folder, first_time_reaching, run_child, write_png_figure
+from nerfgauge.orchestrate.bench.common import claim_bench_folder, first_time_reaching, run_child
 
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
@@ -41,7 +41,7 @@ from nerfgauge.core import dataset
 from nerfgauge.eval.evaluate import BACKGROUNDS, composited_pair, evaluate
 from nerfgauge.eval.metrics import area_average, psnr
 from nerfgauge.eval.predictions import find_nerfgauge_predictions
-from nerfgauge.eval.report import read_log
+from nerfgauge.eval.report import read_log, save_png
 from nerfgauge.generate.pipeline import GenerateConfig, generate
 from nerfgauge.scenes import make_scene
 
@@ -440,4 +440,4 @@ def scaling_plots(document: dict, path: Path) -> None:
         axes.set_ylim(bottom=min(0.0, axes.get_ylim()[0]))
         axes.grid(alpha=0.3)
     figure.tight_layout()
-    write_png_figure(figure, path)
+    save_png(figure, path)

@@ -26,7 +26,7 @@ Same numbers as a local run: a job's result depends only on its inputs. Training
 step-counted (a suite's [train] needs `steps`), seeded by the job's seed, and runs with
 the same torch thread count wherever it runs (`suite run --threads`, else the [train]
 `threads`, TrainConfig's default 2, except that `local:N` shares this machine's cores:
-orchestrate.suite_run.training_threads); torch on CPU with a fixed thread count repeats
+orchestrate.suite.run.training_threads); torch on CPU with a fixed thread count repeats
 its results (tests/test_suite_seeds.py compares the per-run metrics of a local and a
 2-worker run). Another thread count splits some float sums differently: a 600-step run
 with 1 and with 2 threads gave the same val PSNR and fp16 node values apart by at most
@@ -52,8 +52,9 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge import nerf as nerf_package
 from nerfgauge.core.folders import recipe_hash
-from nerfgauge.eval import baselines as baselines_module
-from nerfgauge.eval.baselines import baseline_folder, write_baseline
+from nerfgauge.orchestrate.suite.definition import job_result
+from nerfgauge.methods import baselines as baselines_module
+from nerfgauge.methods.baselines import baseline_folder, write_baseline
 from nerfgauge.eval.geometry import score_geometry, summary
 from nerfgauge.generate.distributed import dask_client
 
@@ -72,13 +73,10 @@ def finished(out, key: str, recipe: dict, outputs) -> dict | None:
     path = job_record_path(out, key)
     if not path.is_file():
         return None
-    try:
-        record = read_json(path, finite=True)
-    except (InputError, ValueError):
-        return None
+    record = read_json(path, finite=True)  # a record is data: malformed is one line (orchestrate.suite.job_result)
     if record.get("recipe") != recipe_hash(recipe) or not all(Path(p).exists() for p in outputs):
         return None
-    return record.get("result")
+    return job_result(record, recipe, path)
 
 
 def train_job(out: str, job_key: str, train: dict, dataset: str, manifest_sha256: str, run_dir: str, renders: str,
@@ -136,7 +134,7 @@ def baseline_job(out: str, job_key: str, dataset: str, manifest_sha256: str, met
 
 def _version() -> str:
     """nerfgauge's version and the sha256 of the training, rendering and baseline code (the
-    nerf package's and eval/baselines.py's sources): a job finished by other code is redone
+    nerf package's and methods/baselines.py's sources): a job finished by other code is redone
     (the package version alone does not change between commits)."""
     try:
         package = version("nerfgauge")

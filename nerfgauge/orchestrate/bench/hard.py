@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from nerfgauge.orchestrate.bench import claim_bench_folder, run_child
+from nerfgauge.orchestrate.bench.common import claim_bench_folder, run_child
 from nerfgauge.eval.report import read_log
 
 from nerfgauge.core import arguments
@@ -72,7 +72,7 @@ def audit(out: Path) -> dict:
     found = {}
     found["dataset_exr_files"], found["dataset_non_finite"] = non_finite_exr_values(out / "dataset", "*.exr")
     log_path = out / "run" / "log.jsonl"
-    entries = read_log(log_path) if log_path.is_file() else []
+    entries = read_log(log_path, finite=False) if log_path.is_file() else []
     numbers = [e[key] for e in entries for key in ("loss", "val_psnr") if e.get(key) is not None]
     found["log_entries"] = len(entries)
     found["log_non_finite"] = sum(not np.isfinite(x) for x in numbers)

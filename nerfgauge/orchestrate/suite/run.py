@@ -7,13 +7,13 @@ baselines and evaluate), then the leaderboard.
                                   (--seeds: DIR/runs/seed-<s>/<id>/, one per training seed)
     DIR/predictions/<method>/<id>/ renders of every method (ours: renders folder; baselines;
                                   --seeds: ours in predictions/compact-nerf/seed-<s>/<id>/)
-    DIR/jobs/<job>.json           a finished job's record (orchestrate.suite_jobs: resuming)
+    DIR/jobs/<job>.json           a finished job's record (orchestrate.suite.jobs: resuming)
     DIR/predictions/<method>/suite.json  which suite they were made for
     DIR/results/<method>/         `suite evaluate` of those predictions (orchestrate.suite)
-    DIR/leaderboard.{md,html,json}, DIR/report/<id>/report.html (orchestrate.suite_report)
+    DIR/leaderboard.{md,html,json}, DIR/report/<id>/report.html (orchestrate.suite.report)
 
 Datasets are resumed (orchestrate.suite.generate_suite); so are the (dataset, method, seed) jobs
-(training, renders, baselines: orchestrate.suite_jobs), each skipped when its record says it
+(training, renders, baselines: orchestrate.suite.jobs), each skipped when its record says it
 finished with the same settings, dataset and nerfgauge version; scoring and the leaderboard
 are made again on every run. --scheduler runs generation and the jobs on a dask cluster.
 """
@@ -27,12 +27,12 @@ from pathlib import Path
 
 from nerfgauge.core import arguments
 from nerfgauge.core.files import write_json
-from nerfgauge.orchestrate.suite import (OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite,
+from nerfgauge.orchestrate.suite.definition import (OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite,
                                          seed_folder)
 from nerfgauge.core.dataset import open_dataset
-from nerfgauge.generate.distributed import parse_scheduler
-from nerfgauge.orchestrate.suite_jobs import baseline_job, run_jobs, train_job
-from nerfgauge.orchestrate.suite_report import write_leaderboard
+from nerfgauge.generate.distributed import check_reachable, parse_scheduler
+from nerfgauge.orchestrate.suite.jobs import baseline_job, run_jobs, train_job
+from nerfgauge.orchestrate.suite.report import write_leaderboard
 
 def methods_for(suite: Suite, layout: str) -> list[str]:
     """The suite's baselines that apply to a dataset of `layout`."""
@@ -82,12 +82,12 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     aggregated (orchestrate.suite.evaluate_suite, results/<method>/<id>/aggregate.json). The
     baselines are deterministic functions of the dataset: run once, paired with every seed.
     scheduler: None runs the jobs here; local:N or tcp://HOST:PORT runs generation's views
-    and every (dataset, method, seed) job on a dask cluster (orchestrate.suite_jobs).
+    and every (dataset, method, seed) job on a dask cluster (orchestrate.suite.jobs).
     threads: torch threads per training job; None: `training_threads` (the suite's, or a
     share of this machine's cores on local:N)."""
     out = Path(out)
     if scheduler is not None:
-        parse_scheduler(scheduler)  # a malformed address is one line before anything is written
+        check_reachable(scheduler)  # a malformed or unreachable address is one line before anything is written
     seeds = None if seeds is None else tuple(arguments.check_seeds(seeds))
     threads, why = training_threads(suite, scheduler, threads)
     start = time.perf_counter()

@@ -1,36 +1,22 @@
-"""`nerfgauge bench`: speed against error, measured in one run on this machine.
-
-- `bench generate`: the generator's whole time against Mitsuba's own render time for the
-  same views (the overhead ratio), seconds per view.
-- `bench train`: scenes x variants x budgets. Each training runs in its own process (so
-  its peak memory is its own), then renders the test views and is evaluated. Writes
-  OUT/train.json, OUT/train.md (the table) and Pareto plots (PSNR against training
-  seconds, PSNR against model MB), and prints the table.
-
-Every bench writes into its own OUT, claimed as a nerfgauge "bench" folder of its kind
-(`claim_bench_folder`: marker and lock), so reruns of the same bench continue in it and
-a folder that is not a bench's is refused untouched. A case's dataset and run from an
-earlier run are deleted only through their own markers (`core.folders.remove_owned`).
-
-Figures are ratios and orderings within one run; absolute seconds depend on the machine.
+"""`nerfgauge bench train`: speed against error, scenes x variants x budgets, measured in
+one run on this machine. Each training runs in its own process (so its peak memory is its
+own), then renders the test views and is evaluated. Writes OUT/train.json, OUT/train.md
+(the table) and Pareto plots (PSNR against training seconds, PSNR against model MB), and
+prints the table. Figures are ratios and orderings within one run.
 """
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import tempfile
 import time
 from pathlib import Path
 
 from nerfgauge.core.errors import InputError
-from nerfgauge.core.files import atomic_path, write_bytes_atomic, write_json
-from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
+from nerfgauge.core.files import write_bytes_atomic, write_json
+from nerfgauge.core.folders import remove_owned
 from nerfgauge.eval.evaluate import evaluate
-from nerfgauge.eval.report import ceiling_cell, read_log
-from nerfgauge.generate.benchmark import mitsuba_render_seconds
+from nerfgauge.eval.report import ceiling_cell, plain_text, read_log, save_png
 from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.orchestrate.bench.common import claim_bench_folder, first_time_reaching, run_child
 from nerfgauge.scenes import make_scene
 
 # variant name -> (model, extra `nerfgauge train` arguments). The vanilla NeRF logs its
@@ -45,51 +31,6 @@ VARIANTS = {
     "compact-no-skip": ("compact", ["--no-occupancy"]),  # no empty-space skipping
     "compact-res256": ("compact", ["--resolution", "256"]),  # resolution fixed high
 }
-
-
-def claim_bench_folder(out, bench: str):
-    """claim_folder(out) as a "bench" folder of `bench` ("train", "scaling", "hard"): a rerun
-    of the same bench continues in it (each case replaces its own outputs), another bench's
-    folder or anyone else's is refused."""
-    return claim_folder(out, "bench", recipe_hash({"bench": bench}))
-
-
-def write_png_figure(figure, path) -> None:
-    """Save a matplotlib Figure as PNG through the atomic writer."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib: only when a figure is drawn
-
-    with atomic_path(path) as tmp:
-        FigureCanvasAgg(figure).print_png(str(tmp))
-
-
-def bench_generate(scene: str, views: int, width: int, height: int, spp: int) -> dict:
-    config = GenerateConfig(scene=scene, views=views, val_views=0, test_views=0, width=width, height=height, spp=spp)
-    mitsuba = mitsuba_render_seconds(config)
-    with tempfile.TemporaryDirectory() as folder:
-        start = time.perf_counter()
-        generate(config, Path(folder) / "dataset", progress=False)
-        total = time.perf_counter() - start
-    return {"scene": scene, "views": views, "resolution": [width, height], "spp": spp, "variant": mitsuba["variant"],
-            "generator_seconds": total, "mitsuba_seconds": mitsuba["seconds"],
-            "seconds_per_view": total / views, "mitsuba_seconds_per_view": mitsuba["seconds"] / views,
-            "overhead_ratio": total / mitsuba["seconds"]}
-
-
-def run_child(argv: list) -> tuple[int, float, float]:
-    """Run `python -m nerfgauge.cli ARGV`; returns (exit code, wall seconds, peak RSS MB)."""
-    start = time.perf_counter()
-    process = subprocess.Popen([sys.executable, "-m", "nerfgauge.cli", *argv])
-    _, status, usage = os.wait4(process.pid, 0)
-    process.returncode = os.waitstatus_to_exitcode(status)
-    return process.returncode, time.perf_counter() - start, usage.ru_maxrss / 1024.0
-
-
-def first_time_reaching(log: list, psnr: float):
-    """Training seconds of the first log entry whose val PSNR is at least `psnr`; None if none is."""
-    for entry in log:
-        if entry["val_psnr"] >= psnr:
-            return entry["seconds"]
-    return None
 
 
 def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: int, height: int, views: int) -> list:
@@ -209,15 +150,17 @@ def pareto_plots(rows: list, out: Path) -> None:
     test_by_time, test_by_steps = figure.add_subplot(2, 2, 3), figure.add_subplot(2, 2, 4)
     done = [r for r in rows if "error" not in r]
     for r in done:
-        label = f"{r['scene']}: {r['variant']} ({r['budget']:g} s)"
+        label = plain_text(f"{r['scene']}: {r['variant']} ({r['budget']:g} s)")  # a mesh:PATH scene may hold $
         log = read_log(r["log"])
         by_time.plot([e["seconds"] for e in log], [e["val_psnr"] for e in log], marker=".", label=label)
         by_size.scatter([r["model_mb"]], [r["val_psnr"]], label=label)
     for scene, variant in dict.fromkeys((r["scene"], r["variant"]) for r in done if r["psnr"] is not None):
         line = sorted((r for r in done if (r["scene"], r["variant"]) == (scene, variant) and r["psnr"] is not None),
                       key=lambda r: r["budget"])
-        test_by_time.plot([r["train_seconds"] for r in line], [r["psnr"] for r in line], marker="o", label=f"{scene}: {variant}")
-        test_by_steps.plot([r["steps"] for r in line], [r["psnr"] for r in line], marker="o", label=f"{scene}: {variant}")
+        test_by_time.plot([r["train_seconds"] for r in line], [r["psnr"] for r in line], marker="o",
+                          label=plain_text(f"{scene}: {variant}"))
+        test_by_steps.plot([r["steps"] for r in line], [r["psnr"] for r in line], marker="o",
+                           label=plain_text(f"{scene}: {variant}"))
     by_time.set(xlabel="training seconds", ylabel="val PSNR, centre rays (dB)", title="PSNR against training time (each run)")
     by_size.set(xlabel="saved model (MB)", ylabel="final val PSNR (dB)", title="PSNR against model size", xscale="log")
     test_by_time.set(xlabel="training seconds (the budget)", ylabel="test PSNR (dB)",
@@ -230,4 +173,4 @@ def pareto_plots(rows: list, out: Path) -> None:
         test_by_steps.legend(fontsize=7, loc="lower right")
     figure.text(0.01, 0.01, VAL_AGAINST_TEST, fontsize=8, va="bottom", wrap=True)
     figure.tight_layout(rect=(0, 0.05, 1, 1))
-    write_png_figure(figure, out / "pareto.png")
+    save_png(figure, out / "pareto.png")

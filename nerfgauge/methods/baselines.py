@@ -81,6 +81,17 @@ def pose_distance(query_c2w: np.ndarray, train_c2w: np.ndarray, scale: float) ->
     return np.linalg.norm(offset, axis=-1) / scale + (1.0 - forward_q @ forward_k.T)
 
 
+def nearest_views(query_c2w: np.ndarray, train_c2w: np.ndarray, scale: float) -> np.ndarray:
+    """argmin over k of pose_distance for each query: [Q] int. The queries are taken in
+    blocks of POSE_PAIRS / K, so memory (~40 B a pair) does not grow with Q x K."""
+    block = max(1, POSE_PAIRS // max(1, len(train_c2w)))
+    return np.concatenate([np.argmin(pose_distance(query_c2w[start:start + block], train_c2w, scale), axis=1)
+                           for start in range(0, len(query_c2w), block)] or [np.zeros(0, np.int64)])
+
+
+POSE_PAIRS = 1 << 20  # (query, train) camera pairs compared at once
+
+
 def scene_scale(root) -> float:
     """Diagonal of the AABB from scene.json's bounds (finite, min < max: checked on open).
     root: a dataset folder or an open Dataset (as for every function here)."""
@@ -96,7 +107,7 @@ def render_nearest(root, split: str) -> dict:
     train, query = ds.cameras("train"), ds.cameras(split)
     if not train.stems:
         raise InputError(f"dataset {ds.root} has no training views to copy")
-    nearest = np.argmin(pose_distance(query.c2w, train.c2w, scene_scale(ds)), axis=1)  # [Q]
+    nearest = nearest_views(query.c2w, train.c2w, scene_scale(ds))  # [Q]
     return {stem: _png_rgba_uint8(ds, train.stems[k], train.intrinsics) for stem, k in zip(query.stems, nearest)}
 
 
@@ -216,10 +227,10 @@ class LightField:
         focus = (lens.focus_distance * camera_directions(k) @ np.asarray(c2w)[:3, :3].T + np.asarray(c2w)[:3, 3])
         focus = focus.reshape(-1, 3)  # [P, 3]: where each pixel's lens rays meet
         disk = lens_samples(1 if lens.is_pinhole else samples, seed)  # [S, 2]
-        origins, directions = thin_lens_rays(c2w, k, lens, disk)  # [S, H, W, 3] each
         premultiplied = np.zeros((len(focus), 4))
-        for o, d in zip(origins, directions):
-            st, _ = self.intersect(o.reshape(-1, 3), d.reshape(-1, 3))
+        for point in disk:  # one lens sample's rays at a time: [S, H, W, 3] at once grows with S x pixels
+            origins, directions = thin_lens_rays(c2w, k, lens, point[None])  # [1, H, W, 3] each
+            st, _ = self.intersect(origins.reshape(-1, 3), directions.reshape(-1, 3))
             premultiplied += self.quadrilinear(st, focus)
         return _unpremultiply(premultiplied / len(disk)).reshape(k.height, k.width, 4)
 

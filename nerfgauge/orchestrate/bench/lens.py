@@ -1,7 +1,7 @@
 """Defocus bench: NeRF through a thin lens vs the refocused light field vs the nearest view,
 all scored against Mitsuba's thin-lens ground truth, at several aperture radii.
 
-    python -m nerfgauge.orchestrate.bench_lens --out DIR [--apertures 0.1,0.2] [--budget-seconds 120]
+    nerfgauge bench lens --out DIR [--apertures 0.1,0.2] [--budget-seconds 120]
 
 One light-field capture of the scene (--layout lightfield: a grid of --views training
 cameras facing +Y, off-grid test cameras on the same plane) is generated once per aperture
@@ -16,7 +16,7 @@ same pixels as every lens dataset's), for --budget-seconds; then for every apert
 - nearest: the nearest training view, unchanged (sharp everywhere);
 
 each evaluated with `nerfgauge evaluate DS` (each step calls the stage function that command
-calls: nerf.render_views.render_split, eval.baselines.write_baseline, eval.evaluate).
+calls: nerf.render_views.render_split, methods.baselines.write_baseline, eval.evaluate).
 Writes OUT/lens.json (every metrics document's means, the render costs), OUT/lens.md
 (PSNR/SSIM against aperture), OUT/lens.png (an image row per method at each aperture) and
 OUT/lens.html. The NeRF's defocus cost is its
@@ -26,18 +26,16 @@ machine at the time of the run.
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 from pathlib import Path
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
-from nerfgauge.eval.baselines import baseline_folder, write_baseline
+from nerfgauge.methods.baselines import baseline_folder, write_baseline
 from nerfgauge.eval.evaluate import evaluate
 from nerfgauge.eval.report import _data_uri, aperture_table, focus_rows, page_html, sortable_table_html
 from nerfgauge.generate.pipeline import GenerateConfig, generate
-from nerfgauge.orchestrate.bench import claim_bench_folder
+from nerfgauge.orchestrate.bench.common import claim_bench_folder
 
 METHODS = ("nerf", "refocus", "lightfield-quadrilinear", "nearest")
 
@@ -116,34 +114,3 @@ def _markdown(table: list, summary: dict) -> str:
               f"NeRF per frame: pinhole {summary['nerf_ms_per_pinhole_frame']:.0f} ms; through the lens "
               f"({summary['aperture_samples']} samples + the pinhole depth pass) {lens_ms}."]
     return "\n".join(lines) + "\n"
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m nerfgauge.orchestrate.bench_lens", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", required=True, type=Path)
-    parser.add_argument("--scene", default="primitives")
-    parser.add_argument("--views", type=int, default=64, help="training grid (a square, default 64 = 8x8)")
-    parser.add_argument("--test-views", type=int, default=6)
-    parser.add_argument("--res", type=int, default=96)
-    parser.add_argument("--spp", type=int, default=64)
-    parser.add_argument("--radius", type=float, default=3.5, help="camera plane's distance from the scene centre")
-    parser.add_argument("--focus-distance", type=float, default=None, help="default: --radius")
-    parser.add_argument("--apertures", default="0.1,0.2", help="comma-separated aperture radii (scene units)")
-    parser.add_argument("--budget-seconds", type=float, default=120.0)
-    parser.add_argument("--aperture-samples", type=int, default=16)
-    parser.add_argument("--threads", type=int, default=2)
-    args = parser.parse_args(argv)
-    try:
-        apertures = [float(a) for a in args.apertures.split(",") if a.strip()]
-        run_lens_bench(args.out, scene=args.scene, views=args.views, test_views=args.test_views, res=args.res,
-                       spp=args.spp, radius=args.radius, focus_distance=args.focus_distance, apertures=apertures,
-                       budget_seconds=args.budget_seconds, aperture_samples=args.aperture_samples,
-                       threads=args.threads)
-    except (InputError, ValueError) as error:
-        print(f"bench_lens: error: {error}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
