@@ -27,20 +27,30 @@ bounded JSON naming the key, layout, shapes, memory order and the body's crc32) 
 float32 body, read with numpy (no pickle), through O_NOFOLLOW, refused unless the file's
 size is the one the expected shapes imply and its key, shapes, order and digest are
 right and every value lies in [0, 1] (unit-normalised ReLU outputs; NaN fails). A refused
-entry is recomputed and replaced, with a note on stderr. Writes go through
-core.files.atomic_path (a temporary per process, then a rename, so two processes storing
-one entry at once both leave a whole file); the folder is ours (core.folders
-.adopt_shared_folder: marker, no link inside, never inside a dataset).
+entry (corrupt, truncated, foreign, a symbolic link, a FIFO) is recomputed and replaced,
+with a note on stderr; a cache is never a reason for a score to fail.
 
-Where and how much (environment; a bad value is one InputError line):
+Nothing is written through a link (core.owned's rule for folders of ours): a link (or
+any other non-file) at an entry's name is removed as itself, its target untouched
+(core.owned.remove_file), before the fresh entry is written through core.files
+.atomic_path (a temporary per process, then a rename, so two processes storing one entry
+at once both leave a whole file; it refuses a link on the way or as the target: a link
+planted again in between costs that entry's store, with a note). The folder is ours
+(core.folders.adopt_shared_folder: our marker, never inside a dataset, never a link
+itself); eviction deletes regular files of our names only.
+
+Where and how much (environment, so that evaluate, run, suite and their Dask workers all
+see it; a bad value is one InputError line, exit 2):
     NERFGAUGE_LPIPS_CACHE     unset or empty: $XDG_CACHE_HOME/nerfgauge/lpips-features
                               (~/.cache/nerfgauge/...); "off": no cache; else a folder.
-    NERFGAUGE_LPIPS_CACHE_GB  the cap in GiB (default DEFAULT_CAP_GB); past it the least
-                              recently used entries go (a hit refreshes its mtime).
+    NERFGAUGE_LPIPS_CACHE_GB  the cap in GiB, CAP_GB's range (default DEFAULT_CAP_GB);
+                              past it the least recently used entries go (a hit
+                              refreshes its mtime).
 """
 
 from __future__ import annotations
 
+import argparse
 import errno
 import hashlib
 import json
@@ -60,7 +70,7 @@ from typing import Optional
 
 import numpy as np
 
-from nerfgauge.core import bounded, complete, folders, owned
+from nerfgauge.core import arguments, bounded, complete, folders, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import atomic_path
 from nerfgauge.eval.lpips import ALEX_POOL_BEFORE, VGG_POOL_BEFORE, VGG_TAPS, cache_dir
@@ -72,6 +82,7 @@ FOLDER_NAME = "lpips-features"
 # Holds the issue's case, 20 frames of 800 x 800 under NerfBaselines' protocol (VGG 312 MB
 # and Alex 26 MB a frame: 6.8 GB), with room to spare.
 DEFAULT_CAP_GB = 8.0
+CAP_GB = arguments.bounded(float, 0, 1e6, above=True)  # GiB; 1e6 GiB (a pebibyte) is beyond any disk here
 FEATURE_LAYOUT = 1  # what an entry's body means (unit features, float32, in memory order); bump on change
 MAGIC = b"nerfgauge lpips features\n"
 MAX_HEADER_BYTES = 1 << 16
@@ -96,15 +107,14 @@ def settings(environ=None) -> Settings:
     environ = os.environ if environ is None else environ
     given = environ.get(CAP_ENV, "").strip()
     try:
-        cap_gb = float(given) if given else DEFAULT_CAP_GB
-    except ValueError:
-        cap_gb = math.nan
-    if not math.isfinite(cap_gb) or cap_gb <= 0:
-        raise InputError(f"{CAP_ENV}={given!r}: give the LPIPS cache's size cap in GiB, a number above 0 "
-                         f"(default {DEFAULT_CAP_GB:g})")
+        cap_gb = CAP_GB(given) if given else DEFAULT_CAP_GB
+    except argparse.ArgumentTypeError as error:
+        raise InputError(f"{CAP_ENV}={given!r}: the LPIPS cache's size cap in GiB: {error} "
+                         f"(default {DEFAULT_CAP_GB:g})") from None
     folder = environ.get(FOLDER_ENV, "")
     if folder.strip().lower() == OFF:
         return Settings(None, int(cap_gb * 2**30))
+    arguments.encodable_path(folder, FOLDER_ENV)
     return Settings(Path(folder).expanduser() if folder.strip() else cache_dir() / FOLDER_NAME, int(cap_gb * 2**30))
 
 
@@ -309,6 +319,19 @@ def evict(folder: Path, cap_bytes: int, keep: Optional[Path] = None) -> int:
     return freed
 
 
+def _clear_the_name(path: Path) -> None:
+    """Remove a symbolic link, FIFO, socket or device at an entry's name, as itself (a
+    link's target is never touched: core.owned.remove_file), so that the entry written next
+    takes its place instead of being refused or written through it. A folder there stays
+    (the write refuses it: InputError)."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    if not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        owned.remove_file(path)
+
+
 class FeatureCache:
     """model's ground-truth features through the cache in `folder` (None: no cache, the
     same computation). Call it with the [N, 3, H, W] input tensor; it returns the unit
@@ -351,8 +374,11 @@ class FeatureCache:
         if 4 * sum(f.numel() for f in features) > self.cap_bytes:
             return  # larger than the whole cache: storing it would only evict everything
         try:
+            _clear_the_name(path)
             write_entry(path, key, features)
             evict(self.folder, self.cap_bytes, keep=path)
+        except InputError as error:  # a folder at the entry's name, a link planted again meanwhile
+            _note(f"LPIPS cache entry {path} not stored ({error})")
         except OSError as error:  # a full disk or a read-only cache: the scores go on without it
             _note(f"LPIPS cache {self.folder} not written ({error.strerror or error}); "
                   f"features are computed afresh (set {FOLDER_ENV}={OFF} to stop trying)")

@@ -43,7 +43,7 @@ from nerfgauge.core.files import write_json
 from nerfgauge.core.images import write_png
 from nerfgauge.eval import lpips_cache
 from nerfgauge.eval.evaluate import evaluate
-from nerfgauge.eval.lpips import NOT_AVAILABLE
+from nerfgauge.eval.lpips import LABELS, NOT_AVAILABLE, weights_path
 from nerfgauge.eval.protocols import get
 from nerfgauge.eval.report import plain_text, save_png
 from nerfgauge.orchestrate.bench.common import claim_bench_folder
@@ -107,9 +107,12 @@ def bench_lpips_cache(root, out: Path, *, protocol: str = "nerfbaselines", split
     scored again from the warm cache and cold), "load_average" (before, after), "command"}."""
     import torch  # noqa: F401  torch: imported before the clock starts, not inside the first evaluate
 
-    get(protocol)
+    chosen = get(protocol)
     if not isinstance(repeats, int) or isinstance(repeats, bool) or repeats < 1:
         raise InputError(f"repeats must be a whole number of at least 1, got {repeats!r}")
+    for net in dict.fromkeys((chosen.lpips_net, *(net for _, net in chosen.extra_lpips))):
+        if not weights_path(net).is_file():  # refused before minutes of work, not after the first evaluate
+            raise InputError(f"bench lpips-cache: {LABELS[net]}: {NOT_AVAILABLE}")
     cameras = dataset.Dataset(root).cameras(split)
     out = Path(out)
     with claim_bench_folder(out, "lpips-cache"):
