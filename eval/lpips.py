@@ -81,6 +81,7 @@ NORMALISE_EPS = 1e-10
 # follows conv1 and conv2. The linear layers weigh the five ReLU outputs' channels.
 CONVS = ((3, 64, 11, 4, 2), (64, 192, 5, 1, 2), (192, 384, 3, 1, 1), (384, 256, 3, 1, 1), (256, 256, 3, 1, 1))
 CHANNELS = tuple(conv[1] for conv in CONVS)
+ALEX_POOL_BEFORE = (1, 2)  # the 3x3 stride-2 max-pools: before conv 2 and 3
 # VGG16's 13 feature convolutions (3x3, stride 1, padding 1); a 2x2 stride-2 max-pool comes
 # before conv 2, 4, 7 and 10; LPIPS taps the ReLU after conv 1, 3, 6, 9 and 12.
 VGG_CONVS = tuple((cin, cout, 3, 1, 1) for cin, cout in (
@@ -340,7 +341,7 @@ def _build_module(net: str = "alex"):
             x = (x - self.shift) / self.scale
             outputs = []
             for i, conv in enumerate(self.convs):
-                if self.net == "alex" and i in (1, 2):  # 3x3 stride-2 max-pools after conv1 and conv2
+                if self.net == "alex" and i in ALEX_POOL_BEFORE:  # 3x3 stride-2 max-pools after conv1 and conv2
                     x = nn.functional.max_pool2d(x, kernel_size=3, stride=2)
                 if self.net == "vgg" and i in VGG_POOL_BEFORE:
                     x = nn.functional.max_pool2d(x, kernel_size=2, stride=2)
@@ -349,14 +350,19 @@ def _build_module(net: str = "alex"):
                     outputs.append(x)
             return outputs
 
-        def forward(self, x0, x1):
-            both = self.features(torch.cat([x0, x1]))  # one pass over the pair
+        def unit_features(self, x):
+            """features(x), each unit-normalised over its channels: what the head compares."""
+            return [f / (f.pow(2).sum(dim=1, keepdim=True).sqrt() + NORMALISE_EPS) for f in self.features(x)]
+
+        def distance(self, u0, u1):
+            """The head: [N] distances between two lists of unit_features."""
             total = 0.0
-            for lin, feature in zip(self.lins, both):
-                unit = feature / (feature.pow(2).sum(dim=1, keepdim=True).sqrt() + NORMALISE_EPS)
-                f0, f1 = unit.chunk(2)
+            for lin, f0, f1 in zip(self.lins, u0, u1):
                 total = total + lin((f0 - f1) ** 2).mean(dim=(2, 3))  # [N, 1]
             return total[:, 0]
+
+        def forward(self, x0, x1):
+            return self.distance(self.unit_features(x0), self.unit_features(x1))
 
     return Lpips()
 
@@ -412,12 +418,15 @@ def load_lpips(path: Optional[Path] = None, net: str = "alex"):
     return model.eval().requires_grad_(False)
 
 
-def lpips_scores(model, pred, gt) -> np.ndarray:
+def lpips_scores(model, pred, gt, ground_truth=None) -> np.ndarray:
     """LPIPS of each image pair.
 
     Args:
         model: from `load_lpips`.
         pred, gt: [N, H, W, 3] (or [H, W, 3]) float images in [0, 1], H and W >= 32.
+        ground_truth: gt's unit features from its [N, 3, H, W] tensor on [-1, 1], in place
+            of model.unit_features (eval.lpips_cache: computed once per ground truth). The
+            two images pass the network separately, so gt's features never depend on pred.
     Returns:
         [N] float64 distances (0 for identical images).
     """
@@ -437,7 +446,8 @@ def lpips_scores(model, pred, gt) -> np.ndarray:
         return torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)).permute(0, 3, 1, 2) * 2.0 - 1.0
 
     with torch.inference_mode():
-        return model(tensor(pred), tensor(gt)).double().numpy()
+        gt_features = (model.unit_features if ground_truth is None else ground_truth)(tensor(gt))
+        return model.distance(model.unit_features(tensor(pred)), gt_features).double().numpy()
 
 
 BATCH_PIXELS = 2**20  # pixels per image of a batch: 64 frames of 128 px (~0.1 GB of features), one of 1024 px
@@ -446,10 +456,11 @@ BATCH_PIXELS = 2**20  # pixels per image of a batch: 64 frames of 128 px (~0.1 G
 class LpipsBatch:
     """Scores frames in batches of about BATCH_PIXELS pixels (one small frame at a time
     spends most of the time starting convolutions): add(pred, gt) per frame, then
-    scores() -> [n] in the order added."""
+    scores() -> [n] in the order added. ground_truth: as in lpips_scores, for each
+    batch of ground truths (which frames form a batch depends on their count and size only)."""
 
-    def __init__(self, model):
-        self.model = model
+    def __init__(self, model, ground_truth=None):
+        self.model, self.ground_truth = model, ground_truth
         self.pending_pred, self.pending_gt, self.done = [], [], []
 
     def add(self, pred, gt) -> None:
@@ -461,7 +472,8 @@ class LpipsBatch:
 
     def _flush(self) -> None:
         if self.pending_pred:
-            self.done.extend(lpips_scores(self.model, np.stack(self.pending_pred), np.stack(self.pending_gt)).tolist())
+            self.done.extend(lpips_scores(self.model, np.stack(self.pending_pred), np.stack(self.pending_gt),
+                                          self.ground_truth).tolist())
             self.pending_pred, self.pending_gt = [], []
 
     def scores(self) -> list:

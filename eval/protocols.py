@@ -51,6 +51,7 @@ from nerfgauge.core import dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.eval import metrics
 from nerfgauge.eval.lpips import LABELS, MIN_SIDES, NOT_AVAILABLE, LpipsBatch, load_lpips
+from nerfgauge.eval.lpips_cache import features_source
 from nerfgauge.eval.metrics import BACKGROUNDS, MSE_FLOOR, composite, summarize
 from nerfgauge.eval.predictions import locate_predictions, read_colour, read_plane
 
@@ -239,7 +240,7 @@ def lpips_scorers(protocol: Protocol, intrinsics) -> tuple[dict, dict]:
         if model is None:
             notes[metric] = NOT_AVAILABLE
         else:
-            batches[metric] = LpipsBatch(model)
+            batches[metric] = LpipsBatch(model, features_source(model))  # the ground truth's features, cached
     return batches, notes
 
 

@@ -253,6 +253,7 @@ ALLOWED = {
     ("nerf/checkpoint.py", "torch.save(obj, buffer)"): "into memory; the bytes go to write_bytes_atomic",
     ("eval/lpips.py", "torch.save({key"): "torch writes atomic_path's temporary (the converted weights)",
     ("eval/lpips.py", "Path(tmp).write_text"): "the checksum into atomic_path's temporary",
+    ("eval/lpips_cache.py", 'open(tmp, "wb")'): "a feature entry streamed into atomic_path's temporary",
     ("eval/report.py", ".print_png(str(tmp))"): "matplotlib writes atomic_path's temporary (a figure)",
     ("nerfgauge/core/scratch.py", "owned.rename(new, folder)"):
         "core.owned's own rename (the lint knows calls by their name only)",

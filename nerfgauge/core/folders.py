@@ -32,7 +32,7 @@ from nerfgauge.core.files import json_bytes, read_json, write_json
 from nerfgauge.core.owned import MARKER
 
 LOCK = ".nerfgauge.lock"
-KINDS = ("dataset", "run", "renders", "baseline", "evaluation", "pipeline", "suite", "bench", "sfm")
+KINDS = ("dataset", "run", "renders", "baseline", "evaluation", "pipeline", "suite", "bench", "sfm", "cache")
 TEMPORARY_GLOB = ".*.tmp*"  # files.atomic_path's temporary names
 
 
@@ -170,6 +170,23 @@ def claim_folder(folder, kind: str, recipe: str | None, *, overwrite: bool = Fal
             write_marker(folder, kind, recipe)
         remove_temporaries(folder)
         yield state
+
+
+def adopt_shared_folder(folder, kind: str) -> Path:
+    """Make `folder` (absent, empty, or ours of `kind`) a folder of ours that several
+    processes use at once without a write lock (a cache: each file in it is written
+    atomically on its own). Refused like claim_folder, before anything is written: a link
+    as the folder, a folder inside a dataset, a non-empty folder without our marker or of
+    another kind. A link inside is not refused here, since no lock makes a check at entry
+    hold for the whole run: its user checks each file as it goes (eval.lpips_cache reads
+    with O_NOFOLLOW, writes through core.files.atomic_path, which refuses a link, and
+    removes a link at one of its names as a link, core.owned.remove_file). Returns the folder."""
+    folder = Path(folder)
+    _refuse_inside_a_dataset(folder)
+    if _check_claimable(folder, kind, None, overwrite=False) == "new":
+        owned.make_folder(folder)
+        write_marker(folder, kind, None)  # two processes adopting at once write the same marker
+    return folder
 
 
 @contextlib.contextmanager

@@ -12,4 +12,6 @@ measured in one run on this machine, each into its own bench folder (`common`).
 - `colmap`: what the COLMAP export adds to `generate`.
 - `dask`: views per second on a local dask cluster of 1 and of 2 workers.
 - `lpips`: LPIPS-Alex speed, as evaluate batches it.
+- `lpips-cache`: what the ground truth's LPIPS feature cache saves a second method scored
+  against the same ground truth.
 """

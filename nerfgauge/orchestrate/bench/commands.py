@@ -17,6 +17,7 @@ from nerfgauge.orchestrate.bench.generate import bench_generate
 from nerfgauge.orchestrate.bench.hard import HardConfig, bench_hard, table_markdown as hard_table_markdown
 from nerfgauge.orchestrate.bench.lens import run_lens_bench
 from nerfgauge.orchestrate.bench.lpips import bench_lpips
+from nerfgauge.orchestrate.bench.lpips_cache import bench_lpips_cache, summary as lpips_cache_summary
 from nerfgauge.orchestrate.bench.read import bench_read, table_markdown as read_table_markdown
 from nerfgauge.orchestrate.bench.scaling import ScalingConfig, bench_scaling, report_markdown
 from nerfgauge.orchestrate.bench.splat import METHODS as SPLAT_BENCH_METHODS, SplatBenchConfig, bench_splat
@@ -165,6 +166,18 @@ def register(subparsers) -> None:
     splat.add_argument("--out", type=arguments.path, default=Path("bench-out/splat"),
                        help="bench folder (default bench-out/splat): splat.json/.md/.png, datasets/, runs/")
     splat.set_defaults(func=run_bench_splat)
+    cache = kinds.add_parser("lpips-cache", help="what the ground truth's LPIPS feature cache saves: a second method "
+                                                 "scored against the same ground truth, against the first")
+    cache.add_argument("dataset", type=arguments.path, metavar="DATASET", help="a complete nerfgauge dataset folder")
+    cache.add_argument("--protocol", default="nerfbaselines", help="evaluate's --protocol (default nerfbaselines)")
+    cache.add_argument("--split", default="test", help="split to score (default test)")
+    cache.add_argument("--repeats", type=arguments.REPEATS, default=1,
+                       help="(first, second) pairs, each with a fresh cache; the median ratio (default 1)")
+    cache.add_argument("--uncached", action="store_true", help="also time the first method with the cache off")
+    cache.add_argument("--out", type=arguments.path, default=Path("bench-out/lpips-cache"),
+                       help="bench folder (default bench-out/lpips-cache): lpips-cache.json/.png, the methods' "
+                            "renders and evaluations")
+    cache.set_defaults(func=run_bench_lpips_cache)
 
 
 def run_bench_splat(args) -> int:
@@ -195,6 +208,14 @@ def run_bench_lpips(args) -> int:
     times = bench_lpips(args.frames, args.res, args.repeats)
     print(f"LPIPS-Alex, {args.frames} frames of {args.res} px: " + ", ".join(f"{t:.2f}" for t in times)
           + f" s (best {min(times):.2f} s)")
+    return 0
+
+
+def run_bench_lpips_cache(args) -> int:
+    result = bench_lpips_cache(args.dataset, args.out, protocol=args.protocol, split=args.split,
+                               uncached=args.uncached, repeats=args.repeats)
+    print(lpips_cache_summary(result))
+    print(f"bench lpips-cache: {args.out / 'lpips-cache.json'}, {args.out / 'lpips-cache.png'}")
     return 0
 
 
