@@ -49,6 +49,9 @@ class NeRF(Method):
         config.validate()
         return config
 
+    def check(self, request: TrainRequest) -> None:
+        self.config(request)  # the settings as TrainConfig checks them
+
     def train(self, request: TrainRequest) -> TrainResult:
         from nerfgauge.nerf.train import train  # torch
 
