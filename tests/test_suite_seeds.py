@@ -61,7 +61,7 @@ def test_every_seed_is_kept_and_scored_as_evaluate_scores_it(seeded, tmp_path, c
         row = result["datasets"][entry_id]
         assert [run["seed"] for run in row["runs"]] == list(SEEDS)
         for seed, run_row in zip(SEEDS, row["runs"]):
-            assert (out / "runs" / f"seed-{seed}" / entry_id / "model.pt").is_file()
+            assert (out / "runs" / "compact-nerf" / f"seed-{seed}" / entry_id / "model.pt").is_file()
             assert run_row["steps"] == 60 and run_row["steps_per_second"] > 0
             single = tmp_path / f"{entry_id}-{seed}.json"
             assert main(["evaluate", str(out / "datasets" / entry_id), "--pred",
@@ -166,11 +166,11 @@ def test_a_second_run_resumes_every_finished_job(seeded, tmp_path, capsys):
     copy = tmp_path / "copy"
     shutil.copytree(out, copy, ignore=shutil.ignore_patterns(".nerfgauge.lock"))
     before = {entry_id: read(copy / "results" / "compact-nerf" / entry_id / "aggregate.json") for entry_id in IDS}
-    (copy / "jobs" / "train-random-3-seed-1.json").unlink()  # as if that job had been interrupted
+    (copy / "jobs" / "compact-nerf" / "seed-1" / "random-3.json").unlink()  # as if that job had been interrupted
     code, stdout, err = run(capsys, "suite", "run", toml, "--out", copy, "--seeds", "3")
     assert code == 0, err
-    assert stdout.count("finished earlier, skipped") == 7 and "train-random-3-seed-1: " in stdout
-    assert "train-random-3-seed-1: finished earlier" not in stdout
+    assert stdout.count("finished earlier, skipped") == 7 and "compact-nerf/seed-1/random-3: " in stdout
+    assert "compact-nerf/seed-1/random-3: finished earlier" not in stdout
     for entry_id in IDS:
         after = read(copy / "results" / "compact-nerf" / entry_id / "aggregate.json")
         assert after["mean"] == before[entry_id]["mean"] and after["ci95"] == before[entry_id]["ci95"]
@@ -200,7 +200,8 @@ def test_suite_evaluate_with_seeds_pairs_by_seed(seeded, tmp_path, capsys):
         ours = read(copy / "results" / "compact-nerf" / entry_id / "aggregate.json")
         again = read(copy / "results" / "again" / entry_id / "aggregate.json")
         assert again["ci95"] == ours["ci95"] and again["per_seed"] == ours["per_seed"]
-        row = next(r for r in board["paired"]["rows"] if r["scene"] == entry_id and r["method"] == "again")
+        row = next(r for r in board["paired"]["rows"]
+                   if r["scene"] == entry_id and (r["reference"], r["method"]) == ("again", "compact-nerf"))
         assert row["seeds"] == list(SEEDS) and row["mean_difference"] == 0 and row["p_value"] == 1.0
     code, _, err = run(capsys, "suite", "evaluate", toml, copy, "--method", "x", "--pred",
                        copy / "predictions" / "compact-nerf", "--seeds", "0,7")
