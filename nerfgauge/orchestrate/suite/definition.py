@@ -844,7 +844,7 @@ def write_result(suite: Suite, out, manifest: dict, method: str, tasks: list, do
               **({"pred_root": pred_root} if pred_root is not None else {}),
               "datasets": rows, **({"skipped": dict(skipped)} if skipped else {}),
               **({"failed": failed} if failed else {}), **({"seeds": list(seeds)} if seeds is not None else {})}
-    write_json(out / "results" / method / RESULT_FILE, result)
+    write_json(owned.make_folder(out / "results" / method) / RESULT_FILE, result)
     return result
 
 
@@ -870,7 +870,9 @@ def _result_row(out: Path, entry, record: dict, task: dict, document: dict, extr
     if not extras and train_file.is_file():  # another tool's figures beside its renders (suite evaluate)
         info = read_json(train_file, finite=True)
         row["train_seconds"], row["model_bytes"] = info.get("seconds"), info.get("model_bytes")
-    row.update(extras)
+    row.update({name: value for name, value in extras.items() if name != "ms_per_frame"})
+    if row["ms_per_frame"] is None:  # renders without our timing.json: the render job's own time
+        row["ms_per_frame"] = extras.get("ms_per_frame")
     if isinstance(extras.get("steps"), int):  # the training beside its scores (check prints it)
         document["training"] = {"steps": extras["steps"], "seconds": extras.get("train_seconds"),
                                 "steps_per_second": extras.get("steps_per_second"),

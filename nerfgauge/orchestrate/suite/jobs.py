@@ -76,9 +76,7 @@ FAILURE = "failure.txt"  # RUN/failure.txt: why a method failed, its traceback
 
 
 def job_record_path(out, key: str) -> Path:
-    path = Path(out) / JOBS / f"{key}.json"
-    owned.make_folder(path.parent)
-    return path
+    return Path(out) / JOBS / f"{key}.json"
 
 
 def finished(out, key: str, recipe: dict, outputs) -> dict | None:
@@ -147,6 +145,7 @@ def method_job(out: str, key: str, entry, train: dict, dataset: str, manifest_sh
               "frames": rendered.frames, "render_seconds": rendered.seconds}
     result = {name: (None if isinstance(value, float) and not math.isfinite(value) else value)
               for name, value in result.items()}
+    owned.make_folder(job_record_path(out, key).parent)
     write_json(job_record_path(out, key), {"recipe": recipe_hash(recipe), "result": result})
     return {**result, "resumed": False}
 
@@ -165,7 +164,7 @@ def _failure(error: BaseException, run_dir: Path, renders: Path, out: Path) -> s
     marker = read_marker(renders) if renders.is_dir() and not renders.is_symlink() else None
     if marker is not None:
         remove_owned(renders, marker["kind"])
-    folder, stop = renders, out / PREDICTIONS
+    folder, stop = renders if renders.is_dir() else renders.parent, out / PREDICTIONS
     while folder != stop and folder.is_relative_to(stop) and folder.is_dir() and not any(folder.iterdir()):
         folder.rmdir()
         folder = folder.parent

@@ -41,6 +41,7 @@ from typing import Optional
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.eval.check import shown
+from nerfgauge.methods.builtin import builtin_methods
 from nerfgauge.methods.interface import Method, TrainRequest, check_name
 from nerfgauge.methods.registry import resolve
 
@@ -168,6 +169,9 @@ def checked_entry(method: str, where: str, base, train: dict, *, name=None, sett
         entry = MethodEntry(name or resolved.name, method, entry.settings, steps, budget_seconds, path)
         check_name(entry.name, "name")
         resolved.check(entry.request(resolved, train, dataset=".", run=".", seed=0, threads=train.get("threads")))
+        if steps is not None or budget_seconds is not None:  # a length the entry names is meant for this method
+            resolved.check(TrainRequest(dataset=".", run=".", steps=steps, budget_seconds=budget_seconds,
+                                        settings=entry.settings))
     except InputError as error:
         raise InputError(f"{where}: {error}") from None
     return entry
@@ -207,8 +211,6 @@ def shorthand_methods(train: dict, baselines: list, where: str) -> tuple[dict, t
 
 def resolve_is_baseline(name: str) -> bool:
     """`name` is a built-in method that does not train (a non-learned baseline)."""
-    from nerfgauge.methods.builtin import builtin_methods
-
     method = builtin_methods().get(name)
     return method is not None and not method.learned
 

@@ -118,12 +118,13 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
         for key, (name, entry_id, folder_seed) in owners.items():
             result = done[key]
             if "failed" in result:
-                failed.setdefault(name, {})[entry_id] = (result["failed"] if folder_seed is None
-                                                         else f"seed {folder_seed}: {result['failed']}")
+                failed.setdefault(name, {}).setdefault(entry_id, result["failed"] if folder_seed is None
+                                                       else f"seed {folder_seed}: {result['failed']}")
                 continue
             renders.setdefault(name, {}).setdefault(entry_id, {})[folder_seed] = (str(out / result["renders"]),
                                                                                 result["pred_format"])
             row = {field: result[field] for field in EXTRAS}
+            row["ms_per_frame"] = 1000.0 * result["render_seconds"] / result["frames"]
             if folder_seed is None:
                 extras.setdefault(name, {})[entry_id] = row
             else:
