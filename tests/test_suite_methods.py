@@ -210,8 +210,8 @@ def test_methods_flag_replaces_the_suites_and_resumes_their_jobs(ran, tmp_path, 
     ("nearest,nearest", ("used twice",)),
     ("copycat,", ("--methods must be",)),
 ])
-def test_a_bad_methods_flag_is_one_line_before_anything_is_written(ran, tmp_path, capsys, methods, words):
-    toml, _, _ = ran
+def test_a_bad_methods_flag_is_one_line_before_anything_is_written(tmp_path, capsys, methods, words):
+    toml = write_suite(tmp_path)
     code, _, err = run(capsys, "suite", "run", toml, "--out", tmp_path / "x", "--methods", methods)
     one_line_error(code, err, *words)
     assert not (tmp_path / "x").exists()
@@ -277,3 +277,44 @@ def test_a_suite_chooses_its_scoring_protocol(ran, tmp_path, capsys):
                  "--protocol", "ns-eval", "--background", "black", "--out", str(single)]) == 0
     scored = read(folder / "results" / "copycat" / "primitives" / "metrics.json")
     assert scored["protocol"] == "ns-eval" and scored["mean"] == read(single)["mean"]
+
+
+# --- bench train --methods: another tool's method against wall time beside ours ------------------------
+
+
+def test_bench_train_puts_other_methods_beside_ours_in_one_run(tmp_path, capsys):
+    """Our compact NeRF (a 1 s budget), the spec method (4 steps), the nearest baseline and a
+    failing spec on one dataset: a row each (the failure's with its reason), every score the
+    same `evaluate` gives on the run's renders, the plot drawn."""
+    from nerfgauge.eval.evaluate import evaluate
+
+    for spec, kwargs in (("copycat", {}), ("crasher", {"train": ("fail",)})):
+        write_spec(tmp_path, spec, **kwargs)
+    out = tmp_path / "bench"
+    code, stdout, err = run(capsys, "bench", "train", "--scenes", "primitives", "--res", "16", "--views", "4",
+                            "--budgets", "1", "--steps", "4", "--out", out, "--methods",
+                            f"compact,{tmp_path / 'copycat.toml'},nearest,{tmp_path / 'crasher.toml'}")
+    assert code == 0, err
+    rows = {row["variant"]: row for row in read(out / "train.json")["rows"]}
+    assert set(rows) == {"compact", "copycat", "nearest", "crasher"}  # --methods alone: no variants of ours
+    assert "exited with status 3" in rows["crasher"]["error"] and "exited with status 3" in stdout
+    assert rows["compact"]["budget"] == 1.0 and rows["copycat"]["method_steps"] == 4
+    assert rows["copycat"]["steps_per_second"] == pytest.approx(4 / rows["copycat"]["train_seconds"], rel=1e-9)
+    dataset = out / "datasets" / "primitives-16x16-4"
+    for name in ("compact", "copycat", "nearest"):
+        run_dir = next((out / "runs").glob(f"primitives-{name}-*"))
+        again = evaluate(dataset, run_dir / "renders", "test", tmp_path / f"{name}.json")
+        assert rows[name]["psnr"] == again["mean"]["psnr"] and rows[name]["train_seconds"] >= 0
+    assert (out / "pareto.png").stat().st_size > 0 and "| primitives | copycat | 4 steps |" in stdout
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--methods", "nerf-w"], ("unknown method 'nerf-w'",)),
+    (["--methods", "COPYCAT"], ("takes a step count", "--steps")),
+])
+def test_bench_train_refuses_a_method_it_cannot_run_before_any_work(tmp_path, capsys, argv, words):
+    write_spec(tmp_path, "copycat")
+    argv = [str(tmp_path / "copycat.toml") if a == "COPYCAT" else a for a in argv]
+    code, _, err = run(capsys, "bench", "train", "--out", tmp_path / "b", *argv)
+    one_line_error(code, err, *words)
+    assert not (tmp_path / "b").exists()

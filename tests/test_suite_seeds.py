@@ -216,13 +216,14 @@ def test_a_bad_scheduler_is_one_line_before_anything_is_written(tmp_path, capsys
 
 @pytest.mark.slow
 def test_a_two_worker_local_cluster_gives_the_same_per_run_metrics(seeded, tmp_path, capsys):
-    """Same seeds on `--scheduler local:2`: every per-run metrics.json has the same means and
-    per-frame values as the local run; only timing (wall clock) may differ."""
+    """Same seeds on `--scheduler local:2`: the method jobs and the scoring jobs run on the
+    cluster, and every per-run metrics.json has the same means and per-frame values as the
+    local run; only timing (wall clock) may differ."""
     toml, out = seeded
     cluster = tmp_path / "cluster"
     code, stdout, err = run(capsys, "suite", "run", toml, "--out", cluster, "--seeds", "3", "--scheduler", "local:2")
     assert code == 0, err
-    assert "8 jobs on local:2" in stdout
+    assert stdout.count("8 jobs on local:2") == 2  # 8 trainings and baselines, then 8 scorings, on the cluster
     for method, folders in (("compact-nerf", [f"{i}/seed-{s}" for i in IDS for s in SEEDS]), ("nearest", IDS)):
         for folder in folders:
             local = read(out / "results" / method / folder / "metrics.json")

@@ -91,12 +91,12 @@ def finished(out, key: str, recipe: dict, outputs) -> dict | None:
     return job_result(record, recipe, path)
 
 
-def job_key(method: str, entry_id: str, seed) -> str:
+def job_name(method: str, entry_id: str, seed) -> str:
     """A method job's key, and its record's path under OUT/jobs/: <method>/[seed-<s>/]<id>."""
     return f"{method}/" + ("" if seed is None else f"seed-{seed}/") + entry_id
 
 
-def method_job(out: str, key: str, entry, train: dict, dataset: str, manifest_sha256: str, run_dir: str,
+def method_job(out: str, job_key: str, entry, train: dict, dataset: str, manifest_sha256: str, run_dir: str,
                renders: str, seed, split: str, geometry: dict | None, threads: int | None = None) -> dict:
     """Train `entry`'s method (orchestrate.suite.methods.MethodEntry) on `dataset` with
     `seed` (None: a method that does not train, run once) into run_dir, render `split`
@@ -116,10 +116,10 @@ def method_job(out: str, key: str, entry, train: dict, dataset: str, manifest_sh
     recipe = {"kind": "method", "method": entry.identity(), "seed": seed, "steps": request.steps,
               "budget_seconds": request.budget_seconds, "manifest_sha256": manifest_sha256, "split": split,
               "geometry": geometry, "renders": renders.relative_to(out).as_posix(), "version": _version()}
-    done = finished(out, key, recipe, [renders])
+    done = finished(out, job_key, recipe, [renders])
     if done is not None:
         return {**done, "resumed": True}
-    owned.remove_file(job_record_path(out, key))
+    owned.remove_file(job_record_path(out, job_key))
     # training may set torch's thread count for the whole process; a job run in the
     # client's process (no scheduler) puts it back, so what follows runs as after a cluster's jobs
     client_threads = torch.get_num_threads()
@@ -145,8 +145,8 @@ def method_job(out: str, key: str, entry, train: dict, dataset: str, manifest_sh
               "frames": rendered.frames, "render_seconds": rendered.seconds}
     result = {name: (None if isinstance(value, float) and not math.isfinite(value) else value)
               for name, value in result.items()}
-    owned.make_folder(job_record_path(out, key).parent)
-    write_json(job_record_path(out, key), {"recipe": recipe_hash(recipe), "result": result})
+    owned.make_folder(job_record_path(out, job_key).parent)
+    write_json(job_record_path(out, job_key), {"recipe": recipe_hash(recipe), "result": result})
     return {**result, "resumed": False}
 
 

@@ -37,7 +37,7 @@ from nerfgauge.methods.interface import missing_needs
 from nerfgauge.orchestrate.suite.definition import (RESULT_FILE, SUITE_FILE, Suite, dataset_dir, generate_suite,
                                                     identity_key, score_renders, scoring_tasks, seed_folder,
                                                     write_result)
-from nerfgauge.orchestrate.suite.jobs import PREDICTIONS, job_key, job_runner, method_job
+from nerfgauge.orchestrate.suite.jobs import PREDICTIONS, job_name, job_runner, method_job
 from nerfgauge.orchestrate.suite.methods import select
 from nerfgauge.orchestrate.suite.report import write_leaderboard
 
@@ -99,10 +99,10 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
                 log(f"[{index}/{len(suite.scenes)}] {scene.id}: {entry.name} skipped: {'; '.join(reasons)}")
                 continue
             for seed, folder_seed in job_seeds(resolved[entry.name], scene, seeds):
-                key = job_key(entry.name, scene.id, folder_seed)
+                key = job_name(entry.name, scene.id, folder_seed)
                 where = Path(entry.name) / ("" if folder_seed is None else seed_folder(folder_seed)) / scene.id
                 jobs.append((key, method_job, dict(
-                    out=str(out), key=key, entry=entry, train=suite.train, dataset=str(data),
+                    out=str(out), job_key=key, entry=entry, train=suite.train, dataset=str(data),
                     manifest_sha256=identity(manifest["datasets"][scene.id]),
                     run_dir=str(out / "runs" / where), renders=str(out / PREDICTIONS / where), seed=seed,
                     split=suite.scoring["split"], geometry=suite.scoring.get("geometry"), threads=threads)))
