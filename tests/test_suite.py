@@ -244,9 +244,9 @@ def test_smoke_suite_end_to_end(tmp_path, capsys):
         assert (out / "report" / entry_id / "report.html").is_file()
     assert os.path.getsize(out / "leaderboard.html") > 0 and (out / "leaderboard.md").is_file()
     # issue 36: our NeRF against the nearest-view baseline, paired, on every dataset both scored
-    pairs = {(row["scene"], row["method"]): row for row in board["paired"]["rows"]}
+    pairs = {(row["scene"], row["reference"], row["method"]): row for row in board["paired"]["rows"]}
     for entry_id in set(ours["scenes"]) & set(board["methods"]["nearest"]["scenes"]):
-        row = pairs[(entry_id, "nearest")]
+        row = pairs[(entry_id, "compact-nerf", "nearest")]
         assert row["views"] > 0 and row["ci95"][0] <= row["mean_difference"] <= row["ci95"][1]
         assert 0 < row["p_value"] <= 1 and row["significant"] == (row["p_value"] < 0.05)
 

@@ -252,6 +252,11 @@ def test_an_older_protocol_table_is_read_with_a_one_line_note(ran, tmp_path, cap
     code, stdout, err = run(capsys, "suite", "generate", old, "--out", copy)
     assert code == 0 and "complete, skipped" in stdout
     assert len(err.strip().splitlines()) == 1 and "[protocol] is now called [scoring]" in err, err
+    recorded = read(copy / "suite.json")  # a folder an older nerfgauge made: its hash covered [protocol]
+    recorded["definition"]["protocol"], recorded["suite_sha256"] = recorded["definition"].pop("scoring"), "0" * 64
+    (copy / "suite.json").write_text(json.dumps(recorded))
+    code, _, err = run(capsys, "suite", "generate", toml, "--out", copy)
+    one_line_error(code, err, "made by an older nerfgauge", "--overwrite")
     both = tmp_path / "both.toml"
     both.write_text(old.read_text().replace("[protocol]", "[scoring]\nsplit = \"test\"\n[protocol]", 1))
     code, _, err = run(capsys, "suite", "generate", both, "--out", tmp_path / "y")

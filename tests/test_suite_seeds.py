@@ -144,9 +144,9 @@ def test_leaderboard_intervals_and_paired_rows_match_an_independent_bootstrap(se
     assert abs(ours["ci95"]["psnr"][0] - low) < 1e-9 and abs(ours["ci95"]["psnr"][1] - high) < 1e-9
     assert low < ours["mean"]["psnr"] < high
     # paired: ours minus nearest per (seed, view); nearest (deterministic, no seed) repeated per seed
-    rows = {(row["scene"], row["method"]): row for row in board["paired"]["rows"]}
+    rows = {(row["scene"], row["reference"], row["method"]): row for row in board["paired"]["rows"]}
     for entry_id in IDS:
-        row = rows[(entry_id, "nearest")]
+        row = rows[(entry_id, "compact-nerf", "nearest")]
         nearest = frame_values(read(out / "results" / "nearest" / entry_id / "metrics.json"))
         differences = [[a - b for a, b in zip(frame_values(d), nearest)]
                        for d in per_seed_documents(out, "compact-nerf", entry_id)]
@@ -248,14 +248,14 @@ def test_smoke_suite_with_three_seeds(tmp_path, capsys):
     board = read(out / "leaderboard.json")
     ours = board["methods"]["compact-nerf"]
     assert ours["ci95"]["psnr"][0] <= ours["mean"]["psnr"] <= ours["ci95"]["psnr"][1]
-    rows = {(row["scene"], row["method"]): row for row in board["paired"]["rows"]}
+    rows = {(row["scene"], row["reference"], row["method"]): row for row in board["paired"]["rows"]}
     for entry_id, scene in ours["scenes"].items():
         assert scene["seeds"] == [0, 1, 2] and len(scene["psnr_per_seed"]) == 3
         documents = [read(out / "results" / "compact-nerf" / entry_id / f"seed-{s}" / "metrics.json") for s in range(3)]
         nearest = frame_values(read(out / "results" / "nearest" / entry_id / "metrics.json"))
         differences = [[a - b for a, b in zip(frame_values(d), nearest)] for d in documents]
         low, high = loop_bootstrap(differences, EVALUATE_SEED)
-        row = rows[(entry_id, "nearest")]
+        row = rows[(entry_id, "compact-nerf", "nearest")]
         assert abs(row["ci95"][0] - low) < 1e-9 and abs(row["ci95"][1] - high) < 1e-9
 
 

@@ -469,6 +469,10 @@ def check_same_suite(suite: Suite, identity: dict, where: str,
     if version != suite.version:
         raise InputError(f"{where} was made with suite {name} version {version}, not version {suite.version}; "
                          f"{remedy}")
+    recorded = identity.get("definition")
+    if sha != suite.sha256 and isinstance(recorded, dict) and OLD_SCORING in recorded:
+        raise InputError(f"{where} was made by an older nerfgauge, whose suites' hashes covered [train] and "
+                         f"[{OLD_SCORING}]; {remedy}")
     if sha != suite.sha256:
         raise InputError(f"{where} was made with another definition of suite {name} version {version} "
                          f"(sha256 {str(sha)[:12]}..., this one {suite.sha256[:12]}...); bump the version when editing a suite")
