@@ -8,7 +8,7 @@ training views saw. DyCheck estimates the mask with optical flow; here it is exa
 
 - a pixel whose centre ray hits geometry (the ground-truth mask) is co-visible when the
   surface point at its exact ray distance is visible in at least one view of the
-  reference split, by eval.geometry's depth test (the point projects into the view and
+  reference split, by core.visibility's depth test (the point projects into the view and
   the view's exact depth there agrees within half a pixel's footprint on the tilted
   surface);
 - a pixel whose centre ray misses everything is co-visible: what it shows is the
@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nerfgauge.core.dataset import Dataset
-from nerfgauge.eval.geometry import seen_in_view
+from nerfgauge.core.visibility import seen_in_view
 
 REFERENCE_SPLIT = "train"
 RESOLVED_RELATIVE_DEPTH = 0.05  # this relative depth change of a resolved pixel's point ...
@@ -69,7 +69,7 @@ def reference_depths(ds: Dataset, reference: str = REFERENCE_SPLIT) -> list:
 def views_seeing(points: np.ndarray, normals: np.ndarray, ds: Dataset, depths: list,
                  reference: str = REFERENCE_SPLIT) -> np.ndarray:
     """[views, n] bool: which reference views see each point [n, 3] (unit normals [n, 3]),
-    by eval.geometry's depth test. depths: reference_depths(ds, reference). The reference
+    by core.visibility's depth test. depths: reference_depths(ds, reference). The reference
     views' exact poses (their depth was rendered from them, whatever pose noise the
     transforms hold)."""
     cameras = ds.exact_cameras(reference)

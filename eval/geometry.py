@@ -8,7 +8,7 @@ without faces is a point cloud), or a method's rendered depth of a split's views
 (`r_007_depth.exr` ray distance, found as `nerfgauge evaluate` finds it), back-projected
 along the dataset's pixel rays. The ground truth is the union of DATASET/meshes/*.ply.
 
-Both surfaces are sampled: a mesh uniformly by area (`samples` points, an explicit numpy
+Both surfaces are read and sampled by core.surface: a mesh uniformly by area (`samples` points, an explicit numpy
 Generator seeded with `seed`), each sample carrying its face's normal; a point cloud is
 used as given (a random subset of `samples` if larger). The samples are the queries (a
 Monte Carlo estimate of a mean over the surface); each is scored by its exact distance,
@@ -40,253 +40,36 @@ the diagonal scored accuracy and completeness about 3% high at 200k samples (BEN
 
 Visibility. Only ground truth that some camera saw can be asked of a method: by default a
 ground-truth sample counts for completeness and recall only if it is visible in some view
-of the reference split (train for meshes; the predicted views' split for --pred-depth).
-A sample is visible in a view if it projects into the image and its distance from the
-camera matches the view's exact ray-distance depth at that pixel within
-
-    tol = r * sqrt(2) / (2 f) * min(tan(theta), tan(80 deg)) + 1e-5 r
-
-(r the sample's distance, f the focal length in pixels, theta the angle between the
-sample's normal and the ray): the sample is at most half a pixel diagonal,
-r sqrt(2) / (2 f), off the pixel-centre ray, and on a plane tilted by theta that moves the
-depth by that offset times tan(theta); grazing angles are capped at 80 degrees; 1e-5 r
-covers float32 storage. --whole-surface counts every ground-truth sample. Accuracy and
+of the reference split (train for meshes; the predicted views' split for --pred-depth),
+by the exact depth test of core.visibility (the sample projects into the image and its
+distance from the camera matches the view's ray-distance depth at that pixel within half
+a pixel's footprint, tilted by the surface's angle to the ray up to 80 degrees).
+--whole-surface counts every ground-truth sample. Accuracy and
 precision always compare against the whole ground truth (a correct guess at a hidden
 surface is not an error).
 """
 
 from __future__ import annotations
 
-import io
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from nerfgauge.core.camera import pixel_coordinates
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.outputs import stamp
+from nerfgauge.core.surface import PointSet, Surface, ground_truth_surface, point_set, read_surface, sample_surface
+from nerfgauge.core.triangle_distance import triangle_squared_distance, triangle_table
+from nerfgauge.core.visibility import visible_in_views
 from nerfgauge.eval.predictions import DEPTH_SUFFIXES, read_plane
 
 SCHEMA = 2  # 2: distances to a mesh are exact point to surface (issue 34); "distances" says which
 DEFAULT_TAU_FRACTIONS = (0.005, 0.01)
 DEFAULT_SAMPLES = 1_000_000
 DEFAULT_SEED = 0
-GRAZING_CAP_DEGREES = 80.0
-MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb", ".gltf")
-
-
-@dataclass(frozen=True)
-class Surface:
-    """What a file holds: vertices [n, 3] float64 and faces [m, 3] int64 (None: a point
-    cloud), normals [n, 3] of a point cloud's points when the file has them."""
-
-    vertices: np.ndarray
-    faces: Optional[np.ndarray]
-    normals: Optional[np.ndarray] = None
-
-
-@dataclass(frozen=True)
-class PointSet:
-    """points [n, 3] float64; normals [n, 3] unit or None."""
-
-    points: np.ndarray
-    normals: Optional[np.ndarray]
-
-
-# --- reading -------------------------------------------------------------------------
-
-
-def _declares_faces(data: bytes) -> bool:
-    """A PLY header with an `element face` line: a mesh, even when it has zero faces."""
-    if not data.startswith(b"ply"):
-        return False
-    header = data[:data.find(b"end_header")] if b"end_header" in data else data[:4096]
-    return any(line.split()[:2] == [b"element", b"face"] for line in header.splitlines())
-
-
-def surface_from_bytes(data: bytes, name: str, file_type: str) -> Surface:
-    """Parse mesh or point-cloud bytes with trimesh; one-line InputError for anything that
-    is not a non-empty, finite surface."""
-    import trimesh  # trimesh: only when a mesh file is read (eval.check imports this module)
-
-    try:
-        loaded = trimesh.load(io.BytesIO(data), file_type=file_type, process=False)
-    except Exception as error:  # trimesh raises many types for garbage
-        text = (str(error).strip().splitlines() or [type(error).__name__])[0]
-        raise InputError(f"{name} is not a readable mesh or point cloud: {text[:200]}") from None
-    if isinstance(loaded, trimesh.Scene):
-        parts = [g for g in loaded.geometry.values() if isinstance(g, (trimesh.Trimesh, trimesh.PointCloud))]
-        meshes = [g for g in parts if isinstance(g, trimesh.Trimesh)]
-        if meshes:
-            loaded = trimesh.util.concatenate(meshes)
-        elif parts:
-            loaded = trimesh.PointCloud(np.concatenate([np.asarray(g.vertices) for g in parts]))
-        else:
-            raise InputError(f"{name} holds no mesh or points (an empty file, or not {file_type.upper()})")
-    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
-    if isinstance(loaded, trimesh.Trimesh):
-        faces = np.asarray(loaded.faces, np.int64).reshape(-1, 3)
-        normals = None
-    elif isinstance(loaded, trimesh.PointCloud):
-        if _declares_faces(data):
-            raise InputError(f"{name} declares faces but has zero faces")
-        faces = None
-        normals = _point_normals(loaded, len(vertices))
-    else:
-        raise InputError(f"{name} is not a mesh or point cloud (trimesh read a {type(loaded).__name__})")
-    if not len(vertices):
-        raise InputError(f"{name} is empty: no vertices")
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
-        raise InputError(f"{name} has {int(bad.sum())} vertices with NaN or inf coordinates")
-    if faces is not None:
-        if not len(faces):
-            raise InputError(f"{name} has zero faces")
-        if faces.min() < 0 or faces.max() >= len(vertices):
-            raise InputError(f"{name} has faces indexing vertices outside 0..{len(vertices) - 1}")
-    return Surface(vertices, faces, normals)
-
-
-def _point_normals(cloud, count: int) -> Optional[np.ndarray]:
-    """Per-point normals of a PLY point cloud (nx, ny, nz properties), if present and usable."""
-    data = getattr(cloud, "metadata", {}).get("_ply_raw", {}).get("vertex", {}).get("data")
-    names = set(data) if isinstance(data, dict) else set(getattr(getattr(data, "dtype", None), "names", None) or ())
-    if data is None or not {"nx", "ny", "nz"} <= names:
-        return None
-    normals = np.stack([np.asarray(data[k]) for k in ("nx", "ny", "nz")], axis=-1).astype(np.float64).reshape(-1, 3)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    if len(normals) != count or not (np.isfinite(normals).all() and (length > 0).all()):
-        return None
-    return normals / length
-
-
-def read_surface(path) -> Surface:
-    """A mesh or point cloud file (format from its suffix)."""
-    path = Path(path)
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise InputError(f"{path}: unknown mesh format {path.suffix!r}; expected one of {', '.join(MESH_SUFFIXES)}")
-    if path.is_dir():
-        raise InputError(f"{path} is a folder; expected a mesh or point cloud file")
-    if not path.is_file():
-        raise InputError(f"mesh file not found: {path}")
-    return surface_from_bytes(path.read_bytes(), str(path), path.suffix.lower().lstrip("."))
-
-
-def ground_truth_surface(ds: Dataset) -> Surface:
-    """The union of DATASET/meshes/*.ply (read through the manifest check)."""
-    folder = ds.root / "meshes"
-    names = sorted(f"meshes/{path.name}" for path in folder.glob("*.ply")) if folder.is_dir() else []
-    if not names:
-        raise InputError(f"dataset {ds.root} has no ground-truth meshes (meshes/*.ply); regenerate it with "
-                         "nerfgauge generate")
-    vertices, faces, offset = [], [], 0
-    for rel in names:
-        surface = surface_from_bytes(ds.read_bytes(rel), str(ds.root / rel), "ply")
-        if surface.faces is None:
-            raise InputError(f"{ds.root / rel} is a point cloud; ground-truth meshes need faces")
-        vertices.append(surface.vertices)
-        faces.append(surface.faces + offset)
-        offset += len(surface.vertices)
-    return Surface(np.concatenate(vertices), np.concatenate(faces))
-
-
-# --- sampling ------------------------------------------------------------------------
-
-
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, rng: np.random.Generator,
-                   name: str = "mesh") -> PointSet:
-    """`count` points uniform by area over the triangles, each with its face's unit normal.
-
-    vertices [n, 3], faces [m, 3]. A face is drawn with probability area / total area, a
-    point in it by the square-root barycentric map (uniform on the triangle)."""
-    triangles = vertices[faces]  # [m, 3, 3]
-    cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])  # [m, 3]
-    double_area = np.linalg.norm(cross, axis=1)
-    total = double_area.sum()
-    if not (total > 0 and math.isfinite(total)):
-        raise InputError(f"{name} has zero surface area (every face is degenerate)")
-    face = rng.choice(len(faces), size=count, p=double_area / total)
-    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
-    a, b, c = (triangles[face, k] for k in range(3))
-    points = (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
-    normals = cross[face] / np.maximum(double_area[face], 1e-300)[:, None]
-    return PointSet(points, normals)
-
-
-def point_set(surface: Surface, count: int, rng: np.random.Generator, name: str) -> PointSet:
-    """A mesh sampled by area; a point cloud as given (a random `count` of it if larger)."""
-    if surface.faces is not None:
-        return sample_surface(surface.vertices, surface.faces, count, rng, name)
-    points, normals = surface.vertices, surface.normals
-    if len(points) > count:
-        pick = rng.choice(len(points), size=count, replace=False)
-        points, normals = points[pick], None if normals is None else normals[pick]
-    return PointSet(points, normals)
-
-
-# --- visibility ----------------------------------------------------------------------
-
-
-def visible_in_views(points: np.ndarray, normals: np.ndarray, ds: Dataset, split: str) -> np.ndarray:
-    """Ground-truth samples [n, 3] (unit normals [n, 3]) visible in some view of `split`,
-    by the exact depth test of the module docstring. Returns [n] bool.
-
-    Samples no view sees are tested against every view, so the cost is about
-    n_hidden x n_views: samples a view confirms leave the working set. The views' exact
-    poses, which their depth was rendered from (Dataset.exact_cameras)."""
-    cameras = ds.exact_cameras(split)
-    visible = np.zeros(len(points), bool)
-    left = np.arange(len(points))  # samples no view has confirmed yet (a superset: compacted lazily)
-    xyz, nrm = np.ascontiguousarray(points.T), np.ascontiguousarray(normals.T)  # [3, m]
-    for index, pose in enumerate(cameras.c2w):
-        if not len(left):
-            break
-        seen = seen_in_view(xyz, nrm, pose, cameras.intrinsics, ds.depth(split, index, kind="distance"),
-                            cameras.distortion)
-        visible[left[seen]] = True
-        if len(seen) * 16 >= len(left):  # compact when it pays; confirmed samples re-tested meanwhile are harmless
-            keep = ~visible[left]
-            left, xyz, nrm = left[keep], xyz[:, keep], nrm[:, keep]
-    return visible
-
-
-def seen_in_view(xyz: np.ndarray, nrm: np.ndarray, pose: np.ndarray, intrinsics, depth: np.ndarray,
-                 distortion=None) -> np.ndarray:
-    """The columns of xyz [3, m] (samples as rows of x, y, z, each contiguous; unit normals
-    nrm [3, m]) that one view (c2w `pose` [4, 4], its exact ray-distance `depth` [H, W])
-    sees, by the depth test of the module docstring (its pixels through `distortion`, a
-    core.distortion.Distortion, when the view has one). Returns their indices [k] int64.
-    The normal-dependent tolerance is only computed for samples within the widest
-    tolerance (the grazing cap) of the recorded depth."""
-    cap = math.tan(math.radians(GRAZING_CAP_DEGREES))
-    half_pixel = math.sqrt(2) / (2 * max(intrinsics.fx, intrinsics.fy))
-    widest = half_pixel * cap + 1e-5  # tolerance / distance at the grazing cap
-    offset = xyz - pose[:3, 3, None]  # [3, m] camera centre to sample
-    local = pose[:3, :3].T @ offset  # [3, m] camera axes
-    if distortion is not None:
-        u, v = distortion.project(local[0], local[1], local[2], intrinsics)
-    else:
-        u, v = pixel_coordinates(local[0], local[1], local[2], intrinsics)
-    with np.errstate(invalid="ignore"):  # u, v are NaN behind the camera
-        inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
-        pixel = np.where(inside, v.astype(np.int64) * intrinsics.width + u.astype(np.int64), 0)  # [m] flat
-    if not inside.any():
-        return np.zeros(0, np.int64)
-    recorded = depth.astype(np.float64).ravel()[pixel]
-    distance = np.sqrt(local[0] ** 2 + local[1] ** 2 + local[2] ** 2)
-    gap = np.abs(recorded - distance)
-    inside = np.flatnonzero(inside & (recorded > 0) & (gap <= distance * widest))
-    distance, gap = distance[inside], gap[inside]
-    cos = np.abs(nrm[0, inside] * offset[0, inside] + nrm[1, inside] * offset[1, inside]
-                 + nrm[2, inside] * offset[2, inside]) / np.maximum(distance, 1e-300)
-    cos = np.clip(cos, 1e-12, 1.0)
-    tan = np.minimum(np.sqrt(1 - cos ** 2) / cos, cap)
-    return inside[gap <= distance * (half_pixel * tan + 1e-5)]
 
 
 # --- prediction from depth -----------------------------------------------------------
@@ -391,64 +174,6 @@ def nearest(reference: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.
     """Distance and index of the nearest reference point [n_ref, 3] of every query [n, 3]
     (exact; see NearestNeighbours)."""
     return NearestNeighbours(reference).query(queries)
-
-
-def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Exact distance from points p [n, 3] to triangles (a, b, c) [n, 3] each, row by row
-    (`triangle_squared_distance`). [n]."""
-    p, a, b, c = (np.asarray(x, np.float64) for x in (p, a, b, c))
-    return np.sqrt(triangle_squared_distance(np.ascontiguousarray((p - a).T), triangle_table(a, b, c)))
-
-
-FLAT_SINE = 1e-8  # a triangle whose corner angle at a has a smaller sine counts as its edges
-
-# rows of triangle_table: what triangle_squared_distance reads of each triangle
-AB, AC, BC, NORMAL = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
-INV_AB2, INV_AC2, INV_BC2, AB_AC, AB2, AC2, FLAT = 12, 13, 14, 15, 16, 17, 18
-
-
-def triangle_table(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """[19, m]: per triangle (corners a, b, c [m, 3]) its edges ab, ac, bc, unit normal,
-    1 / |ab|^2, 1 / |ac|^2, 1 / |bc|^2 (0 for a zero-length edge), ab . ac, |ab|^2, |ac|^2,
-    and 1.0 if it is flat (area 0, within FLAT_SINE: the union of its edges), else 0.0."""
-    ab, ac, bc = b - a, c - a, c - b
-    cross = np.cross(ab, ac)
-    area = np.linalg.norm(cross, axis=1)
-    squares = [np.einsum("ij,ij->i", e, e) for e in (ab, ac, bc)]
-    flat = area <= FLAT_SINE * np.sqrt(squares[0] * squares[1])
-    inverse = [np.divide(1.0, s, out=np.zeros_like(s), where=s > 0) for s in squares]
-    normal = cross / np.where(flat, 1.0, area)[:, None]
-    return np.ascontiguousarray(np.concatenate([ab.T, ac.T, bc.T, normal.T, inverse,
-                                                [np.einsum("ij,ij->i", ab, ac), squares[0], squares[1], flat]]))
-
-
-def triangle_squared_distance(ap: np.ndarray, table: np.ndarray) -> np.ndarray:
-    """Squared distance [n] from points to triangles, pair by pair, in float64: ap = p - a
-    [3, n] (a a triangle's first corner), table [19, n] its `triangle_table` columns.
-
-    p's projection onto the triangle's plane is inside the triangle when its barycentric
-    weights of b and c, vb = (|ac|^2 d1 - (ab.ac) d2) / D and vc = (|ab|^2 d2 - (ab.ac) d1) / D
-    (d1 = ab.ap, d2 = ac.ap, D = |ab|^2 |ac|^2 - (ab.ac)^2 > 0), and 1 - vb - vc are all
-    non-negative: the distance is then the one to the plane, (n . ap)^2. Otherwise the
-    closest point is on the boundary: the nearest of the three edges, each the segment's
-    clamped projection (Ericson, Real-Time Collision Detection 5.1.2, 5.1.5). A flat
-    triangle is the union of its edges."""
-    ab, ac, bc, normal = table[AB], table[AC], table[BC], table[NORMAL]
-    d1 = ab[0] * ap[0] + ab[1] * ap[1] + ab[2] * ap[2]
-    d2 = ac[0] * ap[0] + ac[1] * ap[1] + ac[2] * ap[2]
-    vb = table[AC2] * d1 - table[AB_AC] * d2  # D vb
-    vc = table[AB2] * d2 - table[AB_AC] * d1  # D vc
-    inside = (vb >= 0) & (vc >= 0) & (vb + vc <= table[AB2] * table[AC2] - table[AB_AC] ** 2) & (table[FLAT] == 0)
-    edges = None
-    bp = ap - ab
-    for start, edge, along, inverse in ((ap, ab, d1, INV_AB2), (ap, ac, d2, INV_AC2),
-                                        (bp, bc, d2 - d1 - table[AB_AC] + table[AB2], INV_BC2)):  # bp . bc
-        t = np.clip(along * table[inverse], 0.0, 1.0)  # the clamped projection onto the edge
-        squared = (start[0] - t * edge[0]) ** 2 + (start[1] - t * edge[1]) ** 2 + (start[2] - t * edge[2]) ** 2
-        edges = squared if edges is None else np.minimum(edges, squared, out=edges)
-    plane = normal[0] * ap[0] + normal[1] * ap[1] + normal[2] * ap[2]
-    squared = np.where(inside, plane * plane, edges)
-    return squared
 
 
 class TriangleSearch:

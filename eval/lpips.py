@@ -467,3 +467,56 @@ class LpipsBatch:
     def scores(self) -> list:
         self._flush()
         return self.done
+
+
+# --- torchvision's AlexNet file, for other tools that build LPIPS from torch.hub -----------------
+
+# torchvision's AlexNet_Weights.IMAGENET1K_V1 (its DEFAULT): torch.hub looks for this file name
+# in $TORCH_HOME/hub/checkpoints/ and downloads it only when it is absent; the hash in the name
+# is checked on download, never on a file already there.
+TORCHVISION_ALEXNET = "alexnet-owt-7be5be79.pth"
+# features.<index> of AlexNet's five convolutions in torchvision's nn.Sequential (ReLUs and
+# max-pools between them hold no weights)
+TORCHVISION_ALEXNET_CONVS = (0, 3, 6, 8, 10)
+# the ImageNet classifier head after the features: (out, in) of each Linear. LPIPS never runs it.
+TORCHVISION_ALEXNET_CLASSIFIER = {"classifier.1": (4096, 256 * 6 * 6), "classifier.4": (4096, 4096),
+                                  "classifier.6": (1000, 4096)}
+
+
+def torchvision_alexnet_path(torch_home) -> Path:
+    """Where torchvision's alexnet(weights=AlexNet_Weights.DEFAULT) loads its weights from
+    with TORCH_HOME=`torch_home`."""
+    return Path(torch_home) / "hub" / "checkpoints" / TORCHVISION_ALEXNET
+
+
+def write_torchvision_alexnet(torch_home, weights: Optional[Path] = None) -> Path:
+    """Write the installed LPIPS-Alex backbone (`weights`, default `weights_path("alex")`) as
+    torchvision's AlexNet state dict at `torchvision_alexnet_path(torch_home)`, so a tool that
+    builds LPIPS through torchvision (torchmetrics, as nerfstudio's nerfacto and splatfacto
+    do at construction) loads it instead of downloading it. Returns the file's path.
+
+    features.* are LPIPS's AlexNet convolutions, which are torchvision's pretrained AlexNet
+    features (the LPIPS reference takes them from torchvision). classifier.* (ImageNet's
+    classifier head, which LPIPS never runs) are zeros of torchvision's shapes, saved as one
+    expanded zero, so the file is the features' 9.8 MB rather than 233 MB; loading copies
+    them into the model's own tensors. Without installed weights: InputError naming
+    `nerfgauge lpips install`."""
+    import torch  # torch: only when the file is written
+
+    model = load_lpips(weights, "alex")  # checks the install's sha256 and every shape
+    if model is None:
+        raise InputError(f"LPIPS-Alex weights are not installed ({weights or weights_path('alex')}); the "
+                         f"torchvision AlexNet file is made from them: run `{INSTALL_COMMAND}`")
+    state = {}
+    for conv, index in zip(model.convs, TORCHVISION_ALEXNET_CONVS):
+        state[f"features.{index}.weight"] = conv.weight.detach().clone()
+        state[f"features.{index}.bias"] = conv.bias.detach().clone()
+    zero = torch.zeros(())
+    for name, shape in TORCHVISION_ALEXNET_CLASSIFIER.items():
+        state[f"{name}.weight"] = zero.expand(shape)
+        state[f"{name}.bias"] = zero.expand(shape[:1])
+    target = torchvision_alexnet_path(torch_home)
+    owned.make_folder(target.parent)
+    with atomic_path(target) as tmp:
+        torch.save(state, tmp)
+    return target

@@ -1,7 +1,7 @@
 """Initial points for splatting methods, a controlled variable: `--points KIND[:COUNT]`.
 
     surface[:N]  N (default: 100,000, or one per 16 train pixels if fewer) samples of the ground-truth meshes (uniform by area) that some train view
-                 sees, by the exact depth test of eval/geometry.py's visibility rule; each
+                 sees, by the exact depth test of core/visibility.py's rule; each
                  coloured with the mean, over the first COLOUR_VIEWS (4) train views (in their
                  order) that see it, of the 8-bit sRGB PNG pixel it falls in. The points are on the triangles up to float64
                  rounding (points3D.bin keeps float64; the PLY float32).
@@ -35,7 +35,9 @@ import numpy as np
 
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.outputs import ply_mark
-from nerfgauge.eval.geometry import ground_truth_surface, point_triangle_distance
+from nerfgauge.core.surface import ground_truth_surface
+from nerfgauge.core.triangle_distance import point_triangle_distance
+from nerfgauge.core.visibility import GRAZING_CAP_DEGREES
 
 KINDS = ("surface", "sfm", "random", "none")
 DEFAULT_COUNT = {"surface": None, "random": None, "sfm": None, "none": 0}  # None: default_count (sfm: all)
@@ -51,7 +53,6 @@ DISTANCE_METHOD = {
               "nearest of 200000 area samples and the face centroids): an upper bound, in scene units",
 }
 NEAREST_SAMPLES = 16
-GRAZING_CAP_DEGREES = 80.0  # eval/geometry.py's visibility rule
 MIN_SFM_POINTS = 10
 COLOUR_VIEWS = 4  # a surface point's colour: the mean over the first train views (in order) that see it
 
@@ -183,7 +184,7 @@ def distance_summary(distance: np.ndarray, diagonal: float) -> dict:
 
 
 def _seen(xyz, nrm, pose, intrinsics, depth, distortion=None) -> tuple[np.ndarray, np.ndarray]:
-    """Columns of xyz [3, m] (unit normals nrm [3, m]) one view sees (eval/geometry.py's depth
+    """Columns of xyz [3, m] (unit normals nrm [3, m]) one view sees (core/visibility.py's depth
     test) and their pixels (flat index row * width + col). Component-wise arithmetic on
     contiguous rows: this runs once per train view over every candidate. distortion: the
     view's lens distortion (core.distortion), whose pixel grid its depth is on."""

@@ -14,9 +14,10 @@ from nerfgauge.core.arguments import path
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
 from nerfgauge.core.outputs import check_output_file, claim_output_file
-from nerfgauge.nerf.config import TrainConfig
+from nerfgauge.nerf.config import DEFAULT_BUDGET_SECONDS, MODELS, TrainConfig
 from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
 from nerfgauge.nerf.options import add_train_arguments, train_fields
+import nerfgauge.splat.commands as splat_commands  # --model splat's flags and runs (no torch)
 
 
 def register(subparsers) -> None:
@@ -91,17 +92,22 @@ def _add_train(subparsers) -> None:
                     "was stopped before its first checkpoint; otherwise pass --resume or --overwrite.")
     parser.add_argument("dataset", type=path, help="a complete dataset folder (with manifest.json)")
     parser.add_argument("--out", type=path, required=True, metavar="RUN", help="run folder")
-    add_train_arguments(parser)  # every training option, defined once (nerf.options; `run` adds them too)
+    # every training option, defined once (nerf.options; `run` adds them too); --model also splat
+    add_train_arguments(parser, models=(*MODELS, splat_commands.MODEL))
     again = parser.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue RUN from its checkpoint (with --steps N: bit-identical to an uninterrupted "
                             "N-step run at the same --threads)")
     again.add_argument("--overwrite", action="store_true", help="replace the run in RUN (only a nerfgauge run folder)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    splat_commands.add_train_arguments(parser)
     parser.set_defaults(func=_run_train)
 
 
 def _run_train(args) -> int:
+    if args.model == splat_commands.MODEL:
+        return splat_commands.run_train(args, DEFAULT_BUDGET_SECONDS)
+    splat_commands.refuse_splat_flags(args)
     from nerfgauge.nerf.train import train  # torch: kept off `nerfgauge --help`'s import path
 
     config = TrainConfig(dataset=str(args.dataset), **train_fields(args))
@@ -125,7 +131,8 @@ def _add_render(subparsers) -> None:
                     "model or step ratio is replaced only with --overwrite. The dataset must be the one the run "
                     "was trained on: its manifest.json hash is compared with the one the run recorded, and a "
                     "dataset regenerated or edited since training is refused (exit 2).")
-    parser.add_argument("run", type=path, metavar="RUN", help="a run folder made by nerfgauge train")
+    parser.add_argument("run", type=path, metavar="RUN", help="a run folder made by nerfgauge train (or a "
+                        "splatting PLY in the 3DGS layout, with --dataset)")
     parser.add_argument("--split", choices=("train", "val", "test"), default="test")
     parser.add_argument("--out", type=path, default=None, metavar="DIR", help="output folder (default RUN/renders)")
     parser.add_argument("--overwrite", action="store_true",
@@ -151,10 +158,13 @@ def _add_render(subparsers) -> None:
                              "through a lens); the run's own dataset must still match its record, and DATASET "
                              "must show its scene (scene.json recipe, seed and bounds)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    splat_commands.note_render_parser(parser)
     parser.set_defaults(func=_run_render)
 
 
 def _run_render(args) -> int:
+    if splat_commands.is_splat_source(args.run):
+        return splat_commands.run_render(args)
     from nerfgauge.nerf.render_views import render_split  # torch: kept off `nerfgauge --help`'s import path
 
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,

@@ -32,10 +32,11 @@ def _word(name: str, value) -> object:
 
 
 def add_train_arguments(parser: argparse.ArgumentParser, defaults: TrainConfig | None = None, *,
-                        seed: bool = True) -> argparse.ArgumentParser:
+                        seed: bool = True, models: tuple = MODELS) -> argparse.ArgumentParser:
     """Add the training options to `parser` (or an argument group of one; dest: the field's
     name). defaults: a TrainConfig whose values are the defaults, else TrainConfig's own.
-    seed: add --seed (False where the command's --seed is another stage's and trains too)."""
+    seed: add --seed (False where the command's --seed is another stage's and trains too).
+    models: --model's choices (`nerfgauge train` adds splat, which its own runner trains)."""
     d = TrainConfig(dataset=".") if defaults is None else defaults
 
     def add(name: str, *more, **options) -> None:
@@ -46,7 +47,7 @@ def add_train_arguments(parser: argparse.ArgumentParser, defaults: TrainConfig |
             options.setdefault("default", _word(name, getattr(d, name)))
         (more[0] if more else parser).add_argument(flag, dest=name, **options)
 
-    add("model", choices=MODELS, help=f"which NeRF trains (default {d.model})")
+    add("model", choices=models, help=f"which model trains (default {d.model})")
     length = parser.add_mutually_exclusive_group()
     # None: the config's own default budget, unless --steps
     add("budget_seconds", length, default=None, metavar="T",

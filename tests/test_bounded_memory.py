@@ -29,20 +29,23 @@ from test_geometry import _closest_on_triangles
 BUDGET = 1 << 30  # address space a capped subprocess may take beyond its imports (1 GiB)
 
 # Runs in a subprocess: hides Open3D, imports, caps the address space at what the imports
-# took plus BUDGET, then runs BODY (which reads sys.argv[2:]). Prints the peak RSS (kB).
+# took plus BUDGET, then runs BODY (which reads sys.argv[2:]). Prints the peak RSS after the
+# imports and at the end (kB).
 CAPPED = textwrap.dedent("""
     import resource, sys
     sys.modules["open3d"] = None  # as if Open3D were not installed
     import numpy as np
     import scipy.spatial, trimesh  # what the geometry scoring loads lazily
     from nerfgauge.cli import main
-    from nerfgauge.eval.geometry import PointSet, Surface, compare, distance_backend
+    from nerfgauge.core.surface import PointSet, Surface
+    from nerfgauge.eval.geometry import compare, distance_backend
     assert distance_backend() == "bvh", distance_backend()
     status = dict(line.split(":", 1) for line in open("/proc/self/status"))
     limit = int(status["VmSize"].split()[0]) * 1024 + int(sys.argv[1])
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    imported_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     {body}
-    print("peak_rss_kb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+    print("imported_rss_kb", imported_kb, "peak_rss_kb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 """)
 
 
@@ -137,8 +140,10 @@ class TestGeometryCommandWithoutOpen3D:
         capped = json.loads((tmp_path / "capped.json").read_text())
         assert capped["distances"]["completeness"] == "point to surface (exact, bvh)"
         assert capped["completeness"] > 20 * 0.02  # far, as meant
-        peak_kb = int(done.stdout.split("peak_rss_kb")[-1])
-        assert peak_kb * 1024 < 2 * BUDGET, peak_kb
+        # what the command itself added: the imports' resident set (torch, Mitsuba's JIT) is
+        # not the geometry's, and varies with what ran before in the session's caches
+        imported_kb, peak_kb = (int(v) for v in done.stdout.split()[-3::2])
+        assert (peak_kb - imported_kb) * 1024 < BUDGET, (imported_kb, peak_kb)
         try:
             import open3d  # noqa: F401
         except Exception:

@@ -16,6 +16,7 @@ from nerfgauge.cli import main
 from nerfgauge.core import colmap
 from nerfgauge.core.camera import Intrinsics, look_at, pixel_rays
 from nerfgauge.core.dataset import Dataset, verify_manifest
+from nerfgauge.core.triangle_distance import point_triangle_distance
 from nerfgauge.generate import points as points_module
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -172,7 +173,7 @@ def test_point_triangle_distance_against_brute_force():
     rng = np.random.default_rng(3)
     a, b, c = (rng.normal(size=(500, 3)) for _ in range(3))
     p = rng.normal(size=(500, 3)) * 2
-    exact = points_module.point_triangle_distance(p, a, b, c)
+    exact = point_triangle_distance(p, a, b, c)
     u, v = np.meshgrid(np.linspace(0, 1, 301), np.linspace(0, 1, 301))
     keep = u + v <= 1
     u, v = u[keep], v[keep]

@@ -17,12 +17,9 @@ import torch
 import trimesh
 
 from nerfgauge.cli import main
-from nerfgauge.eval.geometry import (
-    PointSet,
-    compare,
-    sample_surface,
-    visible_in_views,
-)
+from nerfgauge.core.surface import PointSet, sample_surface
+from nerfgauge.core.visibility import visible_in_views
+from nerfgauge.eval.geometry import compare
 from nerfgauge.nerf.mesh import extract_mesh, seen_by_any
 from nerfgauge.nerf.models import RadianceModel
 
@@ -122,7 +119,7 @@ def test_visibility_from_exact_depth(tiny_dataset):
     """Every ground-truth sample that a train view's exact depth confirms is visible; the
     undersides of the primitives (resting on z = 0, cameras above) are not."""
     from nerfgauge.core.dataset import Dataset
-    from nerfgauge.eval.geometry import ground_truth_surface
+    from nerfgauge.core.surface import ground_truth_surface
 
     ds = Dataset(tiny_dataset)
     gt = ground_truth_surface(ds)
@@ -153,7 +150,7 @@ def test_visibility_from_exact_depth(tiny_dataset):
 
 
 def _visible_sample_by_sample(points, normals, ds, split, only=None):
-    """The depth test of eval.geometry's docstring, written out per view for every sample
+    """The depth test of core.visibility's docstring, written out per view for every sample
     (no working set, no pre-test): the reference the fast version must reproduce.
     only: test that one view of the split (all of them when None)."""
     from nerfgauge.core.camera import project
@@ -179,7 +176,7 @@ def _visible_sample_by_sample(points, normals, ds, split, only=None):
 
 def test_visibility_matches_the_sample_by_sample_definition(tiny_dataset):
     from nerfgauge.core.dataset import Dataset
-    from nerfgauge.eval.geometry import ground_truth_surface
+    from nerfgauge.core.surface import ground_truth_surface
 
     ds = Dataset(tiny_dataset)
     gt = ground_truth_surface(ds)
@@ -214,7 +211,7 @@ def test_geometry_command_scores_the_ground_truth_itself(tiny_dataset, tmp_path,
     """The dataset's own meshes, exported as one PLY, score a perfect F-score and a
     Chamfer distance of the order of the sample spacing."""
     from nerfgauge.core.dataset import Dataset
-    from nerfgauge.eval.geometry import ground_truth_surface
+    from nerfgauge.core.surface import ground_truth_surface
 
     gt = ground_truth_surface(Dataset(tiny_dataset))
     path = tmp_path / "gt.ply"
@@ -515,7 +512,7 @@ def test_nested_cubes_score_the_offset_exactly():
     farther), and a ground-truth point p is ||max(|p| - (1 - d), 0)|| from the prediction
     (the distance to an axis-aligned box). Point-to-point distances between samples
     overestimate both; point to surface does not."""
-    from nerfgauge.eval.geometry import Surface
+    from nerfgauge.core.surface import Surface
 
     d = 0.02
     gt_v, gt_f = _cube(1.0)
@@ -546,7 +543,7 @@ def test_nested_cubes_score_the_offset_exactly():
 def _displaced_primitives(offset):
     """The primitives scene's ground-truth meshes, and the same meshes with every vertex
     moved `offset` along its (area-weighted) vertex normal."""
-    from nerfgauge.eval.geometry import Surface
+    from nerfgauge.core.surface import Surface
     from nerfgauge.scenes.library import primitives
 
     parts = [shape.mesh() for shape in primitives(0).shapes]
@@ -591,7 +588,7 @@ def test_displaced_mesh_scores_equal_an_independent_exact_computation():
 def test_a_point_cloud_keeps_point_to_point_completeness():
     """A cloud has no surface: ground truth is scored to its nearest point; the cloud's own
     points are scored exactly to the ground-truth mesh."""
-    from nerfgauge.eval.geometry import Surface
+    from nerfgauge.core.surface import Surface
 
     d = 0.02
     gt_v, gt_f = _cube(1.0)

@@ -2,11 +2,11 @@
 points down.
 
     top:       nerfgauge.cli  >  nerfgauge.api  >  nerfgauge.run, nerfgauge.orchestrate  >  nerfgauge.methods
-    stages:    nerfgauge.generate  >  nerfgauge.scenes;  nerfgauge.nerf;  nerfgauge.eval
+    stages:    nerfgauge.generate  >  nerfgauge.scenes;  nerfgauge.nerf;  nerfgauge.eval;  nerfgauge.splat
     bottom:    nerfgauge.core
 
 `core` imports only `core`; `scenes` imports `core`; `generate` imports `scenes` and `core`;
-`nerf` and `eval` import `core` only, except the few edges in ALLOWED below (each with its
+`nerf`, `eval` and `splat` import `core` only, except the few edges in ALLOWED below (each with its
 reason); no stage imports the top layer (the CLI, the API, `run`, orchestration).
 
 The graph is read from the source with `ast`, with pyproject's folder mapping applied
@@ -25,7 +25,7 @@ from pathlib import Path
 
 REPOSITORY = Path(__file__).resolve().parent.parent
 
-STAGES = ("nerfgauge.scenes", "nerfgauge.generate", "nerfgauge.nerf", "nerfgauge.eval")
+STAGES = ("nerfgauge.scenes", "nerfgauge.generate", "nerfgauge.nerf", "nerfgauge.eval", "nerfgauge.splat")
 CORE = ("nerfgauge.core",)
 # What each group of modules may import besides itself (a module's group: the longest
 # name here that it is or is inside of).
@@ -35,7 +35,8 @@ MAY_IMPORT = {
     "nerfgauge.generate": ("nerfgauge.scenes", *CORE),
     "nerfgauge.nerf": CORE,
     "nerfgauge.eval": CORE,
-    "nerfgauge.methods": (*STAGES, *CORE),  # methods run the stages (nerf trains, methods.baselines renders)
+    "nerfgauge.splat": CORE,
+    "nerfgauge.methods": (*STAGES, *CORE),  # methods run the stages (nerf and splat train, methods.baselines renders)
     "nerfgauge.orchestrate": ("nerfgauge.methods", *STAGES, *CORE),
     "nerfgauge.run": ("nerfgauge.methods", *STAGES, *CORE),
     "nerfgauge.api": ("nerfgauge.run", "nerfgauge.methods", *STAGES, *CORE),
@@ -52,11 +53,11 @@ ALLOWED = {
         "`nerfgauge geometry --run RUN` loads the run's model to score its normals",
     ("nerfgauge.eval.commands", "nerfgauge.nerf.runs"):
         "`nerfgauge geometry --run RUN` reads the run with the dataset it was trained on, checked against its record",
-    ("nerfgauge.generate.points", "nerfgauge.eval.geometry"):
-        "the COLMAP export's surface points sample the ground-truth surface the evaluator scores against "
-        "(eval.geometry reads the meshes through the manifest): one definition of that surface",
     ("nerfgauge.eval.check", "nerfgauge.scenes.registry"):
         "the gate refuses a scene name no recipe has (the registry lists the recipes)",
+    ("nerfgauge.nerf.commands", "nerfgauge.splat.commands"):
+        "one `train` and one `render` command serve every model: `--model splat` and a splatting RUN go to "
+        "splat's runners, whose flags are defined beside SplatConfig",
 }
 
 

@@ -306,3 +306,247 @@ def test_a_command_killed_by_a_signal_reports_the_signal(tiny_dataset, tmp_path)
                     '[render]\ncommand = ["x"]\nlayout = "nerfgauge"\n')
     with pytest.raises(MethodFailed, match="exited with status -9"):
         resolve(str(spec)).train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
+
+
+# --- specs: settings, devices, environments, prepare steps (nerfgauge.methods.external) ------------
+
+
+def echo_spec(folder: Path, body: str, name="echo") -> Path:
+    """A spec whose training prints its arguments and a few variables (JSON) and writes its weights."""
+    program = folder / "echo.py"
+    program.write_text(textwrap.dedent('''
+        import json, os, pathlib, sys
+        run = pathlib.Path(os.getcwd())
+        (run / "out").mkdir(exist_ok=True)
+        (run / "out" / "weights.txt").write_text("1\\n")
+        print("ECHO " + json.dumps({"argv": sys.argv[1:], "env": {k: os.environ.get(k) for k in
+              ("PYTHONPATH", "VIRTUAL_ENV", "MARK", "PATH")}}))
+        if sys.argv[1:2] == ["render"]:
+            out = pathlib.Path(sys.argv[2]) / "test"
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "r_000.png").write_bytes(b"not scored here")
+    '''))
+    spec = folder / f"{name}.toml"
+    spec.write_text(f'name = "{name}"\n' + body.replace("PROGRAM", json.dumps(str(program))))
+    return spec
+
+
+def echoed(log: Path) -> dict:
+    line = [line for line in log.read_text().splitlines() if line.startswith("ECHO ")][-1]
+    return json.loads(line[len("ECHO "):])
+
+
+SETTINGS_SPEC = '''
+[settings]
+rays = 4096
+scale = 1.5
+mask = true
+label = "a b"
+[train]
+command = ["{python}", PROGRAM, "--rays", "{rays}", "--scale", "{scale}", "--mask", "{mask}", "--label", "{label}"]
+devices = { cpu = ["--device", "cpu"], auto = [] }
+[render]
+command = ["{python}", PROGRAM, "render", "{out}", "{rays}"]
+layout = "nerfgauge"
+[files]
+weights = "{run}/out/weights.txt"
+'''
+
+
+def settings_spec(tmp_path) -> Path:
+    return echo_spec(tmp_path, SETTINGS_SPEC.replace('"{python}"', json.dumps(sys.executable)))
+
+
+def test_a_specs_settings_fill_its_command_and_a_job_overrides_them(tiny_dataset, tmp_path):
+    method = resolve(str(settings_spec(tmp_path)), {"rays": 256})
+    method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1, device="cpu",
+                              settings={"scale": 2, "mask": False}))
+    argv = echoed(tmp_path / "run" / "train.log")["argv"]
+    assert argv == ["--rays", "256", "--scale", "2.0", "--mask", "False", "--label", "a b", "--device", "cpu"]
+    # rendering uses the settings the run was trained with, whatever the method object's
+    resolve(str(settings_spec(tmp_path))).render(tmp_path / "run", tiny_dataset, "test", tmp_path / "renders")
+    assert echoed(tmp_path / "run" / "render-test.log")["argv"][-1] == "256"
+    assert json.loads((tmp_path / "run" / "method.json").read_text())["settings"] == {
+        "rays": 256, "scale": 2.0, "mask": False, "label": "a b"}
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"ray": 5}, "unknown setting 'ray' (its spec's settings: label, mask, rays, scale)"),
+    ({"rays": "many"}, "setting rays must be a int like its default 4096, got 'many'"),
+    ({"rays": True}, "setting rays must be a int"),
+    ({"mask": 1}, "setting mask must be a bool"),
+    ({"scale": float("nan")}, "setting scale must be a float"),
+])
+def test_a_bad_setting_is_one_line_before_anything_runs(tiny_dataset, tmp_path, settings, message):
+    spec = settings_spec(tmp_path)
+    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")) as error:
+        resolve(str(spec), settings)
+    assert "\n" not in str(error.value)
+    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        resolve(str(spec)).train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1, settings=settings))
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_device_the_spec_does_not_name_is_refused_before_anything_runs(tiny_dataset, tmp_path):
+    method = resolve(str(settings_spec(tmp_path)))
+    with pytest.raises(InputError, match="runs on cpu, auto, not on device 'cuda'"):
+        method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1, device="cuda"))
+    assert not (tmp_path / "run").exists()
+    method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))  # auto: nothing appended
+    assert echoed(tmp_path / "run" / "train.log")["argv"][-1] == "a b"
+
+
+@pytest.mark.parametrize("body, message", [
+    ('[settings]\nsteps = 3\n[train]\ncommand = ["a"]\n[render]\ncommand = ["a"]\nlayout = "nerfgauge"',
+     "settings.steps: a name of lower-case letters"),
+    ('[settings]\nx = [1, 2]\n[train]\ncommand = ["a"]\n[render]\ncommand = ["a"]\nlayout = "nerfgauge"',
+     "settings.x must be a boolean, number or string"),
+    ('[train]\ncommand = ["a"]\ndevices = { gpu = [] }\n[render]\ncommand = ["a"]\nlayout = "nerfgauge"',
+     "train.devices.gpu: not a device"),
+    ('[train]\ncommand = ["a", "{env}/x"]\n[render]\ncommand = ["a"]\nlayout = "nerfgauge"',
+     "the spec names no environment"),
+    ('[environment]\nname = "a"\nbin = "/x"\n[train]\ncommand = ["a"]\n[render]\ncommand = ["a"]\nlayout = "nerfgauge"',
+     "not both"),
+    ('[prepare]\ntorchvision_alexnet = "/tmp/torch"\n[train]\ncommand = ["a"]\n[render]\ncommand = ["a"]\n'
+     'layout = "nerfgauge"', "prepare.torchvision_alexnet must be a path inside the run folder"),
+    ('[prepare]\ndownload = "{run}/x"\n[train]\ncommand = ["a"]\n[render]\ncommand = ["a"]\nlayout = "nerfgauge"',
+     "unknown field prepare.download"),
+    ('install = [["pip", "install", "{run}"]]\n[environment]\nname = "a"\n[train]\ncommand = ["a"]\n'
+     '[render]\ncommand = ["a"]\nlayout = "nerfgauge"', "unknown placeholder {run}"),
+    ('install = "pip install x"\n[environment]\nvariables = { X = "{out}" }\n[train]\ncommand = ["a"]\n'
+     '[render]\ncommand = ["a"]\nlayout = "nerfgauge"', "unknown placeholder {out}"),
+])
+def test_a_bad_spec_field_of_the_new_kinds_is_one_line(tmp_path, body, message):
+    spec = tmp_path / "bad.toml"
+    spec.write_text('name = "x"\n' + body)
+    with pytest.raises(InputError, match=message.replace("{", r"\{").replace("}", r"\}")) as error:
+        read_spec(spec)
+    assert "\n" not in str(error.value)
+
+
+def test_a_method_with_its_own_schedule_takes_no_steps(tiny_dataset, tmp_path):
+    spec = echo_spec(tmp_path, f'[train]\ncommand = [{json.dumps(sys.executable)}, PROGRAM]\nlength = "own"\n'
+                               '[render]\ncommand = ["x"]\nlayout = "nerfgauge"\n')
+    method = resolve(str(spec))
+    with pytest.raises(InputError, match="trains its own schedule"):
+        method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=10))
+    result = method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run"))
+    assert result.steps is None and method.accepts_budget is False
+
+
+# --- named environments and their install ------------------------------------------------------
+
+
+def env_spec(tmp_path, install_lines: list, extra_arguments=()) -> Path:
+    """A spec whose environment "toolbox" is built by `install_lines` (python -c programs,
+    given {env} and then `extra_arguments`)."""
+    install = json.dumps([[sys.executable, "-c", code, "{env}", *extra_arguments] for code in install_lines])
+    return echo_spec(tmp_path, f'install = {install}\n[environment]\nname = "toolbox"\n'
+                               'variables = { MARK = "{env}" }\n'
+                               '[train]\ncommand = ["tool", PROGRAM]\n[render]\ncommand = ["tool"]\n'
+                               'layout = "nerfgauge"\n', name="toolbox")
+
+
+MAKE_TOOL = ("import os, sys, pathlib; b = pathlib.Path(sys.argv[1]) / 'bin'; b.mkdir(parents=True); "
+             f"t = b / 'tool'; t.write_text('#!/bin/sh\\nexec {sys.executable} \"$@\"\\n'); t.chmod(0o755)")
+
+
+def test_a_named_environment_is_installed_and_used_by_its_method(tiny_dataset, tmp_path, monkeypatch, capsys):
+    from nerfgauge.cli import main
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    monkeypatch.delenv("NERFGAUGE_ENV_TOOLBOX", raising=False)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path / "ours"))
+    spec = env_spec(tmp_path, [MAKE_TOOL])
+    method = resolve(str(spec))
+    with pytest.raises(MethodFailed, match=r"its environment .*toolbox is not installed: run `nerfgauge methods "
+                                           r"install toolbox`, or set NERFGAUGE_ENV_TOOLBOX"):
+        method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
+    assert not (tmp_path / "run").exists()
+    assert main(["methods", "install", str(spec)]) == 0
+    folder = tmp_path / "data" / "nerfgauge" / "envs" / "toolbox"
+    assert f"toolbox: environment installed: {folder}" in capsys.readouterr().out
+    assert json.loads((folder / "nerfgauge-environment.json").read_text())["state"] == "complete"
+    method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
+    seen = echoed(tmp_path / "run" / "train.log")["env"]
+    assert seen["MARK"] == str(folder) and seen["VIRTUAL_ENV"] == str(folder)
+    assert seen["PATH"].split(os.pathsep)[0] == str(folder / "bin") and seen["PYTHONPATH"] is None
+    assert main(["methods", "install", str(spec)]) == 0
+    assert "already installed" in capsys.readouterr().out
+    # another folder: the method is told where it looks
+    assert main(["methods", "install", str(spec), "--env", str(tmp_path / "elsewhere")]) == 0
+    assert f"set NERFGAUGE_ENV_TOOLBOX={tmp_path / 'elsewhere'}" in capsys.readouterr().out
+
+
+def test_an_interrupted_install_is_never_taken_for_a_complete_one(tiny_dataset, tmp_path, capsys, monkeypatch):
+    from nerfgauge.cli import main
+
+    target = tmp_path / "env"
+    monkeypatch.setenv("NERFGAUGE_ENV_TOOLBOX", str(target))
+    failing = env_spec(tmp_path, [MAKE_TOOL, "import sys; sys.exit(4)"])
+    assert main(["methods", "install", str(failing), "--env", str(target)]) == 2
+    error = capsys.readouterr().err
+    assert "line 2 of 2" in error and "exited with status 4" in error and "\n" not in error.strip()
+    assert json.loads((target / "nerfgauge-environment.json").read_text())["state"] == "building"
+    # its bin/tool was made by the first line, but the method refuses the half-built environment
+    assert (target / "bin" / "tool").is_file()
+    with pytest.raises(MethodFailed, match=f"its environment {target} is incomplete .*install toolbox` again"):
+        resolve(str(failing)).train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
+    assert not (tmp_path / "run").exists()
+    fixed = env_spec(tmp_path, [MAKE_TOOL])  # the same folder, built again from scratch
+    assert main(["methods", "install", str(fixed), "--env", str(target)]) == 0
+    assert "environment installed" in capsys.readouterr().out and (target / "bin" / "tool").is_file()
+    assert json.loads((target / "nerfgauge-environment.json").read_text())["state"] == "complete"
+    resolve(str(fixed)).train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
+
+
+def test_a_file_beside_the_spec_that_its_install_names_is_part_of_the_environment(tmp_path, capsys):
+    """{spec_folder}/pins.txt (a constraints file): the same file, nothing to do; another
+    content, built again; no such file, one line before anything runs."""
+    from nerfgauge.cli import main
+
+    target, pins = tmp_path / "env", tmp_path / "pins.txt"
+    copy = MAKE_TOOL + "; (b.parent / 'pins-used').write_text(pathlib.Path(sys.argv[2]).read_text())"
+    spec = str(env_spec(tmp_path, [copy], ["{spec_folder}/pins.txt"]))
+    pins.write_text("tool==1\n")
+    assert main(["methods", "install", spec, "--env", str(target)]) == 0
+    assert (target / "pins-used").read_text() == "tool==1\n" and "environment installed" in capsys.readouterr().out
+    assert main(["methods", "install", spec, "--env", str(target)]) == 0
+    assert "already installed" in capsys.readouterr().out
+    pins.write_text("tool==2\n")
+    assert main(["methods", "install", spec, "--env", str(target)]) == 0
+    assert (target / "pins-used").read_text() == "tool==2\n" and "environment installed" in capsys.readouterr().out
+    pins.unlink()
+    assert main(["methods", "install", spec, "--env", str(target)]) == 2
+    error = capsys.readouterr().err
+    assert f"its install lines name {pins}, which is not a file" in error and "\n" not in error.strip()
+    assert (target / "pins-used").read_text() == "tool==2\n"  # refused before anything was touched
+
+
+def test_install_refuses_a_folder_it_did_not_build_untouched(tmp_path, capsys):
+    from nerfgauge.cli import main
+
+    users = tmp_path / "my-venv"
+    users.mkdir()
+    (users / "keep.txt").write_text("mine")
+    assert main(["methods", "install", str(env_spec(tmp_path, [MAKE_TOOL])), "--env", str(users)]) == 2
+    assert "was not built by `nerfgauge methods install`" in capsys.readouterr().err
+    assert sorted(p.name for p in users.iterdir()) == ["keep.txt"]
+
+
+def test_install_lines_that_do_not_make_the_command_leave_it_incomplete(tmp_path, capsys):
+    from nerfgauge.cli import main
+
+    target = tmp_path / "env"
+    assert main(["methods", "install", str(env_spec(tmp_path, ["pass"])), "--env", str(target)]) == 2
+    assert "holds no tool" in capsys.readouterr().err
+    assert json.loads((target / "nerfgauge-environment.json").read_text())["state"] == "building"
+
+
+def test_the_torchvision_alexnet_step_names_the_lpips_install_when_weights_are_missing(tiny_dataset, tmp_path,
+                                                                                    monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "empty-cache"))
+    spec = write_spec(tmp_path, extra='[prepare]\ntorchvision_alexnet = "{run}/torch-home"\n')
+    with pytest.raises(MethodFailed, match=r"prepare.torchvision_alexnet: .*run `nerfgauge lpips install`"):
+        resolve(str(spec)).train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
+    assert not (tmp_path / "run" / "train.log").exists()  # nothing ran

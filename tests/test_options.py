@@ -19,11 +19,15 @@ from nerfgauge.eval.evaluate import EvaluateConfig
 from nerfgauge.nerf.config import AUTO, DEFAULT_BUDGET_SECONDS, FLAGS, SWITCH, TrainConfig
 from nerfgauge.nerf.options import train_fields
 from nerfgauge.run import RunConfig
+from nerfgauge.splat.config import OWN_FLAGS as SPLAT_OWN_FLAGS
 
 REPOSITORY = Path(__file__).resolve().parent.parent
 # train's flags that `run` has no use for: the run folder (--out names OUT/run's parent there,
 # with its own meaning) and continuing one (--resume: `run` reruns only with --overwrite).
 TRAIN_FOLDER_FLAGS = {"--out", "--resume"}
+# `train --model splat`'s own flags: SplatConfig's (splat.config), refused for a NeRF; `run`
+# trains a NeRF only
+SPLAT_FLAGS = {flag for flag, _, _ in SPLAT_OWN_FLAGS.values()}
 
 
 def subcommand(name: str) -> argparse.ArgumentParser:
@@ -40,7 +44,8 @@ def test_run_takes_every_train_flag_and_every_scoring_flag():
     """run's flags include train's, but for those of the run folder; and evaluate's scoring
     ones (--protocol among them), which --help offers."""
     run, train, evaluate = subcommand("run"), subcommand("train"), subcommand("evaluate")
-    assert flags(train) - TRAIN_FOLDER_FLAGS <= flags(run), sorted(flags(train) - TRAIN_FOLDER_FLAGS - flags(run))
+    not_run = TRAIN_FOLDER_FLAGS | SPLAT_FLAGS
+    assert flags(train) - not_run <= flags(run), sorted(flags(train) - not_run - flags(run))
     scoring = {"--background", "--protocol", "--no-held-out"}
     assert scoring <= flags(evaluate) and scoring <= flags(run)
     assert "--protocol" in run.format_help() and "--refine-grid" in run.format_help()
@@ -51,7 +56,7 @@ def test_every_train_flag_is_a_config_fields_and_reads_back_as_it():
     TrainConfig field whose metadata names it (nerf.config.FLAGS)."""
     train = subcommand("train")
     by_flag = {flag: action.dest for action in train._actions for flag in action.option_strings}
-    own = {"--out", "--resume", "--overwrite", "--quiet", "-h", "--help"}
+    own = {"--out", "--resume", "--overwrite", "--quiet", "-h", "--help"} | SPLAT_FLAGS
     assert {flag: by_flag[flag] for flag in set(by_flag) - own} == {flag: name for name, flag in FLAGS.items()}
 
 

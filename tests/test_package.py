@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 REPOSITORY = Path(__file__).resolve().parent.parent
-SUBPACKAGES = ("core", "scenes", "generate", "nerf", "eval", "orchestrate")
+SUBPACKAGES = ("core", "scenes", "generate", "nerf", "splat", "eval", "orchestrate")
 
 
 def can_build_wheels_here() -> bool:

@@ -5,7 +5,8 @@ import sys, time
 import numpy as np
 sys.path.insert(0, "tests")  # run from the repository root
 from test_geometry import _closest_on_triangles, _displaced_primitives
-from nerfgauge.eval.geometry import SurfaceDistance, compare, sample_surface
+from nerfgauge.core.surface import sample_surface
+from nerfgauge.eval.geometry import SurfaceDistance, compare
 
 for fraction in (0.005, 0.01):
     gt_mesh, _ = _displaced_primitives(0.0)

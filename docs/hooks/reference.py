@@ -149,7 +149,9 @@ GENERATORS = {"cli": cli_markdown, "exit-codes": exit_codes_markdown, "layers": 
 FOREIGN_FLAGS = {"--no-deps", "--nthreads", "--nworkers", "--port", "--depth-unit-scale-factor", "--load-config",
                  "--output-path", "--split", "--data", "--method", "--output", "--checkpoint", "--durations",
                  "--dist", "--headless", "--remote-debugging-pipe", "--fuzz-seed", "--strict",
-                 "--disable-pip-version-check", "--align", "--correct_scale"}
+                 "--disable-pip-version-check", "--align", "--correct_scale",
+                 # the method specs' pages (docs/how-to/methods/): pip, git, ns-train, simple_trainer.py
+                 "--constraint", "--depth", "--branch", "--vis", "--test-every", "--no-normalize-world-space"}
 FENCE = re.compile(r"(?P<marker><!--\s*test:\s*(?P<what>[^>]*?)\s*-->\s*\n)?```(?P<info>[^\n]*)\n(?P<body>.*?)\n```",
                    re.S)
 INLINE = re.compile(r"(?<!`)`([^`\n]+)`(?!`)")

@@ -99,6 +99,7 @@ class Model:
     cameras: dict  # {camera_id: Camera}
     images: list  # [Image] in file order
     points: np.ndarray | None  # [n, 3] float64, None without points3D.txt
+    colours: np.ndarray | None = None  # [n, 3] the points' R G B as written (0-255), None without points3D.txt
 
 
 def _lines(data: bytes, where: str):
@@ -227,9 +228,10 @@ def _points2d(text: str, image_id: int, where: str, number: int) -> tuple:
 
 
 def read_points(data: bytes, where: str, images: list) -> tuple:
-    """points3D.txt -> ([n, 3] float64 positions, {point ids}); each track's (IMAGE_ID, POINT2D_IDX) must
-    name an image of `images` and one of its 2D points."""
-    points, ids = [], {}
+    """points3D.txt -> ([n, 3] float64 positions, [n, 3] float64 colours R G B as written,
+    {point ids}); each track's (IMAGE_ID, POINT2D_IDX) must name an image of `images` and one
+    of its 2D points."""
+    points, colours, ids = [], [], {}
     counts = {image.image_id: image.points2d for image in images}
     for number, line in _records(_lines(data, where)):
         fields = line.split()
@@ -240,7 +242,7 @@ def read_points(data: bytes, where: str, images: list) -> tuple:
             raise InputError(f"{where} line {number}: 3D point {point_id} is given twice (first on line {ids[point_id]})")
         ids[point_id] = number
         points.append(_numbers(fields[1:4], float, where, number))
-        _numbers(fields[4:8], float, where, number)  # colour and error: numbers
+        colours.append(_numbers(fields[4:8], float, where, number)[:3])  # colour and error: numbers
         track = fields[8:]
         if len(track) % 2:
             raise InputError(f"{where} line {number}: 3D point {point_id} has a track of {len(track)} numbers; "
@@ -254,7 +256,7 @@ def read_points(data: bytes, where: str, images: list) -> tuple:
                 if not 0 <= index < counts[image_id]:
                     raise InputError(f"{where} line {number}: 3D point {point_id} is 2D point {index} of image "
                                      f"{image_id}, which has {counts[image_id]}")
-    return np.asarray(points, np.float64).reshape(-1, 3), set(ids)
+    return np.asarray(points, np.float64).reshape(-1, 3), np.asarray(colours, np.float64).reshape(-1, 3), set(ids)
 
 
 def read_model(texts: dict, wheres: dict) -> Model:
@@ -268,13 +270,13 @@ def read_model(texts: dict, wheres: dict) -> Model:
         if image.camera_id not in cameras:
             raise InputError(f"{where} line {image.line}: image {image.image_id} names camera {image.camera_id}, which "
                              f"{wheres['cameras.txt']} lacks")
-    points, point_ids = None, set()
+    points, colours, point_ids = None, None, set()
     if "points3D.txt" in texts:
-        points, point_ids = read_points(texts["points3D.txt"], wheres["points3D.txt"], images)
+        points, colours, point_ids = read_points(texts["points3D.txt"], wheres["points3D.txt"], images)
     for image in images:
         missing = [point for point in image.point3d_ids if point not in point_ids]
         if missing:
             lacking = "there is no points3D.txt" if points is None else f"{wheres['points3D.txt']} lacks it"
             raise InputError(f"{where} line {image.line + 1}: image {image.image_id}'s 2D points name 3D point "
                              f"{missing[0]}, but {lacking}")
-    return Model(cameras, images, points)
+    return Model(cameras, images, points, colours)

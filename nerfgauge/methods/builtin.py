@@ -1,5 +1,5 @@
 """nerfgauge's own methods behind the method interface: the compact and the vanilla NeRF
-(nerf/), and the non-learned baselines (methods.baselines).
+(nerf/), Gaussian splatting (splat/), and the non-learned baselines (methods.baselines).
 
 torch is imported inside the functions that train or render, so listing the methods
 (`nerfgauge methods`) stays instant.
@@ -15,9 +15,28 @@ from nerfgauge.core.files import read_json
 from nerfgauge.methods.baselines import baseline_folder, write_baseline
 from nerfgauge.methods.interface import Method, Needs, Produces, RenderResult, TrainRequest, TrainResult
 from nerfgauge.methods.measure import measured
+from nerfgauge.splat.config import SplatConfig
 
-# TrainConfig fields the request sets; a method's settings table may not set them as well
+# TrainConfig (and SplatConfig) fields the request sets; a method's settings table may not set them as well
 REQUEST_FIELDS = ("dataset", "seed", "steps", "budget_seconds", "threads", "device", "model")
+
+
+def config_fields(method: Method, request: TrainRequest, known: set) -> dict:
+    """The config fields of `request` for a method whose config has the fields `known`:
+    the request's seed, length, threads and device, and its settings (each a known field the
+    request does not set; InputError naming the first other)."""
+    clash = sorted(set(request.settings) & set(REQUEST_FIELDS))
+    if clash:
+        raise InputError(f"method {method.name}: {clash[0]!r} is set by the job, not by the method's settings")
+    unknown = sorted(set(request.settings) - known)
+    if unknown:
+        raise InputError(f"method {method.name}: unknown setting {unknown[0]!r} (its config's fields: "
+                         f"{', '.join(sorted(known - set(REQUEST_FIELDS)))})")
+    if request.steps is None and request.budget_seconds is None:
+        raise InputError(f"method {method.name} trains: give it steps or a time budget")
+    length = {"steps": request.steps} if request.steps is not None else {"budget_seconds": request.budget_seconds}
+    threads = {} if request.threads is None else {"threads": request.threads}
+    return {"seed": request.seed, "device": request.device, **length, **threads, **request.settings}
 
 
 class NeRF(Method):
@@ -32,20 +51,8 @@ class NeRF(Method):
     def config(self, request: TrainRequest):
         from nerfgauge.nerf.config import TrainConfig  # torch
 
-        clash = sorted(set(request.settings) & set(REQUEST_FIELDS))
-        if clash:
-            raise InputError(f"method {self.name}: {clash[0]!r} is set by the job, not by the method's settings")
-        known = set(TrainConfig.__dataclass_fields__)
-        unknown = sorted(set(request.settings) - known)
-        if unknown:
-            raise InputError(f"method {self.name}: unknown setting {unknown[0]!r} (TrainConfig fields: "
-                             f"{', '.join(sorted(known - set(REQUEST_FIELDS)))})")
-        length = {"steps": request.steps} if request.steps is not None else {"budget_seconds": request.budget_seconds}
-        if request.steps is None and request.budget_seconds is None:
-            raise InputError(f"method {self.name} trains: give it steps or a time budget")
-        threads = {} if request.threads is None else {"threads": request.threads}
-        config = TrainConfig(dataset=str(request.dataset), model=self.model, seed=request.seed,
-                             device=request.device, **length, **threads, **request.settings)
+        fields = config_fields(self, request, set(TrainConfig.__dataclass_fields__))
+        config = TrainConfig(dataset=str(request.dataset), model=self.model, **fields)
         config.validate()
         return config
 
@@ -74,6 +81,43 @@ class NeRF(Method):
         return RenderResult(out=Path(out), frames=int(timing.get("frames", 0)), seconds=time.perf_counter() - start)
 
 
+class Splat(Method):
+    """3D Gaussian splatting (splat.train, splat.render_views): `settings` are SplatConfig
+    fields (init: which of the dataset's COLMAP points it starts from, ...). It starts from
+    the points of the dataset's COLMAP model (sparse/0); init = "none" draws them in the
+    scene bounds instead, but the harness still asks for the model."""
+
+    name = "splat"
+    summary = "3D Gaussian splatting (Kerbl et al. 2023) on the CPU, from the dataset's COLMAP points"
+    needs = Needs(manifest=True, colmap_model=True, initial_points=True)
+    produces = Produces(depth=True)
+
+    def config(self, request: TrainRequest):
+        config = SplatConfig(dataset=str(request.dataset),
+                             **config_fields(self, request, set(SplatConfig.__dataclass_fields__)))
+        config.validate()
+        return config
+
+    def train(self, request: TrainRequest) -> TrainResult:
+        from nerfgauge.splat.train import train  # torch
+
+        config = self.config(request)
+        with measured() as cost:
+            summary = train(request.dataset, request.run, config, overwrite=request.overwrite,
+                            progress=request.progress)
+        return TrainResult(seconds=summary["seconds"], steps=summary["steps"], cpu_seconds=cost.cpu_seconds,
+                           peak_memory_bytes=cost.peak_memory_bytes, model_bytes=summary["model_bytes"],
+                           extra={"val_psnr": summary["val_psnr"], "gaussians": summary["gaussians"],
+                                  "threads": config.threads, "wall_seconds": cost.seconds})
+
+    def render(self, run, dataset, split, out, *, overwrite=False, progress=False) -> RenderResult:
+        from nerfgauge.splat.render_views import render_split  # torch
+
+        start = time.perf_counter()  # the run is checked against `dataset`'s manifest (its own or a copy)
+        timing = render_split(run, split, out, dataset=dataset, overwrite=overwrite, progress=progress)
+        return RenderResult(out=Path(out), frames=int(timing["frames"]), seconds=time.perf_counter() - start)
+
+
 class Baseline(Method):
     """A non-learned baseline (methods.baselines): nothing to train; it renders from the
     training images directly."""
@@ -99,6 +143,7 @@ def builtin_methods() -> dict:
     methods = [
         NeRF("compact", "the compact NeRF: a voxel grid with occupancy skipping, modelling only what the scene needs"),
         NeRF("vanilla", "the original NeRF (Mildenhall et al. 2020): positional encoding, an MLP, coarse and fine"),
+        Splat(),
         Baseline("nearest", "the training image whose camera is closest to the query camera, copied",
                  Needs(scene_bounds=True)),
         Baseline("lightfield-nearest", "the two-plane light field, nearest camera and pixel", grid),

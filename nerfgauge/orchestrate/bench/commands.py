@@ -19,6 +19,8 @@ from nerfgauge.orchestrate.bench.lens import run_lens_bench
 from nerfgauge.orchestrate.bench.lpips import bench_lpips
 from nerfgauge.orchestrate.bench.read import bench_read, table_markdown as read_table_markdown
 from nerfgauge.orchestrate.bench.scaling import ScalingConfig, bench_scaling, report_markdown
+from nerfgauge.orchestrate.bench.splat import METHODS as SPLAT_BENCH_METHODS, SplatBenchConfig, bench_splat
+from nerfgauge.orchestrate.bench.splat import GEOMETRY_SAMPLES, report_markdown as splat_markdown
 from nerfgauge.orchestrate.bench.targets import bench_targets, targets_command, targets_markdown
 from nerfgauge.orchestrate.bench.train import VARIANTS, bench_train, speedups, table_markdown
 from nerfgauge.scenes import HARD_SCENES
@@ -146,6 +148,42 @@ def register(subparsers) -> None:
     lpips.add_argument("--res", type=arguments.IMAGE_SIDE, default=128)
     lpips.add_argument("--repeats", type=arguments.REPEATS, default=3)
     lpips.set_defaults(func=run_bench_lpips)
+    splat = kinds.add_parser("splat", help="Gaussian splatting against the compact NeRF: PSNR, SSIM, LPIPS, depth, "
+                                           "F-score, render time, model size, steps/s (issue 50)")
+    defaults = SplatBenchConfig()
+    splat.add_argument("--scenes", type=arguments.names, default=defaults.scenes,
+                       help="comma-separated scene names (default primitives)")
+    splat.add_argument("--res", default=f"{defaults.width}", help=f"N or WxH (default {defaults.width})")
+    splat.add_argument("--views", type=arguments.VIEWS, default=defaults.views,
+                       help=f"train views (default {defaults.views})")
+    splat.add_argument("--test-views", type=arguments.VIEWS, default=defaults.test_views,
+                       help=f"test views, scored (default {defaults.test_views})")
+    splat.add_argument("--spp", type=arguments.SPP, default=defaults.spp, help=f"samples per pixel (default {defaults.spp})")
+    splat.add_argument("--budgets", type=arguments.comma_separated(arguments.SECONDS, distinct=True),
+                       default=defaults.budgets, help="comma-separated training seconds (default 120,600)")
+    splat.add_argument("--seeds", type=arguments.comma_separated(arguments.SEED, distinct=True),
+                       default=defaults.seeds, help="comma-separated training seeds (default 0)")
+    splat.add_argument("--threads", type=arguments.THREADS, default=defaults.threads,
+                       help=f"training and rendering threads (default {defaults.threads})")
+    splat.add_argument("--methods", type=arguments.names, default=defaults.methods,
+                       help=f"comma-separated, from {', '.join(SPLAT_BENCH_METHODS)} (default both)")
+    splat.add_argument("--geometry-samples", type=GEOMETRY_SAMPLES, default=defaults.geometry_samples,
+                       help=f"surface samples of the geometry scores (default {defaults.geometry_samples})")
+    splat.add_argument("--out", type=arguments.path, default=Path("bench-out/splat"),
+                       help="bench folder (default bench-out/splat): splat.json/.md/.png, datasets/, runs/")
+    splat.set_defaults(func=run_bench_splat)
+
+
+def run_bench_splat(args) -> int:
+    width, height = parse_resolution(args.res)
+    config = SplatBenchConfig(scenes=tuple(args.scenes), width=width, height=height, views=args.views,
+                              test_views=args.test_views, spp=args.spp, budgets=tuple(args.budgets),
+                              seeds=tuple(args.seeds), threads=args.threads, methods=tuple(args.methods),
+                              geometry_samples=args.geometry_samples)
+    document = bench_splat(config, args.out)
+    print(splat_markdown(document))
+    print(f"data: {args.out / 'splat.json'}; table: {args.out / 'splat.md'}; plot: {args.out / 'splat.png'}")
+    return 0 if all("error" not in row for row in document["rows"]) else 1
 
 
 def run_bench_colmap(args) -> int:
