@@ -98,6 +98,9 @@ class Splat(Method):
         config.validate()
         return config
 
+    def check(self, request: TrainRequest) -> None:
+        self.config(request)  # the settings as SplatConfig checks them
+
     def train(self, request: TrainRequest) -> TrainResult:
         from nerfgauge.splat.train import train  # torch
 

@@ -88,6 +88,40 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     resolved = {entry.name: entry.resolve() for entry in entries}
     start = time.perf_counter()
     manifest = generate_suite(suite, out, overwrite=overwrite, progress=progress, log=log, scheduler=scheduler)
+    jobs, owners, skipped = method_jobs(suite, out, entries, resolved, manifest, seeds, threads, log)
+    log(f"{len(jobs)} jobs: " + ", ".join(f"{e.name} ({_length(resolved[e.name], e, suite.train)})" for e in entries)
+        + (f"; seeds {', '.join(map(str, seeds))}" if seeds is not None else "")
+        + ("" if scheduler is None else f"; on {scheduler}") + f"; {threads} thread(s) a job ({why})")
+    with job_runner(scheduler, log) as run_on:
+        clock = time.perf_counter()
+        renders, extras, failed = collect(out, owners, run_on(jobs))
+        log(f"jobs: {time.perf_counter() - clock:.1f} s")
+        with folder_lock(out):
+            tasks = {entry.name: scoring_tasks(suite, out, entry.name, renders.get(entry.name, {}), threads,
+                                               failures=True) for entry in entries}
+            for entry in entries:
+                owned.remove_file(out / "results" / entry.name / RESULT_FILE)  # no stale result beside new metrics
+                if (out / PREDICTIONS / entry.name).is_dir():
+                    write_json(out / PREDICTIONS / entry.name / SUITE_FILE, suite.identity())
+            scored = run_on([(task["key"], score_renders, task["kwargs"]) for method_tasks in tasks.values()
+                             for task in method_tasks])
+            for entry in entries:
+                write_result(suite, out, manifest, entry.name, tasks[entry.name],
+                             [scored[task["key"]] for task in tasks[entry.name]],
+                             seeds=seeds if resolved[entry.name].learned else None, extras=extras.get(entry.name),
+                             skipped=skipped.get(entry.name), failed=failed.get(entry.name),
+                             pred_root=str(out / PREDICTIONS / entry.name))
+    for name, reasons in failed.items():
+        log(f"{name} failed on {len(reasons)} dataset(s): {next(iter(reasons.values()))}")
+    board = write_leaderboard(suite, out, log=log)
+    log(f"suite {suite.name} v{suite.version}: {time.perf_counter() - start:.1f} s in all")
+    return board
+
+
+def method_jobs(suite: Suite, out: Path, entries, resolved: dict, manifest: dict, seeds, threads, log) -> tuple:
+    """([(key, method_job, kwargs)], {key: (method, dataset id, seed folder or None)},
+    {method: {dataset id: why skipped}}): a job per method, dataset and seed
+    (`job_seeds`), where the dataset has what the method needs (missing_needs)."""
     jobs, owners, skipped = [], {}, {}
     for index, scene in enumerate(suite.scenes, 1):
         data = dataset_dir(out, scene)
@@ -107,51 +141,31 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
                     run_dir=str(out / "runs" / where), renders=str(out / PREDICTIONS / where), seed=seed,
                     split=suite.scoring["split"], geometry=suite.scoring.get("geometry"), threads=threads)))
                 owners[key] = (entry.name, scene.id, folder_seed)
-    log(f"{len(jobs)} jobs: " + ", ".join(f"{e.name} ({_length(resolved[e.name], e, suite.train)})" for e in entries)
-        + (f"; seeds {', '.join(map(str, seeds))}" if seeds is not None else "")
-        + ("" if scheduler is None else f"; on {scheduler}") + f"; {threads} thread(s) a job ({why})")
-    with job_runner(scheduler, log) as run_on:
-        clock = time.perf_counter()
-        done = run_on(jobs)
-        log(f"jobs: {time.perf_counter() - clock:.1f} s")
-        renders, extras, failed = {}, {}, {}
-        for key, (name, entry_id, folder_seed) in owners.items():
-            result = done[key]
-            if "failed" in result:
-                failed.setdefault(name, {}).setdefault(entry_id, result["failed"] if folder_seed is None
-                                                       else f"seed {folder_seed}: {result['failed']}")
-                continue
-            renders.setdefault(name, {}).setdefault(entry_id, {})[folder_seed] = (str(out / result["renders"]),
-                                                                                result["pred_format"])
-            row = {field: result[field] for field in EXTRAS}
-            row["ms_per_frame"] = 1000.0 * result["render_seconds"] / result["frames"]
-            if folder_seed is None:
-                extras.setdefault(name, {})[entry_id] = row
-            else:
-                extras.setdefault(name, {}).setdefault(entry_id, {})[folder_seed] = row
-        for name in renders:  # a dataset where one seed failed is failed: its other seeds are not scored
-            renders[name] = {entry_id: runs for entry_id, runs in renders[name].items()
-                             if entry_id not in failed.get(name, {})}
-        with folder_lock(out):
-            tasks = {entry.name: scoring_tasks(suite, out, entry.name, renders.get(entry.name, {}), threads,
-                                               failures=True) for entry in entries}
-            for entry in entries:
-                owned.remove_file(out / "results" / entry.name / RESULT_FILE)  # no stale result beside new metrics
-                if (out / PREDICTIONS / entry.name).is_dir():
-                    write_json(out / PREDICTIONS / entry.name / SUITE_FILE, suite.identity())
-            scored = run_on([(task["key"], score_renders, task["kwargs"]) for method_tasks in tasks.values()
-                             for task in method_tasks])
-            for entry in entries:
-                seeded = seeds if resolved[entry.name].learned else None
-                documents = [scored[task["key"]] for task in tasks[entry.name]]
-                write_result(suite, out, manifest, entry.name, tasks[entry.name], documents, seeds=seeded,
-                             extras=extras.get(entry.name), skipped=skipped.get(entry.name),
-                             failed=failed.get(entry.name), pred_root=str(out / PREDICTIONS / entry.name))
-    for name, reasons in failed.items():
-        log(f"{name} failed on {len(reasons)} dataset(s): {next(iter(reasons.values()))}")
-    board = write_leaderboard(suite, out, log=log)
-    log(f"suite {suite.name} v{suite.version}: {time.perf_counter() - start:.1f} s in all")
-    return board
+    return jobs, owners, skipped
+
+
+def collect(out: Path, owners: dict, done: dict) -> tuple:
+    """From the method jobs' results: ({method: {dataset id: {seed folder or None: (renders,
+    pred format)}}}, {method: extras for write_result}, {method: {dataset id: why it failed}}).
+    A dataset where one seed failed is failed: its other seeds are not scored."""
+    renders, extras, failed = {}, {}, {}
+    for key, (name, entry_id, folder_seed) in owners.items():
+        result = done[key]
+        if "failed" in result:
+            failed.setdefault(name, {}).setdefault(entry_id, result["failed"] if folder_seed is None
+                                                   else f"seed {folder_seed}: {result['failed']}")
+            continue
+        renders.setdefault(name, {}).setdefault(entry_id, {})[folder_seed] = (str(out / result["renders"]),
+                                                                            result["pred_format"])
+        row = {field: result[field] for field in EXTRAS}
+        row["ms_per_frame"] = 1000.0 * result["render_seconds"] / result["frames"]
+        if folder_seed is None:
+            extras.setdefault(name, {})[entry_id] = row
+        else:
+            extras.setdefault(name, {}).setdefault(entry_id, {})[folder_seed] = row
+    renders = {name: {entry_id: runs for entry_id, runs in by_entry.items() if entry_id not in failed.get(name, {})}
+               for name, by_entry in renders.items()}
+    return renders, extras, failed
 
 
 EXTRAS = ("train_seconds", "steps", "steps_per_second", "cpu_seconds", "peak_memory_bytes", "model_bytes",
