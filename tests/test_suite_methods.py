@@ -291,30 +291,34 @@ def test_a_suite_chooses_its_scoring_protocol(ran, tmp_path, capsys):
 # --- bench train --methods: another tool's method against wall time beside ours ------------------------
 
 
-def test_bench_train_puts_other_methods_beside_ours_in_one_run(tmp_path, capsys):
-    """Our compact NeRF (a 1 s budget), the spec method (4 steps), the nearest baseline and a
-    failing spec on one dataset: a row each (the failure's with its reason), every score the
-    same `evaluate` gives on the run's renders, the plot drawn."""
+def test_bench_train_puts_other_methods_beside_ours_on_the_same_dataset(ran, tmp_path):
+    """bench train's rows for --methods (orchestrate.bench.train.method_rows) on the suite's
+    dataset: our compact NeRF (a 1 s budget, in this process), the spec method (4 steps), the
+    nearest baseline and a failing spec: a row each (the failure's with its reason), every
+    score the same `evaluate` gives on the run's renders, the table and the plot drawn."""
     from nerfgauge.eval.evaluate import evaluate
+    from nerfgauge.methods.registry import resolve
+    from nerfgauge.orchestrate.bench.train import method_rows, pareto_plots, table_markdown
 
-    for spec, kwargs in (("copycat", {}), ("crasher", {"train": ("fail",)})):
-        write_spec(tmp_path, spec, **kwargs)
-    out = tmp_path / "bench"
-    code, stdout, err = run(capsys, "bench", "train", "--scenes", "primitives", "--res", "16", "--views", "4",
-                            "--budgets", "1", "--steps", "4", "--out", out, "--methods",
-                            f"compact,{tmp_path / 'copycat.toml'},nearest,{tmp_path / 'crasher.toml'}")
-    assert code == 0, err
-    rows = {row["variant"]: row for row in read(out / "train.json")["rows"]}
-    assert set(rows) == {"compact", "copycat", "nearest", "crasher"}  # --methods alone: no variants of ours
-    assert "exited with status 3" in rows["crasher"]["error"] and "exited with status 3" in stdout
-    assert rows["compact"]["budget"] == 1.0 and rows["copycat"]["method_steps"] == 4
-    assert rows["copycat"]["steps_per_second"] == pytest.approx(4 / rows["copycat"]["train_seconds"], rel=1e-9)
-    dataset = out / "datasets" / "primitives-16x16-4"
-    for name in ("compact", "copycat", "nearest"):
-        run_dir = next((out / "runs").glob(f"primitives-{name}-*"))
-        again = evaluate(dataset, run_dir / "renders", "test", tmp_path / f"{name}.json")
-        assert rows[name]["psnr"] == again["mean"]["psnr"] and rows[name]["train_seconds"] >= 0
-    assert (out / "pareto.png").stat().st_size > 0 and "| primitives | copycat | 4 steps |" in stdout
+    toml, out, _ = ran
+    dataset, bench = out / "datasets" / "primitives", tmp_path / "bench"
+    rows = []
+    for name in ("compact", "copycat.toml", "nearest", "crasher.toml"):
+        method = resolve(str(toml.parent / name) if name.endswith(".toml") else name)
+        rows += method_rows(method, "primitives", dataset, bench, budgets=[1.0], steps=[4])
+    by_name = {row["variant"]: row for row in rows}
+    assert list(by_name) == ["compact", "copycat", "nearest", "crasher"] and len(rows) == 4
+    assert "exited with status 3" in by_name["crasher"]["error"]
+    assert by_name["compact"]["budget"] == 1.0 and by_name["copycat"]["method_steps"] == 4
+    assert by_name["copycat"]["steps_per_second"] == pytest.approx(4 / by_name["copycat"]["train_seconds"], rel=1e-9)
+    for name, label in (("compact", "1s"), ("copycat", "4steps"), ("nearest", "once")):
+        again = evaluate(dataset, bench / "runs" / f"primitives-{name}-{label}" / "renders", "test", tmp_path / "e.json")
+        assert by_name[name]["psnr"] == again["mean"]["psnr"] and by_name[name]["train_seconds"] >= 0
+    assert by_name["compact"]["log"] and by_name["compact"]["val_psnr"] is not None  # our curve beside the others
+    table = table_markdown(rows)
+    assert "| primitives | copycat | 4 steps |" in table and "| primitives | nearest | – |" in table
+    pareto_plots(rows, bench)
+    assert (bench / "pareto.png").stat().st_size > 0
 
 
 @pytest.mark.parametrize("argv, words", [
