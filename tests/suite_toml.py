@@ -16,6 +16,8 @@ def _value(value) -> str:
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_value(item) for item in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{key} = {_value(item)}" for key, item in value.items()) + " }"
     return repr(value)
 
 
@@ -23,15 +25,29 @@ def _table(values: dict) -> str:
     return "".join(f"{key} = {_value(value)}\n" for key, value in values.items())
 
 
+LENGTH = ("steps", "budget_seconds", "threads")  # [train]'s keys beside [[methods]]
+
+
 def suite_toml(name: str, dataset: dict, train: dict, scenes=TWO_SCENES, *, version: int = 1,
-               description: str | None = None, protocol: dict | None = None) -> str:
+               description: str | None = None, protocol: dict | None = None, methods=None) -> str:
     """The TOML of a suite: top-level name, version (and description), then [dataset],
-    [train], [protocol] (PROTOCOL updated by `protocol`) and one [[scenes]] table per entry."""
+    [train] (the jobs' length: train's steps, budget_seconds, threads), [scoring] (PROTOCOL
+    updated by `protocol`, without its baselines) and [[methods]]: `methods` (a list of
+    tables) or else our compact NeRF named compact-nerf with train's other keys as its
+    settings and each of the protocol's baselines; one [[scenes]] table per entry."""
     head = {"name": name, "version": version} | ({"description": description} if description else {})
+    scoring = PROTOCOL | (protocol or {})
+    if methods is None:
+        settings = {key: value for key, value in train.items() if key not in LENGTH and key != "model"}
+        methods = [{"name": "compact-nerf", "method": train.get("model", "compact")}
+                   | ({"settings": settings} if settings else {})]
+        methods += [{"method": baseline} for baseline in scoring.get("baselines", [])]
     text = _table(head)
     text += "\n[dataset]\n" + _table(dataset)
-    text += "\n[train]\n" + _table(train)
-    text += "\n[protocol]\n" + _table(PROTOCOL | (protocol or {}))
+    text += "\n[train]\n" + _table({key: value for key, value in train.items() if key in LENGTH})
+    text += "\n[scoring]\n" + _table({key: value for key, value in scoring.items() if key != "baselines"})
+    for method in methods:
+        text += "\n[[methods]]\n" + _table(method)
     for entry in scenes:
         text += "\n[[scenes]]\n" + _table(entry)
     return text

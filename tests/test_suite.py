@@ -94,7 +94,7 @@ def test_builtin_suites_list_and_standard_covers_every_scene(capsys):
     (lambda t: t.replace('id = "random-3"', 'id = "primitives"'), ("used twice",)),
     (lambda t: t.replace("version = 1", 'version = "1"'), ("version must be a positive integer",)),
     (lambda t: t.replace("spp = 2", "spp = 0"), ("--spp must be a positive integer",)),
-    (lambda t: t.replace('baselines = ["nearest"]', 'baselines = ["nerf-w"]'), ("unknown baseline",)),
+    (lambda t: t.replace('method = "nearest"', 'method = "nerf-w"'), ("methods[1]", "unknown method 'nerf-w'")),
     (lambda t: t + "\n[[scenes", ("not valid TOML",)),
 ])
 def test_bad_suite_files_are_refused_before_anything_is_written(tmp_path, capsys, edit, words):
@@ -172,7 +172,7 @@ def test_results_of_another_version_or_dataset_are_refused(suite_dir, tiny_toml,
     code, _, err = run(capsys, "suite", "evaluate", v2, suite_dir, "--method", "x", "--pred", gt_predictions)
     one_line_error(code, err, "version 1", "not version 2")
     edited = tmp_path / "tiny-edited.toml"
-    edited.write_text(tiny(steps=11))
+    edited.write_text(tiny().replace('background = "white"', 'background = "black"'))  # the scoring: the suite's
     code, _, err = run(capsys, "suite", "evaluate", edited, suite_dir, "--method", "x", "--pred", gt_predictions)
     one_line_error(code, err, "another definition", "bump the version")
 
@@ -244,9 +244,9 @@ def test_smoke_suite_end_to_end(tmp_path, capsys):
         assert (out / "report" / entry_id / "report.html").is_file()
     assert os.path.getsize(out / "leaderboard.html") > 0 and (out / "leaderboard.md").is_file()
     # issue 36: our NeRF against the nearest-view baseline, paired, on every dataset both scored
-    pairs = {(row["scene"], row["method"]): row for row in board["paired"]["rows"]}
+    pairs = {(row["scene"], row["reference"], row["method"]): row for row in board["paired"]["rows"]}
     for entry_id in set(ours["scenes"]) & set(board["methods"]["nearest"]["scenes"]):
-        row = pairs[(entry_id, "nearest")]
+        row = pairs[(entry_id, "compact-nerf", "nearest")]
         assert row["views"] > 0 and row["ci95"][0] <= row["mean_difference"] <= row["ci95"][1]
         assert 0 < row["p_value"] <= 1 and row["significant"] == (row["p_value"] < 0.05)
 
@@ -264,9 +264,9 @@ def test_generate_over_another_version_needs_overwrite(suite_dir, tmp_path, caps
     assert read_json(copy / SUITE_MANIFEST)["version"] == 2 and read_json(copy / "suite.json")["version"] == 2
 
 
-def test_leaderboard_pairs_our_nerf_with_each_method(suite_dir, tiny_toml, gt_predictions, tmp_path, capsys):
-    """The paired table (eval.uncertainty): ours minus each method on the per-frame PSNR of the
-    two metrics.json files, equal to paired_comparison on those values; the per-dataset
+def test_leaderboard_pairs_every_two_methods(suite_dir, tiny_toml, gt_predictions, tmp_path, capsys):
+    """The paired table (eval.uncertainty): each pair, the first (in name order) minus the
+    second, here ours minus the other tool, on the per-frame PSNR of the two metrics.json files, equal to paired_comparison on those values; the per-dataset
     tables carry the PSNR interval copied from metrics.json's ci95."""
     import numpy as np
 
@@ -287,9 +287,9 @@ def test_leaderboard_pairs_our_nerf_with_each_method(suite_dir, tiny_toml, gt_pr
     assert code == 0, err
     board = json.loads((out / "leaderboard.json").read_text())
     paired = board["paired"]
-    assert paired["reference"] == "compact-nerf" and paired["alpha"] == 0.05 and paired["metric"] == "psnr"
-    assert [(row["scene"], row["method"]) for row in paired["rows"]] == [("primitives", "other-tool"),
-                                                                       ("random-3", "other-tool")]
+    assert paired["difference"] == "reference - method" and paired["alpha"] == 0.05 and paired["metric"] == "psnr"
+    assert [(row["scene"], row["reference"], row["method"]) for row in paired["rows"]] == [
+        ("primitives", "compact-nerf", "other-tool"), ("random-3", "compact-nerf", "other-tool")]
     for row in paired["rows"]:
         docs = [json.loads((out / board["methods"][m]["scenes"][row["scene"]]["metrics"]).read_text())
                 for m in ("compact-nerf", "other-tool")]

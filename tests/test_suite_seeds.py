@@ -61,7 +61,7 @@ def test_every_seed_is_kept_and_scored_as_evaluate_scores_it(seeded, tmp_path, c
         row = result["datasets"][entry_id]
         assert [run["seed"] for run in row["runs"]] == list(SEEDS)
         for seed, run_row in zip(SEEDS, row["runs"]):
-            assert (out / "runs" / f"seed-{seed}" / entry_id / "model.pt").is_file()
+            assert (out / "runs" / "compact-nerf" / f"seed-{seed}" / entry_id / "model.pt").is_file()
             assert run_row["steps"] == 60 and run_row["steps_per_second"] > 0
             single = tmp_path / f"{entry_id}-{seed}.json"
             assert main(["evaluate", str(out / "datasets" / entry_id), "--pred",
@@ -144,9 +144,9 @@ def test_leaderboard_intervals_and_paired_rows_match_an_independent_bootstrap(se
     assert abs(ours["ci95"]["psnr"][0] - low) < 1e-9 and abs(ours["ci95"]["psnr"][1] - high) < 1e-9
     assert low < ours["mean"]["psnr"] < high
     # paired: ours minus nearest per (seed, view); nearest (deterministic, no seed) repeated per seed
-    rows = {(row["scene"], row["method"]): row for row in board["paired"]["rows"]}
+    rows = {(row["scene"], row["reference"], row["method"]): row for row in board["paired"]["rows"]}
     for entry_id in IDS:
-        row = rows[(entry_id, "nearest")]
+        row = rows[(entry_id, "compact-nerf", "nearest")]
         nearest = frame_values(read(out / "results" / "nearest" / entry_id / "metrics.json"))
         differences = [[a - b for a, b in zip(frame_values(d), nearest)]
                        for d in per_seed_documents(out, "compact-nerf", entry_id)]
@@ -166,11 +166,11 @@ def test_a_second_run_resumes_every_finished_job(seeded, tmp_path, capsys):
     copy = tmp_path / "copy"
     shutil.copytree(out, copy, ignore=shutil.ignore_patterns(".nerfgauge.lock"))
     before = {entry_id: read(copy / "results" / "compact-nerf" / entry_id / "aggregate.json") for entry_id in IDS}
-    (copy / "jobs" / "train-random-3-seed-1.json").unlink()  # as if that job had been interrupted
+    (copy / "jobs" / "compact-nerf" / "seed-1" / "random-3.json").unlink()  # as if that job had been interrupted
     code, stdout, err = run(capsys, "suite", "run", toml, "--out", copy, "--seeds", "3")
     assert code == 0, err
-    assert stdout.count("finished earlier, skipped") == 7 and "train-random-3-seed-1: " in stdout
-    assert "train-random-3-seed-1: finished earlier" not in stdout
+    assert stdout.count("finished earlier, skipped") == 7 and "compact-nerf/seed-1/random-3: " in stdout
+    assert "compact-nerf/seed-1/random-3: finished earlier" not in stdout
     for entry_id in IDS:
         after = read(copy / "results" / "compact-nerf" / entry_id / "aggregate.json")
         assert after["mean"] == before[entry_id]["mean"] and after["ci95"] == before[entry_id]["ci95"]
@@ -200,7 +200,8 @@ def test_suite_evaluate_with_seeds_pairs_by_seed(seeded, tmp_path, capsys):
         ours = read(copy / "results" / "compact-nerf" / entry_id / "aggregate.json")
         again = read(copy / "results" / "again" / entry_id / "aggregate.json")
         assert again["ci95"] == ours["ci95"] and again["per_seed"] == ours["per_seed"]
-        row = next(r for r in board["paired"]["rows"] if r["scene"] == entry_id and r["method"] == "again")
+        row = next(r for r in board["paired"]["rows"]
+                   if r["scene"] == entry_id and (r["reference"], r["method"]) == ("again", "compact-nerf"))
         assert row["seeds"] == list(SEEDS) and row["mean_difference"] == 0 and row["p_value"] == 1.0
     code, _, err = run(capsys, "suite", "evaluate", toml, copy, "--method", "x", "--pred",
                        copy / "predictions" / "compact-nerf", "--seeds", "0,7")
@@ -215,13 +216,14 @@ def test_a_bad_scheduler_is_one_line_before_anything_is_written(tmp_path, capsys
 
 @pytest.mark.slow
 def test_a_two_worker_local_cluster_gives_the_same_per_run_metrics(seeded, tmp_path, capsys):
-    """Same seeds on `--scheduler local:2`: every per-run metrics.json has the same means and
-    per-frame values as the local run; only timing (wall clock) may differ."""
+    """Same seeds on `--scheduler local:2`: the method jobs and the scoring jobs run on the
+    cluster, and every per-run metrics.json has the same means and per-frame values as the
+    local run; only timing (wall clock) may differ."""
     toml, out = seeded
     cluster = tmp_path / "cluster"
     code, stdout, err = run(capsys, "suite", "run", toml, "--out", cluster, "--seeds", "3", "--scheduler", "local:2")
     assert code == 0, err
-    assert "8 jobs on local:2" in stdout
+    assert stdout.count("8 jobs on local:2") == 2  # 8 trainings and baselines, then 8 scorings, on the cluster
     for method, folders in (("compact-nerf", [f"{i}/seed-{s}" for i in IDS for s in SEEDS]), ("nearest", IDS)):
         for folder in folders:
             local = read(out / "results" / method / folder / "metrics.json")
@@ -246,14 +248,14 @@ def test_smoke_suite_with_three_seeds(tmp_path, capsys):
     board = read(out / "leaderboard.json")
     ours = board["methods"]["compact-nerf"]
     assert ours["ci95"]["psnr"][0] <= ours["mean"]["psnr"] <= ours["ci95"]["psnr"][1]
-    rows = {(row["scene"], row["method"]): row for row in board["paired"]["rows"]}
+    rows = {(row["scene"], row["reference"], row["method"]): row for row in board["paired"]["rows"]}
     for entry_id, scene in ours["scenes"].items():
         assert scene["seeds"] == [0, 1, 2] and len(scene["psnr_per_seed"]) == 3
         documents = [read(out / "results" / "compact-nerf" / entry_id / f"seed-{s}" / "metrics.json") for s in range(3)]
         nearest = frame_values(read(out / "results" / "nearest" / entry_id / "metrics.json"))
         differences = [[a - b for a, b in zip(frame_values(d), nearest)] for d in documents]
         low, high = loop_bootstrap(differences, EVALUATE_SEED)
-        row = rows[(entry_id, "nearest")]
+        row = rows[(entry_id, "compact-nerf", "nearest")]
         assert abs(row["ci95"][0] - low) < 1e-9 and abs(row["ci95"][1] - high) < 1e-9
 
 

@@ -156,8 +156,9 @@ class TestStateFilesAreData:
         (lambda d: d["scenes"][1].update(extra=1), ("unknown field 'extra'",)),
         (lambda d: d.update(name="ti\nny"), ("name must be a folder name",)),
         (lambda d: d.update(scenes={}), ("[[scenes]] must be a non-empty list",)),
-        (lambda d: d["protocol"].update(split=7), ("protocol.split",)),
-        (lambda d: d["train"].update(steps=-3), ("scenes[0]",)),
+        (lambda d: d["scoring"].update(split=7), ("scoring.split",)),
+        (lambda d: d["scoring"].update(protocol="mine"), ("scoring.protocol must be one of",)),
+        (lambda d: d.update(train={"steps": 3}), ("unknown field 'train'",)),  # methods are not the suite's
     ])
     def test_a_malformed_definition_is_one_line(self, suite_copy, capsys, edit, words):
         _, folder = suite_copy
@@ -227,6 +228,9 @@ class TestStateFilesAreData:
         (lambda r: r["datasets"]["primitives"].update(ms_per_frame=1e400), ("ms_per_frame must be a number",)),
         (lambda r: r["datasets"]["primitives"].update(geometry={"x": 1}), ("geometry.x",)),
         (lambda r: r.update(skipped=["x"]), ("skipped must be an object",)),
+        (lambda r: r.update(failed={"primitives": 3}), ("failed must be an object",)),
+        (lambda r: r["datasets"]["primitives"].update(renders="../../datasets/x"), ("renders must be a path",)),
+        (lambda r: r["datasets"]["primitives"].update(renders="/etc"), ("renders must lie in",)),
         (lambda r: r.update(seeds=[-1]), ("seeds",)),
         (lambda r: r.update(pred_root=3), ("pred_root must be a path",)),
     ])
@@ -247,17 +251,19 @@ class TestStateFilesAreData:
         (lambda r: r["result"].update(geometry={"n/a": 3}), ("n/a must be alone",)),
         (lambda r: r["result"].pop("model_bytes"), ("missing field model_bytes",)),
         (lambda r: r.update(result=[]), ("result must be an object",)),
+        (lambda r: r["result"].update(renders="datasets/primitives"), ("renders must lie in predictions/",)),
+        (lambda r: r["result"].update(method="nearest"), ("the job's is compact-nerf",)),
     ])
     def test_a_malformed_job_record_is_one_line(self, suite_copy, capsys, edit, words):
         """The record keeps its recipe hash (recomputed by the job from its own inputs, never
         read from the record), so the job counts as finished and its result is read."""
         toml, folder = suite_copy
-        path = folder / "jobs" / "train-primitives.json"
+        path = folder / "jobs" / "compact-nerf" / "primitives.json"
         record = read_json(path)
         edit(record)
         write_json(path, record)
         code, _, err = run(capsys, "suite", "run", toml, "--out", folder)
-        one_line_error(code, err, "jobs/train-primitives.json", *words)
+        one_line_error(code, err, "jobs/compact-nerf/primitives.json", *words)
 
 
 class TestDerivedNumbersAreFinite:

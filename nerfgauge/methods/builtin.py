@@ -56,6 +56,9 @@ class NeRF(Method):
         config.validate()
         return config
 
+    def check(self, request: TrainRequest) -> None:
+        self.config(request)  # the settings as TrainConfig checks them
+
     def train(self, request: TrainRequest) -> TrainResult:
         from nerfgauge.nerf.train import train  # torch
 
@@ -94,6 +97,9 @@ class Splat(Method):
                              **config_fields(self, request, set(SplatConfig.__dataclass_fields__)))
         config.validate()
         return config
+
+    def check(self, request: TrainRequest) -> None:
+        self.config(request)  # the settings as SplatConfig checks them
 
     def train(self, request: TrainRequest) -> TrainResult:
         from nerfgauge.splat.train import train  # torch

@@ -172,6 +172,30 @@ class Method:
                progress: bool = False) -> RenderResult:
         raise NotImplementedError
 
+    def check(self, request: TrainRequest) -> None:
+        """Refuse (InputError, one line) a request this method cannot run, before anything
+        runs: a suite checks each of its methods this way when it reads the suite file, so a
+        bad setting is the file's error, not a job's failure. The default checks the length:
+        a budget only where the method accepts one, and neither steps nor a budget for one
+        that does not train. A method with settings or its own rules checks those too."""
+        if not self.learned:
+            if request.steps is not None or request.budget_seconds is not None:
+                raise InputError(f"method {self.name} does not train: it takes no steps or time budget")
+            return
+        if request.budget_seconds is not None and not self.accepts_budget:
+            raise InputError(f"method {self.name} takes a step count, not a time budget")
+
+    def train_length(self, steps: Optional[int], budget_seconds: Optional[float]) -> tuple:
+        """(steps, budget_seconds) this method is given when a suite or a bench offers `steps`
+        and, where it has one, a time budget: the budget to a method that accepts one, else
+        the steps; neither to a method that does not train. A method that trains on its own
+        schedule (taking neither) overrides this."""
+        if not self.learned:
+            return None, None
+        if budget_seconds is not None and self.accepts_budget:
+            return None, budget_seconds
+        return steps, None
+
     def describe(self) -> dict:
         """The row `nerfgauge methods` prints and a suite records."""
         return {"name": self.name, "summary": self.summary, "learned": self.learned,

@@ -44,8 +44,15 @@ def register(subparsers) -> None:
     gen.set_defaults(func=run_bench_generate)
     train = kinds.add_parser("train", help="scenes x variants x budgets: PSNR, SSIM, depth, time, size, memory")
     train.add_argument("--scenes", type=arguments.names, default=("primitives",), help="comma-separated scene names")
-    train.add_argument("--variants", type=arguments.names, default=("compact", "vanilla"),
-                       help="comma-separated, from: " + ", ".join(_variant_names()))
+    train.add_argument("--variants", type=arguments.names, default=None,
+                       help="comma-separated, from: " + ", ".join(_variant_names())
+                            + " (default compact,vanilla; none with --methods unless named)")
+    train.add_argument("--methods", type=arguments.names, default=(), metavar="A,B,...",
+                       help="any methods the harness runs beside ours, on the same datasets in the same run: a "
+                            "shipped spec's name (nerfacto, ...), a spec .toml, module:Class, a built-in name "
+                            "(`nerfgauge methods`); each budget for a method that accepts one, else each --steps")
+    train.add_argument("--steps", type=arguments.comma_separated(arguments.STEPS, distinct=True), default=(),
+                       metavar="N,...", help="step counts for the --methods that take steps, not a time budget")
     train.add_argument("--budgets", type=arguments.comma_separated(arguments.SECONDS, distinct=True), default=(30.0, 120.0),
                        help="comma-separated training seconds (default 30,120)")
     train.add_argument("--res", default="128")
@@ -244,7 +251,9 @@ def run_bench_generate(args) -> int:
 
 def run_bench_train(args) -> int:
     width, height = parse_resolution(args.res)
-    rows = bench_train(args.out, list(args.scenes), list(args.variants), list(args.budgets), width, height, args.views)
+    variants = args.variants if args.variants is not None else () if args.methods else ("compact", "vanilla")
+    rows = bench_train(args.out, list(args.scenes), list(variants), list(args.budgets), width, height, args.views,
+                       methods=list(args.methods), steps=list(args.steps))
     print(table_markdown(rows))
     print("\n".join(speedups(rows)))
     print(f"table: {args.out / 'train.md'}; plots: {args.out / 'pareto.png'}")

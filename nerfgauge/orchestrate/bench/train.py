@@ -1,8 +1,18 @@
 """`nerfgauge bench train`: speed against error, scenes x variants x budgets, measured in
-one run on this machine. Each training runs in its own process (so its peak memory is its
-own), then renders the test views and is evaluated. Writes OUT/train.json, OUT/train.md
-(the table) and Pareto plots (PSNR against training seconds, PSNR against model MB), and
-prints the table. Figures are ratios and orderings within one run.
+one run on this machine. Each training of a variant of ours runs in its own process (so its
+peak memory is its own), then renders the test views and is evaluated. Writes
+OUT/train.json, OUT/train.md (the table) and Pareto plots (PSNR against training seconds,
+PSNR against model MB), and prints the table. Figures are ratios and orderings within one run.
+
+`--methods A,B,...` adds any method the harness runs (nerfgauge.methods.registry: a shipped
+spec such as nerfacto, a spec file, module:Class, a built-in name) on the same datasets, in
+the same run, through the method interface (`method_rows`): a method that accepts a time
+budget trains once per budget, one that takes steps once per `--steps` count, one that
+does not train once; each renders the test split and is scored by the same `evaluate`, its
+test PSNR drawn against its wall time beside ours. Another tool's method measures its own
+commands (wall, CPU, peak memory: methods.measure.run_process); a method of ours named here
+trains in this process, so its peak memory is this process's so far (an upper bound). A
+method that fails gets its row with the reason; the others go on.
 """
 
 from __future__ import annotations
@@ -10,12 +20,15 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic, write_json
 from nerfgauge.core.folders import remove_owned
 from nerfgauge.eval.evaluate import evaluate
 from nerfgauge.eval.report import ceiling_cell, plain_text, read_log, save_png
 from nerfgauge.generate.pipeline import GenerateConfig, generate
+from nerfgauge.methods.interface import TrainRequest
+from nerfgauge.methods.registry import resolve
 from nerfgauge.orchestrate.bench.common import claim_bench_folder, first_time_reaching, run_child
 from nerfgauge.scenes import make_scene
 
@@ -33,12 +46,20 @@ VARIANTS = {
 }
 
 
-def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: int, height: int, views: int) -> list:
-    """Run every scene x variant x budget into the bench folder `out`; writes train.json
-    (after each case), train.md and pareto.png. Returns the rows."""
+def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: int, height: int, views: int,
+                methods=(), steps=()) -> list:
+    """Run every scene x variant x budget, and every scene x method x budget or step count
+    (`method_rows`), into the bench folder `out`; writes train.json (after each case),
+    train.md and pareto.png. Returns the rows."""
     unknown = [v for v in variants if v not in VARIANTS]
-    if not variants or unknown:
+    if (not variants and not methods) or unknown:
         raise InputError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    chosen = [resolve(name) for name in methods]  # unknown names: InputError before anything is written
+    for method in chosen:
+        if method.learned and not method.accepts_budget and not steps:
+            raise InputError(f"method {method.name} takes a step count, not a time budget: give --steps N[,N...]")
+    for count in steps:
+        arguments.STEPS.check(count, "--steps")
     if not budgets or not all(isinstance(b, (int, float)) and 0 < b < float("inf") for b in budgets):
         raise InputError(f"budgets must be positive finite seconds, got {budgets!r}")
     if not scenes:
@@ -83,9 +104,60 @@ def bench_train(out: Path, scenes: list, variants: list, budgets: list, width: i
                                  "model_mb": (run / "model.pt").stat().st_size / 1e6, "peak_memory_mb": peak_mb,
                                  "log": str(run / "log.jsonl")})
                     write_json(out / "train.json", {"rows": rows})
+            for method in chosen:
+                rows += method_rows(method, scene, data, out, budgets, steps)
+                write_json(out / "train.json", {"rows": rows})
         write_bytes_atomic(out / "train.md", (table_markdown(rows) + "\n\n" + "\n".join(speedups(rows)) + "\n").encode())
         pareto_plots(rows, out)
     return rows
+
+
+def method_rows(method, scene: str, data: Path, out: Path, budgets: list, steps: list) -> list:
+    """One row per length of `method` (methods.interface.Method) on the dataset `data`:
+    each budget where it accepts one, else each step count, or once where it does not
+    train. Its run in OUT/runs/<scene>-<method>-<length>/, its renders of the test split in
+    that run's renders/, scored by eval.evaluate as our variants are."""
+    lengths = ([(None, None)] if not method.learned else [(None, b) for b in budgets] if method.accepts_budget
+               else [(n, None) for n in steps])
+    rows = []
+    for count, budget in lengths:
+        label = "once" if count is None and budget is None else f"{count}steps" if budget is None else f"{budget:g}s"
+        run = out / "runs" / f"{scene}-{method.name}-{label}"
+        row = {"scene": scene, "variant": method.name, "budget": budget, "method_steps": count}
+        try:
+            trained = method.train(TrainRequest(dataset=data, run=run, steps=count, budget_seconds=budget,
+                                                overwrite=True))
+            rendered = method.render(run, data, "test", run / "renders", overwrite=True)
+        except Exception as error:  # noqa: BLE001 - a method's failure is its row's, not the bench's
+            reason = getattr(error, "reason", None) or (str(error).splitlines() or [type(error).__name__])[0]
+            rows.append({**row, "error": reason})
+            continue
+        metrics = evaluate(data, rendered.out, "test", run / "metrics.json", pred_format=rendered.pred_format)
+        log = run / "log.jsonl"  # a NeRF of ours logs its val curve, drawn beside the variants'
+        log = str(log) if log.is_file() else None
+        rows.append({**row, "val_psnr": read_log(log)[-1]["val_psnr"] if log else None, "psnr": metrics["mean"]["psnr"],
+                     **{key: metrics["mean"].get(key) for key in ("psnr_foreground", "psnr_edges", "psnr_interior")},
+                     "psnr_ceiling": (metrics.get("noise") or {}).get("psnr_ceiling"),
+                     "ssim": metrics["mean"]["ssim"], "depth_absrel": metrics["mean"].get("depth_absrel"),
+                     "lpips": metrics["mean"].get("lpips"), "lpips_note": metrics.get("notes", {}).get("lpips"),
+                     "train_seconds": trained.seconds, "steps": trained.steps,
+                     "steps_per_second": trained.steps_per_second,
+                     "render_ms_per_frame": metrics["timing"].get("ms_per_frame") or rendered.ms_per_frame,
+                     "model_mb": None if trained.model_bytes is None else trained.model_bytes / 1e6,
+                     "peak_memory_mb": None if trained.peak_memory_bytes is None else trained.peak_memory_bytes / 2**20,
+                     "log": log})
+    return rows
+
+
+def _length_cell(row: dict) -> str:
+    """The budget column: seconds, a step count (a method taking steps), or – (no training)."""
+    if row.get("budget") is not None:
+        return f"{row['budget']:g}"
+    return f"{row['method_steps']} steps" if row.get("method_steps") is not None else "–"
+
+
+def _number(value, spec: str) -> str:
+    return "–" if value is None else format(value, spec)
 
 
 def speedups(rows: list) -> list[str]:
@@ -114,15 +186,15 @@ def table_markdown(rows: list) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['scene']} | {r['variant']} | {r['budget']:g} | {r['error']} |" + " |" * (len(head) - 4))
+            lines.append(f"| {r['scene']} | {r['variant']} | {_length_cell(r)} | {r['error']} |" + " |" * (len(head) - 4))
             continue
-        cells = [r["scene"], r["variant"], f"{r['budget']:g}", f"{r['val_psnr']:.2f}",
+        cells = [r["scene"], r["variant"], _length_cell(r), _number(r.get("val_psnr"), ".2f"),
                  "–" if r["psnr"] is None else f"{r['psnr']:.2f}", ceiling_cell(r.get("psnr"), r.get("psnr_ceiling")),
                  "–" if r["ssim"] is None else f"{r['ssim']:.4f}",
                  (r.get("lpips_note") or "–") if r.get("lpips") is None else f"{r['lpips']:.4f}",
                  "–" if r["depth_absrel"] is None else f"{r['depth_absrel']:.4f}", f"{r['train_seconds']:.0f}",
-                 f"{r['steps_per_second']:.1f}", "–" if r["render_ms_per_frame"] is None else f"{r['render_ms_per_frame']:.0f}",
-                 f"{r['model_mb']:.2f}", f"{r['peak_memory_mb']:.0f}"]
+                 _number(r.get("steps_per_second"), ".1f"), _number(r.get("render_ms_per_frame"), ".0f"),
+                 _number(r.get("model_mb"), ".2f"), _number(r.get("peak_memory_mb"), ".0f")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -150,27 +222,37 @@ def pareto_plots(rows: list, out: Path) -> None:
     test_by_time, test_by_steps = figure.add_subplot(2, 2, 3), figure.add_subplot(2, 2, 4)
     done = [r for r in rows if "error" not in r]
     for r in done:
-        label = plain_text(f"{r['scene']}: {r['variant']} ({r['budget']:g} s)")  # a mesh:PATH scene may hold $
+        if r.get("log") is None:  # another tool's run: no val curve
+            continue
+        label = plain_text(f"{r['scene']}: {r['variant']} ({_length_cell(r)}{' s' if r['budget'] else ''})")  # $ as text
         log = read_log(r["log"])
         by_time.plot([e["seconds"] for e in log], [e["val_psnr"] for e in log], marker=".", label=label)
         by_size.scatter([r["model_mb"]], [r["val_psnr"]], label=label)
-    for scene, variant in dict.fromkeys((r["scene"], r["variant"]) for r in done if r["psnr"] is not None):
+    for r in done:  # a method that does not train: its PSNR at every time, as a line
+        if r["psnr"] is not None and r["budget"] is None and r.get("method_steps") is None:
+            test_by_time.axhline(r["psnr"], linestyle="--", linewidth=1,
+                                 label=plain_text(f"{r['scene']}: {r['variant']} (no training)"))
+    for scene, variant in dict.fromkeys((r["scene"], r["variant"]) for r in done if r["psnr"] is not None
+                                        and (r["budget"] is not None or r.get("method_steps") is not None)):
         line = sorted((r for r in done if (r["scene"], r["variant"]) == (scene, variant) and r["psnr"] is not None),
-                      key=lambda r: r["budget"])
+                      key=lambda r: (r["budget"] or 0, r.get("method_steps") or 0, r["train_seconds"]))
         test_by_time.plot([r["train_seconds"] for r in line], [r["psnr"] for r in line], marker="o",
                           label=plain_text(f"{scene}: {variant}"))
-        test_by_steps.plot([r["steps"] for r in line], [r["psnr"] for r in line], marker="o",
+        counted = [r for r in line if r.get("steps") is not None]  # a method that does not say its steps: not here
+        test_by_steps.plot([r["steps"] for r in counted], [r["psnr"] for r in counted], marker="o",
                            label=plain_text(f"{scene}: {variant}"))
     by_time.set(xlabel="training seconds", ylabel="val PSNR, centre rays (dB)", title="PSNR against training time (each run)")
     by_size.set(xlabel="saved model (MB)", ylabel="final val PSNR (dB)", title="PSNR against model size", xscale="log")
-    test_by_time.set(xlabel="training seconds (the budget)", ylabel="test PSNR (dB)",
+    test_by_time.set(xlabel="training seconds (wall; ours: the budget)", ylabel="test PSNR (dB)",
                      title="test PSNR at the end of each budget", xscale="log")
     test_by_steps.set(xlabel="training steps", ylabel="test PSNR (dB)", title="the same against steps", xscale="log")
     for axes in (by_time, by_size, test_by_time, test_by_steps):
         axes.grid(alpha=0.3)
-    by_size.legend(fontsize=6, loc="lower right")
+    if any(r.get("log") for r in done):
+        by_size.legend(fontsize=6, loc="lower right")
     if done:
         test_by_steps.legend(fontsize=7, loc="lower right")
+        test_by_time.legend(fontsize=7, loc="lower right")
     figure.text(0.01, 0.01, VAL_AGAINST_TEST, fontsize=8, va="bottom", wrap=True)
     figure.tight_layout(rect=(0, 0.05, 1, 1))
     save_png(figure, out / "pareto.png")

@@ -4,15 +4,19 @@
     nerfgauge suite list
     nerfgauge suite generate SUITE --out DIR [--overwrite]
     nerfgauge suite evaluate SUITE DIR --method NAME --pred PRED_ROOT [--pred-format ...] [--seeds K|A,B,...]
-    nerfgauge suite run SUITE --out DIR [--overwrite] [--seeds K|A,B,...] [--scheduler ADDRESS] [--threads T]
+    nerfgauge suite run SUITE --out DIR [--methods A,B,...] [--overwrite] [--seeds K|A,B,...]
+                                        [--scheduler ADDRESS] [--threads T]
     nerfgauge suite report DIR [--suite SUITE]
 
 SUITE is a built-in name (`suite list`) or a path to a .toml file. `suite report` without
 --suite reads the suite from DIR/suite.json, checked as a suite file is and against the
 folder's marker, suite manifest and datasets (orchestrate.suite.suite_from_folder).
+A suite file in an older format is read with a one-line note on stderr (Suite.notes).
 """
 
 from __future__ import annotations
+
+import sys
 
 from nerfgauge.core import arguments
 from nerfgauge.orchestrate.suite.definition import builtin_suites, evaluate_suite, generate_suite, load_suite
@@ -48,19 +52,24 @@ def register(subparsers) -> None:
                           help="the method was run once per seed: PRED_ROOT/seed-<s>/<id>/ per seed (K: seeds "
                                "0..K-1); scored per seed and aggregated with intervals over seeds and views")
     evaluate.set_defaults(func=run_evaluate)
-    run = kinds.add_parser("run", help="our NeRF and the baselines through a whole suite, then the leaderboard")
+    run = kinds.add_parser("run", help="every method of a suite over its datasets and seeds, then the leaderboard")
     run.add_argument("suite", metavar="SUITE")
     run.add_argument("--out", type=arguments.path, required=True, metavar="DIR", help="suite folder")
+    run.add_argument("--methods", default=None, metavar="A,B,...",
+                     help="run these methods instead of the suite's [[methods]]: a method of the suite (by name, "
+                          "with its settings), a built-in or shipped method's name, module:Class or a spec .toml "
+                          "(`nerfgauge methods` lists them)")
     run.add_argument("--overwrite", action="store_true", help="replace a suite folder of another suite or version")
     run.add_argument("--progress", action="store_true", help="progress bars")
     run.add_argument("--seeds", type=arguments.seeds, default=None, metavar="K|A,B,...",
-                     help="train our NeRF K times (seeds 0..K-1) or with the listed seeds; every run is kept, the "
-                          "leaderboard gives 95%% intervals over seeds and views (default: once, the entry's seed)")
+                     help="train each learned method K times (seeds 0..K-1) or with the listed seeds; every run is "
+                          "kept, the leaderboard gives 95%% intervals over seeds and views (default: once, the "
+                          "entry's seed)")
     run.add_argument("--scheduler", default=None, metavar="ADDRESS",
                      help="run generation and every (dataset, method, seed) job on a dask.distributed cluster: "
                           "tcp://HOST:PORT or local:N (needs the dask extra)")
     run.add_argument("--threads", type=arguments.THREADS, default=None, metavar="T",
-                     help="torch threads per training job (default: the suite's; on local:N a share of the cores "
+                     help="threads per job (default: the suite's [train] threads; on local:N a share of the cores "
                           "when N workers would oversubscribe them). Per-run metrics repeat for equal T")
     run.set_defaults(func=run_run)
     report = kinds.add_parser("report", help="the leaderboard (Markdown, HTML, JSON) and per-dataset reports")
@@ -73,13 +82,13 @@ def register(subparsers) -> None:
 
 def run_list(args) -> int:
     for name in builtin_suites():
-        suite = load_suite(name)
+        suite = _load(name)
         print(f"{name:10s} v{suite.version}  {len(suite.scenes):2d} datasets  {suite.description}")
     return 0
 
 
 def run_generate(args) -> int:
-    suite = load_suite(args.suite)
+    suite = _load(args.suite)
     manifest = generate_suite(suite, args.out, overwrite=args.overwrite, progress=args.progress,
                               scheduler=args.scheduler)
     files = sum(len(record["files"]) for record in manifest["datasets"].values())
@@ -89,18 +98,26 @@ def run_generate(args) -> int:
 
 
 def run_evaluate(args) -> int:
-    suite = load_suite(args.suite)
+    suite = _load(args.suite)
     result = evaluate_suite(suite, args.dir, args.method, args.pred, pred_format=args.pred_format, seeds=args.seeds)
     print(f"{args.method}: {len(result['datasets'])} datasets scored -> {args.dir / 'results' / args.method}")
     return 0
 
 
 def run_run(args) -> int:
-    run_suite(load_suite(args.suite), args.out, overwrite=args.overwrite, progress=args.progress, seeds=args.seeds,
-              scheduler=args.scheduler, threads=args.threads)
+    run_suite(_load(args.suite), args.out, overwrite=args.overwrite, progress=args.progress, seeds=args.seeds,
+              scheduler=args.scheduler, threads=args.threads, methods=args.methods)
     return 0
 
 
 def run_report(args) -> int:
-    write_leaderboard(load_suite(args.suite) if getattr(args, "suite", None) else None, args.dir)
+    write_leaderboard(_load(args.suite) if getattr(args, "suite", None) else None, args.dir)
     return 0
+
+
+def _load(spec):
+    """load_suite, its notes (an older file's names) one line each on stderr."""
+    suite = load_suite(spec)
+    for note in suite.notes:
+        print(note, file=sys.stderr)
+    return suite

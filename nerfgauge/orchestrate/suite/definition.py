@@ -9,12 +9,17 @@ path ending in .toml):
     [dataset]                      # required: nerfgauge generate settings (GenerateConfig
     width = 16 ...                 #   fields but scene and seed, the train-view degradations
                                    #   too); width, height, views, test_views and spp are required
-    [train]                        # required: our NeRF (TrainConfig fields but dataset and
-    steps = 80 ...                 #   seed); steps is required (reproducible)
-    [protocol]                     # required: split, background, depth_kind; optional
-    split = "test" ...             #   baselines (methods.baselines.METHODS; the lightfield ones
-                                   #   run on lightfield layouts only) and geometry
+    [train]                        # required: the length every learned method's job is
+    steps = 80                     #   offered: steps (required: reproducible), budget_seconds,
+                                   #   threads (orchestrate.suite.methods)
+    [scoring]                      # required: how renders are scored: split, background,
+    split = "test" ...             #   depth_kind; optional protocol (eval.protocols: nerfgauge,
+                                   #   nerfbaselines, ns-eval; default ours) and geometry
                                    #   {resolution, samples} (our NeRF's mesh scored)
+    [[methods]]                    # what runs (orchestrate.suite.methods): a built-in method,
+    method = "compact"             #   a spec file, module:Class, with settings and length;
+    settings = { ... }             #   without [[methods]], [train]'s other keys are our
+                                   #   compact NeRF's settings (named compact-nerf)
     [[scenes]]                     # at least one: scene (a registered recipe) and seed are
     scene = "primitives"           #   required; id (default: the scene) names its folder;
     seed = 0                       #   any [dataset] key overrides the default for it
@@ -25,8 +30,13 @@ path ending in .toml):
 
 A missing or unknown field, a wrong type, an unknown scene, or two entries with one id is an
 InputError naming the file and the field. The suite's identity is its version and the
-sha256 of its canonical JSON (`Suite.sha256`): editing a suite without bumping its
-version still changes the hash, and results are refused either way.
+sha256 of its canonical JSON (`Suite.sha256`: its name, version, description, scoring and
+datasets; not the methods run on it): editing a suite without bumping its version still
+changes the hash, and results are refused either way.
+
+The scoring table was called [protocol] (and listed the baselines) before a suite could
+choose the scoring protocol: such a file is still read, with a one-line note
+(`Suite.notes`), its baselines run as methods; [protocol] and [scoring] together are refused.
 
 A suite folder (`nerfgauge suite generate SUITE --out DIR`, a nerfgauge "suite" folder):
     DIR/suite.json                  the suite as parsed: name, version, sha256, definition
@@ -89,14 +99,14 @@ from nerfgauge.core import arguments, bounded, dataset, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import json_bytes, read_json, sha256_file, write_json
 from nerfgauge.core.folders import MARKER, claim_folder, folder_lock, read_marker
-from nerfgauge.methods.baselines import METHODS
 from nerfgauge.eval.check import finite_number, shown
 from nerfgauge.eval.geometry import SUMMARY_NAMES
 from nerfgauge.eval.evaluate import BACKGROUNDS, evaluate
 from nerfgauge.eval.metrics import METRIC_NAMES
 from nerfgauge.eval.uncertainty import aggregate_runs, mean_of
-from nerfgauge.eval.predictions import DEPTH_SUFFIXES
+from nerfgauge.eval.predictions import DEPTH_SUFFIXES, FORMATS as PRED_FORMATS
 from nerfgauge.generate.distributed import check_reachable
+from nerfgauge.orchestrate.suite import methods as suite_methods
 from nerfgauge.generate.pipeline import CONFIG as CONFIG_FILE, GenerateConfig, generate
 from nerfgauge.scenes.registry import RECIPES
 
@@ -105,10 +115,10 @@ SUITE_MANIFEST = "suite-manifest.json"
 RESULT_FILE = "result.json"
 AGGREGATE_FILE = "aggregate.json"  # results/<method>/<id>/aggregate.json: a method's runs over seeds
 SCHEMA = 1
-OURS = "compact-nerf"  # our NeRF's name on the leaderboard (suite run)
 REQUIRED = {"dataset": ("width", "height", "views", "test_views", "spp"), "train": ("steps",),
-            "protocol": ("split", "background", "depth_kind")}
-PROTOCOL_KEYS = {"split": str, "background": str, "depth_kind": str, "baselines": list, "geometry": dict}
+            "scoring": ("split", "background", "depth_kind")}
+SCORING_KEYS = {"split": str, "background": str, "depth_kind": str, "protocol": str, "geometry": dict}
+OLD_SCORING = "protocol"  # the scoring table's name before a suite could choose the scoring protocol
 GEOMETRY_KEYS = ("resolution", "samples")
 GENERATE_FIELDS = frozenset(f.name for f in dataclasses.fields(GenerateConfig)) - {"scene", "seed"}
 NAME_BYTES = 255  # NAME_MAX: the longest name of one folder or file
@@ -139,16 +149,18 @@ class Suite:
     name: str
     version: int
     description: str
-    train: dict  # TrainConfig fields
-    protocol: dict
+    scoring: dict  # split, background, depth_kind, protocol (eval.protocols), geometry
     scenes: tuple  # SceneEntry
     source: str  # where it was read from (named in errors)
+    train: dict = field(default_factory=dict, compare=False)  # the jobs' length: steps, budget_seconds, threads
+    methods: tuple = field(default=(), compare=False)  # orchestrate.suite.methods.MethodEntry: what runs
+    notes: tuple = field(default=(), compare=False)  # one line each, for the user (an older file's names)
 
     def definition(self) -> dict:
-        """Everything that makes results comparable (not where the file lives)."""
+        """Everything that makes results comparable (not where the file lives, not the
+        methods run on it)."""
         return {"name": self.name, "version": self.version, "description": self.description,
-                "train": self.train, "protocol": self.protocol,
-                "scenes": [entry.definition() for entry in self.scenes]}
+                "scoring": self.scoring, "scenes": [entry.definition() for entry in self.scenes]}
 
     @property
     def sha256(self) -> str:
@@ -238,12 +250,38 @@ def _seed(value, where: str) -> int:
 
 
 def parse_suite(data: dict, source: str, base=None) -> Suite:
-    """A suite file's parsed TOML, every field checked. base: the folder relative `folder`
-    entries are resolved against (the .toml's)."""
-    _check_fields(data, {"name", "version", "description", "dataset", "train", "protocol", "scenes"}, source)
+    """A suite file's parsed TOML, every field checked, its methods resolved and their
+    requests checked (orchestrate.suite.methods). base: the folder relative `folder`
+    entries and spec files are resolved against (the .toml's)."""
+    _check_fields(data, {"name", "version", "description", "dataset", "train", "scoring", OLD_SCORING, "methods",
+                         "scenes"}, source)
+    notes = ()
+    if OLD_SCORING in data:
+        if "scoring" in data:
+            raise InputError(f"{source}: [{OLD_SCORING}] is the older name of [scoring]; give one of them")
+        if "methods" in data and "baselines" in (data[OLD_SCORING] if isinstance(data[OLD_SCORING], dict) else {}):
+            raise InputError(f"{source}: list the baselines as [[methods]] entries, not {OLD_SCORING}.baselines")
+        old = data
+        data = {**{k: v for k, v in data.items() if k != OLD_SCORING}, "scoring": data[OLD_SCORING]}
+        notes = (f"note: {source}: [{OLD_SCORING}] is now called [scoring] (and its baselines are [[methods]]); "
+                 "the file is read as before",)
+    scoring, baselines = data.get("scoring"), []
+    if notes and isinstance(scoring, dict):  # the older table's baselines: methods now
+        scoring = {key: value for key, value in scoring.items() if key != "baselines"}
+        baselines, data = old[OLD_SCORING].get("baselines", []), {**data, "scoring": scoring}
+    elif isinstance(scoring, dict) and "baselines" in scoring:
+        raise InputError(f"{source}: scoring.baselines: list each baseline as a [[methods]] entry "
+                         '(method = "nearest")')
     dataset_defaults = _table(data, "dataset", source)
     _check_fields(dataset_defaults, GENERATE_FIELDS, f"{source} [dataset]")
-    return _suite(data, source, dataset_defaults, lambda raw, where: _folder_entry(raw, where, base))
+    suite = _suite(data, source, dataset_defaults, lambda raw, where: _folder_entry(raw, where, base))
+    train = _table(data, "train", source)
+    if "methods" in data:
+        train = suite_methods.check_train(train, source)
+        methods = suite_methods.parse_methods(data["methods"], train, source, base)
+    else:
+        train, methods = suite_methods.shorthand_methods(train, baselines, source)
+    return dataclasses.replace(suite, train=train, methods=methods, notes=notes)
 
 
 def suite_from_definition(recorded: dict, source: str) -> Suite:
@@ -255,7 +293,10 @@ def suite_from_definition(recorded: dict, source: str) -> Suite:
     if not isinstance(definition, dict):
         raise InputError(f"{source}: no suite definition (an object), got {shown(definition)}")
     where = f"{source} definition"
-    _check_fields(definition, {"name", "version", "description", "train", "protocol", "scenes"}, where)
+    if OLD_SCORING in definition:
+        raise InputError(f"{source} records a suite in the format before [scoring]: make the folder again with "
+                         "nerfgauge suite generate SUITE --out DIR --overwrite")
+    _check_fields(definition, {"name", "version", "description", "scoring", "scenes"}, where)
     folders = recorded.get("folders", {})
     if not isinstance(folders, dict):
         raise InputError(f"{source}: folders must be an object of id: path, got {shown(folders)}")
@@ -274,10 +315,8 @@ def suite_from_definition(recorded: dict, source: str) -> Suite:
 
 def _suite(data: dict, source: str, dataset_defaults: dict, folder_entry, recorded: bool = False) -> Suite:
     """The fields parse_suite and suite_from_definition share: name, version, description,
-    [train], [protocol] and the entries (a recorded definition's entries carry every
-    dataset setting; folder_entry(raw, where) reads a folder entry)."""
-    from nerfgauge.nerf.config import TrainConfig  # torch: kept off `nerfgauge --help`'s import path
-
+    [scoring] and the entries (a recorded definition's entries carry every dataset
+    setting; folder_entry(raw, where) reads a folder entry)."""
     for field in ("name", "version"):
         if field not in data:
             raise InputError(f"{source}: missing field {field}")
@@ -290,31 +329,7 @@ def _suite(data: dict, source: str, dataset_defaults: dict, folder_entry, record
     description = data.get("description", "")
     if not isinstance(description, str):
         raise InputError(f"{source}: description must be a string, got {shown(description)}")
-    train = _table(data, "train", source)
-    _check_fields(train, {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "seed", "budget_seconds"},
-                  f"{source} [train]")
-    protocol = _table(data, "protocol", source)
-    _check_fields(protocol, set(PROTOCOL_KEYS), f"{source} [protocol]")
-    for key, kind in PROTOCOL_KEYS.items():
-        if key in protocol and not isinstance(protocol[key], kind):
-            raise InputError(f"{source}: protocol.{key} must be a {kind.__name__}, got {shown(protocol[key])}")
-    if protocol["background"] not in BACKGROUNDS or protocol["depth_kind"] not in DEPTH_SUFFIXES:
-        raise InputError(f"{source}: protocol.background must be one of {', '.join(BACKGROUNDS)} and "
-                         f"protocol.depth_kind one of {', '.join(DEPTH_SUFFIXES)}")
-    if protocol["split"] not in dataset.SPLITS:
-        raise InputError(f"{source}: protocol.split must be one of {', '.join(dataset.SPLITS)}, "
-                         f"got {shown(protocol['split'])}")
-    protocol.setdefault("baselines", [])
-    for method in protocol["baselines"]:
-        if not isinstance(method, str) or method not in METHODS:
-            raise InputError(f"{source}: protocol.baselines: unknown baseline {shown(method)}; known: {', '.join(METHODS)}")
-    if "geometry" in protocol:
-        geometry = protocol["geometry"]
-        _check_fields(geometry, set(GEOMETRY_KEYS), f"{source} protocol.geometry")
-        for key in GEOMETRY_KEYS:
-            if not isinstance(geometry.get(key), int) or isinstance(geometry.get(key), bool) or geometry[key] < 2:
-                raise InputError(f"{source}: protocol.geometry.{key} must be an integer >= 2, "
-                                 f"got {shown(geometry.get(key))}")
+    scoring = check_scoring(_table(data, "scoring", source), source)
     scenes = data.get("scenes")
     if scenes is None:
         raise InputError(f"{source}: missing field [[scenes]]")
@@ -332,21 +347,54 @@ def _suite(data: dict, source: str, dataset_defaults: dict, folder_entry, record
                 raise InputError(f"{where}: a recorded entry needs its id and its dataset settings (an object)")
             _check_fields(settings, GENERATE_FIELDS, f"{where} dataset")
             entry = _recipe_entry({**settings, **{key: raw[key] for key in ("id", "scene", "seed") if key in raw}},
-                                  dataset_defaults, train, where)
+                                  dataset_defaults, where)
         else:
-            entry = _recipe_entry(raw, dataset_defaults, train, where)
+            entry = _recipe_entry(raw, dataset_defaults, where)
         if entry.id in ids:
             raise InputError(f"{where}: id {entry.id!r} is used twice; give each entry its own id")
         ids.add(entry.id)
         entries.append(entry)
-    return Suite(name, version, description, train, protocol, tuple(entries), source)
+    return Suite(name, version, description, scoring, tuple(entries), source)
 
 
-def _recipe_entry(raw: dict, dataset_defaults: dict, train: dict, where: str) -> SceneEntry:
+def check_scoring(scoring: dict, source: str) -> dict:
+    """[scoring]: split, background, depth_kind (required), protocol (eval.protocols;
+    default ours), geometry {resolution, samples}. A protocol that composites onto a fixed
+    background (ns-eval: black) needs that background: scores are compared like with like."""
+    from nerfgauge.eval import protocols  # the scoring protocols
+
+    _check_fields(scoring, set(SCORING_KEYS), f"{source} [scoring]")
+    for key, kind in SCORING_KEYS.items():
+        if key in scoring and not isinstance(scoring[key], kind):
+            raise InputError(f"{source}: scoring.{key} must be a {kind.__name__}, got {shown(scoring[key])}")
+    if scoring["background"] not in BACKGROUNDS or scoring["depth_kind"] not in DEPTH_SUFFIXES:
+        raise InputError(f"{source}: scoring.background must be one of {', '.join(BACKGROUNDS)} and "
+                         f"scoring.depth_kind one of {', '.join(DEPTH_SUFFIXES)}")
+    if scoring["split"] not in dataset.SPLITS:
+        raise InputError(f"{source}: scoring.split must be one of {', '.join(dataset.SPLITS)}, "
+                         f"got {shown(scoring['split'])}")
+    scoring.setdefault("protocol", protocols.DEFAULT)
+    if scoring["protocol"] not in protocols.PROTOCOLS:
+        raise InputError(f"{source}: scoring.protocol must be one of {', '.join(protocols.PROTOCOLS)}, "
+                         f"got {shown(scoring['protocol'])}")
+    fixed = protocols.PROTOCOLS[scoring["protocol"]].background
+    if fixed is not None and tuple(BACKGROUNDS[scoring["background"]]) != tuple(fixed):
+        wanted = next(name for name, value in BACKGROUNDS.items() if tuple(value) == tuple(fixed))
+        raise InputError(f"{source}: scoring.protocol {scoring['protocol']} composites onto {wanted}: "
+                         f"set scoring.background = \"{wanted}\"")
+    if "geometry" in scoring:
+        geometry = scoring["geometry"]
+        _check_fields(geometry, set(GEOMETRY_KEYS), f"{source} scoring.geometry")
+        for key in GEOMETRY_KEYS:
+            if not isinstance(geometry.get(key), int) or isinstance(geometry.get(key), bool) or geometry[key] < 2:
+                raise InputError(f"{source}: scoring.geometry.{key} must be an integer >= 2, "
+                                 f"got {shown(geometry.get(key))}")
+    return scoring
+
+
+def _recipe_entry(raw: dict, dataset_defaults: dict, where: str) -> SceneEntry:
     """A [[scenes]] entry rendered from a recipe: scene, seed, id (default: the scene) and
-    any [dataset] key overriding the defaults; GenerateConfig and TrainConfig validate it."""
-    from nerfgauge.nerf.config import TrainConfig  # torch: as in _suite
-
+    any [dataset] key overriding the defaults; GenerateConfig validates it."""
     _check_fields(raw, GENERATE_FIELDS | {"id", "scene", "seed"}, where)
     for field in ("scene", "seed"):
         if field not in raw:
@@ -365,7 +413,6 @@ def _recipe_entry(raw: dict, dataset_defaults: dict, train: dict, where: str) ->
     try:
         config = GenerateConfig(scene=entry.scene, seed=entry.seed, **settings)
         config.validate()
-        TrainConfig(dataset=".", seed=entry.seed, **train).validate()
     except (TypeError, ValueError) as error:  # InputError is a ValueError
         raise InputError(f"{where}: {str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
     return entry
@@ -422,6 +469,10 @@ def check_same_suite(suite: Suite, identity: dict, where: str,
     if version != suite.version:
         raise InputError(f"{where} was made with suite {name} version {version}, not version {suite.version}; "
                          f"{remedy}")
+    recorded = identity.get("definition")
+    if sha != suite.sha256 and isinstance(recorded, dict) and OLD_SCORING in recorded:
+        raise InputError(f"{where} was made by an older nerfgauge, whose suites' hashes covered [train] and "
+                         f"[{OLD_SCORING}]; {remedy}")
     if sha != suite.sha256:
         raise InputError(f"{where} was made with another definition of suite {name} version {version} "
                          f"(sha256 {str(sha)[:12]}..., this one {suite.sha256[:12]}...); bump the version when editing a suite")
@@ -664,20 +715,20 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
                    extras: dict | None = None, log=print, entries=None, skipped: dict | None = None,
                    seeds=None) -> dict:
     """Score PRED_ROOT/<id>/ against every dataset of the suite (eval.evaluate, the same
-    function as `nerfgauge evaluate`) into out/results/<method>/; result.json last.
+    function as `nerfgauge evaluate`, under the suite's [scoring]) into
+    out/results/<method>/; result.json last.
 
-    extras: {id: {"train_seconds", "model_bytes", "geometry"}} known to the caller (suite run).
+    extras: {id: {"train_seconds", "model_bytes", "geometry"}} known to the caller.
     PRED_ROOT/<id>/train.json ({"seconds", "model_bytes"}), when present, gives the same for
     another tool's runs. A PRED_ROOT/suite.json naming another suite or version is refused.
-    entries: the suite's SceneEntry to score (default all; `suite run` passes the light-field
-    datasets only for the light-field baselines). skipped: {id: why the method does not apply},
-    kept in result.json for the leaderboard.
+    entries: the suite's SceneEntry to score (default all). skipped: {id: why the method
+    does not apply}, kept in result.json for the leaderboard.
 
-    seeds: training seeds (suite run --seeds): PRED_ROOT/seed-<s>/<id>/ holds each seed's
-    renders; each is scored into results/<method>/<id>/seed-<s>/metrics.json, and
-    results/<method>/<id>/aggregate.json (eval.uncertainty.aggregate_runs) holds every run's
-    means, the two-level bootstrap interval over seeds and views, the per-seed spread and
-    the variance split. extras may then be {id: {seed: {...}}}."""
+    seeds: training seeds (the method was run once per seed): PRED_ROOT/seed-<s>/<id>/ holds
+    each seed's renders; each is scored into results/<method>/<id>/seed-<s>/metrics.json,
+    and results/<method>/<id>/aggregate.json (eval.uncertainty.aggregate_runs) holds every
+    run's means, the two-level bootstrap interval over seeds and views, the per-seed spread
+    and the variance split. extras may then be {id: {seed: {...}}}."""
     out, pred_root = Path(out), Path(pred_root)
     folder_name(method, "--method")
     manifest = read_suite_folder(suite, out)
@@ -694,42 +745,18 @@ def evaluate_suite(suite: Suite, out, method: str, pred_root, *, pred_format: st
         raise InputError(f"{pred_root} has no predictions for {len(missing)} of the suite's {len(suite.scenes)} "
                          f"datasets: {', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} "
                          f"(expected {pred_root}/{'' if seeds is None else 'seed-<s>/'}<id>/ for each)")
-    extras = extras or {}
-    results_dir = out / "results" / method
+    renders = {entry.id: {seed: (str(pred_root / (entry.id if seed is None else f"{seed_folder(seed)}/{entry.id}")),
+                                 pred_format) for seed in (seeds or (None,))} for entry in entries}
+    tasks = scoring_tasks(suite, out, method, renders)
     with folder_lock(out):
-        owned.remove_file(results_dir / RESULT_FILE)  # no stale result.json beside new metrics
-        rows = {}
-        for index, entry in enumerate(entries, 1):
-            log(f"[{index}/{len(entries)}] evaluate {method} on {entry.id}"
-                + ("" if seeds is None else f" ({len(seeds)} seeds)"))
-            record = manifest["datasets"][entry.id]
-            key = identity_key(record)
-            if seeds is None:
-                rows[entry.id] = _score_one(suite, out, entry, record, pred_root / entry.id,
-                                            results_dir / entry.id / "metrics.json", pred_format,
-                                            extras.get(entry.id, {}))[0]
-                continue
-            runs, documents = [], []
-            for seed in seeds:
-                row, document = _score_one(suite, out, entry, record, pred_root / seed_folder(seed) / entry.id,
-                                           results_dir / entry.id / seed_folder(seed) / "metrics.json",
-                                           pred_format, extras.get(entry.id, {}).get(seed, {}))
-                runs.append({"seed": seed, **{k: v for k, v in row.items() if k != key}})
-                documents.append(document)
-            aggregate = aggregate_runs(documents, list(seeds), [m for m in METRIC_NAMES if m in documents[0]["mean"]])
-            aggregate_path = results_dir / entry.id / AGGREGATE_FILE
-            write_json(aggregate_path, {"method": method, "scene": entry.id, **aggregate})
-            first = runs[0]
-            rows[entry.id] = {key: record[key], "metrics": first["metrics"],
-                              "aggregate": aggregate_path.relative_to(out).as_posix(), "seeds": list(seeds),
-                              "runs": runs, **{name: _mean_of(runs, name) for name in
-                                               ("ms_per_frame", "train_seconds", "model_bytes", "steps")},
-                              "geometry": _mean_geometry(runs)}
-        result = {**suite.identity(), "schema": SCHEMA, "method": method, "pred_root": str(pred_root),
-                  "datasets": rows, **({"skipped": dict(skipped)} if skipped else {}),
-                  **({"seeds": list(seeds)} if seeds is not None else {})}
-        write_json(results_dir / RESULT_FILE, result)
-    return result
+        owned.remove_file(out / "results" / method / RESULT_FILE)  # no stale result.json beside new metrics
+        documents = []
+        for index, task in enumerate(tasks, 1):
+            log(f"[{index}/{len(tasks)}] evaluate {method} on {task['entry']}"
+                + ("" if task["seed"] is None else f" (seed {task['seed']})"))
+            documents.append(score_renders(**task["kwargs"]))
+        return write_result(suite, out, manifest, method, tasks, documents, seeds=seeds, extras=extras,
+                            skipped=skipped, pred_root=str(pred_root))
 
 
 def seed_folder(seed: int) -> str:
@@ -737,35 +764,126 @@ def seed_folder(seed: int) -> str:
     return f"seed-{seed}"
 
 
-def _score_one(suite: Suite, out: Path, entry, record: dict, pred_dir: Path, metrics_path: Path, pred_format: str,
-               extras: dict) -> tuple[dict, dict]:
-    """eval.evaluate of one folder of renders into metrics_path: (result.json row, document)."""
-    document = evaluate(dataset_dir(out, entry), pred_dir, split=suite.protocol["split"],
-                        out=metrics_path, background=suite.protocol["background"],
-                        depth_kind=suite.protocol["depth_kind"], pred_format=pred_format)
-    key = identity_key(record)
-    if key == "ground_truth_sha256":  # the files this scoring read are the ones recorded
+def scoring_tasks(suite: Suite, out, method: str, renders: dict, threads: int | None = None,
+                  failures: bool = False) -> list[dict]:
+    """The scoring jobs of one method: renders {entry id: {seed or None: (folder, pred
+    format)}} (seed None: the method was run once) in the suite's order, each {"key" (the
+    job's), "method", "entry", "seed", "metrics" (its path relative to out), "kwargs" of score_renders}."""
+    out, tasks = Path(out), []
+    for entry in suite.scenes:
+        for seed, (folder, pred_format) in renders.get(entry.id, {}).items():
+            metrics = Path("results") / method / entry.id / ("" if seed is None else seed_folder(seed)) / "metrics.json"
+            key = f"score/{method}/" + ("" if seed is None else f"{seed_folder(seed)}/") + entry.id
+            tasks.append({"key": key, "method": method, "entry": entry.id, "seed": seed, "metrics": metrics.as_posix(), "kwargs": dict(
+                dataset=str(dataset_dir(out, entry)), renders=str(folder), metrics=str(out / metrics),
+                scoring=suite.scoring, pred_format=pred_format, threads=threads, failures=failures)})
+    return tasks
+
+
+def score_renders(dataset: str, renders: str, metrics: str, scoring: dict, pred_format: str = "auto",
+                  threads: int | None = None, failures: bool = False) -> dict:
+    """eval.evaluate of one folder of renders under a suite's [scoring] into `metrics`: its
+    document. A job: `suite run` runs these here or on its dask cluster like the training
+    jobs (orchestrate.suite.jobs.run_jobs). threads: torch's thread count while it scores
+    (then restored): LPIPS's float32 convolutions sum in an order that depends on it, so a
+    cluster's scores equal a local run's at the same count. failures: an InputError (renders
+    that cannot be scored: a method's fault in `suite run`) comes back as {"failed": line}."""
+    import torch  # torch: only where a scoring job runs
+
+    before = torch.get_num_threads()
+    try:
+        if threads is not None:
+            torch.set_num_threads(threads)
+        return evaluate(dataset, renders, split=scoring["split"], out=metrics, background=scoring["background"],
+                        depth_kind=scoring["depth_kind"], pred_format=pred_format,
+                        protocol=scoring.get("protocol", "nerfgauge"))
+    except InputError as error:
+        if not failures:
+            raise
+        return {"failed": f"its renders could not be scored: {error}"}
+    finally:
+        torch.set_num_threads(before)
+
+
+def write_result(suite: Suite, out, manifest: dict, method: str, tasks: list, documents: list, *, seeds=None,
+                 extras: dict | None = None, skipped: dict | None = None, failed: dict | None = None,
+                 pred_root: str | None = None) -> dict:
+    """results/<method>/result.json from its scoring tasks' documents (scoring_tasks,
+    score_renders): a row per dataset (seeds: its runs and aggregate.json), the training
+    figures of `extras` beside each, the datasets where it was skipped or failed with why.
+    A dataset where any seed's scoring failed is failed. Written last; returns it."""
+    out, extras, failed = Path(out), extras or {}, dict(failed or {})
+    by_entry = {}
+    for task, document in zip(tasks, documents):
+        by_entry.setdefault(task["entry"], []).append((task, document))
+    rows = {}
+    for entry in suite.scenes:
+        scored = by_entry.get(entry.id)
+        if not scored:
+            continue
+        broken = [(task, document) for task, document in scored if "failed" in document]
+        if broken:
+            task, document = broken[0]
+            failed[entry.id] = document["failed"] if task["seed"] is None else f"seed {task['seed']}: {document['failed']}"
+            continue
+        record = manifest["datasets"][entry.id]
+        key = identity_key(record)
+        runs, docs = [], []
+        for task, document in scored:
+            extra = extras.get(entry.id, {}) if seeds is None else extras.get(entry.id, {}).get(task["seed"], {})
+            runs.append(_result_row(out, entry, record, task, document, extra))
+            docs.append(document)
+        if seeds is None:
+            rows[entry.id] = {key: record[key], **runs[0]}
+            continue
+        runs = [{**run, "seed": task["seed"]} for run, (task, _) in zip(runs, scored)]
+        aggregate = aggregate_runs(docs, list(seeds), [m for m in METRIC_NAMES if m in docs[0]["mean"]])
+        aggregate_path = out / "results" / method / entry.id / AGGREGATE_FILE
+        write_json(aggregate_path, {"method": method, "scene": entry.id, **aggregate})
+        rows[entry.id] = {key: record[key], "metrics": runs[0]["metrics"],
+                          "aggregate": aggregate_path.relative_to(out).as_posix(), "seeds": list(seeds),
+                          "runs": runs, **{name: _mean_of(runs, name) for name in COST_FIELDS},
+                          "geometry": _mean_geometry(runs)}
+    result = {**suite.identity(), "schema": SCHEMA, "method": method,
+              **({"pred_root": pred_root} if pred_root is not None else {}),
+              "datasets": rows, **({"skipped": dict(skipped)} if skipped else {}),
+              **({"failed": failed} if failed else {}), **({"seeds": list(seeds)} if seeds is not None else {})}
+    write_json(owned.make_folder(out / "results" / method) / RESULT_FILE, result)
+    return result
+
+
+def _result_row(out: Path, entry, record: dict, task: dict, document: dict, extras: dict) -> dict:
+    """One run's row of result.json: where its metrics are, its render time and the
+    training figures known for it; its metrics.json gains a "training" block where the
+    step count is known (check prints it)."""
+    metrics_path = out / task["metrics"]
+    if identity_key(record) == "ground_truth_sha256":  # the files this scoring read are the ones recorded
         read = document.get("ground_truth", {}).get("files", {})
         changed = sorted(rel for rel, digest in read.items() if record["files"].get(rel) != digest)
         if changed:
             owned.remove_file(metrics_path)
             raise InputError(f"ground-truth folder {dataset_dir(out, entry)} ({entry.id}): {changed[0]} "
                              f"changed while it was scored ({len(changed)} files differ from {SUITE_MANIFEST})")
-    row = {key: record[key],
-           "metrics": metrics_path.relative_to(out).as_posix(),
-           "ms_per_frame": document["timing"].get("ms_per_frame"),
-           "train_seconds": None, "model_bytes": None, "geometry": None}
-    train_file = pred_dir / "train.json"
-    if train_file.is_file():
+    renders = Path(task["kwargs"]["renders"])
+    inside = renders.is_relative_to(out / "predictions" / task["method"])  # suite run's: kept relative, so the
+    row = {"metrics": task["metrics"], "renders": renders.relative_to(out).as_posix() if inside  # folder can move
+           else str(renders), "pred_format": task["kwargs"]["pred_format"],
+           "ms_per_frame": document["timing"].get("ms_per_frame"), "train_seconds": None, "model_bytes": None,
+           "geometry": None}
+    train_file = Path(task["kwargs"]["renders"]) / "train.json"
+    if not extras and train_file.is_file():  # another tool's figures beside its renders (suite evaluate)
         info = read_json(train_file, finite=True)
         row["train_seconds"], row["model_bytes"] = info.get("seconds"), info.get("model_bytes")
-    row.update(extras)
-    if isinstance(extras.get("steps"), int):  # our NeRF's training beside its scores (check prints it)
+    row.update({name: value for name, value in extras.items() if name != "ms_per_frame"})
+    if row["ms_per_frame"] is None:  # renders without our timing.json: the render job's own time
+        row["ms_per_frame"] = extras.get("ms_per_frame")
+    if isinstance(extras.get("steps"), int):  # the training beside its scores (check prints it)
         document["training"] = {"steps": extras["steps"], "seconds": extras.get("train_seconds"),
-                                "steps_per_second": extras.get("steps_per_second"), "budget_seconds": None,
+                                "steps_per_second": extras.get("steps_per_second"),
+                                "budget_seconds": extras.get("budget_seconds"),
                                 **({"seed": extras["seed"]} if isinstance(extras.get("seed"), int) else {})}
         write_json(metrics_path, document)
-    return row, document
+    return row
 
 
 def _mean_of(runs: list, name: str):
@@ -800,7 +918,8 @@ def read_results(suite: Suite, out) -> dict:
     return results
 
 
-COST_FIELDS = ("ms_per_frame", "train_seconds", "model_bytes", "steps", "steps_per_second")
+COST_FIELDS = ("ms_per_frame", "train_seconds", "model_bytes", "steps", "steps_per_second", "cpu_seconds",
+               "peak_memory_bytes", "budget_seconds")
 
 
 def check_result(result: dict, suite: Suite, manifest: dict, path: Path) -> dict:
@@ -818,9 +937,10 @@ def check_result(result: dict, suite: Suite, manifest: dict, path: Path) -> dict
     if not isinstance(rows, dict) or not set(rows) <= ids:
         raise InputError(f"{path}: datasets must be an object of the suite's dataset ids, got "
                          f"{shown(sorted(set(rows) - ids)[0] if isinstance(rows, dict) else rows)}")
-    skipped = result.get("skipped", {})
-    if not isinstance(skipped, dict) or not set(skipped) <= ids or not all(isinstance(v, str) for v in skipped.values()):
-        raise InputError(f"{path}: skipped must be an object of dataset id: reason, got {shown(skipped)}")
+    for name in ("skipped", "failed"):
+        reasons = result.get(name, {})
+        if not isinstance(reasons, dict) or not set(reasons) <= ids or not all(isinstance(v, str) for v in reasons.values()):
+            raise InputError(f"{path}: {name} must be an object of dataset id: reason, got {shown(reasons)}")
     if "seeds" in result:
         _seeds(result["seeds"], f"{path}: seeds")
     if not isinstance(result.get("pred_root", ""), str) or "\0" in result.get("pred_root", ""):
@@ -847,11 +967,29 @@ def check_result(result: dict, suite: Suite, manifest: dict, path: Path) -> dict
             for run, seed in zip(runs, seeds):
                 _expect(run.get("metrics"), f"{base}/{entry_id}/{seed_folder(seed)}/metrics.json", f"{at}.runs.metrics")
                 _costs(run, f"{at}.runs[seed {seed}]")
+                _renders(run, method, result.get("pred_root"), f"{at}.runs[seed {seed}]")
             _expect(row.get("metrics"), runs[0]["metrics"], f"{at}.metrics")
             _expect(row.get("aggregate"), f"{base}/{entry_id}/{AGGREGATE_FILE}", f"{at}.aggregate")
         else:
             _expect(row.get("metrics"), f"{base}/{entry_id}/metrics.json", f"{at}.metrics")
+            _renders(row, method, result.get("pred_root"), at)
     return result
+
+
+def _renders(row: dict, method: str, pred_root, where: str) -> None:
+    """Where a row's renders are (read again by the protocol-sensitivity table): inside
+    the suite folder's predictions/<method>/ (suite run), or inside the pred_root the user
+    gave (suite evaluate); their layout one evaluate reads. Rows from before are without."""
+    renders = row.get("renders")
+    if renders is None:
+        return
+    if not isinstance(renders, str) or "\0" in renders or ".." in Path(renders).parts:
+        raise InputError(f"{where}.renders must be a path inside the method's predictions, got {shown(renders)}")
+    inside = (Path(renders).is_relative_to(pred_root) if Path(renders).is_absolute() and isinstance(pred_root, str)
+              else not Path(renders).is_absolute() and Path(renders).parts[:2] == ("predictions", method))
+    if not inside or row.get("pred_format") not in PRED_FORMATS:
+        raise InputError(f"{where}.renders must lie in predictions/{method}/ or its pred_root and pred_format be one "
+                         f"of {', '.join(PRED_FORMATS)}, got {shown(renders)}, {shown(row.get('pred_format'))}")
 
 
 def _expect(value, expected: str, where: str) -> None:
@@ -897,30 +1035,40 @@ def check_geometry(value, where: str):
     return value
 
 
+JOB_RESULT = ("method", "seed", "train_seconds", "steps", "steps_per_second", "cpu_seconds", "peak_memory_bytes",
+              "model_bytes", "budget_seconds", "threads", "geometry", "renders", "pred_format", "frames",
+              "render_seconds")
+
+
 def job_result(record: dict, recipe: dict, path) -> dict:
-    """The result a finished job's record (OUT/jobs/<key>.json, orchestrate.suite.jobs) holds,
-    checked as the job wrote it: a baseline's {"method"}; a training's train_seconds,
-    model_bytes, steps, steps_per_second, seed (the job's), threads and geometry (none when
-    the protocol scores none). InputError naming the record otherwise: a record is data
-    that flows into result.json and the leaderboard."""
+    """The result a finished job's record (OUT/jobs/<method>/[seed-<s>/]<id>.json,
+    orchestrate.suite.jobs) holds, checked as the job wrote it: JOB_RESULT's keys; its
+    method and seed the job's; costs finite numbers >= 0 or null (steps, model_bytes and
+    threads integers); geometry null unless the suite scores it; its renders the folder the
+    job renders into or inside it, in a layout evaluate reads. InputError naming the record
+    otherwise: a record is data that flows into result.json and the leaderboard."""
     result = record.get("result")
     where = f"{path}: result"
     if not isinstance(result, dict):
         raise InputError(f"{where} must be an object, got {shown(result)}; delete the record to run the job again")
-    if recipe["kind"] == "baseline":
-        _expect(result, {"method": recipe["method"]}, where)
-        return result
-    _check_keys(result, {"train_seconds", "model_bytes", "steps", "steps_per_second", "seed", "threads", "geometry"},
-                where)
+    _check_keys(result, set(JOB_RESULT), where)
     _costs(result, where)
-    for name, low in (("model_bytes", 0), ("steps", 1), ("threads", 1)):
-        if not isinstance(result[name], int) or isinstance(result[name], bool) or result[name] < low:
-            raise InputError(f"{where}.{name} must be an integer >= {low}, got {shown(result[name])}")
-    arguments.THREADS.check(result["threads"], f"{where}.threads")
+    for name, low in (("model_bytes", 0), ("steps", 1), ("threads", 1), ("frames", 1)):
+        value = result[name]
+        if (value is not None or name == "frames") and (not isinstance(value, int) or isinstance(value, bool)
+                                                        or value < low):
+            raise InputError(f"{where}.{name} must be an integer >= {low}, got {shown(value)}")
+    if result["method"] != recipe["method"]["name"]:
+        raise InputError(f"{where}.method is {shown(result['method'])}, the job's is {recipe['method']['name']}")
     if result["seed"] != recipe["seed"] or isinstance(result["seed"], bool):
         raise InputError(f"{where}.seed is {shown(result['seed'])}, the job's seed is {recipe['seed']}")
     if recipe.get("geometry") is None and result["geometry"] is not None:
-        raise InputError(f"{where}.geometry must be null: the suite's protocol scores no geometry")
+        raise InputError(f"{where}.geometry must be null: the suite scores no geometry")
+    renders, target = result["renders"], recipe["renders"]
+    if (not isinstance(renders, str) or ".." in Path(renders).parts or not Path(renders).is_relative_to(target)
+            or result["pred_format"] not in PRED_FORMATS):
+        raise InputError(f"{where}.renders must lie in {target} in a layout evaluate reads, got {shown(renders)}, "
+                         f"{shown(result['pred_format'])}")
     return result
 
 

@@ -6,8 +6,11 @@ Numbers are copied from the metrics.json files `suite evaluate` wrote with eval.
 entry for a dataset equals its single-run `nerfgauge evaluate` numbers exactly. Columns:
 every metric of eval.metrics.METRIC_NAMES that has a value somewhere (metrics added there
 show up here), then our NeRF's geometry where scored (eval.geometry.summary), then cost:
-training seconds, model size, render milliseconds per frame. The mean row of a method is
-the mean over the datasets where the value is defined; `scenes` says over how many.
+training wall seconds, steps per second, peak memory, model size, render milliseconds per
+frame (every method's, as its job measured them: methods.interface.TrainResult). The mean
+row of a method is the mean over the datasets where the value is defined; `scenes` says
+over how many. A method that failed on a dataset has its row there with the reason
+(result.json "failed"), and the mean table says on how many it failed.
 
 Uncertainty (eval.uncertainty, docs/conventions.md "Uncertainty"): each dataset's table
 gives the PSNR's 95% interval: for a method run once, copied from metrics.json's `ci95`
@@ -17,10 +20,10 @@ bootstrap over seeds, then views; recomputed as evaluate_suite computed aggregat
 which is not read back), with the seeds, each seed's PSNR and their std (the run-to-run
 spread). The mean row's interval is `suite_interval` (each dataset's two-level resample,
 averaged over the datasets; a fresh np.random.default_rng(EVALUATE_SEED) per method and
-metric). The paired table compares our NeRF (OURS) with each other method on each dataset
-both scored, on the per-frame PSNR of their metrics.json files matched by frame name and
-per seed (`pair_runs`: a method run once, the baselines, is repeated for every seed):
-mean difference OURS - method over the (seed, view) cells, its 95% paired bootstrap
+metric). The paired table compares every pair of methods (A before B in name order) on
+each dataset both scored, on the per-frame PSNR of their metrics.json files matched by
+frame name and per seed (`pair_runs`: a method run once, the baselines, is repeated for
+every seed): mean difference A - B over the (seed, view) cells, its 95% paired bootstrap
 interval (seeds then views resampled once for both methods; a fresh
 np.random.default_rng(EVALUATE_SEED) per comparison, 10000 resamples), the two-sided
 Wilcoxon signed-rank p-value on the per-view differences averaged over seeds, and whether
@@ -48,25 +51,25 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_bytes_atomic, write_json
 from nerfgauge.core.folders import MARKER, folder_lock, read_marker
 from nerfgauge.orchestrate.suite import robustness as suite_robustness
-from nerfgauge.orchestrate.suite.definition import OURS, Suite, dataset_dir, read_results, read_suite_folder, suite_from_folder
+from nerfgauge.orchestrate.suite.definition import Suite, dataset_dir, read_results, read_suite_folder, suite_from_folder
 from nerfgauge.eval.check import ScoringProtocol, protocol_of_metrics, validate_scores
 from nerfgauge.eval.metrics import METRIC_NAMES
 from nerfgauge.eval.uncertainty import (EVALUATE_SEED, LEVEL, LEVEL_ALPHA, RESAMPLES, aggregate_runs, mean_of,
                                         paired_comparison, run_matrix, suite_interval)
-from nerfgauge.eval.protocols import suite_sensitivity, sensitivity_rows
+from nerfgauge.eval.protocols import combine, sensitivity, sensitivity_rows
 from nerfgauge.eval.report import (PROTOCOL_CAPTION, REPORT_FIGURES, page_html, remove_previous,
                                   sortable_table_html, write_report)
 
 GEOMETRY_COLUMNS = ("geometry_chamfer_l1", "geometry_fscore_1pct", "normal_angle_mean")
-COST_COLUMNS = ("train_seconds", "model_bytes", "ms_per_frame")
+COST_COLUMNS = ("train_seconds", "steps_per_second", "peak_memory_bytes", "model_bytes", "ms_per_frame")
 LOWER_IS_BETTER_PREFIXES = ("depth_absrel", "depth_rmse", "depth_mae", "geometry_chamfer", "geometry_accuracy",
                             "geometry_completeness", "normal_angle", "lpips", "train_seconds", "model_bytes",
-                            "ms_per_frame")
+                            "ms_per_frame", "peak_memory_bytes")
 LABELS = {"psnr": "PSNR dB", "ssim": "SSIM", "psnr_foreground": "fg PSNR dB", "depth_absrel": "depth AbsRel",
           "depth_rmse": "depth RMSE", "depth_mae": "depth MAE", "depth_delta1": "depth δ<1.25",
           "opacity_iou": "opacity IoU", "geometry_chamfer_l1": "Chamfer-L1", "geometry_fscore_1pct": "F@1%",
-          "normal_angle_mean": "normal err °", "train_seconds": "train s", "model_bytes": "model MB",
-          "ms_per_frame": "render ms/frame"}
+          "normal_angle_mean": "normal err °", "train_seconds": "train s", "steps_per_second": "steps/s",
+          "peak_memory_bytes": "peak MB", "model_bytes": "model MB", "ms_per_frame": "render ms/frame"}
 
 
 def metric_names() -> tuple:
@@ -75,15 +78,17 @@ def metric_names() -> tuple:
 
 def scores(suite: Suite, out: Path, rel: str) -> dict:
     """A metrics.json of the suite folder (rel: a path check_result accepted), checked as
-    eval.check.validate_scores checks one, and scored under the suite's protocol (ours, its
-    background and depth kind) on its split: the leaderboard ranks like with like."""
+    eval.check.validate_scores checks one, and scored under the suite's [scoring] (its
+    protocol, background and depth kind) on its split: the leaderboard ranks like with like."""
     path = out / rel
     document = validate_scores(read_json(path, finite=True), str(path))
-    wanted = ScoringProtocol(background=suite.protocol["background"], depth_kind=suite.protocol["depth_kind"])
+    scoring = suite.scoring
+    wanted = ScoringProtocol(name=scoring["protocol"], background=scoring["background"],
+                             depth_kind=scoring["depth_kind"])
     scored = protocol_of_metrics(document, str(path))
-    if scored != wanted or document.get("split") != suite.protocol["split"]:
+    if scored != wanted or document.get("split") != scoring["split"]:
         raise InputError(f"{path} was scored under protocol {scored} on split {document.get('split')!r}; the suite "
-                         f"scores under {wanted} on {suite.protocol['split']!r}: evaluate again")
+                         f"scores under {wanted} on {scoring['split']!r}: evaluate again")
     return document
 
 
@@ -120,12 +125,12 @@ def leaderboard(suite: Suite, out) -> dict:
                 interval = (document.get("ci95") or {}).get("psnr")
             geometry = row.get("geometry") or {}
             values.update({key: geometry.get(key) for key in GEOMETRY_COLUMNS})
-            values.update({"train_seconds": row.get("train_seconds"), "model_bytes": row.get("model_bytes"),
-                           "ms_per_frame": row.get("ms_per_frame")})
+            values.update({name: row.get(name) for name in COST_COLUMNS})
             scenes[entry.id] = {"values": values, "frames": len(document["frames"]),
                                 "psnr_ci95": interval, **spread,
                                 "geometry_na": geometry.get("n/a"), "metrics": row["metrics"]}
-        methods[method] = {"scenes": scenes, **({"skipped": dict(result["skipped"])} if result.get("skipped") else {})}
+        methods[method] = {"scenes": scenes, **{name: dict(result[name]) for name in ("skipped", "failed")
+                                                if result.get(name)}}
     columns = [name for name in (*metric_names(), *GEOMETRY_COLUMNS, *COST_COLUMNS)
                if any(isinstance(s["values"].get(name), (int, float)) for m in methods.values() for s in m["scenes"].values())]
     for name_of_method, method in methods.items():
@@ -148,42 +153,42 @@ def leaderboard(suite: Suite, out) -> dict:
 PAIRED_METRIC = "psnr"
 ROBUSTNESS_CAPTION = ("Robustness: each method's score against the level of one train-view degradation "
                       "(orchestrate.suite.robustness; docs/conventions.md, Degradations)")
-PAIRED_CAPTION = (f"Paired comparison on PSNR: {OURS} minus each method, per dataset (same views and seeds; 95% "
-                  f"paired bootstrap interval over seeds, then views; two-sided Wilcoxon signed-rank test on the "
-                  f"per-view differences at {LEVEL_ALPHA:g})")
+PAIRED_CAPTION = ("Paired comparison on PSNR: every pair of methods, A minus B, per dataset (same views and "
+                  "seeds; 95% paired bootstrap interval over seeds, then views; two-sided Wilcoxon signed-rank test "
+                  f"on the per-view differences at {LEVEL_ALPHA:g})")
 
 
-def paired_comparisons(documents: dict, scenes: list, reference: str = OURS, metric: str = PAIRED_METRIC) -> dict:
-    """{"metric", "reference", "level", "alpha", "test", "resamples", "seed", "rows": [...]}:
-    one row per (dataset, method other than `reference`) that both scored: {"scene",
-    "method", "views", "mean_difference" (reference - method), "ci95", "p_value",
-    "significant", "degenerate"} from eval.uncertainty.paired_comparison on the per-frame
-    values matched by frame name (the reference's order; frames either leaves undefined
+def paired_comparisons(documents: dict, scenes: list, metric: str = PAIRED_METRIC) -> dict:
+    """{"metric", "difference", "level", "alpha", "test", "resamples", "seed", "rows": [...]}:
+    one row per (dataset, pair of methods A before B in name order) that both scored:
+    {"scene", "reference" (A), "method" (B), "views", "seeds", "mean_difference" (A - B),
+    "ci95", "p_value", "significant", "degenerate"} from eval.uncertainty.paired_comparison
+    on the per-frame values matched by frame name (A's order; frames either leaves undefined
     are left out), one row per training seed paired by `pair_runs` (by seed; a method run
     once, without a seed, repeated for every seed of the other), so the differences are
-    per (seed, view) and the interval resamples seeds then views. documents: {method:
-    {scene id: (seeds or None, [metrics.json document per seed])}}."""
+    per (seed, view) and the interval resamples seeds then views; a fresh
+    default_rng(EVALUATE_SEED) per row. documents: {method: {scene id: (seeds or None,
+    [metrics.json document per seed])}}."""
     rows = []
+    names = sorted(documents)
     for scene in scenes:
-        ours = documents.get(reference, {}).get(scene)
-        if ours is None:
-            continue
-        for method, by_scene in documents.items():
-            theirs = by_scene.get(scene)
-            if method == reference or theirs is None:
-                continue
-            pairs = pair_runs(ours, theirs)
-            if pairs is None:
-                continue
-            seeds, our_docs, their_docs = pairs
-            their_names = {frame["name"] for frame in their_docs[0]["frames"]}
-            names = [frame["name"] for frame in our_docs[0]["frames"] if frame["name"] in their_names]
-            result = paired_comparison(run_matrix(our_docs, metric, names)[0], run_matrix(their_docs, metric, names)[0],
-                                       np.random.default_rng(EVALUATE_SEED))
-            rows.append({"scene": scene, "method": method, "views": result["n_views"], "seeds": seeds,
-                         **{key: result[key] for key in ("mean_difference", "ci95", "p_value", "significant",
-                                                         "degenerate")}})
-    return {"metric": metric, "reference": reference, "difference": f"{reference} - method", "level": LEVEL,
+        for i, reference in enumerate(names):
+            ours = documents[reference].get(scene)
+            for method in names[i + 1:]:
+                theirs = documents[method].get(scene)
+                pairs = None if ours is None or theirs is None else pair_runs(ours, theirs)
+                if pairs is None:
+                    continue
+                seeds, our_docs, their_docs = pairs
+                their_names = {frame["name"] for frame in their_docs[0]["frames"]}
+                frames = [frame["name"] for frame in our_docs[0]["frames"] if frame["name"] in their_names]
+                result = paired_comparison(run_matrix(our_docs, metric, frames)[0],
+                                           run_matrix(their_docs, metric, frames)[0],
+                                           np.random.default_rng(EVALUATE_SEED))
+                rows.append({"scene": scene, "reference": reference, "method": method, "views": result["n_views"],
+                             "seeds": seeds, **{key: result[key] for key in ("mean_difference", "ci95", "p_value",
+                                                                             "significant", "degenerate")}})
+    return {"metric": metric, "difference": "reference - method", "level": LEVEL,
             "alpha": LEVEL_ALPHA, "test": "Wilcoxon signed-rank, two-sided (scipy.stats.wilcoxon, exact for n <= 50)",
             "resamples": RESAMPLES, "seed": EVALUATE_SEED, "rows": rows}
 
@@ -209,13 +214,13 @@ def pair_runs(ours: tuple, theirs: tuple):
 
 def paired_rows(paired: dict) -> list[list[str]]:
     """The paired table, a header row first."""
-    rows = [["dataset", "method", "seeds", "views", "Δ PSNR dB", "95% CI", "Wilcoxon p",
+    rows = [["dataset", "A", "B", "seeds", "views", "Δ PSNR dB (A - B)", "95% CI", "Wilcoxon p",
              f"significant at {paired['alpha']:g}"]]
     for row in paired["rows"]:
         ci = row["ci95"]
         mark = "–" if row["significant"] is None else "yes" if row["significant"] else "no (not significant)"
         seeds = row.get("seeds")
-        rows.append([row["scene"], row["method"], "1 (no seed)" if seeds is None else str(len(seeds)), str(row["views"]),
+        rows.append([row["scene"], row["reference"], row["method"], "1 (no seed)" if seeds is None else str(len(seeds)), str(row["views"]),
                      "–" if row["mean_difference"] is None else f"{row['mean_difference']:+.2f}",
                      "–" if ci is None else f"[{ci[0]:+.2f}, {ci[1]:+.2f}]" + (" (1 view)" if row["degenerate"] else ""),
                      "–" if row["p_value"] is None else f"{row['p_value']:.3g}", mark])
@@ -242,8 +247,10 @@ def unavailable_metrics(suite: Suite, out: Path, results: dict) -> dict:
 def _cell(name: str, value) -> str:
     if not isinstance(value, (int, float)):
         return "–"
-    if name == "model_bytes":
+    if name in ("model_bytes", "peak_memory_bytes"):
         return f"{value / 1e6:.2f}"
+    if name == "steps_per_second":
+        return f"{value:.1f}"
     if name in ("psnr", "psnr_foreground", "train_seconds", "ms_per_frame", "normal_angle_mean") or name.startswith("psnr"):
         return f"{value:.2f}"
     return f"{value:.4f}"
@@ -257,12 +264,16 @@ def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
     """(title, rows with a header row first): the means, then one table per dataset."""
     columns = board["columns"]
     n = len(board["scenes"])
-    head = ["method", "scenes"] + [_label(c) for c in columns] + ["PSNR 95% CI"]
+    failures = any(data.get("failed") for data in board["methods"].values())
+    head = ["method", "scenes"] + [_label(c) for c in columns] + ["PSNR 95% CI"] + (["failed"] if failures else [])
     mean_rows = [head]
     for method, data in board["methods"].items():
+        failed = data.get("failed") or {}
         mean_rows.append([method, f"{len(data['scenes'])}/{n}" if len(data["scenes"]) != n else str(n)]
                          + [_cell(c, data["mean"].get(c)) for c in columns]
-                         + [_interval((data.get("ci95") or {}).get("psnr"))])
+                         + [_interval((data.get("ci95") or {}).get("psnr"))]
+                         + ([f"{len(failed)}/{n}: {next(iter(failed.values()))}" if failed else "–"]
+                            if failures else []))
     result = [(f"mean over datasets ({n})", mean_rows)]
     for scene in board["scenes"]:
         rows = [["method", "frames"] + [_label(c) for c in columns]
@@ -270,8 +281,9 @@ def tables(board: dict) -> list[tuple[str, list[list[str]]]]:
         for method, data in board["methods"].items():
             entry = data["scenes"].get(scene)
             if entry is None:
-                reason = data.get("skipped", {}).get(scene)
-                rows.append([method, f"n/a: {reason}" if reason else "n/a"] + ["–"] * (len(columns) + 4))
+                failed, reason = data.get("failed", {}).get(scene), data.get("skipped", {}).get(scene)
+                cell = f"failed: {failed}" if failed else f"n/a: {reason}" if reason else "n/a"
+                rows.append([method, cell] + ["–"] * (len(columns) + 4))
             else:
                 rows.append([method, str(entry["frames"])] + [_cell(c, entry["values"].get(c)) for c in columns]
                             + [_interval(entry.get("psnr_ci95")), _seeds(entry), _per_seed(entry),
@@ -309,17 +321,38 @@ def _per_seed(entry: dict) -> str:
 
 def protocol_sensitivity(suite: Suite, out) -> dict:
     """{method: eval.protocols sensitivity document over the suite's datasets}: every
-    method's renders (result.json's pred_root/<dataset id>) under each protocol. Render
-    folders that are gone are left out (the leaderboard's numbers do not need them)."""
-    entries = {}
+    method's renders (each result.json row's renders, in its format; from before rows
+    recorded them, pred_root/<dataset id> read as found) under each protocol. A seeded
+    method's first seed stands for it. Render folders that are gone are left out (the
+    leaderboard's numbers do not need them)."""
+    out = Path(out)
+    documents = {}
     for method, result in read_results(suite, out).items():
-        root = result.get("pred_root")
-        seeds = result.get("seeds")  # seeded runs: the first seed's renders stand for the method
-        base = Path(root) / f"seed-{seeds[0]}" if root and seeds else Path(root or ".")
-        pairs = [(dataset_dir(out, entry), base / entry.id) for entry in suite.scenes
-                 if root and entry.id in result.get("datasets", {}) and (base / entry.id).is_dir()]
-        entries[method] = pairs
-    return suite_sensitivity(entries, split=suite.protocol["split"], background=suite.protocol["background"])
+        found = []
+        for entry in suite.scenes:
+            renders, pred_format = rendered(out, result, entry.id)
+            if renders is not None and renders.is_dir():
+                found.append(sensitivity(dataset_dir(out, entry), renders, suite.scoring["split"],
+                                         pred_format=pred_format, background=suite.scoring["background"]))
+        if found:
+            documents[method] = combine(found)
+    return documents
+
+
+def rendered(out: Path, result: dict, entry_id: str) -> tuple:
+    """(renders folder, pred format) of a method's (first) run on a dataset as result.json
+    records it (check_result checked where it lies); (None, None) where it has none."""
+    row = result.get("datasets", {}).get(entry_id)
+    if row is None:
+        return None, None
+    run = row["runs"][0] if row.get("runs") else row
+    if run.get("renders") is not None:
+        return out / run["renders"], run["pred_format"]  # a relative path joins out; an absolute one stays
+    root = result.get("pred_root")
+    if not root:
+        return None, None
+    seeds = result.get("seeds")
+    return Path(root) / (f"seed-{seeds[0]}" if seeds else "") / entry_id, "auto"
 
 
 def unavailable_line(notes: dict) -> str:
@@ -436,26 +469,28 @@ def _write_leaderboard(suite: Suite, out: Path, log, reports: bool) -> dict:
 
 
 def scene_report(suite: Suite, out: Path, entry, board: dict):
-    """report/<id>/report.html: our NeRF against the baselines on one dataset, when our
-    NeRF's renders are in the suite folder (suite run). Returns its path or None."""
-    seeds = board["methods"].get(OURS, {}).get("scenes", {}).get(entry.id, {}).get("seeds")
-    where = f"seed-{seeds[0]}/{entry.id}" if seeds else entry.id  # seeded: the first seed's run is shown
-    renders = out / "predictions" / OURS / where
-    if (entry.foreign or OURS not in board["methods"] or entry.id not in board["methods"][OURS]["scenes"]
-            or not renders.is_dir()):  # a folder entry: no run of ours (suite_run.skipped_on_folder)
-        return None
-    documents, baselines = {}, {}
-    for method, data in board["methods"].items():
+    """report/<id>/report.html: a NeRF of ours against the other methods on one dataset:
+    the first method (in name order) whose run on it has a training log
+    (runs/<method>/[seed-<s>/]<id>/log.jsonl) and renders in our layout. Returns its path,
+    or None where no such run is in the suite folder."""
+    results = read_results(suite, out)
+    for ours, data in board["methods"].items():
         scene = data["scenes"].get(entry.id)
-        if scene is not None:
-            documents[method] = scores(suite, out, scene["metrics"])
-            if method != OURS:
-                baselines[method] = documents[method]
+        renders, pred_format = rendered(out, results[ours], entry.id) if scene is not None else (None, None)
+        seeds = (scene or {}).get("seeds")
+        where = Path(ours) / (f"seed-{seeds[0]}" if seeds else "") / entry.id  # seeded: the first seed is shown
+        log_path = out / "runs" / where / "log.jsonl"
+        if renders is not None and pred_format == "nerfgauge" and renders.is_dir() and log_path.is_file():
+            break
+    else:
+        return None
+    documents = {method: scores(suite, out, data["scenes"][entry.id]["metrics"])
+                 for method, data in board["methods"].items() if entry.id in data["scenes"]}
     target = out / "report" / entry.id / "report.html"
     write_report(target, f"{suite.name} v{suite.version}: {entry.id}", dataset_dir(out, entry), renders,
-                 documents, log_path=out / "runs" / where / "log.jsonl", ours=OURS,
-                 train_seconds=board["methods"][OURS]["scenes"][entry.id]["values"].get("train_seconds"),
-                 notes=[f"scene {entry.scene}, seed {entry.seed}, {entry.dataset.get('width')}x"
-                        f"{entry.dataset.get('height')}, split {suite.protocol['split']}"
+                 documents, log_path=log_path, ours=ours,
+                 train_seconds=board["methods"][ours]["scenes"][entry.id]["values"].get("train_seconds"),
+                 notes=[f"{ours}; scene {entry.scene}, seed {entry.seed}, {entry.dataset.get('width')}x"
+                        f"{entry.dataset.get('height')}, split {suite.scoring['split']}"
                         + (f"; training seed {seeds[0]} of {len(seeds)} shown (leaderboard: all)" if seeds else "")])
     return target

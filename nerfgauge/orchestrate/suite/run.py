@@ -1,54 +1,45 @@
-"""`nerfgauge suite run SUITE --out DIR`: our compact NeRF and the baselines through a whole
-suite, each stage through its public function (generate, nerf train and render, eval
-baselines and evaluate), then the leaderboard.
+"""`nerfgauge suite run SUITE --out DIR`: the suite's methods (or those --methods names)
+through a whole suite, each stage through its public function (generate; every method
+through the method interface; evaluate), then the leaderboard.
 
     DIR/                          the suite folder (orchestrate.suite): datasets, suite manifest
-    DIR/runs/<id>/                our NeRF's training run on dataset <id>
-                                  (--seeds: DIR/runs/seed-<s>/<id>/, one per training seed)
-    DIR/predictions/<method>/<id>/ renders of every method (ours: renders folder; baselines;
-                                  --seeds: ours in predictions/compact-nerf/seed-<s>/<id>/)
-    DIR/jobs/<job>.json           a finished job's record (orchestrate.suite.jobs: resuming)
+    DIR/runs/<method>/<id>/       a method's run on dataset <id> (its training: ours, another
+                                  tool's outputs and logs; failure.txt when it failed)
+                                  (--seeds: DIR/runs/<method>/seed-<s>/<id>/ for a learned method)
+    DIR/predictions/<method>/<id>/ its renders of the scoring split (--seeds: .../seed-<s>/<id>/)
+    DIR/jobs/<method>/[seed-<s>/]<id>.json  a finished job's record (orchestrate.suite.jobs: resuming)
     DIR/predictions/<method>/suite.json  which suite they were made for
-    DIR/results/<method>/         `suite evaluate` of those predictions (orchestrate.suite)
+    DIR/results/<method>/         its scores (orchestrate.suite.definition.write_result)
     DIR/leaderboard.{md,html,json}, DIR/report/<id>/report.html (orchestrate.suite.report)
 
-Datasets are resumed (orchestrate.suite.generate_suite); so are the (dataset, method, seed) jobs
-(training, renders, baselines: orchestrate.suite.jobs), each skipped when its record says it
-finished with the same settings, dataset and nerfgauge version; scoring and the leaderboard
-are made again on every run. --scheduler runs generation and the jobs on a dask cluster.
+Datasets are resumed (orchestrate.suite.generate_suite); so are the (method, dataset, seed)
+jobs (orchestrate.suite.jobs), each skipped when its record says it finished with the same
+method, settings, length, dataset and nerfgauge version. A method that needs what a dataset
+lacks (methods.interface.missing_needs: our NeRF a nerfgauge dataset, the light-field
+baselines a camera grid) is skipped there with the reason; one that fails gets its row with
+the reason and the rest of the suite goes on. Scoring runs as jobs too, on the same runner,
+and is made again on every run, as is the leaderboard. --scheduler runs generation and
+every job on a dask cluster.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from pathlib import Path
 
-from nerfgauge.core import arguments
-from nerfgauge.core.files import write_json
-from nerfgauge.orchestrate.suite.definition import (OURS, SUITE_FILE, Suite, dataset_dir, evaluate_suite, generate_suite,
-                                         seed_folder)
+from nerfgauge.core import arguments, owned
 from nerfgauge.core.dataset import open_dataset
+from nerfgauge.core.files import write_json
+from nerfgauge.core.folders import folder_lock
 from nerfgauge.generate.distributed import check_reachable, parse_scheduler
-from nerfgauge.orchestrate.suite.jobs import baseline_job, run_jobs, train_job
+from nerfgauge.methods.interface import missing_needs
+from nerfgauge.orchestrate.suite.definition import (RESULT_FILE, SUITE_FILE, Suite, dataset_dir, generate_suite,
+                                                    identity_key, score_renders, scoring_tasks, seed_folder,
+                                                    write_result)
+from nerfgauge.orchestrate.suite.jobs import PREDICTIONS, job_name, job_runner, method_job
+from nerfgauge.orchestrate.suite.methods import select
 from nerfgauge.orchestrate.suite.report import write_leaderboard
-
-def methods_for(suite: Suite, layout: str) -> list[str]:
-    """The suite's baselines that apply to a dataset of `layout`."""
-    return [m for m in suite.protocol.get("baselines", []) if not m.startswith("lightfield") or layout == "lightfield"]
-
-
-def skipped_on_folder(suite: Suite, entry) -> dict:
-    """{method: why it is skipped} on a folder entry (ground truth nerfgauge did not write):
-    every method `suite run` runs needs something such a folder lacks."""
-    reasons = {OURS: "our NeRF's runs are bound to a nerfgauge dataset's manifest (a folder entry has none); "
-                     "score its renders with nerfgauge suite evaluate"}
-    for method in suite.protocol.get("baselines", []):
-        reasons[method] = ("needs a light-field camera grid (scene.json camera.lightfield)" if method.startswith("lightfield")
-                           else "needs the scene's bounds (scene.json), which a folder entry lacks")
-    return reasons
-
 
 def training_threads(suite: Suite, scheduler: str | None, threads: int | None) -> tuple[int, str]:
     """Torch threads for each training job, and why: as given; else the suite's [train]
@@ -73,90 +64,132 @@ def training_threads(suite: Suite, scheduler: str | None, threads: int | None) -
 
 
 def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = False, log=print,
-              seeds=None, scheduler: str | None = None, threads: int | None = None) -> dict:
-    """Generate, train, render, baselines, evaluate, leaderboard. Returns the leaderboard.
+              seeds=None, scheduler: str | None = None, threads: int | None = None, methods=None) -> dict:
+    """Generate, run every (method, dataset, seed) job, score, leaderboard. Returns the leaderboard.
 
-    seeds: None trains our NeRF once per dataset with the dataset entry's seed (runs/<id>/,
-    predictions/<method>/<id>/); a list of training seeds trains it once per seed, into
-    runs/seed-<s>/<id>/ and predictions/compact-nerf/seed-<s>/<id>/, scored per seed and
-    aggregated (orchestrate.suite.evaluate_suite, results/<method>/<id>/aggregate.json). The
-    baselines are deterministic functions of the dataset: run once, paired with every seed.
-    scheduler: None runs the jobs here; local:N or tcp://HOST:PORT runs generation's views
-    and every (dataset, method, seed) job on a dask cluster (orchestrate.suite.jobs).
-    threads: torch threads per training job; None: `training_threads` (the suite's, or a
-    share of this machine's cores on local:N)."""
+    methods: None runs the suite's [[methods]]; names (a list, or "A,B,..."), each one of
+    the suite's methods (by name or method, with its settings) or anything the method
+    registry resolves, run instead (orchestrate.suite.methods.select).
+    seeds: None trains each learned method once per dataset with the dataset entry's seed
+    (runs/<method>/<id>/, predictions/<method>/<id>/); a list of training seeds trains it
+    once per seed, into runs/<method>/seed-<s>/<id>/ and predictions/<method>/seed-<s>/<id>/,
+    scored per seed and aggregated (results/<method>/<id>/aggregate.json). Methods that do
+    not train (the baselines) are deterministic functions of the dataset: run once, paired
+    with every seed. scheduler: None runs the jobs here; local:N or tcp://HOST:PORT runs
+    generation's views and every job on a dask cluster (orchestrate.suite.jobs).
+    threads: threads per job; None: `training_threads` (the suite's, or a share of this
+    machine's cores on local:N)."""
     out = Path(out)
     if scheduler is not None:
         check_reachable(scheduler)  # a malformed or unreachable address is one line before anything is written
     seeds = None if seeds is None else tuple(arguments.check_seeds(seeds))
+    entries = suite.methods if methods is None else select(suite.methods, methods, suite.train)
     threads, why = training_threads(suite, scheduler, threads)
+    resolved = {entry.name: entry.resolve() for entry in entries}
     start = time.perf_counter()
     manifest = generate_suite(suite, out, overwrite=overwrite, progress=progress, log=log, scheduler=scheduler)
-    split = suite.protocol["split"]
-    predictions = out / "predictions"
-    baseline_roots, skipped, jobs, owners = {}, {}, [], {}
-    for index, entry in enumerate(suite.scenes, 1):
-        data = dataset_dir(out, entry)
-        if entry.foreign:
-            for method, reason in skipped_on_folder(suite, entry).items():
-                skipped.setdefault(method, {})[entry.id] = reason
-                log(f"[{index}/{len(suite.scenes)}] {entry.id}: {method} skipped: {reason}")
-            continue
-        manifest_sha256 = manifest["datasets"][entry.id]["manifest_sha256"]
-        for seed in (entry.seed,) if seeds is None else seeds:
-            where = entry.id if seeds is None else f"{seed_folder(seed)}/{entry.id}"
-            key = f"train-{entry.id}" + ("" if seeds is None else f"-{seed_folder(seed)}")
-            jobs.append((key, train_job, dict(out=str(out), job_key=key, train=suite.train, threads=threads,
-                                              dataset=str(data),
-                                              manifest_sha256=manifest_sha256, run_dir=str(out / "runs" / where),
-                                              renders=str(predictions / OURS / where), seed=seed, split=split,
-                                              geometry=suite.protocol.get("geometry"))))
-            owners[key] = (entry.id, None if seeds is None else seed)
-        layout = open_dataset(data).scene.get("camera", {}).get("layout")
-        for method in methods_for(suite, layout):
-            key = f"baseline-{method}-{entry.id}"
-            jobs.append((key, baseline_job, dict(out=str(out), job_key=key, dataset=str(data),
-                                                 manifest_sha256=manifest_sha256, method=method,
-                                                 target=str(predictions / method / entry.id), split=split)))
-            baseline_roots.setdefault(method, []).append(entry.id)
-    log(f"{len(jobs)} jobs: {sum(k.startswith('train-') for k, _, _ in jobs)} trainings "
-        f"({suite.train.get('model', 'compact')}, {suite.train['steps']} steps"
-        + (f", seeds {', '.join(map(str, seeds))}" if seeds is not None else "") + f"), "
-        f"{sum(k.startswith('baseline-') for k, _, _ in jobs)} baselines"
-        + ("" if scheduler is None else f", on {scheduler}") + f"; {threads} torch thread(s) a training ({why})")
-    clock = time.perf_counter()
-    done = run_jobs(jobs, scheduler, log)
-    log(f"jobs: {time.perf_counter() - clock:.1f} s")
-    extras = {}
-    for key, (entry_id, seed) in owners.items():
-        row = {name: done[key][name] for name in ("train_seconds", "model_bytes", "steps", "steps_per_second",
-                                                  "geometry", "seed")}
-        if seed is None:
-            extras[entry_id] = row
-        else:
-            extras.setdefault(entry_id, {})[seed] = row
-    methods = {OURS: extras} if extras else {}
-    for method, ids in baseline_roots.items():
-        methods[method] = {entry_id: {"train_seconds": 0.0, "model_bytes": None} for entry_id in ids}
-    for method, method_extras in methods.items():
-        root = predictions / method
-        write_json(root / SUITE_FILE, suite.identity())
-        method_seeds = seeds if method == OURS else None
-        ids = set(method_extras)
-        if ids != {entry.id for entry in suite.scenes}:
-            log(f"{method}: applies to {len(ids)} of {len(suite.scenes)} datasets; scored on those only")
-            evaluate_subset(suite, out, method, root, ids, method_extras, log, skipped.get(method), method_seeds)
-        else:
-            evaluate_suite(suite, out, method, root, extras=method_extras, log=log, seeds=method_seeds)
+    jobs, owners, skipped = method_jobs(suite, out, entries, resolved, manifest, seeds, threads, log)
+    log(f"{len(jobs)} jobs: " + ", ".join(f"{e.name} ({_length(resolved[e.name], e, suite.train)})" for e in entries)
+        + (f"; seeds {', '.join(map(str, seeds))}" if seeds is not None else "")
+        + ("" if scheduler is None else f"; on {scheduler}") + f"; {threads} thread(s) a job ({why})")
+    with job_runner(scheduler, log) as run_on:
+        clock = time.perf_counter()
+        renders, extras, failed = collect(out, owners, run_on(jobs))
+        log(f"jobs: {time.perf_counter() - clock:.1f} s")
+        with folder_lock(out):
+            tasks = {entry.name: scoring_tasks(suite, out, entry.name, renders.get(entry.name, {}), threads,
+                                               failures=True) for entry in entries}
+            for entry in entries:
+                owned.remove_file(out / "results" / entry.name / RESULT_FILE)  # no stale result beside new metrics
+                if (out / PREDICTIONS / entry.name).is_dir():
+                    write_json(out / PREDICTIONS / entry.name / SUITE_FILE, suite.identity())
+            scored = run_on([(task["key"], score_renders, task["kwargs"]) for method_tasks in tasks.values()
+                             for task in method_tasks])
+            for entry in entries:
+                write_result(suite, out, manifest, entry.name, tasks[entry.name],
+                             [scored[task["key"]] for task in tasks[entry.name]],
+                             seeds=seeds if resolved[entry.name].learned else None, extras=extras.get(entry.name),
+                             skipped=skipped.get(entry.name), failed=failed.get(entry.name),
+                             pred_root=str(out / PREDICTIONS / entry.name))
+    for name, reasons in failed.items():
+        log(f"{name} failed on {len(reasons)} dataset(s): {next(iter(reasons.values()))}")
     board = write_leaderboard(suite, out, log=log)
     log(f"suite {suite.name} v{suite.version}: {time.perf_counter() - start:.1f} s in all")
     return board
 
 
-def evaluate_subset(suite: Suite, out, method: str, root, ids: set, extras: dict, log, skipped=None,
-                    seeds=None) -> dict:
-    """evaluate_suite on the suite's entries in `ids` (a baseline that applies to some
-    layouts only); the leaderboard shows the others as not applicable."""
-    subset = dataclasses.replace(suite, scenes=tuple(e for e in suite.scenes if e.id in ids))
-    return evaluate_suite(suite, out, method, root, extras=extras, log=log, entries=subset.scenes, skipped=skipped,
-                          seeds=seeds)
+def method_jobs(suite: Suite, out: Path, entries, resolved: dict, manifest: dict, seeds, threads, log) -> tuple:
+    """([(key, method_job, kwargs)], {key: (method, dataset id, seed folder or None)},
+    {method: {dataset id: why skipped}}): a job per method, dataset and seed
+    (`job_seeds`), where the dataset has what the method needs (missing_needs)."""
+    jobs, owners, skipped = [], {}, {}
+    for index, scene in enumerate(suite.scenes, 1):
+        data = dataset_dir(out, scene)
+        ds = open_dataset(data)
+        for entry in entries:
+            reasons = missing_needs(resolved[entry.name], ds)
+            if reasons:
+                skipped.setdefault(entry.name, {})[scene.id] = "; ".join(reasons)
+                log(f"[{index}/{len(suite.scenes)}] {scene.id}: {entry.name} skipped: {'; '.join(reasons)}")
+                continue
+            for seed, folder_seed in job_seeds(resolved[entry.name], scene, seeds):
+                key = job_name(entry.name, scene.id, folder_seed)
+                where = Path(entry.name) / ("" if folder_seed is None else seed_folder(folder_seed)) / scene.id
+                jobs.append((key, method_job, dict(
+                    out=str(out), job_key=key, entry=entry, train=suite.train, dataset=str(data),
+                    manifest_sha256=identity(manifest["datasets"][scene.id]),
+                    run_dir=str(out / "runs" / where), renders=str(out / PREDICTIONS / where), seed=seed,
+                    split=suite.scoring["split"], geometry=suite.scoring.get("geometry"), threads=threads)))
+                owners[key] = (entry.name, scene.id, folder_seed)
+    return jobs, owners, skipped
+
+
+def collect(out: Path, owners: dict, done: dict) -> tuple:
+    """From the method jobs' results: ({method: {dataset id: {seed folder or None: (renders,
+    pred format)}}}, {method: extras for write_result}, {method: {dataset id: why it failed}}).
+    A dataset where one seed failed is failed: its other seeds are not scored."""
+    renders, extras, failed = {}, {}, {}
+    for key, (name, entry_id, folder_seed) in owners.items():
+        result = done[key]
+        if "failed" in result:
+            failed.setdefault(name, {}).setdefault(entry_id, result["failed"] if folder_seed is None
+                                                   else f"seed {folder_seed}: {result['failed']}")
+            continue
+        renders.setdefault(name, {}).setdefault(entry_id, {})[folder_seed] = (str(out / result["renders"]),
+                                                                            result["pred_format"])
+        row = {field: result[field] for field in EXTRAS}
+        row["ms_per_frame"] = 1000.0 * result["render_seconds"] / result["frames"]
+        if folder_seed is None:
+            extras.setdefault(name, {})[entry_id] = row
+        else:
+            extras.setdefault(name, {}).setdefault(entry_id, {})[folder_seed] = row
+    renders = {name: {entry_id: runs for entry_id, runs in by_entry.items() if entry_id not in failed.get(name, {})}
+               for name, by_entry in renders.items()}
+    return renders, extras, failed
+
+
+EXTRAS = ("train_seconds", "steps", "steps_per_second", "cpu_seconds", "peak_memory_bytes", "model_bytes",
+          "budget_seconds", "geometry", "seed")  # a job's training figures beside its scores
+
+
+def identity(record: dict) -> str:
+    """The hash a job's recipe binds it to: the dataset's manifest sha256, or a folder
+    entry's ground-truth files' (orchestrate.suite.definition.identity_key)."""
+    return record[identity_key(record)]
+
+
+def job_seeds(method, scene, seeds) -> list[tuple]:
+    """[(training seed, seed folder or None)] of one method on one dataset: a learned
+    method once with the entry's seed, or once per --seeds seed; a method that does not
+    train once, without a seed."""
+    if not method.learned:
+        return [(None, None)]
+    if seeds is None:
+        return [(scene.seed, None)]
+    return [(seed, seed) for seed in seeds]
+
+
+def _length(method, entry, train: dict) -> str:
+    steps, budget = method.train_length(*entry.length(train))
+    return "no training" if steps is None and budget is None else \
+        f"{steps} steps" if budget is None else f"{budget:g} s budget"
