@@ -163,7 +163,7 @@ def plot(result: dict, path: Path) -> None:
     axes.set_xticks(x, [label for label, _ in bars], fontsize=8)
     axes.set_ylabel("seconds per evaluate")
     axes.set_title(plain_text(f"LPIPS feature cache: {result['frames']} frames of {result['width']} x "
-                              f"{result['height']}, {result['protocol']}; second / first {result['ratio']:.3f} "
+                              f"{result['height']}, {result['protocol']}\nsecond / first {result['ratio']:.3f} "
                               f"wall, {result['cpu_ratio']:.3f} CPU"), fontsize=9)
     axes.legend()
     figure.tight_layout()
