@@ -51,3 +51,22 @@ def suite_toml(name: str, dataset: dict, train: dict, scenes=TWO_SCENES, *, vers
     for entry in scenes:
         text += "\n[[scenes]]\n" + _table(entry)
     return text
+
+
+def one_scene_suite(root):
+    """(suite TOML, a generated one-dataset 16 px suite folder root/S, predictions: the
+    dataset's own test PNGs under root/pred/primitives) for the state and link tests."""
+    import shutil
+
+    from nerfgauge.cli import main
+
+    toml = root / "one.toml"
+    toml.write_text(suite_toml("one", {"width": 16, "height": 16, "views": 4, "val_views": 0, "test_views": 2,
+                                       "spp": 2}, {"steps": 4}, scenes=({"scene": "primitives", "seed": 0},)))
+    out = root / "S"
+    assert main(["suite", "generate", str(toml), "--out", str(out)]) == 0
+    pred = root / "pred" / "primitives"
+    pred.mkdir(parents=True)
+    for png in sorted((out / "datasets" / "primitives" / "test").glob("r_???.png")):
+        shutil.copy(png, pred / png.name)
+    return toml, out, pred.parent

@@ -51,25 +51,17 @@ HOSTILE_VALUES = [None, 0, -1, 2**70, 1e308, -1e308, True, [], {}, [1, 2], {"a":
 def base(tmp_path_factory, tiny_dataset):
     """The read-only inputs: the tiny dataset (with its COLMAP export) and a one-scene
     suite folder with the nearest baseline's results, and the folder all cases live in."""
-    from suite_toml import suite_toml
+    from suite_toml import one_scene_suite
 
     from nerfgauge.cli import main
 
     root = tmp_path_factory.mktemp("fuzz-state")
-    toml = root / "one.toml"
-    toml.write_text(suite_toml("one", {"width": 16, "height": 16, "views": 4, "val_views": 0, "test_views": 2,
-                                       "spp": 2}, {"steps": 4}, scenes=({"scene": "primitives", "seed": 0},)))
-    suite = root / "S"
-    assert main(["suite", "generate", str(toml), "--out", str(suite)]) == 0
-    pred = root / "pred" / "primitives"
-    pred.mkdir(parents=True)
-    for png in sorted((suite / "datasets" / "primitives" / "test").glob("r_???.png")):
-        shutil.copy(png, pred / png.name)
-    assert main(["suite", "evaluate", str(toml), str(suite), "--method", "nearest", "--pred", str(pred.parent)]) == 0
+    toml, suite, pred = one_scene_suite(root)
+    assert main(["suite", "evaluate", str(toml), str(suite), "--method", "nearest", "--pred", str(pred)]) == 0
     cases = root / "cases"
     cases.mkdir()
-    return {"dataset": Path(tiny_dataset), "suite": suite, "toml": toml, "pred": pred.parent, "cases": cases,
-            "shared": (Path(tiny_dataset), toml, pred.parent)}
+    return {"dataset": Path(tiny_dataset), "suite": suite, "toml": toml, "pred": pred, "cases": cases,
+            "shared": (Path(tiny_dataset), toml, pred)}
 
 
 def new_case(base, family: str) -> Path:

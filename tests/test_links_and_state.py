@@ -348,19 +348,9 @@ GENERATE_ARGS = ["primitives", "--views", "4", "--val-views", "1", "--test-views
 @pytest.fixture(scope="module")
 def suite(tmp_path_factory):
     """(suite TOML, a one-dataset 16 px suite folder, predictions: the dataset's own test PNGs)."""
-    from suite_toml import suite_toml
+    from suite_toml import one_scene_suite
 
-    root = tmp_path_factory.mktemp("suite-links")
-    toml = root / "one.toml"
-    toml.write_text(suite_toml("one", {"width": 16, "height": 16, "views": 4, "val_views": 0, "test_views": 2,
-                                       "spp": 2}, {"steps": 4}, scenes=({"scene": "primitives", "seed": 0},)))
-    out = root / "S"
-    assert main(["suite", "generate", str(toml), "--out", str(out)]) == 0
-    pred = root / "pred" / "primitives"
-    pred.mkdir(parents=True)
-    for png in sorted((out / "datasets" / "primitives" / "test").glob("r_???.png")):
-        shutil.copy(png, pred / png.name)
-    return toml, out, pred.parent
+    return one_scene_suite(tmp_path_factory.mktemp("suite-links"))
 
 
 class TestLinksInsideOurFolders:
