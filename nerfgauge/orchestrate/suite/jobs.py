@@ -166,7 +166,7 @@ def _failure(error: BaseException, run_dir: Path, renders: Path, out: Path) -> s
         remove_owned(renders, marker["kind"])
     folder, stop = renders if renders.is_dir() else renders.parent, out / PREDICTIONS
     while folder != stop and folder.is_relative_to(stop) and folder.is_dir() and not any(folder.iterdir()):
-        folder.rmdir()
+        owned.remove_empty_folder(folder)
         folder = folder.parent
     return reason
 
