@@ -149,6 +149,20 @@ def test_non_rigid_poses_are_refused_naming_the_frame(ds_root, capsys, change, e
     train_fails(capsys, ds_root, "transforms_train.json", expected, "train/r_002")
 
 
+@pytest.mark.parametrize("row, col, expected", [(2, 2, "not a rigid"), (0, 1, "not a rigid"),
+                                                 (2, 3, "beyond the"), (0, 3, "beyond the")])
+@pytest.mark.parametrize("value", [1e308, -1e12])
+def test_huge_pose_entries_are_refused_before_any_arithmetic_overflows(row, col, expected, value):
+    # R^T R of a 1e308 entry overflows; a camera 1e12 units out casts to float32 as nonsense
+    pose = look_at((1.0, 2.0, 3.0), (0.0, 0.0, 0.0))
+    pose[row, col] = value
+    with np.errstate(all="raise"), pytest.raises(InputError, match=expected):
+        validate.pose(pose.tolist(), "f", "w")
+    pose[row, col] = 1e9 if col == 3 else pose[row, col]  # the limit itself is a place
+    if col == 3:
+        validate.pose(pose.tolist(), "f", "w")
+
+
 def test_pose_tolerance_is_1e_4():
     pose = look_at((1.0, 2.0, 3.0), (0.0, 0.0, 0.0))
     assert np.array_equal(validate.pose(pose.tolist(), "f", "w"), pose)

@@ -273,12 +273,20 @@ def pose(matrix, frame: str, where: str) -> np.ndarray:
         raise InputError(f"{where}: transform_matrix holds NaN or inf for frame {frame}")
     if array[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
         raise InputError(f"{where}: transform_matrix bottom row must be 0 0 0 1 for frame {frame}, got {array[3].tolist()}")
-    rotation = array[:3, :3]
-    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
-    det = float(np.linalg.det(rotation))
+    rotation, position = array[:3, :3], array[:3, 3]
+    if np.abs(position).max() > BOUNDS_LIMIT:
+        # the same limit as a scene's bounds: rays from beyond it are not representable in float32
+        raise InputError(f"{where}: transform_matrix places frame {frame} at {position.tolist()}, beyond the "
+                         f"+-{BOUNDS_LIMIT:.0e} scene units nerfgauge can sample")
+    # A rotation's entries lie in [-1, 1]; one far outside is no rotation, and R^T R of it
+    # would overflow before the check below could say so.
+    error = (float(np.abs(rotation).max()) - 1.0 if np.abs(rotation).max() > 2.0
+             else float(np.abs(rotation.T @ rotation - np.eye(3)).max()))
+    det = float(np.linalg.det(rotation)) if error <= POSE_TOLERANCE else float("nan")
     if error > POSE_TOLERANCE or abs(det - 1.0) > POSE_TOLERANCE:
+        measured = f"max |R^T R - I| = {error:.3g}" + (f", det R = {det:.6g}" if det == det else "")
         raise InputError(f"{where}: transform_matrix is not a rigid camera-to-world for frame {frame} "
-                         f"(max |R^T R - I| = {error:.3g}, det R = {det:.6g}; need <= {POSE_TOLERANCE} and 1)")
+                         f"({measured}; need <= {POSE_TOLERANCE} and det R = 1)")
     return array
 
 
