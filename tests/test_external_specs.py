@@ -111,6 +111,15 @@ def test_nerfbaselines_trains_its_own_schedule(tiny_dataset, tmp_path):
         resolve("nerfbaselines").train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=100))
     with pytest.raises(InputError, match="unknown setting 'steps'"):
         resolve("nerfbaselines", {"steps": 5})
+    # what a suite or a bench offers (steps, and a budget where it has one) reaches it as neither,
+    # and the request so made passes its check: a suite can hold it beside step-counted methods
+    method = resolve("nerfbaselines")
+    for offered in [(2000, None), (2000, 120.0), (None, 60.0)]:
+        steps, budget = method.train_length(*offered)
+        assert (steps, budget) == (None, None)
+        method.check(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=steps, budget_seconds=budget))
+    # a step-counted spec gets the steps, even where a budget is offered (it takes none)
+    assert resolve("nerfacto").train_length(2000, 120.0) == (2000, None)
 
 
 # --- the tools' own parsers ------------------------------------------------------------------

@@ -544,9 +544,9 @@ class ExternalMethod(Method):
         return {**super().describe(), "spec": self.spec.source, "install": self.spec.install_lines(folder),
                 "environment": None if folder is None else str(folder), "settings": self.settings}
 
-    def job(self, request: TrainRequest) -> tuple[dict, dict]:
-        """(the request's placeholders, the job's settings: the method's over the spec's
-        defaults, the request's over those)."""
+    def check(self, request: TrainRequest) -> None:
+        """The spec's train.length against the request (steps, seconds, both or its own
+        schedule), and the request's settings against the spec's [settings]."""
         if self.spec.length == "steps" and request.steps is None:
             raise InputError(f"method {self.name} takes a step count (its spec's train.length is steps)")
         if self.spec.length == "seconds" and request.budget_seconds is None:
@@ -554,6 +554,22 @@ class ExternalMethod(Method):
         if self.spec.length == "own" and (request.steps is not None or request.budget_seconds is not None):
             raise InputError(f"method {self.name} trains its own schedule (its spec's train.length is own): "
                              "give it neither steps nor a time budget")
+        check_settings(self.spec, {**self.settings, **request.settings})
+
+    def train_length(self, steps: int | None, budget_seconds: float | None) -> tuple:
+        """What a suite or a bench gives this method: neither to a spec whose train.length is
+        "own" (the tool's own schedule), only the budget to one of "seconds" (with no budget
+        offered, check refuses it in one line), as Method.train_length otherwise."""
+        if self.spec.length == "own":
+            return None, None
+        if self.spec.length == "seconds":
+            return None, budget_seconds
+        return super().train_length(steps, budget_seconds)
+
+    def job(self, request: TrainRequest) -> tuple[dict, dict]:
+        """(the request's placeholders, the job's settings: the method's over the spec's
+        defaults, the request's over those)."""
+        self.check(request)
         settings = check_settings(self.spec, {**self.settings, **request.settings})
         return {"dataset": str(request.dataset.resolve()), "run": str(request.run.resolve()), "seed": request.seed,
                 "steps": "" if request.steps is None else request.steps,
