@@ -65,7 +65,9 @@ _JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*(?:"|\Z)', re.S)
 # TOML: multi-line strings first, then one-line basic and literal strings, then comments.
 _TOML_SKIP = re.compile(r'"""[\s\S]*?(?:"""|\Z)|\'\'\'[\s\S]*?(?:\'\'\'|\Z)'
                         r'|"[^"\\\n]*(?:\\.[^"\\\n]*)*(?:"|$)|\'[^\'\n]*(?:\'|$)|#[^\n]*', re.M)
-_TOML_KEY = re.compile(r"[^,{\[\n=]*=")  # what precedes each "=": a key (after , { [ or a line start)
+# What precedes each "=": a key, starting after , { [ or at a line start. The start is anchored:
+# unanchored, a 200,000-bracket "]]]...]" line was scanned again from each of its characters.
+_TOML_KEY = re.compile(r"(?:^|(?<=[,{\[]))[^,{\[\n=]*=", re.M)
 _TOML_HEADER = re.compile(r"^[ \t]*\[\[?([^\]\n]*)\]", re.M)
 _OPEN = np.frombuffer(b"[{", np.uint8)
 _CLOSE = np.frombuffer(b"]}", np.uint8)
