@@ -111,10 +111,24 @@ def test_resume_drops_log_entries_past_the_checkpoint(small_dataset, tmp_path):
 
 @pytest.mark.slow
 def test_vanilla_nerf_trains_a_few_steps(small_dataset, tmp_path):
+    """The vanilla NeRF's path end to end (coarse and fine MLPs, saved and loaded), at a
+    width, depth, sample counts and batch far below its defaults: its full size costs
+    minutes a step here and tests nothing more."""
+    from nerfgauge.nerf.checkpoint import load_model
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.train import train
+
     run = tmp_path / "vanilla"
-    assert main(["train", str(small_dataset), "--out", str(run), "--model", "vanilla", "--steps", "3", "--quiet"]) == 0
+    config = TrainConfig(dataset=str(small_dataset), model="vanilla", steps=3, n_coarse=8, n_fine=8, width=16,
+                         depth=2, vanilla_batch_rays=64, eval_rays=64, eval_views=1)
+    assert train(config, run, progress=False)["steps"] == 3
     payload = torch.load(run / "model.pt", weights_only=True)
     assert payload["model"] == "vanilla" and any(k.startswith("fine.") for k in payload["state"])
+    model, saved = load_model(run / "model.pt")
+    assert (saved.n_coarse, saved.n_fine, saved.width, saved.depth) == (8, 8, 16, 2)
+    with torch.no_grad():
+        out = model.render(torch.tensor([[0.0, -4.0, 0.5]]), torch.tensor([[0.0, 1.0, 0.0]]))
+    assert torch.isfinite(out.rgb).all()
 
 
 
