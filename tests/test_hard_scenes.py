@@ -163,8 +163,9 @@ def test_hard_scene_survives_generate_train_render_evaluate(tmp_path, scene):
     from nerfgauge.run import RunConfig, run_pipeline
 
     out = tmp_path / scene
+    # 1024 rays a step, not the default 4096: the 16 px views hold 1536 pixels in all
     run_pipeline(RunConfig(scene=scene, out=str(out), width=16, height=16, views=6, val_views=1, test_views=2, spp=4,
-                           steps=15), progress=False)
+                           steps=15, train_options={"batch_rays": 1024}), progress=False)
     found = audit(out) | {"exit": 0}
     assert all_finite(found), found
     metrics = json.loads((out / "eval" / "compact" / "metrics.json").read_text(),
