@@ -19,7 +19,7 @@ from nerfgauge.cli import main
 from nerfgauge.eval.uncertainty import EVALUATE_SEED, RESAMPLES
 
 TINY = suite_toml("tiny-seeds", {"width": 16, "height": 16, "views": 4, "val_views": 0, "test_views": 4, "spp": 2},
-                  {"steps": 20, "threads": 1}, description="two 16x16 datasets, 4 test views")
+                  {"steps": 60, "threads": 1}, description="two 16x16 datasets, 4 test views")
 SEEDS = (0, 1, 2)
 IDS = ("primitives", "random-3")
 
@@ -62,14 +62,14 @@ def test_every_seed_is_kept_and_scored_as_evaluate_scores_it(seeded, tmp_path, c
         assert [run["seed"] for run in row["runs"]] == list(SEEDS)
         for seed, run_row in zip(SEEDS, row["runs"]):
             assert (out / "runs" / "compact-nerf" / f"seed-{seed}" / entry_id / "model.pt").is_file()
-            assert run_row["steps"] == 20 and run_row["steps_per_second"] > 0
+            assert run_row["steps"] == 60 and run_row["steps_per_second"] > 0
             single = tmp_path / f"{entry_id}-{seed}.json"
             assert main(["evaluate", str(out / "datasets" / entry_id), "--pred",
                          str(out / "predictions" / "compact-nerf" / f"seed-{seed}" / entry_id),
                          "--out", str(single)]) == 0
             scored = read(out / run_row["metrics"])
             assert read(single)["mean"] == scored["mean"]
-            assert scored["training"]["seed"] == seed and scored["training"]["steps"] == 20
+            assert scored["training"]["seed"] == seed and scored["training"]["steps"] == 60
         # different seeds train different models: the per-seed scores differ
         psnr = [read(out / run_row["metrics"])["mean"]["psnr"] for run_row in row["runs"]]
         assert len(set(psnr)) == len(SEEDS), psnr
@@ -90,7 +90,7 @@ def test_calibrate_on_the_seeded_runs(seeded, tmp_path, capsys):
     psnr = np.array([d["mean"]["psnr"] for d in per_seed_documents(out, "compact-nerf", "primitives")])
     floor = psnr.mean() - t.ppf(0.95, 2) * psnr.std(ddof=1) * math.sqrt(1 + 1 / 3)
     assert table["psnr"]["min"] == pytest.approx(floor, rel=1e-9)
-    assert table["training"]["steps"] == 20
+    assert table["training"]["steps"] == 60
 
 
 def test_aggregate_interval_and_split_match_an_independent_computation(seeded):
