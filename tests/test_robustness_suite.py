@@ -5,6 +5,8 @@ built-in `robustness` suite is the slow test."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 from suite_toml import suite_toml
 
@@ -103,15 +105,41 @@ def test_builtin_robustness_suite_crosses_pose_noise_and_exposure_levels():
     assert levels["exposure_ev"] == {0.0, 0.25, 0.5, 1.0}
 
 
+def builtin_robustness_at_test_size() -> str:
+    """The built-in robustness suite with its entries, levels, methods and scoring as shipped
+    and only its size cut (16 px, 6 train / 2 test views, 4 spp, 40 steps): the whole path
+    its full size runs, in a fraction of the time (the shipped file itself is read above)."""
+    import tomllib
+
+    from nerfgauge.orchestrate.suite.definition import builtin_suites
+
+    data = tomllib.loads(builtin_suites()["robustness"].read_text())
+    dataset = data["dataset"] | {"width": 16, "height": 16, "views": 6, "test_views": 2, "spp": 4}
+    methods = [method | ({"settings": method["settings"] | {"batch_rays": 256, "final_resolution": 24}}
+                         if "settings" in method else {}) for method in data["methods"]]
+    return suite_toml("robustness-small", dataset, data["train"] | {"steps": 40}, data["scenes"],
+                      protocol=data["scoring"], methods=methods)
+
+
 @pytest.mark.slow
 def test_builtin_robustness_suite_runs_end_to_end(tmp_path):
+    toml = tmp_path / "robustness.toml"
+    toml.write_text(builtin_robustness_at_test_size())
+    shipped = load_suite("robustness")
+    small = load_suite(toml)
+    size = {"width", "height", "views", "test_views", "spp"}
+    assert [(e.id, e.scene, e.seed, {k: v for k, v in e.dataset.items() if k not in size}) for e in small.scenes] == \
+        [(e.id, e.scene, e.seed, {k: v for k, v in e.dataset.items() if k not in size}) for e in shipped.scenes]
+    assert [(m.name, m.method) for m in small.methods] == [(m.name, m.method) for m in shipped.methods]
+    assert small.scoring == shipped.scoring
     out = tmp_path / "robustness"
-    assert main(["suite", "run", "robustness", "--out", str(out)]) == 0
+    assert main(["suite", "run", str(toml), "--out", str(out)]) == 0
     board = read_json(out / "leaderboard.json")
     curves = {curve["field"]: curve for curve in board["robustness"]["curves"]}
     assert curves["pose_noise_rotation"]["levels"] == [0.0, 0.5, 1.0, 2.0]
     assert curves["exposure_ev"]["levels"] == [0.0, 0.25, 0.5, 1.0]
     for curve in curves.values():
+        assert set(curve["scores"]) == {"compact-nerf", "nearest"}
         for scores in curve["scores"].values():
-            assert all(value is not None for value in scores["psnr"])
+            assert all(value is not None and math.isfinite(value) for value in scores["psnr"])
     assert (out / "robustness.png").is_file()

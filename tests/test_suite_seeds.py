@@ -266,13 +266,13 @@ def test_run_with_seeds_keeps_every_run_and_aggregates_them(tmp_path, capsys):
     bootstrap does; a rerun with --overwrite and no --seeds removes the seeded outputs."""
     out = tmp_path / "run"
     args = ["run", "primitives", "--out", out, "--res", "16", "--views", "4", "--test-views", "3", "--spp", "2",
-            "--steps", "60", "--quiet"]
+            "--steps", "20", "--quiet"]
     code, stdout, err = run(capsys, *args, "--seeds", "0,2")
     assert code == 0, err
     assert (out / "run" / "model.pt").is_file() and (out / "seeds" / "seed-2" / "run" / "model.pt").is_file()
     documents = [read(out / "eval" / "compact" / f"seed-{s}" / "metrics.json") for s in (0, 2)]
     assert [d["training"]["seed"] for d in documents] == [0, 2]
-    assert all(d["training"]["steps"] == 60 and d["training"]["steps_per_second"] > 0 for d in documents)
+    assert all(d["training"]["steps"] == 20 and d["training"]["steps_per_second"] > 0 for d in documents)
     assert documents[0]["mean"] == read(out / "eval" / "compact" / "metrics.json")["mean"]
     aggregate = read(out / "eval" / "compact" / "aggregate.json")
     low, high = loop_bootstrap([frame_values(d) for d in documents], EVALUATE_SEED)
