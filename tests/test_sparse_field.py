@@ -269,8 +269,7 @@ def test_training_at_256_px_stores_a_fraction_of_the_dense_grid(tmp_path):
     remaining low-density fog keeps about 0.4 with 6 views of 1024 rays a step, about a
     third with 12 of 4096), and the saved model renders finite images. The pixel footprint
     at 256 px sets the 218-voxel final grid; 320 steps are the fewest that reach it (three
-    growths, each after MIN_STAGE_STEPS = 100 steps), and the step count, not the rays or
-    views, is what clears the fog."""
+    growths, each after MIN_STAGE_STEPS = 100 steps)."""
     from nerfgauge.api import generate_dataset, train
     from nerfgauge.nerf.checkpoint import load_model
 
