@@ -260,8 +260,12 @@ def needs(value, where: str) -> Optional[dict]:
     return value
 
 
-def pose(matrix, frame: str, where: str) -> np.ndarray:
-    """A rigid camera-to-world matrix -> [4, 4] float64 (see the module docstring)."""
+def pose(matrix, frame: str, where: str, *, position_limit: float | None = BOUNDS_LIMIT) -> np.ndarray:
+    """A rigid camera-to-world matrix -> [4, 4] float64 (see the module docstring).
+    position_limit: the farthest a camera may sit from the origin on any axis, for a
+    dataset's cameras (rays from beyond it are not representable in float32); None for a
+    method's own estimated poses, whose frame has any scale (eval.poses aligns it by a
+    similarity and has its own limit)."""
     try:
         array = np.array(matrix, dtype=np.float64)
         numeric = all(not isinstance(v, (bool, str)) for row in matrix for v in row)
@@ -274,10 +278,9 @@ def pose(matrix, frame: str, where: str) -> np.ndarray:
     if array[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
         raise InputError(f"{where}: transform_matrix bottom row must be 0 0 0 1 for frame {frame}, got {array[3].tolist()}")
     rotation, position = array[:3, :3], array[:3, 3]
-    if np.abs(position).max() > BOUNDS_LIMIT:
-        # the same limit as a scene's bounds: rays from beyond it are not representable in float32
+    if position_limit is not None and np.abs(position).max() > position_limit:
         raise InputError(f"{where}: transform_matrix places frame {frame} at {position.tolist()}, beyond the "
-                         f"+-{BOUNDS_LIMIT:.0e} scene units nerfgauge can sample")
+                         f"+-{position_limit:.0e} scene units nerfgauge can sample")
     # A rotation's entries lie in [-1, 1]; one far outside is no rotation, and R^T R of it
     # would overflow before the check below could say so.
     error = (float(np.abs(rotation).max()) - 1.0 if np.abs(rotation).max() > 2.0

@@ -548,7 +548,8 @@ class ExternalMethod(Method):
         """The spec's train.length against the request (steps, seconds, both or its own
         schedule), and the request's settings against the spec's [settings]."""
         if self.spec.length == "steps" and request.steps is None:
-            raise InputError(f"method {self.name} takes a step count (its spec's train.length is steps)")
+            instead = ", not a time budget" if request.budget_seconds is not None else ""
+            raise InputError(f"method {self.name} takes a step count{instead} (its spec's train.length is steps)")
         if self.spec.length == "seconds" and request.budget_seconds is None:
             raise InputError(f"method {self.name} takes a time budget (its spec's train.length is seconds)")
         if self.spec.length == "own" and (request.steps is not None or request.budget_seconds is not None):

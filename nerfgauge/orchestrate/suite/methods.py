@@ -168,10 +168,10 @@ def checked_entry(method: str, where: str, base, train: dict, *, name=None, sett
         resolved = entry.resolve()
         entry = MethodEntry(name or resolved.name, method, entry.settings, steps, budget_seconds, path)
         check_name(entry.name, "name")
-        resolved.check(entry.request(resolved, train, dataset=".", run=".", seed=0, threads=train.get("threads")))
         if steps is not None or budget_seconds is not None:  # a length the entry names is meant for this method
             resolved.check(TrainRequest(dataset=".", run=".", steps=steps, budget_seconds=budget_seconds,
                                         settings=entry.settings))
+        resolved.check(entry.request(resolved, train, dataset=".", run=".", seed=0, threads=train.get("threads")))
     except InputError as error:
         raise InputError(f"{where}: {error}") from None
     return entry
