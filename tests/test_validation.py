@@ -368,3 +368,18 @@ def test_schema_1_manifests_are_still_read(ds_root):
     with pytest.raises(InputError, match="r_000.png changed since the manifest was written \\(sha256"):
         ds.image("test", 0)
     assert dataset.verify_manifest(ds_root) == ["test/r_000.png"]
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("nan"), -1.0])
+def test_ground_truth_depth_outside_the_convention_is_refused_naming_the_file(ds_root, value):
+    """A ground-truth depth is finite and >= 0 (0 = miss); an inf row reached co-visibility's
+    unprojection as points at infinity (exit 3, found by the fresh fuzz cases)."""
+    path = ds_root / "test" / "r_000_distance.exr"
+    channels, header = read_exr(path)
+    depth = channels["Z"].copy()
+    depth[3, :] = value
+    path.unlink()
+    write_exr(path, {"Z": depth}, {"nerfgauge_depth": "ray_distance"})
+    vouch(ds_root)
+    with np.errstate(all="raise"), pytest.raises(InputError, match="r_000_distance.exr: ground-truth depth holds"):
+        Dataset(ds_root).depth("test", 0)

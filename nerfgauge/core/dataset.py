@@ -482,8 +482,17 @@ class Dataset:
         """Ground-truth depth: "distance" (along the ray) or "z" (along the optical axis). [H, W]."""
         if kind not in DEPTH_KINDS:
             raise InputError(f"unknown depth kind {kind!r}; choose distance or z")
-        return self.frame_file(stem, "distance" if kind == "distance" else "z_depth",
-                               lambda path, data: read_exr_single(path, data, intrinsics), intrinsics)
+        def decode(path, data):
+            depth = read_exr_single(path, data, intrinsics)
+            # the convention is finite and >= 0 (0 = miss): NaN or inf would reach every
+            # unprojection (co-visibility, geometry) as points at infinity
+            bad = ~np.isfinite(depth) | (depth < 0)
+            if bad.any():
+                raise InputError(f"{path}: ground-truth depth holds {int(bad.sum())} NaN, inf or negative values; "
+                                 "a nerfgauge depth is finite and >= 0 (0 = miss)")
+            return depth
+
+        return self.frame_file(stem, "distance" if kind == "distance" else "z_depth", decode, intrinsics)
 
     def mask_of(self, stem: str, intrinsics: Intrinsics) -> np.ndarray:
         """Pixels whose centre ray hits geometry. Returns [H, W] bool."""
