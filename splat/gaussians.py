@@ -14,7 +14,8 @@ with scale the root mean squared distance to its 3 nearest other points, rotatio
 opacity 0.1, DC colour the point's colour, higher SH zero. `initial_points` reads the
 dataset's points (sparse/0/points3D.txt, core.colmap_text; their kind is scene.json's
 "points"; at most init_count of them, a seeded subset), or draws `none`'s init_count
-uniformly in the scene bounds with random colours.
+uniformly in the scene bounds with random colours; init_count defaults to one per 4 pixels of
+a training view (SplatConfig.initial_count).
 
 `GaussianAdam` is Adam with one parameter group per attribute (each its own learning rate)
 that follows the set as densification clones, splits and prunes it: moments of kept
@@ -32,7 +33,7 @@ from scipy.spatial import cKDTree
 from nerfgauge.core import colmap_text
 from nerfgauge.core.dataset import Dataset
 from nerfgauge.core.errors import InputError
-from nerfgauge.splat.config import SplatConfig
+from nerfgauge.splat.config import PIXELS_PER_INITIAL_GAUSSIAN, SplatConfig
 from nerfgauge.splat.ply import REST_PER_CHANNEL, GaussianArrays
 from nerfgauge.splat.render import Rendered, render
 from nerfgauge.splat.sh import rgb_to_dc
@@ -137,6 +138,10 @@ def dataset_points_kind(ds: Dataset) -> str | None:
 def initial_points(ds: Dataset, config: SplatConfig) -> tuple[np.ndarray, np.ndarray, str]:
     """(xyz [N, 3], rgb [N, 3] in [0, 1], what they are) for config.init (module docstring)."""
     held = dataset_points_kind(ds)
+    intrinsics = ds.cameras("train").intrinsics
+    count = config.initial_count(intrinsics.width, intrinsics.height)
+    why = "--init-count" if config.init_count is not None else \
+        f"one per {PIXELS_PER_INITIAL_GAUSSIAN} pixels of a {intrinsics.width} x {intrinsics.height} view"
     init = config.init if config.init != "auto" else (held if held not in (None, "none") else "none")
     if init == "none":
         if ds.bounds is None:
@@ -144,9 +149,9 @@ def initial_points(ds: Dataset, config: SplatConfig) -> tuple[np.ndarray, np.nda
                              "the points in; give a dataset with its COLMAP points (--init surface, sfm or random)")
         aabb = np.asarray(ds.bounds, np.float64)
         rng = np.random.default_rng([config.seed, POINTS_SEED_TAG])
-        xyz = aabb[0] + (aabb[1] - aabb[0]) * rng.random((config.init_count, 3))
-        rgb = rng.random((config.init_count, 3))
-        return xyz, rgb, f"none: {config.init_count} points uniform in the scene bounds, random colours"
+        xyz = aabb[0] + (aabb[1] - aabb[0]) * rng.random((count, 3))
+        rgb = rng.random((count, 3))
+        return xyz, rgb, f"none: {count} points uniform in the scene bounds, random colours ({why})"
     if held != init:
         have = f"holds {held} points" if held else "holds no COLMAP points"
         raise InputError(f"--init {init}: dataset {ds.root} {have} (scene.json \"points\"); add them with "
@@ -154,11 +159,11 @@ def initial_points(ds: Dataset, config: SplatConfig) -> tuple[np.ndarray, np.nda
     xyz, rgb = read_dataset_points(ds)
     if len(xyz) == 0:
         raise InputError(f"--init {init}: {ds.root / POINTS_FILE} holds no points")
-    if len(xyz) <= config.init_count:
-        return xyz, rgb, f"{init}: the dataset's {len(xyz)} points ({POINTS_FILE})"
-    chosen = np.sort(np.random.default_rng([config.seed, POINTS_SEED_TAG]).permutation(len(xyz))[:config.init_count])
-    return xyz[chosen], rgb[chosen], (f"{init}: {config.init_count} of the dataset's {len(xyz)} points "
-                                      f"({POINTS_FILE}; a seeded random subset, --init-count)")
+    if len(xyz) <= count:
+        return xyz, rgb, f"{init}: the dataset's {len(xyz)} points ({POINTS_FILE}; at most {count}: {why})"
+    chosen = np.sort(np.random.default_rng([config.seed, POINTS_SEED_TAG]).permutation(len(xyz))[:count])
+    return xyz[chosen], rgb[chosen], (f"{init}: {count} of the dataset's {len(xyz)} points "
+                                      f"({POINTS_FILE}; a seeded random subset: {why})")
 
 
 class GaussianAdam:
