@@ -50,6 +50,51 @@ def pytest_addoption(parser):
     parser.addoption("--fuzz-seed", type=int, default=None,
                      help=f"seed of the fuzz suite's fresh cases (default: ${FUZZ_SEED_ENV}, else a new random "
                           "seed, printed in the header and the summary)")
+    parser.addoption("--record-file-seconds", metavar="PATH", default=None,
+                     help=f"write each test file's seconds (setup + call + teardown, summed) to PATH as JSON: "
+                          f"what {FILE_SECONDS.name} holds, measured on an idle machine")
+
+
+# --------------------------------------------------------------------------------------
+# longest files first: `-n auto --dist loadfile` gives each worker whole files, and a worker
+# that draws an 8-minute file last keeps the run waiting while the other idles. xdist's own
+# order (--loadscope-reorder, its default) puts the files with the most tests first, which
+# put the slowest files, each a handful of long tests, last. tox.ini passes
+# --no-loadscope-reorder and the files run in the order below: the longest first by
+# FILE_SECONDS (a measured run's seconds a file, `--record-file-seconds`), a file it does not
+# list first of all (new, so of unknown length), each file's tests in their own order.
+
+FILE_SECONDS = Path(__file__).with_name("file_seconds.json")
+
+
+def pytest_collection_modifyitems(config, items):
+    import json
+
+    seconds = json.loads(FILE_SECONDS.read_text()) if FILE_SECONDS.is_file() else {}
+    unknown = float("inf")
+    position = {}
+    for index, item in enumerate(items):
+        position.setdefault(item.nodeid.split("::", 1)[0], index)
+    items.sort(key=lambda item: (-seconds.get(item.nodeid.split("::", 1)[0], unknown),
+                                 position[item.nodeid.split("::", 1)[0]]))
+
+
+_FILE_TOTALS: dict = {}
+
+
+def pytest_runtest_logreport(report):
+    """Sum each file's seconds (on xdist's controller, every worker's reports arrive here)."""
+    path = report.nodeid.split("::", 1)[0]
+    _FILE_TOTALS[path] = _FILE_TOTALS.get(path, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session):
+    import json
+
+    target = session.config.getoption("--record-file-seconds")
+    if target and not hasattr(session.config, "workerinput"):  # the controller (or a run without xdist)
+        ordered = dict(sorted(((k, round(v, 1)) for k, v in _FILE_TOTALS.items()), key=lambda kv: -kv[1]))
+        Path(target).write_text(json.dumps(ordered, indent=1) + "\n")
 
 
 def pytest_configure(config):
