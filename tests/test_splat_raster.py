@@ -28,7 +28,7 @@ from nerfgauge.splat.projection import project
 from nerfgauge.splat.raster import rasterise
 from nerfgauge.splat.reference import composite_reference
 from nerfgauge.splat.render import render
-from nerfgauge.splat.tiles import TILE, bin_gaussians, footprint_box, tile_grid
+from nerfgauge.splat.tiles import TILE, bin_gaussians, depth_order, footprint_box, tile_grid
 from splat_scenes import activated, as_numpy, camera, grads_of, scene
 
 FLOAT32_TOLERANCE = 2.0 ** -22
@@ -115,6 +115,21 @@ def test_every_pixel_a_gaussian_reaches_is_in_a_tile_it_is_binned_into():
     for t in range(len(binning.offsets) - 1):  # each tile's list front to back
         order = depths[binning.ids[binning.offsets[t]:binning.offsets[t + 1]]]
         assert bool((order[1:] >= order[:-1]).all())
+
+
+def test_depth_order_is_a_stable_sort_by_depth_with_ties_in_index_order():
+    """The binning's sort key against numpy's lexsort (depth, then index), on drawn depths with
+    many ties, both signs, +0.0 and -0.0 (equal: a tie), and candidates in any order."""
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        n = int(rng.integers(1, 300))
+        depths = (rng.normal(size=n) * rng.choice([1e-3, 1.0, 1e3])).astype(np.float32)
+        depths[rng.random(n) < 0.3] = depths[0]
+        depths[rng.random(n) < 0.1] = 0.0
+        depths[rng.random(n) < 0.1] = -0.0
+        candidates = rng.permutation(n)[:int(rng.integers(0, n + 1))].astype(np.int64)
+        expected = candidates[np.lexsort((candidates, depths[candidates].astype(np.float64)))]
+        assert np.array_equal(depth_order(depths, candidates), expected)
 
 
 def test_the_result_does_not_depend_on_the_thread_count():
