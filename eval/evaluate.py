@@ -325,6 +325,7 @@ def evaluate(root, pred_dir, split: str = EvaluateConfig.split, out=None,
     out = check_writable_target(pred_dir / "metrics.json" if out is None else Path(out))  # before the work
     check_renders_dataset(pred_dir, read_timing(pred_dir), ds)  # renders of our runs say what they show
     cameras = ds.cameras(split)
+    ds.check_sizes(f"{split}/")  # a file grown past its manifest size: refused before LPIPS loads
     scene = ds.scene.get("recipe") if ds.foreign is None else ds.root.resolve().name
     if not isinstance(scene, str) or not scene:
         raise InputError(f"{ds.root / 'scene.json'}: 'recipe' must name the scene, got {scene!r}")

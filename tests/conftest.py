@@ -80,12 +80,17 @@ def pytest_collection_modifyitems(config, items):
 
 
 _FILE_TOTALS: dict = {}
+_FAST_SECONDS: dict = {}
+FAST_LIMIT = 4.0  # seconds: a test past it carries @pytest.mark.slow (`tox -e scalar` runs the rest)
 
 
 def pytest_runtest_logreport(report):
-    """Sum each file's seconds (on xdist's controller, every worker's reports arrive here)."""
+    """Sum each file's seconds and each unmarked test's (on xdist's controller, every
+    worker's reports arrive here)."""
     path = report.nodeid.split("::", 1)[0]
     _FILE_TOTALS[path] = _FILE_TOTALS.get(path, 0.0) + report.duration
+    if "slow" not in report.keywords:
+        _FAST_SECONDS[report.nodeid] = _FAST_SECONDS.get(report.nodeid, 0.0) + report.duration
 
 
 def pytest_sessionfinish(session):
@@ -123,6 +128,11 @@ def pytest_report_header(config):
 
 
 def pytest_terminal_summary(terminalreporter):
+    slow = sorted(((seconds, nodeid) for nodeid, seconds in _FAST_SECONDS.items() if seconds > FAST_LIMIT),
+                  reverse=True)
+    for seconds, nodeid in slow:  # the fast pass (scalar) reruns every unmarked test: keep it fast
+        terminalreporter.write_line(f"unmarked test over {FAST_LIMIT:.0f} s: {nodeid} ({seconds:.1f} s): "
+                                    "mark it @pytest.mark.slow, or make it smaller")
     terminalreporter.write_line(_seed_line())  # also under -q, which hides the header
 
 

@@ -105,6 +105,7 @@ def test_check_takes_documents_or_files_like_the_cli(tmp_path, capsys):
         nerfgauge.check(document, {"primitives": {"psnr_db": {"min": 1}}})
 
 
+@pytest.mark.slow
 def test_train_render_evaluate_check_on_a_tiny_dataset(tiny_dataset, tmp_path):
     summary = nerfgauge.train(tiny_dataset, tmp_path / "run", steps=3, eval_views=1)
     assert summary["steps"] == 3

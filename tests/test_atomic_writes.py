@@ -97,6 +97,7 @@ def failing_openexr(cut, fail_on=lambda call, path: True):
 
 
 class TestTheCheck:
+    @pytest.mark.slow
     def test_every_prefix_of_an_exr_and_a_png_is_refused_and_the_whole_accepted(self, tmp_path):
         images.write_exr(tmp_path / "d.exr", {"Z": np.arange(40, dtype=np.float32).reshape(5, 8)})
         images.write_exr(tmp_path / "c.exr", {"RGBA": np.random.default_rng(0).random((40, 3, 4), np.float32)})

@@ -422,6 +422,7 @@ def renders(tmp_path_factory, tiny_dataset):
     return folder / "pred"
 
 
+@pytest.mark.slow
 def test_a_small_gzip_depth_that_inflates_to_gigabytes_is_refused_while_inflating(tmp_path, tiny_dataset, renders):
     """The issue's example: a nerfstudio raw-depth .npy.gz of 1 MB inflating to 1 GiB was
     read whole. It is refused as soon as the inflated bytes pass what a 32x32 depth holds."""

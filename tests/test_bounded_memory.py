@@ -68,6 +68,7 @@ def sphere(subdivisions: int, radius: float, centre=(0.0, 0.0, 0.0)) -> tuple[np
 
 
 class TestSurfaceDistanceWithoutOpen3D:
+    @pytest.mark.slow
     def test_a_cloud_50_units_from_a_small_dense_mesh_scores_exactly_in_bounded_memory(self, tmp_path):
         """The issue's geometry: ground-truth points 50 units from a predicted sphere of
         radius 0.5 and 20,480 triangles, every triangle a candidate of every point by
@@ -122,6 +123,7 @@ class TestSurfaceDistanceWithoutOpen3D:
 
 
 class TestGeometryCommandWithoutOpen3D:
+    @pytest.mark.slow
     def test_a_small_dense_prediction_far_from_the_truth_is_scored_in_bounded_memory(self, tiny_dataset, tmp_path):
         """`nerfgauge geometry` as the README installs it (no Open3D) on a prediction like
         depth-range's: a sphere of radius 0.02 with 81,920 triangles in a corner of the

@@ -131,6 +131,7 @@ class TestSizeBeforeRead:
                                 text=True, timeout=600, check=True)
         return json.loads(result.stdout.strip().splitlines()[-1])
 
+    @pytest.mark.slow
     def test_the_issues_2_gib_file_is_refused_on_its_size_in_little_memory(self, case):
         """`truncate -s 2G d01/test/r_001.png` (the manifest says 1005 bytes): refused from
         fstat, unread. Was 2.4 GB of memory; now the refusal's peak is within 32 MiB of the
@@ -194,6 +195,7 @@ class TestSizeBeforeRead:
         sparse_file(target, 2 * GIB)
         evaluate_refused(case, data, target.name, *fragments, pred=pred)
 
+    @pytest.mark.slow
     def test_a_fifo_in_place_of_a_file_is_refused_without_waiting_for_a_writer(self, case):
         """open() on a FIFO blocks until a writer comes; the readers open without blocking
         and refuse what is not a regular file (a subprocess, so a regression times out)."""

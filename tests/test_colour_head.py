@@ -75,6 +75,7 @@ def _fit_stripe(field: VoxelGridField, steps: int) -> float:
     return float(((rgb - target) ** 2).mean())
 
 
+@pytest.mark.slow
 def test_the_head_models_a_stripe_inside_one_cell_that_trilinear_logits_cannot():
     """Along a line inside one cell, trilinear logits are linear, so their sigmoid is
     monotone. The best monotone fit of a 0-1-0 stripe over equal thirds is isotonic
@@ -127,6 +128,7 @@ def test_cli_refuses_the_head_on_a_view_dependent_grid(small_dataset, tmp_path, 
     assert not (tmp_path / "r" / "model.pt").exists()
 
 
+@pytest.mark.slow
 def test_a_run_adds_the_head_at_its_final_grid_saves_it_renders_it_and_resumes_it(small_dataset, tmp_path):
     """420 steps: the grid grows at steps 100, 200 and 300 (MIN_STAGE_STEPS), so the head
     is added at step 400, once the final grid trained 100 steps (20 steps train it): `on`

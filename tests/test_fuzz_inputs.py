@@ -759,6 +759,7 @@ def test_hostile_output_targets(base, command, fault):
             subprocess.run(["chattr", "-i", str(folder / "ro")], check=True)
 
 
+@pytest.mark.slow
 def test_full_disk_is_one_line_and_resumable(base, tmp_path):
     """A disk that fills up mid-run (RLIMIT_FSIZE: writes past 3 kB fail with EFBIG): exit
     2 with one line, no traceback; the same command then finishes the dataset."""

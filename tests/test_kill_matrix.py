@@ -372,6 +372,7 @@ def kill_train_and_resume(run: Path, dataset, writes_before_kill: int, delay: fl
     return "killed" if landed else "finished before the kill"
 
 
+@pytest.mark.slow
 def test_train_killed_after_a_checkpoint_resumes_bit_identical(tmp_path, tiny_dataset, reference_model):
     rng = random.Random(1810)
     writes, delay = rng.randint(1, 2), rng.uniform(0.0, 0.2)
@@ -390,6 +391,7 @@ def test_train_kill_matrix(tmp_path, tiny_dataset, reference_model):
     assert landed.count("killed") >= len(moments) - 1, dict(zip(moments, landed))
 
 
+@pytest.mark.slow
 def test_train_killed_then_a_planted_link_is_refused_and_its_target_kept(tmp_path, tiny_dataset):
     """kill -9 after a checkpoint, log.jsonl moved to a user's folder and linked back: --resume
     (which would truncate and append to the log) is refused, the user's file unchanged."""

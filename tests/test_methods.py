@@ -180,6 +180,7 @@ def test_a_bad_spec_is_one_line_when_read(tmp_path, body, message):
 # --- specs: run ------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_an_external_method_trains_renders_and_scores_as_evaluate_does(tiny_dataset, tmp_path):
     from nerfgauge.eval.evaluate import evaluate
 

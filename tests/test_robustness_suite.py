@@ -35,6 +35,7 @@ def ran(tmp_path_factory):
     return load_suite(toml), out
 
 
+@pytest.mark.slow
 def test_suite_entries_pass_degradations_to_generate(ran):
     suite, out = ran
     for entry in suite.scenes:

@@ -184,12 +184,18 @@ def test_init_random_takes_the_datasets_random_export(tiny_dataset, tmp_path, ca
 
     copy = tmp_path / "dataset"
     shutil.copytree(tiny_dataset, copy)
-    assert main(["export", "colmap", str(copy), "--points", "random:300"]) == 0
+    assert main(["export", "colmap", str(copy), "--points", "random:200"]) == 0
     capsys.readouterr()
     assert main(["train", str(copy), "--model", "splat", "--steps", "3", "--init", "random", "--out",
                  str(tmp_path / "run"), "--quiet"]) == 0
     reasons = json.loads((tmp_path / "run" / "config.json").read_text())["auto_reasons"]
-    assert reasons["init"] == "random: the dataset's 300 points (sparse/0/points3D.txt)"
+    # all 200: fewer than the default count, one per 4 pixels of a 32 x 32 view (256)
+    assert reasons["init"] == ("random: the dataset's 200 points (sparse/0/points3D.txt; at most 256: one per 4 "
+                               "pixels of a 32 x 32 view)")
+    assert main(["train", str(copy), "--model", "splat", "--steps", "3", "--init", "random", "--init-count", "150",
+                 "--out", str(tmp_path / "run150"), "--quiet"]) == 0
+    reasons = json.loads((tmp_path / "run150" / "config.json").read_text())["auto_reasons"]
+    assert reasons["init"].startswith("random: 150 of the dataset's 200 points")
 
 
 @pytest.mark.slow

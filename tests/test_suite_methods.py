@@ -95,6 +95,7 @@ def documents(out: Path, method: str, seeded: bool) -> list:
 # --- a failing method: its row, and nothing outside its run folder ---------------------------------
 
 
+@pytest.mark.slow
 def test_each_failure_is_one_row_with_its_reason_and_the_suite_finishes(ran):
     _, out, stdout = ran
     board = read(out / "leaderboard.json")
@@ -291,6 +292,7 @@ def test_a_suite_chooses_its_scoring_protocol(ran, tmp_path, capsys):
 # --- bench train --methods: another tool's method against wall time beside ours ------------------------
 
 
+@pytest.mark.slow
 def test_bench_train_puts_other_methods_beside_ours_on_the_same_dataset(ran, tmp_path):
     """bench train's rows for --methods (orchestrate.bench.train.method_rows) on the suite's
     dataset: our compact NeRF (a 1 s budget, in this process), the spec method (4 steps), the

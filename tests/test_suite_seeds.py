@@ -53,6 +53,7 @@ def per_seed_documents(out, method, entry_id):
     return [read(out / "results" / method / entry_id / f"seed-{seed}" / "metrics.json") for seed in SEEDS]
 
 
+@pytest.mark.slow
 def test_every_seed_is_kept_and_scored_as_evaluate_scores_it(seeded, tmp_path, capsys):
     toml, out = seeded
     result = read(out / "results" / "compact-nerf" / "result.json")
@@ -161,6 +162,7 @@ def test_leaderboard_intervals_and_paired_rows_match_an_independent_bootstrap(se
     assert "PSNR variance: seed / view / residual" in markdown and "(seeds " in markdown
 
 
+@pytest.mark.slow
 def test_a_second_run_resumes_every_finished_job(seeded, tmp_path, capsys):
     toml, out = seeded
     copy = tmp_path / "copy"
@@ -183,6 +185,7 @@ def test_bad_seeds_are_one_line_exit_2(value, tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 def test_suite_evaluate_with_seeds_pairs_by_seed(seeded, tmp_path, capsys):
     """Another tool run once per seed (PRED_ROOT/seed-<s>/<id>/): `suite evaluate --seeds`
     scores and aggregates it like ours; the paired row pairs run s with run s (here the same

@@ -98,6 +98,7 @@ def rename_entry(document: dict, old: str, new: str) -> None:
 
 
 class TestStateFilesAreData:
+    @pytest.mark.slow
     def test_the_issues_example_ids_leading_out_with_every_hash_recomputed(self, suite_copy, capsys):
         """The issue's forgery: the id of an entry rewritten to lead into another dataset, in
         suite.json, the manifest and every result, every sha256 recomputed to match. Before,
@@ -376,6 +377,7 @@ class TestUserStringsAreText:
         label = Figure().text(0, 0, plain_text(text))
         assert label._preprocess_math(label.get_text()) == (text, False)
 
+    @pytest.mark.slow
     def test_the_issues_method_named_like_mathtext_gets_a_report(self, suite_copy, capsys):
         toml, folder = suite_copy
         method = r"m$\frac$x|y"

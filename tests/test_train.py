@@ -33,6 +33,7 @@ def trained_run(small_dataset, tmp_path_factory):
     return run
 
 
+@pytest.mark.slow
 def test_a_short_run_learns_the_scene(trained_run, small_dataset):
     """The floor: a constant grey/white guess scores about 11-13 dB on these views and the
     nearest training view about 15 dB (measured when this test was written); a radiance
@@ -187,6 +188,7 @@ def test_view_dependent_colour_when_asked(small_dataset, tmp_path):
     assert main(["render", str(run), "--out", str(tmp_path / "r"), "--quiet"]) == 0
 
 
+@pytest.mark.slow
 def test_contracted_run_trains_saves_and_renders_world_depth(small_dataset, tmp_path):
     """A run in the contracted parametrisation: config.json names it with its reason and
     numbers, model.pt loads with weights_only and renders finite world-unit depth, and its
