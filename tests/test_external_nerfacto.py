@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from nerfgauge.generate.variant import cuda_available
 from nerfgauge.methods.external import environment_folder, environment_variable
 from nerfgauge.methods.interface import TrainRequest
 from nerfgauge.methods.registry import resolve
@@ -98,7 +99,8 @@ def test_the_specs_command_lines_parse_with_nerfstudios_own_parsers(ns_env, tmp_
     result = in_nerfstudio(ns_env, [str(PARSE), json.dumps(lines)], tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     cpu, cuda, auto, splat_cuda, splat_auto, render_nerfacto, render_splat = json.loads(result.stdout.splitlines()[-1])
-    for parsed, device in ((cpu, "cpu"), (cuda, "cuda"), (auto, "cuda")):  # auto: nerfstudio's default device
+    machine = "cuda" if cuda_available() else "cpu"  # auto: this machine's device, which the spec names
+    for parsed, device in ((cpu, "cpu"), (cuda, "cuda"), (auto, machine)):
         assert parsed["method"] == "nerfacto" and parsed["device_type"] == device
         assert parsed["data"] == "/data/ds" and parsed["output_dir"] == "/runs/r/out"
         assert parsed["max_num_iterations"] == 30 and parsed["seed"] == 7
@@ -107,7 +109,7 @@ def test_the_specs_command_lines_parse_with_nerfstudios_own_parsers(ns_env, tmp_
         assert parsed["evaluations"] == [0, 0, 0] and parsed["quit_on_train_completion"] is True
         assert parsed["vis"] == "tensorboard" and parsed["dataparser"] == "NerfstudioDataParserConfig"
         assert (parsed["experiment_name"], parsed["timestamp"]) == ("nerfacto", "run")  # the spec's [files] config
-    assert cpu["implementation"] == "torch" and auto["implementation"] == "tcnn"  # tcnn: torch's when it is absent
+    assert cpu["implementation"] == "torch" and auto["implementation"] == ("tcnn" if machine == "cuda" else "torch")
     for parsed in (splat_cuda, splat_auto):
         assert parsed["method"] == "splatfacto" and parsed["device_type"] == "cuda"
         assert parsed["load_3D_points"] is True and parsed["background_color"] == "white"

@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.generate.variant import cuda_available
 from nerfgauge.methods.builtin import builtin_methods
 from nerfgauge.methods.external import MethodFailed, read_spec
 from nerfgauge.methods.interface import Method, Needs, TrainRequest, missing_needs
@@ -393,8 +394,13 @@ def test_a_device_the_spec_does_not_name_is_refused_before_anything_runs(tiny_da
     with pytest.raises(InputError, match="runs on cpu, auto, not on device 'cuda'"):
         method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1, device="cuda"))
     assert not (tmp_path / "run").exists()
-    method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))  # auto: nothing appended
-    assert echoed(tmp_path / "run" / "train.log")["argv"][-1] == "a b"
+    # auto: the machine's device where the table names it (here cpu, without a GPU), else the auto entry
+    method.train(TrainRequest(dataset=tiny_dataset, run=tmp_path / "run", steps=1))
+    argv = echoed(tmp_path / "run" / "train.log")["argv"]
+    if cuda_available():
+        assert argv[-1] == "a b"  # cuda: not in the table, the auto entry (nothing appended)
+    else:
+        assert argv[-2:] == ["--device", "cpu"]
 
 
 @pytest.mark.parametrize("body, message", [

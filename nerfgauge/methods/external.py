@@ -48,7 +48,9 @@ command's PATH, and PYTHONPATH and PYTHONHOME are dropped: the tool's interprete
 only its own packages.
 
 `devices` (train or render): arguments appended for the job's device (auto, cpu or cuda);
-a device the table does not name is refused before anything runs. `prepare` steps
+a device the table does not name is refused before anything runs. A job's "auto" takes the
+entry of this machine's device (cuda with a GPU, else cpu) where the table has one, else
+the table's own auto entry (the tool's default). `prepare` steps
 (PREPARE_STEPS) write into the run folder only: `torchvision_alexnet` writes torchvision's
 AlexNet file, made from the installed LPIPS weights (eval.lpips.write_torchvision_alexnet),
 into that TORCH_HOME, so a tool that builds torchmetrics' LPIPS at start-up (nerfstudio)
@@ -82,6 +84,7 @@ from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import read_json, write_json
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
 from nerfgauge.core.owned import make_folder, open_append
+from nerfgauge.generate.variant import cuda_available
 from nerfgauge.methods.interface import DEVICES, Method, Needs, Produces, RenderResult, TrainRequest, TrainResult, check_name
 from nerfgauge.methods.measure import Finished, run_process
 
@@ -441,7 +444,21 @@ def _context(spec: Spec) -> dict:
     return {"env": "" if folder is None else str(folder), "spec_folder": str(spec.folder.resolve())}
 
 
+def _device_for(command: Command, device: str) -> str:
+    """The device whose arguments a job gets. "auto" is this machine's device (cuda when a
+    CUDA driver reports a GPU, else cpu) wherever the command's devices table names that
+    device: a tool whose own default is CUDA (nerfstudio's) then runs on a machine without
+    one. Where the table does not name it, "auto" keeps the table's auto entry (the tool
+    decides)."""
+    if device == "auto" and command.devices is not None:
+        machine = "cuda" if cuda_available() else "cpu"
+        if machine in command.devices:
+            return machine
+    return device
+
+
 def _check_device(command: Command, device: str, method: str) -> None:
+    device = _device_for(command, device)
     if command.devices is not None and device not in command.devices:
         raise InputError(f"method {method} runs on {', '.join(command.devices)}, not on device {device!r}")
 
@@ -450,7 +467,7 @@ def _argv(command: Command, values: dict, device: str, method: str) -> list:
     """The command's arguments for `device`: its own, then those its devices table gives
     that device; a device the table does not name is refused."""
     _check_device(command, device, method)
-    extra = () if command.devices is None else command.devices[device]
+    extra = () if command.devices is None else command.devices[_device_for(command, device)]
     return [fill(arg, values) for arg in (*command.argv, *extra)]
 
 
