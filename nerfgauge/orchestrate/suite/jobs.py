@@ -97,10 +97,13 @@ def job_name(method: str, entry_id: str, seed) -> str:
 
 
 def method_job(out: str, job_key: str, entry, train: dict, dataset: str, manifest_sha256: str, run_dir: str,
-               renders: str, seed, split: str, geometry: dict | None, threads: int | None = None) -> dict:
+               renders: str, seed, split: str, geometry: dict | None, threads: int | None = None,
+               points_manifest_sha256: str | None = None) -> dict:
     """Train `entry`'s method (orchestrate.suite.methods.MethodEntry) on `dataset` with
     `seed` (None: a method that does not train, run once) into run_dir, render `split`
-    into `renders`, score our NeRF's mesh (geometry settings, or None). Returns the
+    into `renders`, score our NeRF's mesh (geometry settings, or None). An arm that states
+    points trains on the entry's copy with them (orchestrate.suite.points): `dataset` is
+    the copy, points_manifest_sha256 its manifest's hash (in the recipe). Returns the
     record's result (definition.JOB_RESULT) with "resumed", or {"failed": reason} when the
     method failed. Skipped (resumed) when finished with the same recipe."""
     import torch  # torch: only where a job runs
@@ -115,7 +118,8 @@ def method_job(out: str, job_key: str, entry, train: dict, dataset: str, manifes
     geometry = geometry if isinstance(method, NeRF) else None  # a mesh from our fields only
     recipe = {"kind": "method", "method": entry.identity(), "seed": seed, "steps": request.steps,
               "budget_seconds": request.budget_seconds, "manifest_sha256": manifest_sha256, "split": split,
-              "geometry": geometry, "renders": renders.relative_to(out).as_posix(), "version": _version()}
+              "geometry": geometry, "renders": renders.relative_to(out).as_posix(), "version": _version(),
+              **({"points_manifest_sha256": points_manifest_sha256} if points_manifest_sha256 else {})}
     done = finished(out, job_key, recipe, [renders])
     if done is not None:
         return {**done, "resumed": True}
