@@ -20,8 +20,10 @@ entry (results/<method>/<id>/), so the leaderboard pairs it with every other arm
 default export is surface) is used as it is.
 
 Resumable: the copy's marker (a "dataset" folder) records the hash of {the entry's dataset
-manifest sha256, the spec}; a copy with that recipe whose manifest verifies is kept, any
-other is removed (it holds our marker) and made again. The job that trains on it records
+manifest sha256, the spec}, written when the copy is complete (a copy cut short holds the
+entry's manifest, which verifies, so its marker records no recipe until then); a copy with
+that recipe whose manifest verifies is kept, any other is removed (it holds our marker)
+and made again; one that could not be made is removed. The job that trains on it records
 the copy's manifest sha256 in its recipe (orchestrate.suite.jobs.method_job), so a copy
 made again redoes the arm's jobs. Nothing is written outside OUT/points/.
 
@@ -37,7 +39,7 @@ from pathlib import Path
 from nerfgauge.core import dataset, owned
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import link_or_copy_atomic, read_json, sha256_file
-from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned
+from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned, write_marker
 from nerfgauge.generate import export
 from nerfgauge.generate.points import parse_spec
 
@@ -95,15 +97,18 @@ def make_points_dataset(out: str, base: str, spec: str, target: str) -> dict:
         remove_owned(target, "dataset")  # another recipe, or cut short: ours (its marker), made again
     owned.make_folder(target.parent)
     try:
-        with claim_folder(target, "dataset", recipe):
+        with claim_folder(target, "dataset", None):  # no recipe until complete (module docstring)
             for rel in [*dataset.read_manifest(base), dataset.MANIFEST]:
                 owned.make_folder((target / rel).parent)
                 link_or_copy_atomic(base / rel, target / rel)
             export.export_colmap(target, spec)
             check_same_views(base, target)
+            write_marker(target, "dataset", recipe)
     except Exception as error:  # noqa: BLE001 - the points' failure is the arms', not the suite's
         line = (str(error).splitlines() or [""])[0]
         reason = line if isinstance(error, InputError) else f"{type(error).__name__}: {line}".rstrip(": ")
+        if read_marker(target) is not None:
+            remove_owned(target, "dataset")
         return {"failed": f"its {spec} points could not be made: {reason}", "resumed": False}
     return {"dataset": str(target), "manifest_sha256": sha256_file(target / dataset.MANIFEST), "resumed": False}
 
