@@ -17,9 +17,10 @@ path ending in .toml):
                                    #   nerfbaselines, ns-eval; default ours) and geometry
                                    #   {resolution, samples} (our NeRF's mesh scored)
     [[methods]]                    # what runs (orchestrate.suite.methods): a built-in method,
-    method = "compact"             #   a spec file, module:Class, with settings and length;
-    settings = { ... }             #   without [[methods]], [train]'s other keys are our
-                                   #   compact NeRF's settings (named compact-nerf)
+    method = "compact"             #   a spec file, module:Class, with settings and length
+    settings = { ... }             #   (and points: the initial points its datasets hold,
+                                   #   orchestrate.suite.points); without [[methods]], [train]'s
+                                   #   other keys are our compact NeRF's settings (compact-nerf)
     [[scenes]]                     # at least one: scene (a registered recipe) and seed are
     scene = "primitives"           #   required; id (default: the scene) names its folder;
     seed = 0                       #   any [dataset] key overrides the default for it
