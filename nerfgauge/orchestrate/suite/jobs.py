@@ -159,10 +159,7 @@ def _failure(error: BaseException, run_dir: Path, renders: Path, out: Path) -> s
     else the error's type and first line). Its traceback goes into RUN/failure.txt; its
     renders folder, if it claimed one, is removed with the folders left empty up to
     OUT/predictions/: nothing of a failed job stays outside its run folder."""
-    reason = getattr(error, "reason", None)
-    if not isinstance(reason, str):
-        line = (str(error).splitlines() or [""])[0]
-        reason = line if isinstance(error, InputError) else f"{type(error).__name__}: {line}".rstrip(": ")
+    reason = failure_line(error)
     write_bytes_atomic(owned.make_folder(run_dir) / FAILURE, "".join(
         traceback.format_exception(type(error), error, error.__traceback__)).encode())
     marker = read_marker(renders) if renders.is_dir() and not renders.is_symlink() else None
@@ -173,6 +170,16 @@ def _failure(error: BaseException, run_dir: Path, renders: Path, out: Path) -> s
         owned.remove_empty_folder(folder)
         folder = folder.parent
     return reason
+
+
+def failure_line(error: BaseException) -> str:
+    """Why a job failed, in one line: MethodFailed's reason, an InputError's line, else the
+    error's type and first line."""
+    reason = getattr(error, "reason", None)
+    if isinstance(reason, str):
+        return reason
+    line = (str(error).splitlines() or [""])[0]
+    return line if isinstance(error, InputError) else f"{type(error).__name__}: {line}".rstrip(": ")
 
 
 def _version() -> str:

@@ -42,6 +42,7 @@ from nerfgauge.core.files import link_or_copy_atomic, read_json, sha256_file
 from nerfgauge.core.folders import claim_folder, read_marker, recipe_hash, remove_owned, write_marker
 from nerfgauge.generate import export
 from nerfgauge.generate.points import parse_spec
+from nerfgauge.orchestrate.suite.jobs import failure_line
 
 POINTS = "points"  # OUT/points/<spec>/<id>/
 
@@ -105,11 +106,9 @@ def make_points_dataset(out: str, base: str, spec: str, target: str) -> dict:
             check_same_views(base, target)
             write_marker(target, "dataset", recipe)
     except Exception as error:  # noqa: BLE001 - the points' failure is the arms', not the suite's
-        line = (str(error).splitlines() or [""])[0]
-        reason = line if isinstance(error, InputError) else f"{type(error).__name__}: {line}".rstrip(": ")
         if read_marker(target) is not None:
             remove_owned(target, "dataset")
-        return {"failed": f"its {spec} points could not be made: {reason}", "resumed": False}
+        return {"failed": f"its {spec} points could not be made: {failure_line(error)}", "resumed": False}
     return {"dataset": str(target), "manifest_sha256": sha256_file(target / dataset.MANIFEST), "resumed": False}
 
 
