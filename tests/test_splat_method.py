@@ -62,13 +62,15 @@ def test_a_job_trains_renders_and_is_scored_with_depth(tiny_dataset, tmp_path):
 
 def test_the_initial_points_suite_reads_as_a_builtin_suite():
     """orchestrate/suite/builtin/splat-init.toml: the datasets and scoring of the experiment
-    (its splat arms wait for the suite format's [[methods]]: the file's header)."""
+    (its arms state their points: tests/test_suite_points.py)."""
     from nerfgauge.orchestrate.suite.definition import builtin_suites, load_suite
 
     assert "splat-init" in builtin_suites()
     suite = load_suite("splat-init")
-    assert [entry.scene for entry in suite.scenes] == ["primitives", "glossy", "checker-fine"]
+    assert [entry.scene for entry in suite.scenes] == ["primitives", "random"]
     for entry in suite.scenes:
-        assert (entry.dataset["width"], entry.dataset["views"], entry.dataset["test_views"]) == (128, 100, 20)
+        assert (entry.dataset["width"], entry.dataset["views"], entry.dataset["test_views"]) == (128, 50, 10)
+    arms = {entry.settings.get("init"): entry.points for entry in suite.methods if entry.method == "splat"}
+    assert arms == {"surface": None, "sfm": "sfm", "random": "random", "none": None}
     for init in ("surface", "sfm", "random", "none"):  # each arm a setting the method takes
         assert resolve("splat").config(TrainRequest(dataset="d", run="r", steps=3000, settings={"init": init})).init == init

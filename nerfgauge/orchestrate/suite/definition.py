@@ -17,9 +17,10 @@ path ending in .toml):
                                    #   nerfbaselines, ns-eval; default ours) and geometry
                                    #   {resolution, samples} (our NeRF's mesh scored)
     [[methods]]                    # what runs (orchestrate.suite.methods): a built-in method,
-    method = "compact"             #   a spec file, module:Class, with settings and length;
-    settings = { ... }             #   without [[methods]], [train]'s other keys are our
-                                   #   compact NeRF's settings (named compact-nerf)
+    method = "compact"             #   a spec file, module:Class, with settings and length
+    settings = { ... }             #   (and points: the initial points its datasets hold,
+                                   #   orchestrate.suite.points); without [[methods]], [train]'s
+                                   #   other keys are our compact NeRF's settings (compact-nerf)
     [[scenes]]                     # at least one: scene (a registered recipe) and seed are
     scene = "primitives"           #   required; id (default: the scene) names its folder;
     seed = 0                       #   any [dataset] key overrides the default for it
@@ -765,17 +766,20 @@ def seed_folder(seed: int) -> str:
 
 
 def scoring_tasks(suite: Suite, out, method: str, renders: dict, threads: int | None = None,
-                  failures: bool = False) -> list[dict]:
+                  failures: bool = False, datasets: dict | None = None) -> list[dict]:
     """The scoring jobs of one method: renders {entry id: {seed or None: (folder, pred
     format)}} (seed None: the method was run once) in the suite's order, each {"key" (the
-    job's), "method", "entry", "seed", "metrics" (its path relative to out), "kwargs" of score_renders}."""
+    job's), "method", "entry", "seed", "metrics" (its path relative to out), "kwargs" of score_renders}.
+    datasets: {entry id: the copy of its dataset with the arm's points} (orchestrate.suite.points:
+    the same ground truth, checked), scored on in place of the entry's folder."""
+    datasets = datasets or {}
     out, tasks = Path(out), []
     for entry in suite.scenes:
         for seed, (folder, pred_format) in renders.get(entry.id, {}).items():
             metrics = Path("results") / method / entry.id / ("" if seed is None else seed_folder(seed)) / "metrics.json"
             key = f"score/{method}/" + ("" if seed is None else f"{seed_folder(seed)}/") + entry.id
             tasks.append({"key": key, "method": method, "entry": entry.id, "seed": seed, "metrics": metrics.as_posix(), "kwargs": dict(
-                dataset=str(dataset_dir(out, entry)), renders=str(folder), metrics=str(out / metrics),
+                dataset=str(datasets.get(entry.id, dataset_dir(out, entry))), renders=str(folder), metrics=str(out / metrics),
                 scoring=suite.scoring, pred_format=pred_format, threads=threads, failures=failures)})
     return tasks
 

@@ -97,10 +97,13 @@ def job_name(method: str, entry_id: str, seed) -> str:
 
 
 def method_job(out: str, job_key: str, entry, train: dict, dataset: str, manifest_sha256: str, run_dir: str,
-               renders: str, seed, split: str, geometry: dict | None, threads: int | None = None) -> dict:
+               renders: str, seed, split: str, geometry: dict | None, threads: int | None = None,
+               points_manifest_sha256: str | None = None) -> dict:
     """Train `entry`'s method (orchestrate.suite.methods.MethodEntry) on `dataset` with
     `seed` (None: a method that does not train, run once) into run_dir, render `split`
-    into `renders`, score our NeRF's mesh (geometry settings, or None). Returns the
+    into `renders`, score our NeRF's mesh (geometry settings, or None). An arm that states
+    points trains on the entry's copy with them (orchestrate.suite.points): `dataset` is
+    the copy, points_manifest_sha256 its manifest's hash (in the recipe). Returns the
     record's result (definition.JOB_RESULT) with "resumed", or {"failed": reason} when the
     method failed. Skipped (resumed) when finished with the same recipe."""
     import torch  # torch: only where a job runs
@@ -115,7 +118,8 @@ def method_job(out: str, job_key: str, entry, train: dict, dataset: str, manifes
     geometry = geometry if isinstance(method, NeRF) else None  # a mesh from our fields only
     recipe = {"kind": "method", "method": entry.identity(), "seed": seed, "steps": request.steps,
               "budget_seconds": request.budget_seconds, "manifest_sha256": manifest_sha256, "split": split,
-              "geometry": geometry, "renders": renders.relative_to(out).as_posix(), "version": _version()}
+              "geometry": geometry, "renders": renders.relative_to(out).as_posix(), "version": _version(),
+              **({"points_manifest_sha256": points_manifest_sha256} if points_manifest_sha256 else {})}
     done = finished(out, job_key, recipe, [renders])
     if done is not None:
         return {**done, "resumed": True}
@@ -155,10 +159,7 @@ def _failure(error: BaseException, run_dir: Path, renders: Path, out: Path) -> s
     else the error's type and first line). Its traceback goes into RUN/failure.txt; its
     renders folder, if it claimed one, is removed with the folders left empty up to
     OUT/predictions/: nothing of a failed job stays outside its run folder."""
-    reason = getattr(error, "reason", None)
-    if not isinstance(reason, str):
-        line = (str(error).splitlines() or [""])[0]
-        reason = line if isinstance(error, InputError) else f"{type(error).__name__}: {line}".rstrip(": ")
+    reason = failure_line(error)
     write_bytes_atomic(owned.make_folder(run_dir) / FAILURE, "".join(
         traceback.format_exception(type(error), error, error.__traceback__)).encode())
     marker = read_marker(renders) if renders.is_dir() and not renders.is_symlink() else None
@@ -169,6 +170,16 @@ def _failure(error: BaseException, run_dir: Path, renders: Path, out: Path) -> s
         owned.remove_empty_folder(folder)
         folder = folder.parent
     return reason
+
+
+def failure_line(error: BaseException) -> str:
+    """Why a job failed, in one line: MethodFailed's reason, an InputError's line, else the
+    error's type and first line."""
+    reason = getattr(error, "reason", None)
+    if isinstance(reason, str):
+        return reason
+    line = (str(error).splitlines() or [""])[0]
+    return line if isinstance(error, InputError) else f"{type(error).__name__}: {line}".rstrip(": ")
 
 
 def _version() -> str:

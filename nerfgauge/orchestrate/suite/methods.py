@@ -14,6 +14,11 @@
     [[methods]]                    #   budget_seconds, where given, replace [train]'s for it
     method = "specs/nerfacto.toml"
     steps = 300
+    [[methods]]                    # points (optional, a method that starts from the dataset's
+    name = "splat-sfm"             #   COLMAP points): KIND[:COUNT] as `export colmap --points`
+    method = "splat"               #   takes (surface, sfm, random, none); the arm trains on a
+    points = "sfm"                 #   copy of each dataset with those points (same images,
+                                   #   scored on the entry's own test views: orchestrate.suite.points)
 
 Every method goes through the method interface (nerfgauge.methods.interface) and the
 registry (nerfgauge.methods.registry); each is resolved and its request checked
@@ -47,7 +52,10 @@ from nerfgauge.methods.registry import resolve
 
 OURS = "compact-nerf"  # our NeRF's name on the leaderboard of a suite file without [[methods]]
 TRAIN_KEYS = ("steps", "budget_seconds", "threads")  # [train] beside [[methods]]: the jobs' length
-ENTRY_KEYS = ("name", "method", "settings", "steps", "budget_seconds")
+ENTRY_KEYS = ("name", "method", "settings", "steps", "budget_seconds", "points")
+# the setting with which a method that reads initial points picks their kind (splat's --init):
+# with `points`, it must be "auto" or that kind, or the arm would not train from the points it states
+POINTS_SETTING = "init"
 
 
 @dataclass(frozen=True)
@@ -62,6 +70,7 @@ class MethodEntry:
     steps: Optional[int] = None
     budget_seconds: Optional[float] = None
     path: Optional[str] = field(default=None, compare=False)
+    points: Optional[str] = None  # the initial points its datasets hold (generate.points spec text), None: as generated
 
     @property
     def spec(self) -> str:
@@ -91,12 +100,14 @@ class MethodEntry:
         that defines the method where there is one (a spec; a user's module), so a job is
         redone when that file changes (our own code is in the job's version)."""
         return {"name": self.name, "method": self.method, "settings": self.settings, "steps": self.steps,
-                "budget_seconds": self.budget_seconds, "source_sha256": _source_sha256(self.spec)}
+                "budget_seconds": self.budget_seconds, "source_sha256": _source_sha256(self.spec),
+                **({"points": self.points} if self.points is not None else {})}  # without: as before (records resume)
 
     def definition(self) -> dict:
         return {key: value for key, value in (("name", self.name), ("method", self.method),
                                               ("settings", self.settings), ("steps", self.steps),
-                                              ("budget_seconds", self.budget_seconds)) if value not in (None, {})}
+                                              ("budget_seconds", self.budget_seconds), ("points", self.points))
+                if value not in (None, {})}
 
 
 def _source_sha256(spec: str) -> Optional[str]:
@@ -151,14 +162,15 @@ def parse_methods(raw, train: dict, where: str, base=None) -> tuple:
             raise InputError(f"{at}: settings must be a table, got {shown(settings)}")
         _length(table, at)
         entries.append(checked_entry(table["method"], at, base, train, name=table.get("name"), settings=settings,
-                                     steps=table.get("steps"), budget_seconds=table.get("budget_seconds")))
+                                     steps=table.get("steps"), budget_seconds=table.get("budget_seconds"),
+                                     points=table.get("points")))
     return unique(entries, where)
 
 
 def checked_entry(method: str, where: str, base, train: dict, *, name=None, settings=None, steps=None,
-                  budget_seconds=None) -> MethodEntry:
-    """A MethodEntry whose method resolves and accepts its settings and length (one line
-    naming `where` otherwise)."""
+                  budget_seconds=None, points=None) -> MethodEntry:
+    """A MethodEntry whose method resolves and accepts its settings, length and points
+    (`check_points`; one line naming `where` otherwise)."""
     path = None
     if method.endswith(".toml"):
         found = Path(method).expanduser()
@@ -166,7 +178,8 @@ def checked_entry(method: str, where: str, base, train: dict, *, name=None, sett
     entry = MethodEntry(name or "", method, dict(settings or {}), steps, budget_seconds, path)
     try:
         resolved = entry.resolve()
-        entry = MethodEntry(name or resolved.name, method, entry.settings, steps, budget_seconds, path)
+        entry = MethodEntry(name or resolved.name, method, entry.settings, steps, budget_seconds, path,
+                            None if points is None else check_points(points, resolved, entry.settings))
         check_name(entry.name, "name")
         if steps is not None or budget_seconds is not None:  # a length the entry names is meant for this method
             resolved.check(TrainRequest(dataset=".", run=".", steps=steps, budget_seconds=budget_seconds,
@@ -175,6 +188,30 @@ def checked_entry(method: str, where: str, base, train: dict, *, name=None, sett
     except InputError as error:
         raise InputError(f"{where}: {error}") from None
     return entry
+
+
+def check_points(points, method: Method, settings: dict) -> str:
+    """A [[methods]] entry's `points`, as its canonical spec text ("sfm", "random:5000"):
+    KIND[:COUNT] as generate.points.parse_spec reads it, for a method that reads initial
+    points (Needs.initial_points), whose POINTS_SETTING, where given, is "auto" or that kind.
+    InputError (one line) otherwise."""
+    from nerfgauge.generate.points import KINDS, parse_spec  # the one reader of a points spec
+
+    if not isinstance(points, str):
+        raise InputError(f"points must be KIND[:COUNT] with KIND one of {', '.join(KINDS)}, got {shown(points)}")
+    try:
+        spec = parse_spec(points)
+    except InputError as error:
+        raise InputError(f"points: {str(error).removeprefix('--points ')}") from None
+    if not method.needs.initial_points:
+        raise InputError(f"points {spec.to_text()!r}: method {method.name} reads no initial points (its needs: "
+                         f"{', '.join(method.needs.names())}); only a method that starts from the dataset's COLMAP "
+                         "points takes them")
+    chosen = settings.get(POINTS_SETTING)
+    if chosen is not None and chosen not in ("auto", spec.kind):
+        raise InputError(f"points {spec.to_text()!r}: settings.{POINTS_SETTING} is {shown(chosen)}, so the arm would "
+                         f"not start from those points; set {POINTS_SETTING} = \"auto\" or \"{spec.kind}\"")
+    return spec.to_text()
 
 
 def unique(entries: list, where: str) -> tuple:

@@ -3,6 +3,8 @@ through a whole suite, each stage through its public function (generate; every m
 through the method interface; evaluate), then the leaderboard.
 
     DIR/                          the suite folder (orchestrate.suite): datasets, suite manifest
+    DIR/points/<spec>/<id>/       dataset <id> with other initial points, for the arms that state
+                                  them (`points = "sfm"`: orchestrate.suite.points)
     DIR/runs/<method>/<id>/       a method's run on dataset <id> (its training: ours, another
                                   tool's outputs and logs; failure.txt when it failed)
                                   (--seeds: DIR/runs/<method>/seed-<s>/<id>/ for a learned method)
@@ -39,6 +41,7 @@ from nerfgauge.orchestrate.suite.definition import (RESULT_FILE, SUITE_FILE, Sui
                                                     write_result)
 from nerfgauge.orchestrate.suite.jobs import PREDICTIONS, job_name, job_runner, method_job
 from nerfgauge.orchestrate.suite.methods import select
+from nerfgauge.orchestrate.suite.points import check_points_available, make_points_dataset, needs_copy, points_folder
 from nerfgauge.orchestrate.suite.report import write_leaderboard
 
 def training_threads(suite: Suite, scheduler: str | None, threads: int | None) -> tuple[int, str]:
@@ -86,19 +89,26 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     entries = suite.methods if methods is None else select(suite.methods, methods, suite.train)
     threads, why = training_threads(suite, scheduler, threads)
     resolved = {entry.name: entry.resolve() for entry in entries}
+    check_points_available(entries)  # sfm points need pycolmap: one line before anything is written
     start = time.perf_counter()
     manifest = generate_suite(suite, out, overwrite=overwrite, progress=progress, log=log, scheduler=scheduler)
-    jobs, owners, skipped = method_jobs(suite, out, entries, resolved, manifest, seeds, threads, log)
-    log(f"{len(jobs)} jobs: " + ", ".join(f"{e.name} ({_length(resolved[e.name], e, suite.train)})" for e in entries)
-        + (f"; seeds {', '.join(map(str, seeds))}" if seeds is not None else "")
-        + ("" if scheduler is None else f"; on {scheduler}") + f"; {threads} thread(s) a job ({why})")
     with job_runner(scheduler, log) as run_on:
+        copies = points_datasets(suite, out, entries, run_on, log)
+        jobs, owners, skipped, refused = method_jobs(suite, out, entries, resolved, manifest, seeds, threads, log,
+                                                     copies)
+        log(f"{len(jobs)} jobs: " + ", ".join(f"{e.name} ({_length(resolved[e.name], e, suite.train)}"
+                                              + (f", {e.points} points" if e.points else "") + ")" for e in entries)
+            + (f"; seeds {', '.join(map(str, seeds))}" if seeds is not None else "")
+            + ("" if scheduler is None else f"; on {scheduler}") + f"; {threads} thread(s) a job ({why})")
         clock = time.perf_counter()
         renders, extras, failed = collect(out, owners, run_on(jobs))
+        for name, reasons in refused.items():  # arms whose points could not be made on a dataset
+            failed.setdefault(name, {}).update(reasons)
         log(f"jobs: {time.perf_counter() - clock:.1f} s")
         with folder_lock(out):
             tasks = {entry.name: scoring_tasks(suite, out, entry.name, renders.get(entry.name, {}), threads,
-                                               failures=True) for entry in entries}
+                                               failures=True, datasets=arm_datasets(entry, copies))
+                     for entry in entries}
             for entry in entries:
                 owned.remove_file(out / "results" / entry.name / RESULT_FILE)  # no stale result beside new metrics
                 if (out / PREDICTIONS / entry.name).is_dir():
@@ -118,20 +128,59 @@ def run_suite(suite: Suite, out, *, overwrite: bool = False, progress: bool = Fa
     return board
 
 
-def method_jobs(suite: Suite, out: Path, entries, resolved: dict, manifest: dict, seeds, threads, log) -> tuple:
+def points_datasets(suite: Suite, out: Path, entries, run_on, log) -> dict:
+    """{(points spec, dataset id): orchestrate.suite.points.make_points_dataset's result}:
+    a copy of each of the suite's own datasets with the points an arm states, where the
+    dataset holds other points; made as jobs on the suite's runner, before the method jobs."""
+    jobs, owners = [], {}
+    for spec in sorted({entry.points for entry in entries if entry.points is not None}):
+        for scene in suite.scenes:
+            base = dataset_dir(out, scene)
+            if scene.foreign or not needs_copy(base, spec):
+                continue
+            key = f"points/{spec}/{scene.id}"
+            jobs.append((key, make_points_dataset, dict(out=str(out), base=str(base), spec=spec,
+                                                        target=str(points_folder(out, spec, scene.id)))))
+            owners[key] = (spec, scene.id)
+    if not jobs:
+        return {}
+    log(f"{len(jobs)} datasets with other initial points: " + ", ".join(owners))
+    done = run_on(jobs)
+    return {owners[key]: result for key, result in done.items()}
+
+
+def arm_datasets(entry, copies: dict) -> dict:
+    """{dataset id: the copy with the points `entry` states} where one was made (points_datasets)."""
+    return {scene_id: copy["dataset"] for (spec, scene_id), copy in copies.items()
+            if spec == entry.points and "dataset" in copy}
+
+
+def method_jobs(suite: Suite, out: Path, entries, resolved: dict, manifest: dict, seeds, threads, log,
+                copies: dict | None = None) -> tuple:
     """([(key, method_job, kwargs)], {key: (method, dataset id, seed folder or None)},
-    {method: {dataset id: why skipped}}): a job per method, dataset and seed
-    (`job_seeds`), where the dataset has what the method needs (missing_needs)."""
-    jobs, owners, skipped = [], {}, {}
+    {method: {dataset id: why skipped}}, {method: {dataset id: why it failed}}): a job per
+    method, dataset and seed (`job_seeds`), where the dataset has what the method needs
+    (missing_needs). An arm that states points trains on the dataset's copy with them
+    (copies: `points_datasets`; none there: the dataset holds them), and fails on a
+    dataset whose copy could not be made."""
+    jobs, owners, skipped, refused, copies = [], {}, {}, {}, copies or {}
     for index, scene in enumerate(suite.scenes, 1):
-        data = dataset_dir(out, scene)
-        ds = open_dataset(data)
+        ds = open_dataset(dataset_dir(out, scene))
         for entry in entries:
             reasons = missing_needs(resolved[entry.name], ds)
+            if entry.points is not None and scene.foreign:
+                reasons.append(f"states points {entry.points}, which only a nerfgauge dataset's COLMAP export holds")
             if reasons:
                 skipped.setdefault(entry.name, {})[scene.id] = "; ".join(reasons)
                 log(f"[{index}/{len(suite.scenes)}] {scene.id}: {entry.name} skipped: {'; '.join(reasons)}")
                 continue
+            copy = copies.get((entry.points, scene.id))
+            if copy is not None and "failed" in copy:
+                refused.setdefault(entry.name, {})[scene.id] = copy["failed"]
+                log(f"[{index}/{len(suite.scenes)}] {scene.id}: {entry.name} failed: {copy['failed']}")
+                continue
+            data = Path(arm_datasets(entry, copies).get(scene.id, dataset_dir(out, scene)))
+            points_sha256 = None if copy is None else copy["manifest_sha256"]
             for seed, folder_seed in job_seeds(resolved[entry.name], scene, seeds):
                 key = job_name(entry.name, scene.id, folder_seed)
                 where = Path(entry.name) / ("" if folder_seed is None else seed_folder(folder_seed)) / scene.id
@@ -139,9 +188,10 @@ def method_jobs(suite: Suite, out: Path, entries, resolved: dict, manifest: dict
                     out=str(out), job_key=key, entry=entry, train=suite.train, dataset=str(data),
                     manifest_sha256=identity(manifest["datasets"][scene.id]),
                     run_dir=str(out / "runs" / where), renders=str(out / PREDICTIONS / where), seed=seed,
-                    split=suite.scoring["split"], geometry=suite.scoring.get("geometry"), threads=threads)))
+                    split=suite.scoring["split"], geometry=suite.scoring.get("geometry"), threads=threads,
+                    points_manifest_sha256=points_sha256)))
                 owners[key] = (entry.name, scene.id, folder_seed)
-    return jobs, owners, skipped
+    return jobs, owners, skipped, refused
 
 
 def collect(out: Path, owners: dict, done: dict) -> tuple:
