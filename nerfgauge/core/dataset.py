@@ -359,15 +359,16 @@ class Dataset:
         """Every manifest file whose path starts with `prefix` (e.g. "test/") has the size the
         manifest recorded, asked of the file system, nothing read: a command refuses a
         changed file before its slow work (loading LPIPS, say), not at the frame that reads
-        it. Each read still checks its open file (read_bytes). Missing files are left to
-        the read, which names the frame; a foreign folder has no manifest to check."""
+        it. Each read still checks its open file (read_bytes). Missing files and links out of
+        the dataset are left to the read, which names the frame; a foreign folder has no
+        manifest to check."""
         if self._manifest is None:
             return
         for rel, entry in self._manifest.items():
             if rel.startswith(prefix) and entry.size is not None:
                 try:
                     status = validate.confine(self._real_root, rel).stat()
-                except FileNotFoundError:
+                except (FileNotFoundError, InputError):  # missing or leading outside: the read names the frame
                     continue
                 if stat.S_ISREG(status.st_mode):  # a FIFO or device: the read refuses it, saying what it is
                     validate.content_size(status.st_size, entry, self.root / rel)
