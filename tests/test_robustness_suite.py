@@ -47,6 +47,7 @@ def test_suite_entries_pass_degradations_to_generate(ran):
     assert scene["degradations"]["pose_noise_rotation"] == 4.0
 
 
+@pytest.mark.slow
 def test_curves_have_a_row_per_level_and_method_with_the_metrics_json_scores(ran):
     suite, out = ran
     board = read_json(out / "leaderboard.json")

@@ -114,6 +114,7 @@ def test_each_failure_is_one_row_with_its_reason_and_the_suite_finishes(ran):
         assert "1/1: seed 0: " in row and words in row  # one row, with the reason
 
 
+@pytest.mark.slow
 def test_a_failed_job_leaves_nothing_outside_its_run_folder(ran):
     """Every path naming a failed method lies in its run folders (with its log and the
     traceback) or is its leaderboard row (results/<method>/result.json); no renders, no
@@ -197,6 +198,7 @@ def test_budgets_go_to_the_methods_that_accept_one_and_every_method_reports_its_
 # --- the command line: --methods, resuming ---------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_methods_flag_replaces_the_suites_and_resumes_their_jobs(ran, tmp_path, capsys):
     toml, out, _ = ran
     copy = tmp_path / "S"

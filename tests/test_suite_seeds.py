@@ -76,6 +76,7 @@ def test_every_seed_is_kept_and_scored_as_evaluate_scores_it(seeded, tmp_path, c
         assert len(set(psnr)) == len(SEEDS), psnr
 
 
+@pytest.mark.slow
 def test_calibrate_on_the_seeded_runs(seeded, tmp_path, capsys):
     """check --calibrate on a suite's per-seed metrics: the floor from the three runs' PSNR."""
     from scipy.stats import t

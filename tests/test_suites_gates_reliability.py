@@ -121,6 +121,7 @@ class TestStateFilesAreData:
                {rel: v for rel, v in before.items() if not report_output(rel)}
         assert not any(rel.startswith("datasets/") and rel.endswith((".html", "grid.png")) for rel in after)
 
+    @pytest.mark.slow
     def test_an_edited_definition_with_every_hash_recomputed_is_caught_by_the_datasets(self, suite_copy, capsys):
         """A seed changed in the definition, the forger also fixing the manifest's record:
         the dataset's own config.json (hashed in its manifest) still says seed 0."""

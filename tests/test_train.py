@@ -50,6 +50,7 @@ def test_a_short_run_learns_the_scene(trained_run, small_dataset):
     assert "view_dependent" in config["auto_reasons"] and "final_resolution" in config["auto_reasons"]
 
 
+@pytest.mark.slow
 def test_model_loads_with_weights_only_and_renders_every_frame(trained_run, small_dataset, tmp_path):
     payload = torch.load(trained_run / "model.pt", weights_only=True)
     assert payload["format"] == "nerfgauge-model"
