@@ -457,17 +457,19 @@ def _device_for(command: Command, device: str) -> str:
     return device
 
 
-def _check_device(command: Command, device: str, method: str) -> None:
+def _check_device(command: Command, device: str, method: str) -> str:
+    """The device the job runs on (`_device_for`); InputError when the table does not name it."""
     device = _device_for(command, device)
     if command.devices is not None and device not in command.devices:
         raise InputError(f"method {method} runs on {', '.join(command.devices)}, not on device {device!r}")
+    return device
 
 
 def _argv(command: Command, values: dict, device: str, method: str) -> list:
     """The command's arguments for `device`: its own, then those its devices table gives
     that device; a device the table does not name is refused."""
-    _check_device(command, device, method)
-    extra = () if command.devices is None else command.devices[_device_for(command, device)]
+    device = _check_device(command, device, method)
+    extra = () if command.devices is None else command.devices[device]
     return [fill(arg, values) for arg in (*command.argv, *extra)]
 
 
