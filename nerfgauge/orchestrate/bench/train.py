@@ -221,26 +221,35 @@ def pareto_plots(rows: list, out: Path) -> None:
     by_time, by_size = figure.add_subplot(2, 2, 1), figure.add_subplot(2, 2, 2)
     test_by_time, test_by_steps = figure.add_subplot(2, 2, 3), figure.add_subplot(2, 2, 4)
     done = [r for r in rows if "error" not in r]
+    # one colour a scene and variant in every panel (a run's budget: its line style on top),
+    # so a colour never names one method in one panel and another method in the next
+    cycle = [f"C{k % 10}" for k in range(len(done))]
+    colour = dict(zip(dict.fromkeys((r["scene"], r["variant"]) for r in done), cycle))
+    styles = ("-", "--", ":", "-.")
     for r in done:
         if r.get("log") is None:  # another tool's run: no val curve
             continue
         label = plain_text(f"{r['scene']}: {r['variant']} ({_length_cell(r)}{' s' if r['budget'] else ''})")  # $ as text
         log = read_log(r["log"])
-        by_time.plot([e["seconds"] for e in log], [e["val_psnr"] for e in log], marker=".", label=label)
-        by_size.scatter([r["model_mb"]], [r["val_psnr"]], label=label)
+        same = [q for q in done if (q["scene"], q["variant"]) == (r["scene"], r["variant"]) and q.get("log")]
+        style = styles[same.index(r) % len(styles)]
+        by_time.plot([e["seconds"] for e in log], [e["val_psnr"] for e in log], marker=".", linestyle=style,
+                     color=colour[r["scene"], r["variant"]], label=label)
+        by_size.scatter([r["model_mb"]], [r["val_psnr"]], color=colour[r["scene"], r["variant"]],
+                        marker="os^D"[same.index(r) % 4], label=label)
     for r in done:  # a method that does not train: its PSNR at every time, as a line
         if r["psnr"] is not None and r["budget"] is None and r.get("method_steps") is None:
-            test_by_time.axhline(r["psnr"], linestyle="--", linewidth=1,
+            test_by_time.axhline(r["psnr"], linestyle="--", linewidth=1, color=colour[r["scene"], r["variant"]],
                                  label=plain_text(f"{r['scene']}: {r['variant']} (no training)"))
     for scene, variant in dict.fromkeys((r["scene"], r["variant"]) for r in done if r["psnr"] is not None
                                         and (r["budget"] is not None or r.get("method_steps") is not None)):
         line = sorted((r for r in done if (r["scene"], r["variant"]) == (scene, variant) and r["psnr"] is not None),
                       key=lambda r: (r["budget"] or 0, r.get("method_steps") or 0, r["train_seconds"]))
         test_by_time.plot([r["train_seconds"] for r in line], [r["psnr"] for r in line], marker="o",
-                          label=plain_text(f"{scene}: {variant}"))
+                          color=colour[scene, variant], label=plain_text(f"{scene}: {variant}"))
         counted = [r for r in line if r.get("steps") is not None]  # a method that does not say its steps: not here
         test_by_steps.plot([r["steps"] for r in counted], [r["psnr"] for r in counted], marker="o",
-                           label=plain_text(f"{scene}: {variant}"))
+                           color=colour[scene, variant], label=plain_text(f"{scene}: {variant}"))
     by_time.set(xlabel="training seconds", ylabel="val PSNR, centre rays (dB)", title="PSNR against training time (each run)")
     by_size.set(xlabel="saved model (MB)", ylabel="final val PSNR (dB)", title="PSNR against model size", xscale="log")
     test_by_time.set(xlabel="training seconds (wall; ours: the budget)", ylabel="test PSNR (dB)",
@@ -250,6 +259,7 @@ def pareto_plots(rows: list, out: Path) -> None:
         axes.grid(alpha=0.3)
     if any(r.get("log") for r in done):
         by_size.legend(fontsize=6, loc="lower right")
+        by_time.legend(fontsize=6, loc="lower right")
     if done:
         test_by_steps.legend(fontsize=7, loc="lower right")
         test_by_time.legend(fontsize=7, loc="lower right")
