@@ -319,6 +319,10 @@ def _per_seed(entry: dict) -> str:
     return " ".join("–" if v is None else f"{v:.2f}" for v in values) + ("" if std is None else f" (±{std:.2f})")
 
 
+# The sensitivity table rescores one run per method; the tables above average every seed.
+FIRST_SEED = " (a seeded method: its first seed's renders)"
+
+
 def protocol_sensitivity(suite: Suite, out) -> dict:
     """{method: eval.protocols sensitivity document over the suite's datasets}: every
     method's renders (each result.json row's renders, in its format; from before rows
@@ -394,7 +398,7 @@ def markdown(board: dict) -> str:
     sensitivity = board.get("protocol_sensitivity")
     if sensitivity:
         rows = sensitivity_rows(sensitivity)
-        lines += [f"## {PROTOCOL_CAPTION}", "", _md_row(rows[0]), "|" + "---|" * len(rows[0])]
+        lines += [f"## {PROTOCOL_CAPTION}{FIRST_SEED}", "", _md_row(rows[0]), "|" + "---|" * len(rows[0])]
         lines += [_md_row(row) for row in rows[1:]]
         lines.append("")
     return "\n".join(lines)
@@ -456,7 +460,7 @@ def _write_leaderboard(suite: Suite, out: Path, log, reports: bool) -> dict:
         sections.append(f"<h2>{html.escape(ROBUSTNESS_CAPTION)}</h2><img src='{suite_robustness.PLOT}' "
                         f"alt='robustness curves'>" + sortable_table_html(suite_robustness.rows(board["robustness"])))
     if board["protocol_sensitivity"]:
-        sections.append(f"<h2>{html.escape(PROTOCOL_CAPTION)}</h2>"
+        sections.append(f"<h2>{html.escape(PROTOCOL_CAPTION + FIRST_SEED)}</h2>"
                         + sortable_table_html(sensitivity_rows(board["protocol_sensitivity"])))
     notes = [f"suite sha256 {board['suite_sha256']}", "↓ lower is better; – not defined or not applicable; "
              "means are over the datasets where a value is defined (leaderboard.json: scenes_scored); "
