@@ -24,6 +24,7 @@ from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, EDGE_COLOUR_STEP, changes
 # thread with the cheap half waits. Measured at 256 px on 2 threads: 2 parts 106-122 ms,
 # 8 parts 85-88 ms a frame.
 PARTS_PER_THREAD = 4
+MIN_PART_RAYS = 0  # fewer parts for fewer rays: each part costs its own passes (0: always `parts`)
 # Rays per pixel along each axis by the run's pixel filter (nerf.config.PIXEL_FILTERS): a
 # box-trained model renders the mean of 2 x 2 rays through each pixel, the box filter the
 # ground truth applies (docs/conventions.md, "Pixel footprint"); a centre-trained one its
@@ -53,6 +54,8 @@ def render_frame(model, origins, directions, pool, parts: int = 1) -> tuple:
     cores better than one thread of many small multi-threaded ops (measured: ~1.3x)."""
     if pool is None:
         return render_rays_chunked(model, origins, directions)
+    if MIN_PART_RAYS:
+        parts = max(1, min(parts, origins.shape[0] // MIN_PART_RAYS))
 
     def part(o, d):
         with torch.no_grad():

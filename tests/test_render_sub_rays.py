@@ -249,6 +249,7 @@ def test_an_unknown_sub_rays_choice_is_one_line_and_exit_2(edges_run, tmp_path, 
     assert not (tmp_path / "r").exists() and "--sub-rays" in error and len(error.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_bench_render_times_and_scores_both_renders_and_refuses_other_runs(edges_run, tmp_path):
     import json
 
