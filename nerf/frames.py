@@ -179,7 +179,7 @@ def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, sh
         total = total + centre.index_select(0, touched_t)
     centre = centre.clone()
     centre[touched_t] = total / per_axis ** 2
-    return centre[:, :3], centre[:, 3]
+    return centre[:, :3].contiguous(), centre[:, 3].contiguous()
 
 
 def interpolate_centres(centre: torch.Tensor, height: int, width: int, pixels: torch.Tensor,

@@ -74,10 +74,12 @@ def _disc_model(c2w, intrinsics, radius_px: float = 5.5):
 def _changes_loop(rgba, offsets, step=EDGE_COLOUR_STEP, rounding=0.0):
     """changes_towards by a loop over every pixel and point: the centres of the pixel and of
     its neighbours toward the point (clamped into the image) differ by partial alpha or a
-    premultiplied colour step above `step`."""
+    premultiplied colour step above `step`; the centre itself has its ray already."""
     height, width = rgba.shape[:2]
     out = np.zeros((len(offsets), height, width), dtype=bool)
     for s, (x, y) in enumerate(offsets):
+        if x == 0 and y == 0:
+            continue
         for i in range(height):
             for j in range(width):
                 rows = {i, min(max(i + int(np.sign(y)), 0), height - 1)}
