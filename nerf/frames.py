@@ -17,14 +17,13 @@ from nerfgauge.nerf.data import jittered_direction, pixel_footprints, split_rays
 from nerfgauge.nerf.rendering import render_rays_chunked
 
 from nerfgauge.core.camera import lens_samples, thin_lens_rays
-from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, EDGE_COLOUR_STEP, changes_towards, edge_mask
+from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, changes_towards, edge_mask
 
 # A frame's rays are split into this many parts per thread: rays that hit the scene cost
 # far more than rays that miss it, so two halves of an image rarely cost the same, and the
 # thread with the cheap half waits. Measured at 256 px on 2 threads: 2 parts 106-122 ms,
 # 8 parts 85-88 ms a frame.
 PARTS_PER_THREAD = 4
-MIN_PART_RAYS = 0  # fewer parts for fewer rays: each part costs its own passes (0: always `parts`)
 # Rays per pixel along each axis by the run's pixel filter (nerf.config.PIXEL_FILTERS): a
 # box-trained model renders the mean of 2 x 2 rays through each pixel, the box filter the
 # ground truth applies (docs/conventions.md, "Pixel footprint"); a centre-trained one its
@@ -35,9 +34,13 @@ PIXEL_SAMPLES = {"box": 2, "jitter": 2, "centre": 1, "edges": 2}
 # edges (nerfgauge.core.pixel_edges.edge_mask of the rendered RGBA), as training found them
 # on the targets; every other pixel keeps its centre ray.
 EDGES_ONLY = ("edges",)
-# A colour step between centres above this (premultiplied, any channel, on [0, 1]) gives
-# the points between them rays; below it they are interpolated.
-CHANGE_COLOUR_STEP = EDGE_COLOUR_STEP
+# Centres that differ by more than this in premultiplied colour or alpha (any channel, on
+# [0, 1]) give the points between them rays; closer, the points are interpolated. Measured
+# against 3 x 3 rays on every edge pixel (primitives 128 px, 600-s model, 20 test views,
+# 17,139 extra rays a frame): 0.1 -0.81 dB (5,566 rays), 0.05 -0.19 dB (7,451), 0.025
+# +0.24 dB (11,230); the model's texture holds steps inside a pixel that its centres show
+# only as a few hundredths (docs/results.md, "Render time").
+CHANGE_STEP = 0.05
 
 
 def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -54,8 +57,6 @@ def render_frame(model, origins, directions, pool, parts: int = 1) -> tuple:
     cores better than one thread of many small multi-threaded ops (measured: ~1.3x)."""
     if pool is None:
         return render_rays_chunked(model, origins, directions)
-    if MIN_PART_RAYS:
-        parts = max(1, min(parts, origins.shape[0] // MIN_PART_RAYS))
 
     def part(o, d):
         with torch.no_grad():
@@ -142,13 +143,13 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
 
 
 def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, shape: tuple, per_axis: int, pool,
-                          parts: int, colour_step: float = CHANGE_COLOUR_STEP) -> tuple:
+                          parts: int, step: float = CHANGE_STEP) -> tuple:
     """The box mean of per_axis x per_axis points over each pixel, with a ray only through
     the points where the centre render changes (`nerfgauge.core.pixel_edges.changes_towards`
-    of its 8-bit RGBA, partial alpha within ALPHA_ROUNDING of 0 or 1 counting as none or
-    full): the pixel centres around such a point differ, so an edge may pass it. Every
-    other point takes the bilinear interpolation of the centres around it, which agree to
-    within `colour_step`; a pixel none of whose points changes keeps its centre ray's value.
+    of its 8-bit RGBA, as the PNG holds it): the pixel centres around such a point differ by
+    more than `step`, so an edge may pass it. Every other point takes the bilinear
+    interpolation of the centres around it, which agree to within `step`; a pixel none of
+    whose points changes keeps its centre ray's value.
 
     centre_o, centre_d: [P, 3] the pixel-centre rays; footprint: [P, 2, 3]
     (`pixel_footprints`); rgb [P, 3] (premultiplied), opacity [P]: their render; shape (H, W).
@@ -157,7 +158,7 @@ def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, sh
     offsets = pixel_offsets(per_axis)
     offsets = offsets[np.any(offsets != 0, axis=1)]  # the centre's ray is rendered already
     straight = rgba_png(rgb.cpu().numpy(), opacity.cpu().numpy(), height, width).astype(np.float64) / 255
-    changes = changes_towards(straight, offsets, colour_step, ALPHA_ROUNDING).reshape(len(offsets), -1)  # [S, P]
+    changes = changes_towards(straight, offsets, step).reshape(len(offsets), -1)  # [S, P]
     touched = np.flatnonzero(changes.any(axis=0))  # pixels with a ray of their own beyond the centre
     if not len(touched):
         return rgb, opacity

@@ -38,7 +38,6 @@ from torch import nn
 
 EARLY_STOP_WINDOW = 16  # samples per ray between early-termination checks (measured: 8-32 similar)
 EARLY_STOP_SEGMENTS = 8  # 4-voxel segments per ray between checks (measured at 256 px: 3-8 best at 8)
-EARLY_STOP_MAX_SEGMENTS = None  # later windows double up to this (None: all EARLY_STOP_SEGMENTS)
 # Training differentiates only the samples a ray reaches with at least this transmittance:
 # what it drops moves a ray's colour by less than this (the ground truth's noise is ~2.5e-3).
 TRAIN_MIN_TRANSMITTANCE = 1e-4
@@ -259,8 +258,7 @@ class CompactNeRF(RadianceModel):
             return rays, t, sample_deltas(samples), sigma, colour_at
 
         colour, opacity, depth, evaluated = render_front_to_back(window_samples, segments.ray_index, segments.near,
-                                                                 segments.far, window=EARLY_STOP_SEGMENTS,
-                                                                 max_window=EARLY_STOP_MAX_SEGMENTS)
+                                                                 segments.far, window=EARLY_STOP_SEGMENTS)
         return RayOutput(colour, opacity, depth, evaluated)
 
     def regularisation(self, tv_weight: float) -> torch.Tensor:

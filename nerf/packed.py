@@ -103,29 +103,25 @@ def _depth(weighted_t, opacity, near, far):
 
 
 def front_to_back_windows(ray_index: torch.Tensor, transmittance: torch.Tensor, window: int,
-                          min_transmittance: float, max_window: int | None = None):
+                          min_transmittance: float):
     """Walk packed samples front to back, `window` samples per ray at a time, for early ray
     termination. Yields the sample indices [m] of the next window of every live ray; the
     caller multiplies `transmittance` [n_rays] in place by what the window absorbed, and a
     ray whose transmittance is then below `min_transmittance` yields no further samples.
-    ray_index: [n_samples] sorted by ray, then t. max_window: each window after the first is
-    twice as wide as the one before, up to this many samples (None: all `window` wide): the
-    few rays that stay live long take fewer steps, each a pass over all live rays."""
+    ray_index: [n_samples] sorted by ray, then t."""
     n_rays = transmittance.shape[0]
     counts = torch.bincount(ray_index, minlength=n_rays)  # samples per ray
     first = torch.cumsum(counts, 0) - counts  # each ray's first sample
-    lane = torch.arange(max(window, max_window or window), device=ray_index.device)
+    lane = torch.arange(window, device=ray_index.device)
     # Work per window follows the rays still live, not the samples left behind them.
     live = (counts > 0).nonzero(as_tuple=True)[0]
     start = 0
     while live.numel():
-        rank = start + lane[:window]  # [window]
+        rank = start + lane  # [window]
         live_counts = counts.index_select(0, live)[:, None]
         chosen = (first.index_select(0, live)[:, None] + rank)[rank < live_counts]  # row-major: by ray, then t
         yield chosen
         start += window
-        if max_window is not None:
-            window = min(2 * window, max_window)
         live = live[(live_counts[:, 0] > start) & (transmittance.index_select(0, live) >= min_transmittance)]
 
 
@@ -156,8 +152,7 @@ def packed_render_early_stop(field_fn, t_mid, ray_index, step, near, far, window
 
 
 @torch.no_grad()
-def render_front_to_back(window_samples, unit_ray_index, near, far, window: int, min_transmittance: float = 1e-3,
-                         max_window: int | None = None):
+def render_front_to_back(window_samples, unit_ray_index, near, far, window: int, min_transmittance: float = 1e-3):
     """Early-terminated volume rendering over packed units (samples, or ray segments that
     hold samples): `window` units per live ray at a time, nearest first, until each ray's
     transmittance falls below `min_transmittance`. Not differentiable.
@@ -173,7 +168,7 @@ def render_front_to_back(window_samples, unit_ray_index, near, far, window: int,
     rgb = torch.zeros((n_rays, 3), dtype=near.dtype, device=near.device)
     weighted_t = torch.zeros(n_rays, dtype=near.dtype, device=near.device)
     evaluated = 0
-    for chosen in front_to_back_windows(unit_ray_index, transmittance, window, min_transmittance, max_window):
+    for chosen in front_to_back_windows(unit_ray_index, transmittance, window, min_transmittance):
         rays, t, deltas, sigma, colour = window_samples(chosen)
         local = packed_weights(sigma, deltas, rays, n_rays)  # as if T = 1 at the window
         weights = transmittance[rays] * local

@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from nerfgauge.core.camera import Intrinsics, SplitCameras, look_at, pixel_rays
-from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, EDGE_COLOUR_STEP, changes_towards
-from nerfgauge.nerf.frames import box_frame, pixel_offsets, rgba_png
+from nerfgauge.core.pixel_edges import changes_towards
+from nerfgauge.nerf.frames import CHANGE_STEP, box_frame, pixel_offsets, rgba_png
 
 CPU = torch.device("cpu")
 
@@ -71,10 +71,10 @@ def _disc_model(c2w, intrinsics, radius_px: float = 5.5):
 # which points change
 
 
-def _changes_loop(rgba, offsets, step=EDGE_COLOUR_STEP, rounding=0.0):
+def _changes_loop(rgba, offsets, step):
     """changes_towards by a loop over every pixel and point: the centres of the pixel and of
-    its neighbours toward the point (clamped into the image) differ by partial alpha or a
-    premultiplied colour step above `step`; the centre itself has its ray already."""
+    its neighbours toward the point (clamped into the image) differ by more than `step` in
+    premultiplied colour or in alpha; the centre itself has its ray already."""
     height, width = rgba.shape[:2]
     out = np.zeros((len(offsets), height, width), dtype=bool)
     for s, (x, y) in enumerate(offsets):
@@ -84,11 +84,9 @@ def _changes_loop(rgba, offsets, step=EDGE_COLOUR_STEP, rounding=0.0):
             for j in range(width):
                 rows = {i, min(max(i + int(np.sign(y)), 0), height - 1)}
                 columns = {j, min(max(j + int(np.sign(x)), 0), width - 1)}
-                corners = [rgba[r, c] for r in rows for c in columns]
-                alpha = np.array([c[3] for c in corners])
-                colour = np.array([c[:3] * c[3] for c in corners])
-                partial = np.any((alpha > rounding) & (alpha < 1 - rounding))
-                out[s, i, j] = bool(partial or (colour.max(axis=0) - colour.min(axis=0)).max() > step)
+                corners = np.array([np.append(rgba[r, c, :3] * rgba[r, c, 3], rgba[r, c, 3])
+                                    for r in rows for c in columns])
+                out[s, i, j] = bool((corners.max(axis=0) - corners.min(axis=0)).max() > step)
     return out
 
 
@@ -101,23 +99,29 @@ def test_the_points_that_change_are_those_whose_neighbouring_centres_differ(seed
     rgba[..., 3] = np.where(rng.uniform(size=rgba.shape[:2]) < 0.8, 1.0, rgba[..., 3])
     rgba[..., 3] = np.where(rng.uniform(size=rgba.shape[:2]) < 0.1, 0.0, rgba[..., 3])
     rgba[..., :3] += rng.uniform(-0.03, 0.03, size=rgba[..., :3].shape)  # below any step
-    for per_axis in (1, 2, 3, 4):
+    for per_axis in (2, 3):
         offsets = pixel_offsets(per_axis)
-        for step, rounding in ((EDGE_COLOUR_STEP, 0.0), (0.05, ALPHA_ROUNDING)):
-            got = changes_towards(rgba, offsets, step, rounding)
-            assert np.array_equal(got, _changes_loop(rgba, offsets, step, rounding))
-    assert not changes_towards(rgba, pixel_offsets(1)).any()  # the centre itself never needs another ray
+        for step in (0.1, 0.02):
+            assert np.array_equal(changes_towards(rgba, offsets, step), _changes_loop(rgba, offsets, step))
+    assert not changes_towards(rgba, pixel_offsets(1), 0.0).any()  # the centre itself never needs another ray
 
 
 def test_a_lone_different_pixel_changes_its_own_points_and_its_neighbours_points_toward_it():
     rgba = np.ones((7, 8, 4)) * [0.2, 0.4, 0.6, 1.0]
     rgba[3, 4, :3] = [0.9, 0.4, 0.6]
-    changes = changes_towards(rgba, pixel_offsets(3))  # [9, H, W]; point 4 is the centre
+    changes = changes_towards(rgba, pixel_offsets(3), 0.1)  # [9, H, W]; point 4 is the centre
     assert changes[:, 3, 4].sum() == 8  # every point of its own but the centre
     assert changes[:, 3, 5].sum() == 3 and changes[:, 2, 4].sum() == 3  # the 3 points toward it
     assert changes[:, 2, 5].sum() == 1 and changes[:, 4, 3].sum() == 1  # the diagonal's corner point
     assert changes.sum() == 8 + 4 * 3 + 4 * 1
-    assert not changes_towards(rgba[..., :] * 0 + [0.2, 0.4, 0.6, 1.0], pixel_offsets(3)).any()
+    assert not changes_towards(rgba * 0 + [0.2, 0.4, 0.6, 1.0], pixel_offsets(3), 0.0).any()
+    # a step in alpha alone (a colour hidden behind alpha 0 is no step)
+    faint = np.ones((7, 8, 4)) * [0.2, 0.4, 0.6, 1.0]
+    faint[3, 4, 3] = 0.9
+    assert changes_towards(faint, pixel_offsets(3), 0.05).sum() == 24
+    hidden = np.zeros((7, 8, 4))
+    hidden[3, 4, :3] = 1.0
+    assert not changes_towards(hidden, pixel_offsets(3), 0.05).any()
 
 
 # --------------------------------------------------------------------------------------
@@ -133,7 +137,7 @@ def _frame_oracle(model, cameras, c2w, intrinsics, per_axis):
     centre_rgba = torch.cat([centre.rgb, centre.opacity[:, None]], 1).numpy().reshape(height, width, 4)
     straight = rgba_png(centre.rgb.numpy(), centre.opacity.numpy(), height, width) / 255.0
     offsets = pixel_offsets(per_axis)
-    changes = _changes_loop(straight, offsets, EDGE_COLOUR_STEP, ALPHA_ROUNDING)
+    changes = _changes_loop(straight, offsets, CHANGE_STEP)
     out = centre_rgba.copy()
     for i in range(height):
         for j in range(width):

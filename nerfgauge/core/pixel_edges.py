@@ -59,16 +59,16 @@ def edge_mask(rgba: np.ndarray, ids: Optional[np.ndarray] = None, colour_step: f
     return dilated
 
 
-def changes_towards(rgba: np.ndarray, offsets: np.ndarray, colour_step: float = EDGE_COLOUR_STEP,
-                    alpha_rounding: float = 0.0) -> np.ndarray:
+
+def changes_towards(rgba: np.ndarray, offsets: np.ndarray, step: float) -> np.ndarray:
     """For each point at `offsets` from every pixel's centre, whether the pixel centres
-    around it differ, by edge_mask's rule (partial coverage or a premultiplied colour step
-    above `colour_step`, undilated): the centres of the pixel and of its neighbours toward
-    the point (the 2 x 2 block of centres whose square holds a point off both axes, the
-    pair whose segment holds a point on an axis). Where they agree, nothing steps between
-    them that a ray through them saw, so the point's value follows from theirs; where they
-    differ, an edge may pass anywhere between them. Beyond the image border the border
-    pixels repeat (nothing is known there; a step along the border still counts).
+    around it differ: the centres of the pixel and of its neighbours toward the point (the
+    2 x 2 block of centres whose square holds a point off both axes, the pair whose segment
+    holds a point on an axis) spread by more than `step` in premultiplied colour or alpha
+    (any channel, on [0, 1]). Where they agree, nothing steps between them that a ray
+    through them saw, and the point's value follows from theirs; where they differ, an edge
+    may pass anywhere between them. The centre itself never counts (its own ray is the
+    centre's). Beyond the image border the border pixels repeat: nothing is known there.
 
     Args:
         rgba: [H, W, 4] float on [0, 1], straight alpha (a render through the pixel centres).
@@ -77,25 +77,16 @@ def changes_towards(rgba: np.ndarray, offsets: np.ndarray, colour_step: float = 
         [S, H, W] bool.
     """
     height, width = rgba.shape[:2]
-    alpha = rgba[..., 3]
-    partial = (alpha > alpha_rounding) & (alpha < 1 - alpha_rounding)
-    colour = rgba[..., :3] * alpha[..., None]  # premultiplied: no colour step hides behind alpha 0
-    # every centre with the border repeated: [H + 2, W + 2, 4], partial coverage as a colour
-    # channel of spread 1 against full or none, so one spread test covers both rules
-    values = np.pad(np.concatenate([colour, partial[..., None].astype(np.float64)], axis=-1),
-                    ((1, 1), (1, 1), (0, 0)), mode="edge")
-
-    def spread(high: np.ndarray, low: np.ndarray, partial_any: np.ndarray) -> np.ndarray:
-        return ((high - low)[..., :3].max(axis=-1) > colour_step) | (partial_any > 0)
-
+    alpha = rgba[..., 3:]
+    # premultiplied: no colour step hides behind alpha 0; the border repeated: [H + 2, W + 2, 4]
+    values = np.pad(np.concatenate([rgba[..., :3] * alpha, alpha], axis=-1), ((1, 1), (1, 1), (0, 0)), mode="edge")
     # each pair and block of neighbouring centres once: horizontal pairs [H, W + 1] (between
     # padded columns b and b + 1 of row i + 1), vertical pairs [H + 1, W], blocks [H + 1, W + 1]
     row_high, row_low = np.maximum(values[:, 1:], values[:, :-1]), np.minimum(values[:, 1:], values[:, :-1])
     column_high, column_low = np.maximum(values[1:], values[:-1]), np.minimum(values[1:], values[:-1])
-    pairs_x = spread(row_high[1:-1], row_low[1:-1], row_high[1:-1, :, 3])
-    pairs_y = spread(column_high[:, 1:-1], column_low[:, 1:-1], column_high[:, 1:-1, 3])
-    block_high, block_low = np.maximum(row_high[1:], row_high[:-1]), np.minimum(row_low[1:], row_low[:-1])
-    blocks = spread(block_high, block_low, block_high[..., 3])
+    pairs_x = (row_high[1:-1] - row_low[1:-1]).max(axis=-1) > step
+    pairs_y = (column_high[:, 1:-1] - column_low[:, 1:-1]).max(axis=-1) > step
+    blocks = (np.maximum(row_high[1:], row_high[:-1]) - np.minimum(row_low[1:], row_low[:-1])).max(axis=-1) > step
     out = np.zeros((len(offsets), height, width), dtype=bool)
     for index, (x, y) in enumerate(np.asarray(offsets, dtype=np.float64)):
         # the pair or block toward the point starts at row i + (y > 0), column j + (x > 0)
@@ -106,5 +97,4 @@ def changes_towards(rgba: np.ndarray, offsets: np.ndarray, colour_step: float = 
             out[index] = pairs_x[:, right:right + width]
         elif y != 0:
             out[index] = pairs_y[down:down + height]
-        # the centre itself: its own ray, nothing between centres to miss
     return out
