@@ -37,10 +37,11 @@ EDGES_ONLY = ("edges",)
 # Centres that differ by more than this in premultiplied colour or alpha (any channel, on
 # [0, 1]) give the points between them rays; closer, the points are interpolated. Measured
 # against 3 x 3 rays on every edge pixel (primitives 128 px, 600-s model, 20 test views,
-# 17,139 extra rays a frame): 0.1 -0.81 dB (5,566 rays), 0.05 -0.19 dB (7,451), 0.025
-# +0.24 dB (11,230); the model's texture holds steps inside a pixel that its centres show
-# only as a few hundredths (docs/results.md, "Render time").
-CHANGE_STEP = 0.05
+# 17,139 extra rays a frame): 0.1 -0.81 dB (5,566 rays), 0.05 -0.19 dB (7,451), 0.04
+# -0.06 dB (8,240), 0.03 +0.16 dB (10,178), 0.025 +0.24 dB (11,230): the model's texture
+# holds steps inside a pixel that its centres show only as a few hundredths
+# (docs/results.md, "Render time"). 0.04 keeps a margin to the 0.2 dB.
+CHANGE_STEP = 0.04
 
 
 def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, width: int) -> np.ndarray:
