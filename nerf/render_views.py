@@ -122,14 +122,14 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     parts = threads * PARTS_PER_THREAD
     torch.set_num_threads(1 if pool is not None else threads)
     height, width = cameras.intrinsics.height, cameras.intrinsics.width
-    seconds, lens_seconds = [], []
+    seconds, lens_seconds, cpu_seconds = [], [], []
     try:
         for index, stem in enumerate(progress_bar(cameras.stems, desc=f"render {split}", unit="frame", enabled=progress)):
             origins, directions = split_rays(cameras, index)
             if index == 0:  # warm-up: first-call allocations are not the model's speed
                 render_frame(model, origins.to(device), directions.to(device), pool, parts)
             through_lens = lens is not None and cameras.lens(index) is not None and not cameras.lens(index).is_pinhole
-            start = time.perf_counter()
+            start, cpu_start = time.perf_counter(), time.process_time()
             if through_lens:
                 rgb, opacity, depth = lens_frame(model, cameras, index, lens["aperture_samples"], lens["lens_seed"],
                                                  pool, parts, device)
@@ -139,6 +139,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
             if device.type == "cuda":
                 torch.cuda.synchronize()
             (lens_seconds if through_lens else seconds).append(time.perf_counter() - start)
+            cpu_seconds.append(time.process_time() - cpu_start)
             rgb, opacity, depth = (t.cpu().numpy() for t in (rgb, opacity, depth))
             target = out / stem
             owned.make_folder(target.parent)
@@ -152,7 +153,10 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
         if pool is not None:
             pool.shutdown()
     all_seconds = seconds + lens_seconds
+    # CPU time of every thread of this process: the work a frame took, which a shared
+    # machine's load does not inflate as it does the wall time
     timing = {"ms_per_frame": 1000 * float(np.mean(all_seconds)) if all_seconds else None, "frames": len(all_seconds),
+              "cpu_ms_per_frame": 1000 * float(np.mean(cpu_seconds)) if cpu_seconds else None,
               "resolution": [width, height], "device": device.type, "threads": threads,
               "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None),
               "pixel_samples": pixel_samples} | ({"edges_only": True} if edges_only else {})

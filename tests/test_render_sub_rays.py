@@ -235,7 +235,7 @@ def test_a_render_is_deterministic_and_its_timing_says_which_points_got_rays(edg
     first = render_split(edges_run, "test", tmp_path / "a", threads=2, progress=False)
     second = render_split(edges_run, "test", tmp_path / "b", threads=2, progress=False)
     assert first["sub_rays"] == "changes" and first["pixel_samples"] == 3 and first["edges_only"]
-    assert first["ms_per_frame"] > 0 and first["frames"] == second["frames"] > 0
+    assert first["ms_per_frame"] > 0 and first["cpu_ms_per_frame"] > 0 and first["frames"] == second["frames"] > 0
     for png in sorted((tmp_path / "a").rglob("*.png")):
         assert png.read_bytes() == (tmp_path / "b" / png.relative_to(tmp_path / "a")).read_bytes()
     old = render_split(edges_run, "test", tmp_path / "old", threads=2, progress=False, sub_rays="edge-pixels")
@@ -269,6 +269,7 @@ def test_bench_render_times_and_scores_both_renders_and_refuses_other_runs(edges
         assert len(render["ms_per_frame"]) == 2 and render["ms"] > 0 and np.isfinite(render["psnr"])
     assert row["renders"]["default"]["sub_rays"] == "changes" and row["renders"][BEFORE]["sub_rays"] == "edge-pixels"
     assert row["ms_ratio"] == pytest.approx(row["renders"]["default"]["ms"] / row["renders"][BEFORE]["ms"])
+    assert row["cpu_ratio"] == pytest.approx(row["renders"]["default"]["cpu_ms"] / row["renders"][BEFORE]["cpu_ms"])
     assert row["psnr_change"] == pytest.approx(row["renders"]["default"]["psnr"] - row["renders"][BEFORE]["psnr"])
     assert json.loads((tmp_path / "bench" / "render.json").read_text())["command"].startswith("nerfgauge bench render")
     assert "edge-pixels-3x3" in (tmp_path / "bench" / "render.md").read_text()

@@ -10,7 +10,9 @@ Each run is a compact NeRF trained with the `edges` pixel filter (`nerfgauge tra
 --steps N`, the automatic filter on most scenes). Its split is rendered by each render in
 turn, `repeats` times, the order rotating each repeat so that every render sees the same
 machine load on average; a render's time is the median over the repeats of timing.json's
-ms_per_frame (model time, after a warm-up frame: nerf.render_views). Renders are
+ms_per_frame (model time, after a warm-up frame: nerf.render_views), and of its
+cpu_ms_per_frame (every thread's CPU time: the work, which a loaded machine does not
+inflate; the wall time is the figure on an idle one). Renders are
 deterministic, so each is scored once, by `nerfgauge evaluate` (PSNR on white, the edge
 and interior pixels apart).
 
@@ -83,7 +85,7 @@ def bench_render(runs: list, out: Path, *, split: str = "test", repeats: int = 3
     with claim_bench_folder(out, "render"):
         for run, name, setting in zip(runs, _names(runs), settings):
             folder = owned.make_folder(out / "runs" / name)
-            times = {render: [] for render in RENDERS}
+            times, cpu_times = {render: [] for render in RENDERS}, {render: [] for render in RENDERS}
             timing = {}
             order = list(RENDERS)
             for repeat in range(repeats):
@@ -91,11 +93,13 @@ def bench_render(runs: list, out: Path, *, split: str = "test", repeats: int = 3
                     timing[render] = render_split(run, split, folder / render, threads=threads, overwrite=True,
                                                   progress=False, **RENDERS[render])
                     times[render].append(timing[render]["ms_per_frame"])
+                    cpu_times[render].append(timing[render]["cpu_ms_per_frame"])
             renders = {}
             for render in RENDERS:
                 scores = evaluate(timing[render]["dataset"], folder / render, split,
                                   out=folder / f"{render}-metrics.json", held_out=False)["mean"]
                 renders[render] = {"ms_per_frame": times[render], "ms": statistics.median(times[render]),
+                                   "cpu_ms_per_frame": cpu_times[render], "cpu_ms": statistics.median(cpu_times[render]),
                                    "psnr": scores.get("psnr"), "psnr_edges": scores.get("psnr_edges"),
                                    "psnr_interior": scores.get("psnr_interior"),
                                    "resolution": timing[render]["resolution"], "frames": timing[render]["frames"],
@@ -103,6 +107,7 @@ def bench_render(runs: list, out: Path, *, split: str = "test", repeats: int = 3
                                    "sub_rays": timing[render].get("sub_rays")}
             document["rows"].append({"run": str(run), "name": name, "settings": setting, "renders": renders,
                                      "ms_ratio": renders["default"]["ms"] / renders[BEFORE]["ms"],
+                                     "cpu_ratio": renders["default"]["cpu_ms"] / renders[BEFORE]["cpu_ms"],
                                      "psnr_change": renders["default"]["psnr"] - renders[BEFORE]["psnr"]})
         document["load_average"].append(os.getloadavg())
         write_json(out / "render.json", document)
@@ -112,17 +117,17 @@ def bench_render(runs: list, out: Path, *, split: str = "test", repeats: int = 3
 
 def table_markdown(document: dict) -> str:
     """One row per run and render: resolution, ms a frame (median, and every repeat), PSNR."""
-    lines = ["| run | resolution | render | ms a frame (median; each repeat) | test PSNR | edges | interior |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| run | resolution | render | ms a frame (median; each repeat) | CPU ms a frame | test PSNR | edges | "
+             "interior |", "|---|---|---|---|---|---|---|---|"]
     for row in document["rows"]:
         for render, r in row["renders"].items():
             each = ", ".join(f"{ms:.1f}" for ms in r["ms_per_frame"])
             lines.append(f"| {row['name']} | {r['resolution'][0]} x {r['resolution'][1]} | {render} | "
-                         f"{r['ms']:.1f} ({each}) | {_db(r['psnr'])} | {_db(r['psnr_edges'])} | "
+                         f"{r['ms']:.1f} ({each}) | {r['cpu_ms']:.1f} | {_db(r['psnr'])} | {_db(r['psnr_edges'])} | "
                          f"{_db(r['psnr_interior'])} |")
     lines.append("")
     for row in document["rows"]:
-        lines.append(f"- {row['name']}: default / {BEFORE} time {row['ms_ratio']:.3f}, PSNR "
+        lines.append(f"- {row['name']}: default / {BEFORE} time {row['ms_ratio']:.3f} (CPU time {row['cpu_ratio']:.3f}), PSNR "
                      f"{row['psnr_change']:+.3f} dB")
     lines.append(f"\nCommand: `{document['command']}` (load average {document['load_average'][0][0]:.2f} before, "
                  f"{document['load_average'][-1][0]:.2f} after, {document['cpu_count']} CPUs)")
