@@ -3,7 +3,7 @@
 For frame "test/r_007" it writes OUT/test/r_007.png (RGBA, sRGB, straight alpha =
 opacity) and OUT/test/r_007_depth.exr (expected ray distance, 0 where opacity is 0),
 plus OUT/timing.json with milliseconds per frame (model time only, after one warm-up
-frame), the render settings and what the frames show: the dataset's path and the sha256
+frame; wall time, and every thread's CPU time), the render settings and what the frames show: the dataset's path and the sha256
 of its transforms_<split>.json and scene.json (the cameras and the scene), which
 `nerfgauge evaluate` copies into its metrics and checks (it refuses to score these
 renders against a dataset with other cameras or another scene).
@@ -125,10 +125,13 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     seconds, lens_seconds, cpu_seconds = [], [], []
     try:
         for index, stem in enumerate(progress_bar(cameras.stems, desc=f"render {split}", unit="frame", enabled=progress)):
-            origins, directions = split_rays(cameras, index)
-            if index == 0:  # warm-up: first-call allocations are not the model's speed
-                render_frame(model, origins.to(device), directions.to(device), pool, parts)
             through_lens = lens is not None and cameras.lens(index) is not None and not cameras.lens(index).is_pinhole
+            if index == 0:  # warm-up, the frame's whole render: first-call allocations are not the model's speed
+                if through_lens:
+                    origins, directions = split_rays(cameras, index)
+                    render_frame(model, origins.to(device), directions.to(device), pool, parts)
+                else:
+                    box_frame(model, cameras, index, pixel_samples, pool, parts, device, edges_only, sub_rays)
             start, cpu_start = time.perf_counter(), time.process_time()
             if through_lens:
                 rgb, opacity, depth = lens_frame(model, cameras, index, lens["aperture_samples"], lens["lens_seed"],
