@@ -229,6 +229,7 @@ def edges_run(tiny_dataset, tmp_path_factory):
     return run
 
 
+@pytest.mark.slow  # trains a model (4 steps, its dataset)
 def test_a_render_is_deterministic_and_its_timing_says_which_points_got_rays(edges_run, tmp_path):
     from nerfgauge.nerf.render_views import render_split
 
@@ -242,15 +243,17 @@ def test_a_render_is_deterministic_and_its_timing_says_which_points_got_rays(edg
     assert old["sub_rays"] == "edge-pixels"
 
 
-def test_an_unknown_sub_rays_choice_is_one_line_and_exit_2(edges_run, tmp_path, capsys):
+def test_an_unknown_sub_rays_choice_is_one_line_and_exit_2(tmp_path, capsys):
     from nerfgauge.cli import main
     from nerfgauge.core.errors import InputError
     from nerfgauge.nerf.render_views import render_split
 
+    run = tmp_path / "run"  # refused before the model is read
+    run.mkdir()
     with pytest.raises(InputError, match="--sub-rays"):
-        render_split(edges_run, "test", tmp_path / "r", progress=False, sub_rays="everywhere")
+        render_split(run, "test", tmp_path / "r", progress=False, sub_rays="everywhere")
     assert not (tmp_path / "r").exists()
-    assert main(["render", str(edges_run), "--sub-rays", "everywhere", "--out", str(tmp_path / "r")]) == 2
+    assert main(["render", str(run), "--sub-rays", "everywhere", "--out", str(tmp_path / "r")]) == 2
     error = capsys.readouterr().err
     assert not (tmp_path / "r").exists() and "--sub-rays" in error and len(error.strip().splitlines()) == 1
 
