@@ -178,8 +178,9 @@ def _run_render(args) -> int:
     if timing.get("lens_frames"):
         print(f"{timing['lens_frames']} frames through their thin lens at {timing['aperture_samples']} lens samples: "
               f"{timing['ms_per_lens_frame']:.1f} ms per frame")
-    print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame, "
-          f"{timing['pixel_samples'] ** 2} rays per pixel "
+    rays = (f"up to {timing['pixel_samples'] ** 2} rays per pixel where the centre render changes"
+            if timing.get("sub_rays") == "changes" else f"{timing['pixel_samples'] ** 2} rays per pixel")
+    print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame, {rays} "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
     return 0
 
