@@ -14,7 +14,7 @@ from nerfgauge.core.arguments import path
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
 from nerfgauge.core.outputs import check_output_file, claim_output_file
-from nerfgauge.nerf.config import DEFAULT_BUDGET_SECONDS, MODELS, TrainConfig
+from nerfgauge.nerf.config import DEFAULT_BUDGET_SECONDS, MODELS, SUB_RAYS, TrainConfig
 from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
 from nerfgauge.nerf.options import add_train_arguments, train_fields
 import nerfgauge.splat.commands as splat_commands  # --model splat's flags and runs (no torch)
@@ -148,6 +148,10 @@ def _add_render(subparsers) -> None:
                         help="rays per pixel along each axis, averaged as the ground truth's box filter averages "
                              "the pixel (default: 2 for a run trained with --pixel-filter box or edges, on an edges run's edge "
                              "pixels only; 1 for centre)")
+    parser.add_argument("--sub-rays", choices=SUB_RAYS, default=SUB_RAYS[0],
+                        help="an edges run's points with rays of their own: changes (default), the points between "
+                             "pixel centres of the centre render that differ, the rest interpolated; edge-pixels, "
+                             "every point of the centre render's edge pixels (slower; the render before issue 52)")
     parser.add_argument("--lens-seed", type=arguments.SEED, default=0, help="seed of the lens samples (default 0)")
     parser.add_argument("--dataset", type=path, default=None, metavar="DATASET",
                         help="render the views of this dataset instead of those of the dataset the run was "
@@ -170,12 +174,13 @@ def _run_render(args) -> int:
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
                           overwrite=args.overwrite, progress=not args.quiet, aperture_samples=args.aperture_samples,
                           lens_seed=args.lens_seed, dataset=args.dataset, other_dataset=args.other_dataset,
-                          pixel_samples=args.pixel_samples)
+                          pixel_samples=args.pixel_samples, sub_rays=args.sub_rays)
     if timing.get("lens_frames"):
         print(f"{timing['lens_frames']} frames through their thin lens at {timing['aperture_samples']} lens samples: "
               f"{timing['ms_per_lens_frame']:.1f} ms per frame")
-    print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame, "
-          f"{timing['pixel_samples'] ** 2} rays per pixel "
+    rays = (f"up to {timing['pixel_samples'] ** 2} rays per pixel where the centre render changes"
+            if timing.get("sub_rays") == "changes" else f"{timing['pixel_samples'] ** 2} rays per pixel")
+    print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame, {rays} "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")
     return 0
 

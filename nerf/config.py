@@ -40,6 +40,10 @@ PIXEL_FILTERS = tuple(TRAIN_PIXEL_SAMPLES)
 # sharp edge wants more than 2 x 2 points (primitives 128 px, 300 s: 43.09 dB against 42.94;
 # far-object 64 px: 45.04 against 43.70; BENCHMARKS.md, "Train through the render's points").
 RENDER_FILTERS = {"centre": 1, "edges": 2, "edges-3x3": 3}
+# Which of those points an edges render gives rays of their own (`nerfgauge render --sub-rays`,
+# nerf.frames.box_frame): "changes" (the default), the points between centres of the centre
+# render that differ; "edge-pixels", every point of its edge pixels (the render before issue 52).
+SUB_RAYS = ("changes", "edge-pixels")
 # The sparse grid stores values only where cells are occupied, but its node index (4 bytes
 # a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing

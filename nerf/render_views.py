@@ -3,7 +3,7 @@
 For frame "test/r_007" it writes OUT/test/r_007.png (RGBA, sRGB, straight alpha =
 opacity) and OUT/test/r_007_depth.exr (expected ray distance, 0 where opacity is 0),
 plus OUT/timing.json with milliseconds per frame (model time only, after one warm-up
-frame), the render settings and what the frames show: the dataset's path and the sha256
+frame; wall time, and every thread's CPU time), the render settings and what the frames show: the dataset's path and the sha256
 of its transforms_<split>.json and scene.json (the cameras and the scene), which
 `nerfgauge evaluate` copies into its metrics and checks (it refuses to score these
 renders against a dataset with other cameras or another scene).
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
-from nerfgauge.nerf.config import RENDER_FILTERS, pixel_filter_for
+from nerfgauge.nerf.config import RENDER_FILTERS, SUB_RAYS, pixel_filter_for
 from nerfgauge.nerf.data import split_rays
 from nerfgauge.nerf.frames import EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, lens_frame, render_frame, rgba_png
 from nerfgauge.nerf.runs import open_run_dataset
@@ -61,7 +61,7 @@ APERTURE_SAMPLES = 16  # lens samples per pixel of a thin-lens frame (--aperture
 def render_split(run_dir, split: str = "test", out=None, *, threads: int | None = None,
                  step_ratio: float | None = RENDER_STEP_RATIO, overwrite: bool = False, progress: bool = True,
                  aperture_samples: int = APERTURE_SAMPLES, lens_seed: int = 0, dataset=None,
-                 other_dataset: bool = False, pixel_samples: int | None = None) -> dict:
+                 other_dataset: bool = False, pixel_samples: int | None = None, sub_rays: str = SUB_RAYS[0]) -> dict:
     """Render every view of `split` into `out` (default RUN/renders). step_ratio: marching
     step in voxels for the compact model (None: the run's training step).
     aperture_samples, lens_seed: lens samples per pixel and their seed for frames with a
@@ -69,7 +69,8 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     with the manifest the run recorded (a moved copy), or with other_dataset=True another
     dataset of the scene the run was trained on (e.g. the same cameras through a lens);
     see nerf.runs.open_run_dataset, which refuses any other. pixel_samples: rays per pixel
-    along each axis (`box_frame`); None: the run's pixel filter's (PIXEL_SAMPLES)."""
+    along each axis (`box_frame`); None: the run's pixel filter's (PIXEL_SAMPLES). sub_rays:
+    which points an edges run gives rays of their own (nerf.config.SUB_RAYS, `box_frame`)."""
     if isinstance(run_dir, str) and not run_dir.strip() or isinstance(out, str) and not out.strip():
         raise InputError("the run folder and --out must be non-empty paths")
     run_dir = Path(run_dir)
@@ -83,6 +84,8 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     arguments.SEED.check(lens_seed, "--lens-seed")
     if pixel_samples is not None:
         arguments.PIXEL_SAMPLES.check(pixel_samples, "--pixel-samples")
+    if sub_rays not in SUB_RAYS:
+        raise InputError(f"--sub-rays must be one of {', '.join(SUB_RAYS)}, got {sub_rays!r}")
     model, config = load_model(run_dir / "model.pt")
     pixel_filter = pixel_filter_for(config)[0]
     per_axis = PIXEL_SAMPLES[pixel_filter]
@@ -103,14 +106,15 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     recipe = recipe_hash({"model_sha256": sha256_file(run_dir / "model.pt"), "step_ratio": step_ratio}
                          | ({"lens": lens} if lens else {}) | ({"dataset": str(dataset)} if dataset is not None else {})
                          | ({"pixel_samples": pixel_samples} if pixel_samples != 1 else {})
-                         | ({"edges_only": True} if pixel_filter in EDGES_ONLY else {}))
+                         | ({"edges_only": True} if pixel_filter in EDGES_ONLY else {})
+                         | ({"sub_rays": sub_rays} if pixel_filter in EDGES_ONLY and sub_rays != "edge-pixels" else {}))
     with claim_folder(out, "renders", recipe, overwrite=overwrite):
         return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress, lens,
-                            source, pixel_samples, edges_only=pixel_filter in EDGES_ONLY)
+                            source, pixel_samples, edges_only=pixel_filter in EDGES_ONLY, sub_rays=sub_rays)
 
 
 def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress, lens=None,
-                 source=None, pixel_samples: int = 1, edges_only: bool = False) -> dict:
+                 source=None, pixel_samples: int = 1, edges_only: bool = False, sub_rays: str = SUB_RAYS[0]) -> dict:
     model = model.to(device).eval()
     if model.has_grid and step_ratio is not None:
         model.field.step_ratio = step_ratio
@@ -118,22 +122,27 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     parts = threads * PARTS_PER_THREAD
     torch.set_num_threads(1 if pool is not None else threads)
     height, width = cameras.intrinsics.height, cameras.intrinsics.width
-    seconds, lens_seconds = [], []
+    seconds, lens_seconds, cpu_seconds = [], [], []
     try:
         for index, stem in enumerate(progress_bar(cameras.stems, desc=f"render {split}", unit="frame", enabled=progress)):
-            origins, directions = split_rays(cameras, index)
-            if index == 0:  # warm-up: first-call allocations are not the model's speed
-                render_frame(model, origins.to(device), directions.to(device), pool, parts)
             through_lens = lens is not None and cameras.lens(index) is not None and not cameras.lens(index).is_pinhole
-            start = time.perf_counter()
+            if index == 0:  # warm-up, the frame's whole render: first-call allocations are not the model's speed
+                if through_lens:
+                    origins, directions = split_rays(cameras, index)
+                    render_frame(model, origins.to(device), directions.to(device), pool, parts)
+                else:
+                    box_frame(model, cameras, index, pixel_samples, pool, parts, device, edges_only, sub_rays)
+            start, cpu_start = time.perf_counter(), time.process_time()
             if through_lens:
                 rgb, opacity, depth = lens_frame(model, cameras, index, lens["aperture_samples"], lens["lens_seed"],
                                                  pool, parts, device)
             else:
-                rgb, opacity, depth = box_frame(model, cameras, index, pixel_samples, pool, parts, device, edges_only)
+                rgb, opacity, depth = box_frame(model, cameras, index, pixel_samples, pool, parts, device, edges_only,
+                                                sub_rays)
             if device.type == "cuda":
                 torch.cuda.synchronize()
             (lens_seconds if through_lens else seconds).append(time.perf_counter() - start)
+            cpu_seconds.append(time.process_time() - cpu_start)
             rgb, opacity, depth = (t.cpu().numpy() for t in (rgb, opacity, depth))
             target = out / stem
             owned.make_folder(target.parent)
@@ -147,10 +156,15 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
         if pool is not None:
             pool.shutdown()
     all_seconds = seconds + lens_seconds
+    # CPU time of every thread of this process: the work a frame took, which a shared
+    # machine's load does not inflate as it does the wall time
     timing = {"ms_per_frame": 1000 * float(np.mean(all_seconds)) if all_seconds else None, "frames": len(all_seconds),
+              "cpu_ms_per_frame": 1000 * float(np.mean(cpu_seconds)) if cpu_seconds else None,
               "resolution": [width, height], "device": device.type, "threads": threads,
               "model": config.model, "step_ratio": getattr(getattr(model, "field", None), "step_ratio", None),
               "pixel_samples": pixel_samples} | ({"edges_only": True} if edges_only else {})
+    if edges_only and pixel_samples > 1:
+        timing["sub_rays"] = sub_rays
     if source is not None:  # what the frames show, which `evaluate` checks (core.provenance.check_renders_dataset)
         timing |= {"dataset": str(source.root), "dataset_files": renders_record(source, split)}
     if lens is not None:  # the thin-lens frames' own cost, beside the pinhole frames'

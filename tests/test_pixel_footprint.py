@@ -116,7 +116,8 @@ def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_cent
     device = torch.device("cpu")
     centre = box_frame(EdgeField(), cameras, 0, 1, None, 1, device)
     box = box_frame(EdgeField(), cameras, 0, per_axis, None, 1, device)
-    rgb, opacity, depth = box_frame(EdgeField(), cameras, 0, per_axis, None, 1, device, edges_only=True)
+    rgb, opacity, depth = box_frame(EdgeField(), cameras, 0, per_axis, None, 1, device, edges_only=True,
+                                    sub_rays="edge-pixels")  # the default, "changes": tests/test_render_sub_rays.py
     straight = rgba_png(centre[0].numpy(), centre[1].numpy(), intrinsics.height, intrinsics.width) / 255.0
     edges = edge_mask(straight, alpha_rounding=ALPHA_ROUNDING).reshape(-1)
     assert 0 < edges.sum() < edges.size  # the plane's edge crosses the image, and not everywhere
@@ -126,8 +127,9 @@ def test_an_edges_only_frame_is_the_box_on_the_centre_renders_edges_and_the_cent
     # a frame with no edge pixel at all is its centre render
     flat = SimpleNamespace(render=lambda o, d: SimpleNamespace(rgb=torch.full((len(d), 3), 0.3), opacity=torch.ones(len(d)),
                                                                depth=d[:, 0]))
-    assert all(torch.equal(a, b) for a, b in zip(box_frame(flat, cameras, 0, per_axis, None, 1, device, edges_only=True),
-                                                 box_frame(flat, cameras, 0, 1, None, 1, device)))
+    for sub_rays in ("edge-pixels", "changes"):
+        assert all(torch.equal(a, b) for a, b in zip(box_frame(flat, cameras, 0, per_axis, None, 1, device, True, sub_rays),
+                                                     box_frame(flat, cameras, 0, 1, None, 1, device)))
 
 
 @pytest.mark.parametrize("per_axis", [2, 3])

@@ -57,3 +57,44 @@ def edge_mask(rgba: np.ndarray, ids: Optional[np.ndarray] = None, colour_step: f
     dilated[:, 1:] |= rows[:, :-1]
     dilated[:, :-1] |= rows[:, 1:]
     return dilated
+
+
+
+def changes_towards(rgba: np.ndarray, offsets: np.ndarray, step: float) -> np.ndarray:
+    """For each point at `offsets` from every pixel's centre, whether the pixel centres
+    around it differ: the centres of the pixel and of its neighbours toward the point (the
+    2 x 2 block of centres whose square holds a point off both axes, the pair whose segment
+    holds a point on an axis) spread by more than `step` in premultiplied colour or alpha
+    (any channel, on [0, 1]). Where they agree, nothing steps between them that a ray
+    through them saw, and the point's value follows from theirs; where they differ, an edge
+    may pass anywhere between them. The centre itself never counts (its own ray is the
+    centre's). Beyond the image border the border pixels repeat: nothing is known there.
+
+    Args:
+        rgba: [H, W, 4] float on [0, 1], straight alpha (a render through the pixel centres).
+        offsets: [S, 2] (x, y) in pixels from the centre, each in [-0.5, 0.5].
+    Returns:
+        [S, H, W] bool.
+    """
+    height, width = rgba.shape[:2]
+    alpha = rgba[..., 3:]
+    # premultiplied: no colour step hides behind alpha 0; the border repeated: [H + 2, W + 2, 4]
+    values = np.pad(np.concatenate([rgba[..., :3] * alpha, alpha], axis=-1), ((1, 1), (1, 1), (0, 0)), mode="edge")
+    # each pair and block of neighbouring centres once: horizontal pairs [H, W + 1] (between
+    # padded columns b and b + 1 of row i + 1), vertical pairs [H + 1, W], blocks [H + 1, W + 1]
+    row_high, row_low = np.maximum(values[:, 1:], values[:, :-1]), np.minimum(values[:, 1:], values[:, :-1])
+    column_high, column_low = np.maximum(values[1:], values[:-1]), np.minimum(values[1:], values[:-1])
+    pairs_x = (row_high[1:-1] - row_low[1:-1]).max(axis=-1) > step
+    pairs_y = (column_high[:, 1:-1] - column_low[:, 1:-1]).max(axis=-1) > step
+    blocks = (np.maximum(row_high[1:], row_high[:-1]) - np.minimum(row_low[1:], row_low[:-1])).max(axis=-1) > step
+    out = np.zeros((len(offsets), height, width), dtype=bool)
+    for index, (x, y) in enumerate(np.asarray(offsets, dtype=np.float64)):
+        # the pair or block toward the point starts at row i + (y > 0), column j + (x > 0)
+        down, right = int(y > 0), int(x > 0)
+        if x != 0 and y != 0:
+            out[index] = blocks[down:down + height, right:right + width]
+        elif x != 0:
+            out[index] = pairs_x[:, right:right + width]
+        elif y != 0:
+            out[index] = pairs_y[down:down + height]
+    return out

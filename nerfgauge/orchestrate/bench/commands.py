@@ -19,6 +19,7 @@ from nerfgauge.orchestrate.bench.lens import run_lens_bench
 from nerfgauge.orchestrate.bench.lpips import bench_lpips
 from nerfgauge.orchestrate.bench.lpips_cache import bench_lpips_cache, summary as lpips_cache_summary
 from nerfgauge.orchestrate.bench.read import bench_read, table_markdown as read_table_markdown
+from nerfgauge.orchestrate.bench.render import bench_render, table_markdown as render_table_markdown
 from nerfgauge.orchestrate.bench.scaling import ScalingConfig, bench_scaling, report_markdown
 from nerfgauge.orchestrate.bench.splat import METHODS as SPLAT_BENCH_METHODS, SplatBenchConfig, bench_splat
 from nerfgauge.orchestrate.bench.splat import GEOMETRY_SAMPLES, report_markdown as splat_markdown
@@ -185,6 +186,17 @@ def register(subparsers) -> None:
                        help="bench folder (default bench-out/lpips-cache): lpips-cache.json/.png, the methods' "
                             "renders and evaluations")
     cache.set_defaults(func=run_bench_lpips_cache)
+    render = kinds.add_parser("render", help="an edges run's default render against 3 x 3 rays on every edge pixel "
+                                             "and the centre rays alone: ms a frame and test PSNR (issue 52)")
+    render.add_argument("runs", nargs="+", type=arguments.path, metavar="RUN",
+                        help="run folders of compact NeRFs trained with the edges pixel filter")
+    render.add_argument("--split", choices=("train", "val", "test"), default="test", help="split to render (default test)")
+    render.add_argument("--repeats", type=arguments.REPEATS, default=3,
+                        help="renders of the split per render, in rotating order; the median time (default 3)")
+    render.add_argument("--threads", type=arguments.THREADS, default=None, help="render threads (default: each run's)")
+    render.add_argument("--out", type=arguments.path, default=Path("bench-out/render"),
+                        help="bench folder (default bench-out/render): render.json/.md, each run's renders and metrics")
+    render.set_defaults(func=run_bench_render)
 
 
 def run_bench_splat(args) -> int:
@@ -197,6 +209,13 @@ def run_bench_splat(args) -> int:
     print(splat_markdown(document))
     print(f"data: {args.out / 'splat.json'}; table: {args.out / 'splat.md'}; plot: {args.out / 'splat.png'}")
     return 0 if all("error" not in row for row in document["rows"]) else 1
+
+
+def run_bench_render(args) -> int:
+    document = bench_render(list(args.runs), args.out, split=args.split, repeats=args.repeats, threads=args.threads)
+    print(render_table_markdown(document))
+    print(f"data: {args.out / 'render.json'}; table: {args.out / 'render.md'}")
+    return 0
 
 
 def run_bench_colmap(args) -> int:
