@@ -39,10 +39,10 @@ from nerfgauge.nerf.frames import EDGES_ONLY, PIXEL_SAMPLES, box_frame
 from nerfgauge.nerf.parametrisation import parametrisation_doubt
 from nerfgauge.nerf.rendering import composite
 
-# Each candidate trains this share of the run's steps or budget before it is scored. At
-# bench hard's 400 steps a quarter is 100 steps: the start grid (about 32 voxels) has
-# settled, where a wrong space's coarse cells already show (room at 100 steps: ...). Two
-# candidates cost the run 1.25x its steps.
+# Each candidate trains this share of the run's steps or budget before it is scored. Set
+# before measuring (not tuned): at bench hard's 400 steps a quarter is 100 steps, the start
+# grid's first stage (nerf.schedule.MIN_STAGE_STEPS), where a space that gives the content
+# coarse cells should already show; two candidates cost the run 1.25x its steps.
 TRIAL_SHARE = 0.25
 # A candidate must beat the rule's own pick by more than this on the val views to replace
 # it (val PSNR of a few views moves by about this much between neighbouring steps).
