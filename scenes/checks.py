@@ -119,7 +119,7 @@ def courtyard(seed: int):
         Box("wall_west", (-hx - WALL / 2, 0.0, z / 2), (WALL, 2 * hy, z), Diffuse((0.8, 0.7, 0.45))),
         Torus("fountain", (2.5, 1.2, 0.25), 0.6, 0.15, Diffuse((0.6, 0.6, 0.65))),
         Cylinder("trunk_a", (-2.8, 1.8, 0.9), 0.12, 1.8, Diffuse((0.4, 0.25, 0.1))),
-        Sphere("crown_a", (-2.8, 1.8, 2.0), 0.7, Textured("checker", (0.2, 0.5, 0.15), (0.35, 0.65, 0.2), period=0.35)),
+        Sphere("crown_a", (-2.8, 1.8, 1.85), 0.65, Textured("checker", (0.2, 0.5, 0.15), (0.35, 0.65, 0.2), period=0.35)),
         Cylinder("trunk_b", (3.2, -1.9, 0.8), 0.1, 1.6, Diffuse((0.4, 0.25, 0.1))),
         Sphere("crown_b", (3.2, -1.9, 1.8), 0.6, Diffuse((0.25, 0.55, 0.2))),
         Box("bench", (-1.5, -2.3, 0.25), (1.6, 0.5, 0.5), Diffuse((0.55, 0.35, 0.2)), rotation=(0, 0, 10)),

@@ -28,7 +28,9 @@ from nerfgauge.scenes.checks import TRIAL_CHECK_SCENES
 
 
 def _cluster(outwards: bool, n: int = 12, radius: float = 0.2, height: float = 0.0) -> np.ndarray:
-    """Cameras on a ring of `radius` about the origin: looking outwards, or at the origin."""
+    """Cameras on a ring of `radius` about the z axis at `height`: looking outwards, or at
+    the origin (an orbit: from above it, so their common point is ahead of them, farther
+    than the ring is wide)."""
     angles = np.linspace(0, 2 * math.pi, n, endpoint=False)
     ring = [np.array([radius * math.cos(a), radius * math.sin(a), height]) for a in angles]
     return np.stack([_camera(p, 2 * p if outwards else np.zeros(3)) for p in ring])
@@ -43,7 +45,7 @@ def _box_reaching(c2w: np.ndarray, ratio: float) -> np.ndarray:
 
 @pytest.mark.parametrize("ratio", [3.0, REACH_CHECKED[0] - 0.2, REACH_CHECKED[1] + 1, 40.0])
 def test_an_orbit_among_content_is_sure_outside_the_reach_it_was_checked_between(ratio):
-    orbit = _cluster(outwards=False, radius=2.0)
+    orbit = _cluster(outwards=False, radius=2.0, height=1.0)
     aabb = _box_reaching(orbit, ratio)
     assert box_reach(aabb, orbit)[0] / box_reach(aabb, orbit)[1] == pytest.approx(ratio)
     assert parametrisation_doubt(aabb, orbit, 0.8) is None
@@ -52,7 +54,7 @@ def test_an_orbit_among_content_is_sure_outside_the_reach_it_was_checked_between
 @pytest.mark.parametrize("ratio", [REACH_CHECKED[0] + 0.3, NEAR_AABB_FACTOR - 0.5, NEAR_AABB_FACTOR + 0.5,
                                    REACH_CHECKED[1] - 1])
 def test_an_orbit_among_content_between_the_checked_reaches_goes_to_trial(ratio):
-    orbit = _cluster(outwards=False, radius=2.0)
+    orbit = _cluster(outwards=False, radius=2.0, height=1.0)
     aabb = _box_reaching(orbit, ratio)
     pick = choose_parametrisation(None, aabb, orbit, 0.8)[0]
     assert pick == ("contracted" if ratio > NEAR_AABB_FACTOR else "bounded")
