@@ -641,10 +641,18 @@ def _run_trial(run_dir: Path, prepared: Prepared, progress: bool) -> RunLoop:
     for candidate in prepared.candidates:
         value = getattr(candidate.config, trial.field)
         loop = loops[value] = _open_loop(run_dir, candidate, prepared, None, io.StringIO(), progress)
-        _advance(loop, trial.share)
-        loop.bar.close()
+        try:
+            _advance(loop, trial.share)
+        except NumericalError:  # a candidate that diverges loses; the others may not
+            scores[value] = -math.inf
+            continue
+        finally:
+            loop.bar.close()
         scores[value] = val_psnr(loop.training.model, cameras, val_rays, prepared.device,
                                  render_path(candidate.config))["render"]
+    if all(score == -math.inf for score in scores.values()):
+        raise NumericalError(f"training diverged in the {trial.field} trial for every candidate "
+                             f"({', '.join(map(str, trial.candidates))})")
     chosen = pick(trial, scores)
     loop = loops.pop(chosen)
     loops.clear()  # the others' models and optimisers go

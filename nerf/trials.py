@@ -109,7 +109,8 @@ def pick(trial: Trial, scores: dict) -> str:
 
 def trial_reason(trial: Trial, config: TrainConfig, scores: dict, chosen, views: int, split: str) -> str:
     """auto_reasons' line for a choice a trial made."""
-    scored = ", ".join(f"{value} {scores[value]:.2f} dB" for value in trial.candidates)
+    scored = ", ".join(f"{value} {scores[value]:.2f} dB" if math.isfinite(scores[value]) else f"{value} diverged"
+                       for value in trial.candidates)
     return (f"{chosen} by trial ({trial.why}): each of {', '.join(map(str, trial.candidates))} trained "
             f"{trial_steps(config, trial.share)} ({100 * trial.share:g}% of the run) from seed {config.seed}, then "
             f"scored on {views} {split} views: {scored}; the rule's own pick was {trial.candidates[0]} (it keeps ties "
@@ -119,7 +120,8 @@ def trial_reason(trial: Trial, config: TrainConfig, scores: dict, chosen, views:
 def trial_record(trial: Trial, config: TrainConfig, scores: dict, chosen) -> dict:
     """config.json's "trials" entry for one trial: the same as its reason, as numbers."""
     return {"field": trial.field, "why": trial.why, "share": trial.share, "chosen": chosen,
-            "rule_pick": trial.candidates[0], "val_psnr": {str(value): scores[value] for value in trial.candidates},
+            "rule_pick": trial.candidates[0], "val_psnr": {str(value): scores[value] if math.isfinite(scores[value]) else None  # None: diverged
+                         for value in trial.candidates},
             "steps": math.ceil(trial.share * config.steps) if config.steps is not None else None,
             "seconds": trial.share * config.budget_seconds if config.steps is None else None}
 
