@@ -97,7 +97,7 @@ def test_forward_captures_are_unsure_close_up_and_near_the_cone_limit():
     for yaw, pick in ((25.0, "forward"), (35.0, "bounded")):  # 10 degrees either side of the cone's 30
         kind = choose_parametrisation(None, deep, _forward_rig(yaw))[0]
         (first, other), why = parametrisation_doubt(deep, _forward_rig(yaw))
-        assert kind == first == pick and {first, other} == {"forward", "bounded"} and "degrees" in why
+        assert kind == first == pick and {first, other} == {"contracted", "bounded"} and "degrees" in why
     assert parametrisation_doubt(deep, _forward_rig(45.0)) is None
 
 
@@ -164,21 +164,21 @@ def test_bench_and_earlier_check_captures_never_go_to_trial(scene):
 
 
 def _doubtful(monkeypatch) -> None:
-    """The rule unsure on any capture, its (wrong) pick forward space, bounded the other."""
-    monkeypatch.setattr(trials, "parametrisation_doubt", lambda aabb, c2w, opaque: (("forward", "bounded"), "a test"))
+    """The rule unsure on any capture, its (wrong) pick contracted space, bounded the other."""
+    monkeypatch.setattr(trials, "parametrisation_doubt", lambda aabb, c2w, opaque: (("contracted", "bounded"), "a test"))
 
 
 def test_a_prepared_trial_resolves_each_candidate_as_if_forced(tiny_dataset, monkeypatch):
     _doubtful(monkeypatch)
     config = tiny_config(tiny_dataset, final_resolution=None, start_resolution=None, batch_rays=None)
     prepared = prepare(config)
-    assert [c.config.parametrisation for c in prepared.candidates] == ["forward", "bounded"]
+    assert [c.config.parametrisation for c in prepared.candidates] == ["contracted", "bounded"]
     for candidate in prepared.candidates:
         forced = prepare(tiny_config(tiny_dataset, final_resolution=None, start_resolution=None, batch_rays=None,
                                      parametrisation=candidate.config.parametrisation))
         assert forced.trial is None and forced.candidates[0].config == candidate.config
         assert forced.candidates[0].space == candidate.space
-    assert prepared.recipe["trial"]["candidates"].keys() == {"forward", "bounded"}
+    assert prepared.recipe["trial"]["candidates"].keys() == {"contracted", "bounded"}
     assert prepared.recipe["trial"]["share"] == trials.TRIAL_SHARE
 
 
@@ -199,11 +199,11 @@ def test_the_trial_picks_the_better_candidate_and_continues_its_own_run(tiny_dat
     document = json.loads((tmp_path / "auto" / "config.json").read_text())
     record = document["trials"]["parametrisation"]
     scores = record["val_psnr"]
-    assert scores["bounded"] > scores["forward"] + 1.0, scores  # clearly better
-    assert record["chosen"] == document["parametrisation"] == "bounded" and record["rule_pick"] == "forward"
+    assert scores["bounded"] > scores["contracted"] + 1.0, scores  # clearly better
+    assert record["chosen"] == document["parametrisation"] == "bounded" and record["rule_pick"] == "contracted"
     assert record["steps"] == 10 and record["share"] == trials.TRIAL_SHARE
     reason = document["auto_reasons"]["parametrisation"]
-    assert "by trial" in reason and "10 of 40 steps" in reason and f"{scores['forward']:.2f} dB" in reason
+    assert "by trial" in reason and "10 of 40 steps" in reason and f"{scores['contracted']:.2f} dB" in reason
     train(tiny_config(tiny_dataset, steps=40, parametrisation="bounded"), tmp_path / "forced", progress=False)
     forced = json.loads((tmp_path / "forced" / "config.json").read_text())
     assert "trials" not in forced and forced["auto_reasons"]["parametrisation"] == "set on the command line"
@@ -226,7 +226,7 @@ def test_the_trial_scores_what_the_render_path_renders(tiny_dataset, tmp_path, m
     scores = json.loads((tmp_path / "auto" / "config.json").read_text())["trials"]["parametrisation"]["val_psnr"]
     cameras, rays = load_split_rays(tiny_dataset, "val", limit=config.eval_views)
     monkeypatch.undo()
-    for kind in ("forward", "bounded"):
+    for kind in ("contracted", "bounded"):
         forced = tiny_config(tiny_dataset, steps=40, parametrisation=kind)
         kill_after_checkpoint(monkeypatch, 10)
         with pytest.raises(Killed):
