@@ -133,7 +133,6 @@ def val_psnr(model, cameras, val_rays, device, filters: dict) -> dict:
     val views (nerf.train.prepare_run)."""
     pixels = cameras.intrinsics.width * cameras.intrinsics.height
     errors = dict.fromkeys(filters, 0.0)
-    was_training = model.training
     model.eval()
     with torch.no_grad():
         for index in range(val_rays.n_views):
@@ -143,7 +142,7 @@ def val_psnr(model, cameras, val_rays, device, filters: dict) -> dict:
                 rgb, opacity, _ = box_frame(model, cameras, index, per_axis, None, 1, device, edges_only=edges_only)
                 white = composite(rgb, opacity, torch.ones(3, device=device)).clamp(0, 1)
                 errors[name] += float(((white - target) ** 2).mean())
-    model.train(was_training)
+    model.train()  # both callers go on with a model in training mode (a trial's winner trains on)
     return {name: -10 * math.log10(max(error / max(val_rays.n_views, 1), 1e-10)) for name, error in errors.items()}
 
 
