@@ -29,6 +29,16 @@ ROOM_HEIGHT = 3.0
 WALL = 0.1
 
 
+def _walls(half_x: float, half_y: float, height: float, north, south, east, west) -> list:
+    """Four walls WALL thick standing on z = 0 around the floor [-half_x, half_x] x
+    [-half_y, half_y], `height` high (north and south reach over the corners), in these
+    materials: north, south, east, west, in that order."""
+    return [Box("wall_north", (0.0, half_y + WALL / 2, height / 2), (2 * half_x + 2 * WALL, WALL, height), north),
+            Box("wall_south", (0.0, -half_y - WALL / 2, height / 2), (2 * half_x + 2 * WALL, WALL, height), south),
+            Box("wall_east", (half_x + WALL / 2, 0.0, height / 2), (WALL, 2 * half_y, height), east),
+            Box("wall_west", (-half_x - WALL / 2, 0.0, height / 2), (WALL, 2 * half_y, height), west)]
+
+
 def room(seed: int):
     """A closed room (8 x 8 x 3, floor, ceiling and four walls, each textured differently,
     and five pieces of furniture), lit by two lamps inside it, photographed from within:
@@ -40,13 +50,9 @@ def room(seed: int):
         Box("floor", (0.0, 0.0, -WALL / 2), (2 * h, 2 * h, WALL),
             Textured("checker", (0.8, 0.75, 0.65), (0.35, 0.3, 0.25), period=0.8)),
         Box("ceiling", (0.0, 0.0, z + WALL / 2), (2 * h, 2 * h, WALL), Diffuse((0.85, 0.85, 0.85))),
-        Box("wall_north", (0.0, h + WALL / 2, z / 2), (2 * h + 2 * WALL, WALL, z),
-            Textured("stripes", (0.8, 0.3, 0.2), (0.9, 0.85, 0.7), period=0.6)),
-        Box("wall_south", (0.0, -h - WALL / 2, z / 2), (2 * h + 2 * WALL, WALL, z),
-            Textured("checker", (0.2, 0.4, 0.8), (0.9, 0.9, 0.9), period=0.7)),
-        Box("wall_east", (h + WALL / 2, 0.0, z / 2), (WALL, 2 * h, z),
-            Textured("stripes", (0.2, 0.6, 0.3), (0.85, 0.85, 0.6), period=0.5)),
-        Box("wall_west", (-h - WALL / 2, 0.0, z / 2), (WALL, 2 * h, z), Diffuse((0.7, 0.6, 0.3))),
+        *_walls(h, h, z, Textured("stripes", (0.8, 0.3, 0.2), (0.9, 0.85, 0.7), period=0.6),
+                Textured("checker", (0.2, 0.4, 0.8), (0.9, 0.9, 0.9), period=0.7),
+                Textured("stripes", (0.2, 0.6, 0.3), (0.85, 0.85, 0.6), period=0.5), Diffuse((0.7, 0.6, 0.3))),
         Box("table", (1.6, 1.2, 0.4), (1.2, 0.7, 0.8), Diffuse((0.5, 0.3, 0.15)), rotation=(0, 0, 15)),
         Sphere("ball", (-1.8, 1.5, 0.45), 0.45, Textured("checker", (0.9, 0.9, 0.2), (0.1, 0.1, 0.5), period=0.3)),
         Cylinder("pillar", (-2.2, -2.0, 1.5), 0.3, 3.0, Diffuse((0.75, 0.75, 0.8))),
@@ -110,13 +116,9 @@ def courtyard(seed: int):
     shapes = [
         Box("ground", (0.0, 0.0, -WALL / 2), (2 * hx, 2 * hy, WALL),
             Textured("checker", (0.7, 0.65, 0.55), (0.45, 0.4, 0.35), period=1.0)),
-        Box("wall_north", (0.0, hy + WALL / 2, z / 2), (2 * hx + 2 * WALL, WALL, z),
-            Textured("stripes", (0.75, 0.45, 0.3), (0.9, 0.8, 0.65), period=0.7)),
-        Box("wall_south", (0.0, -hy - WALL / 2, z / 2), (2 * hx + 2 * WALL, WALL, z),
-            Textured("checker", (0.55, 0.6, 0.7), (0.85, 0.85, 0.8), period=0.9)),
-        Box("wall_east", (hx + WALL / 2, 0.0, z / 2), (WALL, 2 * hy, z),
-            Textured("stripes", (0.4, 0.55, 0.35), (0.85, 0.8, 0.6), period=0.6)),
-        Box("wall_west", (-hx - WALL / 2, 0.0, z / 2), (WALL, 2 * hy, z), Diffuse((0.8, 0.7, 0.45))),
+        *_walls(hx, hy, z, Textured("stripes", (0.75, 0.45, 0.3), (0.9, 0.8, 0.65), period=0.7),
+                Textured("checker", (0.55, 0.6, 0.7), (0.85, 0.85, 0.8), period=0.9),
+                Textured("stripes", (0.4, 0.55, 0.35), (0.85, 0.8, 0.6), period=0.6), Diffuse((0.8, 0.7, 0.45))),
         Torus("fountain", (2.5, 1.2, 0.25), 0.6, 0.15, Diffuse((0.6, 0.6, 0.65))),
         Cylinder("trunk_a", (-2.8, 1.8, 0.9), 0.12, 1.8, Diffuse((0.4, 0.25, 0.1))),
         Sphere("crown_a", (-2.8, 1.8, 1.85), 0.65, Textured("checker", (0.2, 0.5, 0.15), (0.35, 0.65, 0.2), period=0.35)),
@@ -182,13 +184,9 @@ def skylight_room(seed: int):
         Box("ceiling_east", ((x1 + h) / 2, 0.0, top), (h - x1, 2 * h, WALL), ceiling),
         Box("ceiling_north", ((x0 + x1) / 2, (y1 + h) / 2, top), (x1 - x0, h - y1, WALL), ceiling),
         Box("ceiling_south", ((x0 + x1) / 2, (-h + y0) / 2, top), (x1 - x0, y0 + h, WALL), ceiling),
-        Box("wall_north", (0.0, h + WALL / 2, z / 2), (2 * h + 2 * WALL, WALL, z),
-            Textured("checker", (0.3, 0.5, 0.7), (0.85, 0.85, 0.85), period=0.6)),
-        Box("wall_south", (0.0, -h - WALL / 2, z / 2), (2 * h + 2 * WALL, WALL, z), Diffuse((0.75, 0.55, 0.35))),
-        Box("wall_east", (h + WALL / 2, 0.0, z / 2), (WALL, 2 * h, z),
-            Textured("stripes", (0.7, 0.25, 0.25), (0.9, 0.85, 0.75), period=0.5)),
-        Box("wall_west", (-h - WALL / 2, 0.0, z / 2), (WALL, 2 * h, z),
-            Textured("stripes", (0.25, 0.55, 0.3), (0.85, 0.85, 0.65), period=0.7)),
+        *_walls(h, h, z, Textured("checker", (0.3, 0.5, 0.7), (0.85, 0.85, 0.85), period=0.6),
+                Diffuse((0.75, 0.55, 0.35)), Textured("stripes", (0.7, 0.25, 0.25), (0.9, 0.85, 0.75), period=0.5),
+                Textured("stripes", (0.25, 0.55, 0.3), (0.85, 0.85, 0.65), period=0.7)),
         Box("shelf", (-2.8, 2.6, 1.0), (1.4, 0.5, 2.0), Diffuse((0.45, 0.3, 0.2))),
         Sphere("globe", (1.9, -2.2, 0.5), 0.5, Textured("checker", (0.2, 0.3, 0.8), (0.9, 0.9, 0.85), period=0.35)),
         Cylinder("column", (-2.0, -2.4, 1.5), 0.25, 3.0, Diffuse((0.8, 0.78, 0.72))),
