@@ -98,7 +98,7 @@ def test_forward_captures_are_unsure_close_up_and_near_the_cone_limit():
     for yaw, pick in ((25.0, "forward"), (35.0, "bounded")):  # 10 degrees either side of the cone's 30
         kind = choose_parametrisation(None, deep, _forward_rig(yaw))[0]
         (first, other), why = parametrisation_doubt(deep, _forward_rig(yaw))
-        assert kind == first == pick and {first, other} == {"contracted", "bounded"} and "degrees" in why
+        assert kind == first == pick and {first, other} == {"forward", "bounded"} and "degrees" in why
     assert parametrisation_doubt(deep, _forward_rig(45.0)) is None
 
 
