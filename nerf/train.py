@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import io
 import json
 import math
 import time
@@ -31,13 +32,15 @@ from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
 from nerfgauge.nerf.config import RENDER_FILTERS, TRAIN_PIXEL_SAMPLES, TrainConfig, refined_resolution, resolve
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
-from nerfgauge.nerf.frames import box_frame, pixel_offsets
+from nerfgauge.nerf.frames import pixel_offsets
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, render_rays_chunked
 from nerfgauge.nerf.schedule import FINE_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER, Schedule, upsample_count
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
+from nerfgauge.nerf.trials import (Trial, candidate_config, parametrisation_trial, pick, render_path, trial_reason,
+                                   trial_record, trial_recipe, val_psnr)
 
 from nerfgauge.core import bounded, owned
 from nerfgauge.core.dataset import manifest_sha256, open_dataset
@@ -170,10 +173,46 @@ def opaque_share(rays) -> float | None:
     return float((rays.rgba[:, 3] >= 1 - 0.5 / 255).float().mean())
 
 
+@dataclass
+class Candidate:
+    """One way to train a run: its resolved config and the reason for each automatic
+    choice, its space (nerf.parametrisation) and its training rays (with the footprints and
+    edge flags its pixel filter reads)."""
+
+    config: TrainConfig
+    reasons: dict
+    space: object
+    train_rays: object
+
+
+@dataclass
+class Prepared:
+    """A run before anything is written: its candidates (one, or a trial's, in the trial's
+    order: the rule's own pick first), the trial (nerf.trials) or None, the scene box as a
+    tensor, the val views (val_cameras, val_rays: the first eval_views views of the val
+    split, test without one), the device and the run's recipe."""
+
+    candidates: list
+    trial: Trial | None
+    aabb: torch.Tensor
+    val: tuple
+    device: torch.device
+    recipe: dict
+
+
 def prepare_run(config: TrainConfig):
     """Validate input, load data, resolve the config. Nothing is written here.
-    Returns (config, reasons, (aabb, space), train_rays, val_rays, device, recipe, val_cameras):
-    val_rays and val_cameras are the first eval_views views of the val split (test without one)."""
+    Returns (config, reasons, (aabb, space), train_rays, val_rays, device, recipe, val_cameras)
+    of the run, or of the rule's own pick where a choice goes to trial (`prepare`)."""
+    prepared = prepare(config)
+    first = prepared.candidates[0]
+    return (first.config, first.reasons, (prepared.aabb, first.space), first.train_rays, prepared.val[1],
+            prepared.device, prepared.recipe, prepared.val[0])
+
+
+def prepare(config: TrainConfig) -> Prepared:
+    """Validate input, load data, resolve the config, and where the parametrisation's rule
+    is unsure (nerf.trials.parametrisation_trial) each candidate's config. Nothing is written."""
     config.validate()
     device = pick_device(config.device)
     ds = open_dataset(config.dataset)
@@ -197,20 +236,27 @@ def prepare_run(config: TrainConfig):
                                     edges=may_be_edges)
     edge_share = float(train_rays.edges.float().mean()) if may_be_edges and len(train_rays.edges) else None
     coverage = views_per_point(aabb, train_cams.c2w, train_cams.intrinsics) if config.sparse_priors is None else None
-    config, reasons = resolve(config, needs, aabb, train_cams.c2w, train_cams.intrinsics.fx,
-                              train_cams.intrinsics.width, opaque_share(train_rays), edge_share, coverage)
-    train_rays = dataclasses.replace(train_rays, footprint=None if config.pixel_filter == "centre" else train_rays.footprint,
-                                     edges=train_rays.edges if config.pixel_filter == "edges" else None)
-    recipe = run_recipe(config, manifest_sha256(root))
+    opaque = opaque_share(train_rays)
+    trial = parametrisation_trial(config, aabb, train_cams.c2w, opaque)
+    requests = [config] if trial is None else [candidate_config(config, trial, value) for value in trial.candidates]
     stride = max(1, train_rays.origins.shape[0] // 65536)
     intrinsics = train_cams.intrinsics
     tan_half_fov = min(0.5 * intrinsics.width / intrinsics.fx, 0.5 * intrinsics.height / intrinsics.fy)
-    space = make_space(config.parametrisation, aabb, train_cams.c2w, train_rays.origins[::stride],
-                       train_rays.directions[::stride], tan_half_fov)
+    candidates = []
+    for request in requests:
+        resolved, reasons = resolve(request, needs, aabb, train_cams.c2w, intrinsics.fx, intrinsics.width, opaque,
+                                    edge_share, coverage)
+        rays = dataclasses.replace(train_rays, footprint=None if resolved.pixel_filter == "centre" else train_rays.footprint,
+                                   edges=train_rays.edges if resolved.pixel_filter == "edges" else None)
+        space = make_space(resolved.parametrisation, aabb, train_cams.c2w, rays.origins[::stride],
+                           rays.directions[::stride], tan_half_fov)
+        candidates.append(Candidate(resolved, reasons, space, rays))
+    dataset_sha256 = manifest_sha256(root)
+    recipes = [run_recipe(candidate.config, dataset_sha256) for candidate in candidates]
     val_split = "val" if ds.cameras("val").stems else "test"
     val_cameras, val_rays = load_split_rays(root, val_split, limit=config.eval_views)
-    return (config, reasons, (torch.tensor(aabb, dtype=torch.float32), space), train_rays, val_rays, device, recipe,
-            val_cameras)
+    return Prepared(candidates, trial, torch.tensor(aabb, dtype=torch.float32), (val_cameras, val_rays), device,
+                    recipes[0] if trial is None else trial_recipe(trial, recipes))
 
 
 def _check_resumable(run_dir: Path, recipe: dict) -> None:
@@ -260,15 +306,15 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, overwrite: bool
     if resume and overwrite:
         raise InputError("--resume continues a run and --overwrite starts it over; give one of them")
     run_dir = Path(run_dir)
-    config, reasons, aabb, train_rays, val_rays, device, recipe, val_cameras = prepare_run(config)
+    prepared = prepare(config)
     if resume:
-        _check_resumable(run_dir, recipe)
-    with claim_folder(run_dir, "run", recipe_hash(recipe), overwrite=overwrite) as claimed:
+        _check_resumable(run_dir, prepared.recipe)
+    with claim_folder(run_dir, "run", recipe_hash(prepared.recipe), overwrite=overwrite) as claimed:
         saved = None
         if claimed == "resume":
             has_checkpoint = (run_dir / CHECKPOINT).is_file()
             if resume and has_checkpoint:
-                saved = checkpoint.load_training_checkpoint(run_dir / CHECKPOINT, recipe)
+                saved = checkpoint.load_training_checkpoint(run_dir / CHECKPOINT, prepared.recipe)
             elif not resume and not overwrite and (run_dir / MODEL).is_file():
                 raise InputError(f"{run_dir} already holds a finished run; pass --resume to train it further, "
                                  "--overwrite to start over, or choose another --out")
@@ -277,8 +323,7 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, overwrite: bool
                                  "--overwrite to start over, or choose another --out")
             if saved is None:  # --overwrite of this recipe, or killed before its first checkpoint
                 _start_over(run_dir)
-        return _train_in(run_dir, config, reasons, recipe, aabb, train_rays, (val_cameras, val_rays), device, saved,
-                         progress)
+        return _train_in(run_dir, prepared, saved, progress)
 
 
 @dataclass
@@ -358,11 +403,12 @@ def _measure_visibility(training: Training, train_rays, device) -> None:
     training.loop.seconds += time.perf_counter() - start
 
 
-def _write_config(run_dir: Path, config: TrainConfig, reasons: dict, space, recipe: dict) -> None:
-    """RUN/config.json: the resolved settings, why each automatic one was chosen, the space
-    and the recipe."""
+def _write_config(run_dir: Path, config: TrainConfig, reasons: dict, space, recipe: dict,
+                  trials: dict | None = None) -> None:
+    """RUN/config.json: the resolved settings, why each automatic one was chosen, the space,
+    the recipe and, where a trial made a choice, what it measured (nerf.trials.trial_record)."""
     write_json(run_dir / CONFIG, {**config.to_json(), "auto_reasons": reasons, "space": space.to_json(),
-                                  "recipe": recipe})
+                                  "recipe": recipe} | ({"trials": trials} if trials else {}))
 
 
 def _progress_bar(config: TrainConfig, state: LoopState, progress: bool):
@@ -479,100 +525,212 @@ def _step(training: Training, config: TrainConfig, schedule: Schedule, train_ray
     return loss
 
 
-def _train_in(run_dir: Path, config: TrainConfig, reasons: dict, recipe: dict, aabb, train_rays, val, device,
-              saved: dict | None, progress: bool) -> dict:
-    """The loop, in a claimed run folder; from `saved` (a checked checkpoint) when given.
-    val: (val_cameras, val_rays) of `prepare_run`. progress: show a progress bar."""
-    torch.set_num_threads(config.threads)
-    aabb, space = aabb
-    training = _start_training(run_dir, config, aabb, space, device, saved)
-    state = training.loop
-    if state.colour_head == 1 and config.colour_head is None:  # resumed: an earlier rule added the head
-        config = dataclasses.replace(config, colour_head=True)
-        reasons["colour_head"] = "added before the run was resumed (checkpoint.pt's loop state)"
+@dataclass
+class RunLoop:
+    """One candidate's training loop, between calls of `_advance`: its Training and what
+    the loop reads besides (the resolved config, its reasons, space and schedule, rays,
+    val views, the sparse-capture priors' spread, rays a step), where it logs (log.jsonl, or
+    a buffer while on trial), its progress bar, its checkpoint clock (None while on trial:
+    nothing is written), and what runs on between steps (the latest val PSNR, the losses
+    since the last log entry, a time budget's growth on trial)."""
+
+    run_dir: Path
+    recipe: dict
+    training: Training
+    candidate: Candidate
+    schedule: Schedule
+    val: tuple
+    device: torch.device
+    priors: float | None
+    n_rays: int
+    log: object
+    bar: object
+    progress: bool
+    checkpoints: CheckpointClock | None = None
+    last_psnr: float = math.nan
+    losses: list = dataclasses.field(default_factory=list)
+    growth: GrowthTrial | None = None
+    trials: dict = dataclasses.field(default_factory=dict)
+
+
+def _open_loop(run_dir: Path, candidate: Candidate, prepared: Prepared, saved: dict | None, log,
+               progress: bool) -> RunLoop:
+    """A candidate's loop from its seeds, or from a resumed run's checked checkpoint `saved`."""
+    config = candidate.config
+    training = _start_training(run_dir, config, prepared.aabb, candidate.space, prepared.device, saved)
+    if training.loop.colour_head == 1 and config.colour_head is None:  # resumed: an earlier rule added the head
+        config = candidate.config = dataclasses.replace(config, colour_head=True)
+        candidate.reasons["colour_head"] = "added before the run was resumed (checkpoint.pt's loop state)"
     schedule = Schedule.for_run(config, grid=training.model.has_grid,
                                 refined_resolution=refined_resolution(config.final_resolution))
-    if saved is not None:
-        _truncate_log(run_dir / LOG, state.step)
-    else:
-        write_bytes_atomic(run_dir / LOG, b"")
-    _write_config(run_dir, config, reasons, space, recipe)  # this attempt's settings (the stopping rule may differ)
-    log = owned.open_append(run_dir / LOG)
     # the scale of the unseen viewpoints' offsets, when the sparse-capture priors are on
-    priors = origin_spread(train_rays.origins) if config.sparse_priors else None
+    priors = origin_spread(candidate.train_rays.origins) if config.sparse_priors else None
     n_rays = config.batch_rays if config.model == "compact" else config.vanilla_batch_rays
-    bar = _progress_bar(config, state, progress)
-    last_psnr = float("nan")
-    if saved is not None:  # resumed: its latest val PSNR point is in the log (a finished run has nothing left to measure)
-        last_psnr = logged_val_psnr(run_dir / LOG, state.logged_step)
-        if state.logged_step == state.step and not math.isfinite(last_psnr):
-            state.logged_step = -1  # the log lost that point: measured again below (it only reads the model)
-    losses = []  # since the last log entry
-    checkpoints = CheckpointClock(state.step, time.monotonic()) if saved is not None else CheckpointClock(None, -math.inf)
-    trial = None  # the last growth while the budget decides whether to keep it (GrowthTrial)
+    return RunLoop(run_dir, prepared.recipe, training, candidate, schedule, prepared.val, prepared.device, priors, n_rays, log,
+                   _progress_bar(config, training.loop, progress), progress)
+
+
+def _advance(loop: RunLoop, until: float) -> None:
+    """Train until `until` of the steps or budget is done (1: the run's end). Val PSNR points
+    and checkpoints only read the state, so stopping at a fraction and going on later is
+    the same trajectory as not stopping."""
+    training, config, schedule, state = loop.training, loop.candidate.config, loop.schedule, loop.training.loop
+    while True:
+        fraction_done = schedule.fraction_done(state)
+        if schedule.visibility_due(state, fraction_done):
+            _measure_visibility(training, loop.candidate.train_rays, loop.device)
+        if state.logged_step != state.step and (state.seconds >= state.next_eval or fraction_done >= until):
+            loop.last_psnr = _log_point(loop.log, loop.bar, training, config, schedule, loop.val[1], loop.device,
+                                        loop.losses)
+        if loop.checkpoints is not None:
+            loop.checkpoints.save_if_due(loop.run_dir, training, config, loop.recipe,
+                                         finished=fraction_done >= 1)
+        if fraction_done >= until:
+            return
+        start = time.perf_counter()
+        loop.growth = _follow_schedule(training, schedule, loop.growth, fraction_done, loop.progress)
+        loop.losses.append(_step(training, config, schedule, loop.candidate.train_rays, loop.n_rays, loop.device,
+                                 fraction_done, loop.priors, loop.run_dir))
+        elapsed = time.perf_counter() - start
+        state.step += 1
+        state.stage_steps += 1
+        state.stage_seconds += elapsed
+        state.seconds += elapsed
+        loop.bar.update(1 if config.steps else min(elapsed, loop.bar.total - loop.bar.n))
+
+
+def _train_in(run_dir: Path, prepared: Prepared, saved: dict | None, progress: bool) -> dict:
+    """The loop, in a claimed run folder; from `saved` (a checked checkpoint) when given,
+    after the trial when a choice is on trial (`_run_trial`). progress: show a progress bar."""
+    torch.set_num_threads(prepared.candidates[0].config.threads)
+    if prepared.trial is not None and saved is None:
+        loop = _run_trial(run_dir, prepared, progress)
+    else:
+        candidate = prepared.candidates[0] if prepared.trial is None else _resumed_candidate(run_dir, prepared, saved)
+        loop = _open_loop(run_dir, candidate, prepared, saved, None, progress)
+        state = loop.training.loop
+        if saved is None:
+            write_bytes_atomic(run_dir / LOG, b"")
+        else:  # resumed: its latest val PSNR point is in the log (a finished run has nothing left to measure)
+            _truncate_log(run_dir / LOG, state.step)
+            loop.last_psnr = logged_val_psnr(run_dir / LOG, state.logged_step)
+            if state.logged_step == state.step and not math.isfinite(loop.last_psnr):
+                state.logged_step = -1  # the log lost that point: measured again below (it only reads the model)
+            loop.trials = _earlier_trials(run_dir) if prepared.trial is not None else {}
+    candidate = loop.candidate
+    # this attempt's settings (the stopping rule may differ)
+    _write_config(run_dir, candidate.config, candidate.reasons, candidate.space, prepared.recipe, loop.trials)
+    loop.log = owned.open_append(run_dir / LOG)
+    loop.checkpoints = (CheckpointClock(loop.training.loop.step, time.monotonic()) if saved is not None
+                        else CheckpointClock(None, -math.inf))
     try:
-        while True:
-            fraction_done = schedule.fraction_done(state)
-            if schedule.visibility_due(state, fraction_done):
-                _measure_visibility(training, train_rays, device)
-            if state.logged_step != state.step and (state.seconds >= state.next_eval or fraction_done >= 1):
-                last_psnr = _log_point(log, bar, training, config, schedule, val[1], device, losses)
-            checkpoints.save_if_due(run_dir, training, config, recipe, finished=fraction_done >= 1)
-            if fraction_done >= 1:
-                break
-            start = time.perf_counter()
-            trial = _follow_schedule(training, schedule, trial, fraction_done, progress)
-            losses.append(_step(training, config, schedule, train_rays, n_rays, device, fraction_done, priors, run_dir))
-            elapsed = time.perf_counter() - start
-            state.step += 1
-            state.stage_steps += 1
-            state.stage_seconds += elapsed
-            state.seconds += elapsed
-            bar.update(1 if config.steps else min(elapsed, bar.total - bar.n))
+        _advance(loop, 1.0)
     finally:
-        bar.close()
-        log.close()
-    return _finish(run_dir, training, config, reasons, space, recipe, schedule, val, device, last_psnr)
+        loop.bar.close()
+        loop.log.close()
+    return _finish(run_dir, loop, prepared.recipe)
 
 
-def _finish(run_dir: Path, training: Training, config: TrainConfig, reasons: dict, space, recipe: dict,
-            schedule: Schedule, val, device, last_psnr: float) -> dict:
+def _run_trial(run_dir: Path, prepared: Prepared, progress: bool) -> RunLoop:
+    """Each candidate trains the trial's share of the run from the run's seed (nothing
+    written), is scored on the val views through the render path, and the best (ties: the
+    rule's own pick; nerf.trials.pick) is returned to continue, its log entries so far in
+    log.jsonl and the trial in its reasons and `trials`."""
+    trial, (cameras, val_rays) = prepared.trial, prepared.val
+    loops, scores = {}, {}
+    for candidate in prepared.candidates:
+        value = getattr(candidate.config, trial.field)
+        loop = loops[value] = _open_loop(run_dir, candidate, prepared, None, io.StringIO(), progress)
+        try:
+            _advance(loop, trial.share)
+        except NumericalError:  # a candidate that diverges loses; the others may not
+            scores[value] = -math.inf
+            continue
+        finally:
+            loop.bar.close()
+        scores[value] = val_psnr(loop.training.model, cameras, val_rays, prepared.device,
+                                 render_path(candidate.config))["render"]
+    if all(score == -math.inf for score in scores.values()):
+        raise NumericalError(f"training diverged in the {trial.field} trial for every candidate "
+                             f"({', '.join(map(str, trial.candidates))})")
+    chosen = pick(trial, scores)
+    loop = loops.pop(chosen)
+    loops.clear()  # the others' models and optimisers go
+    config = loop.candidate.config
+    loop.candidate.reasons[trial.field] = trial_reason(trial, config, scores, chosen, val_rays.n_views, cameras.split)
+    loop.trials = {trial.field: trial_record(trial, config, scores, chosen)}
+    if progress:
+        note(f"{trial.field}: {chosen} by trial (" + ", ".join(f"{v} {scores[v]:.2f} dB" for v in trial.candidates)
+             + " on the val views)")
+    write_bytes_atomic(run_dir / LOG, loop.log.getvalue().encode())
+    loop.bar = _progress_bar(config, loop.training.loop, progress)
+    return loop
+
+
+def _resumed_candidate(run_dir: Path, prepared: Prepared, saved: dict) -> Candidate:
+    """The candidate a resumed run's trial chose: the one whose setting its checked
+    checkpoint holds (the trial is not run again), with the reason config.json gave."""
+    field = prepared.trial.field
+    value = (saved.get("config") or {}).get(field) if isinstance(saved.get("config"), dict) else None
+    for candidate in prepared.candidates:
+        if getattr(candidate.config, field) == value:
+            earlier = _earlier_trials(run_dir).get(field)
+            earlier_reason = _earlier_reasons(run_dir).get(field)
+            candidate.reasons[field] = (earlier_reason if isinstance(earlier, dict) and isinstance(earlier_reason, str)
+                                        else f"{value} by a trial before the run was resumed ({CHECKPOINT} holds it)")
+            return candidate
+    raise InputError(f"{run_dir / CHECKPOINT} holds {field} {value!r}, none of its trial's candidates "
+                     f"({', '.join(map(str, prepared.trial.candidates))}); pass --overwrite to start over")
+
+
+def _earlier_config(run_dir: Path) -> dict:
+    try:
+        document = read_json(run_dir / CONFIG)
+    except InputError:
+        return {}
+    return document if isinstance(document, dict) else {}
+
+
+def _earlier_trials(run_dir: Path) -> dict:
+    """config.json's "trials" of the attempt being resumed ({} when it has none)."""
+    trials = _earlier_config(run_dir).get("trials")
+    return trials if isinstance(trials, dict) else {}
+
+
+def _earlier_reasons(run_dir: Path) -> dict:
+    reasons = _earlier_config(run_dir).get("auto_reasons")
+    return reasons if isinstance(reasons, dict) else {}
+
+
+def _finish(run_dir: Path, loop: RunLoop, recipe: dict) -> dict:
     """After the loop: config.json's account of what the schedule decided and, for an
     `edges` run, its render filter; model.pt. Returns train's summary."""
-    model, state = training.model, training.loop
+    training, candidate = loop.training, loop.candidate
+    model, state, config, reasons = training.model, training.loop, candidate.config, candidate.reasons
     if config.refine_grid:
-        reasons["refine_grid"] = schedule.refine_grid_reason(state, model.field.resolution)
+        reasons["refine_grid"] = loop.schedule.refine_grid_reason(state, model.field.resolution)
     if config.pixel_filter == "edges":
-        reasons["edge_points"] = schedule.edge_points_reason(state)
-        config, reasons["render_filter"] = choose_render_filter(model, config, *val, device)
+        reasons["edge_points"] = loop.schedule.edge_points_reason(state)
+        config, reasons["render_filter"] = choose_render_filter(model, config, *loop.val, loop.device)
     if config.refine_grid or config.pixel_filter == "edges":
-        _write_config(run_dir, config, reasons, space, recipe)
+        _write_config(run_dir, config, reasons, candidate.space, recipe, loop.trials)
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
-    return {"steps": state.step, "seconds": state.seconds, "val_psnr": last_psnr, "model_bytes": size,
+    return {"steps": state.step, "seconds": state.seconds, "val_psnr": loop.last_psnr, "model_bytes": size,
             "resolution": model.field.resolution if model.has_grid else None}
 
 
 def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) -> tuple[TrainConfig, str]:
     """An `edges` run's render filter, by measurement on its val views (whole frames, the
-    eval_views of psnr_on_white): of RENDER_FILTERS (the centre ray alone, 2 x 2 or 3 x 3
-    rays on the centre render's edge pixels), the one that scores highest, the cheaper on a
-    tie. The box render assumes the field resolves what lies inside a pixel; where it cannot
-    (bench hard's tiny: a 3-pixel sphere in a 53-voxel grid), averaging sub-pixel rays
-    blurs the blur again: 56.99 dB against 58.32 through the centres of the same model
-    (BENCHMARKS.md, "Edge pixels"); where it does, 3 x 3 integrates a sharp edge better.
-    cameras, val_rays: the val views' cameras and rays (`prepare_run`).
-    Returns (config with render_filter set, the reason)."""
-    pixels = cameras.intrinsics.width * cameras.intrinsics.height
-    errors = dict.fromkeys(RENDER_FILTERS, 0.0)
-    model.eval()
-    for index in range(val_rays.n_views):
-        rgba = val_rays.rgba[index * pixels:(index + 1) * pixels].to(device)
-        target = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:])
-        for name, per_axis in RENDER_FILTERS.items():
-            rgb, opacity, _ = box_frame(model, cameras, index, per_axis, None, 1, device, edges_only=per_axis > 1)
-            errors[name] += float(((composite(rgb, opacity, torch.ones(3, device=device)).clamp(0, 1) - target) ** 2).mean())
-    model.train()
-    psnr = {name: -10 * math.log10(max(error / max(val_rays.n_views, 1), 1e-10)) for name, error in errors.items()}
+    eval_views of psnr_on_white; nerf.trials.val_psnr): of RENDER_FILTERS (the centre ray
+    alone, 2 x 2 or 3 x 3 rays on the centre render's edge pixels), the one that scores
+    highest, the cheaper on a tie. The box render assumes the field resolves what lies
+    inside a pixel; where it cannot (bench hard's tiny: a 3-pixel sphere in a 53-voxel
+    grid), averaging sub-pixel rays blurs the blur again: 56.99 dB against 58.32 through
+    the centres of the same model (BENCHMARKS.md, "Edge pixels"); where it does, 3 x 3
+    integrates a sharp edge better. cameras, val_rays: the val views' cameras and rays
+    (`prepare_run`). Returns (config with render_filter set, the reason)."""
+    psnr = val_psnr(model, cameras, val_rays, device,
+                    {name: (per_axis, per_axis > 1) for name, per_axis in RENDER_FILTERS.items()})
     chosen = max(RENDER_FILTERS, key=psnr.get)  # the first of equals: the cheaper render
     scores = ", ".join(f"{name} {value:.2f} dB" for name, value in psnr.items())
     return dataclasses.replace(config, render_filter=chosen), (

@@ -7,6 +7,8 @@ measured in one run on this machine, each into its own bench folder (`common`).
   against views and spp.
 - `hard`: the hard scenes through generate, brief training and evaluate, audited for NaN/inf.
 - `targets`: the reference NeRF's targets in one command.
+- `parametrisation`: the automatic parametrisation against each forced one on captures in no
+  bench (issue 52).
 - `lens`: defocus: the NeRF through a thin lens against refocused light fields.
 - `read`: what validating a dataset on load costs.
 - `colmap`: what the COLMAP export adds to `generate`.

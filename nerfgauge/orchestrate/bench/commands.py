@@ -18,6 +18,8 @@ from nerfgauge.orchestrate.bench.hard import HardConfig, bench_hard, table_markd
 from nerfgauge.orchestrate.bench.lens import run_lens_bench
 from nerfgauge.orchestrate.bench.lpips import bench_lpips
 from nerfgauge.orchestrate.bench.lpips_cache import bench_lpips_cache, summary as lpips_cache_summary
+from nerfgauge.orchestrate.bench.parametrisation import ParametrisationBenchConfig, bench_parametrisation
+from nerfgauge.orchestrate.bench.parametrisation import table_markdown as parametrisation_markdown
 from nerfgauge.orchestrate.bench.read import bench_read, table_markdown as read_table_markdown
 from nerfgauge.orchestrate.bench.render import bench_render, table_markdown as render_table_markdown
 from nerfgauge.orchestrate.bench.scaling import ScalingConfig, bench_scaling, report_markdown
@@ -99,6 +101,24 @@ def register(subparsers) -> None:
     hard.add_argument("--steps", type=arguments.STEPS, default=400, help="training steps per scene (default 400)")
     hard.add_argument("--out", type=arguments.path, default=Path("bench-out/hard"))
     hard.set_defaults(func=run_bench_hard)
+    param = kinds.add_parser("parametrisation", help="the automatic parametrisation against each forced one, equal "
+                                                     "steps and seed, on captures in no bench (issue 52)")
+    pd = ParametrisationBenchConfig()
+    param.add_argument("--scenes", type=arguments.names, default=pd.scenes,
+                       help=f"comma-separated scene names (default {','.join(pd.scenes)})")
+    param.add_argument("--res", default=f"{pd.width}", help=f"N or WxH (default {pd.width})")
+    param.add_argument("--views", type=arguments.VIEWS, default=pd.views, help=f"train views (default {pd.views})")
+    param.add_argument("--val-views", type=arguments.VIEWS, default=pd.val_views,
+                       help=f"val views, which a trial scores on (default {pd.val_views})")
+    param.add_argument("--test-views", type=arguments.VIEWS, default=pd.test_views,
+                       help=f"test views, scored (default {pd.test_views})")
+    param.add_argument("--spp", type=arguments.SPP, default=pd.spp, help=f"samples per pixel (default {pd.spp})")
+    param.add_argument("--steps", type=arguments.STEPS, default=pd.steps,
+                       help=f"training steps of every run (default {pd.steps})")
+    param.add_argument("--seed", type=arguments.SEED, default=pd.seed, help=f"training seed (default {pd.seed})")
+    param.add_argument("--out", type=arguments.path, default=Path("bench-out/parametrisation"),
+                       help="bench folder: parametrisation.json/.md, each scene's dataset and runs")
+    param.set_defaults(func=run_bench_parametrisation)
     targets = kinds.add_parser("targets", help="the reference NeRF's targets (issue 34) in one command: primitives "
                                                "at 120 and 600 s, geometry, exact scores, bench hard, a room")
     targets.add_argument("--skip", type=arguments.names, default=(),
@@ -298,6 +318,15 @@ def run_bench_hard(args) -> int:
     rows = bench_hard(config, args.out)
     print(hard_table_markdown(rows, config.command(args.out)))
     return 0 if all(row["finite"] for row in rows) else 1
+
+
+def run_bench_parametrisation(args) -> int:
+    width, height = parse_resolution(args.res)
+    config = ParametrisationBenchConfig(tuple(args.scenes), width, height, args.views, args.val_views, args.test_views,
+                                        args.spp, args.steps, args.seed)
+    rows = bench_parametrisation(config, args.out)
+    print(parametrisation_markdown(rows, config.command(args.out)))
+    return 0 if all(row.get("within") for row in rows) else 1
 
 
 def run_bench_targets(args) -> int:
