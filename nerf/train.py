@@ -616,7 +616,7 @@ def _train_in(run_dir: Path, prepared: Prepared, saved: dict | None, progress: b
             loop.last_psnr = logged_val_psnr(run_dir / LOG, state.logged_step)
             if state.logged_step == state.step and not math.isfinite(loop.last_psnr):
                 state.logged_step = -1  # the log lost that point: measured again below (it only reads the model)
-            loop.trials = _earlier_trials(run_dir) if prepared.trial is not None else {}
+            loop.trials = _earlier(run_dir, "trials") if prepared.trial is not None else {}
     candidate = loop.candidate
     # this attempt's settings (the stopping rule may differ)
     _write_config(run_dir, candidate.config, candidate.reasons, candidate.space, prepared.recipe, loop.trials)
@@ -674,8 +674,8 @@ def _resumed_candidate(run_dir: Path, prepared: Prepared, saved: dict) -> Candid
     value = (saved.get("config") or {}).get(field) if isinstance(saved.get("config"), dict) else None
     for candidate in prepared.candidates:
         if getattr(candidate.config, field) == value:
-            earlier = _earlier_trials(run_dir).get(field)
-            earlier_reason = _earlier_reasons(run_dir).get(field)
+            earlier = _earlier(run_dir, "trials").get(field)
+            earlier_reason = _earlier(run_dir, "auto_reasons").get(field)
             candidate.reasons[field] = (earlier_reason if isinstance(earlier, dict) and isinstance(earlier_reason, str)
                                         else f"{value} by a trial before the run was resumed ({CHECKPOINT} holds it)")
             return candidate
@@ -683,23 +683,15 @@ def _resumed_candidate(run_dir: Path, prepared: Prepared, saved: dict) -> Candid
                      f"({', '.join(map(str, prepared.trial.candidates))}); pass --overwrite to start over")
 
 
-def _earlier_config(run_dir: Path) -> dict:
+def _earlier(run_dir: Path, key: str) -> dict:
+    """config.json's table `key` ("trials", "auto_reasons") of the attempt being resumed
+    ({} when it has none or the file is unreadable)."""
     try:
         document = read_json(run_dir / CONFIG)
     except InputError:
         return {}
-    return document if isinstance(document, dict) else {}
-
-
-def _earlier_trials(run_dir: Path) -> dict:
-    """config.json's "trials" of the attempt being resumed ({} when it has none)."""
-    trials = _earlier_config(run_dir).get("trials")
-    return trials if isinstance(trials, dict) else {}
-
-
-def _earlier_reasons(run_dir: Path) -> dict:
-    reasons = _earlier_config(run_dir).get("auto_reasons")
-    return reasons if isinstance(reasons, dict) else {}
+    table = document.get(key) if isinstance(document, dict) else None
+    return table if isinstance(table, dict) else {}
 
 
 def _finish(run_dir: Path, loop: RunLoop, recipe: dict) -> dict:
