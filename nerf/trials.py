@@ -15,6 +15,11 @@ the choice is made by measurement instead:
   lost and a `--steps` run ends with the model the forced run of that candidate trains,
   tensor for tensor; each other candidate's trial is the cost (TRIAL_SHARE of the run
   each). A candidate within TRIAL_TIE_DB of the rule's pick does not replace it.
+- a time budget is a promise about training seconds, so the trial is paid from it: with n
+  candidates each runs as if forced with budget / (1 + (n - 1) TRIAL_SHARE)
+  (`candidate_config`), and the trial and the winner's run together train the budget. A
+  --steps run keeps its steps (its model then equals the forced run's) and the others'
+  trial steps are extra.
 
 config.json's auto_reasons says a trial decided, the share, each candidate's val PSNR, and
 "trials" holds the same as numbers. The run's recipe names the candidates and the share
@@ -77,8 +82,18 @@ def parametrisation_trial(config: TrainConfig, aabb: np.ndarray, c2w: np.ndarray
 
 def candidate_config(config: TrainConfig, trial: Trial, value) -> TrainConfig:
     """The requested config with the trial's field set to `value`, as if forced (nerf.config.resolve
-    then resolves everything that follows from it)."""
-    return dataclasses.replace(config, **{trial.field: value})
+    then resolves everything that follows from it), and for a time budget that budget's share
+    of one candidate (`candidate_budget`)."""
+    changes = {trial.field: value}
+    if config.steps is None:
+        changes["budget_seconds"] = candidate_budget(config.budget_seconds, trial)
+    return dataclasses.replace(config, **changes)
+
+
+def candidate_budget(budget_seconds: float, trial: Trial) -> float:
+    """Training seconds of each candidate's own run, so the trial (every other candidate's
+    share of such a run) and the winner's run add up to `budget_seconds`."""
+    return budget_seconds / (1 + (len(trial.candidates) - 1) * trial.share)
 
 
 def trial_recipe(trial: Trial, recipes: list) -> dict:
@@ -93,10 +108,20 @@ def trial_recipe(trial: Trial, recipes: list) -> dict:
 
 
 def trial_steps(config: TrainConfig, share: float) -> str:
-    """The trial's length in words: steps of a --steps run, else seconds of its budget."""
+    """The trial's length in words: steps of a --steps run, else seconds of its budget
+    (`config`: a candidate's, whose time budget is its share of the run's)."""
     if config.steps is not None:
         return f"{math.ceil(share * config.steps)} of {config.steps} steps"
     return f"{share * config.budget_seconds:.3g} of {config.budget_seconds:.3g} training seconds"
+
+
+def trial_cost(trial: Trial, config: TrainConfig) -> str:
+    """Who paid for the other candidates' trials, in words (`config`: the winner's)."""
+    if config.steps is not None:
+        return "the others' trial steps were extra"
+    total = config.budget_seconds * (1 + (len(trial.candidates) - 1) * trial.share)
+    return (f"the trial was paid from the {total:.3g}-s budget: each candidate's run had "
+            f"{config.budget_seconds:.3g} s of it")
 
 
 def pick(trial: Trial, scores: dict) -> str:
@@ -114,7 +139,7 @@ def trial_reason(trial: Trial, config: TrainConfig, scores: dict, chosen, views:
     return (f"{chosen} by trial ({trial.why}): each of {', '.join(map(str, trial.candidates))} trained "
             f"{trial_steps(config, trial.share)} ({100 * trial.share:g}% of the run) from seed {config.seed}, then "
             f"scored on {views} {split} views: {scored}; the rule's own pick was {trial.candidates[0]} (it keeps ties "
-            f"within {TRIAL_TIE_DB:g} dB); {chosen} continues its own run, the others' trial steps were extra")
+            f"within {TRIAL_TIE_DB:g} dB); {chosen} continues its own run, {trial_cost(trial, config)}")
 
 
 def trial_record(trial: Trial, config: TrainConfig, scores: dict, chosen) -> dict:

@@ -21,6 +21,7 @@ from nerfgauge.nerf import train as train_module
 from nerfgauge.nerf import trials
 from nerfgauge.nerf.parametrisation import (CLOSED_SHARE, FORWARD_DEPTH_RATIO_CHECKED, NEAR_AABB_FACTOR,
                                             REACH_CHECKED, box_reach, choose_parametrisation, parametrisation_doubt)
+from nerfgauge.nerf.config import TrainConfig
 from nerfgauge.nerf.train import prepare, run_recipe, train
 from nerfgauge.scenes import CHECK_SCENES, HARD_SCENES
 from nerfgauge.scenes.checks import TRIAL_CHECK_SCENES
@@ -214,6 +215,36 @@ def test_the_trial_picks_the_better_candidate_and_continues_its_own_run(tiny_dat
     # the log holds the winner's trial steps and then its own run on, once each
     steps = [json.loads(line)["step"] for line in (tmp_path / "auto" / "log.jsonl").read_text().splitlines()]
     assert steps[0] == 0 and steps[-1] == 200 and steps == sorted(set(steps))
+
+
+def test_a_time_budget_pays_for_its_trial():
+    """Each candidate's own run gets budget / (1 + (n - 1) share): n - 1 trials of that share
+    and one whole run add up to the budget; a --steps run keeps its steps."""
+    trial = trials.Trial("parametrisation", ("contracted", "bounded", "forward"), "a test")
+    budget = trials.candidate_budget(600.0, trial)
+    assert budget == pytest.approx(600.0 / 1.5)
+    assert budget + 2 * trial.share * budget == pytest.approx(600.0)
+    timed = TrainConfig(dataset="d", budget_seconds=600.0)
+    assert trials.candidate_config(timed, trial, "bounded").budget_seconds == pytest.approx(budget)
+    stepped = TrainConfig(dataset="d", steps=400)
+    assert trials.candidate_config(stepped, trial, "bounded") == dataclasses.replace(stepped, parametrisation="bounded")
+
+
+@pytest.mark.slow
+def test_a_timed_trial_run_trains_its_budget_in_all(tiny_dataset, tmp_path, monkeypatch):
+    """A 2-s run on trial: the winner's run trains 2 / 1.25 s, the loser's trial a quarter of
+    that, together the 2 s asked for (each stops at the first step past its time: a step of
+    this tiny grid takes milliseconds); config.json and the reason say what each had."""
+    _doubtful(monkeypatch)
+    config = tiny_config(tiny_dataset, steps=None, budget_seconds=2.0)
+    summary = train(config, tmp_path / "run", progress=False)
+    document = json.loads((tmp_path / "run" / "config.json").read_text())
+    record = document["trials"]["parametrisation"]
+    own = 2.0 / (1 + trials.TRIAL_SHARE)
+    assert document["budget_seconds"] == pytest.approx(own)
+    assert record["seconds"] == pytest.approx(trials.TRIAL_SHARE * own) and record["steps"] is None
+    assert own <= summary["seconds"] < own + 0.1
+    assert "paid from the 2-s budget" in document["auto_reasons"]["parametrisation"]
 
 
 @pytest.mark.slow
