@@ -1,0 +1,325 @@
+"""Compiled inference rendering on the CPU: the compact model's early-terminated render of
+bounded space (`CompactNeRF._render_front_to_back`) as one numba kernel per batch of rays.
+
+The samples are `nerf.marching.march`'s: a ray is cut into 1-voxel segments from its box
+entry, and a segment whose midpoint (of its part inside the box) lies in an occupied voxel
+is cut into `voxel_steps` samples at the centres of its steps. (`march` reaches the same
+segments through its pyramid of coarser grids, each grown by a block so that it never drops
+a segment that passes an occupied voxel.) Empty space is skipped by a distance grid
+(`skip_distances`): from a midpoint whose voxel has no occupied voxel within r - 1 voxels
+(Chebyshev), the next midpoints that move at most r - 1 voxels along every axis are empty
+too, and are stepped over without a lookup.
+
+The field's value at a sample is `VoxelGridField.corners`'s trilinear stencil of the sparse
+tables (row 0: empty), sigma = DENSITY_SCALE softplus(raw + shift) / voxel_final, and the
+quadrature is `nerf.packed`'s:
+
+    tau_i = min(sigma_i step, TAU_MAX_PACKED),  w_i = T_i (1 - exp(-tau_i)),  T_{i+1} = T_i exp(-tau_i)
+    C = sum_i w_i c_i,  A = 1 - T_end,  D = sum_i w_i t_i / max(A, DEPTH_EPS) clamped to [near, far]
+
+Each ray walks its samples nearest first and stops after the first sample that takes T below
+`min_transmittance`: the colour it leaves out is at most that (the torch path,
+`CompactNeRF._render_windows`, stops at the end of a window of segments instead, so the two
+differ by at most min_transmittance a ray). A sample's colour is asked for only where its
+weight exceeds COLOUR_MIN_WEIGHT, as the torch path does. A ray may start at t_start (later
+than its box entry): the samples before it are neither evaluated nor composited (`nerf.frames`'
+sub-rays, whose neighbouring centres say where their surface lies).
+
+Why compiled: a 128 px frame of the 600-s primitives model holds ~16k centre rays and ~8k
+sub-rays with ~220k samples in front of their surfaces; the batched torch path spent ~30 ops
+a window of segments on them, and its marching and grid_sample's 3D kernel cost 100-200 ns
+a sample (docs/results.md, "Render time"). Here a ray is one loop: its empty space skipped,
+its samples, its stop. Rays are independent and each is written by one thread, so the result
+does not depend on the thread count (numba's prange over strided lanes of rays, so that every
+thread gets a share of the image's costly middle).
+
+A field with a colour head (view-dependent, or a residual head) has its colour computed in
+torch (`VoxelGridField._colour`) from the features this kernel interpolates: a first pass
+counts each ray's coloured samples, a second writes them at their offsets.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+
+import numba
+import numpy as np
+import torch
+
+from nerfgauge.nerf.grid_field import DENSITY_SCALE, any_within
+from nerfgauge.nerf.packed import COLOUR_MIN_WEIGHT, TAU_MAX_PACKED
+from nerfgauge.nerf.rendering import DEPTH_EPS, ray_aabb
+
+# Lanes of rays the prange splits over the threads: lane k renders blocks k, k + LANES, ...
+# of BLOCK consecutive rays, so every thread's share crosses the whole image (a frame's
+# middle costs the most), while consecutive rays, which read the same grid nodes, stay
+# together in a thread's cache.
+LANES = 256
+BLOCK = 32
+# Rays are rendered in Morton order of where they begin, in cells this many voxels wide
+# (`locality_order`).
+LOCALITY_CELL = 2
+# softplus(x) = x above this, as torch's F.softplus (threshold 20)
+SOFTPLUS_THRESHOLD = 20.0
+# below this, softplus(x) = log1p(exp(x)) is exp(x) to a relative exp(x) / 2 < 2.3e-5 (one
+# transcendental call instead of two, for the faint density in front of every surface)
+SOFTPLUS_TAIL = -10.0
+# The distance grid counts up to this many voxels (uint8); a ray through wider empty space
+# looks up once every MAX_SKIP - 1 voxels.
+MAX_SKIP = 16
+
+
+@contextlib.contextmanager
+def kernel_threads(threads: int):
+    """Within the block, the compiled renderer runs on `threads` threads (at most numba's
+    NUMBA_NUM_THREADS, the machine's cores by default); torch's own ops on one, since an
+    idle torch worker spinning for its next op would take a core from the kernel's (on 2
+    cores, 2 + 2 threads rendered no faster than 1). Both restored after."""
+    before = numba.get_num_threads(), torch.get_num_threads()
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before[0])
+        torch.set_num_threads(before[1])
+
+
+@torch.no_grad()
+def skip_distances(occupancy: torch.Tensor, cap: int = MAX_SKIP) -> np.ndarray:
+    """For every voxel of `occupancy` [nz, ny, nx] bool, the Chebyshev distance in voxels to
+    the nearest occupied one, capped at `cap`: 0 occupied; r: every voxel within r - 1 of
+    it (a (2r - 1)^3 cube) is empty. Returns [nz, ny, nx] uint8 (numpy)."""
+    distance = torch.zeros(occupancy.shape, dtype=torch.uint8)
+    reached = occupancy.cpu().bool()
+    for _ in range(cap):
+        distance += ~reached
+        reached = any_within(reached, 1, 1)
+    return distance.numpy()
+
+
+def raw_density_grid(field) -> np.ndarray:
+    """The field's raw density at every node [nz * ny * nx] float32 (EMPTY_RAW where no row
+    is allocated): one load a corner instead of the index's row and then the table's."""
+    dense = field._dense_for_rendering()
+    if dense is not None:
+        return dense[0].reshape(-1).numpy()
+    return field.density_table.detach()[:, 0][field.index.reshape(-1).long()].contiguous().numpy()
+
+
+@numba.njit(cache=True)
+def _lane_rays(lane, lanes, order, size):
+    """The rays of `lane`: blocks lane, lane + lanes, ... of `size` consecutive rays of `order`."""
+    rays = []
+    n = order.shape[0]
+    for block in range(lane, -(-n // size), lanes):
+        for k in range(block * size, min(n, (block + 1) * size)):
+            rays.append(order[k])
+    return rays
+
+
+@numba.njit(cache=True)
+def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, t_start, distance, voxel, lo_box, segment,
+                 voxel_steps, step, index, raw_grid, nodes, scale, features, shift, density_scale, min_transmittance,
+                 colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
+                 out_coloured, out_rows, out_features, out_weights):
+    """Rays lane, lane + lanes, ... (one thread's share), each front to back: its opacity,
+    depth, samples evaluated and coloured. inline_colour: sigmoid(features) w added to
+    out_rgb; else, where write_offsets holds rows, each coloured sample's ray, features and
+    weight written from the ray's row on."""
+    gz, gy, gx = distance.shape
+    nx, ny, nz = nodes[0], nodes[1], nodes[2]
+    channels = features.shape[1]
+    rows = np.zeros(8, np.int64)
+    weights = np.zeros(8)
+    for i in _lane_rays(lane, lanes, order, block):
+        near, far = near_of[i], far_of[i]
+        transmittance, weighted_t = 1.0, 0.0
+        evaluated, coloured = 0, 0
+        write_from = write_offsets[i] if write_offsets.shape[0] else -1
+        # the ray in voxel units from the box's corner (the march's), and in the field's nodes
+        ox = (origins[i, 0] - lo_box[0]) / voxel[0]
+        oy = (origins[i, 1] - lo_box[1]) / voxel[1]
+        oz = (origins[i, 2] - lo_box[2]) / voxel[2]
+        dx, dy, dz = directions[i, 0] / voxel[0], directions[i, 1] / voxel[1], directions[i, 2] / voxel[2]
+        # voxels a midpoint moves along its fastest axis from one segment to the next
+        stride = segment * max(abs(dx), abs(dy), abs(dz))
+        nx0 = (origins[i, 0] - lo_box[0]) * scale[0]
+        ny0 = (origins[i, 1] - lo_box[1]) * scale[1]
+        nz0 = (origins[i, 2] - lo_box[2]) * scale[2]
+        ndx, ndy, ndz = directions[i, 0] * scale[0], directions[i, 1] * scale[1], directions[i, 2] * scale[2]
+        first = t_start[i]
+        k = int(math.floor((first - near) / segment)) if first > near else 0
+        while far > near:
+            s = near + k * segment
+            if s >= far:
+                break
+            mid = min(s + 0.5 * segment, 0.5 * (s + far))
+            x = int(math.floor(ox + dx * mid))
+            y = int(math.floor(oy + dy * mid))
+            z = int(math.floor(oz + dz * mid))
+            if x < 0 or y < 0 or z < 0 or x >= gx or y >= gy or z >= gz:
+                k += 1
+                continue
+            r = distance[z, y, x]
+            if r > 0:  # empty: so are the next midpoints that stay within r - 1 voxels
+                k += 1 + max(0, int(math.floor((r - 1) / stride))) if stride > 0 else 1
+                continue
+            k += 1
+            stop = False
+            for j in range(voxel_steps):
+                t = s + (j + 0.5) * step
+                if t >= far:
+                    break
+                if t < first:
+                    continue
+                # `VoxelGridField.corners`: the point clamped into the box, its cell's 8 nodes
+                ux = min(max(nx0 + ndx * t, 0.0), nx - 1.0)
+                uy = min(max(ny0 + ndy * t, 0.0), ny - 1.0)
+                uz = min(max(nz0 + ndz * t, 0.0), nz - 1.0)
+                bx = min(math.floor(ux), nx - 2.0)
+                by = min(math.floor(uy), ny - 2.0)
+                bz = min(math.floor(uz), nz - 2.0)
+                fx, fy, fz = ux - bx, uy - by, uz - bz
+                flat = (int(bz) * ny + int(by)) * nx + int(bx)
+                raw = 0.0
+                c = 0
+                for cz in range(2):
+                    wz = fz if cz else 1.0 - fz
+                    for cy in range(2):
+                        wzy = wz * (fy if cy else 1.0 - fy)
+                        corner = flat + (cz * ny + cy) * nx
+                        weights[c] = wzy * (1.0 - fx)
+                        weights[c + 1] = wzy * fx
+                        raw += weights[c] * raw_grid[corner] + weights[c + 1] * raw_grid[corner + 1]
+                        c += 2
+                arg = raw + shift
+                if arg > SOFTPLUS_THRESHOLD:
+                    softplus = arg
+                elif arg < SOFTPLUS_TAIL:  # log1p(e) = e (1 - e / 2 + ...): e itself to 1e-5 of it
+                    softplus = math.exp(arg)
+                else:
+                    softplus = math.log1p(math.exp(arg))
+                tau = min(density_scale * softplus * step, TAU_MAX_PACKED)
+                alpha = -math.expm1(-tau)
+                weight = transmittance * alpha
+                evaluated += 1
+                if weight > colour_min_weight:
+                    c = 0
+                    for cz in range(2):
+                        for cy in range(2):
+                            corner = flat + (cz * ny + cy) * nx
+                            rows[c] = index[corner]
+                            rows[c + 1] = index[corner + 1]
+                            c += 2
+                    if inline_colour:
+                        for channel in range(3):
+                            value = 0.0
+                            for c in range(8):
+                                value += weights[c] * features[rows[c], channel]
+                            out_rgb[i, channel] += weight / (1.0 + math.exp(-value))
+                    elif write_from >= 0:
+                        row = write_from + coloured
+                        out_rows[row] = i
+                        out_weights[row] = weight
+                        for channel in range(channels):
+                            value = 0.0
+                            for c in range(8):
+                                value += weights[c] * features[rows[c], channel]
+                            out_features[row, channel] = value
+                    coloured += 1
+                weighted_t += weight * t
+                transmittance *= 1.0 - alpha
+                if transmittance < min_transmittance:
+                    stop = True
+                    break
+            if stop:
+                break
+        opacity = 1.0 - transmittance
+        out_opacity[i] = opacity
+        out_depth[i] = min(max(weighted_t / max(opacity, DEPTH_EPS), near), far) if opacity > 0.0 else 0.0
+        out_evaluated[i] = evaluated
+        out_coloured[i] = coloured
+
+
+@numba.njit(parallel=True, cache=True)
+def _render_rays(block, order, origins, directions, near, far, t_start, distance, voxel, lo_box, segment, voxel_steps, step, index,
+                 raw_grid, nodes, scale, features, shift, density_scale, min_transmittance, colour_min_weight,
+                 inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated, out_coloured, out_rows,
+                 out_features, out_weights):
+    lanes = min(-(-origins.shape[0] // block), LANES)
+    for lane in numba.prange(lanes):
+        _render_lane(lane, lanes, block, order, origins, directions, near, far, t_start, distance, voxel, lo_box, segment,
+                     voxel_steps, step, index, raw_grid, nodes, scale, features, shift, density_scale,
+                     min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
+                     out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights)
+
+
+def _spread_bits(x: torch.Tensor) -> torch.Tensor:
+    """The low 10 bits of x [n] int64, two zero bits after each (Morton code's interleave)."""
+    x = x & 0x3FF
+    x = (x | (x << 16)) & 0x30000FF
+    x = (x | (x << 8)) & 0x300F00F
+    x = (x | (x << 4)) & 0x30C30C3
+    return (x | (x << 2)) & 0x9249249
+
+
+def locality_order(origins: torch.Tensor, directions: torch.Tensor, start: torch.Tensor, aabb: torch.Tensor,
+                   voxel: float) -> torch.Tensor:
+    """The rays [n] in Morton order of where their samples begin (origin + start direction,
+    in cells of LOCALITY_CELL voxels): rays that begin close together read the same grid
+    nodes, so a thread that renders them one after another finds those in its cache (a
+    frame's sub-rays, ordered by point and then pixel, rendered 1.8x faster so). Returns
+    the order [n] int64."""
+    begin = torch.addcmul(origins, start[:, None].to(origins.dtype), directions)
+    cell = ((begin - aabb[0]) / (LOCALITY_CELL * voxel)).floor().long().clamp(0, 0x3FF)
+    key = _spread_bits(cell[:, 0]) | (_spread_bits(cell[:, 1]) << 1) | (_spread_bits(cell[:, 2]) << 2)
+    return torch.argsort(key, stable=True)
+
+
+@torch.no_grad()
+def render_compiled(field, distance: np.ndarray, origins: torch.Tensor, directions: torch.Tensor,
+                    t_start: torch.Tensor | None = None, min_transmittance: float = 1e-3,
+                    colour_min_weight: float = COLOUR_MIN_WEIGHT) -> tuple:
+    """Early-terminated render of rays [n, 3] (unit directions, CPU) through a bounded
+    `VoxelGridField`, its occupancy given by `skip_distances(occupancy)` [nz, ny, nx] (0:
+    occupied). t_start: [n] where each ray's samples begin (None: at its box entry). Not
+    differentiable. Runs on numba's threads (`kernel_threads`). Returns premultiplied rgb
+    [n, 3], opacity [n], depth [n] (in the rays' dtype) and the samples evaluated (int)."""
+    n = origins.shape[0]
+    aabb = field.aabb
+    near, far, _ = ray_aabb(origins, directions, aabb)
+    cells = torch.tensor([distance.shape[2], distance.shape[1], distance.shape[0]], dtype=torch.float64)
+    voxel = ((aabb[1] - aabb[0]).double() / cells).numpy()  # [3] x y z: the march's voxel
+    step = field.marching_step
+    voxel_steps = max(1, round(float(voxel.max()) / step))
+    nz, ny, nx = field.shape
+    scale = (torch.tensor([nx - 1, ny - 1, nz - 1], dtype=torch.float64) / (aabb[1] - aabb[0]).double()).numpy()
+    features = field.features.detach().contiguous().numpy()
+    inline = field.head is None
+    start = near if t_start is None else torch.maximum(near, t_start.to(near.dtype))
+    order = locality_order(origins, directions, start, aabb, field.voxel).numpy()
+    arrays = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.double().numpy(),
+              far.double().numpy(), start.double().numpy())
+    constants = (distance, voxel, aabb[0].double().numpy(), float(voxel_steps * step), voxel_steps, float(step),
+                 field.index.reshape(-1).numpy(), raw_density_grid(field), np.array([nx, ny, nz], dtype=np.int64), scale,
+                 features, float(field.shift),
+                 DENSITY_SCALE / field.voxel_final, float(min_transmittance), float(colour_min_weight), inline)
+    rgb, opacity, depth = np.zeros((n, 3)), np.zeros(n), np.zeros(n)
+    evaluated, coloured = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    outputs = (rgb, opacity, depth, evaluated, coloured)
+    _render_rays(BLOCK, order, *arrays, *constants, np.zeros(0, np.int64), *outputs, np.zeros(0, np.int64),
+                 np.zeros((0, features.shape[1]), np.float32), np.zeros(0))
+    rgb_t = torch.from_numpy(rgb)
+    if not inline:  # the head's colour, in torch, from the coloured samples' features
+        write = np.cumsum(coloured) - coloured
+        total = int(coloured.sum())
+        rays, values, weights = np.zeros(total, np.int64), np.zeros((total, features.shape[1]), np.float32), np.zeros(total)
+        _render_rays(BLOCK, order, *arrays, *constants, write, *outputs, rays, values, weights)
+        rays_t = torch.from_numpy(rays)
+        colour = field._colour(torch.from_numpy(values), directions.index_select(0, rays_t)).double()
+        rgb_t = torch.zeros((n, 3), dtype=torch.float64).index_add_(0, rays_t, torch.from_numpy(weights)[:, None] * colour)
+    dtype = origins.dtype
+    return (rgb_t.to(dtype), torch.from_numpy(opacity).to(dtype), torch.from_numpy(depth).to(dtype),
+            int(evaluated.sum()))
