@@ -42,12 +42,13 @@ from __future__ import annotations
 
 import contextlib
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
 import torch
 
-from nerfgauge.nerf.grid_field import DENSITY_SCALE, any_within
+from nerfgauge.nerf.grid_field import DENSE_RENDER_FLOATS, DENSITY_SCALE, any_within
 from nerfgauge.nerf.packed import COLOUR_MIN_WEIGHT, TAU_MAX_PACKED
 from nerfgauge.nerf.rendering import DEPTH_EPS, ray_aabb
 
@@ -62,9 +63,11 @@ BLOCK = 32
 LOCALITY_CELL = 2
 # softplus(x) = x above this, as torch's F.softplus (threshold 20)
 SOFTPLUS_THRESHOLD = 20.0
-# below this, softplus(x) = log1p(exp(x)) is exp(x) to a relative exp(x) / 2 < 2.3e-5 (one
-# transcendental call instead of two, for the faint density in front of every surface)
+# below this, softplus(x) = log1p(exp(x)) is exp(x) to a relative exp(x) / 2 < 2.3e-5
 SOFTPLUS_TAIL = -10.0
+# below this, 1 - exp(-tau) is its Taylor polynomial to the third order within a relative
+# tau^3 / 24 < 4.2e-11
+SMALL_TAU = 1e-3
 # The distance grid counts up to this many voxels (uint8); a ray through wider empty space
 # looks up once every MAX_SKIP - 1 voxels.
 MAX_SKIP = 16
@@ -99,13 +102,15 @@ def skip_distances(occupancy: torch.Tensor, cap: int = MAX_SKIP) -> np.ndarray:
     return distance.numpy()
 
 
-def raw_density_grid(field) -> np.ndarray:
-    """The field's raw density at every node [nz * ny * nx] float32 (EMPTY_RAW where no row
-    is allocated): one load a corner instead of the index's row and then the table's."""
-    dense = field._dense_for_rendering()
-    if dense is not None:
-        return dense[0].reshape(-1).numpy()
-    return field.density_table.detach()[:, 0][field.index.reshape(-1).long()].contiguous().numpy()
+def node_table(field) -> tuple:
+    """The field's values as the kernel reads them: (index, table [R, 1 + C] float32, raw
+    density then features). Where a dense copy fits (grid_field.DENSE_RENDER_FLOATS), a row
+    per grid node and an empty index: one load a corner; else the sparse tables' rows (row
+    0: empty) and the node index [nz * ny * nx] int32 that addresses them."""
+    table = torch.cat([field.density_table.detach(), field.features.detach()], dim=1)  # [rows, 1 + C]
+    if table.shape[1] * math.prod(field.shape) <= DENSE_RENDER_FLOATS:
+        return np.zeros(0, np.int32), table[field.index.reshape(-1).long()].contiguous().numpy()
+    return field.index.reshape(-1).contiguous().numpy(), table.contiguous().numpy()
 
 
 @numba.njit(cache=True)
@@ -121,7 +126,7 @@ def _lane_rays(lane, lanes, order, size):
 
 @numba.njit(cache=True)
 def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, t_start, distance, voxel, lo_box, segment,
-                 voxel_steps, step, index, raw_grid, nodes, scale, features, shift, density_scale, min_transmittance,
+                 voxel_steps, step, index, table, nodes, scale, shift, density_scale, min_transmittance,
                  colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
                  out_coloured, out_rows, out_features, out_weights):
     """Rays lane, lane + lanes, ... (one thread's share), each front to back: its opacity,
@@ -130,7 +135,8 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
     weight written from the ray's row on."""
     gz, gy, gx = distance.shape
     nx, ny, nz = nodes[0], nodes[1], nodes[2]
-    channels = features.shape[1]
+    channels = table.shape[1] - 1
+    dense = index.shape[0] == 0
     rows = np.zeros(8, np.int64)
     weights = np.zeros(8)
     for i in _lane_rays(lane, lanes, order, block):
@@ -190,34 +196,31 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
                     for cy in range(2):
                         wzy = wz * (fy if cy else 1.0 - fy)
                         corner = flat + (cz * ny + cy) * nx
-                        weights[c] = wzy * (1.0 - fx)
-                        weights[c + 1] = wzy * fx
-                        raw += weights[c] * raw_grid[corner] + weights[c + 1] * raw_grid[corner + 1]
+                        row0 = corner if dense else index[corner]
+                        row1 = corner + 1 if dense else index[corner + 1]
+                        rows[c], rows[c + 1] = row0, row1
+                        weights[c], weights[c + 1] = wzy * (1.0 - fx), wzy * fx
+                        raw += weights[c] * table[row0, 0] + weights[c + 1] * table[row1, 0]
                         c += 2
                 arg = raw + shift
-                if arg > SOFTPLUS_THRESHOLD:
-                    softplus = arg
-                elif arg < SOFTPLUS_TAIL:  # log1p(e) = e (1 - e / 2 + ...): e itself to 1e-5 of it
-                    softplus = math.exp(arg)
+                if arg < SOFTPLUS_TAIL:
+                    # softplus(x) = log1p(e^x) = e^x to a relative e^x / 2 < 2.3e-5, and for a
+                    # small tau, 1 - e^-tau to its third order: one transcendental call, not
+                    # three, for the faint density in front of every surface
+                    tau = density_scale * step * math.exp(arg)
+                    alpha = tau * (1.0 - tau * (0.5 - tau * (1.0 / 6.0))) if tau < SMALL_TAU else -math.expm1(-tau)
                 else:
-                    softplus = math.log1p(math.exp(arg))
-                tau = min(density_scale * softplus * step, TAU_MAX_PACKED)
-                alpha = -math.expm1(-tau)
+                    softplus = arg if arg > SOFTPLUS_THRESHOLD else math.log1p(math.exp(arg))
+                    tau = min(density_scale * softplus * step, TAU_MAX_PACKED)
+                    alpha = -math.expm1(-tau)
                 weight = transmittance * alpha
                 evaluated += 1
                 if weight > colour_min_weight:
-                    c = 0
-                    for cz in range(2):
-                        for cy in range(2):
-                            corner = flat + (cz * ny + cy) * nx
-                            rows[c] = index[corner]
-                            rows[c + 1] = index[corner + 1]
-                            c += 2
                     if inline_colour:
                         for channel in range(3):
                             value = 0.0
                             for c in range(8):
-                                value += weights[c] * features[rows[c], channel]
+                                value += weights[c] * table[rows[c], 1 + channel]
                             out_rgb[i, channel] += weight / (1.0 + math.exp(-value))
                     elif write_from >= 0:
                         row = write_from + coloured
@@ -226,7 +229,7 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
                         for channel in range(channels):
                             value = 0.0
                             for c in range(8):
-                                value += weights[c] * features[rows[c], channel]
+                                value += weights[c] * table[rows[c], 1 + channel]
                             out_features[row, channel] = value
                     coloured += 1
                 weighted_t += weight * t
@@ -245,13 +248,13 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
 
 @numba.njit(parallel=True, cache=True)
 def _render_rays(block, order, origins, directions, near, far, t_start, distance, voxel, lo_box, segment, voxel_steps, step, index,
-                 raw_grid, nodes, scale, features, shift, density_scale, min_transmittance, colour_min_weight,
+                 table, nodes, scale, shift, density_scale, min_transmittance, colour_min_weight,
                  inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated, out_coloured, out_rows,
                  out_features, out_weights):
     lanes = min(-(-origins.shape[0] // block), LANES)
     for lane in numba.prange(lanes):
         _render_lane(lane, lanes, block, order, origins, directions, near, far, t_start, distance, voxel, lo_box, segment,
-                     voxel_steps, step, index, raw_grid, nodes, scale, features, shift, density_scale,
+                     voxel_steps, step, index, table, nodes, scale, shift, density_scale,
                      min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
                      out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights)
 
@@ -278,17 +281,43 @@ def locality_order(origins: torch.Tensor, directions: torch.Tensor, start: torch
     return torch.argsort(key, stable=True)
 
 
+@dataclass(frozen=True)
+class KernelGrids:
+    """What the kernel reads of a field and its occupancy: the skip distances [nz, ny, nx]
+    uint8 (`skip_distances`), and the node index and value table (`node_table`); `key`
+    says which state of the field's tables they hold (`tables_key`)."""
+
+    distance: np.ndarray
+    index: np.ndarray
+    table: np.ndarray
+    key: tuple
+
+
+def tables_key(field) -> tuple:
+    """Changes whenever the field's index or value tables do (an Adam step bumps a table's
+    version; an upsample or a load replaces it)."""
+    return (field.index.data_ptr(), field.density_table.data_ptr(), field.density_table._version,
+            field.features.data_ptr(), field.features._version)
+
+
 @torch.no_grad()
-def render_compiled(field, distance: np.ndarray, origins: torch.Tensor, directions: torch.Tensor,
+def kernel_grids(field, occupancy: torch.Tensor) -> KernelGrids:
+    """`KernelGrids` of a field and its occupancy [nz, ny, nx] bool (cells)."""
+    return KernelGrids(skip_distances(occupancy), *node_table(field), tables_key(field))
+
+
+@torch.no_grad()
+def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions: torch.Tensor,
                     t_start: torch.Tensor | None = None, min_transmittance: float = 1e-3,
                     colour_min_weight: float = COLOUR_MIN_WEIGHT) -> tuple:
     """Early-terminated render of rays [n, 3] (unit directions, CPU) through a bounded
-    `VoxelGridField`, its occupancy given by `skip_distances(occupancy)` [nz, ny, nx] (0:
-    occupied). t_start: [n] where each ray's samples begin (None: at its box entry). Not
-    differentiable. Runs on numba's threads (`kernel_threads`). Returns premultiplied rgb
-    [n, 3], opacity [n], depth [n] (in the rays' dtype) and the samples evaluated (int)."""
+    `VoxelGridField` and its occupancy (`kernel_grids`). t_start: [n] where each ray's
+    samples begin (None: at its box entry). Not differentiable. Runs on numba's threads
+    (`kernel_threads`). Returns premultiplied rgb [n, 3], opacity [n], depth [n] (in the
+    rays' dtype) and the samples evaluated (int)."""
     n = origins.shape[0]
     aabb = field.aabb
+    distance = grids.distance
     near, far, _ = ray_aabb(origins, directions, aabb)
     cells = torch.tensor([distance.shape[2], distance.shape[1], distance.shape[0]], dtype=torch.float64)
     voxel = ((aabb[1] - aabb[0]).double() / cells).numpy()  # [3] x y z: the march's voxel
@@ -296,26 +325,25 @@ def render_compiled(field, distance: np.ndarray, origins: torch.Tensor, directio
     voxel_steps = max(1, round(float(voxel.max()) / step))
     nz, ny, nx = field.shape
     scale = (torch.tensor([nx - 1, ny - 1, nz - 1], dtype=torch.float64) / (aabb[1] - aabb[0]).double()).numpy()
-    features = field.features.detach().contiguous().numpy()
+    channels = grids.table.shape[1] - 1
     inline = field.head is None
     start = near if t_start is None else torch.maximum(near, t_start.to(near.dtype))
     order = locality_order(origins, directions, start, aabb, field.voxel).numpy()
     arrays = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.double().numpy(),
               far.double().numpy(), start.double().numpy())
     constants = (distance, voxel, aabb[0].double().numpy(), float(voxel_steps * step), voxel_steps, float(step),
-                 field.index.reshape(-1).numpy(), raw_density_grid(field), np.array([nx, ny, nz], dtype=np.int64), scale,
-                 features, float(field.shift),
+                 grids.index, grids.table, np.array([nx, ny, nz], dtype=np.int64), scale, float(field.shift),
                  DENSITY_SCALE / field.voxel_final, float(min_transmittance), float(colour_min_weight), inline)
     rgb, opacity, depth = np.zeros((n, 3)), np.zeros(n), np.zeros(n)
     evaluated, coloured = np.zeros(n, np.int64), np.zeros(n, np.int64)
     outputs = (rgb, opacity, depth, evaluated, coloured)
     _render_rays(BLOCK, order, *arrays, *constants, np.zeros(0, np.int64), *outputs, np.zeros(0, np.int64),
-                 np.zeros((0, features.shape[1]), np.float32), np.zeros(0))
+                 np.zeros((0, channels), np.float32), np.zeros(0))
     rgb_t = torch.from_numpy(rgb)
     if not inline:  # the head's colour, in torch, from the coloured samples' features
         write = np.cumsum(coloured) - coloured
         total = int(coloured.sum())
-        rays, values, weights = np.zeros(total, np.int64), np.zeros((total, features.shape[1]), np.float32), np.zeros(total)
+        rays, values, weights = np.zeros(total, np.int64), np.zeros((total, channels), np.float32), np.zeros(total)
         _render_rays(BLOCK, order, *arrays, *constants, write, *outputs, rays, values, weights)
         rays_t = torch.from_numpy(rays)
         colour = field._colour(torch.from_numpy(values), directions.index_select(0, rays_t)).double()

@@ -16,7 +16,7 @@ from typing import Optional
 import torch
 from nerfgauge.nerf.encoding import PositionalEncoding
 from nerfgauge.nerf.grid_field import VoxelGridField, any_within
-from nerfgauge.nerf.march_cpu import render_compiled, skip_distances
+from nerfgauge.nerf.march_cpu import kernel_grids, render_compiled, tables_key
 from nerfgauge.nerf.marching import (
     cell_of,
     march,
@@ -111,7 +111,7 @@ class CompactNeRF(RadianceModel):
         self.register_buffer("occupancy", torch.ones(self._cells(), dtype=torch.bool))
         self._pyramid = None  # coarse-to-fine occupancy for marching, rebuilt when occupancy changes
         self._pyramid_of = None
-        self._compiled = None  # (occupancy, its skip distances: what the compiled renderer reads)
+        self._compiled = None  # (occupancy, march_cpu.KernelGrids: what the compiled renderer reads)
         # Cells some training ray can see (transmittance reaches them); the rest (object
         # interiors, hidden corners) need not be sampled or stored. All, until measured.
         self.register_buffer("visible", torch.ones_like(self.occupancy))
@@ -263,8 +263,9 @@ class CompactNeRF(RadianceModel):
             if t_start is not None:
                 raise ValueError("t_start needs the compiled CPU renderer")
             return self._render_windows(origins, directions)
-        if self._compiled is None or self._compiled[0] is not self.occupancy:
-            self._compiled = (self.occupancy, skip_distances(self.occupancy))
+        if self._compiled is None or self._compiled[0] is not self.occupancy or \
+                self._compiled[1].key != tables_key(self.field):
+            self._compiled = (self.occupancy, kernel_grids(self.field, self.occupancy))
         colour, opacity, depth, evaluated = render_compiled(self.field, self._compiled[1], origins, directions, t_start)
         return RayOutput(colour, opacity, depth, evaluated)
 
