@@ -55,7 +55,11 @@ def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, wi
 def render_frame(model, origins, directions, pool, parts: int = 1) -> tuple:
     """One frame's rays split into `parts` over the worker threads of `pool` (None: this thread).
     On a CPU, a few threads each running single-threaded ops on part of the rays use the
-    cores better than one thread of many small multi-threaded ops (measured: ~1.3x)."""
+    cores better than one thread of many small multi-threaded ops (measured: ~1.3x). A
+    model that renders compiled (RadianceModel.renders_compiled) takes the frame's rays in
+    one batch, which it spreads over its own threads, and needs no pool."""
+    if getattr(model, "renders_compiled", None) is not None and model.renders_compiled(origins.device):
+        return render_rays_chunked(model, origins, directions, chunk=max(1, origins.shape[0]))
     if pool is None:
         return render_rays_chunked(model, origins, directions)
 

@@ -50,7 +50,7 @@ import torch
 
 from nerfgauge.nerf.grid_field import DENSE_RENDER_FLOATS, DENSITY_SCALE, any_within
 from nerfgauge.nerf.packed import COLOUR_MIN_WEIGHT, TAU_MAX_PACKED
-from nerfgauge.nerf.rendering import DEPTH_EPS, ray_aabb
+from nerfgauge.nerf.rendering import DEPTH_EPS
 
 # Lanes of rays the prange splits over the threads: lane k renders blocks k, k + LANES, ...
 # of BLOCK consecutive rays, so every thread's share crosses the whole image (a frame's
@@ -58,8 +58,7 @@ from nerfgauge.nerf.rendering import DEPTH_EPS, ray_aabb
 # together in a thread's cache.
 LANES = 256
 BLOCK = 32
-# Rays are rendered in Morton order of where they begin, in cells this many voxels wide
-# (`locality_order`).
+# Rays are rendered in Morton order of where they begin, in cells this many voxels wide.
 LOCALITY_CELL = 2
 # softplus(x) = x above this, as torch's F.softplus (threshold 20)
 SOFTPLUS_THRESHOLD = 20.0
@@ -259,26 +258,44 @@ def _render_rays(block, order, origins, directions, near, far, t_start, distance
                      out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights)
 
 
-def _spread_bits(x: torch.Tensor) -> torch.Tensor:
-    """The low 10 bits of x [n] int64, two zero bits after each (Morton code's interleave)."""
-    x = x & 0x3FF
+@numba.njit(cache=True, inline="always")
+def _spread_bits(x):
+    """The low 10 bits of x, two zero bits after each (a Morton code's interleave)."""
+    x &= 0x3FF
     x = (x | (x << 16)) & 0x30000FF
     x = (x | (x << 8)) & 0x300F00F
     x = (x | (x << 4)) & 0x30C30C3
     return (x | (x << 2)) & 0x9249249
 
 
-def locality_order(origins: torch.Tensor, directions: torch.Tensor, start: torch.Tensor, aabb: torch.Tensor,
-                   voxel: float) -> torch.Tensor:
-    """The rays [n] in Morton order of where their samples begin (origin + start direction,
-    in cells of LOCALITY_CELL voxels): rays that begin close together read the same grid
-    nodes, so a thread that renders them one after another finds those in its cache (a
-    frame's sub-rays, ordered by point and then pixel, rendered 1.8x faster so). Returns
-    the order [n] int64."""
-    begin = torch.addcmul(origins, start[:, None].to(origins.dtype), directions)
-    cell = ((begin - aabb[0]) / (LOCALITY_CELL * voxel)).floor().long().clamp(0, 0x3FF)
-    key = _spread_bits(cell[:, 0]) | (_spread_bits(cell[:, 1]) << 1) | (_spread_bits(cell[:, 2]) << 2)
-    return torch.argsort(key, stable=True)
+@numba.njit(parallel=True, cache=True)
+def _enter_box(origins, directions, lo, hi, t_start, cell, out_near, out_far, out_key):
+    """`nerf.rendering.ray_aabb` of every ray (the slab method: near and far, both 0 for a
+    ray that misses the box or only grazes it), and the Morton key of where its samples
+    begin (origin + max(near, t_start) direction, in cells `cell` wide from the box's
+    corner; rays that miss: past every other key)."""
+    for i in numba.prange(origins.shape[0]):
+        t_near, t_far = 0.0, math.inf
+        for axis in range(3):
+            o, d = float(origins[i, axis]), float(directions[i, axis])
+            if d == 0.0:
+                if o < lo[axis] or o > hi[axis]:
+                    t_near, t_far = math.inf, -math.inf
+                continue
+            t_lo, t_hi = (lo[axis] - o) / d, (hi[axis] - o) / d
+            t_near = max(t_near, min(t_lo, t_hi))
+            t_far = min(t_far, max(t_lo, t_hi))
+        if t_far > t_near:
+            out_near[i], out_far[i] = t_near, t_far
+            begin = max(t_near, t_start[i]) if t_start.shape[0] else t_near
+            key = 0
+            for axis in range(3):
+                position = (float(origins[i, axis]) + begin * float(directions[i, axis]) - lo[axis]) / cell
+                key |= _spread_bits(min(max(int(math.floor(position)), 0), 0x3FF)) << axis
+            out_key[i] = key
+        else:
+            out_near[i], out_far[i] = 0.0, 0.0
+            out_key[i] = 1 << 62
 
 
 @dataclass(frozen=True)
@@ -318,7 +335,6 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
     n = origins.shape[0]
     aabb = field.aabb
     distance = grids.distance
-    near, far, _ = ray_aabb(origins, directions, aabb)
     cells = torch.tensor([distance.shape[2], distance.shape[1], distance.shape[0]], dtype=torch.float64)
     voxel = ((aabb[1] - aabb[0]).double() / cells).numpy()  # [3] x y z: the march's voxel
     step = field.marching_step
@@ -327,11 +343,17 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
     scale = (torch.tensor([nx - 1, ny - 1, nz - 1], dtype=torch.float64) / (aabb[1] - aabb[0]).double()).numpy()
     channels = grids.table.shape[1] - 1
     inline = field.head is None
-    start = near if t_start is None else torch.maximum(near, t_start.to(near.dtype))
-    order = locality_order(origins, directions, start, aabb, field.voxel).numpy()
-    arrays = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.double().numpy(),
-              far.double().numpy(), start.double().numpy())
-    constants = (distance, voxel, aabb[0].double().numpy(), float(voxel_steps * step), voxel_steps, float(step),
+    o, d = origins.contiguous().numpy(), directions.contiguous().numpy()
+    lo, hi = aabb[0].double().numpy(), aabb[1].double().numpy()
+    start = np.zeros(0) if t_start is None else t_start.double().contiguous().numpy()
+    near, far, key = np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
+    _enter_box(o, d, lo, hi, start, LOCALITY_CELL * field.voxel, near, far, key)
+    # rays that begin close together read the same grid nodes: rendered one after another
+    # they find those in the thread's cache (at 256 px: 1.4x faster than the image's order)
+    order = np.argsort(key, kind="stable")
+    start = near if t_start is None else np.maximum(near, start)
+    arrays = (o, d, near, far, start)
+    constants = (distance, voxel, lo, float(voxel_steps * step), voxel_steps, float(step),
                  grids.index, grids.table, np.array([nx, ny, nz], dtype=np.int64), scale, float(field.shift),
                  DENSITY_SCALE / field.voxel_final, float(min_transmittance), float(colour_min_weight), inline)
     rgb, opacity, depth = np.zeros((n, 3)), np.zeros(n), np.zeros(n)
