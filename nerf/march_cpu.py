@@ -124,8 +124,8 @@ def _lane_rays(lane, lanes, order, size):
 
 
 @numba.njit(cache=True)
-def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, t_start, distance, voxel, lo_box, segment,
-                 voxel_steps, step, index, table, nodes, scale, shift, density_scale, min_transmittance,
+def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, t_start, distance, voxel, lo_box,
+                 segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, min_transmittance,
                  colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
                  out_coloured, out_rows, out_features, out_weights):
     """Rays lane, lane + lanes, ... (one thread's share), each front to back: its opacity,
@@ -246,14 +246,15 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
 
 
 @numba.njit(parallel=True, cache=True)
-def _render_rays(block, order, origins, directions, near, far, t_start, distance, voxel, lo_box, segment, voxel_steps, step, index,
-                 table, nodes, scale, shift, density_scale, min_transmittance, colour_min_weight,
-                 inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated, out_coloured, out_rows,
-                 out_features, out_weights):
+def _render_rays(block, order, origins, directions, near, far, t_start, distance, voxel, lo_box, segment,
+                 voxel_steps, step, index, table, nodes, scale, shift, density_scale, min_transmittance,
+                 colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
+                 out_coloured, out_rows, out_features, out_weights):
+    """`_render_lane` of every lane of rays, the lanes spread over numba's threads."""
     lanes = min(-(-origins.shape[0] // block), LANES)
     for lane in numba.prange(lanes):
-        _render_lane(lane, lanes, block, order, origins, directions, near, far, t_start, distance, voxel, lo_box, segment,
-                     voxel_steps, step, index, table, nodes, scale, shift, density_scale,
+        _render_lane(lane, lanes, block, order, origins, directions, near, far, t_start, distance, voxel, lo_box,
+                     segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale,
                      min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
                      out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights)
 
@@ -365,11 +366,13 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
     if not inline:  # the head's colour, in torch, from the coloured samples' features
         write = np.cumsum(coloured) - coloured
         total = int(coloured.sum())
-        rays, values, weights = np.zeros(total, np.int64), np.zeros((total, channels), np.float32), np.zeros(total)
+        rays, values = np.zeros(total, np.int64), np.zeros((total, channels), np.float32)
+        weights = np.zeros(total)
         _render_rays(BLOCK, order, *arrays, *constants, write, *outputs, rays, values, weights)
         rays_t = torch.from_numpy(rays)
         colour = field._colour(torch.from_numpy(values), directions.index_select(0, rays_t)).double()
-        rgb_t = torch.zeros((n, 3), dtype=torch.float64).index_add_(0, rays_t, torch.from_numpy(weights)[:, None] * colour)
+        weighted = torch.from_numpy(weights)[:, None] * colour
+        rgb_t = torch.zeros((n, 3), dtype=torch.float64).index_add_(0, rays_t, weighted)
     dtype = origins.dtype
     return (rgb_t.to(dtype), torch.from_numpy(opacity).to(dtype), torch.from_numpy(depth).to(dtype),
             int(evaluated.sum()))
