@@ -38,7 +38,8 @@ from nerfgauge.nerf.checkpoint import load_model
 from nerfgauge.nerf.config import RENDER_FILTERS, SUB_RAYS, pixel_filter_for
 from nerfgauge.nerf.data import split_rays
 from nerfgauge.nerf.march_cpu import kernel_threads
-from nerfgauge.nerf.frames import EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, lens_frame, render_frame, rgba_png
+from nerfgauge.nerf.frames import (EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, lens_frame, render_frame,
+                                   renders_compiled, rgba_png)
 from nerfgauge.nerf.runs import open_run_dataset
 from nerfgauge.nerf.train import pick_device
 from nerfgauge.core.progress import progress as progress_bar
@@ -122,7 +123,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
         model.field.step_ratio = step_ratio
     # torch ops on part of the rays in each of a pool's threads, or one compiled kernel that
     # spreads every batch of rays over the threads itself (CompactNeRF.renders_compiled)
-    compiled = model.renders_compiled(device)
+    compiled = renders_compiled(model, device)
     pool = ThreadPoolExecutor(threads) if device.type == "cpu" and threads > 1 and not compiled else None
     parts = threads * PARTS_PER_THREAD
     torch.set_num_threads(1 if pool is not None else threads)
