@@ -21,9 +21,7 @@ Each ray walks its samples nearest first and stops after the first sample that t
 `min_transmittance`: the colour it leaves out is at most that (the torch path,
 `CompactNeRF._render_windows`, stops at the end of a window of segments instead, so the two
 differ by at most min_transmittance a ray). A sample's colour is asked for only where its
-weight exceeds COLOUR_MIN_WEIGHT, as the torch path does. A ray may start at t_start (later
-than its box entry): the samples before it are neither evaluated nor composited (`nerf.frames`'
-sub-rays, whose neighbouring centres say where their surface lies).
+weight exceeds COLOUR_MIN_WEIGHT, as the torch path does.
 
 Why compiled: a 128 px frame of the 600-s primitives model holds ~16k centre rays and ~8k
 sub-rays with ~220k samples in front of their surfaces; the batched torch path spent ~30 ops
@@ -124,7 +122,7 @@ def _lane_rays(lane, lanes, order, size):
 
 
 @numba.njit(cache=True)
-def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, t_start, distance, voxel, lo_box,
+def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, distance, voxel, lo_box,
                  segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, min_transmittance,
                  colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
                  out_coloured, out_rows, out_features, out_weights):
@@ -154,8 +152,7 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
         ny0 = (origins[i, 1] - lo_box[1]) * scale[1]
         nz0 = (origins[i, 2] - lo_box[2]) * scale[2]
         ndx, ndy, ndz = directions[i, 0] * scale[0], directions[i, 1] * scale[1], directions[i, 2] * scale[2]
-        first = t_start[i]
-        k = int(math.floor((first - near) / segment)) if first > near else 0
+        k = 0
         while far > near:
             s = near + k * segment
             if s >= far:
@@ -177,8 +174,6 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
                 t = s + (j + 0.5) * step
                 if t >= far:
                     break
-                if t < first:
-                    continue
                 # `VoxelGridField.corners`: the point clamped into the box, its cell's 8 nodes
                 ux = min(max(nx0 + ndx * t, 0.0), nx - 1.0)
                 uy = min(max(ny0 + ndy * t, 0.0), ny - 1.0)
@@ -246,14 +241,14 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
 
 
 @numba.njit(parallel=True, cache=True)
-def _render_rays(block, order, origins, directions, near, far, t_start, distance, voxel, lo_box, segment,
+def _render_rays(block, order, origins, directions, near, far, distance, voxel, lo_box, segment,
                  voxel_steps, step, index, table, nodes, scale, shift, density_scale, min_transmittance,
                  colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
                  out_coloured, out_rows, out_features, out_weights):
     """`_render_lane` of every lane of rays, the lanes spread over numba's threads."""
     lanes = min(-(-origins.shape[0] // block), LANES)
     for lane in numba.prange(lanes):
-        _render_lane(lane, lanes, block, order, origins, directions, near, far, t_start, distance, voxel, lo_box,
+        _render_lane(lane, lanes, block, order, origins, directions, near, far, distance, voxel, lo_box,
                      segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale,
                      min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
                      out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights)
@@ -270,11 +265,11 @@ def _spread_bits(x):
 
 
 @numba.njit(cache=True)
-def _enter_box(origins, directions, lo, hi, t_start, cell, out_near, out_far, out_key):
+def _enter_box(origins, directions, lo, hi, cell, out_near, out_far, out_key):
     """`nerf.rendering.ray_aabb` of every ray (the slab method: near and far, both 0 for a
-    ray that misses the box or only grazes it), and the Morton key of where its samples
-    begin (origin + max(near, t_start) direction, in cells `cell` wide from the box's
-    corner; rays that miss: past every other key)."""
+    ray that misses the box or only grazes it), and the Morton key of where it enters
+    (origin + near direction, in cells `cell` wide from the box's corner; rays that miss:
+    past every other key)."""
     for i in range(origins.shape[0]):  # 0.5 ms for 65k rays: not worth a parallel region's compile
         t_near, t_far = 0.0, math.inf
         for axis in range(3):
@@ -288,10 +283,9 @@ def _enter_box(origins, directions, lo, hi, t_start, cell, out_near, out_far, ou
             t_far = min(t_far, max(t_lo, t_hi))
         if t_far > t_near:
             out_near[i], out_far[i] = t_near, t_far
-            begin = max(t_near, t_start[i]) if t_start.shape[0] else t_near
             key = 0
             for axis in range(3):
-                position = (float(origins[i, axis]) + begin * float(directions[i, axis]) - lo[axis]) / cell
+                position = (float(origins[i, axis]) + t_near * float(directions[i, axis]) - lo[axis]) / cell
                 key |= _spread_bits(min(max(int(math.floor(position)), 0), 0x3FF)) << axis
             out_key[i] = key
         else:
@@ -326,11 +320,10 @@ def kernel_grids(field, occupancy: torch.Tensor) -> KernelGrids:
 
 @torch.no_grad()
 def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions: torch.Tensor,
-                    t_start: torch.Tensor | None = None, min_transmittance: float = 1e-3,
+                    min_transmittance: float = 1e-3,
                     colour_min_weight: float = COLOUR_MIN_WEIGHT) -> tuple:
     """Early-terminated render of rays [n, 3] (unit directions, CPU) through a bounded
-    `VoxelGridField` and its occupancy (`kernel_grids`). t_start: [n] where each ray's
-    samples begin (None: at its box entry). Not differentiable. Runs on numba's threads
+    `VoxelGridField` and its occupancy (`kernel_grids`). Not differentiable. Runs on numba's threads
     (`kernel_threads`). Returns premultiplied rgb [n, 3], opacity [n], depth [n] (in the
     rays' dtype) and the samples evaluated (int)."""
     n = origins.shape[0]
@@ -346,14 +339,12 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
     inline = field.head is None
     o, d = origins.contiguous().numpy(), directions.contiguous().numpy()
     lo, hi = aabb[0].double().numpy(), aabb[1].double().numpy()
-    start = np.zeros(0) if t_start is None else t_start.double().contiguous().numpy()
     near, far, key = np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
-    _enter_box(o, d, lo, hi, start, LOCALITY_CELL * field.voxel, near, far, key)
+    _enter_box(o, d, lo, hi, LOCALITY_CELL * field.voxel, near, far, key)
     # rays that begin close together read the same grid nodes: rendered one after another
     # they find those in the thread's cache (at 256 px: 1.4x faster than the image's order)
     order = np.argsort(key, kind="stable")
-    start = near if t_start is None else np.maximum(near, start)
-    arrays = (o, d, near, far, start)
+    arrays = (o, d, near, far)
     constants = (distance, voxel, lo, float(voxel_steps * step), voxel_steps, float(step),
                  grids.index, grids.table, np.array([nx, ny, nz], dtype=np.int64), scale, float(field.shift),
                  DENSITY_SCALE / field.voxel_final, float(min_transmittance), float(colour_min_weight), inline)

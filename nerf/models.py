@@ -254,19 +254,16 @@ class CompactNeRF(RadianceModel):
         which spreads one batch of rays over torch.get_num_threads() threads itself."""
         return device.type == "cpu" and self.field.space is None and self.use_occupancy
 
-    def _render_front_to_back(self, origins, directions, t_start=None) -> RayOutput:
+    def _render_front_to_back(self, origins, directions) -> RayOutput:
         """Inference in a bounded box, each ray stopped once it turns opaque: on the CPU
         compiled (`nerf.march_cpu`: each ray stops at its own sample), elsewhere in batched
-        torch ops (`_render_windows`). t_start: [n] where each ray's samples begin (None: at
-        its box entry; the compiled path only)."""
+        torch ops (`_render_windows`)."""
         if not self.renders_compiled(origins.device):
-            if t_start is not None:
-                raise ValueError("t_start needs the compiled CPU renderer")
             return self._render_windows(origins, directions)
         if self._compiled is None or self._compiled[0] is not self.occupancy or \
                 self._compiled[1].key != tables_key(self.field):
             self._compiled = (self.occupancy, kernel_grids(self.field, self.occupancy))
-        colour, opacity, depth, evaluated = render_compiled(self.field, self._compiled[1], origins, directions, t_start)
+        colour, opacity, depth, evaluated = render_compiled(self.field, self._compiled[1], origins, directions)
         return RayOutput(colour, opacity, depth, evaluated)
 
     def _render_windows(self, origins, directions) -> RayOutput:

@@ -3,7 +3,7 @@ the torch implementations it replaces on the CPU: the full pass over every march
 (`march` + `packed_render`, no early stop), the batched early-stopped render
 (`CompactNeRF._render_windows`), `ray_aabb`, and a brute-force Chebyshev distance.
 
-Grouped by fault class: which samples it takes (skip distances, box entry, t_start), what it
+Grouped by fault class: which samples it takes (skip distances, box entry), what it
 computes from them (the quadrature, a colour head, the sparse tables), and what must not
 change it (the thread count, the order rays are given in)."""
 
@@ -31,13 +31,11 @@ def _rays(g: torch.Generator, aabb: torch.Tensor, n: int = 2500):
     return origins, F.normalize(targets - origins, dim=-1)
 
 
-def _full_pass(model, origins, directions, t_start=None):
-    """Every marched sample (from t_start on) composited: `nerf.packed.packed_render`, the
-    torch quadrature, with no early stop and every sample's colour."""
+def _full_pass(model, origins, directions):
+    """Every marched sample composited: `nerf.packed.packed_render`, the torch quadrature,
+    with no early stop and every sample's colour."""
     samples = model._march(origins, directions)
-    rays, t = samples.ray_index, samples.t_mid
-    keep = torch.ones_like(t, dtype=torch.bool) if t_start is None else t >= t_start[rays]
-    rays, t, deltas = rays[keep], t[keep], sample_deltas(samples)[keep]
+    rays, t, deltas = samples.ray_index, samples.t_mid, sample_deltas(samples)
     d = directions.index_select(0, rays)
     sigma, rgb = model.field(torch.addcmul(origins.index_select(0, rays), t[:, None], d), d)
     rgb_out, opacity, depth, _ = packed_render(sigma, rgb, deltas, t, rays, samples.near, samples.far)
@@ -193,30 +191,12 @@ def test_where_rays_enter_the_box_is_ray_aabb_s():
     n = len(origins)
     near, far, key = np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
     march_cpu._enter_box(origins.numpy(), directions.numpy(), aabb[0].double().numpy(), aabb[1].double().numpy(),
-                         np.zeros(0), 0.1, near, far, key)
+                         0.1, near, far, key)
     want_near, want_far, hit = ray_aabb(origins, directions, aabb)
     assert 0 < hit.sum() < n and (want_near[40:45] == 0).all() and hit[40:45].all()
     np.testing.assert_allclose(near, want_near.double().numpy(), atol=2e-6)
     np.testing.assert_allclose(far, want_far.double().numpy(), atol=2e-6)
     assert (key[~hit.numpy()] > key[hit.numpy()].max()).all()  # misses last
-
-
-def test_a_ray_that_starts_late_composites_only_the_samples_from_its_start_on():
-    g = torch.Generator().manual_seed(9)
-    model, aabb = blob_model(g)
-    origins, directions = _rays(g, aabb, 1200)
-    near, far, _ = ray_aabb(origins, directions, aabb)
-    t_start = near + torch.rand(len(near), generator=g) * (far - near)
-    t_start[:100] = near[:100] - 1.0  # before the box: from its entry
-    with torch.no_grad():
-        rgb, opacity, depth, evaluated = _compiled(model, origins, directions, t_start=t_start,
-                                                   min_transmittance=0.0, colour_min_weight=-1.0)
-        full = _full_pass(model, origins, directions, t_start)
-        whole = _compiled(model, origins, directions, min_transmittance=0.0, colour_min_weight=-1.0)
-    assert evaluated == full[3] < whole[3]
-    torch.testing.assert_close(rgb, full[0], rtol=0, atol=1e-4)
-    torch.testing.assert_close(opacity, full[1], rtol=0, atol=1e-4)
-    assert torch.equal(rgb[:100], whole[0][:100])
 
 
 # --------------------------------------------------------------------------------------
