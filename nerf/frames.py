@@ -52,10 +52,21 @@ def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, wi
     return np.round(rgba * 255).astype(np.uint8)
 
 
+def renders_compiled(model, device) -> bool:
+    """Whether `model` renders a batch of rays on `device` through a compiled kernel on
+    threads of its own (RadianceModel.renders_compiled; a stand-in model with only a
+    `render` does not)."""
+    return getattr(model, "renders_compiled", None) is not None and model.renders_compiled(device)
+
+
 def render_frame(model, origins, directions, pool, parts: int = 1) -> tuple:
     """One frame's rays split into `parts` over the worker threads of `pool` (None: this thread).
     On a CPU, a few threads each running single-threaded ops on part of the rays use the
-    cores better than one thread of many small multi-threaded ops (measured: ~1.3x)."""
+    cores better than one thread of many small multi-threaded ops (measured: ~1.3x). A
+    model that renders compiled (RadianceModel.renders_compiled) takes the frame's rays in
+    one batch, which it spreads over its own threads, and needs no pool."""
+    if renders_compiled(model, origins.device):
+        return render_rays_chunked(model, origins, directions, chunk=max(1, origins.shape[0]))
     if pool is None:
         return render_rays_chunked(model, origins, directions)
 

@@ -16,6 +16,7 @@ from typing import Optional
 import torch
 from nerfgauge.nerf.encoding import PositionalEncoding
 from nerfgauge.nerf.grid_field import VoxelGridField, any_within
+from nerfgauge.nerf.march_cpu import kernel_grids, render_compiled, tables_key
 from nerfgauge.nerf.marching import (
     cell_of,
     march,
@@ -80,6 +81,12 @@ class RadianceModel(nn.Module):
     def regularisation(self, tv_weight: float) -> torch.Tensor:
         raise NotImplementedError
 
+    def renders_compiled(self, device: torch.device) -> bool:
+        """Whether inference on `device` renders a batch of rays on torch.get_num_threads()
+        threads by itself (a compiled kernel), rather than in torch ops that a frame's
+        renderer splits over a pool of threads (nerf.frames.render_frame)."""
+        return False
+
     def parameter_groups(self, lr: float, lr_mlp: float) -> list[dict]:
         """Adam's parameter groups, each with its "lr" and the "base_lr" the schedule decays
         from. lr, lr_mlp: the run's grid and MLP learning rates (TrainConfig)."""
@@ -104,6 +111,7 @@ class CompactNeRF(RadianceModel):
         self.register_buffer("occupancy", torch.ones(self._cells(), dtype=torch.bool))
         self._pyramid = None  # coarse-to-fine occupancy for marching, rebuilt when occupancy changes
         self._pyramid_of = None
+        self._compiled = None  # (occupancy, march_cpu.KernelGrids: what the compiled renderer reads)
         # Cells some training ray can see (transmittance reaches them); the rest (object
         # interiors, hidden corners) need not be sampled or stored. All, until measured.
         self.register_buffer("visible", torch.ones_like(self.occupancy))
@@ -241,11 +249,29 @@ class CompactNeRF(RadianceModel):
         distortion = packed_distortion(weights, t_mid, deltas, rays, origins.shape[0])
         return RayOutput(colour, opacity, depth, int(rays.numel()), distortion=distortion)
 
+    def renders_compiled(self, device: torch.device) -> bool:
+        """Whether inference on `device` goes through the compiled renderer (nerf.march_cpu),
+        which spreads one batch of rays over torch.get_num_threads() threads itself."""
+        return device.type == "cpu" and self.field.space is None and self.use_occupancy
+
     def _render_front_to_back(self, origins, directions) -> RayOutput:
-        """Inference in a bounded box: the march stops a level above the voxel grid and only
-        the segments a ray reaches before it turns opaque are cut into samples (about half
-        of them at 256 px on primitives): the same image as marching everything first, up
-        to the early stop's min_transmittance."""
+        """Inference in a bounded box, each ray stopped once it turns opaque: on the CPU
+        compiled (`nerf.march_cpu`: each ray stops at its own sample), elsewhere in batched
+        torch ops (`_render_windows`)."""
+        if not self.renders_compiled(origins.device):
+            return self._render_windows(origins, directions)
+        if self._compiled is None or self._compiled[0] is not self.occupancy or \
+                self._compiled[1].key != tables_key(self.field):
+            self._compiled = (self.occupancy, kernel_grids(self.field, self.occupancy))
+        colour, opacity, depth, evaluated = render_compiled(self.field, self._compiled[1], origins, directions)
+        return RayOutput(colour, opacity, depth, evaluated)
+
+    def _render_windows(self, origins, directions) -> RayOutput:
+        """Inference in a bounded box in batched torch ops: the march stops a level above
+        the voxel grid and only the segments a ray reaches before it turns opaque are cut
+        into samples, a window of EARLY_STOP_SEGMENTS segments per live ray at a time (about
+        half of them at 256 px on primitives): the same image as marching everything
+        first, up to the early stop's min_transmittance."""
         segments = march_segments(origins, directions, self.field.aabb, self.occupancy, self.field.marching_step,
                                   levels=self._levels(), keep_levels=1)
 

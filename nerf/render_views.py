@@ -27,6 +27,7 @@ and a folder nerfgauge did not make is never written into.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -36,7 +37,9 @@ import torch
 from nerfgauge.nerf.checkpoint import load_model
 from nerfgauge.nerf.config import RENDER_FILTERS, SUB_RAYS, pixel_filter_for
 from nerfgauge.nerf.data import split_rays
-from nerfgauge.nerf.frames import EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, lens_frame, render_frame, rgba_png
+from nerfgauge.nerf.march_cpu import kernel_threads
+from nerfgauge.nerf.frames import (EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, lens_frame, render_frame,
+                                   renders_compiled, rgba_png)
 from nerfgauge.nerf.runs import open_run_dataset
 from nerfgauge.nerf.train import pick_device
 from nerfgauge.core.progress import progress as progress_bar
@@ -118,9 +121,19 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     model = model.to(device).eval()
     if model.has_grid and step_ratio is not None:
         model.field.step_ratio = step_ratio
-    pool = ThreadPoolExecutor(threads) if device.type == "cpu" and threads > 1 else None
+    # torch ops on part of the rays in each of a pool's threads, or one compiled kernel that
+    # spreads every batch of rays over the threads itself (CompactNeRF.renders_compiled)
+    compiled = renders_compiled(model, device)
+    pool = ThreadPoolExecutor(threads) if device.type == "cpu" and threads > 1 and not compiled else None
     parts = threads * PARTS_PER_THREAD
     torch.set_num_threads(1 if pool is not None else threads)
+    with kernel_threads(threads) if compiled else contextlib.nullcontext():
+        return _render_frames(out, model, config, cameras, split, device, threads, pool, parts, progress, lens,
+                              source, pixel_samples, edges_only, sub_rays)
+
+
+def _render_frames(out: Path, model, config, cameras, split, device, threads, pool, parts, progress, lens, source,
+                   pixel_samples: int, edges_only: bool, sub_rays: str) -> dict:
     height, width = cameras.intrinsics.height, cameras.intrinsics.width
     seconds, lens_seconds, cpu_seconds = [], [], []
     try:
