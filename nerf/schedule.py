@@ -96,8 +96,10 @@ FINE_EDGE_POINTS_MIN_STEPS = 1000
 # ends at the same rate however long it trains stops growing at the same figure. Primitives
 # 128 px at 600 s ended at 0.1 x 0.1 and scored 44.68 dB, at 1200 s 44.58 (the interior 2 dB
 # under the 109 grid's), and the 600-s model trained on from 0.01 down to 3e-4 for 1500 steps
-# scored 45.08 (interior +2.1 dB, edges +0.3). Runs of up to LR_DECADE_STEPS steps (a 600-s
-# run at 128 px, idle, takes ~6200) decay as before, by construction.
+# scored 45.08 (interior +2.1 dB, edges +0.3). With this rule, step-budgeted: 12400 steps
+# 45.13 dB against 44.76 at 6200 (interior 44.56 against 42.52; docs/results.md, "Quality
+# past 600 s"). Runs of up to LR_DECADE_STEPS steps (a 600-s run at 128 px, idle, takes
+# ~6200) decay as before, by construction.
 LR_FINAL_FRACTION = 0.1
 LR_DECADE_STEPS = 6000
 LR_MIN_FRACTION = 0.003
