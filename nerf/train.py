@@ -61,7 +61,6 @@ VISIBILITY_RAYS = 409_600
 # grid keeps ~126 samples per ray on far-reaching, where a measurement took 30-50 s
 VISIBILITY_SAMPLES = 16 * VISIBILITY_RAYS
 VISIBILITY_PROBE_RAYS = 4096  # rays marched first to count samples per ray
-LR_FINAL_FRACTION = 0.1  # learning rate decays exponentially to this fraction
 # checkpoint.pt (grid + Adam state: ~0.5 GB at 220^3) is rewritten, without
 # --checkpoint-every, only when this much wall time has passed since the last one, and
 # always at the end: with dense logging (bench scaling logs every 2 s) writing it at every
@@ -516,7 +515,8 @@ def _step(training: Training, config: TrainConfig, schedule: Schedule, train_ray
         _grow_grid(training, config, schedule.resolution_at(training.loop.stage))
         if schedule.occupancy_due(training.loop):
             training.model.update_occupancy()
-    loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, fraction_done, priors)
+    lr_scale = schedule.lr_scale(training.loop, fraction_done)
+    loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, lr_scale, priors)
     if not (math.isfinite(loss) and gradients_finite):
         raise NumericalError(
             f"training diverged at step {training.loop.step}: loss {loss}, gradients "
@@ -751,16 +751,16 @@ def _grow_grid(training: Training, config: TrainConfig, wanted: int) -> None:
 
 
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,
-                fraction_done: float, priors: float | None = None) -> tuple[float, bool]:
-    """One optimiser step on `n_rays` random training rays. fraction_done: of the steps or
-    the budget, in [0, 1), which the learning rate decays with. priors: the spread of the
-    train cameras when the sparse-capture priors are on (nerf.sparse_priors), else None.
+                lr_scale: float, priors: float | None = None) -> tuple[float, bool]:
+    """One optimiser step on `n_rays` random training rays. lr_scale: each parameter
+    group's learning rate as a fraction of its base (nerf.schedule's `lr_scale`). priors:
+    the spread of the train cameras when the sparse-capture priors are on (nerf.sparse_priors), else None.
     Returns (loss, whether every gradient was finite); a step with a non-finite gradient
     leaves the parameters alone."""
     model, generator, state = training.model, training.generator, training.loop
     optimizer = training.optimizer
     for group in optimizer.param_groups:
-        group["lr"] = group["base_lr"] * LR_FINAL_FRACTION ** fraction_done
+        group["lr"] = group["base_lr"] * lr_scale
     # TrainConfig.pixel_filter: per pixel one ray through its centre or a random point of
     # it, or (box) the mean of 2 x 2 rays through the box render's points, so the loss
     # compares the pixel's box-filtered colour with the ground truth's (pixel_sample_offsets

@@ -1,0 +1,120 @@
+"""The rate a run ends at (nerf.schedule's `lr_scale`): a budget of up to LR_DECADE_STEPS
+steps decays by LR_FINAL_FRACTION over its fraction alone, a longer grid run one more decade
+every LR_DECADE_STEPS steps past that, down to LR_MIN_FRACTION. The expected rates are
+written as powers of ten from the rule's words (log10 of the scale is minus the decades), not
+through the function's own arithmetic; then a tiny run shows the loop hands Adam that rate."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import nerfgauge.nerf.schedule as S
+from nerfgauge.nerf.checkpoint import LoopState
+from nerfgauge.nerf.config import refined_resolution
+from nerfgauge.nerf.schedule import Schedule
+
+DECADE = S.LR_DECADE_STEPS
+
+
+def make(steps=None, budget=None, grid=True) -> Schedule:
+    return Schedule(steps=steps, budget_seconds=budget, start_resolution=27, final_resolution=109,
+                    refined_resolution=refined_resolution(109), grid=grid, budget_decides=budget is not None,
+                    edges=True, refine_grid=True, colour_head=False)
+
+
+def scale(schedule: Schedule, state: LoopState) -> float:
+    return schedule.lr_scale(state, schedule.fraction_done(state))
+
+
+def test_the_constants_say_a_decade_a_budget_and_a_floor_below_it():
+    """The rule's words hold for these values: one decade (x 0.1) over a budget, so the floor
+    lies below a short run's end."""
+    assert S.LR_FINAL_FRACTION == pytest.approx(0.1)
+    assert 0 < S.LR_MIN_FRACTION < S.LR_FINAL_FRACTION and DECADE > 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(steps=st.integers(1, DECADE), at=st.floats(0, 1))
+def test_a_run_of_up_to_the_decade_steps_decays_by_its_fraction_alone(steps, at):
+    """A --steps run of at most LR_DECADE_STEPS steps: log10(scale) = -step / steps, as before
+    the rule, at every step."""
+    schedule = make(steps=steps)
+    state = LoopState(step=min(steps, math.floor(at * steps)))
+    assert math.log10(scale(schedule, state)) == pytest.approx(-state.step / steps, abs=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(step=st.integers(0, DECADE), seconds=st.floats(0, 600.0))
+def test_a_time_budget_within_the_decade_steps_decays_by_its_seconds_alone(step, seconds):
+    schedule = make(budget=600.0)
+    state = LoopState(step=step, seconds=seconds)
+    assert math.log10(scale(schedule, state)) == pytest.approx(-seconds / 600.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("decades", [1.5, 2.0])
+def test_a_long_steps_run_ends_one_more_decade_down_per_decade_steps_past_the_first(decades):
+    """A run of 1.5 and 2 x LR_DECADE_STEPS steps ends at 10^-(1 + 0.5) and 10^-(1 + 1) of its
+    base rate; halfway through the extra decades it stands at 10^-(fraction + half of them)."""
+    steps = round(decades * DECADE)
+    schedule = make(steps=steps)
+    past = steps - DECADE
+    assert math.log10(scale(schedule, LoopState(step=steps))) == pytest.approx(-(1 + past / DECADE), abs=1e-9)
+    middle = DECADE + past // 2
+    expected = -(middle / steps + (past // 2) / DECADE)
+    assert math.log10(scale(schedule, LoopState(step=middle))) == pytest.approx(expected, abs=1e-9)
+
+
+def test_the_extra_decay_stops_at_the_floor():
+    """Four decade-steps: the plain decay ends at 10^-1 and three extra decades would take it
+    to 10^-4; the floor LR_MIN_FRACTION holds it (and the floor never lifts a rate above the
+    plain decay's)."""
+    schedule = make(steps=4 * DECADE)
+    assert scale(schedule, LoopState(step=4 * DECADE)) == pytest.approx(S.LR_MIN_FRACTION)
+    assert 10 ** -(1 + 3) < S.LR_MIN_FRACTION
+    early = LoopState(step=DECADE + 1)
+    assert scale(schedule, early) <= 10 ** -((DECADE + 1) / (4 * DECADE))
+
+
+def test_a_steps_run_and_a_time_budget_of_as_many_steps_end_at_the_same_rate():
+    steps = 2 * DECADE + 400
+    by_steps = scale(make(steps=steps), LoopState(step=steps))
+    by_time = scale(make(budget=1200.0), LoopState(step=steps, seconds=1200.0))
+    assert by_steps == by_time == pytest.approx(10 ** -(1 + (steps - DECADE) / DECADE))
+
+
+def test_the_vanilla_nerf_keeps_its_recipes_decay_however_long_it_runs():
+    schedule = make(steps=3 * DECADE, grid=False)
+    assert math.log10(scale(schedule, LoopState(step=3 * DECADE))) == pytest.approx(-1.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(steps=st.integers(1, 5 * DECADE), per_step=st.floats(0.01, 1.0))
+def test_the_rate_never_rises_along_a_run(steps, per_step):
+    """Along a --steps run and along a time budget at a steady rate, sampled at 200 points:
+    each scale at most the one before (Adam's moments assume a rate that only falls)."""
+    for schedule, seconds in ((make(steps=steps), None), (make(budget=steps * per_step), per_step)):
+        points = sorted({round(steps * k / 200) for k in range(201)})
+        scales = [scale(schedule, LoopState(step=p, seconds=p * seconds if seconds else 0.0)) for p in points]
+        assert all(b <= a * (1 + 1e-12) for a, b in zip(scales, scales[1:]))
+
+
+@pytest.mark.slow
+def test_the_loop_hands_adam_the_schedules_rate(tiny_dataset, tmp_path, monkeypatch):
+    """A 50-step run with the decade at 40 steps: Adam's grid group (in checkpoint.pt) holds
+    the rate of the last step, 49: base x 10^-(49/50 + 9/40)."""
+    from nerfgauge.cli import main
+    from nerfgauge.nerf.checkpoint import load_checked
+
+    monkeypatch.setattr(S, "LR_DECADE_STEPS", 40)
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--steps", "50", "--quiet", "--threads", "1",
+                 "--batch-rays", "256"]) == 0
+    saved = load_checked(run / "checkpoint.pt", "checkpoint")
+    group = saved["optimizer"]["param_groups"][0]
+    assert group["lr"] == pytest.approx(group["base_lr"] * 10 ** -(49 / 50 + 9 / 40), rel=1e-9)
+    assert torch.is_tensor(saved["generator"])
