@@ -233,8 +233,10 @@ def test_a_time_budget_pays_for_its_trial():
 @pytest.mark.slow
 def test_a_timed_trial_run_trains_its_budget_in_all(tiny_dataset, tmp_path, monkeypatch):
     """A 2-s run on trial: the winner's run trains 2 / 1.25 s, the loser's trial a quarter of
-    that, together the 2 s asked for (each stops at the first step past its time: a step of
-    this tiny grid takes milliseconds); config.json and the reason say what each had."""
+    that, together the 2 s asked for; config.json and the reason say what each had. Each
+    stops at the first step past its time, so the winner's seconds exceed 1.6 by one step:
+    milliseconds idle, up to ~0.2 s under a loaded test run (a growth step), and below the
+    whole 2 s it would have trained before the trial was paid from the budget."""
     _doubtful(monkeypatch)
     config = tiny_config(tiny_dataset, steps=None, budget_seconds=2.0)
     summary = train(config, tmp_path / "run", progress=False)
@@ -243,7 +245,7 @@ def test_a_timed_trial_run_trains_its_budget_in_all(tiny_dataset, tmp_path, monk
     own = 2.0 / (1 + trials.TRIAL_SHARE)
     assert document["budget_seconds"] == pytest.approx(own)
     assert record["seconds"] == pytest.approx(trials.TRIAL_SHARE * own) and record["steps"] is None
-    assert own <= summary["seconds"] < own + 0.1
+    assert own <= summary["seconds"] < 2.0
     assert "paid from the 2-s budget" in document["auto_reasons"]["parametrisation"]
 
 
