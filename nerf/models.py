@@ -82,8 +82,8 @@ class RadianceModel(nn.Module):
         raise NotImplementedError
 
     def renders_compiled(self, device: torch.device) -> bool:
-        """Whether inference on `device` renders a batch of rays on torch.get_num_threads()
-        threads by itself (a compiled kernel), rather than in torch ops that a frame's
+        """Whether inference on `device` renders a batch of rays on threads of its own (a
+        compiled kernel on numba's threads, set by nerf.march_cpu.kernel_threads), rather than in torch ops that a frame's
         renderer splits over a pool of threads (nerf.frames.render_frame)."""
         return False
 
@@ -251,7 +251,7 @@ class CompactNeRF(RadianceModel):
 
     def renders_compiled(self, device: torch.device) -> bool:
         """Whether inference on `device` goes through the compiled renderer (nerf.march_cpu),
-        which spreads one batch of rays over torch.get_num_threads() threads itself."""
+        which spreads one batch of rays over numba's threads itself (march_cpu.kernel_threads)."""
         return device.type == "cpu" and self.field.space is None and self.use_occupancy
 
     def _render_front_to_back(self, origins, directions) -> RayOutput:
