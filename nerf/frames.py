@@ -10,10 +10,13 @@ always the pixel-centre rays' (as the dataset's ground truth is).
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 from nerfgauge.nerf.config import SUB_RAYS
 from nerfgauge.nerf.data import jittered_direction, pixel_footprints, split_rays
+from nerfgauge.nerf.march_cpu import kernel_threads
 from nerfgauge.nerf.rendering import render_rays_chunked
 
 from nerfgauge.core.camera import lens_samples, thin_lens_rays
@@ -57,6 +60,13 @@ def renders_compiled(model, device) -> bool:
     threads of its own (RadianceModel.renders_compiled; a stand-in model with only a
     `render` does not)."""
     return getattr(model, "renders_compiled", None) is not None and model.renders_compiled(device)
+
+
+def compiled_render_threads(model, device, threads: int):
+    """A context within which `model` renders on `threads` threads: the compiled kernel's
+    (march_cpu.kernel_threads, torch on one meanwhile) when it renders compiled, else
+    nothing changes (the caller sets torch's own)."""
+    return kernel_threads(threads) if renders_compiled(model, device) else contextlib.nullcontext()
 
 
 def render_frame(model, origins, directions, pool, parts: int = 1) -> tuple:

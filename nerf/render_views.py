@@ -27,7 +27,6 @@ and a folder nerfgauge did not make is never written into.
 
 from __future__ import annotations
 
-import contextlib
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -37,9 +36,8 @@ import torch
 from nerfgauge.nerf.checkpoint import load_model
 from nerfgauge.nerf.config import RENDER_FILTERS, SUB_RAYS, pixel_filter_for
 from nerfgauge.nerf.data import split_rays
-from nerfgauge.nerf.march_cpu import kernel_threads
-from nerfgauge.nerf.frames import (EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, lens_frame, render_frame,
-                                   renders_compiled, rgba_png)
+from nerfgauge.nerf.frames import (EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, compiled_render_threads,
+                                   lens_frame, render_frame, renders_compiled, rgba_png)
 from nerfgauge.nerf.runs import open_run_dataset
 from nerfgauge.nerf.train import pick_device
 from nerfgauge.core.progress import progress as progress_bar
@@ -127,7 +125,7 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     pool = ThreadPoolExecutor(threads) if device.type == "cpu" and threads > 1 and not compiled else None
     parts = threads * PARTS_PER_THREAD
     torch.set_num_threads(1 if pool is not None else threads)
-    with kernel_threads(threads) if compiled else contextlib.nullcontext():
+    with compiled_render_threads(model, device, threads):
         return _render_frames(out, model, config, cameras, split, device, threads, pool, parts, progress, lens,
                               source, pixel_samples, edges_only, sub_rays)
 

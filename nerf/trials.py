@@ -31,7 +31,6 @@ goes to trial.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -41,8 +40,7 @@ import numpy as np
 import torch
 
 from nerfgauge.nerf.config import TrainConfig
-from nerfgauge.nerf.frames import EDGES_ONLY, PIXEL_SAMPLES, box_frame, renders_compiled
-from nerfgauge.nerf.march_cpu import kernel_threads
+from nerfgauge.nerf.frames import EDGES_ONLY, PIXEL_SAMPLES, box_frame, compiled_render_threads
 from nerfgauge.nerf.parametrisation import parametrisation_doubt
 from nerfgauge.nerf.rendering import composite
 
@@ -162,8 +160,7 @@ def val_psnr(model, cameras, val_rays, device, filters: dict) -> dict:
     errors = dict.fromkeys(filters, 0.0)
     model.eval()
     # a compiled render on the threads torch trains with (and torch's own on one meanwhile)
-    threads = kernel_threads(torch.get_num_threads()) if renders_compiled(model, device) else contextlib.nullcontext()
-    with torch.no_grad(), threads:
+    with torch.no_grad(), compiled_render_threads(model, device, torch.get_num_threads()):
         for index in range(val_rays.n_views):
             rgba = val_rays.rgba[index * pixels:(index + 1) * pixels].to(device)
             target = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:])

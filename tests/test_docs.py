@@ -14,7 +14,9 @@
   becomes SMALL's step count); `<!-- test: run --flag VALUE -->` overrides SMALL for that
   block, `<!-- test: run, setup: COMMAND -->` runs COMMAND first (what the reader is assumed
   to have, e.g. their own method's renders). A `nerfgauge` line must exit 0 (`check`: 0, 1
-  or 4, its verdicts); any other line 0.
+  or 4, its verdicts); any other line 0. `<!-- test: same as PAGE -->`: every line of the
+  block is a line of PAGE's run blocks (checked), so PAGE's run covers it and it does not
+  run twice (README's suite commands are the suite tutorial's, each a minute of CI).
 - Every relative link in README.md and docs/ points at a file that exists (mkdocs
   --strict checks the site's own links and anchors too: `tox -e docs`).
 - The architecture page's layer table is generated from tests/test_layers.py (checked here:
@@ -113,9 +115,9 @@ def test_the_flag_check_can_fail():
 def test_every_bash_block_of_the_readme_and_tutorials_is_run_or_says_why_not():
     unmarked = [f"{page.relative_to(REPOSITORY)}:{block['line']}" for page in RUN_PAGES for block in blocks(page)
                 if block["info"].split()[:1] == ["bash"]
-                and not (block["marker"] and re.match(r"run\b|skip \(.+\)$", block["marker"]))]
-    assert not unmarked, ("bash blocks without `<!-- test: run -->` or `<!-- test: skip (REASON) -->` on the line "
-                          "before:\n" + "\n".join(unmarked))
+                and not (block["marker"] and re.match(r"run\b|skip \(.+\)$|same as \S+$", block["marker"]))]
+    assert not unmarked, ("bash blocks without `<!-- test: run -->`, `<!-- test: skip (REASON) -->` or "
+                          "`<!-- test: same as PAGE -->` on the line before:\n" + "\n".join(unmarked))
     assert sum(1 for page in RUN_PAGES for b in blocks(page) if (b["marker"] or "").startswith("run")) >= 10
 
 
@@ -155,6 +157,28 @@ def test_small_sizes_rewrite_only_what_the_command_has():
         "nerfgauge run primitives --out ci --res 24 --views 6 --val-views 1 --test-views 2 --spp 4 --steps 20 --seeds 3"
     assert small("nerfgauge check ci/eval/compact/seed-*/metrics.json --thresholds t.toml", {}) == \
         "nerfgauge check ci/eval/compact/seed-*/metrics.json --thresholds t.toml"
+
+
+def not_run_elsewhere(block: dict, page_named: str) -> list[str]:
+    """The lines of `block` (marked `same as page_named`) that no run block of that page has;
+    a page that is not one the run test runs leaves every line uncovered."""
+    page = REPOSITORY / page_named
+    if page not in RUN_PAGES:
+        return command_lines(block["body"])
+    covered = {line for other in blocks(page) if (other["marker"] or "").startswith("run")
+               for line in command_lines(other["body"])}
+    return [line for line in command_lines(block["body"]) if line not in covered]
+
+
+def test_a_block_the_same_as_another_pages_is_run_there():
+    same = [(page, block, block["marker"][len("same as "):]) for page in RUN_PAGES for block in blocks(page)
+            if (block["marker"] or "").startswith("same as ")]
+    missing = [f"{page.relative_to(REPOSITORY)}:{block['line']}: `{line}` is in no run block of {named}"
+               for page, block, named in same for line in not_run_elsewhere(block, named)]
+    assert not missing, "\n".join(missing)
+    # and the check can fail: a line the named page does not run, a page the test does not run
+    assert not_run_elsewhere({"body": "nerfgauge suite run smoke --seeds 4"}, "docs/tutorials/suite-on-dask.md")
+    assert not_run_elsewhere({"body": "nerfgauge suite list"}, "BENCHMARKS.md") == ["nerfgauge suite list"]
 
 
 def _marker_options(marker: str) -> tuple[dict, list[str]]:
