@@ -9,7 +9,7 @@ from pathlib import Path
 
 from nerfgauge.core import arguments
 from nerfgauge.core.errors import InputError
-from nerfgauge.scenes.assets import MESH_SUFFIXES, Asset, read_with_trimesh, unique_names
+from nerfgauge.scenes.assets import MESH_SUFFIXES, Asset, unique_names
 from nerfgauge.scenes.obj_mtl import read_obj
 
 
@@ -31,6 +31,8 @@ def read_asset(path: Path) -> Asset:
     if suffix == ".obj":
         objects = read_obj(path, content, inputs, warnings)
     else:
+        from nerfgauge.scenes.trimesh_reader import read_with_trimesh  # trimesh (1.4 s): only for these files
+
         objects = read_with_trimesh(path, suffix, content, inputs, warnings)
     objects = [obj for obj in objects if len(obj.mesh.faces)]
     if not objects:

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-import trimesh
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,7 +55,9 @@ class MeshData:
         """[2, 3] min and max corner."""
         return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
 
-    def to_trimesh(self) -> trimesh.Trimesh:
+    def to_trimesh(self) -> "trimesh.Trimesh":
+        import trimesh  # trimesh: 1.4 s with scipy and networkx, only when used (see `icosphere`)
+
         return trimesh.Trimesh(self.vertices, self.faces, vertex_normals=self.normals,
                                process=False)
 
@@ -81,6 +82,11 @@ def pose(center, degrees_xyz) -> np.ndarray:
 
 def icosphere(center, radius, subdivisions: int = 4) -> MeshData:
     """Geodesic sphere; its vertices lie on the true sphere (chord error ~ 5e-4 radius)."""
+    # trimesh (with scipy and networkx) takes 1.4 s to import: here rather than at the top,
+    # so that every `nerfgauge` command (which imports the scene recipes) does not pay it
+    # before it parses its arguments; a command that builds meshes pays it once.
+    import trimesh  # trimesh: only when a sphere is built
+
     ico = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
     unit = np.asarray(ico.vertices, np.float64)
     unit /= np.linalg.norm(unit, axis=1, keepdims=True)
