@@ -26,6 +26,16 @@ def test_import_is_light_and_has_no_side_effects(tmp_path):
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
+def test_the_cli_parses_without_trimesh_or_torch(tmp_path):
+    """Every command imports the scene recipes before it parses its arguments; trimesh (1.4 s
+    with scipy and networkx) and torch load only in the commands that use them, so a bad
+    argument's exit 2 and `--help` come in about a second."""
+    code = ("import sys; from nerfgauge.cli import build_parser; build_parser(); "
+            "print(sorted(m for m in ('trimesh', 'torch', 'scipy.spatial') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+    assert result.stdout.split() == ["[]"], result.stderr
+
+
 def test_exports_stay_functions_after_every_module_is_imported():
     import nerfgauge.api
     import nerfgauge.run  # noqa: F401  (the `nerfgauge run` command's module)
