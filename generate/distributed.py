@@ -48,6 +48,14 @@ HTTP_ROUTES = ("distributed.http.health",)  # all a local cluster's HTTP servers
 LOCAL_PREFIX = "local:"
 ADDRESS = re.compile(r"^(tcp|tls|ws|wss|ucx)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
 INSTALL_HINT = "pip install 'nerfgauge[dask]' (or dask[distributed])"
+# What a local cluster's worker processes get when two or more share this machine's cores, unless
+# the user's environment sets it. libgomp's threads (torch's, and numba's OpenMP layer under the
+# compiled renderer and the splat rasteriser) spin between parallel regions by default and so take
+# the cores from the other workers; PASSIVE puts them to sleep. Measured on 2 cores
+# (docs/tutorials/suite-on-dask.md): `suite run smoke --seeds 3 --scheduler local:2` 36.9 and 36.0 s
+# by default, 32.2 and 31.8 s with it; the tests' training files on two pytest workers 377 and
+# 311 s against 259 and 201 s (tox.ini sets it there).
+SHARED_CORES_ENVIRONMENT = {"OMP_WAIT_POLICY": "PASSIVE"}
 
 
 def parse_scheduler(text: str) -> tuple[str, object]:
@@ -74,6 +82,15 @@ def require_dask() -> None:
         raise InputError(f"--scheduler needs dask.distributed, which is not installed: {INSTALL_HINT}")
 
 
+def shared_cores_environment(workers: int, in_process: bool = False, environ=os.environ) -> dict:
+    """What each worker process of a local cluster of `workers` is given (set in it before it
+    imports torch): SHARED_CORES_ENVIRONMENT's variables that `environ` lacks, when two or more
+    worker processes share the cores; else nothing."""
+    if workers < 2 or in_process:
+        return {}
+    return {name: value for name, value in SHARED_CORES_ENVIRONMENT.items() if name not in environ}
+
+
 @contextlib.contextmanager
 def local_cluster(workers: int, **options):
     """A dask LocalCluster of `workers` processes, for the block, that listens on the
@@ -87,11 +104,13 @@ def local_cluster(workers: int, **options):
     Bokeh dashboard is off; the HTTP servers dask starts anyway (scheduler and workers)
     bind 127.0.0.1 on a free port and serve only the health check (no logs, call stacks,
     metrics or cluster info), set before the nannies start their workers (which inherit
-    the configuration)."""
+    the configuration). Two or more worker processes share the cores: each gets
+    SHARED_CORES_ENVIRONMENT where the user's environment does not set it."""
     import dask  # dask: an optional extra (callers checked require_dask)
     from distributed import LocalCluster  # dask
 
     in_process = options.get("processes") is False  # workers as threads, over dask's in-process comm: no host
+    options["env"] = {**shared_cores_environment(workers, in_process), **options.get("env", {})}
     with dask.config.set({"distributed.scheduler.http.routes": list(HTTP_ROUTES),
                           "distributed.worker.http.routes": list(HTTP_ROUTES)}), \
             LocalCluster(n_workers=workers, host=None if in_process else LOOPBACK, dashboard_address=None,

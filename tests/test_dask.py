@@ -147,7 +147,7 @@ def test_local_cluster_gives_the_single_process_bytes(tmp_path, capsys):
 @needs_dask
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="kills a worker process by PID")
-def test_a_worker_killed_mid_generation_still_gives_the_single_process_bytes(tmp_path):
+def test_a_worker_killed_mid_generation_still_gives_the_single_process_bytes(tmp_path, monkeypatch):
     from distributed import Client
 
     config = GenerateConfig(views=60, val_views=0, test_views=2, width=32, height=32, spp=16)
@@ -165,9 +165,11 @@ def test_a_worker_killed_mid_generation_still_gives_the_single_process_bytes(tmp
         killed["views"], killed["pid"] = views_done(), pids[0]
         os.kill(pids[0], signal.SIGKILL)  # both workers are rendering: one of them dies mid-view
 
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)  # tox sets it; here the cluster must
     with distributed.local_cluster(2, threads_per_worker=1) as cluster, \
             Client(cluster) as watcher:
         distributed.wait_for_workers(watcher, 2)
+        assert set(watcher.run(os.getenv, "OMP_WAIT_POLICY").values()) == {"PASSIVE"}
         killer = threading.Thread(target=kill_a_worker, args=(sorted(watcher.run(os.getpid).values()),))
         killer.start()
         result = generate(config, out, scheduler=cluster.scheduler_address, progress=False)
@@ -178,6 +180,13 @@ def test_a_worker_killed_mid_generation_still_gives_the_single_process_bytes(tmp
     assert result["views_rendered"] == 62
     assert dataset.verify_manifest(out) == []
     assert tree(out) == tree(tmp_path / "clean")
+
+
+def test_workers_sharing_the_cores_sleep_between_openmp_regions_unless_the_user_says():
+    assert distributed.shared_cores_environment(2, environ={}) == {"OMP_WAIT_POLICY": "PASSIVE"}
+    assert distributed.shared_cores_environment(8, environ={"OMP_WAIT_POLICY": "ACTIVE"}) == {}  # the user's
+    assert distributed.shared_cores_environment(1, environ={}) == {}  # a lone worker spins as it likes
+    assert distributed.shared_cores_environment(2, in_process=True, environ={}) == {}  # threads of this process
 
 
 @pytest.mark.slow

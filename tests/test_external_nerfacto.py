@@ -33,7 +33,7 @@ from nerfgauge.methods.external import environment_folder, environment_variable
 from nerfgauge.methods.interface import TrainRequest
 from nerfgauge.methods.registry import resolve
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.nerfstudio]
 
 STEPS = 3
 SETTINGS = {"rays": 256, "log2_hashmap_size": 12}  # a handful of rays a step, a small hash table: seconds a step here
