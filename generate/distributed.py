@@ -110,7 +110,9 @@ def local_cluster(workers: int, **options):
     from distributed import LocalCluster  # dask
 
     in_process = options.get("processes") is False  # workers as threads, over dask's in-process comm: no host
-    options["env"] = {**shared_cores_environment(workers, in_process), **options.get("env", {})}
+    environment = {**shared_cores_environment(workers, in_process), **options.get("env", {})}
+    if environment:  # a nanny's option: in-process workers (processes=False) take none
+        options["env"] = environment
     with dask.config.set({"distributed.scheduler.http.routes": list(HTTP_ROUTES),
                           "distributed.worker.http.routes": list(HTTP_ROUTES)}), \
             LocalCluster(n_workers=workers, host=None if in_process else LOOPBACK, dashboard_address=None,
