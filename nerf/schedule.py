@@ -100,6 +100,13 @@ FINE_EDGE_POINTS_MIN_STEPS = 1000
 # 45.13 dB against 44.76 at 6200 (interior 44.56 against 42.52; docs/results.md, "Quality
 # past 600 s"). Runs of up to LR_DECADE_STEPS steps (a 600-s run at 128 px, idle, takes
 # ~6200) decay as before, by construction.
+# A run that refines at half its budget (an `edges` or --refine-grid run: finer edge points,
+# a finer grid) starts the extra decay no earlier than that decision (`Schedule.decay_start`):
+# the refined model has to move its outlines, which takes the rate. Counted from step 6000,
+# a 2400-s run refined at step ~21000 at the floor rate and its edges fell 4 dB below the
+# 1200-s run's (32.52 against 36.54; docs/results.md, "The 2400-s point"). Runs that decide
+# before step LR_DECADE_STEPS (600 s and less) are unchanged; a 1200-s run decides at about
+# step 6200-7000 and so starts its extra decay a few hundred steps later.
 LR_FINAL_FRACTION = 0.1
 LR_DECADE_STEPS = 6000
 LR_MIN_FRACTION = 0.003
@@ -224,15 +231,28 @@ class Schedule:
     def lr_scale(self, state, fraction: float) -> float:
         """The learning rate before this step, as a fraction of its base: LR_FINAL_FRACTION
         to the power of the budget's fraction done plus, for a grid model, the decades past
-        LR_DECADE_STEPS steps, (step - LR_DECADE_STEPS) / LR_DECADE_STEPS; that extra decay
-        stops at LR_MIN_FRACTION. The decades count steps, so a --steps run and a time
-        budget that takes as many steps end at the same rate. The vanilla NeRF keeps its
-        recipe's decay (the jitter above is a voxel grid's, measured on it)."""
+        `decay_start`, (step - start) / LR_DECADE_STEPS; that extra decay stops at
+        LR_MIN_FRACTION. The decades count steps, so a --steps run and a time budget that
+        take as many steps and decide their refinement at the same step end at the same
+        rate. The vanilla NeRF keeps its recipe's decay (the jitter above is a voxel
+        grid's, measured on it)."""
         plain = LR_FINAL_FRACTION ** fraction
-        if not self.grid or state.step <= LR_DECADE_STEPS:
+        start = self.decay_start(state)
+        if start is None or state.step <= start:
             return plain
-        extra = LR_FINAL_FRACTION ** ((state.step - LR_DECADE_STEPS) / LR_DECADE_STEPS)
+        extra = LR_FINAL_FRACTION ** ((state.step - start) / LR_DECADE_STEPS)
         return min(plain, max(plain * extra, LR_MIN_FRACTION))
+
+    def decay_start(self, state) -> Optional[int]:
+        """The step the extra decay counts from: LR_DECADE_STEPS, or for a run that refines
+        at half its budget (`refinement_due`: edges, refine_grid) the step it decided at
+        when that is later; None while that decision is still to come, and for a model
+        without a grid (no extra decay)."""
+        if not self.grid:
+            return None
+        if self.edges or self.refine_grid:
+            return max(LR_DECADE_STEPS, state.edge_points_step) if state.edge_points_step else None
+        return LR_DECADE_STEPS
 
     # --- what the grid's stages bring -------------------------------------------------
 

@@ -1,6 +1,7 @@
 """The rate a run ends at (nerf.schedule's `lr_scale`): a budget of up to LR_DECADE_STEPS
 steps decays by LR_FINAL_FRACTION over its fraction alone, a longer grid run one more decade
-every LR_DECADE_STEPS steps past that, down to LR_MIN_FRACTION. The expected rates are
+every LR_DECADE_STEPS steps past that (past its half-budget refinement decision, for a run
+that makes one, when that comes later), down to LR_MIN_FRACTION. The expected rates are
 written as powers of ten from the rule's words (log10 of the scale is minus the decades), not
 through the function's own arithmetic; then a tiny run shows the loop hands Adam that rate."""
 
@@ -21,10 +22,17 @@ from nerfgauge.nerf.schedule import Schedule
 DECADE = S.LR_DECADE_STEPS
 
 
-def make(steps=None, budget=None, grid=True) -> Schedule:
+def make(steps=None, budget=None, grid=True, refines=True) -> Schedule:
     return Schedule(steps=steps, budget_seconds=budget, start_resolution=27, final_resolution=109,
                     refined_resolution=refined_resolution(109), grid=grid, budget_decides=budget is not None,
-                    edges=True, refine_grid=True, colour_head=False)
+                    edges=refines, refine_grid=refines, colour_head=False)
+
+
+def decided_at_half(steps: int, step: int, seconds: float = 0.0) -> LoopState:
+    """The loop at `step` of a run whose refinement was decided at half its `steps` (the
+    first step at or past the half, as `refinement_due` decides), once it is that far."""
+    half = math.ceil(steps / 2)
+    return LoopState(step=step, seconds=seconds, edge_points_step=half if step >= half else 0)
 
 
 def scale(schedule: Schedule, state: LoopState) -> float:
@@ -63,17 +71,39 @@ def test_a_long_steps_run_ends_one_more_decade_down_per_decade_steps_past_the_fi
     steps = round(decades * DECADE)
     schedule = make(steps=steps)
     past = steps - DECADE
-    assert math.log10(scale(schedule, LoopState(step=steps))) == pytest.approx(-(1 + past / DECADE), abs=1e-9)
+    assert math.log10(scale(schedule, decided_at_half(steps, steps))) == pytest.approx(-(1 + past / DECADE), abs=1e-9)
     middle = DECADE + past // 2
     expected = -(middle / steps + (past // 2) / DECADE)
-    assert math.log10(scale(schedule, LoopState(step=middle))) == pytest.approx(expected, abs=1e-9)
+    assert math.log10(scale(schedule, decided_at_half(steps, middle))) == pytest.approx(expected, abs=1e-9)
+
+
+def test_a_run_that_refines_past_the_decade_steps_starts_the_extra_decay_at_that_decision():
+    """Six decade-steps: the refinement is decided at 3 x LR_DECADE_STEPS, and until then the
+    rate follows the plain decay alone (the refined grid gets a rate that can still move its
+    outlines); one decade-step after it, it stands one decade below the plain decay."""
+    steps = 6 * DECADE
+    schedule = make(steps=steps)
+    before = decided_at_half(steps, 3 * DECADE - 1)
+    assert before.edge_points_step == 0
+    assert math.log10(scale(schedule, before)) == pytest.approx(-(3 * DECADE - 1) / steps, abs=1e-12)
+    after = decided_at_half(steps, 4 * DECADE)
+    assert math.log10(scale(schedule, after)) == pytest.approx(-(4 * DECADE / steps + 1), abs=1e-9)
+
+
+def test_a_run_that_makes_no_refinement_decision_counts_from_the_decade_steps():
+    """Neither edges nor --refine-grid: nothing is decided at half the budget, and the extra
+    decay starts at LR_DECADE_STEPS as it always did."""
+    steps = 4 * DECADE
+    schedule = make(steps=steps, refines=False)
+    state = LoopState(step=2 * DECADE)
+    assert math.log10(scale(schedule, state)) == pytest.approx(-(2 * DECADE / steps + 1), abs=1e-9)
 
 
 def test_the_extra_decay_stops_at_the_floor():
     """Four decade-steps: the plain decay ends at 10^-1 and three extra decades would take it
     to 10^-4; the floor LR_MIN_FRACTION holds it (and the floor never lifts a rate above the
     plain decay's)."""
-    schedule = make(steps=4 * DECADE)
+    schedule = make(steps=4 * DECADE, refines=False)
     assert scale(schedule, LoopState(step=4 * DECADE)) == pytest.approx(S.LR_MIN_FRACTION)
     assert 10 ** -(1 + 3) < S.LR_MIN_FRACTION
     early = LoopState(step=DECADE + 1)
@@ -82,9 +112,11 @@ def test_the_extra_decay_stops_at_the_floor():
 
 def test_a_steps_run_and_a_time_budget_of_as_many_steps_end_at_the_same_rate():
     steps = 2 * DECADE + 400
-    by_steps = scale(make(steps=steps), LoopState(step=steps))
-    by_time = scale(make(budget=1200.0), LoopState(step=steps, seconds=1200.0))
-    assert by_steps == by_time == pytest.approx(10 ** -(1 + (steps - DECADE) / DECADE))
+    by_steps = scale(make(steps=steps), decided_at_half(steps, steps))
+    by_time = scale(make(budget=1200.0), decided_at_half(steps, steps, seconds=1200.0))
+    decided = math.ceil(steps / 2)  # past LR_DECADE_STEPS: the extra decay counts from here
+    assert decided > DECADE
+    assert by_steps == by_time == pytest.approx(10 ** -(1 + (steps - decided) / DECADE))
 
 
 def test_the_vanilla_nerf_keeps_its_recipes_decay_however_long_it_runs():
@@ -99,22 +131,24 @@ def test_the_rate_never_rises_along_a_run(steps, per_step):
     each scale at most the one before (Adam's moments assume a rate that only falls)."""
     for schedule, seconds in ((make(steps=steps), None), (make(budget=steps * per_step), per_step)):
         points = sorted({round(steps * k / 200) for k in range(201)})
-        scales = [scale(schedule, LoopState(step=p, seconds=p * seconds if seconds else 0.0)) for p in points]
+        scales = [scale(schedule, decided_at_half(steps, p, p * seconds if seconds else 0.0)) for p in points]
         assert all(b <= a * (1 + 1e-12) for a, b in zip(scales, scales[1:]))
 
 
 @pytest.mark.slow
 def test_the_loop_hands_adam_the_schedules_rate(tiny_dataset, tmp_path, monkeypatch):
-    """A 50-step run with the decade at 40 steps: Adam's grid group (in checkpoint.pt) holds
-    the rate of the last step, 49: base x 10^-(49/50 + 9/40)."""
+    """A 50-step `edges` run with the decade at 20 steps decides its refinement at step 25,
+    past the decade, so the extra decay counts from there: Adam's grid group (in
+    checkpoint.pt) holds the rate of the last step, 49: base x 10^-(49/50 + 24/20)."""
     from nerfgauge.cli import main
     from nerfgauge.nerf.checkpoint import load_checked
 
-    monkeypatch.setattr(S, "LR_DECADE_STEPS", 40)
+    monkeypatch.setattr(S, "LR_DECADE_STEPS", 20)
     run = tmp_path / "run"
     assert main(["train", str(tiny_dataset), "--out", str(run), "--steps", "50", "--quiet", "--threads", "1",
-                 "--batch-rays", "256"]) == 0
+                 "--batch-rays", "256", "--pixel-filter", "edges"]) == 0
     saved = load_checked(run / "checkpoint.pt", "checkpoint")
+    assert saved["loop"]["edge_points_step"] == 25
     group = saved["optimizer"]["param_groups"][0]
-    assert group["lr"] == pytest.approx(group["base_lr"] * 10 ** -(49 / 50 + 9 / 40), rel=1e-9)
+    assert group["lr"] == pytest.approx(group["base_lr"] * 10 ** -(49 / 50 + 24 / 20), rel=1e-9)
     assert torch.is_tensor(saved["generator"])
