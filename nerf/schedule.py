@@ -105,8 +105,9 @@ FINE_EDGE_POINTS_MIN_STEPS = 1000
 # the refined model has to move its outlines, which takes the rate. Counted from step 6000,
 # a 2400-s run refined at step ~21000 at the floor rate and its edges fell 4 dB below the
 # 1200-s run's (32.52 against 36.54; docs/results.md, "The 2400-s point"). Runs that decide
-# before step LR_DECADE_STEPS (600 s and less) are unchanged; a 1200-s run decides at about
-# step 6200-7000 and so starts its extra decay a few hundred steps later.
+# before step LR_DECADE_STEPS (600 s and less) are unchanged; a 1200-s run decides at step
+# 7800-9100 (idle, 2026-11-29) and so starts its extra decay that much later: 45.05 and 45.01
+# dB against 44.92 before (docs/results.md, "Idle, time budgets").
 LR_FINAL_FRACTION = 0.1
 LR_DECADE_STEPS = 6000
 LR_MIN_FRACTION = 0.003
@@ -167,6 +168,12 @@ class Schedule:
                                    and config.parametrisation in BUDGET_DECIDES_IN),
                    edges=config.pixel_filter == "edges", refine_grid=bool(config.refine_grid),
                    colour_head=bool(config.colour_head))
+
+    @property
+    def refines_at_half(self) -> bool:
+        """Whether the run makes the half-budget refinement decision (`refinement_due`): an
+        `edges` run (its edge points) or a --refine-grid run (its grid)."""
+        return self.edges or self.refine_grid
 
     @property
     def stages(self) -> int:
@@ -250,7 +257,7 @@ class Schedule:
         without a grid (no extra decay)."""
         if not self.grid:
             return None
-        if self.edges or self.refine_grid:
+        if self.refines_at_half:
             return max(LR_DECADE_STEPS, state.edge_points_step) if state.edge_points_step else None
         return LR_DECADE_STEPS
 
@@ -287,7 +294,7 @@ class Schedule:
         the slower steps to repay (primitives 120 s reached it with 13% of the budget left).
         Returns None when there is nothing to decide (neither applies, decided already, too
         early, a trial pending)."""
-        if not (self.edges or self.refine_grid) or state.edge_points_step or trial_pending \
+        if not self.refines_at_half or state.edge_points_step or trial_pending \
                 or fraction < FINE_EDGE_POINTS_AT:
             return None
         return state.stage == state.last_stage and state.stage_steps >= FINE_EDGE_POINTS_MIN_STEPS

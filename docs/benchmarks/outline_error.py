@@ -14,9 +14,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from nerfgauge.eval.metrics import composite
+
 
 def on_white(rgba):
-    return rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:])
+    return composite(rgba, (1.0, 1.0, 1.0))
 
 
 def shift_share(gt_alpha, error):
