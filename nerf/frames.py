@@ -17,7 +17,7 @@ import torch
 from nerfgauge.nerf.config import SUB_RAYS
 from nerfgauge.nerf.data import jittered_direction, pixel_footprints, split_rays
 from nerfgauge.nerf.march_cpu import kernel_threads
-from nerfgauge.nerf.rendering import render_rays_chunked
+from nerfgauge.nerf.rendering import pixel_mean, render_rays_chunked
 
 from nerfgauge.core.camera import lens_samples, thin_lens_rays
 from nerfgauge.core.pixel_edges import ALPHA_ROUNDING, changes_towards, edge_mask
@@ -99,7 +99,7 @@ def lens_frame(model, cameras, index: int, samples: int, seed: int, pool, parts:
     d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
     rgb, opacity, _ = render_frame(model, o, d, pool, parts)
     pixels = cameras.intrinsics.width * cameras.intrinsics.height
-    rgb, opacity = rgb.view(samples, pixels, 3).mean(dim=0), opacity.view(samples, pixels).mean(dim=0)
+    rgb, opacity = pixel_mean(rgb.view(samples, pixels, 3), opacity.view(samples, pixels))
     centre_o, centre_d = split_rays(cameras, index)
     _, _, depth = render_frame(model, centre_o.to(device), centre_d.to(device), pool, parts)
     return rgb, opacity, depth
@@ -117,8 +117,8 @@ def pixel_offsets(per_axis: int) -> np.ndarray:
 def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, device,
               edges_only: bool = False, sub_rays: str = "changes") -> tuple:
     """Frame `index` box-filtered over each pixel as the ground truth is: premultiplied rgb
-    [H*W, 3] and opacity [H*W], the means over per_axis^2 rays through a regular grid of
-    points in each pixel (`pixel_offsets`), and the depth [H*W] of the pixel-centre rays
+    [H*W, 3] and opacity [H*W], the means (in linear light: nerf.rendering.pixel_mean) over
+    per_axis^2 rays through a regular grid of points in each pixel (`pixel_offsets`), and the depth [H*W] of the pixel-centre rays
     (as the dataset's ground truth is). per_axis 1 renders the centre rays once.
     edges_only: only where the centre render changes do points get their own rays, by
     `sub_rays` (SUB_RAYS): "changes", the points between centres that differ
@@ -154,19 +154,18 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
     pixels = sub_d.shape[0]
     moved = torch.cat([jittered_direction(sub_d, sub_footprint, offset.expand(pixels, 2)) for offset in offsets])
     sub_rgb, sub_opacity, _ = render_frame(model, sub_o.repeat(len(offsets), 1), moved, pool, parts)
-    rgb_sum = sub_rgb.view(len(offsets), pixels, 3).sum(dim=0)
-    opacity_sum = sub_opacity.view(len(offsets), pixels).sum(dim=0)
+    sub_rgb, sub_opacity = sub_rgb.view(len(offsets), pixels, 3), sub_opacity.view(len(offsets), pixels)
     if centre_is_a_point:
-        rgb_sum, opacity_sum = rgb_sum + rgb[chosen], opacity_sum + opacity[chosen]
+        sub_rgb = torch.cat([sub_rgb, rgb[chosen][None]])
+        sub_opacity = torch.cat([sub_opacity, opacity[chosen][None]])
     rgb, opacity = rgb.clone(), opacity.clone()
-    rgb[chosen] = rgb_sum / per_axis ** 2
-    opacity[chosen] = opacity_sum / per_axis ** 2
+    rgb[chosen], opacity[chosen] = pixel_mean(sub_rgb, sub_opacity)
     return rgb, opacity, depth
 
 
 def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, shape: tuple, per_axis: int, pool,
                           parts: int, step: float = CHANGE_STEP) -> tuple:
-    """The box mean of per_axis x per_axis points over each pixel, with a ray only through
+    """The box mean (in linear light) of per_axis x per_axis points over each pixel, with a ray only through
     the points where the centre render changes (`nerfgauge.core.pixel_edges.changes_towards`
     of its 8-bit RGBA, as the PNG holds it): the pixel centres around such a point differ by
     more than `step`, so an edge may pass it. Every other point takes the bilinear
@@ -197,11 +196,11 @@ def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, sh
     slot = torch.full((height * width,), -1, dtype=torch.long, device=device)
     slot[touched_t] = torch.arange(len(touched), device=device)
     values[point, slot[pixel]] = torch.cat([sub_rgb, sub_opacity[:, None]], dim=1)
-    total = values.sum(dim=0)
     if per_axis % 2 == 1:  # an odd grid's middle point is the centre
-        total = total + centre.index_select(0, touched_t)
+        values = torch.cat([values, centre.index_select(0, touched_t)[None]])
+    mean_rgb, mean_opacity = pixel_mean(values[..., :3], values[..., 3])
     centre = centre.clone()
-    centre[touched_t] = total / per_axis ** 2
+    centre[touched_t] = torch.cat([mean_rgb, mean_opacity[:, None]], dim=1)
     return centre[:, :3].contiguous(), centre[:, 3].contiguous()
 
 

@@ -313,6 +313,49 @@ def composite(rgb: torch.Tensor, opacity: torch.Tensor, background: torch.Tensor
 
 
 # --------------------------------------------------------------------------------------
+# rays into pixels: the pixel filter in linear light
+
+# A ray's opacity below this counts as empty when its straight colour is taken (rgb / A).
+STRAIGHT_EPS = 1e-6
+
+
+def srgb_to_linear(encoded: torch.Tensor) -> torch.Tensor:
+    """IEC 61966-2-1 decoding, elementwise, of values on [0, 1] (clamped first). Any shape."""
+    x = encoded.clamp(0.0, 1.0)
+    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(linear: torch.Tensor) -> torch.Tensor:
+    """IEC 61966-2-1 encoding, elementwise, of values on [0, 1] (clamped first). Any shape.
+    The power branch reads its input clamped to its own domain, so the gradient stays finite
+    at 0 (x^(1/2.4) has an infinite slope there; the linear segment is what is taken)."""
+    x = linear.clamp(0.0, 1.0)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def pixel_mean(rgb: torch.Tensor, opacity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mean of S rays through each of P pixels, taken as the ground truth's pixel filter
+    takes it: in linear light. The renderer (Mitsuba, a camera) averages radiance over the
+    pixel, and the image stores the straight colour of that mean in sRGB; the model's
+    colours are sRGB. The mean of sRGB values is not the sRGB of the mean: a pixel half
+    black, half white is 0.735 in the ground truth and 0.5 as a mean of sRGB rays, so a
+    texture edge or a defocused one cannot be fit by the right colours on both sides.
+    Alpha is a coverage and averages as it is.
+
+        A = mean_s a_s,  L = mean_s lin(c_s) a_s,  c_s = rgb_s / a_s (straight sRGB)
+        pixel rgb = srgb(L / A) * A  (premultiplied sRGB, as a ray's)
+
+    One ray (S = 1) returns its own values (to rounding). rgb: [S, P, 3] premultiplied
+    sRGB; opacity: [S, P]. Returns rgb [P, 3], opacity [P]."""
+    _check(rgb.ndim == 3 and rgb.shape[-1] == 3, f"rgb must be [S, P, 3], got shape {tuple(rgb.shape)}")
+    _check(opacity.shape == rgb.shape[:2], f"opacity must be [S, P] = {list(rgb.shape[:2])}, got {tuple(opacity.shape)}")
+    straight = rgb / opacity.clamp_min(STRAIGHT_EPS)[..., None]  # [S, P, 3]
+    linear = (srgb_to_linear(straight) * opacity[..., None]).mean(dim=0)  # [P, 3] premultiplied
+    mean_opacity = opacity.mean(dim=0)  # [P]
+    return linear_to_srgb(linear / mean_opacity.clamp_min(STRAIGHT_EPS)[:, None]) * mean_opacity[:, None], mean_opacity
+
+
+# --------------------------------------------------------------------------------------
 # the whole ray
 
 

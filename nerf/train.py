@@ -36,7 +36,7 @@ from nerfgauge.nerf.frames import pixel_offsets
 from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
-from nerfgauge.nerf.rendering import composite, render_rays_chunked
+from nerfgauge.nerf.rendering import composite, pixel_mean, render_rays_chunked
 from nerfgauge.nerf.schedule import FINE_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER, Schedule, upsample_count
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
 from nerfgauge.nerf.trials import (Trial, candidate_config, parametrisation_trial, pick, render_path, trial_reason,
@@ -779,21 +779,19 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
         background = torch.full((3,), 1.0 if config.background == "white" else 0.0, device=device)
     target = rgba[:, :3] * rgba[:, 3:] + background * (1 - rgba[:, 3:])
     if config.pixel_filter == "edges":
-        rays_of, pixel_colour = _edge_rays(rays, index, origins, directions, state.edge_points ** 2, generator, device)
-        origins, directions = rays_of
-        ray_background = pixel_colour.spread(background) if background.ndim == 2 else background
+        (origins, directions), pixels = _edge_rays(rays, index, origins, directions, state.edge_points ** 2, generator,
+                                                   device)
     else:
         if config.pixel_filter != "centre":
             offsets = pixel_sample_offsets(n_pixels, per_pixel, generator).to(device)  # [per_pixel * n_pixels, 2]
             origins = origins.repeat(per_pixel, 1)
             directions = jittered_direction(directions.repeat(per_pixel, 1),
                                             rays.footprint[index].to(device).repeat(per_pixel, 1, 1), offsets)
-        ray_background = background.repeat(per_pixel, 1) if background.ndim == 2 else background
-        pixel_colour = MeanOfRepeats(per_pixel, n_pixels)
+        pixels = MeanOfRepeats(per_pixel, n_pixels)
     out = model.render(origins, directions, generator=generator, training=True)
 
-    def pixel_error(rgb, opacity):  # [n_pixels, 3]: the mean of each pixel's rays, composited, minus the target
-        return pixel_colour.gather(composite(rgb, opacity, ray_background)) - target
+    def pixel_error(rgb, opacity):  # [n_pixels, 3]: each pixel's rays averaged (in linear light), composited, minus the target
+        return composite(*pixels.gather(rgb, opacity), background) - target
 
     loss = (pixel_error(out.rgb, out.opacity) ** 2).mean()
     if out.coarse is not None:
@@ -816,34 +814,38 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
 
 
 class MeanOfRepeats:
-    """Pixel colours from rays laid out as `per_pixel` blocks of `n_pixels` rays (ray r of
-    pixel p at row r * n_pixels + p): each pixel's mean."""
+    """Pixels from rays laid out as `per_pixel` blocks of `n_pixels` rays (ray r of pixel p
+    at row r * n_pixels + p): each pixel's mean in linear light (nerf.rendering.pixel_mean)."""
 
     def __init__(self, per_pixel: int, n_pixels: int):
         self.per_pixel, self.n_pixels = per_pixel, n_pixels
 
-    def gather(self, ray_values: torch.Tensor) -> torch.Tensor:  # [per_pixel * n_pixels, C] -> [n_pixels, C]
-        return ray_values.view(self.per_pixel, self.n_pixels, -1).mean(dim=0)
+    def gather(self, rgb: torch.Tensor, opacity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """rgb [per_pixel * n_pixels, 3] premultiplied, opacity [per_pixel * n_pixels] ->
+        [n_pixels, 3], [n_pixels]."""
+        if self.per_pixel == 1:
+            return rgb, opacity
+        return pixel_mean(rgb.view(self.per_pixel, self.n_pixels, 3), opacity.view(self.per_pixel, self.n_pixels))
 
 
 class EdgeSplit:
-    """Pixel colours from rays laid out as one centre ray for each plain pixel (`plain`,
-    indices into the batch's pixels) followed by `per_pixel` blocks of one ray for each
-    edge pixel (`edge`): a plain pixel's ray, an edge pixel's mean."""
+    """Pixels from rays laid out as one centre ray for each plain pixel (`plain`, indices
+    into the batch's pixels) followed by `per_pixel` blocks of one ray for each edge pixel
+    (`edge`): a plain pixel's ray, an edge pixel's mean in linear light (nerf.rendering.pixel_mean)."""
 
     def __init__(self, plain: torch.Tensor, edge: torch.Tensor, n_pixels: int, per_pixel: int):
         self.plain, self.edge, self.n_pixels, self.per_pixel = plain, edge, n_pixels, per_pixel
 
-    def spread(self, pixel_values: torch.Tensor) -> torch.Tensor:  # [n_pixels, C] -> [rays, C]
-        return torch.cat([pixel_values[self.plain], pixel_values[self.edge].repeat(self.per_pixel, 1)])
-
-    def gather(self, ray_values: torch.Tensor) -> torch.Tensor:  # [rays, C] -> [n_pixels, C]
+    def gather(self, rgb: torch.Tensor, opacity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """rgb [rays, 3] premultiplied, opacity [rays] -> [n_pixels, 3], [n_pixels]."""
         n_plain = len(self.plain)
-        pixels = ray_values.new_empty((self.n_pixels, ray_values.shape[1]))
-        pixels[self.plain] = ray_values[:n_plain]
+        pixel_rgb, pixel_opacity = rgb.new_empty((self.n_pixels, 3)), opacity.new_empty(self.n_pixels)
+        pixel_rgb[self.plain], pixel_opacity[self.plain] = rgb[:n_plain], opacity[:n_plain]
         if len(self.edge):  # a batch may hold no edge pixel (an empty scene has none at all)
-            pixels[self.edge] = ray_values[n_plain:].reshape(self.per_pixel, len(self.edge), -1).mean(dim=0)
-        return pixels
+            edge_rgb, edge_opacity = pixel_mean(rgb[n_plain:].reshape(self.per_pixel, len(self.edge), 3),
+                                                opacity[n_plain:].reshape(self.per_pixel, len(self.edge)))
+            pixel_rgb[self.edge], pixel_opacity[self.edge] = edge_rgb, edge_opacity
+        return pixel_rgb, pixel_opacity
 
 
 def _edge_rays(rays, index: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor, per_pixel: int,

@@ -71,9 +71,15 @@ def test_a_box_frame_averages_the_rays_through_the_grid_of_points(per_axis):
     cameras = SplitCameras("test", ("a",), np.stack([c2w]), intrinsics)
     rgb, opacity, depth = box_frame(EdgeField(), cameras, 0, per_axis, None, 1, torch.device("cpu"))
     field = EdgeField()
-    expected = np.mean([field.render(None, torch.from_numpy(_shifted_rays(c2w, intrinsics, offset)).float()).rgb.numpy()
-                        for offset in pixel_offsets(per_axis)], axis=0)
-    assert np.allclose(rgb.numpy(), expected, atol=1e-6)
+    # opaque rays: the pixel is the sRGB of the rays' mean linear value (the ground truth's
+    # box filter, in linear light), by numpy's transfer functions
+    from nerfgauge.core.images import linear_to_srgb
+    from nerfgauge.scenes.assets import srgb_to_linear
+
+    expected = linear_to_srgb(np.mean([srgb_to_linear(field.render(None, torch.from_numpy(
+        _shifted_rays(c2w, intrinsics, offset)).float()).rgb.numpy().astype(np.float64)) for offset in pixel_offsets(per_axis)],
+        axis=0))
+    assert np.allclose(rgb.numpy(), expected, atol=1e-5)
     assert torch.all(opacity == 1)
     centre = pixel_rays(c2w, intrinsics)[1].reshape(-1, 3)[:, 0]
     assert np.allclose(depth.numpy(), centre, atol=1e-6)  # depth of the centre rays, as the ground truth's
@@ -163,13 +169,18 @@ def test_the_edges_filter_spends_the_box_renders_rays_on_edge_pixels_and_the_cen
     assert torch.equal(ray_d[50 - n_edge:], expected)
     assert torch.equal(ray_o[50 - n_edge:], rays.origins[edge_pixels].repeat(per_pixel, 1))
     # pixel values: the plain pixels' rays as they are, each edge pixel the mean of its rays
-    values = torch.arange(len(ray_d), dtype=torch.float64)[:, None]
-    pixels = split.gather(values)
-    assert torch.equal(pixels[~is_edge[index], 0], torch.arange(50 - n_edge, dtype=torch.float64))
-    expected = values[50 - n_edge:].view(per_pixel, n_edge).mean(dim=0)
-    assert torch.allclose(pixels[is_edge[index], 0], expected)
-    colours = torch.randn(50, 3, dtype=torch.float64)
-    assert torch.allclose(split.gather(split.spread(colours)), colours)  # a per-pixel value is every ray's
+    # (a grey opaque ray's linear value is its own: the mean in linear light, by hand)
+    generator = torch.Generator().manual_seed(2)
+    grey = torch.rand(len(ray_d), generator=generator, dtype=torch.float64) * 0.8 + 0.2
+    opacity = torch.rand(len(ray_d), generator=generator, dtype=torch.float64) * 0.9 + 0.1
+    rgb, alpha = split.gather(grey[:, None].expand(-1, 3) * opacity[:, None], opacity)
+    plain = ~is_edge[index]
+    assert torch.equal(alpha[plain], opacity[:50 - n_edge]) and torch.equal(rgb[plain, 0], (grey * opacity)[:50 - n_edge])
+    linear = torch.where(grey <= 0.04045, grey / 12.92, ((grey + 0.055) / 1.055) ** 2.4) * opacity
+    mean_alpha = opacity[50 - n_edge:].view(per_pixel, n_edge).mean(dim=0)
+    mean_linear = linear[50 - n_edge:].view(per_pixel, n_edge).mean(dim=0) / mean_alpha
+    expected = (1.055 * mean_linear ** (1 / 2.4) - 0.055) * mean_alpha  # grey >= 0.2: every mean is on the power branch
+    assert torch.allclose(alpha[~plain], mean_alpha) and torch.allclose(rgb[~plain, 0], expected)
 
 
 @pytest.mark.parametrize("pixel_filter", ["box", "jitter", "edges"])
@@ -249,8 +260,8 @@ def test_a_batch_without_edge_pixels_is_its_centre_rays():
     (ray_o, ray_d), split = _edge_rays(rays, index, rays.origins[index], rays.directions[index], 4,
                                        torch.Generator().manual_seed(0), torch.device("cpu"))
     assert torch.equal(ray_d, rays.directions[index]) and torch.equal(ray_o, rays.origins[index])
-    values = torch.randn(len(index), 3)
-    assert torch.equal(split.gather(values), values)
+    rgb, opacity = torch.rand(len(index), 3), torch.rand(len(index))
+    assert all(torch.equal(a, b) for a, b in zip(split.gather(rgb * opacity[:, None], opacity), (rgb * opacity[:, None], opacity)))
 
 
 @pytest.mark.parametrize("kind, share, expected", [
