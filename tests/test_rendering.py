@@ -463,3 +463,57 @@ def test_property_sampling_stays_in_range(dtype, near, length, seed, weights):
     if length == 0:
         assert (t == near_t).all()
 
+
+
+# --------------------------------------------------------------------------------------
+# the pixel filter in linear light
+
+
+def test_srgb_transfer_functions_match_numpy_and_invert():
+    """Against the numpy transfer functions the dataset writer and the asset reader use
+    (independent code), and each other's inverse on [0, 1] to float64 rounding."""
+    import numpy as np
+
+    from nerfgauge.core.images import linear_to_srgb
+    from nerfgauge.scenes.assets import srgb_to_linear
+
+    x = torch.linspace(0, 1, 10001, dtype=torch.float64)
+    assert torch.allclose(R.linear_to_srgb(x), torch.from_numpy(linear_to_srgb(x.numpy())), rtol=0, atol=1e-12)
+    assert torch.allclose(R.srgb_to_linear(x), torch.from_numpy(np.asarray(srgb_to_linear(x.numpy()))), rtol=0, atol=1e-12)
+    # the two segments meet at 0.04045 / 0.0031308 to 1e-7 (the standard's rounded constants)
+    assert torch.allclose(R.linear_to_srgb(R.srgb_to_linear(x)), x, rtol=0, atol=1e-7)
+
+
+def test_pixel_mean_is_the_ground_truths_box_filter():
+    """Half black, half white opaque rays: the ground truth stores sRGB(0.5) = 0.7354 (a
+    mean of radiance), not 0.5; one ray is itself; alpha averages as coverage; empty rays
+    weigh nothing in the colour (a half-covered red pixel stays red, at alpha 0.5)."""
+    rgb = torch.tensor([[[0.0, 0.0, 0.0]], [[1.0, 1.0, 1.0]]], dtype=torch.float64)  # [S=2, P=1, 3]
+    out_rgb, out_opacity = R.pixel_mean(rgb, torch.ones(2, 1, dtype=torch.float64))
+    assert torch.allclose(out_rgb, torch.full((1, 3), 1.055 * 0.5 ** (1 / 2.4) - 0.055, dtype=torch.float64), atol=1e-12)
+    assert torch.equal(out_opacity, torch.ones(1, dtype=torch.float64))
+    generator = torch.Generator().manual_seed(0)
+    colour = torch.rand(1, 50, 3, generator=generator, dtype=torch.float64)
+    opacity = torch.rand(1, 50, generator=generator, dtype=torch.float64)
+    one_rgb, one_opacity = R.pixel_mean(colour * opacity[..., None], opacity)
+    assert torch.allclose(one_rgb, colour[0] * opacity[0, :, None], atol=1e-7) and torch.equal(one_opacity, opacity[0])
+    red = torch.tensor([[[0.8, 0.1, 0.1]], [[0.0, 0.0, 0.0]]], dtype=torch.float64)  # a covered ray and an empty one
+    half_rgb, half_opacity = R.pixel_mean(red, torch.tensor([[1.0], [0.0]], dtype=torch.float64))
+    assert torch.allclose(half_opacity, torch.tensor([0.5], dtype=torch.float64))
+    assert torch.allclose(half_rgb / half_opacity[:, None], red[0], atol=1e-7)  # straight colour: the red
+
+
+def test_pixel_mean_gradients_are_finite_at_black_and_empty():
+    """Black rays (sRGB 0) and empty ones (alpha 0) sit where x^(1/2.4) has an infinite
+    slope and rgb / alpha divides by zero: the gradient must stay finite, and match finite
+    differences where the function is smooth."""
+    rgb = torch.zeros(4, 3, 3, dtype=torch.float64, requires_grad=True)
+    opacity = torch.tensor([[0.0, 1.0, 0.5]] * 4, dtype=torch.float64, requires_grad=True)
+    out_rgb, out_opacity = R.pixel_mean(rgb, opacity)
+    (out_rgb.sum() + out_opacity.sum()).backward()
+    assert torch.isfinite(rgb.grad).all() and torch.isfinite(opacity.grad).all()
+    generator = torch.Generator().manual_seed(1)
+    colour = torch.rand(4, 5, 3, generator=generator, dtype=torch.float64) * 0.8 + 0.1
+    alpha = torch.rand(4, 5, generator=generator, dtype=torch.float64) * 0.8 + 0.1
+    assert torch.autograd.gradcheck(lambda c, a: R.pixel_mean(c * a[..., None], a),
+                                    (colour.requires_grad_(), alpha.requires_grad_()))
