@@ -161,8 +161,10 @@ def composite(rgba, background) -> np.ndarray:
 
 def area_average(image, factor: int) -> np.ndarray:
     """Box-filter an image down by an integer factor: each output pixel is the mean of a
-    factor x factor block, as a sensor pixel of that size would integrate (the ground
-    truth's own pixel filter is a box, so this takes a 2N px image to N px).
+    factor x factor block of the values given (a sensor pixel of that size integrates linear
+    light: of an sRGB image this mean is the same operator on a prediction and its ground
+    truth, which a comparison at a coarser scale needs, not the ground truth a coarser
+    render would give).
 
     Args:
         image: [H, W, C] with H and W divisible by `factor`.
