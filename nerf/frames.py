@@ -118,8 +118,9 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
               edges_only: bool = False, sub_rays: str = "changes") -> tuple:
     """Frame `index` box-filtered over each pixel as the ground truth is: premultiplied rgb
     [H*W, 3] and opacity [H*W], the means (in linear light: nerf.rendering.pixel_mean) over
-    per_axis^2 rays through a regular grid of points in each pixel (`pixel_offsets`), and the depth [H*W] of the pixel-centre rays
-    (as the dataset's ground truth is). per_axis 1 renders the centre rays once.
+    per_axis^2 rays through a regular grid of points in each pixel (`pixel_offsets`), and
+    the depth [H*W] of the pixel-centre rays (as the dataset's ground truth is). per_axis 1
+    renders the centre rays once.
     edges_only: only where the centre render changes do points get their own rays, by
     `sub_rays` (SUB_RAYS): "changes", the points between centres that differ
     (`changing_points_frame`); "edge-pixels", every point of the centre render's edge pixels
@@ -165,8 +166,8 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
 
 def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, shape: tuple, per_axis: int, pool,
                           parts: int, step: float = CHANGE_STEP) -> tuple:
-    """The box mean (in linear light) of per_axis x per_axis points over each pixel, with a ray only through
-    the points where the centre render changes (`nerfgauge.core.pixel_edges.changes_towards`
+    """The box mean (in linear light) of per_axis x per_axis points over each pixel, with a
+    ray only through the points where the centre render changes (`nerfgauge.core.pixel_edges.changes_towards`
     of its 8-bit RGBA, as the PNG holds it): the pixel centres around such a point differ by
     more than `step`, so an edge may pass it. Every other point takes the bilinear
     interpolation of the centres around it, which agree to within `step`; a pixel none of

@@ -790,7 +790,8 @@ def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, devi
         pixels = MeanOfRepeats(per_pixel, n_pixels)
     out = model.render(origins, directions, generator=generator, training=True)
 
-    def pixel_error(rgb, opacity):  # [n_pixels, 3]: each pixel's rays averaged (in linear light), composited, minus the target
+    # [n_pixels, 3]: each pixel's rays averaged (in linear light), composited, minus the target
+    def pixel_error(rgb, opacity):
         return composite(*pixels.gather(rgb, opacity), background) - target
 
     loss = (pixel_error(out.rgb, out.opacity) ** 2).mean()

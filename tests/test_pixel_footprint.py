@@ -76,9 +76,9 @@ def test_a_box_frame_averages_the_rays_through_the_grid_of_points(per_axis):
     from nerfgauge.core.images import linear_to_srgb
     from nerfgauge.scenes.assets import srgb_to_linear
 
-    expected = linear_to_srgb(np.mean([srgb_to_linear(field.render(None, torch.from_numpy(
-        _shifted_rays(c2w, intrinsics, offset)).float()).rgb.numpy().astype(np.float64)) for offset in pixel_offsets(per_axis)],
-        axis=0))
+    ray_colours = [field.render(None, torch.from_numpy(_shifted_rays(c2w, intrinsics, offset)).float()).rgb.numpy()
+                   for offset in pixel_offsets(per_axis)]
+    expected = linear_to_srgb(np.mean([srgb_to_linear(colour.astype(np.float64)) for colour in ray_colours], axis=0))
     assert np.allclose(rgb.numpy(), expected, atol=1e-5)
     assert torch.all(opacity == 1)
     centre = pixel_rays(c2w, intrinsics)[1].reshape(-1, 3)[:, 0]
@@ -260,8 +260,10 @@ def test_a_batch_without_edge_pixels_is_its_centre_rays():
     (ray_o, ray_d), split = _edge_rays(rays, index, rays.origins[index], rays.directions[index], 4,
                                        torch.Generator().manual_seed(0), torch.device("cpu"))
     assert torch.equal(ray_d, rays.directions[index]) and torch.equal(ray_o, rays.origins[index])
-    rgb, opacity = torch.rand(len(index), 3), torch.rand(len(index))
-    assert all(torch.equal(a, b) for a, b in zip(split.gather(rgb * opacity[:, None], opacity), (rgb * opacity[:, None], opacity)))
+    opacity = torch.rand(len(index))
+    premultiplied = torch.rand(len(index), 3) * opacity[:, None]
+    gathered_rgb, gathered_opacity = split.gather(premultiplied, opacity)
+    assert torch.equal(gathered_rgb, premultiplied) and torch.equal(gathered_opacity, opacity)
 
 
 @pytest.mark.parametrize("kind, share, expected", [
