@@ -30,18 +30,12 @@ from nerfgauge.scenes.description import Diffuse, TriangleMesh
 from nerfgauge.scenes.meshes import MeshData
 
 from nerfgauge.core.errors import InputError
+from nerfgauge.core.images import srgb_to_linear
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
 UNITS = ("normalise", "keep")
 DEFAULT_GREY = Diffuse((0.6, 0.6, 0.6))  # objects without a material, as before assets kept theirs
 UNNAMED = "user_mesh"  # the name of the one object of a file that names none (PLY, STL, OBJ without o/g)
-
-
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """sRGB transfer function inverted; encoded in [0, 1]. Same shape out."""
-    encoded = np.asarray(encoded)
-    encoded = encoded if encoded.dtype in (np.float32, np.float64) else encoded.astype(np.float64)
-    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4).astype(encoded.dtype)
 
 
 @dataclass(frozen=True)

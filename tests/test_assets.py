@@ -33,7 +33,7 @@ import trimesh
 from nerfgauge.generate.mitsuba_scene import scene_dict, write_meshes
 from nerfgauge.generate.render import render_view
 from nerfgauge.scenes import make_scene
-from nerfgauge.scenes.assets import srgb_to_linear
+from nerfgauge.core.images import srgb_to_linear
 from nerfgauge.scenes.trimesh_reader import gltf_json
 from nerfgauge.scenes.envmap import read_envmap
 from PIL import Image

@@ -17,7 +17,7 @@ from nerfgauge.eval.metrics import METRIC_NAMES
 from nerfgauge.cli import main
 from nerfgauge.core import dataset
 from nerfgauge.core.camera import look_at, pixel_rays
-from nerfgauge.core.images import read_png
+from nerfgauge.core.images import linear_to_srgb, read_png, srgb_to_linear
 
 
 @pytest.fixture(scope="module")
@@ -73,20 +73,21 @@ def reference_quadrilinear(root, c2w, row, col):
             fc, fr = min(max(u - c0, 0.0), 1.0), min(max(v - r0, 0.0), 1.0)
             for r, w_r in ((r0, 1 - fr), (r0 + 1, fr)):
                 for c, w_c in ((c0, 1 - fc), (c0 + 1, fc)):
-                    p = image[r, c]
-                    total += w_st * w_r * w_c * np.array([*(p[:3] * p[3]), p[3]])
-    return total  # premultiplied RGBA
+                    p = image[r, c]  # straight sRGB in [0, 1], decoded to light before it is mixed
+                    total += w_st * w_r * w_c * np.array([*(srgb_to_linear(p[:3]) * p[3]), p[3]])
+    return total  # premultiplied RGBA, colour in linear light
 
 
 def test_vectorised_light_field_matches_reference_loop(lightfield_ds):
     field = LightField(lightfield_ds)
     test = dataset.open_dataset(lightfield_ds).cameras("test")
-    rendered = field.render(test.c2w[0], "quadrilinear")  # straight alpha [H, W, 4]
-    premultiplied = np.concatenate([rendered[..., :3] * rendered[..., 3:], rendered[..., 3:]], -1)
+    rendered = field.render(test.c2w[0], "quadrilinear")  # straight alpha [H, W, 4], sRGB colour
     for row, col in [(0, 0), (5, 17), (12, 12), (11, 9), (23, 23), (18, 2)]:
-        expected = reference_quadrilinear(lightfield_ds, test.c2w[0], row, col)
+        expected = np.clip(reference_quadrilinear(lightfield_ds, test.c2w[0], row, col), 0, 1)
+        alpha = expected[3]
+        straight = linear_to_srgb(expected[:3] / alpha) if alpha > 0 else np.zeros(3)
         # Same arithmetic in another order: float64 rounding, ~1e-15, plus the clip to [0, 1].
-        np.testing.assert_allclose(premultiplied[row, col], np.clip(expected, 0, 1), atol=1e-9)
+        np.testing.assert_allclose(rendered[row, col], [*straight, alpha], atol=1e-9)
 
 
 # --- scores ---------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ from cli_errors import one_line_exit_2
 from nerfgauge.cli import main
 from nerfgauge.core import dataset
 from nerfgauge.core.camera import Intrinsics, ThinLens
-from nerfgauge.core.images import read_png
+from nerfgauge.core.images import linear_to_srgb, read_png, srgb_to_linear
 from nerfgauge.methods.baselines import LightField
 from test_thinlens import blur_radius_px, second_moment
 
@@ -42,7 +42,8 @@ def synthetic_dot_field(depth: float, side: int = 32, nodes: int = 21, half_span
     """A light field of a single small bright dot at distance `depth` in front of a dense
     nodes x nodes grid of cameras on the plane y = 0 facing +Y (the generator's light-field
     pose), spanning [-half_span, half_span] in x and z. Each image is the dot's exact
-    projection, drawn as a Gaussian of sigma 0.7 px (uint8, as the dataset stores it)."""
+    projection, drawn as a Gaussian of sigma 0.7 px in light, stored as 8-bit sRGB (as the
+    dataset stores it)."""
     field = object.__new__(LightField)
     field.origin = np.array([-half_span, 0.0, -half_span])
     field.axes = np.eye(3)[[0, 2, 1]]  # s = +X, t = +Z, view = +Y
@@ -61,7 +62,7 @@ def synthetic_dot_field(depth: float, side: int = 32, nodes: int = 21, half_span
     glow = np.exp(-((cols[None] - centre[:, 0, None, None]) ** 2 + (rows[None] - centre[:, 1, None, None]) ** 2)
                   / (2 * 0.7**2))
     field.images = np.zeros((nodes * nodes, side, side, 4), np.uint8)
-    field.images[..., :3] = np.round(255 * glow)[..., None]
+    field.images[..., :3] = np.round(255 * linear_to_srgb(glow))[..., None]
     field.images[..., 3] = 255
     return field
 
@@ -76,11 +77,12 @@ def test_refocused_off_focus_point_blurs_into_the_thin_lens_circle(aperture, foc
     (s, t) add the variance of a tent of one grid spacing h (h^2 / 6 per axis), i.e.
     (r h / A)^2 / 3 px^2, and reading views at fractional pixels adds at most 1/6 px^2 per
     axis; at h = A / 10 or less and r > 2 px both stay below 2 % of r, inside the 4 % + 0.15 px
-    tolerance (which also covers 256 lens samples' residual error)."""
+    tolerance (which also covers 256 lens samples' residual error). Moments add for light,
+    not for its sRGB code: both images are decoded first (the lens averages light)."""
     field = synthetic_dot_field(depth)
     centre_camera = field.c2w[(field.rows * field.cols) // 2]  # the grid's middle node
-    sharp = field.refocus(centre_camera, ThinLens(0.0, depth))[..., 0]
-    blurred = field.refocus(centre_camera, ThinLens(aperture, focus), samples=256, seed=0)[..., 0]
+    sharp = srgb_to_linear(field.refocus(centre_camera, ThinLens(0.0, depth))[..., 0])
+    blurred = srgb_to_linear(field.refocus(centre_camera, ThinLens(aperture, focus), samples=256, seed=0)[..., 0])
     expected = blur_radius_px(aperture, focus, depth, field.intrinsics.fx)
     assert 2.0 < expected < 7.0
     measured = math.sqrt(2 * (second_moment(blurred) - second_moment(sharp)))
@@ -90,12 +92,27 @@ def test_refocused_off_focus_point_blurs_into_the_thin_lens_circle(aperture, foc
 def test_refocused_point_in_the_focus_plane_stays_sharp():
     field = synthetic_dot_field(3.0)
     centre_camera = field.c2w[(field.rows * field.cols) // 2]
-    sharp = field.refocus(centre_camera, ThinLens(0.0, 3.0))[..., 0]
-    in_focus = field.refocus(centre_camera, ThinLens(0.5, 3.0), samples=64)[..., 0]
-    off_focus = field.refocus(centre_camera, ThinLens(0.5, 2.0), samples=64)[..., 0]
+    sharp, in_focus, off_focus = (srgb_to_linear(field.refocus(centre_camera, lens, samples=64)[..., 0])
+                                  for lens in (ThinLens(0.0, 3.0), ThinLens(0.5, 3.0), ThinLens(0.5, 2.0)))
     # only the bilinear resampling of the views (<= 1/6 px^2 per axis) may widen it
     assert second_moment(in_focus) - second_moment(sharp) < 2 * (1 / 6) + 0.05
     assert second_moment(off_focus) - second_moment(sharp) > 4.0
+
+
+def test_the_lens_moves_light_and_neither_makes_nor_loses_it():
+    """Shift and add averages light, as the thin lens does: the blurred dot's light (its
+    decoded pixel values summed) is the sharp dot's. Bilinear reads and the mean over the
+    lens both keep a sum away from the border (the disc's radius is 3.3 px, its centre the
+    32 px image's); what is left is the 8-bit sRGB quantisation of the views (glow under
+    1.5e-4 rounds to 0: well under 1% of a glow summing to 2 pi 0.7^2 = 3.1), inside the 2%
+    allowed. A mean of sRGB codes keeps a fraction of the light: the code is concave in it."""
+    field = synthetic_dot_field(4.0)
+    centre_camera = field.c2w[(field.rows * field.cols) // 2]
+    sharp = srgb_to_linear(field.refocus(centre_camera, ThinLens(0.0, 4.0))[..., 0]).sum()
+    blurred = srgb_to_linear(field.refocus(centre_camera, ThinLens(0.3, 2.0), samples=256, seed=0)[..., 0]).sum()
+    assert blur_radius_px(0.3, 2.0, 4.0, field.intrinsics.fx) == pytest.approx(3.3, abs=0.1)
+    assert sharp == pytest.approx(2 * math.pi * 0.7 ** 2, rel=0.01)
+    assert blurred == pytest.approx(sharp, rel=0.02)
 
 
 def test_refocus_baseline_writes_every_test_frame_and_evaluates(lens_lightfield, tmp_path, capsys):

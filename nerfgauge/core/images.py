@@ -75,6 +75,14 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
+def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+    """`linear_to_srgb` inverted (IEC 61966-2-1 decoding); encoded in [0, 1]. Same shape
+    out, float32 kept, any other dtype as float64."""
+    encoded = np.asarray(encoded)
+    encoded = encoded if encoded.dtype in (np.float32, np.float64) else encoded.astype(np.float64)
+    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4).astype(encoded.dtype)
+
+
 def premultiplied_to_png_rgba(rgba_linear: np.ndarray) -> np.ndarray:
     """Linear premultiplied RGBA [H, W, 4] -> 8-bit sRGB straight-alpha RGBA [H, W, 4] uint8."""
     alpha = np.clip(rgba_linear[..., 3:4], 0.0, 1.0)

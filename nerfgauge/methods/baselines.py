@@ -24,8 +24,9 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
   camera k is F projected with the camera module's intrinsics, pixel centres at +0.5.
   nearest: the nearest grid camera, and its nearest pixel to F. quadrilinear: bilinear in
   (s, t) over the 4 surrounding cameras times bilinear in (u, v) over the 4 pixels around
-  F in each: 16 samples. Samples are premultiplied RGBA (sRGB values), so interpolation
-  never mixes in the colour of transparent pixels. (s, t) beyond the grid and (u, v)
+  F in each: 16 samples. Samples are premultiplied RGBA in linear light (the PNG's sRGB
+  decoded), so interpolation never mixes in the colour of transparent pixels and mixes
+  radiance as a sensor or a lens does; the result is encoded back to sRGB. (s, t) beyond the grid and (u, v)
   beyond an image are clamped to the edge.
 - `refocus`: synthetic-aperture refocusing (shift and add) over the same camera grid. A
   frame with a thin lens (aperture radius A, focus distance D; docs/conventions.md) is
@@ -38,7 +39,10 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
   with the weight of its cell's overlap with the aperture disc. Points on the plane in
   focus come out sharp, others blur by the thin-lens circle of confusion (sampled by the
   camera grid's spacing). Aperture 0 is view interpolation focused at D; a frame without
-  a lens is refocused with aperture 0 at the light field's own focal plane.
+  a lens is refocused with aperture 0 at the light field's own focal plane. The mean over
+  the lens is taken in linear light, as the ground truth's thin lens integrates radiance
+  (docs/conventions.md, "Pixel footprint"): a dot blurred in sRGB values would spread
+  wider than the circle of confusion in light.
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ from nerfgauge.core.camera import ThinLens, camera_directions, lens_samples, pix
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash, remove_owned
-from nerfgauge.core.images import write_png
+from nerfgauge.core.images import linear_to_srgb, srgb_to_linear, write_png
 
 METHODS = ("nearest", "lightfield-nearest", "lightfield-quadrilinear", "refocus")
 REFOCUS_SAMPLES = 64  # lens samples per pixel of the refocus baseline
@@ -182,11 +186,12 @@ class LightField:
         return np.stack([u - 0.5, v - 0.5], axis=-1)
 
     def sample(self, camera: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-        """Premultiplied RGBA in [0, 1] at integer pixels (clamped). All [P]. Returns [P, 4]."""
+        """Premultiplied RGBA in [0, 1], colour in linear light, at integer pixels (clamped).
+        All [P]. Returns [P, 4]."""
         col = np.clip(col, 0, self.intrinsics.width - 1)
         row = np.clip(row, 0, self.intrinsics.height - 1)
         rgba = self.images[camera, row, col].astype(np.float64) / 255.0  # [P, 4]
-        return np.concatenate([rgba[:, :3] * rgba[:, 3:], rgba[:, 3:]], axis=-1)
+        return np.concatenate([srgb_to_linear(rgba[:, :3]) * rgba[:, 3:], rgba[:, 3:]], axis=-1)
 
     def render(self, c2w: np.ndarray, mode: str) -> np.ndarray:
         """Straight-alpha RGBA [H, W, 4] in [0, 1] seen by camera c2w [4, 4]; mode nearest|quadrilinear."""
@@ -236,10 +241,11 @@ class LightField:
 
 
 def _unpremultiply(premultiplied: np.ndarray) -> np.ndarray:
-    """Premultiplied RGBA [P, 4] -> straight RGBA [P, 4] clipped to [0, 1] (colour 0 where alpha is 0)."""
+    """Premultiplied RGBA [P, 4], colour in linear light -> straight RGBA [P, 4] with sRGB
+    colour, clipped to [0, 1] (colour 0 where alpha is 0)."""
     alpha = premultiplied[:, 3:]  # [P, 1]
     rgb = np.divide(premultiplied[:, :3], alpha, out=np.zeros((len(alpha), 3)), where=alpha > 0)
-    return np.clip(np.concatenate([rgb, alpha], -1), 0.0, 1.0)
+    return np.clip(np.concatenate([linear_to_srgb(rgb), alpha], -1), 0.0, 1.0)
 
 
 def _cell(coords: np.ndarray, sizes) -> tuple[np.ndarray, np.ndarray]:
