@@ -39,7 +39,7 @@ One table per scene, one entry per metric, each an inline table with `min` and/o
 - Metric names: `eval.metrics.METRIC_NAMES` (psnr, ssim, psnr_foreground, psnr_covisible,
   ssim_covisible, covisible_fraction, psnr_capture_bound, depth_absrel, depth_rmse,
   depth_mae, depth_delta1, depth_bias, depth_absrel_resolved, resolved_fraction, opacity_iou, psnr_edges,
-  psnr_interior, edge_fraction, lpips),
+  psnr_interior, edge_fraction, psnr_outline, outline_alpha_bias, outline_alpha_rmse, lpips),
   compared with metrics.json's `mean` table,
   and the geometry figures `eval.geometry.SUMMARY_NAMES` (geometry_chamfer_l1,
   geometry_fscore_1pct, normal_angle_mean, ...), compared with metrics.json's `geometry`

@@ -106,6 +106,8 @@ from nerfgauge.eval.metrics import (
     depth_metrics,
     edge_pixels,
     opacity_iou,
+    outline_alpha_error,
+    outline_pixels,
     psnr_capture_bound,
     psnr_masked,
     ssim_masked,
@@ -175,7 +177,7 @@ def score_frame(ds: dataset.Dataset, stem: str, intrinsics, files: PredictionFil
     for batch in lpips_batches.values():
         batch.add(*scored)
     values["psnr_objects"] = object_psnrs(ds, stem, intrinsics, pred, gt)
-    values.update(edge_scores(ds, stem, intrinsics, pred, gt, gt_rgba))
+    values.update(edge_scores(ds, stem, intrinsics, pred, gt, gt_rgba, alpha))
     values["empty"] = None if mask is None else not mask.any()
     depth_err = None
     if files.depth is not None and mask is not None and ds.has("depth"):
@@ -206,16 +208,22 @@ def object_psnrs(ds: dataset.Dataset, stem: str, intrinsics, pred, gt) -> Option
             for number in np.unique(ids) if number != 0}
 
 
-def edge_scores(ds: dataset.Dataset, stem: str, intrinsics, pred, gt, gt_rgba) -> dict:
+def edge_scores(ds: dataset.Dataset, stem: str, intrinsics, pred, gt, gt_rgba, alpha=None) -> dict:
     """PSNR on the frame's edge pixels (eval.metrics.edge_pixels: where a pixel's box filter
     mixes what its rays see) and on the other pixels the ground truth covers, with the
     edges' share of the image: the error of a method that samples one ray per pixel, or
-    resolves an edge a pixel off, sits on the first. Instance ids where the dataset has them."""
+    resolves an edge a pixel off, sits on the first. Instance ids where the dataset has them.
+    Of the edges, the outline (eval.metrics.outline_pixels: partial coverage) apart: its
+    PSNR, and with the prediction's `alpha` [H, W] (None: no alpha) how far its alpha
+    sits from the truth's (outline_alpha_error)."""
     has_ids = stem + dataset.FRAME_SUFFIXES["instance"] in ds.manifest_files
     edges = edge_pixels(gt_rgba, ds.instance_of(stem, intrinsics) if has_ids else None)
     interior = ~edges & (gt_rgba[..., 3] > 0)
+    outline = outline_pixels(gt_rgba)
+    alpha_error = outline_alpha_error(alpha, gt_rgba[..., 3], outline) if alpha is not None else {}
     return {"psnr_edges": psnr_masked(pred, gt, edges), "psnr_interior": psnr_masked(pred, gt, interior),
-            "edge_fraction": float(edges.mean())}
+            "edge_fraction": float(edges.mean()), "psnr_outline": psnr_masked(pred, gt, outline),
+            "outline_alpha_bias": alpha_error.get("bias"), "outline_alpha_rmse": alpha_error.get("rmse")}
 
 
 def frame_ceiling(ds: dataset.Dataset, stem: str, background: str) -> Optional[float]:

@@ -38,6 +38,8 @@ from nerfgauge.core.images import read_exr_single
 
 TABLE_METRICS = (("psnr", "PSNR dB", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_foreground", "foreground PSNR dB", "{:.2f}"),
                  ("psnr_edges", "edge PSNR dB", "{:.2f}"), ("psnr_interior", "interior PSNR dB", "{:.2f}"),
+                 ("psnr_outline", "outline PSNR dB", "{:.2f}"), ("outline_alpha_bias", "outline α bias", "{:+.4f}"),
+                 ("outline_alpha_rmse", "outline α RMSE", "{:.4f}"),
                  ("psnr_covisible", "co-visible PSNR dB", "{:.2f}"),
                  ("psnr_capture_bound", "capture bound PSNR dB", "{:.2f}"),
                  ("depth_absrel", "depth AbsRel", "{:.4f}"),

@@ -76,6 +76,9 @@ def test_ground_truth_scores_perfectly(ds, test_split, tmp_path, capsys, depth_k
     # at 24 px every covered pixel lies within a pixel of an edge: no interior to score
     assert all(doc["count"][m] == 3 for m in METRIC_NAMES if m not in ("lpips", "psnr_interior"))
     assert doc["count"]["lpips"] == 0 and doc["mean"]["psnr_edges"] == PSNR_CAP_DB
+    # the ground truth's own outline: its alpha read back is the truth's, to the bit
+    assert doc["mean"]["psnr_outline"] == PSNR_CAP_DB
+    assert doc["mean"]["outline_alpha_bias"] == 0.0 and doc["mean"]["outline_alpha_rmse"] == 0.0
     assert doc["mean"]["lpips"] is None and doc["notes"]["lpips"].startswith("n/a")
     # Opacity from the PNG's alpha (coverage) against the pixel-centre mask: not always 1.
     opened = dataset.open_dataset(ds)

@@ -388,3 +388,53 @@ def test_edge_pixels_equal_an_independent_construction(with_ids):
     assert not got[23:27, 13:24].any()  # the block's inside, two pixels from every step
     assert got[7:10, 10:40].all() and got[28:31, 10:40].all()  # silhouette rows (and the half-covered row)
     assert got[20, 29:31].all() == with_ids  # the shapes' shared boundary is an edge only by the ids
+
+
+# --- outline ----------------------------------------------------------------------------
+
+
+def test_outline_pixels_are_the_partly_covered_ones_beyond_8_bit_rounding():
+    from nerfgauge.eval.metrics import outline_pixels
+
+    alpha = np.array([[0.0, 0.4 / 255, 1 / 255, 0.5], [254 / 255, 254.6 / 255, 1.0, 0.999]])
+    rgba = np.concatenate([np.full(alpha.shape + (3,), 0.5), alpha[..., None]], -1)
+    assert outline_pixels(rgba).tolist() == [[False, False, True, True], [True, False, False, False]]
+
+
+def test_outline_alpha_error_is_the_silhouettes_shift_in_pixels():
+    """A vertical edge at x = 10.5 (the object on the right), exact coverage: column 10 is
+    half covered. The prediction moves the edge of row r left by d_r, inside the column
+    (|d_r| < 0.5), so that pixel's alpha rises by exactly d_r and no other pixel changes:
+    the bias is the mean shift, the RMSE the root mean square of the shifts."""
+    from nerfgauge.eval.metrics import outline_alpha_error, outline_pixels
+
+    rng = np.random.default_rng(7)
+    height, width = 16, 24
+    truth = np.zeros((height, width))
+    truth[:, 11:] = 1.0
+    truth[:, 10] = 0.5
+    shifts = rng.uniform(-0.35, 0.35, size=height) + 0.1  # in (-0.25, 0.45): outward on average
+    predicted = truth.copy()
+    predicted[:, 10] += shifts
+    rgba = np.concatenate([np.full((height, width, 3), 0.3), truth[..., None]], -1)
+    outline = outline_pixels(rgba)
+    assert outline.sum() == height and outline[:, 10].all()
+    got = outline_alpha_error(predicted, truth, outline)
+    assert got["bias"] == pytest.approx(shifts.mean(), abs=1e-12)
+    assert got["rmse"] == pytest.approx(np.sqrt(np.mean(shifts ** 2)), abs=1e-12)
+    assert got["bias"] > 0  # drawn too wide
+
+
+def test_outline_alpha_error_without_an_outline_is_none_and_bad_input_is_refused():
+    from nerfgauge.eval.metrics import NonFiniteError, outline_alpha_error
+
+    plane = np.zeros((4, 5))
+    assert outline_alpha_error(plane, plane, np.zeros((4, 5), bool)) == {"bias": None, "rmse": None}
+    with pytest.raises(InputError, match="ground-truth alpha must have shape"):
+        outline_alpha_error(plane, np.zeros((5, 4)), np.ones((4, 5), bool))
+    nan = plane.copy()
+    nan[1, 2] = np.nan
+    with pytest.raises(NonFiniteError):
+        outline_alpha_error(nan, plane, np.ones((4, 5), bool))
+    with pytest.raises(InputError, match=r"lie in \[0, 1\]"):
+        outline_alpha_error(plane + 2, plane, np.ones((4, 5), bool))

@@ -22,6 +22,12 @@ EDGE_COLOUR_STEP = 0.1
 ALPHA_ROUNDING = 0.5 / 255
 
 
+def partial_coverage(alpha: np.ndarray, alpha_rounding: float = ALPHA_ROUNDING) -> np.ndarray:
+    """The pixels an outline crosses: alpha_rounding < alpha < 1 - alpha_rounding. alpha:
+    [H, W] (or any shape) on [0, 1]. Returns a bool array of its shape."""
+    return (alpha > alpha_rounding) & (alpha < 1 - alpha_rounding)
+
+
 def edge_mask(rgba: np.ndarray, ids: Optional[np.ndarray] = None, colour_step: float = EDGE_COLOUR_STEP,
               alpha_rounding: float = 0.0) -> np.ndarray:
     """Partial coverage (alpha_rounding < alpha < 1 - alpha_rounding), a boundary between
@@ -36,7 +42,7 @@ def edge_mask(rgba: np.ndarray, ids: Optional[np.ndarray] = None, colour_step: f
         [H, W] bool.
     """
     alpha = rgba[..., 3]
-    edges = (alpha > alpha_rounding) & (alpha < 1 - alpha_rounding)
+    edges = partial_coverage(alpha, alpha_rounding)
     colour = rgba[..., :3] * alpha[..., None]  # premultiplied: no colour step hides behind alpha 0
 
     def steps(values: np.ndarray, differs) -> None:

@@ -64,10 +64,11 @@ GEOMETRY_COLUMNS = ("geometry_chamfer_l1", "geometry_fscore_1pct", "normal_angle
 COST_COLUMNS = ("train_seconds", "steps_per_second", "peak_memory_bytes", "model_bytes", "ms_per_frame")
 LOWER_IS_BETTER_PREFIXES = ("depth_absrel", "depth_rmse", "depth_mae", "geometry_chamfer", "geometry_accuracy",
                             "geometry_completeness", "normal_angle", "lpips", "train_seconds", "model_bytes",
-                            "ms_per_frame", "peak_memory_bytes")
+                            "ms_per_frame", "peak_memory_bytes", "outline_alpha_rmse")
 LABELS = {"psnr": "PSNR dB", "ssim": "SSIM", "psnr_foreground": "fg PSNR dB", "depth_absrel": "depth AbsRel",
           "depth_rmse": "depth RMSE", "depth_mae": "depth MAE", "depth_delta1": "depth δ<1.25",
-          "opacity_iou": "opacity IoU", "geometry_chamfer_l1": "Chamfer-L1", "geometry_fscore_1pct": "F@1%",
+          "opacity_iou": "opacity IoU", "psnr_outline": "outline PSNR dB", "outline_alpha_bias": "outline α bias",
+          "outline_alpha_rmse": "outline α RMSE", "geometry_chamfer_l1": "Chamfer-L1", "geometry_fscore_1pct": "F@1%",
           "normal_angle_mean": "normal err °", "train_seconds": "train s", "steps_per_second": "steps/s",
           "peak_memory_bytes": "peak MB", "model_bytes": "model MB", "ms_per_frame": "render ms/frame"}
 
