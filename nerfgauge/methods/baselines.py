@@ -26,8 +26,8 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
   (s, t) over the 4 surrounding cameras times bilinear in (u, v) over the 4 pixels around
   F in each: 16 samples. Samples are premultiplied RGBA in linear light (the PNG's sRGB
   decoded), so interpolation never mixes in the colour of transparent pixels and mixes
-  radiance as a sensor or a lens does; the result is encoded back to sRGB. (s, t) beyond the grid and (u, v)
-  beyond an image are clamped to the edge.
+  radiance as a sensor or a lens does; the result is encoded back to sRGB. (s, t) beyond
+  the grid and (u, v) beyond an image are clamped to the edge.
 - `refocus`: synthetic-aperture refocusing (shift and add) over the same camera grid. A
   frame with a thin lens (aperture radius A, focus distance D; docs/conventions.md) is
   the mean over `samples` stratified lens points l (camera.lens_samples, seeded) of the
@@ -41,8 +41,8 @@ own format) for every frame of the split, and DIR/timing.json; `nerfgauge evalua
   camera grid's spacing). Aperture 0 is view interpolation focused at D; a frame without
   a lens is refocused with aperture 0 at the light field's own focal plane. The mean over
   the lens is taken in linear light, as the ground truth's thin lens integrates radiance
-  (docs/conventions.md, "Pixel footprint"): a dot blurred in sRGB values would spread
-  wider than the circle of confusion in light.
+  (docs/conventions.md, "Pixel footprint"): a dot blurred by a mean of sRGB values keeps
+  a quarter of its light (tests/test_refocus.py).
 """
 
 from __future__ import annotations
