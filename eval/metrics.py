@@ -276,7 +276,7 @@ def outline_alpha_error(pred_alpha, gt_alpha, outline) -> dict[str, Optional[flo
     outline = _mask(outline, "outline mask", alpha.shape)
     if not outline.any():
         return {"bias": None, "rmse": None}
-    error = alpha[outline].astype(np.float64) - truth[outline]  # [n]
+    error = alpha[outline] - truth[outline]  # [n], float64 (_plane)
     return {"bias": float(error.mean()), "rmse": float(np.sqrt(np.mean(error ** 2)))}
 
 

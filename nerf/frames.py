@@ -167,11 +167,12 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
 def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, shape: tuple, per_axis: int, pool,
                           parts: int, step: float = CHANGE_STEP) -> tuple:
     """The box mean (in linear light) of per_axis x per_axis points over each pixel, with a
-    ray only through the points where the centre render changes (`nerfgauge.core.pixel_edges.changes_towards`
-    of its 8-bit RGBA, as the PNG holds it): the pixel centres around such a point differ by
-    more than `step`, so an edge may pass it. Every other point takes the bilinear
-    interpolation of the centres around it, which agree to within `step`; a pixel none of
-    whose points changes keeps its centre ray's value.
+    ray only through the points where the centre render changes
+    (`nerfgauge.core.pixel_edges.changes_towards` of its 8-bit RGBA, as the PNG holds it):
+    the pixel centres around such a point differ by more than `step`, so an edge may pass
+    it. Every other point takes the bilinear interpolation of the centres around it, which
+    agree to within `step`; a pixel none of whose points changes keeps its centre ray's
+    value.
 
     centre_o, centre_d: [P, 3] the pixel-centre rays; footprint: [P, 2, 3]
     (`pixel_footprints`); rgb [P, 3] (premultiplied), opacity [P]: their render; shape (H, W).

@@ -73,8 +73,7 @@ def test_a_box_frame_averages_the_rays_through_the_grid_of_points(per_axis):
     field = EdgeField()
     # opaque rays: the pixel is the sRGB of the rays' mean linear value (the ground truth's
     # box filter, in linear light), by numpy's transfer functions
-    from nerfgauge.core.images import linear_to_srgb
-    from nerfgauge.core.images import srgb_to_linear
+    from nerfgauge.core.images import linear_to_srgb, srgb_to_linear
 
     ray_colours = [field.render(None, torch.from_numpy(_shifted_rays(c2w, intrinsics, offset)).float()).rgb.numpy()
                    for offset in pixel_offsets(per_axis)]

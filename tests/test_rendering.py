@@ -474,8 +474,7 @@ def test_srgb_transfer_functions_match_numpy_and_invert():
     (independent code), and each other's inverse on [0, 1] to float64 rounding."""
     import numpy as np
 
-    from nerfgauge.core.images import linear_to_srgb
-    from nerfgauge.core.images import srgb_to_linear
+    from nerfgauge.core.images import linear_to_srgb, srgb_to_linear
 
     x = torch.linspace(0, 1, 10001, dtype=torch.float64)
     assert torch.allclose(R.linear_to_srgb(x), torch.from_numpy(linear_to_srgb(x.numpy())), rtol=0, atol=1e-12)
