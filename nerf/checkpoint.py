@@ -54,7 +54,9 @@ class LoopState:
     steps: 0 not yet, 1 added, -1 not; edge_points: rays per axis through an `edges` run's
     edge pixels (nerf.schedule.EDGE_POINTS_PER_AXIS, then FINE_EDGE_POINTS_PER_AXIS), and
     edge_points_step the step the half-budget refinement (those points, and a grid past the
-    final one: last_stage + 1) was decided at (0: not yet; schedule.Schedule.refinement_due)."""
+    final one: last_stage + 1) was decided at (0: not yet; schedule.Schedule.refinement_due);
+    surface_step: the step surface opacity turned on at that decision (0: off;
+    TrainConfig.surface_opacity)."""
 
     step: int = 0
     seconds: float = 0.0
@@ -68,6 +70,7 @@ class LoopState:
     colour_head: int = 0
     edge_points: int = EDGE_POINTS_PER_AXIS
     edge_points_step: int = 0
+    surface_step: int = 0
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -80,7 +83,7 @@ class LoopState:
 
 # counters added after checkpoint version 2 first shipped, and their value in older files
 LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3, "colour_head": -1, "edge_points": EDGE_POINTS_PER_AXIS,
-                 "edge_points_step": 0}
+                 "edge_points_step": 0, "surface_step": 0}
 
 
 def save_atomic(obj, path) -> int:
@@ -162,6 +165,8 @@ def model_payload(model, config: TrainConfig, prune: bool) -> dict:
         payload["occupancy"] = pack_mask(model.occupancy)
         payload["visible"] = pack_mask(model.visible)
         payload["head"] = {k: v.cpu() for k, v in field.head.state_dict().items()} if field.head is not None else {}
+        if model.rise_steps > 0:  # surface opacity (absent: density opacity, as every older model)
+            payload["rise_steps"] = float(model.rise_steps)
         keep = field.index.cpu() > 0
         if prune:
             keep &= node_mask(model.occupancy.cpu())
@@ -244,6 +249,10 @@ def model_from_payload(payload: dict):
     cells = [n - 1 for n in field.shape]
     model.occupancy = unpack_mask(payload["occupancy"], cells)
     model.visible = unpack_mask(payload["visible"], cells)
+    rise_steps = payload.get("rise_steps", 0.0)
+    if not isinstance(rise_steps, float) or not 0.0 <= rise_steps <= 64.0:
+        raise ValueError(f"its surface opacity's length {rise_steps!r} is not a number of steps in [0, 64]")
+    model.rise_steps = rise_steps
     return model
 
 

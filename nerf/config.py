@@ -148,6 +148,11 @@ class TrainConfig:
     # a time budget's growth trial still judges it). None: `refine_grid_for`. Left out of
     # config.json when None or False, so runs made before it keep their recipe.
     refine_grid: Optional[bool] = _flag("--refine-grid", words=SWITCH)
+    # surface opacity (nerf.packed.occupancy_rise_taus) from the half-budget refinement of a
+    # compact run, when that refines (nerf.schedule.SURFACE_RISE_STEPS). None (auto): off
+    # (`surface_opacity_for` says why). Left out of config.json while None, so older runs keep
+    # their recipe.
+    surface_opacity: Optional[bool] = _flag("--surface-opacity", words=SWITCH)
 
     def __post_init__(self) -> None:
         if self.steps is None and self.budget_seconds is None:  # the one default budget
@@ -191,6 +196,11 @@ class TrainConfig:
             raise InputError(f"--refine-grid must be true, false or None (auto), got {self.refine_grid!r}")
         if self.refine_grid and self.model != "compact":
             raise InputError("--refine-grid on needs the compact model (it grows its voxel grid)")
+        if not (self.surface_opacity is None or isinstance(self.surface_opacity, bool)):
+            raise InputError(f"--surface-opacity must be true, false or None (auto), got {self.surface_opacity!r}")
+        if self.surface_opacity and self.model != "compact":
+            raise InputError("--surface-opacity on needs the compact model (it switches at its grid's half-budget "
+                             "refinement)")
         if self.sparse_priors and self.model != "compact":
             raise InputError("--sparse-priors on needs the compact model (they act on its voxel grid)")
         for name in ("prune", "occupancy"):
@@ -201,7 +211,7 @@ class TrainConfig:
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self)
-        for optional in ("sparse", "render_filter", "sparse_priors", "colour_head", "refine_grid"):
+        for optional in ("sparse", "render_filter", "sparse_priors", "colour_head", "refine_grid", "surface_opacity"):
             if out[optional] is None or (optional in ("sparse_priors", "refine_grid") and out[optional] is False):
                 del out[optional]
         return out
@@ -284,6 +294,7 @@ def resolve(config: TrainConfig, needs: Optional[dict], aabb: np.ndarray, train_
                          "(its own colour head); pass --view-dependent off with it")
     if config.model == "compact":
         reasons["colour_head"] = colour_head_for(dataclasses.replace(config, **updates))[1]
+        reasons["surface_opacity"] = surface_opacity_for(config)[1]
     resolution_set_by = None  # what set an automatic bounded grid's resolution (footprint_resolution)
     if config.final_resolution is None and kind != "bounded":
         # the contracted cube's inner ball, or the frustum's angles, get about one cell per
@@ -370,6 +381,16 @@ def colour_head_for(config: TrainConfig) -> tuple[bool, str]:
         return False, "the view-dependent grid's colour head models colour already"
     return False, ("not by default: at equal time it gained nothing measured (primitives 128 px, 600 s: 42.85 dB "
                    "with it, 42.86 without) and tripled the model; --colour-head on adds it")
+
+
+def surface_opacity_for(config: TrainConfig) -> tuple[bool, str]:
+    """Whether a compact run turns surface opacity on at its half-budget refinement, and
+    why: as set; not by default while it is measured on primitives only (nerf.schedule.
+    SURFACE_RISE_STEPS has the figures)."""
+    if config.surface_opacity is not None:
+        return config.surface_opacity, "set on the command line"
+    return False, ("not by default: measured on primitives 128 px only (docs/results.md, \"Surface opacity\"); "
+                   "--surface-opacity on turns it on at the half-budget refinement")
 
 
 def refined_resolution(final: int) -> int:

@@ -15,6 +15,8 @@ tables (row 0: empty), sigma = DENSITY_SCALE softplus(raw + shift) / voxel_final
 quadrature is `nerf.packed`'s:
 
     tau_i = min(sigma_i step, TAU_MAX_PACKED),  w_i = T_i (1 - exp(-tau_i)),  T_{i+1} = T_i exp(-tau_i)
+(with surface opacity, tau_i is `nerf.packed.occupancy_rise_taus`'s, from the occupancy the ray
+reached at its previous sample)
     C = sum_i w_i c_i,  A = 1 - T_end,  D = sum_i w_i t_i / max(A, DEPTH_EPS) clamped to [near, far]
 
 Each ray walks its samples nearest first and stops after the first sample that takes T below
@@ -47,7 +49,7 @@ import numpy as np
 import torch
 
 from nerfgauge.nerf.grid_field import DENSE_RENDER_FLOATS, DENSITY_SCALE, any_within
-from nerfgauge.nerf.packed import COLOUR_MIN_WEIGHT, TAU_MAX_PACKED
+from nerfgauge.nerf.packed import COLOUR_MIN_WEIGHT, RISE_ALPHA_MAX_GAP, TAU_MAX_PACKED
 from nerfgauge.nerf.rendering import DEPTH_EPS
 
 # Lanes of rays the prange splits over the threads: lane k renders blocks k, k + LANES, ...
@@ -123,7 +125,7 @@ def _lane_rays(lane, lanes, order, size):
 
 @numba.njit(cache=True)
 def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, distance, voxel, lo_box,
-                 segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, min_transmittance,
+                 segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps, min_transmittance,
                  colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
                  out_coloured, out_rows, out_features, out_weights):
     """Rays lane, lane + lanes, ... (one thread's share), each front to back: its opacity,
@@ -139,6 +141,7 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
     for i in _lane_rays(lane, lanes, order, block):
         near, far = near_of[i], far_of[i]
         transmittance, weighted_t = 1.0, 0.0
+        reached = 0.0  # surface opacity: the occupancy at the ray's previous sample
         evaluated, coloured = 0, 0
         write_from = write_offsets[i] if write_offsets.shape[0] else -1
         # the ray in voxel units from the box's corner (the march's), and in the field's nodes
@@ -207,6 +210,11 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
                     softplus = arg if arg > SOFTPLUS_THRESHOLD else math.log1p(math.exp(arg))
                     tau = min(density_scale * softplus * step, TAU_MAX_PACKED)
                     alpha = -math.expm1(-tau)
+                if rise_steps > 0.0:  # `nerf.packed.occupancy_rise_taus`
+                    occupied = -math.expm1(-min(tau * rise_steps, TAU_MAX_PACKED))
+                    alpha = min(max((occupied - reached) / max(1.0 - reached, RISE_ALPHA_MAX_GAP), 0.0),
+                                1.0 - RISE_ALPHA_MAX_GAP)
+                    reached = occupied
                 weight = transmittance * alpha
                 evaluated += 1
                 if weight > colour_min_weight:
@@ -242,14 +250,14 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
 
 @numba.njit(parallel=True, cache=True)
 def _render_rays(block, order, origins, directions, near, far, distance, voxel, lo_box, segment,
-                 voxel_steps, step, index, table, nodes, scale, shift, density_scale, min_transmittance,
+                 voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps, min_transmittance,
                  colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
                  out_coloured, out_rows, out_features, out_weights):
     """`_render_lane` of every lane of rays, the lanes spread over numba's threads."""
     lanes = min(-(-origins.shape[0] // block), LANES)
     for lane in numba.prange(lanes):
         _render_lane(lane, lanes, block, order, origins, directions, near, far, distance, voxel, lo_box,
-                     segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale,
+                     segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps,
                      min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
                      out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights)
 
@@ -321,10 +329,10 @@ def kernel_grids(field, occupancy: torch.Tensor) -> KernelGrids:
 @torch.no_grad()
 def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions: torch.Tensor,
                     min_transmittance: float = 1e-3,
-                    colour_min_weight: float = COLOUR_MIN_WEIGHT) -> tuple:
+                    colour_min_weight: float = COLOUR_MIN_WEIGHT, rise_steps: float = 0.0) -> tuple:
     """Early-terminated render of rays [n, 3] (unit directions, CPU) through a bounded
     `VoxelGridField` and its occupancy (`kernel_grids`). Not differentiable. Runs on numba's threads
-    (`kernel_threads`). Returns premultiplied rgb [n, 3], opacity [n], depth [n] (in the
+    (`kernel_threads`). rise_steps > 0: surface opacity (`nerf.packed.occupancy_rise_taus`). Returns premultiplied rgb [n, 3], opacity [n], depth [n] (in the
     rays' dtype) and the samples evaluated (int)."""
     n = origins.shape[0]
     aabb = field.aabb
@@ -347,7 +355,7 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
     arrays = (o, d, near, far)
     constants = (distance, voxel, lo, float(voxel_steps * step), voxel_steps, float(step),
                  grids.index, grids.table, np.array([nx, ny, nz], dtype=np.int64), scale, float(field.shift),
-                 DENSITY_SCALE / field.voxel_final, float(min_transmittance), float(colour_min_weight), inline)
+                 DENSITY_SCALE / field.voxel_final, float(rise_steps), float(min_transmittance), float(colour_min_weight), inline)
     rgb, opacity, depth = np.zeros((n, 3)), np.zeros(n), np.zeros(n)
     evaluated, coloured = np.zeros(n, np.int64), np.zeros(n, np.int64)
     outputs = (rgb, opacity, depth, evaluated, coloured)

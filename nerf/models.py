@@ -108,6 +108,9 @@ class CompactNeRF(RadianceModel):
         self.field = field
         self.use_occupancy = use_occupancy
         self.sparse = sparse and use_occupancy
+        # surface opacity (nerf.packed.occupancy_rise_taus): 0 off, else its occupancy's
+        # length in marching steps (SURFACE_RISE_STEPS), once a run turns it on
+        self.rise_steps = 0.0
         self.register_buffer("occupancy", torch.ones(self._cells(), dtype=torch.bool))
         self._pyramid = None  # coarse-to-fine occupancy for marching, rebuilt when occupancy changes
         self._pyramid_of = None
@@ -169,7 +172,8 @@ class CompactNeRF(RadianceModel):
             # only ever report transmittance below the threshold
             index, transmittance = packed_transmittance_early_stop(
                 lambda i: self.field.density(o[rays[i]] + samples.t_mid[i, None] * d[rays[i]]), rays,
-                samples.step, o.shape[0], window=EARLY_STOP_WINDOW, min_transmittance=threshold)
+                samples.step, o.shape[0], window=EARLY_STOP_WINDOW, min_transmittance=threshold,
+                rise_steps=self.rise_steps)
             positions = o[rays[index]] + samples.t_mid[index, None] * d[rays[index]]
             grid = positions if self.field.space is None else self.field.space.to_grid(positions)
             best.scatter_reduce_(0, cell_of(grid, self.field.aabb, shape, block), transmittance, reduce="amax")
@@ -218,13 +222,14 @@ class CompactNeRF(RadianceModel):
 
         if inference:  # stop rays behind surfaces
             colour, opacity, depth, evaluated = packed_render_early_stop(
-                field_at, samples.t_mid, rays, samples.step, samples.near, samples.far, window=EARLY_STOP_WINDOW)
+                field_at, samples.t_mid, rays, samples.step, samples.near, samples.far, window=EARLY_STOP_WINDOW,
+                rise_steps=self.rise_steps)
             return RayOutput(colour, opacity, depth, evaluated)
         if training:
             return self._render_in_front(samples, origins, directions)
         sigma, rgb = field_at(None)
         colour, opacity, depth, _ = packed_render(sigma, rgb, sample_deltas(samples), samples.t_mid, rays,
-                                                  samples.near, samples.far)
+                                                  samples.near, samples.far, self.rise_steps)
         return RayOutput(colour, opacity, depth, int(rays.numel()))
 
     def _render_in_front(self, samples, origins, directions) -> RayOutput:
@@ -240,12 +245,13 @@ class CompactNeRF(RadianceModel):
         deltas = sample_deltas(samples)
         with torch.no_grad():
             sigma = self.field.density_at_stencil(stencil, positions)
-            transmittance, _ = packed_transmittance(sigma, deltas, rays, origins.shape[0])
+            transmittance, _ = packed_transmittance(sigma, deltas, rays, origins.shape[0], self.rise_steps)
             # NaN compares false: a non-finite field stays in the pass and reaches the loss
             front = (~(transmittance <= TRAIN_MIN_TRANSMITTANCE)).nonzero()[:, 0]
         rays, t_mid, deltas = rays[front], samples.t_mid[front], deltas[front]
         sigma, rgb = self.field.at_stencil(tuple(part[front] for part in stencil), positions[front], d[front])
-        colour, opacity, depth, weights = packed_render(sigma, rgb, deltas, t_mid, rays, samples.near, samples.far)
+        colour, opacity, depth, weights = packed_render(sigma, rgb, deltas, t_mid, rays, samples.near, samples.far,
+                                                        self.rise_steps)
         distortion = packed_distortion(weights, t_mid, deltas, rays, origins.shape[0])
         return RayOutput(colour, opacity, depth, int(rays.numel()), distortion=distortion)
 
@@ -263,7 +269,8 @@ class CompactNeRF(RadianceModel):
         if self._compiled is None or self._compiled[0] is not self.occupancy or \
                 self._compiled[1].key != tables_key(self.field):
             self._compiled = (self.occupancy, kernel_grids(self.field, self.occupancy))
-        colour, opacity, depth, evaluated = render_compiled(self.field, self._compiled[1], origins, directions)
+        colour, opacity, depth, evaluated = render_compiled(self.field, self._compiled[1], origins, directions,
+                                                            rise_steps=self.rise_steps)
         return RayOutput(colour, opacity, depth, evaluated)
 
     def _render_windows(self, origins, directions) -> RayOutput:
@@ -284,7 +291,8 @@ class CompactNeRF(RadianceModel):
             return rays, t, sample_deltas(samples), sigma, colour_at
 
         colour, opacity, depth, evaluated = render_front_to_back(window_samples, segments.ray_index, segments.near,
-                                                                 segments.far, window=EARLY_STOP_SEGMENTS)
+                                                                 segments.far, window=EARLY_STOP_SEGMENTS,
+                                                                 rise_steps=self.rise_steps)
         return RayOutput(colour, opacity, depth, evaluated)
 
     def regularisation(self, tv_weight: float) -> torch.Tensor:

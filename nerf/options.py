@@ -98,6 +98,10 @@ def add_train_arguments(parser: argparse.ArgumentParser, defaults: TrainConfig |
         help="grow the grid one coarse-to-fine stage past its final resolution (x1.59) at half the budget when the "
              "final grid has trained 1000 steps by then; auto (default): on for an edges run whose resolution the "
              "pixel footprint set (BENCHMARKS.md, \"A finer grid in the second half\")")
+    add("surface_opacity", choices=tuple(WORDS["surface_opacity"]),
+        help="from the half-budget refinement, a sample's opacity is the rise of occupancy along the ray (a ray "
+             "grazing a surface takes its faint front once, not over the surface's width); auto (default): off, "
+             "measured on primitives only (docs/results.md, \"Surface opacity\")")
     return parser
 
 

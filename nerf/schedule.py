@@ -108,6 +108,17 @@ FINE_EDGE_POINTS_MIN_STEPS = 1000
 # before step LR_DECADE_STEPS (600 s and less) are unchanged; a 1200-s run decides at step
 # 7800-9100 (idle, 2026-11-29) and so starts its extra decay that much later: 45.05 and 45.01
 # dB against 44.92 before (docs/results.md, "Idle, time budgets").
+# Surface opacity (TrainConfig.surface_opacity; nerf.packed.occupancy_rise_taus) turns on at
+# the same decision as the finer points, with occupancy o = 1 - exp(-sigma * SURFACE_RISE_STEPS
+# marching steps): a converged density model's faint fronts become occupancies of that
+# length, its interiors stay opaque. The silhouettes' skin was the density's learned
+# prefilter for the edge points, and a ray grazing a face took it over the face's width
+# (too-wide outlines that follow the camera's elevation, docs/results.md, "Where the outline
+# error comes from"); an occupancy is taken once. q7's 600-s checkpoint (primitives 128 px)
+# trained 3000 more steps at rate 0.03 -> 3e-4: 46.38 dB through 3 x 3 points, outline alpha
+# bias +0.0002 / RMS 0.0362, against 45.98, +0.0093 / 0.0410 with density opacity; 2 steps
+# (1500 steps at 0.01 -> 3e-4: bias -0.021) against 8 (+0.024) (docs/results.md, "Surface opacity").
+SURFACE_RISE_STEPS = 2.0
 LR_FINAL_FRACTION = 0.1
 LR_DECADE_STEPS = 6000
 LR_MIN_FRACTION = 0.003
@@ -144,7 +155,8 @@ class Schedule:
     (visibility and the colour head are its); budget_decides: a time budget's compact run
     in BUDGET_DECIDES_IN, whose last growth is on trial; edges: the `edges` pixel filter
     (its edge points refine at half the budget); refine_grid: TrainConfig.refine_grid;
-    colour_head: TrainConfig.colour_head."""
+    colour_head: TrainConfig.colour_head; surface_opacity: TrainConfig.surface_opacity (on
+    from the half-budget refinement)."""
 
     steps: Optional[int]
     budget_seconds: Optional[float]
@@ -156,6 +168,7 @@ class Schedule:
     edges: bool
     refine_grid: bool
     colour_head: bool
+    surface_opacity: bool = False
 
     @classmethod
     def for_run(cls, config, *, grid: bool, refined_resolution: int) -> "Schedule":
@@ -167,7 +180,7 @@ class Schedule:
                    budget_decides=(config.budget_seconds is not None and config.model == "compact"
                                    and config.parametrisation in BUDGET_DECIDES_IN),
                    edges=config.pixel_filter == "edges", refine_grid=bool(config.refine_grid),
-                   colour_head=bool(config.colour_head))
+                   colour_head=bool(config.colour_head), surface_opacity=bool(config.surface_opacity))
 
     @property
     def refines_at_half(self) -> bool:

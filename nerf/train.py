@@ -37,7 +37,8 @@ from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, pixel_mean, render_rays_chunked
-from nerfgauge.nerf.schedule import FINE_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER, Schedule, upsample_count
+from nerfgauge.nerf.schedule import (FINE_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER, SURFACE_RISE_STEPS, Schedule,
+                                    upsample_count)
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
 from nerfgauge.nerf.trials import (Trial, candidate_config, parametrisation_trial, pick, render_path, trial_reason,
                                    trial_record, trial_recipe, val_psnr)
@@ -498,6 +499,11 @@ def _follow_schedule(training: Training, schedule: Schedule, trial: GrowthTrial 
             if progress:
                 note(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
                            f"from step {state.step}")
+        if refine and schedule.surface_opacity:
+            training.model.rise_steps = SURFACE_RISE_STEPS
+            state.surface_step = state.step
+            if progress:
+                note(f"surface opacity from step {state.step}")
         if refine and schedule.grows_past_final(state):
             # the growth comes as any other at the next step (`growth_due`), on trial for a
             # time budget like the last growth
@@ -704,7 +710,13 @@ def _finish(run_dir: Path, loop: RunLoop, recipe: dict) -> dict:
     if config.pixel_filter == "edges":
         reasons["edge_points"] = loop.schedule.edge_points_reason(state)
         config, reasons["render_filter"] = choose_render_filter(model, config, *loop.val, loop.device)
-    if config.refine_grid or config.pixel_filter == "edges":
+    if config.surface_opacity:
+        reasons["surface_opacity"] = (
+            f"on from step {state.surface_step} (occupancy over {SURFACE_RISE_STEPS:g} marching steps): the "
+            f"half-budget refinement" if state.surface_step else
+            "set, but never on: the run made no half-budget refinement (its final grid had not converged, or the "
+            "run ended first)")
+    if config.refine_grid or config.pixel_filter == "edges" or config.surface_opacity:
         _write_config(run_dir, config, reasons, candidate.space, recipe, loop.trials)
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
     return {"steps": state.step, "seconds": state.seconds, "val_psnr": loop.last_psnr, "model_bytes": size,
