@@ -15,9 +15,10 @@ tables (row 0: empty), sigma = DENSITY_SCALE softplus(raw + shift) / voxel_final
 quadrature is `nerf.packed`'s:
 
     tau_i = min(sigma_i step, TAU_MAX_PACKED),  w_i = T_i (1 - exp(-tau_i)),  T_{i+1} = T_i exp(-tau_i)
-(with surface opacity, tau_i is `nerf.packed.occupancy_rise_taus`'s, from the occupancy the ray
-reached at its previous sample)
     C = sum_i w_i c_i,  A = 1 - T_end,  D = sum_i w_i t_i / max(A, DEPTH_EPS) clamped to [near, far]
+
+(with surface opacity, `rise_steps` > 0, alpha_i is `nerf.packed.occupancy_rise_taus`'s, from
+the occupancy the ray reached at its previous sample).
 
 Each ray walks its samples nearest first and stops after the first sample that takes T below
 `min_transmittance`: the colour it leaves out is at most that (the torch path,
@@ -125,9 +126,9 @@ def _lane_rays(lane, lanes, order, size):
 
 @numba.njit(cache=True)
 def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, distance, voxel, lo_box,
-                 segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps, min_transmittance,
-                 colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
-                 out_coloured, out_rows, out_features, out_weights):
+                 segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps,
+                 min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
+                 out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights):
     """Rays lane, lane + lanes, ... (one thread's share), each front to back: its opacity,
     depth, samples evaluated and coloured. inline_colour: sigmoid(features) w added to
     out_rgb; else, where write_offsets holds rows, each coloured sample's ray, features and
@@ -250,9 +251,9 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
 
 @numba.njit(parallel=True, cache=True)
 def _render_rays(block, order, origins, directions, near, far, distance, voxel, lo_box, segment,
-                 voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps, min_transmittance,
-                 colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity, out_depth, out_evaluated,
-                 out_coloured, out_rows, out_features, out_weights):
+                 voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps,
+                 min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
+                 out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights):
     """`_render_lane` of every lane of rays, the lanes spread over numba's threads."""
     lanes = min(-(-origins.shape[0] // block), LANES)
     for lane in numba.prange(lanes):
@@ -332,8 +333,9 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
                     colour_min_weight: float = COLOUR_MIN_WEIGHT, rise_steps: float = 0.0) -> tuple:
     """Early-terminated render of rays [n, 3] (unit directions, CPU) through a bounded
     `VoxelGridField` and its occupancy (`kernel_grids`). Not differentiable. Runs on numba's threads
-    (`kernel_threads`). rise_steps > 0: surface opacity (`nerf.packed.occupancy_rise_taus`). Returns premultiplied rgb [n, 3], opacity [n], depth [n] (in the
-    rays' dtype) and the samples evaluated (int)."""
+    (`kernel_threads`). rise_steps > 0: surface opacity (`nerf.packed.occupancy_rise_taus`).
+    Returns premultiplied rgb [n, 3], opacity [n], depth [n] (in the rays' dtype) and the
+    samples evaluated (int)."""
     n = origins.shape[0]
     aabb = field.aabb
     distance = grids.distance
@@ -355,7 +357,8 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
     arrays = (o, d, near, far)
     constants = (distance, voxel, lo, float(voxel_steps * step), voxel_steps, float(step),
                  grids.index, grids.table, np.array([nx, ny, nz], dtype=np.int64), scale, float(field.shift),
-                 DENSITY_SCALE / field.voxel_final, float(rise_steps), float(min_transmittance), float(colour_min_weight), inline)
+                 DENSITY_SCALE / field.voxel_final, float(rise_steps), float(min_transmittance),
+                 float(colour_min_weight), inline)
     rgb, opacity, depth = np.zeros((n, 3)), np.zeros(n), np.zeros(n)
     evaluated, coloured = np.zeros(n, np.int64), np.zeros(n, np.int64)
     outputs = (rgb, opacity, depth, evaluated, coloured)

@@ -378,7 +378,10 @@ def _start_training(run_dir: Path, config: TrainConfig, aabb, space, device, sav
         optimizer = make_optimizer(model, config)
         checkpoint.restore_optimizer(optimizer, saved["optimizer"], path)
         checkpoint.restore_generator(generator, saved["generator"], path)
-        return Training(model, optimizer, generator, LoopState.from_saved(saved["loop"]))
+        loop = LoopState.from_saved(saved["loop"])
+        if loop.surface_step:  # a setting of the model's rendering, not one of its tensors
+            model.rise_steps = SURFACE_RISE_STEPS
+        return Training(model, optimizer, generator, loop)
     torch_init = torch.Generator().manual_seed(config.seed + 1)
     init_seed = int(torch.randint(2**31, (1,), generator=torch_init))
     model = checkpoint.build_model(config, aabb, init_seed=init_seed, space=space).to(device)

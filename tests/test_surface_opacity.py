@@ -142,8 +142,8 @@ def test_the_compiled_render_is_the_full_torch_pass_with_surface_opacity():
 def test_a_run_turns_it_on_at_its_half_budget_refinement_and_model_pt_keeps_it(tiny_dataset, tmp_path, monkeypatch):
     """A 40-step `edges` run with --surface-opacity on whose final grid counts as converged
     (the ladder's stages 1 step, FINE_EDGE_POINTS_MIN_STEPS 0) turns it on at step 20: in checkpoint.pt's loop, in
-    model.pt (the model `nerfgauge render` loads renders with it) and in config.json's
-    reasons; without the flag model.pt has none; a bad word is refused with exit 2."""
+    model.pt (the model `nerfgauge render` loads renders with it), in config.json's reasons,
+    and after a resume; without the flag model.pt has none; a bad word is refused with exit 2."""
     from nerfgauge.cli import main
     from nerfgauge.nerf.checkpoint import load_checked, load_model
 
@@ -157,6 +157,11 @@ def test_a_run_turns_it_on_at_its_half_budget_refinement_and_model_pt_keeps_it(t
     model, config = load_model(on / "model.pt")
     assert model.rise_steps == S.SURFACE_RISE_STEPS and config.surface_opacity is True
     assert json.loads((on / "config.json").read_text())["auto_reasons"]["surface_opacity"].startswith("on from step 20")
+    assert main(["render", str(on), "--out", str(tmp_path / "renders"), "--quiet"]) == 0
+    # checkpoint.pt holds tensors and the loop: a resumed run takes surface opacity from the loop
+    resumed = [arg if arg != "40" else "50" for arg in common]
+    assert main(["train", str(tiny_dataset), "--out", str(on), "--surface-opacity", "on", "--resume", *resumed]) == 0
+    assert load_checked(on / "model.pt")["rise_steps"] == S.SURFACE_RISE_STEPS
     assert main(["train", str(tiny_dataset), "--out", str(off), *common]) == 0
     assert "rise_steps" not in load_checked(off / "model.pt") and load_model(off / "model.pt")[0].rise_steps == 0.0
     assert main(["train", str(tiny_dataset), "--out", str(tmp_path / "bad"), "--surface-opacity", "maybe", *common]) == 2
