@@ -385,8 +385,8 @@ def colour_head_for(config: TrainConfig) -> tuple[bool, str]:
 
 def surface_opacity_for(config: TrainConfig) -> tuple[bool, str]:
     """Whether a compact run turns surface opacity on at its half-budget refinement, and
-    why: as set; not by default while it is measured on primitives only (nerf.schedule.
-    SURFACE_RISE_STEPS has the figures)."""
+    why: as set; not by default while it is measured on primitives only (the figures are
+    beside nerf.schedule.SURFACE_RISE_STEPS)."""
     if config.surface_opacity is not None:
         return config.surface_opacity, "set on the command line"
     return False, ("not by default: measured on primitives 128 px only (docs/results.md, \"Surface opacity\"); "
