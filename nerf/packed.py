@@ -82,8 +82,7 @@ def occupancy_rise_taus(sigmas: torch.Tensor, deltas: torch.Tensor, ray_index: t
     that tau and its gradient stay finite in float32. All [n_samples] but before [n_rays]."""
     occupied = occupancy(sigmas, deltas, rise_steps)
     previous = torch.cat([occupied.new_zeros(1), occupied[:-1]])
-    first = torch.ones_like(ray_index, dtype=torch.bool)
-    first[1:] = ray_index[1:] != ray_index[:-1]
+    first = ray_starts(ray_index)
     start = before.index_select(0, ray_index) if before is not None else torch.zeros_like(previous)
     previous = torch.where(first, start, previous)
     alpha = ((occupied - previous) / (1 - previous).clamp_min(RISE_ALPHA_MAX_GAP)).clamp(0.0, 1 - RISE_ALPHA_MAX_GAP)
@@ -101,6 +100,13 @@ def last_occupancy(sigmas: torch.Tensor, deltas: torch.Tensor, ray_index: torch.
     return out
 
 
+def ray_starts(ray_index: torch.Tensor) -> torch.Tensor:
+    """[n_samples] bool: whether each packed sample is its ray's first."""
+    first = torch.ones_like(ray_index, dtype=torch.bool)
+    first[1:] = ray_index[1:] != ray_index[:-1]
+    return first
+
+
 def packed_exclusive_cumsum(values: torch.Tensor, ray_index: torch.Tensor, n_rays: int) -> torch.Tensor:
     """sum_{j < i, same ray} values_j for packed values [n_samples] (float64 inside).
 
@@ -108,8 +114,7 @@ def packed_exclusive_cumsum(values: torch.Tensor, ray_index: torch.Tensor, n_ray
     detached, so the other rays' terms cancel in the gradient as they do in the value."""
     inclusive = torch.cumsum(values.double(), dim=0)  # [n_samples]
     exclusive = inclusive - values.double()
-    first = torch.ones_like(ray_index, dtype=torch.bool)
-    first[1:] = ray_index[1:] != ray_index[:-1]
+    first = ray_starts(ray_index)
     start_value = torch.zeros(n_rays, dtype=torch.float64, device=values.device).index_put(
         (ray_index[first],), exclusive[first])  # [n_rays]
     return (exclusive - start_value[ray_index]).to(values.dtype)
