@@ -254,15 +254,9 @@ class Schedule:
         `decay_start`, (step - start) / LR_DECADE_STEPS; that extra decay stops at
         LR_MIN_FRACTION. The decades count steps, so a --steps run and a time budget that
         take as many steps and decide their refinement at the same step end at the same
-        rate. A run whose surface opacity turned on (`LoopState.anneal_from`, the share of
-        the budget done then) anneals instead: geometrically from the plain rate at that
-        share to LR_MIN_FRACTION at the budget's end. The vanilla NeRF keeps its recipe's
-        decay (the jitter above is a voxel grid's, measured on it)."""
+        rate. The vanilla NeRF keeps its recipe's decay (the jitter above is a voxel
+        grid's, measured on it)."""
         plain = LR_FINAL_FRACTION ** fraction
-        if state.anneal_from:  # surface opacity's refinement: to the floor by the budget's end
-            share = min(max((fraction - state.anneal_from) / (1.0 - state.anneal_from), 0.0), 1.0)
-            at_switch = LR_FINAL_FRACTION ** state.anneal_from
-            return at_switch * (LR_MIN_FRACTION / at_switch) ** share
         start = self.decay_start(state)
         if start is None or state.step <= start:
             return plain

@@ -505,7 +505,6 @@ def _follow_schedule(training: Training, schedule: Schedule, trial: GrowthTrial 
         if refine and schedule.surface_opacity:
             training.model.rise_steps = SURFACE_RISE_STEPS
             state.surface_step = state.step
-            state.anneal_from = fraction_done
             if progress:
                 note(f"surface opacity from step {state.step}")
         if refine and schedule.grows_past_final(state):

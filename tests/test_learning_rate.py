@@ -135,25 +135,6 @@ def test_the_rate_never_rises_along_a_run(steps, per_step):
         assert all(b <= a * (1 + 1e-12) for a, b in zip(scales, scales[1:]))
 
 
-@pytest.mark.parametrize("switch", [0.5, 0.62])
-def test_after_surface_opacity_turns_on_the_rate_anneals_to_the_floor_by_the_budgets_end(switch):
-    """Surface opacity turned on at `switch` of a long run (LoopState.anneal_from): from there
-    log10(scale) falls along a straight line in the budget's fraction, from the plain decay's
-    -switch to log10(LR_MIN_FRACTION) at the end, whatever the decade rule would say (its
-    extra decades are not added on top); before it, the plain decay."""
-    steps = 4 * DECADE
-    schedule = make(steps=steps)
-    floor = math.log10(S.LR_MIN_FRACTION)
-    decided = round(switch * steps)
-    for fraction in (switch, (switch + 1) / 2, 1.0):
-        state = LoopState(step=round(fraction * steps), edge_points_step=decided, surface_step=decided,
-                          anneal_from=switch)
-        expected = -switch + (floor + switch) * (fraction - switch) / (1 - switch)
-        assert math.log10(scale(schedule, state)) == pytest.approx(expected, abs=1e-9)
-    late = LoopState(step=steps + 500, edge_points_step=decided, surface_step=decided, anneal_from=switch)
-    assert scale(schedule, late) == pytest.approx(S.LR_MIN_FRACTION)  # a time budget's last step may overrun
-
-
 @pytest.mark.slow
 def test_the_loop_hands_adam_the_schedules_rate(tiny_dataset, tmp_path, monkeypatch):
     """A 50-step `edges` run with the decade at 20 steps decides its refinement at step 25,
