@@ -56,7 +56,9 @@ class LoopState:
     edge_points_step the step the half-budget refinement (those points, and a grid past the
     final one: last_stage + 1) was decided at (0: not yet; schedule.Schedule.refinement_due);
     surface_step: the step surface opacity turned on at that decision (0: off;
-    TrainConfig.surface_opacity)."""
+    TrainConfig.surface_opacity); anneal_from: the share of the budget done when it did, from
+    which the learning rate anneals to its floor by the budget's end (0: no anneal;
+    schedule.Schedule.lr_scale)."""
 
     step: int = 0
     seconds: float = 0.0
@@ -71,6 +73,7 @@ class LoopState:
     edge_points: int = EDGE_POINTS_PER_AXIS
     edge_points_step: int = 0
     surface_step: int = 0
+    anneal_from: float = 0.0
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -83,7 +86,8 @@ class LoopState:
 
 # counters added after checkpoint version 2 first shipped, and their value in older files
 LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3, "colour_head": -1, "edge_points": EDGE_POINTS_PER_AXIS,
-                 "edge_points_step": 0, "surface_step": 0}
+                 "edge_points_step": 0, "surface_step": 0,
+                 "anneal_from": 0.0}
 
 
 def save_atomic(obj, path) -> int:
@@ -312,7 +316,8 @@ def load_training_checkpoint(path, recipe: dict) -> dict:
             name, real = item.name, isinstance(item.default, float)  # a float counter also takes an int
             value = loop.setdefault(name, LOOP_DEFAULTS[name]) if name in LOOP_DEFAULTS else loop.get(name)
             if not isinstance(value, (int, float) if real else int) or isinstance(value, bool) \
-                    or (name == "edge_points" and value < 1):
+                    or (name == "edge_points" and value < 1) \
+                    or (name == "anneal_from" and not 0.0 <= value < 1.0):
                 problem = f"loop value {name} is {value!r}"
                 break
     if problem is not None:

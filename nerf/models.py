@@ -299,10 +299,13 @@ class CompactNeRF(RadianceModel):
         return tv_weight * self.field.total_variation() if tv_weight > 0 else self.field.aabb.new_zeros(())
 
     def parameter_groups(self, lr: float, lr_mlp: float) -> list[dict]:
-        """The grid's values at `lr`; the view-dependent colour head, when there is one, at `lr_mlp`."""
-        groups = [{"params": self.field.grid_parameters(), "lr": lr, "base_lr": lr}]
+        """The grid's values at `lr`, its density and its colour features each a group of
+        their own (nerf.schedule's `lr_scales` may decay them apart); the view-dependent
+        colour head, when there is one, at `lr_mlp`."""
+        groups = [{"params": [self.field.density_table], "lr": lr, "base_lr": lr, "name": "density"},
+                  {"params": [self.field.features], "lr": lr, "base_lr": lr, "name": "colour"}]
         if self.field.head is not None:
-            groups.append({"params": self.field.head.parameters(), "lr": lr_mlp, "base_lr": lr_mlp})
+            groups.append({"params": self.field.head.parameters(), "lr": lr_mlp, "base_lr": lr_mlp, "name": "head"})
         return groups
 
 
@@ -372,4 +375,4 @@ class VanillaNeRF(RadianceModel):
 
     def parameter_groups(self, lr: float, lr_mlp: float) -> list[dict]:
         """Every weight at the original NeRF's rate (lr and lr_mlp are the compact model's)."""
-        return [{"params": self.parameters(), "lr": self.LEARNING_RATE, "base_lr": self.LEARNING_RATE}]
+        return [{"params": self.parameters(), "lr": self.LEARNING_RATE, "base_lr": self.LEARNING_RATE, "name": "all"}]

@@ -255,13 +255,29 @@ class Schedule:
         LR_MIN_FRACTION. The decades count steps, so a --steps run and a time budget that
         take as many steps and decide their refinement at the same step end at the same
         rate. The vanilla NeRF keeps its recipe's decay (the jitter above is a voxel
-        grid's, measured on it)."""
+        grid's, measured on it). The colour tables may anneal instead (`lr_scales`)."""
         plain = LR_FINAL_FRACTION ** fraction
         start = self.decay_start(state)
         if start is None or state.step <= start:
             return plain
         extra = LR_FINAL_FRACTION ** ((state.step - start) / LR_DECADE_STEPS)
         return min(plain, max(plain * extra, LR_MIN_FRACTION))
+
+    def lr_scales(self, state, fraction: float) -> dict[str, float]:
+        """Each parameter group's rate as a fraction of its base, by the group's name
+        (`CompactNeRF.parameter_groups`): `lr_scale` for all, except that once surface
+        opacity has turned on (`LoopState.anneal_from`, the share of the budget done then)
+        the colour tables anneal, geometrically from the plain rate at that share to
+        LR_MIN_FRACTION at the budget's end (never above the density's rate). The density
+        keeps `lr_scale`: its outlines move after the switch, which takes the rate (annealed
+        with the colour, the 600-s run's outline alpha RMS rose from 0.0344 to 0.0417)."""
+        scale = self.lr_scale(state, fraction)
+        scales = {"density": scale, "colour": scale, "head": scale, "all": scale}
+        if state.anneal_from:
+            share = min(max((fraction - state.anneal_from) / (1.0 - state.anneal_from), 0.0), 1.0)
+            at_switch = LR_FINAL_FRACTION ** state.anneal_from
+            scales["colour"] = min(scale, at_switch * (LR_MIN_FRACTION / at_switch) ** share)
+        return scales
 
     def decay_start(self, state) -> Optional[int]:
         """The step the extra decay counts from: LR_DECADE_STEPS, or for a run that refines

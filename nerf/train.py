@@ -505,6 +505,7 @@ def _follow_schedule(training: Training, schedule: Schedule, trial: GrowthTrial 
         if refine and schedule.surface_opacity:
             training.model.rise_steps = SURFACE_RISE_STEPS
             state.surface_step = state.step
+            state.anneal_from = fraction_done
             if progress:
                 note(f"surface opacity from step {state.step}")
         if refine and schedule.grows_past_final(state):
@@ -524,7 +525,7 @@ def _step(training: Training, config: TrainConfig, schedule: Schedule, train_ray
         _grow_grid(training, config, schedule.resolution_at(training.loop.stage))
         if schedule.occupancy_due(training.loop):
             training.model.update_occupancy()
-    lr_scale = schedule.lr_scale(training.loop, fraction_done)
+    lr_scale = schedule.lr_scales(training.loop, fraction_done)
     loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, lr_scale, priors)
     if not (math.isfinite(loss) and gradients_finite):
         raise NumericalError(
@@ -766,16 +767,17 @@ def _grow_grid(training: Training, config: TrainConfig, wanted: int) -> None:
 
 
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,
-                lr_scale: float, priors: float | None = None) -> tuple[float, bool]:
+                lr_scale: float | dict, priors: float | None = None) -> tuple[float, bool]:
     """One optimiser step on `n_rays` random training rays. lr_scale: each parameter
-    group's learning rate as a fraction of its base (nerf.schedule's `lr_scale`). priors:
+    group's learning rate as a fraction of its base, one for all or by group name
+    (nerf.schedule's `lr_scales`). priors:
     the spread of the train cameras when the sparse-capture priors are on (nerf.sparse_priors), else None.
     Returns (loss, whether every gradient was finite); a step with a non-finite gradient
     leaves the parameters alone."""
     model, generator, state = training.model, training.generator, training.loop
     optimizer = training.optimizer
     for group in optimizer.param_groups:
-        group["lr"] = group["base_lr"] * lr_scale
+        group["lr"] = group["base_lr"] * (lr_scale[group["name"]] if isinstance(lr_scale, dict) else lr_scale)
     # TrainConfig.pixel_filter: per pixel one ray through its centre or a random point of
     # it, or (box) the mean of 2 x 2 rays through the box render's points, so the loss
     # compares the pixel's box-filtered colour with the ground truth's (pixel_sample_offsets

@@ -135,6 +135,32 @@ def test_the_rate_never_rises_along_a_run(steps, per_step):
         assert all(b <= a * (1 + 1e-12) for a, b in zip(scales, scales[1:]))
 
 
+@pytest.mark.parametrize("switch", [0.5, 0.62])
+def test_after_surface_opacity_turns_on_the_colour_anneals_to_the_floor_and_the_density_does_not(switch):
+    """Surface opacity turned on at `switch` of a long run (LoopState.anneal_from): from there
+    the colour tables' log10(scale) falls along a straight line in the budget's fraction,
+    from the plain decay's -switch to log10(LR_MIN_FRACTION) at the end, or with the density
+    where the density's is lower; the density keeps the decade rule (`lr_scale`), and before
+    the switch both follow the plain decay."""
+    steps = 4 * DECADE
+    schedule = make(steps=steps)
+    floor = math.log10(S.LR_MIN_FRACTION)
+    decided = round(switch * steps)
+    for fraction in (switch, (switch + 1) / 2, 1.0):
+        state = LoopState(step=round(fraction * steps), edge_points_step=decided, surface_step=decided,
+                          anneal_from=switch)
+        scales = schedule.lr_scales(state, fraction)
+        line = -switch + (floor + switch) * (fraction - switch) / (1 - switch)
+        decades = max(0.0, (state.step - max(DECADE, decided)) / DECADE)
+        density = max(-fraction - decades, floor)
+        assert math.log10(scales["density"]) == pytest.approx(density, abs=1e-9)
+        assert math.log10(scales["colour"]) == pytest.approx(min(line, density), abs=1e-9)  # never above the density's
+    late = LoopState(step=steps + 500, edge_points_step=decided, surface_step=decided, anneal_from=switch)
+    assert schedule.lr_scales(late, 1.02)["colour"] == pytest.approx(S.LR_MIN_FRACTION)  # a budget's last step may overrun
+    off = LoopState(step=steps, edge_points_step=decided)
+    assert schedule.lr_scales(off, 1.0)["colour"] == schedule.lr_scales(off, 1.0)["density"] == scale(schedule, off)
+
+
 @pytest.mark.slow
 def test_the_loop_hands_adam_the_schedules_rate(tiny_dataset, tmp_path, monkeypatch):
     """A 50-step `edges` run with the decade at 20 steps decides its refinement at step 25,

@@ -152,7 +152,14 @@ def test_a_run_turns_it_on_at_its_half_budget_refinement_and_model_pt_keeps_it(t
     common = ["--steps", "40", "--quiet", "--threads", "1", "--batch-rays", "256", "--pixel-filter", "edges"]
     on, off = tmp_path / "on", tmp_path / "off"
     assert main(["train", str(tiny_dataset), "--out", str(on), "--surface-opacity", "on", *common]) == 0
-    assert load_checked(on / "checkpoint.pt", "checkpoint")["loop"]["surface_step"] == 20
+    saved = load_checked(on / "checkpoint.pt", "checkpoint")
+    assert saved["loop"]["surface_step"] == 20 and saved["loop"]["anneal_from"] == 0.5
+    # from there the colour's rate anneals to the floor: the last step's (39) is
+    # 10^(-0.5 + (log10 floor + 0.5) * 19/20); the density's follows the plain decay, 10^(-39/40)
+    density, colour = saved["optimizer"]["param_groups"][:2]
+    expected = -0.5 + (math.log10(S.LR_MIN_FRACTION) + 0.5) * 19 / 20
+    assert math.log10(colour["lr"] / colour["base_lr"]) == pytest.approx(expected, abs=1e-9)
+    assert math.log10(density["lr"] / density["base_lr"]) == pytest.approx(-39 / 40, abs=1e-9)
     assert load_checked(on / "model.pt")["rise_steps"] == S.SURFACE_RISE_STEPS
     model, config = load_model(on / "model.pt")
     assert model.rise_steps == S.SURFACE_RISE_STEPS and config.surface_opacity is True
