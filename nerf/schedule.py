@@ -269,8 +269,11 @@ class Schedule:
         opacity has turned on (`LoopState.anneal_from`, the share of the budget done then)
         the colour tables anneal, geometrically from the plain rate at that share to
         LR_MIN_FRACTION at the budget's end (never above the density's rate). The density
-        keeps `lr_scale`: its outlines move after the switch, which takes the rate (annealed
-        with the colour, the 600-s run's outline alpha RMS rose from 0.0344 to 0.0417)."""
+        keeps `lr_scale`: its outlines move after the switch, which takes the rate. Primitives
+        128 px, idle pairs: the colour alone annealed, 46.54 / 46.56 dB at 600 / 1200 s
+        against 46.20 / 46.49 (interior 45.03 at both, against 43.08 / 44.69; outline alpha
+        RMS 0.035 at both); every table annealed, 45.76 / 46.36 (the 600-s outline's RMS
+        0.0344 -> 0.0417) (docs/results.md, "Past the switch")."""
         scale = self.lr_scale(state, fraction)
         scales = {"density": scale, "colour": scale, "head": scale, "all": scale}
         if state.anneal_from:
