@@ -390,9 +390,28 @@ def check_adam_step(value, index: int) -> None:
         raise ValueError(f"optimizer step of parameter {index} is {value}, expected a finite count >= 0")
 
 
+def _split_grid_group(saved: dict, optimizer: torch.optim.Optimizer) -> dict:
+    """A checkpoint written before the compact model's density and colour tables were Adam
+    groups of their own (one unnamed group of both, then the head's) in the groups the
+    model has now: the same settings and moments per parameter, so a run killed before the
+    change resumes exactly. Anything else is returned as it is (and checked after)."""
+    groups, now = saved.get("param_groups"), optimizer.param_groups
+    try:
+        old = (len(groups) == len(now) - 1 and [len(group["params"]) for group in now[:2]] == [1, 1]
+               and len(groups[0]["params"]) == 2 and "name" not in groups[0])
+    except (TypeError, KeyError):
+        return saved
+    if not old:
+        return saved
+    first = groups[0]
+    split = [first | {"params": [first["params"][i]], "name": now[i].get("name")} for i in (0, 1)]
+    return saved | {"param_groups": split + list(groups[1:])}
+
+
 def restore_optimizer(optimizer: torch.optim.Optimizer, saved: dict, path) -> None:
     """Load Adam's state after checking it fits the optimizer's parameters (torch checks
     group sizes, not the moments' shapes: a wrong shape would fail later, mid-step)."""
+    saved = _split_grid_group(saved, optimizer)
     groups = saved["param_groups"]
     params = [p for group in optimizer.param_groups for p in group["params"]]
     try:

@@ -178,3 +178,51 @@ def test_the_loop_hands_adam_the_schedules_rate(tiny_dataset, tmp_path, monkeypa
     group = saved["optimizer"]["param_groups"][0]
     assert group["lr"] == pytest.approx(group["base_lr"] * 10 ** -(49 / 50 + 24 / 20), rel=1e-9)
     assert torch.is_tensor(saved["generator"])
+
+
+def test_a_checkpoint_from_before_the_density_and_colour_groups_resumes_with_the_same_moments():
+    """Adam's state saved when the grid's density and colour features were one group (a run
+    killed before the change) loads into today's two groups: each parameter keeps its
+    moments and step, each group the saved settings and its name, and the next step moves
+    every parameter as the same step on the unsplit optimiser does (Adam is elementwise: to
+    float32 rounding, a few ulps of values about 30)."""
+    import copy
+
+    from test_compact_nerf import blob_model
+
+    from nerfgauge.core.errors import InputError
+    from nerfgauge.nerf.checkpoint import restore_optimizer
+    from nerfgauge.nerf.config import TrainConfig
+    from nerfgauge.nerf.train import make_optimizer
+
+    config = TrainConfig(dataset="unused")
+
+    def step(model, optimizer):
+        optimizer.zero_grad()
+        field = model.field
+        ((field.density_table ** 2).sum() + (field.features * torch.arange(field.features.numel()).view_as(
+            field.features)).sin().sum()).backward()
+        optimizer.step()
+
+    model, _ = blob_model(torch.Generator().manual_seed(3))
+    old = torch.optim.Adam([{"params": [model.field.density_table, model.field.features], "lr": 0.01,
+                             "base_lr": 0.01}], **model.adam_options)
+    for _ in range(3):
+        step(model, old)
+    saved = copy.deepcopy(old.state_dict())
+    resumed = copy.deepcopy(model)
+    optimizer = make_optimizer(resumed, config)
+    restore_optimizer(optimizer, saved, "checkpoint.pt")
+    assert [group.get("name") for group in optimizer.param_groups] == ["density", "colour"]
+    assert [group["lr"] for group in optimizer.param_groups] == [0.01, 0.01]
+    for mine, theirs in ((resumed.field.density_table, model.field.density_table),
+                         (resumed.field.features, model.field.features)):
+        assert torch.equal(optimizer.state[mine]["exp_avg_sq"], old.state[theirs]["exp_avg_sq"])
+    step(model, old)
+    step(resumed, optimizer)
+    torch.testing.assert_close(resumed.field.density_table, model.field.density_table, rtol=0, atol=1e-5)
+    torch.testing.assert_close(resumed.field.features, model.field.features, rtol=0, atol=1e-6)
+    # a group that matches nothing is still a damaged checkpoint
+    wrong = saved | {"param_groups": [saved["param_groups"][0] | {"params": [0]}]}
+    with pytest.raises(InputError, match="damaged"):
+        restore_optimizer(make_optimizer(copy.deepcopy(model), config), wrong, "checkpoint.pt")
