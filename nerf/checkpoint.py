@@ -57,8 +57,8 @@ class LoopState:
     final one: last_stage + 1) was decided at (0: not yet; schedule.Schedule.refinement_due);
     surface_step: the step surface opacity turned on at that decision (0: off;
     TrainConfig.surface_opacity); anneal_from: the share of the budget done when it did, from
-    which the learning rate anneals to its floor by the budget's end (0: no anneal;
-    schedule.Schedule.lr_scale)."""
+    which the colour tables' learning rate anneals to its floor by the budget's end (0: no
+    anneal; schedule.Schedule.lr_scales)."""
 
     step: int = 0
     seconds: float = 0.0
@@ -86,8 +86,7 @@ class LoopState:
 
 # counters added after checkpoint version 2 first shipped, and their value in older files
 LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3, "colour_head": -1, "edge_points": EDGE_POINTS_PER_AXIS,
-                 "edge_points_step": 0, "surface_step": 0,
-                 "anneal_from": 0.0}
+                 "edge_points_step": 0, "surface_step": 0, "anneal_from": 0.0}
 
 
 def save_atomic(obj, path) -> int:
@@ -430,7 +429,10 @@ def restore_optimizer(optimizer: torch.optim.Optimizer, saved: dict, path) -> No
                     check_adam_step(value, index)
                 if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
                     raise ValueError(f"optimizer {key} of parameter {index} holds NaN or inf")
+        names = [group.get("name") for group in optimizer.param_groups]
         optimizer.load_state_dict(saved)
+        for group, name in zip(optimizer.param_groups, names):  # an older file's groups have none
+            group.setdefault("name", name)
     except (ValueError, TypeError, KeyError, AttributeError) as error:
         raise InputError(f"{path} is a damaged nerfgauge checkpoint: {str(error).splitlines()[0][:200]}") from None
 

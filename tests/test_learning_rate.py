@@ -222,6 +222,12 @@ def test_a_checkpoint_from_before_the_density_and_colour_groups_resumes_with_the
     step(resumed, optimizer)
     torch.testing.assert_close(resumed.field.density_table, model.field.density_table, rtol=0, atol=1e-5)
     torch.testing.assert_close(resumed.field.features, model.field.features, rtol=0, atol=1e-6)
+    # a file whose groups have no names (the vanilla NeRF's one group, say) gets today's
+    vanilla = [group | {"params": [0, 1]} for group in saved["param_groups"]]
+    plain = torch.optim.Adam([{"params": [resumed.field.density_table, resumed.field.features], "lr": 0.01,
+                               "base_lr": 0.01, "name": "all"}])
+    restore_optimizer(plain, saved | {"param_groups": vanilla}, "checkpoint.pt")
+    assert plain.param_groups[0]["name"] == "all"
     # a group that matches nothing is still a damaged checkpoint
     wrong = saved | {"param_groups": [saved["param_groups"][0] | {"params": [0]}]}
     with pytest.raises(InputError, match="damaged"):
