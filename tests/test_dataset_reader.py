@@ -202,3 +202,18 @@ def test_a_damaged_exr_is_one_error_and_nothing_on_stderr(tmp_path, capfd):
             assert str(path) in str(error) and "\n" not in str(error)
     assert refused > 0
     assert capfd.readouterr().err == ""
+
+
+def test_ground_truth_depth_must_be_the_formats_z_channel(tmp_path):
+    """nerfgauge's ground-truth depth is one channel named "Z" (nerfgauge.core.dataset's
+    format); a file whose one channel has another name (a flipped header byte made "Z" "[")
+    is refused with one line, while a reader that names no channel takes it."""
+    from nerfgauge.core.images import read_exr_single, write_exr
+
+    depth = np.full((4, 5), 2.0, np.float32)
+    for name in ("Z", "["):
+        write_exr(tmp_path / f"{ord(name)}.exr", {name: depth})
+    assert np.array_equal(read_exr_single(tmp_path / "90.exr", name="Z"), depth)
+    with pytest.raises(InputError, match=r"should hold the channel 'Z', has '\['"):
+        read_exr_single(tmp_path / "91.exr", name="Z")
+    assert np.array_equal(read_exr_single(tmp_path / "91.exr"), depth)

@@ -502,7 +502,7 @@ class Dataset:
         if kind not in DEPTH_KINDS:
             raise InputError(f"unknown depth kind {kind!r}; choose distance or z")
         def decode(path, data):
-            depth = read_exr_single(path, data, intrinsics)
+            depth = read_exr_single(path, data, intrinsics, name="Z")  # the format's channel (above)
             # the convention is finite and >= 0 (0 = miss): NaN or inf would reach every
             # unprojection (co-visibility, geometry) as points at infinity
             bad = ~np.isfinite(depth) | (depth < 0)

@@ -510,11 +510,15 @@ def _read_exr(path, data: bytes, expected_size) -> tuple[dict, dict]:
     return channels, header
 
 
-def read_exr_single(path, data: Optional[bytes] = None, expected_size=None) -> np.ndarray:
-    """The one channel of a single-channel EXR (depth files). Returns [H, W] float32."""
+def read_exr_single(path, data: Optional[bytes] = None, expected_size=None, name: Optional[str] = None) -> np.ndarray:
+    """The one channel of a single-channel EXR (depth files); `name`: the channel it must
+    be called (a format that names it, as nerfgauge's ground truth names its depth "Z"),
+    or any. Returns [H, W] float32."""
     channels, _ = read_exr(path, data, expected_size)
     if len(channels) != 1:
         raise InputError(f"{path} should hold one channel, has {sorted(channels)}")
+    if name is not None and next(iter(channels)) != name:
+        raise InputError(f"{path} should hold the channel {name!r}, has {next(iter(channels))!r}")
     (values,) = channels.values()
     if values.ndim != 2:  # OpenEXR groups R, G, B into one [H, W, 3] "RGB" entry
         raise InputError(f"{path} should hold one channel, has {values.shape[-1]} grouped as {next(iter(channels))!r}")
