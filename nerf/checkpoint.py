@@ -402,8 +402,8 @@ def _split_grid_group(saved: dict, optimizer: torch.optim.Optimizer) -> dict:
         return saved
     if not old:
         return saved
-    first = groups[0]
-    split = [first | {"params": [first["params"][i]], "name": now[i].get("name")} for i in (0, 1)]
+    first = groups[0]  # named after loading, as any older file's groups are (restore_optimizer)
+    split = [first | {"params": [first["params"][i]]} for i in (0, 1)]
     return saved | {"param_groups": split + list(groups[1:])}
 
 

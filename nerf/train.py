@@ -525,8 +525,8 @@ def _step(training: Training, config: TrainConfig, schedule: Schedule, train_ray
         _grow_grid(training, config, schedule.resolution_at(training.loop.stage))
         if schedule.occupancy_due(training.loop):
             training.model.update_occupancy()
-    lr_scale = schedule.lr_scales(training.loop, fraction_done)
-    loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, lr_scale, priors)
+    lr_scales = schedule.lr_scales(training.loop, fraction_done)
+    loss, gradients_finite = _train_step(training, config, train_rays, n_rays, device, lr_scales, priors)
     if not (math.isfinite(loss) and gradients_finite):
         raise NumericalError(
             f"training diverged at step {training.loop.step}: loss {loss}, gradients "
@@ -767,17 +767,17 @@ def _grow_grid(training: Training, config: TrainConfig, wanted: int) -> None:
 
 
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,
-                lr_scale: float | dict, priors: float | None = None) -> tuple[float, bool]:
-    """One optimiser step on `n_rays` random training rays. lr_scale: each parameter
-    group's learning rate as a fraction of its base, one for all or by group name
-    (nerf.schedule's `lr_scales`). priors:
+                lr_scales: dict, priors: float | None = None) -> tuple[float, bool]:
+    """One optimiser step on `n_rays` random training rays. lr_scales: each parameter
+    group's learning rate as a fraction of its base, by group name (nerf.schedule's
+    `lr_scales`). priors:
     the spread of the train cameras when the sparse-capture priors are on (nerf.sparse_priors), else None.
     Returns (loss, whether every gradient was finite); a step with a non-finite gradient
     leaves the parameters alone."""
     model, generator, state = training.model, training.generator, training.loop
     optimizer = training.optimizer
     for group in optimizer.param_groups:
-        group["lr"] = group["base_lr"] * (lr_scale[group["name"]] if isinstance(lr_scale, dict) else lr_scale)
+        group["lr"] = group["base_lr"] * lr_scales[group["name"]]
     # TrainConfig.pixel_filter: per pixel one ray through its centre or a random point of
     # it, or (box) the mean of 2 x 2 rays through the box render's points, so the loss
     # compares the pixel's box-filtered colour with the ground truth's (pixel_sample_offsets
