@@ -38,7 +38,7 @@ from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, pixel_mean, render_rays_chunked
 from nerfgauge.nerf.schedule import (FINE_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER, SURFACE_RISE_STEPS, Schedule,
-                                    upsample_count)
+                                    TrialTiming, upsample_count)
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
 from nerfgauge.nerf.trials import (Trial, candidate_config, parametrisation_trial, pick, render_path, trial_reason,
                                    trial_record, trial_recipe, val_psnr)
@@ -341,13 +341,13 @@ class Training:
 @dataclass
 class GrowthTrial:
     """A growth on trial: the coarser grid's model, optimiser and loop counters as they were
-    before it (restored when the growth is undone), and the finer stage's seconds when its
-    timed steps began (None during the warm-up)."""
+    before it (restored when the growth is undone), and the finer grid's clock
+    (nerf.schedule.TrialTiming)."""
 
     model: RadianceModel
     optimizer: torch.optim.Adam
     loop: LoopState
-    timed_from: float | None = None
+    timing: TrialTiming = TrialTiming()
 
 
 def begin_growth_trial(training: Training) -> GrowthTrial:
@@ -481,7 +481,7 @@ def _follow_schedule(training: Training, schedule: Schedule, trial: GrowthTrial 
         state.stage += 1
         state.stage_steps, state.stage_seconds = 0, 0.0
     elif trial is not None:
-        trial.timed_from, projected = schedule.steps_on_trial(state, trial.timed_from)
+        trial.timing, projected = schedule.steps_on_trial(state, trial.timing)
         if projected is not None:
             if not schedule.keeps_growth(projected):
                 finer = training.model.field.resolution

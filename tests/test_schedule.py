@@ -153,23 +153,57 @@ def test_only_a_time_budgets_last_growth_in_bounded_or_forward_space_is_on_trial
     assert not of(model="vanilla").growth_on_trial(last)
 
 
+def _trial_clock(schedule, seconds_per_window, start_seconds=40.0):
+    """Walk a growth's trial through steps_on_trial at window boundaries, the finer grid's
+    warm-up taking 1 s and window k taking seconds_per_window[k]: the timings and the
+    projection at each call."""
+    timing, seen = S.TrialTiming(), []
+    stage_steps, stage_seconds = S.GROWTH_TRIAL_WARMUP, 1.0
+    per_window = S.GROWTH_TRIAL_STEPS // S.GROWTH_TRIAL_WINDOWS
+    for k, window in enumerate([0.0] + list(seconds_per_window)):
+        stage_steps += per_window if k else 0
+        stage_seconds += window
+        state = LoopState(stage_steps=stage_steps, stage_seconds=stage_seconds, seconds=start_seconds + stage_seconds)
+        timing, projected = schedule.steps_on_trial(state, timing)
+        seen.append((timing, projected, state))
+    return seen
+
+
 def test_a_growth_on_trial_is_timed_after_its_warm_up_and_judged_by_its_own_rate():
-    """timed_from is set at the first call with GROWTH_TRIAL_WARMUP steps done; nothing is
-    projected before GROWTH_TRIAL_STEPS more are timed; then the finer grid's steps in all =
-    steps done + (timed steps / their seconds) x the budget's seconds left, kept at
-    MIN_STEPS_AT_FINER or more."""
+    """Nothing is timed during the warm-up; the first window starts at the first call with
+    GROWTH_TRIAL_WARMUP steps done; nothing is projected before GROWTH_TRIAL_WINDOWS windows
+    of GROWTH_TRIAL_STEPS / GROWTH_TRIAL_WINDOWS steps are timed, nor in the middle of a
+    window; then the finer grid's steps in all = steps done + its rate x the budget's
+    seconds left, kept at MIN_STEPS_AT_FINER or more."""
     schedule = make(budget=120.0)
     warming = LoopState(stage_steps=S.GROWTH_TRIAL_WARMUP - 1, stage_seconds=1.5, seconds=39.5)
-    assert schedule.steps_on_trial(warming, None) == (None, None)
-    warm = LoopState(stage_steps=S.GROWTH_TRIAL_WARMUP, stage_seconds=2.0, seconds=40.0)
-    assert schedule.steps_on_trial(warm, None) == (2.0, None)
-    early = LoopState(stage_steps=S.GROWTH_TRIAL_WARMUP + S.GROWTH_TRIAL_STEPS - 1, stage_seconds=5.0, seconds=43.0)
-    assert schedule.steps_on_trial(early, 2.0) == (2.0, None)
-    done = LoopState(stage_steps=S.GROWTH_TRIAL_WARMUP + S.GROWTH_TRIAL_STEPS, stage_seconds=6.0, seconds=44.0)
-    rate = S.GROWTH_TRIAL_STEPS / (6.0 - 2.0)
-    timed_from, projected = schedule.steps_on_trial(done, 2.0)
-    assert timed_from == 2.0 and projected == pytest.approx(done.stage_steps + rate * (120.0 - 44.0))
+    assert schedule.steps_on_trial(warming, S.TrialTiming()) == (S.TrialTiming(), None)
+    per_window = S.GROWTH_TRIAL_STEPS // S.GROWTH_TRIAL_WINDOWS
+    seen = _trial_clock(schedule, [0.5] * S.GROWTH_TRIAL_WINDOWS)
+    assert seen[0][0] == S.TrialTiming(S.GROWTH_TRIAL_WARMUP, 1.0) and seen[0][1] is None
+    assert all(projected is None for _, projected, _ in seen[:-1])
+    middle = LoopState(stage_steps=S.GROWTH_TRIAL_WARMUP + per_window - 1, stage_seconds=1.4, seconds=41.4)
+    assert schedule.steps_on_trial(middle, seen[0][0]) == (seen[0][0], None)
+    timing, projected, state = seen[-1]
+    assert timing.rates == (per_window / 0.5,) * S.GROWTH_TRIAL_WINDOWS
+    assert state.stage_steps == S.GROWTH_TRIAL_WARMUP + S.GROWTH_TRIAL_STEPS
+    assert projected == pytest.approx(state.stage_steps + per_window / 0.5 * (120.0 - state.seconds))
     assert schedule.keeps_growth(S.MIN_STEPS_AT_FINER) and not schedule.keeps_growth(S.MIN_STEPS_AT_FINER - 0.5)
+
+
+@pytest.mark.parametrize("slow_windows", [0, 1, S.GROWTH_TRIAL_WINDOWS - 1, S.GROWTH_TRIAL_WINDOWS])
+def test_a_load_that_passes_within_the_trial_does_not_decide_the_grid(slow_windows):
+    """Windows slowed tenfold by another process (an idle window: 0.5 s for its steps, so
+    about 1900 steps projected, kept; every window slowed to 5 s: 203, undone): the rate is the fastest
+    window's, so the growth stands unless every window was slow. A load that lasts the
+    whole trial is the machine the budget has."""
+    schedule = make(budget=120.0)
+    windows = [5.0] * slow_windows + [0.5] * (S.GROWTH_TRIAL_WINDOWS - slow_windows)
+    timing, projected, state = _trial_clock(schedule, windows, start_seconds=20.0)[-1]
+    fastest = (S.GROWTH_TRIAL_STEPS // S.GROWTH_TRIAL_WINDOWS) / min(windows)
+    assert max(timing.rates) == pytest.approx(fastest)
+    assert projected == pytest.approx(state.stage_steps + fastest * (120.0 - state.seconds))
+    assert schedule.keeps_growth(projected) == (slow_windows < S.GROWTH_TRIAL_WINDOWS)
 
 
 @pytest.mark.parametrize("steps", [1000, 2000])

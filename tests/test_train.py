@@ -273,6 +273,7 @@ def test_a_budget_grows_the_grid_only_when_the_finer_one_gets_enough_steps(small
     monkeypatch.setattr(schedule_module, "MIN_STAGE_STEPS", 3)
     monkeypatch.setattr(schedule_module, "GROWTH_TRIAL_WARMUP", 1)
     monkeypatch.setattr(schedule_module, "GROWTH_TRIAL_STEPS", 3)
+    monkeypatch.setattr(schedule_module, "GROWTH_TRIAL_WINDOWS", 3)
 
     class StepClock:  # each step's start and end are one reading apart: 0.05 s of training a step
         now = 0.0
