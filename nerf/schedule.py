@@ -60,11 +60,12 @@ BUDGET_DECIDES_IN = ("bounded", "forward")
 GROWTH_TRIAL_WARMUP = 5  # steps of a new grid not timed: the first allocate its rows and moments
 GROWTH_TRIAL_STEPS = 40  # steps timed after them; ~3 s of a 120-s budget at 128 px ...
 # ... in this many windows of equal steps, and the rate is the fastest window's: another
-# process can only slow a window down, so the fastest is the machine's own rate, and a
-# load that passes within the trial no longer decides the grid for the whole run (a test
-# suite started beside a 300-s run on thin made its 45 trial steps slow and kept a
-# 35-voxel grid: 40.05 dB against 44.52 idle). A load that lasts the whole trial still
-# counts: a budget follows the machine it has.
+# process can only slow a window down, so the fastest is the nearest to the machine's own
+# rate, and a load that passes within the trial no longer decides the grid for the whole
+# run. (What prompted it: a test suite started beside a 300-s run on thin kept a 35-voxel
+# grid, 40.05 dB against 44.52 idle; that suite outlasted the trial, so there the windows
+# would not have helped.) A load that lasts the whole trial still counts: a budget follows
+# the machine it has.
 GROWTH_TRIAL_WINDOWS = 4
 VISIBILITY_AT = (0.4, 0.7, 1.0)  # fractions where hidden cells are measured and skipped
 OCCUPANCY_EVERY = 16  # steps between occupancy-grid updates
