@@ -35,6 +35,7 @@ from nerfgauge.nerf.packed import (
     render_front_to_back,
 )
 from nerfgauge.nerf.rendering import ray_aabb, render_rays
+from nerfgauge.nerf.schedule import COLOUR_GROUP
 from torch import nn
 
 EARLY_STOP_WINDOW = 16  # samples per ray between early-termination checks (measured: 8-32 similar)
@@ -303,7 +304,7 @@ class CompactNeRF(RadianceModel):
         their own (nerf.schedule's `lr_scales` may decay them apart); the view-dependent
         colour head, when there is one, at `lr_mlp`."""
         groups = [{"params": [self.field.density_table], "lr": lr, "base_lr": lr, "name": "density"},
-                  {"params": [self.field.features], "lr": lr, "base_lr": lr, "name": "colour"}]
+                  {"params": [self.field.features], "lr": lr, "base_lr": lr, "name": COLOUR_GROUP}]
         if self.field.head is not None:
             groups.append({"params": self.field.head.parameters(), "lr": lr_mlp, "base_lr": lr_mlp, "name": "head"})
         return groups

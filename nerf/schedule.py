@@ -152,6 +152,23 @@ def upsample_count(start: int, final: int) -> int:
     return max(MIN_UPSAMPLES, round(math.log(max(final / start, 1.0)) / math.log(STAGE_RATIO)))
 
 
+# The parameter group (nerf.models: CompactNeRF.parameter_groups) whose rate may anneal
+# apart from the rest (`Schedule.lr_scales`); every other group takes the plain rate.
+COLOUR_GROUP = "colour"
+
+
+@dataclass(frozen=True)
+class RateScales:
+    """Learning rates as fractions of each group's base: `plain` for every group, `colour`
+    for the COLOUR_GROUP. scales[name] is a group's."""
+
+    plain: float
+    colour: float
+
+    def __getitem__(self, group: str) -> float:
+        return self.colour if group == COLOUR_GROUP else self.plain
+
+
 @dataclass(frozen=True)
 class TrialTiming:
     """A growth on trial's clock (`Schedule.steps_on_trial`): the stage's steps and seconds
@@ -288,9 +305,9 @@ class Schedule:
         extra = LR_FINAL_FRACTION ** ((state.step - start) / LR_DECADE_STEPS)
         return min(plain, max(plain * extra, LR_MIN_FRACTION))
 
-    def lr_scales(self, state, fraction: float) -> dict[str, float]:
+    def lr_scales(self, state, fraction: float) -> "RateScales":
         """Each parameter group's rate as a fraction of its base, by the group's name
-        (`CompactNeRF.parameter_groups`): `lr_scale` for all, except that once surface
+        (`RateScales`): `lr_scale` for all, except that once surface
         opacity has turned on (`LoopState.anneal_from`, the share of the budget done then)
         the colour tables anneal, geometrically from the plain rate at that share to
         LR_MIN_FRACTION at the budget's end (never above the density's rate). The density
@@ -300,12 +317,12 @@ class Schedule:
         RMS 0.035 at both); every table annealed, 45.76 / 46.36 (the 600-s outline's RMS
         0.0344 -> 0.0417) (docs/results.md, "Past the switch")."""
         scale = self.lr_scale(state, fraction)
-        scales = {"density": scale, "colour": scale, "head": scale, "all": scale}
+        colour = scale
         if state.anneal_from:
             share = min(max((fraction - state.anneal_from) / (1.0 - state.anneal_from), 0.0), 1.0)
             at_switch = LR_FINAL_FRACTION ** state.anneal_from
-            scales["colour"] = min(scale, at_switch * (LR_MIN_FRACTION / at_switch) ** share)
-        return scales
+            colour = min(scale, at_switch * (LR_MIN_FRACTION / at_switch) ** share)
+        return RateScales(scale, colour)
 
     def decay_start(self, state) -> Optional[int]:
         """The step the extra decay counts from: LR_DECADE_STEPS, or for a run that refines

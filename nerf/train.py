@@ -38,7 +38,7 @@ from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, pixel_mean, render_rays_chunked
 from nerfgauge.nerf.schedule import (FINE_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER, SURFACE_RISE_STEPS, Schedule,
-                                    TrialTiming, upsample_count)
+                                    RateScales, TrialTiming, upsample_count)
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
 from nerfgauge.nerf.trials import (Trial, candidate_config, parametrisation_trial, pick, render_path, trial_reason,
                                    trial_record, trial_recipe, val_psnr)
@@ -767,7 +767,7 @@ def _grow_grid(training: Training, config: TrainConfig, wanted: int) -> None:
 
 
 def _train_step(training: Training, config: TrainConfig, rays, n_rays: int, device,
-                lr_scales: dict, priors: float | None = None) -> tuple[float, bool]:
+                lr_scales: RateScales, priors: float | None = None) -> tuple[float, bool]:
     """One optimiser step on `n_rays` random training rays. lr_scales: each parameter
     group's learning rate as a fraction of its base, by group name (nerf.schedule's
     `lr_scales`). priors:
