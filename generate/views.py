@@ -79,8 +79,8 @@ def write_view(out: Path, stem: str, images) -> None:
     files = {kind: out / rel for kind, rel in dataset.frame_files(stem).items()}
     owned.make_folder(files["png"].parent)
     write_exr(files["exr"], {"RGBA": images.rgba}, {"nerfgauge": "linear RGBA, premultiplied alpha = coverage"})
-    write_exr(files["distance"], {"Z": images.distance}, {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
-    write_exr(files["z_depth"], {"Z": images.z_depth}, {"nerfgauge_depth": "z_depth", "nerfgauge_miss": "0"})
+    write_exr(files["distance"], {dataset.DEPTH_CHANNEL: images.distance}, {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
+    write_exr(files["z_depth"], {dataset.DEPTH_CHANNEL: images.z_depth}, {"nerfgauge_depth": "z_depth", "nerfgauge_miss": "0"})
     write_exr(files["normals"], {"X": images.normals[..., 0], "Y": images.normals[..., 1], "Z": images.normals[..., 2]},
               {"nerfgauge": "world-space shading normals, 0 on misses"})
     write_png(files["mask"], (images.hit * 255).astype(np.uint8))

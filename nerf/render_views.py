@@ -43,6 +43,7 @@ from nerfgauge.nerf.train import pick_device
 from nerfgauge.core.progress import progress as progress_bar
 
 from nerfgauge.core import arguments, owned
+from nerfgauge.core.dataset import DEPTH_CHANNEL
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import sha256_file, write_json
 from nerfgauge.core.folders import claim_folder, recipe_hash
@@ -160,7 +161,7 @@ def _render_frames(out: Path, model, config, cameras, split, device, threads, po
             # Expected depth wherever anything was hit (it is normalised by opacity); silhouette
             # pixels with little opacity still carry the depth of what they partly see.
             depth = depth.astype(np.float32).reshape(height, width)
-            write_exr(target.with_name(target.name + "_depth.exr"), {"Z": depth},
+            write_exr(target.with_name(target.name + "_depth.exr"), {DEPTH_CHANNEL: depth},
                       {"nerfgauge_depth": "ray_distance", "nerfgauge_miss": "0"})
             write_png(target.with_name(target.name + ".png"), rgba_png(rgb, opacity, height, width))
     finally:

@@ -71,6 +71,7 @@ FRAME_SUFFIXES = {
 # and the noise estimate): readers say so in one line instead of failing the dataset.
 OPTIONAL_FRAME_KINDS = ("instance", "albedo", "noise")
 DEPTH_KINDS = {"distance": "ray_distance", "z": "z_depth"}
+DEPTH_CHANNEL = "Z"  # the one channel of the depth EXRs nerfgauge writes; ground truth must use it (depth_of)
 # The largest file a dataset's reader reads without a tighter cap of its own (images have
 # the cap their header implies, JSON bounded.MAX_JSON_BYTES): an EXR of the generator's
 # largest image (8192 px a side, RGBA float32) stored uncompressed is 1 GiB; meshes are
@@ -502,7 +503,7 @@ class Dataset:
         if kind not in DEPTH_KINDS:
             raise InputError(f"unknown depth kind {kind!r}; choose distance or z")
         def decode(path, data):
-            depth = read_exr_single(path, data, intrinsics, name="Z")  # the format's channel (above)
+            depth = read_exr_single(path, data, intrinsics, name=DEPTH_CHANNEL)
             # the convention is finite and >= 0 (0 = miss): NaN or inf would reach every
             # unprojection (co-visibility, geometry) as points at infinity
             bad = ~np.isfinite(depth) | (depth < 0)
