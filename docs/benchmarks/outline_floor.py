@@ -9,6 +9,11 @@ the mean over the points of f(d_i), f piecewise linear on 33 knots over [-0.8, 0
 (0 below, 1 above), fitted by least squares. Prints, per pattern, the alpha RMS of the best
 profile and of a sharp edge (f a step): docs/results.md, "The outline's floor".
 
+One skin in 3D is seen by cameras at different distances, so its width in pixels differs
+between views: the second table fits one profile for views whose pixel spans s world units,
+s uniform in [1, spread] (f in units of the mean pixel), and prints its RMS per spread
+(the primitives' cameras see content 3.4-4.9 units away: a spread of 1.45).
+
     python docs/benchmarks/outline_floor.py
 """
 
@@ -51,10 +56,13 @@ def profile_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return basis, (d > KNOTS[-1]).astype(float)
 
 
-def floor(points: np.ndarray, edges) -> tuple[float, float]:
-    """(best profile's RMS, sharp edge's RMS) of the equal-weight mean over `points` [S, 2]."""
+def floor(points: np.ndarray, edges, scales: np.ndarray | None = None) -> tuple[float, float]:
+    """(best profile's RMS, sharp edge's RMS) of the equal-weight mean over `points` [S, 2].
+    scales [N]: each edge's view's pixel in units of the profile's (None: all 1)."""
     normals, offsets, coverage = edges
-    d = offsets[:, None] - normals @ points.T  # [N, S], > 0 on the covered side
+    d = offsets[:, None] - normals @ points.T  # [N, S] pixels, > 0 on the covered side
+    if scales is not None:
+        d = d * scales[:, None]
     basis, above = profile_basis(d)
     design = basis.mean(1)
     target = coverage - above.mean(1)
@@ -76,6 +84,12 @@ def main() -> None:
     for k in (1, 2, 3, 4, 6, 8):
         best, sharp = floor(grid(k), edges)
         print(f"{k} x {k} points: best skin {best:.4f} RMS, sharp edge {sharp:.4f}")
+    rng = np.random.default_rng(1)
+    for k in (3, 4):
+        for spread in (1.0, 1.2, 1.45, 2.0):
+            scales = rng.uniform(1.0, spread, len(edges[2])) / ((1 + spread) / 2)
+            best, _ = floor(grid(k), edges, scales)
+            print(f"{k} x {k} points, pixel widths spread {spread}: one skin for every view {best:.4f} RMS")
 
 
 if __name__ == "__main__":
