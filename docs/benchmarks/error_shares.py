@@ -36,7 +36,9 @@ CLASSES = ("outline", "edge", "interior")
 
 def draw(dataset: Path, out: Path) -> None:
     """Copy `dataset` to `out` and render its test views again with shifted sampler seeds
-    (the generator resumes a dataset with views missing)."""
+    (the generator resumes a dataset with views missing). The command repeats the recipe's
+    scene, size, view counts, spp and seed; a dataset made with other flags (layout, fov,
+    noise, degradations) is refused by the generator as another recipe."""
     import nerfgauge.generate.views as views
     from nerfgauge.cli import main
 
