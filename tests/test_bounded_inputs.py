@@ -645,3 +645,28 @@ def test_found_by_a_fresh_seed_an_exr_cut_anywhere_is_one_line(tmp_path, compres
     for cut in range(9, len(data), max(1, len(data) // 97)):
         with pytest.raises(InputError, match="truncated|cannot read EXR"):
             read_exr(tmp_path / "d.exr", data[:cut])
+
+
+def test_found_by_a_fresh_seed_a_saved_count_of_none_is_one_line():
+    """CI's fresh checkpoint draw (hypothesis b'AABBBEEB') wrote `"threads": null` into a
+    model.pt's config: check_fields skipped every None, so `nerfgauge render` reached
+    `threads > 1` (a TypeError traceback). A None is now refused where the field's
+    annotation does not admit one, and still skipped where it does ("auto", "not given")."""
+    from dataclasses import dataclass
+    from typing import Optional
+
+    from nerfgauge.nerf.config import TrainConfig
+
+    @dataclass
+    class Counts:
+        workers: int = 2
+        limit: Optional[int] = None
+        cap: float | None = None
+
+    ranges = {"workers": arguments.THREADS, "limit": arguments.THREADS, "cap": arguments.THREADS}
+    arguments.check_fields(Counts(), ranges)  # the optional fields' None passes
+    with pytest.raises(InputError, match="--workers needs a value, got None"):
+        arguments.check_fields(Counts(workers=None), ranges)
+    with pytest.raises(InputError, match="--threads needs a value"):
+        TrainConfig(dataset="d", threads=None).validate()
+    TrainConfig(dataset="d", steps=10).validate()  # budget_seconds None beside steps: its annotation admits it

@@ -132,12 +132,28 @@ def bounded(kind, low, high, *, above: bool = False, below: bool = False) -> Ran
 def check_fields(config, ranges: dict, flags: dict | None = None) -> None:
     """Check a config dataclass's numeric fields against their command-line ranges, for
     values that come through the Python API or a saved config rather than argparse.
-    ranges: {field: Range}; a field holding None is optional and skipped. flags: {field:
+    ranges: {field: Range}; a field holding None is skipped where its annotation admits None
+    (Optional[...], ... | None: "auto" or "not given") and refused where it does not (a saved
+    model.pt whose `threads` reads None would otherwise reach `threads > 1`). flags: {field:
     flag} where the flag is not --field-with-dashes. InputError naming the flag otherwise."""
+    annotations = {name: field.type for name, field in getattr(config, "__dataclass_fields__", {}).items()}
     for name, limits in ranges.items():
         value = getattr(config, name)
-        if value is not None:
-            limits.check(value, (flags or {}).get(name, f"--{name.replace('_', '-')}"))
+        flag = (flags or {}).get(name, f"--{name.replace('_', '-')}")
+        if value is None:
+            if not admits_none(annotations.get(name)):
+                raise InputError(f"{flag} needs a value, got None")
+            continue
+        limits.check(value, flag)
+
+
+def admits_none(annotation) -> bool:
+    """Whether a dataclass field's annotation (a string under `from __future__ import
+    annotations`, else a type) allows None; an unknown one (None) is taken to allow it."""
+    if annotation is None:
+        return True
+    text = annotation if isinstance(annotation, str) else repr(annotation)
+    return "Optional" in text or "None" in text
 
 
 def document_ranges(parser: argparse.ArgumentParser) -> None:
