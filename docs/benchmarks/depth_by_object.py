@@ -17,25 +17,17 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import OpenEXR
+from error_shares import neighbourhood  # this folder's script, beside this one
 from PIL import Image
+
+from nerfgauge.core.dataset import DEPTH_CHANNEL
+from nerfgauge.core.images import read_exr_single
 
 FULL_SCALE = 0.02  # scene units of depth difference drawn at full colour
 
 
-def read_exr(path: Path) -> np.ndarray:
-    channels = OpenEXR.File(str(path)).parts[0].channels
-    return next(iter(channels.values())).pixels.astype(np.float64)
-
-
-def inner_pixels(ids: np.ndarray) -> np.ndarray:
-    """[H, W] bool: pixels whose 3 x 3 neighbourhood shows one instance."""
-    padded = np.pad(ids, 1, constant_values=-1)
-    same = np.ones_like(ids, dtype=bool)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            same &= padded[1 + dy:1 + dy + ids.shape[0], 1 + dx:1 + dx + ids.shape[1]] == ids
-    return same
+def read_depth(path: Path) -> np.ndarray:
+    return read_exr_single(path, name=DEPTH_CHANNEL).astype(np.float64)
 
 
 def main(dataset: Path, predictions: Path, out: str, views: list) -> None:
@@ -44,10 +36,10 @@ def main(dataset: Path, predictions: Path, out: str, views: list) -> None:
     differences, per_object = [], {name: [] for name in names}
     for truth_path in frames:
         stem = truth_path.stem
-        truth = read_exr(dataset / "test" / f"{stem}_distance.exr")
-        pred = read_exr(predictions / f"{stem}_depth.exr")
+        truth = read_depth(dataset / "test" / f"{stem}_distance.exr")
+        pred = read_depth(predictions / f"{stem}_depth.exr")
         ids = np.asarray(Image.open(dataset / "test" / f"{stem}_instance.png")).astype(np.int64)
-        covered = (np.asarray(Image.open(truth_path))[..., 3] == 255) & inner_pixels(ids) & (ids > 0)
+        covered = (np.asarray(Image.open(truth_path))[..., 3] == 255) & (neighbourhood(ids) == ids).all(0) & (ids > 0)
         difference = np.where(covered, pred - truth, np.nan)
         differences.append(difference)
         for index, name in enumerate(names):

@@ -56,6 +56,13 @@ def draw(dataset: Path, out: Path) -> None:
     main()
 
 
+def neighbourhood(ids: np.ndarray) -> np.ndarray:
+    """[9, H, W]: the instance ids [H, W] of each pixel's 3 x 3 neighbourhood (0 past the image)."""
+    padded = np.pad(ids, 1)
+    return np.stack([padded[1 + dy:1 + dy + ids.shape[0], 1 + dx:1 + dx + ids.shape[1]]
+                     for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+
+
 def cells(dataset: Path, predictions: Path) -> tuple[dict, int]:
     """{(instance name, class): [sum of squared error, pixels]} over the test views, and the
     number of pixels (every channel of premultiplied sRGB weighs a third of a pixel)."""
@@ -65,9 +72,7 @@ def cells(dataset: Path, predictions: Path) -> tuple[dict, int]:
         truth = np.asarray(Image.open(truth_path), dtype=np.float64) / 255
         pred = np.asarray(Image.open(predictions / truth_path.name), dtype=np.float64) / 255
         ids = np.asarray(Image.open(truth_path.with_name(truth_path.stem + "_instance.png"))).astype(np.int64)
-        padded = np.pad(ids, 1)
-        around = np.stack([padded[1 + dy:1 + dy + ids.shape[0], 1 + dx:1 + dx + ids.shape[1]]
-                           for dy in (-1, 0, 1) for dx in (-1, 0, 1)])  # [9, H, W]
+        around = neighbourhood(ids)
         nearest = around.max(0)
         lowest = np.where(around > 0, around, np.iinfo(np.int64).max).min(0)
         two = (nearest > 0) & (lowest != nearest)
