@@ -300,7 +300,10 @@ def train(config: TrainConfig, run_dir, *, resume: bool = False, overwrite: bool
     """Train into `run_dir`. A new or empty folder starts a run; a folder holding this
     recipe's run whose earlier attempt was killed before its first checkpoint starts over;
     resume=True continues from checkpoint.pt; overwrite=True replaces a run of ours (any
-    recipe). Returns {"steps", "seconds", "val_psnr", "model_bytes"}."""
+    recipe). Returns {"steps", "seconds", "val_psnr" (the log's last: pixel centres, a strided
+    subset of the val views), "model_bytes", "resolution", "render_filter" and "render_val_psnr"
+    (an `edges` run's render on whole val frames, as `choose_render_filter` measured it; None
+    for other runs)}."""
     if isinstance(run_dir, str) and not run_dir.strip():
         raise InputError("the run folder is an empty path; give --out RUN")
     if resume and overwrite:
@@ -711,9 +714,10 @@ def _finish(run_dir: Path, loop: RunLoop, recipe: dict) -> dict:
     model, state, config, reasons = training.model, training.loop, candidate.config, candidate.reasons
     if config.refine_grid:
         reasons["refine_grid"] = loop.schedule.refine_grid_reason(state, model.field.resolution)
+    render_psnr = None
     if config.pixel_filter == "edges":
         reasons["edge_points"] = loop.schedule.edge_points_reason(state)
-        config, reasons["render_filter"] = choose_render_filter(model, config, *loop.val, loop.device)
+        config, reasons["render_filter"], render_psnr = choose_render_filter(model, config, *loop.val, loop.device)
     if config.surface_opacity:
         reasons["surface_opacity"] = (
             f"on from step {state.surface_step} (occupancy over {SURFACE_RISE_STEPS:g} marching steps): the "
@@ -724,10 +728,11 @@ def _finish(run_dir: Path, loop: RunLoop, recipe: dict) -> dict:
         _write_config(run_dir, config, reasons, candidate.space, recipe, loop.trials)
     size = checkpoint.save_atomic(checkpoint.model_payload(model, config, prune=config.prune), run_dir / MODEL)
     return {"steps": state.step, "seconds": state.seconds, "val_psnr": loop.last_psnr, "model_bytes": size,
-            "resolution": model.field.resolution if model.has_grid else None}
+            "resolution": model.field.resolution if model.has_grid else None,
+            "render_filter": config.render_filter, "render_val_psnr": render_psnr}
 
 
-def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) -> tuple[TrainConfig, str]:
+def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) -> tuple[TrainConfig, str, float]:
     """An `edges` run's render filter, by measurement on its val views (whole frames, the
     eval_views of psnr_on_white; nerf.trials.val_psnr): of RENDER_FILTERS (the centre ray
     alone, 2 x 2 or 3 x 3 rays on the centre render's edge pixels), the one that scores
@@ -736,14 +741,16 @@ def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) 
     grid), averaging sub-pixel rays blurs the blur again: 56.99 dB against 58.32 through
     the centres of the same model (BENCHMARKS.md, "Edge pixels"); where it does, 3 x 3
     integrates a sharp edge better. cameras, val_rays: the val views' cameras and rays
-    (`prepare_run`). Returns (config with render_filter set, the reason)."""
+    (`prepare_run`). Returns (config with render_filter set, the reason, the chosen render's
+    val PSNR: what `nerfgauge render` gives on whole val frames, where the log's val PSNR
+    goes through pixel centres on a strided subset)."""
     psnr = val_psnr(model, cameras, val_rays, device,
                     {name: (per_axis, per_axis > 1) for name, per_axis in RENDER_FILTERS.items()})
     chosen = max(RENDER_FILTERS, key=psnr.get)  # the first of equals: the cheaper render
     scores = ", ".join(f"{name} {value:.2f} dB" for name, value in psnr.items())
     return dataclasses.replace(config, render_filter=chosen), (
         f"{chosen}: on {val_rays.n_views} {cameras.split} views ({RENDER_FILTERS[chosen]} x {RENDER_FILTERS[chosen]} "
-        f"rays on edge pixels; 1: the centre ray): {scores}")
+        f"rays on edge pixels; 1: the centre ray): {scores}"), psnr[chosen]
 
 
 def _grow_grid(training: Training, config: TrainConfig, wanted: int) -> None:

@@ -84,7 +84,8 @@ def train(dataset, /, out, **options) -> dict:
     options: TrainConfig fields (model, seed, steps or budget_seconds (at most one; neither:
     nerf.config.DEFAULT_BUDGET_SECONDS), batch_rays,
     view_dependent, final_resolution, threads, device, ...) and resume=False, progress=False.
-    Returns the summary: {"steps", "seconds", "val_psnr", "model_bytes"}.
+    Returns the summary: {"steps", "seconds", "val_psnr", "model_bytes", "resolution", "render_filter",
+    "render_val_psnr"} (nerf.train.train).
     """
     from nerfgauge.nerf.config import TrainConfig  # each stage loads on first use
     from nerfgauge.nerf.train import train as train_run  # torch

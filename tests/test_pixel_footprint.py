@@ -318,9 +318,46 @@ def test_an_edges_run_keeps_the_render_filter_that_scores_higher_on_its_val_view
         if name != truth:
             assert all(not torch.equal(a[0], b[0]) for a, b in zip(frames, render(per_axis)))
     val = RayBatch(torch.zeros((len(rgba), 3)), torch.zeros((len(rgba), 3)), rgba, len(frames))
-    config, reason = choose_render_filter(_FrameModel(), TrainConfig(dataset=str(tiny_dataset), steps=1,
+    config, reason, chosen_psnr = choose_render_filter(_FrameModel(), TrainConfig(dataset=str(tiny_dataset), steps=1,
                                                                      pixel_filter="edges"), cameras, val, device)
     assert config.render_filter == truth and "dB" in reason
+    # the chosen render reproduces its targets exactly: val_psnr's error floor, 1e-10, is 100 dB
+    assert chosen_psnr == pytest.approx(100.0)
+
+
+def test_an_edges_run_states_its_render_s_val_psnr_as_the_render_gives_it(tiny_dataset, tmp_path, capsys):
+    """`nerfgauge train`'s last line gives an `edges` run's val PSNR through its render beside the
+    log's (pixel centres): the figure `nerfgauge render RUN --split val` gives on white, to within
+    the 8-bit PNGs' rounding (each composited channel off by at most 1/255, so the RMS error moves
+    by at most that much) and the line's two decimals."""
+    import json
+    import re
+    from pathlib import Path
+
+    from nerfgauge.cli import main
+    from nerfgauge.core.dataset import open_dataset
+    from nerfgauge.core.images import read_png
+
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--steps", "6", "--pixel-filter", "edges",
+                 "--threads", "1", "--quiet"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    stated = re.search(r"\(([0-9.]+) dB through its render, ([a-z0-9-]+)\)", line)
+    assert stated, line
+    saved = json.loads((run / "config.json").read_text())
+    assert stated.group(2) == saved["render_filter"]
+    assert main(["render", str(run), "--split", "val", "--out", str(tmp_path / "r"), "--quiet"]) == 0
+    ds = open_dataset(tiny_dataset)
+    cameras = ds.cameras("val")
+    errors = []
+    for stem in cameras.stems:
+        truth = ds.rgba_of(stem, cameras.intrinsics).astype(np.float64)
+        rendered = read_png(tmp_path / "r" / "val" / f"{Path(stem).name}.png")
+        on_white = [image[..., :3] * image[..., 3:] + 1 - image[..., 3:] for image in (truth, rendered)]
+        errors.append(float(((on_white[1].clip(0, 1) - on_white[0]) ** 2).mean()))
+    rms = float(np.sqrt(np.mean(errors)))
+    low, high = -20 * np.log10(rms + 1 / 255), -20 * np.log10(max(rms - 1 / 255, 1e-12))
+    assert low - 0.005 <= float(stated.group(1)) <= high + 0.005, (stated.group(1), low, high)
 
 
 def test_an_edges_run_renders_by_its_chosen_filter(tiny_dataset, tmp_path):
