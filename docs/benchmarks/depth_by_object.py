@@ -43,7 +43,7 @@ def main(dataset: Path, predictions: Path, out: str, views: list) -> None:
         difference = np.where(covered, pred - truth, np.nan)
         differences.append(difference)
         for index, name in enumerate(names):
-            per_object[name].append(difference[ids == index + 1][covered[ids == index + 1]])
+            per_object[name].append(difference[covered & (ids == index + 1)])
     for name, values in per_object.items():
         values = np.concatenate(values)
         print(f"{name}: {values.size} pixels, depth error mean {values.mean():+.4f}, RMS {np.sqrt((values ** 2).mean()):.4f}, "
