@@ -14,7 +14,7 @@ from nerfgauge.core.arguments import path
 from nerfgauge.core.errors import InputError
 from nerfgauge.core.files import write_bytes_atomic
 from nerfgauge.core.outputs import check_output_file, claim_output_file
-from nerfgauge.nerf.config import DEFAULT_BUDGET_SECONDS, MODELS, SUB_RAYS, TrainConfig
+from nerfgauge.nerf.config import CHANGE_STEP, DEFAULT_BUDGET_SECONDS, MODELS, SUB_RAYS, TrainConfig
 from nerfgauge.nerf.mesh import mesh_from_run, ply_bytes
 from nerfgauge.nerf.options import add_train_arguments, train_fields
 import nerfgauge.splat.commands as splat_commands  # --model splat's flags and runs (no torch)
@@ -156,6 +156,10 @@ def _add_render(subparsers) -> None:
                         help="an edges run's points with rays of their own: changes (default), the points between "
                              "pixel centres of the centre render that differ, the rest interpolated; edge-pixels, "
                              "every point of the centre render's edge pixels (slower; the render before issue 52)")
+    parser.add_argument("--change-step", type=arguments.CHANGE_STEP, default=CHANGE_STEP, metavar="S",
+                        help=f"with --sub-rays changes: centres that differ by more than S in colour or alpha give "
+                             f"the points between them rays (default {CHANGE_STEP}); smaller is slower and, on a "
+                             f"converged model, sharper (0.01: +0.5 dB on primitives 128 px at 1.3x the time)")
     parser.add_argument("--lens-seed", type=arguments.SEED, default=0, help="seed of the lens samples (default 0)")
     parser.add_argument("--dataset", type=path, default=None, metavar="DATASET",
                         help="render the views of this dataset instead of those of the dataset the run was "
@@ -178,11 +182,12 @@ def _run_render(args) -> int:
     timing = render_split(args.run, args.split, args.out, threads=args.threads, step_ratio=args.step_ratio,
                           overwrite=args.overwrite, progress=not args.quiet, aperture_samples=args.aperture_samples,
                           lens_seed=args.lens_seed, dataset=args.dataset, other_dataset=args.other_dataset,
-                          pixel_samples=args.pixel_samples, sub_rays=args.sub_rays)
+                          pixel_samples=args.pixel_samples, sub_rays=args.sub_rays, change_step=args.change_step)
     if timing.get("lens_frames"):
         print(f"{timing['lens_frames']} frames through their thin lens at {timing['aperture_samples']} lens samples: "
               f"{timing['ms_per_lens_frame']:.1f} ms per frame")
-    rays = (f"up to {timing['pixel_samples'] ** 2} rays per pixel where the centre render changes"
+    rays = (f"up to {timing['pixel_samples'] ** 2} rays per pixel where the centre render changes "
+            f"(by more than {timing['change_step']})"
             if timing.get("sub_rays") == "changes" else f"{timing['pixel_samples'] ** 2} rays per pixel")
     print(f"rendered {timing['frames']} frames at {timing['ms_per_frame']:.1f} ms per frame, {rays} "
           f"({timing['device']}, {timing['threads']} threads) -> {args.out or args.run / 'renders'}")

@@ -44,6 +44,21 @@ RENDER_FILTERS = {"centre": 1, "edges": 2, "edges-3x3": 3}
 # nerf.frames.box_frame): "changes" (the default), the points between centres of the centre
 # render that differ; "edge-pixels", every point of its edge pixels (the render before issue 52).
 SUB_RAYS = ("changes", "edge-pixels")
+# Centres that differ by more than this in premultiplied colour or alpha (any channel, on
+# [0, 1]) give the points between them rays; closer, the points are interpolated. Measured
+# against 3 x 3 rays on every edge pixel (primitives 128 px, 600-s model, 20 test views,
+# 17,139 extra rays a frame): 0.1 -0.81 dB (5,566 rays), 0.05 -0.19 dB (7,451), 0.04
+# -0.06 dB (8,240), 0.03 +0.16 dB (10,178), 0.025 +0.24 dB (11,230): the model's texture
+# holds steps inside a pixel that its centres show only as a few hundredths
+# (docs/results.md, "Render time"). 0.04 keeps a margin to the issue's 0.2 dB.
+# `nerfgauge render --change-step` sets it for one render. Smaller steps give the rays a
+# converged model's texture and interior need (its centres differ there by a few hundredths,
+# the noise it learned): the 600-s primitives model with surface opacity, 46.54 dB at 0.04,
+# 46.85 at 0.02, 47.01 at 0.01, 47.07 at 0 (38.7, 40.6, 49.3, 65.9 ms a 128 px frame, 2
+# threads; its 1200-s twin 42.5 ms at 0.04, 56.6 at 0.01); thin 64 px +0.57 dB at 0.01; but a fuzzy 1000-step 256 px model gains 0.06 dB for
+# 1.5x the time (225 ms a frame, over the issue's 200): the default stays
+# (docs/results.md, "The render's change step").
+CHANGE_STEP = 0.04
 # The sparse grid stores values only where cells are occupied, but its node index (4 bytes
 # a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing

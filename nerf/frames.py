@@ -14,7 +14,7 @@ import contextlib
 
 import numpy as np
 import torch
-from nerfgauge.nerf.config import SUB_RAYS
+from nerfgauge.nerf.config import CHANGE_STEP, SUB_RAYS
 from nerfgauge.nerf.data import jittered_direction, pixel_footprints, split_rays
 from nerfgauge.nerf.march_cpu import kernel_threads
 from nerfgauge.nerf.rendering import pixel_mean, render_rays_chunked
@@ -37,14 +37,6 @@ PIXEL_SAMPLES = {"box": 2, "jitter": 2, "centre": 1, "edges": 2}
 # edges (nerfgauge.core.pixel_edges.edge_mask of the rendered RGBA), as training found them
 # on the targets; every other pixel keeps its centre ray.
 EDGES_ONLY = ("edges",)
-# Centres that differ by more than this in premultiplied colour or alpha (any channel, on
-# [0, 1]) give the points between them rays; closer, the points are interpolated. Measured
-# against 3 x 3 rays on every edge pixel (primitives 128 px, 600-s model, 20 test views,
-# 17,139 extra rays a frame): 0.1 -0.81 dB (5,566 rays), 0.05 -0.19 dB (7,451), 0.04
-# -0.06 dB (8,240), 0.03 +0.16 dB (10,178), 0.025 +0.24 dB (11,230): the model's texture
-# holds steps inside a pixel that its centres show only as a few hundredths
-# (docs/results.md, "Render time"). 0.04 keeps a margin to the issue's 0.2 dB.
-CHANGE_STEP = 0.04
 
 
 def rgba_png(rgb_premultiplied: np.ndarray, opacity: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -115,7 +107,7 @@ def pixel_offsets(per_axis: int) -> np.ndarray:
 
 
 def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, device,
-              edges_only: bool = False, sub_rays: str = "changes") -> tuple:
+              edges_only: bool = False, sub_rays: str = "changes", change_step: float = CHANGE_STEP) -> tuple:
     """Frame `index` box-filtered over each pixel as the ground truth is: premultiplied rgb
     [H*W, 3] and opacity [H*W], the means (in linear light: nerf.rendering.pixel_mean) over
     per_axis^2 rays through a regular grid of points in each pixel (`pixel_offsets`), and
@@ -123,8 +115,8 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
     renders the centre rays once.
     edges_only: only where the centre render changes do points get their own rays, by
     `sub_rays` (SUB_RAYS): "changes", the points between centres that differ
-    (`changing_points_frame`); "edge-pixels", every point of the centre render's edge pixels
-    (the render before issue 52)."""
+    (`changing_points_frame`, centres that differ by more than `change_step`); "edge-pixels",
+    every point of the centre render's edge pixels (the render before issue 52)."""
     if sub_rays not in SUB_RAYS:
         raise ValueError(f"sub_rays must be one of {SUB_RAYS}, got {sub_rays!r}")
     origins, directions = cameras.rays(index)  # [H, W, 3] float64
@@ -136,7 +128,7 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
     footprint = torch.from_numpy(pixel_footprints(directions, cameras.c2w[index])).to(device)  # [P, 2, 3]
     if edges_only and sub_rays == "changes":
         rgb, opacity = changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, directions.shape[:2],
-                                             per_axis, pool, parts)
+                                             per_axis, pool, parts, change_step)
         return rgb, opacity, depth
     chosen = slice(None)
     if edges_only:

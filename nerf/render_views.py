@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from nerfgauge.nerf.checkpoint import load_model
-from nerfgauge.nerf.config import RENDER_FILTERS, SUB_RAYS, pixel_filter_for
+from nerfgauge.nerf.config import CHANGE_STEP, RENDER_FILTERS, SUB_RAYS, pixel_filter_for
 from nerfgauge.nerf.data import split_rays
 from nerfgauge.nerf.frames import (EDGES_ONLY, PARTS_PER_THREAD, PIXEL_SAMPLES, box_frame, compiled_render_threads,
                                    lens_frame, render_frame, renders_compiled, rgba_png)
@@ -63,7 +63,8 @@ APERTURE_SAMPLES = 16  # lens samples per pixel of a thin-lens frame (--aperture
 def render_split(run_dir, split: str = "test", out=None, *, threads: int | None = None,
                  step_ratio: float | None = RENDER_STEP_RATIO, overwrite: bool = False, progress: bool = True,
                  aperture_samples: int = APERTURE_SAMPLES, lens_seed: int = 0, dataset=None,
-                 other_dataset: bool = False, pixel_samples: int | None = None, sub_rays: str = SUB_RAYS[0]) -> dict:
+                 other_dataset: bool = False, pixel_samples: int | None = None, sub_rays: str = SUB_RAYS[0],
+                 change_step: float = CHANGE_STEP) -> dict:
     """Render every view of `split` into `out` (default RUN/renders). step_ratio: marching
     step in voxels for the compact model (None: the run's training step).
     aperture_samples, lens_seed: lens samples per pixel and their seed for frames with a
@@ -72,7 +73,9 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     dataset of the scene the run was trained on (e.g. the same cameras through a lens);
     see nerf.runs.open_run_dataset, which refuses any other. pixel_samples: rays per pixel
     along each axis (`box_frame`); None: the run's pixel filter's (PIXEL_SAMPLES). sub_rays:
-    which points an edges run gives rays of their own (nerf.config.SUB_RAYS, `box_frame`)."""
+    which points an edges run gives rays of their own (nerf.config.SUB_RAYS, `box_frame`);
+    change_step: with "changes", how far apart two centres must be for the points between
+    them to get rays (nerf.config.CHANGE_STEP says what smaller steps give and cost)."""
     if isinstance(run_dir, str) and not run_dir.strip() or isinstance(out, str) and not out.strip():
         raise InputError("the run folder and --out must be non-empty paths")
     run_dir = Path(run_dir)
@@ -88,6 +91,7 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
         arguments.PIXEL_SAMPLES.check(pixel_samples, "--pixel-samples")
     if sub_rays not in SUB_RAYS:
         raise InputError(f"--sub-rays must be one of {', '.join(SUB_RAYS)}, got {sub_rays!r}")
+    arguments.CHANGE_STEP.check(change_step, "--change-step")
     model, config = load_model(run_dir / "model.pt")
     pixel_filter = pixel_filter_for(config)[0]
     per_axis = PIXEL_SAMPLES[pixel_filter]
@@ -109,14 +113,18 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
                          | ({"lens": lens} if lens else {}) | ({"dataset": str(dataset)} if dataset is not None else {})
                          | ({"pixel_samples": pixel_samples} if pixel_samples != 1 else {})
                          | ({"edges_only": True} if pixel_filter in EDGES_ONLY else {})
-                         | ({"sub_rays": sub_rays} if pixel_filter in EDGES_ONLY and sub_rays != "edge-pixels" else {}))
+                         | ({"sub_rays": sub_rays} if pixel_filter in EDGES_ONLY and sub_rays != "edge-pixels" else {})
+                         | ({"change_step": change_step} if pixel_filter in EDGES_ONLY and sub_rays == "changes"
+                            and change_step != CHANGE_STEP else {}))
     with claim_folder(out, "renders", recipe, overwrite=overwrite):
         return _render_into(out, model, config, cameras, split, device, threads, step_ratio, progress, lens,
-                            source, pixel_samples, edges_only=pixel_filter in EDGES_ONLY, sub_rays=sub_rays)
+                            source, pixel_samples, edges_only=pixel_filter in EDGES_ONLY, sub_rays=sub_rays,
+                            change_step=change_step)
 
 
 def _render_into(out: Path, model, config, cameras, split, device, threads, step_ratio, progress, lens=None,
-                 source=None, pixel_samples: int = 1, edges_only: bool = False, sub_rays: str = SUB_RAYS[0]) -> dict:
+                 source=None, pixel_samples: int = 1, edges_only: bool = False, sub_rays: str = SUB_RAYS[0],
+                 change_step: float = CHANGE_STEP) -> dict:
     model = model.to(device).eval()
     if model.has_grid and step_ratio is not None:
         model.field.step_ratio = step_ratio
@@ -128,11 +136,11 @@ def _render_into(out: Path, model, config, cameras, split, device, threads, step
     torch.set_num_threads(1 if pool is not None else threads)
     with compiled_render_threads(model, device, threads):
         return _render_frames(out, model, config, cameras, split, device, threads, pool, parts, progress, lens,
-                              source, pixel_samples, edges_only, sub_rays)
+                              source, pixel_samples, edges_only, sub_rays, change_step)
 
 
 def _render_frames(out: Path, model, config, cameras, split, device, threads, pool, parts, progress, lens, source,
-                   pixel_samples: int, edges_only: bool, sub_rays: str) -> dict:
+                   pixel_samples: int, edges_only: bool, sub_rays: str, change_step: float) -> dict:
     height, width = cameras.intrinsics.height, cameras.intrinsics.width
     seconds, lens_seconds, cpu_seconds = [], [], []
     try:
@@ -143,14 +151,15 @@ def _render_frames(out: Path, model, config, cameras, split, device, threads, po
                     origins, directions = split_rays(cameras, index)
                     render_frame(model, origins.to(device), directions.to(device), pool, parts)
                 else:
-                    box_frame(model, cameras, index, pixel_samples, pool, parts, device, edges_only, sub_rays)
+                    box_frame(model, cameras, index, pixel_samples, pool, parts, device, edges_only, sub_rays,
+                              change_step)
             start, cpu_start = time.perf_counter(), time.process_time()
             if through_lens:
                 rgb, opacity, depth = lens_frame(model, cameras, index, lens["aperture_samples"], lens["lens_seed"],
                                                  pool, parts, device)
             else:
                 rgb, opacity, depth = box_frame(model, cameras, index, pixel_samples, pool, parts, device, edges_only,
-                                                sub_rays)
+                                                sub_rays, change_step)
             if device.type == "cuda":
                 torch.cuda.synchronize()
             (lens_seconds if through_lens else seconds).append(time.perf_counter() - start)
@@ -177,6 +186,8 @@ def _render_frames(out: Path, model, config, cameras, split, device, threads, po
               "pixel_samples": pixel_samples} | ({"edges_only": True} if edges_only else {})
     if edges_only and pixel_samples > 1:
         timing["sub_rays"] = sub_rays
+        if sub_rays == "changes":
+            timing["change_step"] = change_step
     if source is not None:  # what the frames show, which `evaluate` checks (core.provenance.check_renders_dataset)
         timing |= {"dataset": str(source.root), "dataset_files": renders_record(source, split)}
     if lens is not None:  # the thin-lens frames' own cost, beside the pinhole frames'

@@ -15,7 +15,9 @@ import torch
 
 from nerfgauge.core.camera import Intrinsics, SplitCameras, look_at, pixel_rays
 from nerfgauge.core.pixel_edges import changes_towards
-from nerfgauge.nerf.frames import CHANGE_STEP, box_frame, pixel_offsets, rgba_png
+from nerfgauge.nerf.config import CHANGE_STEP
+from nerfgauge.nerf.frames import box_frame, pixel_offsets, rgba_png
+from nerfgauge.nerf.rendering import pixel_mean
 
 CPU = torch.device("cpu")
 
@@ -128,7 +130,7 @@ def test_a_lone_different_pixel_changes_its_own_points_and_its_neighbours_points
 # the frame
 
 
-def _frame_oracle(model, cameras, c2w, intrinsics, per_axis):
+def _frame_oracle(model, cameras, c2w, intrinsics, per_axis, step=CHANGE_STEP):
     """The changes render by a per-pixel loop: each point's ray where the centres around it
     differ, else the bilinear interpolation of those centres; a pixel none of whose points
     changes keeps its centre value."""
@@ -137,7 +139,7 @@ def _frame_oracle(model, cameras, c2w, intrinsics, per_axis):
     centre_rgba = torch.cat([centre.rgb, centre.opacity[:, None]], 1).numpy().reshape(height, width, 4)
     straight = rgba_png(centre.rgb.numpy(), centre.opacity.numpy(), height, width) / 255.0
     offsets = pixel_offsets(per_axis)
-    changes = _changes_loop(straight, offsets, CHANGE_STEP)
+    changes = _changes_loop(straight, offsets, step)
     out = centre_rgba.copy()
     for i in range(height):
         for j in range(width):
@@ -154,7 +156,11 @@ def _frame_oracle(model, cameras, c2w, intrinsics, per_axis):
                     ax, ay = abs(x), abs(y)
                     values.append((1 - ax) * (1 - ay) * centre_rgba[i, j] + ax * (1 - ay) * centre_rgba[i, j2]
                                   + (1 - ax) * ay * centre_rgba[i2, j] + ax * ay * centre_rgba[i2, j2])
-            out[i, j] = np.mean(values, axis=0)
+            # the box mean in linear light, as the ground truth's (nerf.rendering.pixel_mean,
+            # checked against its own oracle in tests/test_rendering.py)
+            stacked = torch.from_numpy(np.array(values, dtype=np.float32))  # [S, 4]
+            mean_rgb, mean_opacity = pixel_mean(stacked[:, None, :3], stacked[:, None, 3])
+            out[i, j] = np.append(mean_rgb[0].numpy(), mean_opacity.numpy())
     return out.reshape(-1, 4), changes
 
 
@@ -204,6 +210,39 @@ def test_a_frame_where_nothing_changes_is_its_centre_render_from_one_pass():
     assert all(torch.equal(a, b) for a, b in zip(frame, box_frame(Counting(smooth), cameras, 0, 1, None, 1, CPU)))
 
 
+def gentle_ramp(c2w):
+    """Colour rising across the image by about 0.02 a pixel in red (0.4 per unit of the
+    direction along the camera's x axis, pixels 1/20 apart), half and a quarter of that in
+    green and blue: neighbouring centres differ by less than the default step."""
+    right = torch.from_numpy(np.asarray(c2w, dtype=np.float32)[:3, 0])
+
+    def render(origins, directions):
+        value = 0.5 + 0.4 * (directions @ right)[:, None] * torch.tensor([1.0, 0.5, 0.25])
+        return SimpleNamespace(rgb=value, opacity=torch.ones(len(directions)), depth=directions[:, 0])
+    return render
+
+
+def test_a_smaller_change_step_gives_rays_to_centres_the_default_interpolates():
+    """The ramp's neighbouring centres differ by 0.01-0.03 in the 8-bit render: below the
+    default step nothing changes (the centre render); at 0.005 every point between them has
+    its ray, and the frame is the per-pixel oracle's at that step."""
+    cameras, c2w, intrinsics = _cameras()
+    ramp = gentle_ramp(c2w)
+    default = Counting(ramp)
+    box_frame(default, cameras, 0, 3, None, 1, CPU, edges_only=True)
+    assert default.rays == intrinsics.width * intrinsics.height
+    model = Counting(ramp)
+    rgb, opacity, _ = box_frame(model, cameras, 0, 3, None, 1, CPU, edges_only=True, change_step=0.005)
+    expected, changes = _frame_oracle(Counting(ramp), cameras, c2w, intrinsics, 3, step=0.005)
+    assert changes.any(axis=0).mean() > 0.5  # most pixels: the ramp steps between every column
+    assert model.rays == intrinsics.width * intrinsics.height + int(changes.sum())
+    assert np.abs(torch.cat([rgb, opacity[:, None]], 1).numpy() - expected).max() < 1e-5
+    # a step of 1 (no channel differs by more) is the centre render
+    centre = box_frame(Counting(ramp), cameras, 0, 1, None, 1, CPU)
+    assert all(torch.equal(a, b) for a, b in zip(box_frame(Counting(ramp), cameras, 0, 3, None, 1, CPU,
+                                                           edges_only=True, change_step=1.0), centre))
+
+
 def test_an_unknown_sub_rays_choice_is_refused():
     cameras, _, _ = _cameras()
     with pytest.raises(ValueError, match="sub_rays"):
@@ -239,8 +278,11 @@ def test_a_render_is_deterministic_and_its_timing_says_which_points_got_rays(edg
     assert first["ms_per_frame"] > 0 and first["cpu_ms_per_frame"] > 0 and first["frames"] == second["frames"] > 0
     for png in sorted((tmp_path / "a").rglob("*.png")):
         assert png.read_bytes() == (tmp_path / "b" / png.relative_to(tmp_path / "a")).read_bytes()
+    assert first["change_step"] == CHANGE_STEP
     old = render_split(edges_run, "test", tmp_path / "old", threads=2, progress=False, sub_rays="edge-pixels")
-    assert old["sub_rays"] == "edge-pixels"
+    assert old["sub_rays"] == "edge-pixels" and "change_step" not in old
+    finer = render_split(edges_run, "test", tmp_path / "finer", threads=2, progress=False, change_step=0.0)
+    assert finer["change_step"] == 0.0
 
 
 def test_an_unknown_sub_rays_choice_is_one_line_and_exit_2(tmp_path, capsys):
@@ -256,6 +298,22 @@ def test_an_unknown_sub_rays_choice_is_one_line_and_exit_2(tmp_path, capsys):
     assert main(["render", str(run), "--sub-rays", "everywhere", "--out", str(tmp_path / "r")]) == 2
     error = capsys.readouterr().err
     assert not (tmp_path / "r").exists() and "--sub-rays" in error and len(error.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("step", ["-0.01", "1.5", "nan", "inf", "fine"])
+def test_a_change_step_outside_0_to_1_is_one_line_and_exit_2(tmp_path, capsys, step):
+    from nerfgauge.cli import main
+    from nerfgauge.core.errors import InputError
+    from nerfgauge.nerf.render_views import render_split
+
+    run = tmp_path / "run"
+    run.mkdir()
+    if step != "fine":
+        with pytest.raises(InputError, match="--change-step"):
+            render_split(run, "test", tmp_path / "r", progress=False, change_step=float(step))
+    assert main(["render", str(run), "--change-step", step, "--out", str(tmp_path / "r")]) == 2
+    error = capsys.readouterr().err
+    assert not (tmp_path / "r").exists() and "--change-step" in error and len(error.strip().splitlines()) == 1
 
 
 @pytest.mark.slow

@@ -197,6 +197,9 @@ ROTATION_DEGREES = bounded(float, -360, 360)
 WEIGHT = bounded(float, 0, 1e6)  # loss weights
 LENS_SAMPLES = bounded(int, 1, 4096)  # lens samples per pixel (4096 resolves any blur to 1/64 of its disc)
 PIXEL_SAMPLES = bounded(int, 1, 16)  # rays per pixel along each axis when rendering a box-filtered frame (16: 256 rays)
+# Colour or alpha on [0, 1]: 0 gives a ray to every point between centres that differ at all,
+# 1 to none (the centres alone)
+CHANGE_STEP = bounded(float, 0, 1)
 SAMPLES = bounded(int, 1, 10**8)  # point samples on a surface (10^8 float64 points: 2.4 GB)
 # A ray-marching step below 1/20 of a voxel adds nothing to a trilinear grid, and 1e-9
 # overflowed the sample count (an OverflowError traceback); above 2 whole cells are skipped.
