@@ -156,10 +156,11 @@ def _add_render(subparsers) -> None:
                         help="an edges run's points with rays of their own: changes (default), the points between "
                              "pixel centres of the centre render that differ, the rest interpolated; edge-pixels, "
                              "every point of the centre render's edge pixels (slower; the render before issue 52)")
-    parser.add_argument("--change-step", type=arguments.CHANGE_STEP, default=CHANGE_STEP, metavar="S",
+    parser.add_argument("--change-step", type=arguments.CHANGE_STEP, default=None, metavar="S",
                         help=f"with --sub-rays changes: centres that differ by more than S in colour or alpha give "
-                             f"the points between them rays (default {CHANGE_STEP}); smaller is slower and, on a "
-                             f"converged model, sharper (0.01: +0.5 dB on primitives 128 px at 1.3x the time)")
+                             f"the points between them rays (default: the step the run chose on its val views, "
+                             f"render_change_step in its config.json, else {CHANGE_STEP}); smaller is slower and, "
+                             f"on a converged model, truer")
     parser.add_argument("--lens-seed", type=arguments.SEED, default=0, help="seed of the lens samples (default 0)")
     parser.add_argument("--dataset", type=path, default=None, metavar="DATASET",
                         help="render the views of this dataset instead of those of the dataset the run was "

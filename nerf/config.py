@@ -56,9 +56,22 @@ SUB_RAYS = ("changes", "edge-pixels")
 # the noise it learned): the 600-s primitives model with surface opacity, 46.54 dB at 0.04,
 # 46.85 at 0.02, 47.01 at 0.01, 47.07 at 0 (38.7, 40.6, 49.3, 65.9 ms a 128 px frame, 2
 # threads; its 1200-s twin 42.5 ms at 0.04, 56.6 at 0.01); thin 64 px +0.57 dB at 0.01; but a fuzzy 1000-step 256 px model gains 0.06 dB for
-# 1.5x the time (225 ms a frame, over the 200): the default stays
-# (docs/results.md, "The render's change step").
+# 1.5x the time (225 ms a frame, over the 200): 0.04 stays the default, and a run
+# takes a smaller step where its val views show the gain (RENDER_CHANGE_STEPS below;
+# docs/results.md, "The render's change step").
 CHANGE_STEP = 0.04
+# An edges run's render takes a smaller step where its val views show the rays pay: from
+# CHANGE_STEP down these steps, each halving kept while its gain on the val views is at
+# least CHANGE_STEP_GAIN_DB and at least CHANGE_STEP_DB_PER_DOUBLING times log2 of the
+# growth of the frame's rays (a render's time follows its rays: about 1.6 us a ray on 2
+# threads, at 128 and at 256 px) (nerf.train.choose_change_step). Measured
+# (docs/results.md, "The render's change step"): the shipped 600-s primitives model gains
+# 0.36 dB on its val views for 12% more rays at 0.02 (needed 0.16) and 0.18 for 19% more at
+# 0.01 (needed 0.25): 0.02; a 600-s 256 px run gains 0.12 for 29% more (needed 0.37), whose
+# frame would take 191-200 ms against 134-146, and keeps 0.04.
+RENDER_CHANGE_STEPS = (CHANGE_STEP, 0.02, 0.01)
+CHANGE_STEP_GAIN_DB = 0.1
+CHANGE_STEP_DB_PER_DOUBLING = 1.0
 # The sparse grid stores values only where cells are occupied, but its node index (4 bytes
 # a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing
@@ -149,6 +162,9 @@ class TrainConfig:
     # other filter renders by its own rule). Left out of config.json when None; not part of
     # the recipe (it follows from it).
     render_filter: Optional[str] = None
+    # With it, the change step its render gives sub-rays by (RENDER_CHANGE_STEPS), chosen on
+    # the same views. None: CHANGE_STEP. Left out of config.json when None, as render_filter.
+    render_change_step: Optional[float] = None
     # priors on rays from unseen viewpoints (nerf.sparse_priors; the compact model's): None:
     # on for a sparse capture from inside the scene (`sparse_priors_for`). Left out of
     # config.json when False, so runs made before the mode keep their recipe.
@@ -190,6 +206,9 @@ class TrainConfig:
             raise InputError(f"unknown pixel filter {self.pixel_filter!r}; choose {', '.join(PIXEL_FILTERS)}")
         if self.render_filter is not None and self.render_filter not in RENDER_FILTERS:
             raise InputError(f"unknown render filter {self.render_filter!r}; choose {', '.join(RENDER_FILTERS)}")
+        if self.render_change_step is not None and self.render_change_step not in RENDER_CHANGE_STEPS:
+            raise InputError(f"unknown render change step {self.render_change_step!r}; choose one of "
+                             f"{', '.join(map(str, RENDER_CHANGE_STEPS))}")
         if self.background not in BACKGROUNDS:
             raise InputError(f"unknown background {self.background!r}; choose one of {', '.join(BACKGROUNDS)}")
         # every number through its range: the command line's (core.arguments) where it has a flag
@@ -226,7 +245,8 @@ class TrainConfig:
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self)
-        for optional in ("sparse", "render_filter", "sparse_priors", "colour_head", "refine_grid", "surface_opacity"):
+        for optional in ("sparse", "render_filter", "render_change_step", "sparse_priors", "colour_head", "refine_grid",
+                         "surface_opacity"):
             if out[optional] is None or (optional in ("sparse_priors", "refine_grid") and out[optional] is False):
                 del out[optional]
         return out

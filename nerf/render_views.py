@@ -64,7 +64,7 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
                  step_ratio: float | None = RENDER_STEP_RATIO, overwrite: bool = False, progress: bool = True,
                  aperture_samples: int = APERTURE_SAMPLES, lens_seed: int = 0, dataset=None,
                  other_dataset: bool = False, pixel_samples: int | None = None, sub_rays: str = SUB_RAYS[0],
-                 change_step: float = CHANGE_STEP) -> dict:
+                 change_step: float | None = None) -> dict:
     """Render every view of `split` into `out` (default RUN/renders). step_ratio: marching
     step in voxels for the compact model (None: the run's training step).
     aperture_samples, lens_seed: lens samples per pixel and their seed for frames with a
@@ -75,7 +75,8 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
     along each axis (`box_frame`); None: the run's pixel filter's (PIXEL_SAMPLES). sub_rays:
     which points an edges run gives rays of their own (nerf.config.SUB_RAYS, `box_frame`);
     change_step: with "changes", how far apart two centres must be for the points between
-    them to get rays (nerf.config.CHANGE_STEP says what smaller steps give and cost)."""
+    them to get rays (nerf.config.CHANGE_STEP says what smaller steps give and cost); None:
+    the step the run chose on its val views (render_change_step), else CHANGE_STEP."""
     if isinstance(run_dir, str) and not run_dir.strip() or isinstance(out, str) and not out.strip():
         raise InputError("the run folder and --out must be non-empty paths")
     run_dir = Path(run_dir)
@@ -91,8 +92,11 @@ def render_split(run_dir, split: str = "test", out=None, *, threads: int | None 
         arguments.PIXEL_SAMPLES.check(pixel_samples, "--pixel-samples")
     if sub_rays not in SUB_RAYS:
         raise InputError(f"--sub-rays must be one of {', '.join(SUB_RAYS)}, got {sub_rays!r}")
-    arguments.CHANGE_STEP.check(change_step, "--change-step")
+    if change_step is not None:
+        arguments.CHANGE_STEP.check(change_step, "--change-step")
     model, config = load_model(run_dir / "model.pt")
+    if change_step is None:
+        change_step = CHANGE_STEP if config.render_change_step is None else config.render_change_step
     pixel_filter = pixel_filter_for(config)[0]
     per_axis = PIXEL_SAMPLES[pixel_filter]
     if pixel_filter in EDGES_ONLY and config.render_filter is not None:  # chosen on the val views (nerf.train)

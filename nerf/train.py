@@ -30,7 +30,8 @@ import numpy as np
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import RENDER_FILTERS, TRAIN_PIXEL_SAMPLES, TrainConfig, refined_resolution, resolve
+from nerfgauge.nerf.config import (CHANGE_STEP_DB_PER_DOUBLING, CHANGE_STEP_GAIN_DB, RENDER_CHANGE_STEPS, RENDER_FILTERS, TRAIN_PIXEL_SAMPLES,
+                                   TrainConfig, refined_resolution, resolve)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import pixel_offsets
 from nerfgauge.nerf.grid_field import node_mask
@@ -744,13 +745,41 @@ def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) 
     (`prepare_run`). Returns (config with render_filter set, the reason, the chosen render's
     val PSNR: what `nerfgauge render` gives on whole val frames, where the log's val PSNR
     goes through pixel centres on a strided subset)."""
+    rays = {}
     psnr = val_psnr(model, cameras, val_rays, device,
-                    {name: (per_axis, per_axis > 1) for name, per_axis in RENDER_FILTERS.items()})
+                    {name: (per_axis, per_axis > 1) for name, per_axis in RENDER_FILTERS.items()}, rays)
     chosen = max(RENDER_FILTERS, key=psnr.get)  # the first of equals: the cheaper render
     scores = ", ".join(f"{name} {value:.2f} dB" for name, value in psnr.items())
-    return dataclasses.replace(config, render_filter=chosen), (
-        f"{chosen}: on {val_rays.n_views} {cameras.split} views ({RENDER_FILTERS[chosen]} x {RENDER_FILTERS[chosen]} "
-        f"rays on edge pixels; 1: the centre ray): {scores}"), psnr[chosen]
+    reason = (f"{chosen}: on {val_rays.n_views} {cameras.split} views ({RENDER_FILTERS[chosen]} x "
+              f"{RENDER_FILTERS[chosen]} rays on edge pixels; 1: the centre ray): {scores}")
+    per_axis, step, best = RENDER_FILTERS[chosen], RENDER_CHANGE_STEPS[0], psnr[chosen]
+    if per_axis > 1:
+        step, best, tried = choose_change_step(model, cameras, val_rays, device, per_axis, best, rays[chosen])
+        reason += f"; change step {step:g} ({tried})"
+    config = dataclasses.replace(config, render_filter=chosen,
+                                 render_change_step=None if step == RENDER_CHANGE_STEPS[0] else step)
+    return config, reason, best
+
+
+def choose_change_step(model, cameras, val_rays, device, per_axis: int, default_psnr: float,
+                       default_rays: float) -> tuple:
+    """The change step of an edges render of `per_axis` points (nerf.config.RENDER_CHANGE_STEPS):
+    down from the default, each smaller step kept while its gain on the val views over the
+    last one kept pays for its rays: at least CHANGE_STEP_GAIN_DB, and at least
+    CHANGE_STEP_DB_PER_DOUBLING dB per doubling of the frame's rays. default_psnr,
+    default_rays: the default step's val PSNR and rays per pixel. Returns (step, its val
+    PSNR, the scores as text)."""
+    step, best, cost = RENDER_CHANGE_STEPS[0], default_psnr, default_rays
+    tried = [f"{step:g} {best:.2f} dB, {cost:.2f} rays a pixel"]
+    for smaller in RENDER_CHANGE_STEPS[1:]:
+        rays = {}
+        score = val_psnr(model, cameras, val_rays, device, {"step": (per_axis, True, smaller)}, rays)["step"]
+        tried.append(f"{smaller:g} {score:.2f} dB, {rays['step']:.2f}")
+        needed = max(CHANGE_STEP_GAIN_DB, CHANGE_STEP_DB_PER_DOUBLING * math.log2(max(rays["step"], 1e-9) / cost))
+        if score - best < needed:
+            break
+        step, best, cost = smaller, score, rays["step"]
+    return step, best, ", ".join(tried)
 
 
 def _grow_grid(training: Training, config: TrainConfig, wanted: int) -> None:

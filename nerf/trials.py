@@ -39,7 +39,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from nerfgauge.nerf.config import TrainConfig
+from nerfgauge.nerf.config import CHANGE_STEP, TrainConfig
 from nerfgauge.nerf.frames import EDGES_ONLY, PIXEL_SAMPLES, box_frame, compiled_render_threads
 from nerfgauge.nerf.parametrisation import parametrisation_doubt
 from nerfgauge.nerf.rendering import composite
@@ -151,24 +151,47 @@ def trial_record(trial: Trial, config: TrainConfig, scores: dict, chosen) -> dic
             "seconds": trial.share * config.budget_seconds if config.steps is None else None}
 
 
-def val_psnr(model, cameras, val_rays, device, filters: dict) -> dict:
+class RayCount:
+    """`model` whose render counts the rays it is asked for; every other attribute is the
+    model's, so a render path that asks whether it renders compiled still finds out."""
+
+    def __init__(self, model):
+        self.model, self.rays = model, 0
+
+    def render(self, origins, directions, *args, **kwargs):
+        self.rays += int(directions.shape[0])
+        return self.model.render(origins, directions, *args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self.model, name)
+
+
+def val_psnr(model, cameras, val_rays, device, filters: dict, rays: dict | None = None) -> dict:
     """PSNR (composited on white) of whole val frames through the render path, by filter:
-    {name: (rays per axis on a pixel, only on the centre render's edge pixels)} ->
-    {name: dB}, the PSNR of the mean squared error over the views. cameras, val_rays: the
-    val views (nerf.train.prepare_run)."""
+    {name: (rays per axis on a pixel, only on the centre render's edge pixels[, the change
+    step: nerf.frames.box_frame])} -> {name: dB}, the PSNR of the mean squared error over the
+    views. cameras, val_rays: the val views (nerf.train.prepare_run). rays: a dict to fill
+    with each filter's rays per pixel (what its render costs), when given."""
     pixels = cameras.intrinsics.width * cameras.intrinsics.height
     errors = dict.fromkeys(filters, 0.0)
+    counted = dict.fromkeys(filters, 0)
     model.eval()
+    counting = RayCount(model)
     # a compiled render on the threads torch trains with (and torch's own on one meanwhile)
     with torch.no_grad(), compiled_render_threads(model, device, torch.get_num_threads()):
         for index in range(val_rays.n_views):
             rgba = val_rays.rgba[index * pixels:(index + 1) * pixels].to(device)
             target = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:])
-            for name, (per_axis, edges_only) in filters.items():
-                rgb, opacity, _ = box_frame(model, cameras, index, per_axis, None, 1, device, edges_only=edges_only)
+            for name, (per_axis, edges_only, *step) in filters.items():
+                before = counting.rays
+                rgb, opacity, _ = box_frame(counting, cameras, index, per_axis, None, 1, device, edges_only=edges_only,
+                                            change_step=step[0] if step else CHANGE_STEP)
+                counted[name] += counting.rays - before
                 white = composite(rgb, opacity, torch.ones(3, device=device)).clamp(0, 1)
                 errors[name] += float(((white - target) ** 2).mean())
     model.train()  # both callers go on with a model in training mode (a trial's winner trains on)
+    if rays is not None:
+        rays.update({name: count / max(pixels * val_rays.n_views, 1) for name, count in counted.items()})
     return {name: -10 * math.log10(max(error / max(val_rays.n_views, 1), 1e-10)) for name, error in errors.items()}
 
 

@@ -325,6 +325,88 @@ def test_an_edges_run_keeps_the_render_filter_that_scores_higher_on_its_val_view
     assert chosen_psnr == pytest.approx(100.0)
 
 
+class _RippleModel(_FrameModel):
+    """A faint ripple across every view: colour 0.5 + 0.03 sin(2 pi u / period) of u, the
+    coordinate of each ray's point closest to the origin along a fixed axis, with a period of
+    about 3 pixels, so neighbouring centres differ by 0 to about 0.06 and a point between them
+    is not their interpolation; opacity 1."""
+
+    def __init__(self, period: float):
+        self.period = period
+
+    def render(self, origins, directions):
+        closest = origins - (origins * directions).sum(dim=-1, keepdim=True) * directions
+        u = closest @ torch.tensor([0.6, 0.0, 0.8])
+        value = 0.5 + 0.03 * torch.sin(2 * np.pi * u / self.period)
+        rgb = value[:, None] * torch.tensor([1.0, 0.9, 0.8])
+        return SimpleNamespace(rgb=rgb, opacity=torch.ones_like(value), depth=directions[:, 0])
+
+
+@pytest.mark.parametrize("truth_step", [0.04, 0.02, 0.01])
+def test_an_edges_run_keeps_the_smaller_change_step_only_while_it_pays_on_its_val_views(tiny_dataset, truth_step):
+    """Targets rendered 3 x 3 at one of the change steps: the choice walks down from the default
+    and stops at that step, which scores exactly (a smaller one moves away from the targets,
+    a larger one interpolates what they rendered)."""
+    from nerfgauge.core.dataset import open_dataset
+    from nerfgauge.nerf.config import CHANGE_STEP, RENDER_CHANGE_STEPS, TrainConfig
+    from nerfgauge.nerf.data import RayBatch
+    from nerfgauge.nerf.train import choose_render_filter
+
+    ds = open_dataset(tiny_dataset)
+    split = "val" if ds.cameras("val").stems else "test"
+    cameras = ds.cameras(split)
+    device = torch.device("cpu")
+    n_views = min(2, len(cameras.stems))
+    origins, directions = cameras.rays(0)  # the ripple's period: 3 pixels at the middle of view 0
+    middle = [torch.from_numpy(part[cameras.intrinsics.height // 2, cameras.intrinsics.width // 2 + k]).float()
+              for part in (origins, directions) for k in (0, 1)]
+    points = [o - (o @ d) * d for o, d in ((middle[0], middle[2]), (middle[1], middle[3]))]
+    model = _RippleModel(3 * float(torch.linalg.vector_norm(points[1] - points[0])))
+
+    def render(step):
+        return [box_frame(model, cameras, i, 3, None, 1, device, True, change_step=step) for i in range(n_views)]
+
+    frames = render(truth_step)
+    rgba = torch.cat([torch.cat([rgb, opacity[:, None]], dim=1) for rgb, opacity, _ in frames])
+    for step in RENDER_CHANGE_STEPS:  # each other step renders differently
+        if step != truth_step:
+            assert all(not torch.equal(a[0], b[0]) for a, b in zip(frames, render(step)))
+    val = RayBatch(torch.zeros((len(rgba), 3)), torch.zeros((len(rgba), 3)), rgba, len(frames))
+    config, reason, chosen_psnr = choose_render_filter(model, TrainConfig(dataset=str(tiny_dataset), steps=1,
+                                                                          pixel_filter="edges"), cameras, val, device)
+    assert config.render_filter == "edges-3x3" and "change step" in reason
+    assert config.render_change_step == (None if truth_step == CHANGE_STEP else truth_step)
+    assert chosen_psnr == pytest.approx(100.0)
+    # the rays the choice weighs: one a pixel through centres, and a changes render's beyond it
+    from nerfgauge.nerf.trials import val_psnr
+    rays = {}
+    val_psnr(model, cameras, val, device, {"centre": (1, False), "fine": (3, True, 0.01), "all": (3, False)}, rays)
+    assert rays["centre"] == 1.0 and 1.0 < rays["fine"] < rays["all"] == 9.0
+
+
+@pytest.mark.parametrize("scores, expected", [
+    # (val PSNR, rays a pixel) at 0.02 and 0.01 after 40 dB at 1.5 rays for the default
+    ({0.02: (40.30, 1.60), 0.01: (40.45, 2.00)}, 0.02),  # 0.30 >= 0.1 (log2 1.07 = 0.09); 0.15 < log2 1.25 = 0.32
+    ({0.02: (40.20, 3.00), 0.01: (45.00, 3.10)}, 0.04),  # twice the rays need 1 dB: the walk stops at once
+    ({0.02: (40.05, 1.50), 0.01: (41.00, 1.50)}, 0.04),  # free rays still need 0.1 dB
+    ({0.02: (40.30, 1.60), 0.01: (40.70, 1.70)}, 0.01),  # 0.40 >= max(0.1, log2 1.0625 = 0.087)
+])
+def test_a_smaller_change_step_must_pay_for_its_rays(monkeypatch, scores, expected):
+    """The walk's arithmetic, on scripted val scores: each halving is kept while it gains
+    0.1 dB and 1 dB per doubling of the frame's rays over the last step kept."""
+    import nerfgauge.nerf.train as train_module
+
+    def scripted(model, cameras, val_rays, device, filters, rays=None):
+        (per_axis, edges_only, step), = filters.values()
+        assert per_axis == 3 and edges_only
+        rays["step"] = scores[step][1]
+        return {"step": scores[step][0]}
+
+    monkeypatch.setattr(train_module, "val_psnr", scripted)
+    step, psnr, tried = train_module.choose_change_step(None, None, None, None, 3, 40.0, 1.5)
+    assert step == expected and psnr == (40.0 if expected == 0.04 else scores[expected][0]) and "dB" in tried
+
+
 def test_an_edges_run_states_its_render_s_val_psnr_as_the_render_gives_it(tiny_dataset, tmp_path, capsys):
     """`nerfgauge train`'s last line gives an `edges` run's val PSNR through its render beside the
     log's (pixel centres): the figure `nerfgauge render RUN --split val` gives on white, to within

@@ -285,6 +285,27 @@ def test_a_render_is_deterministic_and_its_timing_says_which_points_got_rays(edg
     assert finer["change_step"] == 0.0
 
 
+@pytest.mark.slow  # trains a model (4 steps, its dataset)
+def test_a_run_renders_by_the_change_step_it_chose_unless_told_another(edges_run, tmp_path):
+    import shutil
+    from nerfgauge.nerf.checkpoint import load_checked, save_atomic
+    from nerfgauge.nerf.render_views import render_split
+
+    run = tmp_path / "run"
+    shutil.copytree(edges_run, run)
+    payload = load_checked(run / "model.pt")
+    payload["config"]["render_change_step"] = 0.01
+    save_atomic(payload, run / "model.pt")
+    assert render_split(run, "test", tmp_path / "chosen", threads=1, progress=False)["change_step"] == 0.01
+    told = render_split(run, "test", tmp_path / "told", threads=1, progress=False, change_step=CHANGE_STEP)
+    assert told["change_step"] == CHANGE_STEP
+    payload["config"]["render_change_step"] = 0.03  # not a step the choice takes: the model file is refused
+    save_atomic(payload, run / "model.pt")
+    with pytest.raises(Exception, match="change step"):
+        render_split(run, "test", tmp_path / "bad", threads=1, progress=False)
+    assert not (tmp_path / "bad").exists()
+
+
 def test_an_unknown_sub_rays_choice_is_one_line_and_exit_2(tmp_path, capsys):
     from nerfgauge.cli import main
     from nerfgauge.core.errors import InputError
