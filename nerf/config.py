@@ -55,10 +55,10 @@ SUB_RAYS = ("changes", "edge-pixels")
 # converged model's texture and interior need (its centres differ there by a few hundredths,
 # the noise it learned): the 600-s primitives model with surface opacity, 46.54 dB at 0.04,
 # 46.85 at 0.02, 47.01 at 0.01, 47.07 at 0 (38.7, 40.6, 49.3, 65.9 ms a 128 px frame, 2
-# threads; its 1200-s twin 42.5 ms at 0.04, 56.6 at 0.01); thin 64 px +0.57 dB at 0.01; but a fuzzy 1000-step 256 px model gains 0.06 dB for
-# 1.5x the time (225 ms a frame, over the 200): 0.04 stays the default, and a run
-# takes a smaller step where its val views show the gain (RENDER_CHANGE_STEPS below;
-# docs/results.md, "The render's change step").
+# threads; its 1200-s twin 42.5 ms at 0.04, 56.6 at 0.01); thin 64 px +0.57 dB at 0.01; but
+# a fuzzy 1000-step 256 px model gains 0.06 dB for 1.5x the time (225 ms a frame, over the
+# issue's 200): 0.04 stays the default, and a run takes a smaller step where its val views
+# show the gain (RENDER_CHANGE_STEPS below; docs/results.md, "The render's change step").
 CHANGE_STEP = 0.04
 # An edges run's render takes a smaller step where its val views show the rays pay: from
 # CHANGE_STEP down these steps, each halving kept while its gain on the val views is at

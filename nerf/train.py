@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import (CHANGE_STEP_DB_PER_DOUBLING, CHANGE_STEP_GAIN_DB, RENDER_CHANGE_STEPS, RENDER_FILTERS, TRAIN_PIXEL_SAMPLES,
-                                   TrainConfig, refined_resolution, resolve)
+from nerfgauge.nerf.config import (CHANGE_STEP_DB_PER_DOUBLING, CHANGE_STEP_GAIN_DB, RENDER_CHANGE_STEPS,
+                                   RENDER_FILTERS, TRAIN_PIXEL_SAMPLES, TrainConfig, refined_resolution, resolve)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import pixel_offsets
 from nerfgauge.nerf.grid_field import node_mask
