@@ -288,6 +288,7 @@ def test_a_render_is_deterministic_and_its_timing_says_which_points_got_rays(edg
 @pytest.mark.slow  # trains a model (4 steps, its dataset)
 def test_a_run_renders_by_the_change_step_it_chose_unless_told_another(edges_run, tmp_path):
     import shutil
+    from nerfgauge.core.errors import InputError
     from nerfgauge.nerf.checkpoint import load_checked, save_atomic
     from nerfgauge.nerf.render_views import render_split
 
@@ -301,7 +302,7 @@ def test_a_run_renders_by_the_change_step_it_chose_unless_told_another(edges_run
     assert told["change_step"] == CHANGE_STEP
     payload["config"]["render_change_step"] = 0.03  # not a step the choice takes: the model file is refused
     save_atomic(payload, run / "model.pt")
-    with pytest.raises(Exception, match="change step"):
+    with pytest.raises(InputError, match="change step"):
         render_split(run, "test", tmp_path / "bad", threads=1, progress=False)
     assert not (tmp_path / "bad").exists()
 
