@@ -351,11 +351,14 @@ def test_bench_render_times_and_scores_both_renders_and_refuses_other_runs(edges
     for render in row["renders"].values():
         assert len(render["ms_per_frame"]) == 2 and render["ms"] > 0 and np.isfinite(render["psnr"])
     assert row["renders"]["default"]["sub_rays"] == "changes" and row["renders"][BEFORE]["sub_rays"] == "edge-pixels"
+    # the step the default render took (the run chose none: the default), none for the others
+    assert row["renders"]["default"]["change_step"] == CHANGE_STEP and row["renders"][BEFORE]["change_step"] is None
     assert row["ms_ratio"] == pytest.approx(row["renders"]["default"]["ms"] / row["renders"][BEFORE]["ms"])
     assert row["cpu_ratio"] == pytest.approx(row["renders"]["default"]["cpu_ms"] / row["renders"][BEFORE]["cpu_ms"])
     assert row["psnr_change"] == pytest.approx(row["renders"]["default"]["psnr"] - row["renders"][BEFORE]["psnr"])
     assert json.loads((tmp_path / "bench" / "render.json").read_text())["command"].startswith("nerfgauge bench render")
     assert "edge-pixels-3x3" in (tmp_path / "bench" / "render.md").read_text()
+    assert f"default (change step {CHANGE_STEP:g})" in (tmp_path / "bench" / "render.md").read_text()
     with pytest.raises(InputError, match="no model.pt"):
         bench_render([tmp_path / "bench"], tmp_path / "bench2")
     assert not (tmp_path / "bench2").exists()

@@ -104,7 +104,8 @@ def bench_render(runs: list, out: Path, *, split: str = "test", repeats: int = 3
                                    "psnr_interior": scores.get("psnr_interior"),
                                    "resolution": timing[render]["resolution"], "frames": timing[render]["frames"],
                                    "pixel_samples": timing[render]["pixel_samples"],
-                                   "sub_rays": timing[render].get("sub_rays")}
+                                   "sub_rays": timing[render].get("sub_rays"),
+                                   "change_step": timing[render].get("change_step")}
             document["rows"].append({"run": str(run), "name": name, "settings": setting, "renders": renders,
                                      "ms_ratio": renders["default"]["ms"] / renders[BEFORE]["ms"],
                                      "cpu_ratio": renders["default"]["cpu_ms"] / renders[BEFORE]["cpu_ms"],
@@ -122,7 +123,8 @@ def table_markdown(document: dict) -> str:
     for row in document["rows"]:
         for render, r in row["renders"].items():
             each = ", ".join(f"{ms:.1f}" for ms in r["ms_per_frame"])
-            lines.append(f"| {row['name']} | {r['resolution'][0]} x {r['resolution'][1]} | {render} | "
+            step = f" (change step {r['change_step']:g})" if r.get("change_step") is not None else ""
+            lines.append(f"| {row['name']} | {r['resolution'][0]} x {r['resolution'][1]} | {render}{step} | "
                          f"{r['ms']:.1f} ({each}) | {r['cpu_ms']:.1f} | {_db(r['psnr'])} | {_db(r['psnr_edges'])} | "
                          f"{_db(r['psnr_interior'])} |")
     lines.append("")
