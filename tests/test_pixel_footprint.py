@@ -277,13 +277,18 @@ def test_the_automatic_filter_is_edges_only_in_bounded_space_with_few_edges(kind
     assert pixel_filter_for(TrainConfig(dataset="d", steps=1, pixel_filter="edges"), 0.9, "forward")[0] == "edges"
 
 
+def _closest_to_origin(origins, directions):
+    """Each ray's point closest to the origin [n, 3] (unit directions [n, 3])."""
+    return origins - (origins * directions).sum(dim=-1, keepdim=True) * directions
+
+
 class _FrameModel:
     """A stand-in model for whole frames: two colours either side of a plane through the
     origin, by the point of each ray closest to it, so the edge crosses the middle of every
     view of a camera looking at the origin; opacity 1."""
 
     def render(self, origins, directions):
-        closest = origins - (origins * directions).sum(dim=-1, keepdim=True) * directions
+        closest = _closest_to_origin(origins, directions)
         side = (closest @ torch.tensor([0.6, 0.0, 0.8]) > 0).float()
         rgb = torch.stack([side, 1 - side, 0.5 * torch.ones_like(side)], dim=-1)
         return SimpleNamespace(rgb=rgb, opacity=torch.ones_like(side), depth=directions[:, 0])
@@ -335,7 +340,7 @@ class _RippleModel(_FrameModel):
         self.period = period
 
     def render(self, origins, directions):
-        closest = origins - (origins * directions).sum(dim=-1, keepdim=True) * directions
+        closest = _closest_to_origin(origins, directions)
         u = closest @ torch.tensor([0.6, 0.0, 0.8])
         value = 0.5 + 0.03 * torch.sin(2 * np.pi * u / self.period)
         rgb = value[:, None] * torch.tensor([1.0, 0.9, 0.8])
@@ -360,7 +365,7 @@ def test_an_edges_run_keeps_the_smaller_change_step_only_while_it_pays_on_its_va
     origins, directions = cameras.rays(0)  # the ripple's period: 3 pixels at the middle of view 0
     middle = [torch.from_numpy(part[cameras.intrinsics.height // 2, cameras.intrinsics.width // 2 + k]).float()
               for part in (origins, directions) for k in (0, 1)]
-    points = [o - (o @ d) * d for o, d in ((middle[0], middle[2]), (middle[1], middle[3]))]
+    points = [_closest_to_origin(o[None], d[None])[0] for o, d in ((middle[0], middle[2]), (middle[1], middle[3]))]
     model = _RippleModel(3 * float(torch.linalg.vector_norm(points[1] - points[0])))
 
     def render(step):
