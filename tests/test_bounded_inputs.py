@@ -670,3 +670,25 @@ def test_found_by_a_fresh_seed_a_saved_count_of_none_is_one_line():
     with pytest.raises(InputError, match="--threads needs a value"):
         TrainConfig(dataset="d", threads=None).validate()
     TrainConfig(dataset="d", steps=10).validate()  # budget_seconds None beside steps: its annotation admits it
+
+
+class NoneCount(int):
+    """An int type whose name holds "None": the annotation's text once said it admitted None."""
+
+
+def test_whether_a_field_admits_none_is_read_from_its_type_not_its_text():
+    """`admits_none` reads the resolved annotation: a union with None admits it, a type whose
+    name or arguments merely contain "None" does not, and string annotations (`from
+    __future__ import annotations`, as every config module has) resolve to the same types."""
+    from typing import Any, Optional, Union
+
+    assert all(arguments.admits_none(a) for a in (Optional[int], int | None, Union[None, float], type(None), Any, None))
+    assert not any(arguments.admits_none(a) for a in (int, float, NoneCount, dict[str, None], tuple[None, int]))
+    namespace = {}
+    exec("from __future__ import annotations\nfrom dataclasses import dataclass\nfrom typing import Optional\n"
+         "@dataclass\nclass Later:\n    count: NoneCount = 1\n    limit: Optional[int] = None\n",
+         {"NoneCount": NoneCount, "__name__": __name__}, namespace)
+    ranges = {"count": arguments.THREADS, "limit": arguments.THREADS}
+    arguments.check_fields(namespace["Later"](), ranges)
+    with pytest.raises(InputError, match="--count needs a value, got None"):
+        arguments.check_fields(namespace["Later"](count=None), ranges)

@@ -16,6 +16,9 @@ from __future__ import annotations
 import argparse
 import math
 import re
+import sys
+import types
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -136,7 +139,7 @@ def check_fields(config, ranges: dict, flags: dict | None = None) -> None:
     (Optional[...], ... | None: "auto" or "not given") and refused where it does not (a saved
     model.pt whose `threads` reads None would otherwise reach `threads > 1`). flags: {field:
     flag} where the flag is not --field-with-dashes. InputError naming the flag otherwise."""
-    annotations = {name: field.type for name, field in getattr(config, "__dataclass_fields__", {}).items()}
+    annotations = field_types(type(config))
     for name, limits in ranges.items():
         value = getattr(config, name)
         flag = (flags or {}).get(name, f"--{name.replace('_', '-')}")
@@ -147,13 +150,24 @@ def check_fields(config, ranges: dict, flags: dict | None = None) -> None:
         limits.check(value, flag)
 
 
+def field_types(cls) -> dict:
+    """{field: type} of a class's annotations, strings (`from __future__ import annotations`)
+    resolved in its module with typing's names behind it (a class made in a function may
+    name Optional without its module importing it); {} where one names what neither holds."""
+    module = sys.modules.get(cls.__module__)
+    names = {**vars(typing), **(vars(module) if module is not None else {})}
+    try:
+        return typing.get_type_hints(cls, localns=names)
+    except (NameError, TypeError):
+        return {}
+
+
 def admits_none(annotation) -> bool:
-    """Whether a dataclass field's annotation (a string under `from __future__ import
-    annotations`, else a type) allows None; an unknown one (None) is taken to allow it."""
-    if annotation is None:
+    """Whether a field's annotation, resolved to a type, allows None: None itself, Any, or a
+    union with None (Optional[X], X | None). An unknown one (None) is taken to allow it."""
+    if annotation is None or annotation is typing.Any or annotation is type(None):
         return True
-    text = annotation if isinstance(annotation, str) else repr(annotation)
-    return "Optional" in text or "None" in text
+    return typing.get_origin(annotation) in (typing.Union, types.UnionType) and type(None) in typing.get_args(annotation)
 
 
 def document_ranges(parser: argparse.ArgumentParser) -> None:
