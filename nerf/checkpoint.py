@@ -52,9 +52,11 @@ class LoopState:
     growing when a finer grid could not be trained); colour_head: the residual colour head's
     decision (TrainConfig.colour_head), made once the final grid has trained MIN_STAGE_STEPS
     steps: 0 not yet, 1 added, -1 not; edge_points: rays per axis through an `edges` run's
-    edge pixels (nerf.schedule.EDGE_POINTS_PER_AXIS, then FINE_EDGE_POINTS_PER_AXIS), and
+    edge pixels (nerf.schedule.EDGE_POINTS_PER_AXIS, then FINE_, then FINER_EDGE_POINTS_PER_AXIS), and
     edge_points_step the step the half-budget refinement (those points, and a grid past the
     final one: last_stage + 1) was decided at (0: not yet; schedule.Schedule.refinement_due);
+    finer_points_step: the step the rung to FINER_EDGE_POINTS_PER_AXIS was decided at (0: not
+    yet; schedule.Schedule.finer_points_due);
     surface_step: the step surface opacity turned on at that decision (0: off;
     TrainConfig.surface_opacity); anneal_from: the share of the budget done when it did, from
     which the colour tables' learning rate anneals to its floor by the budget's end (0: no
@@ -72,6 +74,7 @@ class LoopState:
     colour_head: int = 0
     edge_points: int = EDGE_POINTS_PER_AXIS
     edge_points_step: int = 0
+    finer_points_step: int = 0
     surface_step: int = 0
     anneal_from: float = 0.0
 
@@ -86,7 +89,7 @@ class LoopState:
 
 # counters added after checkpoint version 2 first shipped, and their value in older files
 LOOP_DEFAULTS = {"stage_seconds": 0.0, "last_stage": 3, "colour_head": -1, "edge_points": EDGE_POINTS_PER_AXIS,
-                 "edge_points_step": 0, "surface_step": 0, "anneal_from": 0.0}
+                 "edge_points_step": 0, "finer_points_step": 0, "surface_step": 0, "anneal_from": 0.0}
 
 
 def save_atomic(obj, path) -> int:

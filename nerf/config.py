@@ -39,7 +39,8 @@ PIXEL_FILTERS = tuple(TRAIN_PIXEL_SAMPLES)
 # fixed points keeps edges sharp (nerf.train.pixel_sample_offsets), and the box mean of a
 # sharp edge wants more than 2 x 2 points (primitives 128 px, 300 s: 43.09 dB against 42.94;
 # far-object 64 px: 45.04 against 43.70; BENCHMARKS.md, "Train through the render's points").
-RENDER_FILTERS = {"centre": 1, "edges": 2, "edges-3x3": 3}
+# 4 x 4 renders a run whose edge pixels trained through them (nerf.schedule.FINER_EDGE_POINTS_AT).
+RENDER_FILTERS = {"centre": 1, "edges": 2, "edges-3x3": 3, "edges-4x4": 4}
 # Which of those points an edges render gives rays of their own (`nerfgauge render --sub-rays`,
 # nerf.frames.box_frame): "changes" (the default), the points between centres of the centre
 # render that differ; "edge-pixels", every point of its edge pixels (the render before issue 52).

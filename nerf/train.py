@@ -38,8 +38,8 @@ from nerfgauge.nerf.grid_field import node_mask
 from nerfgauge.nerf.models import CompactNeRF, RadianceModel
 from nerfgauge.nerf.parametrisation import check_targets, make_space
 from nerfgauge.nerf.rendering import composite, pixel_mean, render_rays_chunked
-from nerfgauge.nerf.schedule import (FINE_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER, SURFACE_RISE_STEPS, Schedule,
-                                    RateScales, TrialTiming, upsample_count)
+from nerfgauge.nerf.schedule import (FINE_EDGE_POINTS_PER_AXIS, FINER_EDGE_POINTS_PER_AXIS, MIN_STEPS_AT_FINER,
+                                    SURFACE_RISE_STEPS, RateScales, Schedule, TrialTiming, upsample_count)
 from nerfgauge.nerf.sparse_priors import PRIOR_RAYS, origin_spread, prior_loss, unseen_rays, views_per_point
 from nerfgauge.nerf.trials import (Trial, candidate_config, parametrisation_trial, pick, render_path, trial_reason,
                                    trial_record, trial_recipe, val_psnr)
@@ -518,6 +518,13 @@ def _follow_schedule(training: Training, schedule: Schedule, trial: GrowthTrial 
             state.last_stage += 1
             if progress:
                 note(f"growing the grid to {schedule.refined_resolution} voxels from step {state.step}")
+    if (finer := schedule.finer_points_due(state, fraction_done)) is not None:
+        state.finer_points_step = state.step  # decided, either way
+        if finer:
+            state.edge_points = FINER_EDGE_POINTS_PER_AXIS
+            if progress:
+                note(f"training edge pixels through {state.edge_points} x {state.edge_points} points "
+                     f"from step {state.step}")
     return trial
 
 

@@ -545,9 +545,10 @@ def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_wi
                                                                                       monkeypatch):
     """With the stages' and the finer points' bars lowered (1 and 2 steps: the final grid
     from step 4), a 12-step `edges` run trains its edge pixels through 2 x 2 points to step 6
-    (half the steps) and 3 x 3 after: the log and config.json say so. The decision is in
-    checkpoint.pt's loop state: a resumed run keeps it, yes or no, and one resumed from
-    before it decides at the same step as the uninterrupted run."""
+    (half the steps), 3 x 3 to step 9 (three quarters) and 4 x 4 after: the log and
+    config.json say so. The decisions are in checkpoint.pt's loop state: a resumed run keeps
+    them, yes or no, and one resumed from before them decides at the same steps as the
+    uninterrupted run."""
     import json
 
     import nerfgauge.nerf.schedule as schedule_module
@@ -567,11 +568,12 @@ def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_wi
 
     log, loop, reason = trained(tmp_path / "run", 12)
     assert [entry["step"] for entry in log] == list(range(13))  # a point before every step and after the last
-    assert [entry["edge_points"] for entry in log] == [2] * 7 + [3] * 6  # step 6's point comes before its step
-    assert reason.startswith("2 x 2 to step 6, then 3 x 3") and (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
+    assert [entry["edge_points"] for entry in log] == [2] * 7 + [3] * 3 + [4] * 3  # a step's point comes before it
+    assert reason.startswith("2 x 2 to step 6, then 3 x 3") and "then 4 x 4 from step 9" in reason
+    assert (loop["edge_points"], loop["edge_points_step"], loop["finer_points_step"]) == (4, 6, 9)
     log, loop, _ = trained(tmp_path / "run", 16, resume=True)
-    assert {entry["edge_points"] for entry in log if entry["step"] >= 12} == {3}
-    assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
+    assert {entry["edge_points"] for entry in log if entry["step"] >= 12} == {4}
+    assert (loop["edge_points"], loop["edge_points_step"], loop["finer_points_step"]) == (4, 6, 9)
     log, loop, reason = trained(tmp_path / "early", 4)  # at the final grid from step 3: never 2 steps there
     assert {entry["edge_points"] for entry in log} == {2} and reason.startswith("2 x 2 throughout")
     assert loop["edge_points_step"] == 2  # decided at half the run (no: 0 steps at the final grid)
@@ -586,7 +588,7 @@ def test_a_run_switches_its_edge_pixels_to_finer_points_states_it_and_resumes_wi
     assert reason.startswith("2 x 2 throughout: the run ended before 90% of its budget")
     monkeypatch.setattr(schedule_module, "FINE_EDGE_POINTS_AT", 0.5)
     log, loop, _ = trained(tmp_path / "paused", 12, resume=True)
-    assert (loop["edge_points"], loop["edge_points_step"]) == (3, 6)
+    assert (loop["edge_points"], loop["edge_points_step"], loop["finer_points_step"]) == (4, 6, 9)
 
 
 def test_refine_grid_keeps_older_recipes_and_is_refused_where_it_cannot_apply(tiny_dataset, tmp_path, capsys):

@@ -260,6 +260,36 @@ def test_half_the_budget_refines_a_run_whose_final_grid_has_trained_its_steps(st
     assert due(ready, on=dataclasses.replace(schedule, edges=False, refine_grid=True)) is True
 
 
+@pytest.mark.parametrize("steps, budget", [(4000, None), (None, 120.0)])
+def test_the_finer_rung_is_decided_once_past_its_share_by_the_steps_through_3x3_points(steps, budget):
+    """An `edges` run at 3 x 3 points takes FINER_EDGE_POINTS_PER_AXIS at the first step at
+    or past FINER_EDGE_POINTS_AT of its budget when it has trained FINE_EDGE_POINTS_MIN_STEPS
+    steps through them; no earlier, not twice, not from 2 x 2 points, not without edges."""
+    schedule = make(steps=steps, budget=budget)
+    at = dict(step=round(4000 * S.FINER_EDGE_POINTS_AT)) if steps else dict(seconds=120.0 * S.FINER_EDGE_POINTS_AT,
+                                                                              step=3000)
+    before = dict(step=at["step"] - 1) if steps else dict(seconds=at["seconds"] - 0.01)
+    ready = LoopState(**at, edge_points=S.FINE_EDGE_POINTS_PER_AXIS,
+                      edge_points_step=at["step"] - S.FINE_EDGE_POINTS_MIN_STEPS)
+
+    def due(state, on=schedule):
+        return on.finer_points_due(state, on.fraction_done(state))
+
+    assert due(ready) is True
+    assert due(dataclasses.replace(ready, **before)) is None
+    assert due(dataclasses.replace(ready, edge_points_step=ready.edge_points_step + 1)) is False  # 999 steps
+    assert due(dataclasses.replace(ready, finer_points_step=1)) is None  # decided
+    assert due(dataclasses.replace(ready, edge_points=S.EDGE_POINTS_PER_AXIS)) is None  # never refined
+    assert due(ready, on=dataclasses.replace(schedule, edges=False)) is None
+    taken = dataclasses.replace(ready, edge_points=S.FINER_EDGE_POINTS_PER_AXIS, finer_points_step=ready.step)
+    assert S.Schedule.edge_points_reason(taken).startswith(
+        f"2 x 2 to step {ready.edge_points_step}, then 3 x 3: at 50% of the budget") and \
+        f"then 4 x 4 from step {ready.step}: at 75% of the budget" in S.Schedule.edge_points_reason(taken)
+    kept = dataclasses.replace(ready, finer_points_step=ready.step)
+    assert f"kept at 75% of the budget (step {ready.step}): fewer than" in S.Schedule.edge_points_reason(kept)
+    assert S.Schedule.edge_points_reason(ready).endswith("the run ended before 75% of the budget")
+
+
 def test_a_refining_run_grows_past_its_final_grid_only_at_its_last_stage_and_below_the_cap():
     schedule = make(steps=4000, refine_grid=True)
     final = LoopState(stage=schedule.stages, last_stage=schedule.stages)
@@ -285,8 +315,9 @@ def test_the_refine_reason_says_what_happened_to_the_grid():
         dataclasses.replace(decided, stage=last - 1, last_stage=last - 1), 68)
     not_converged = schedule.refine_grid_reason(decided, 109)
     assert "fewer than" in not_converged and "undone" not in not_converged
-    undone = schedule.refine_grid_reason(dataclasses.replace(decided, edge_points=3), 109)
-    assert "undone" in undone and "fewer than" not in undone
+    for points in (3, 4):  # 3 x 3 taken, and the rung past it
+        undone = schedule.refine_grid_reason(dataclasses.replace(decided, edge_points=points), 109)
+        assert "undone" in undone and "fewer than" not in undone
     either = dataclasses.replace(schedule, edges=False).refine_grid_reason(decided, 109)
     assert "fewer than" in either and "undone" in either
 
@@ -354,7 +385,10 @@ def test_a_steps_run_whose_final_grid_converged_by_half_refines(monkeypatch):
     half, final_from = round(steps * S.FINE_EDGE_POINTS_AT), round(steps * S.LAST_UPSAMPLE_AT)
     monkeypatch.setattr(S, "FINE_EDGE_POINTS_MIN_STEPS", half - final_from)  # exactly what it has at half
     state, events = walk(make(steps=steps, refine_grid=True), 0.01)
-    assert (state.edge_points_step, state.edge_points) == (half, S.FINE_EDGE_POINTS_PER_AXIS)
+    # then, at FINER_EDGE_POINTS_AT, the 3 x 3 points have trained 1000 >= the bar's steps: one rung up
+    finer = round(steps * S.FINER_EDGE_POINTS_AT)
+    assert (state.edge_points_step, state.finer_points_step, state.edge_points) == \
+        (half, finer, S.FINER_EDGE_POINTS_PER_AXIS)
     assert events["refined"] == [half] and events["growth"][-1] == half + 1  # the next step grows it
     assert state.stage == state.last_stage == 4
 
