@@ -61,18 +61,23 @@ SUB_RAYS = ("changes", "edge-pixels")
 # issue's 200): 0.04 stays the default, and a run takes a smaller step where its val views
 # show the gain (RENDER_CHANGE_STEPS below; docs/results.md, "The render's change step").
 CHANGE_STEP = 0.04
-# An edges run's render takes a smaller step where its val views show the rays pay: from
-# CHANGE_STEP down these steps, each halving kept while its gain on the val views is at
-# least CHANGE_STEP_GAIN_DB and at least CHANGE_STEP_DB_PER_DOUBLING times log2 of the
-# growth of the frame's rays (a render's time follows its rays: about 1.6 us a ray on 2
-# threads, at 128 and at 256 px) (nerf.train.choose_change_step). Measured
+# A render's extra rays pay when its gain on the val views is at least RENDER_GAIN_DB and at
+# least RENDER_DB_PER_DOUBLING times log2 of the growth of the frame's rays (a render's time
+# follows its rays: about 1.6 us a ray on 2 threads, at 128 and at 256 px;
+# nerf.train.rays_pay). An edges run's render filter is the costliest of RENDER_FILTERS,
+# cheapest first, whose rays pay over the last one kept (nerf.train.choose_render_filter:
+# the fresh 600-s primitives model, trained through 3 x 3 points, gains 0.33 dB on its val
+# views through 4 x 4 for 44% more rays (needed 0.53); through them its frame takes 74-81 ms
+# against 45). Its render then takes a smaller step where the rays pay: from
+# CHANGE_STEP down these steps, each halving kept while they do
+# (nerf.train.choose_change_step). Measured
 # (docs/results.md, "The render's change step"): the shipped 600-s primitives model gains
 # 0.36 dB on its val views for 12% more rays at 0.02 (needed 0.16) and 0.18 for 19% more at
 # 0.01 (needed 0.25): 0.02; a 600-s 256 px run gains 0.12 for 29% more (needed 0.37), whose
 # frame would take 191-200 ms against 134-146, and keeps 0.04.
 RENDER_CHANGE_STEPS = (CHANGE_STEP, 0.02, 0.01)
-CHANGE_STEP_GAIN_DB = 0.1
-CHANGE_STEP_DB_PER_DOUBLING = 1.0
+RENDER_GAIN_DB = 0.1
+RENDER_DB_PER_DOUBLING = 1.0
 # The sparse grid stores values only where cells are occupied, but its node index (4 bytes
 # a node: 67 MB at 256^3, 537 MB at 512^3) and the marching samples per ray still grow with
 # the resolution. Cameras inside the scene's bounding sphere (rooms, forward-facing

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from nerfgauge.nerf import checkpoint
 from nerfgauge.nerf.checkpoint import LoopState
-from nerfgauge.nerf.config import (CHANGE_STEP_DB_PER_DOUBLING, CHANGE_STEP_GAIN_DB, RENDER_CHANGE_STEPS,
+from nerfgauge.nerf.config import (RENDER_CHANGE_STEPS, RENDER_DB_PER_DOUBLING, RENDER_GAIN_DB,
                                    RENDER_FILTERS, TRAIN_PIXEL_SAMPLES, TrainConfig, refined_resolution, resolve)
 from nerfgauge.nerf.data import aabb_from_cameras, jittered_direction, load_split_rays, scene_info, sparse_train_views
 from nerfgauge.nerf.frames import pixel_offsets
@@ -743,8 +743,8 @@ def _finish(run_dir: Path, loop: RunLoop, recipe: dict) -> dict:
 def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) -> tuple[TrainConfig, str, float]:
     """An `edges` run's render filter, by measurement on its val views (whole frames, the
     eval_views of psnr_on_white; nerf.trials.val_psnr): of RENDER_FILTERS (the centre ray
-    alone, 2 x 2 or 3 x 3 rays on the centre render's edge pixels), the one that scores
-    highest, the cheaper on a tie. The box render assumes the field resolves what lies
+    alone, 2 x 2, 3 x 3 or 4 x 4 rays on the centre render's edge pixels), cheapest first, each
+    kept when its gain over the last one kept pays for its rays (`rays_pay`). The box render assumes the field resolves what lies
     inside a pixel; where it cannot (bench hard's tiny: a 3-pixel sphere in a 53-voxel
     grid), averaging sub-pixel rays blurs the blur again: 56.99 dB against 58.32 through
     the centres of the same model (BENCHMARKS.md, "Edge pixels"); where it does, 3 x 3
@@ -755,10 +755,14 @@ def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) 
     rays = {}
     psnr = val_psnr(model, cameras, val_rays, device,
                     {name: (per_axis, per_axis > 1) for name, per_axis in RENDER_FILTERS.items()}, rays)
-    chosen = max(RENDER_FILTERS, key=psnr.get)  # the first of equals: the cheaper render
-    scores = ", ".join(f"{name} {value:.2f} dB" for name, value in psnr.items())
+    chosen = next(iter(RENDER_FILTERS))
+    for name in list(RENDER_FILTERS)[1:]:
+        if rays_pay(psnr[name] - psnr[chosen], rays[name], rays[chosen]):
+            chosen = name
+    scores = ", ".join(f"{name} {value:.2f} dB, {rays[name]:.2f} rays a pixel" for name, value in psnr.items())
     reason = (f"{chosen}: on {val_rays.n_views} {cameras.split} views ({RENDER_FILTERS[chosen]} x "
-              f"{RENDER_FILTERS[chosen]} rays on edge pixels; 1: the centre ray): {scores}")
+              f"{RENDER_FILTERS[chosen]} rays on edge pixels; 1: the centre ray; a costlier render kept where "
+              f"its rays pay): {scores}")
     per_axis, step, best = RENDER_FILTERS[chosen], RENDER_CHANGE_STEPS[0], psnr[chosen]
     if per_axis > 1:
         step, best, tried = choose_change_step(model, cameras, val_rays, device, per_axis, best, rays[chosen])
@@ -768,12 +772,18 @@ def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) 
     return config, reason, best
 
 
+def rays_pay(gain: float, rays: float, cost: float) -> bool:
+    """Whether a render of `rays` per pixel pays over one of `cost` rays that scores `gain` dB
+    less on the val views: a gain of at least RENDER_GAIN_DB, and of RENDER_DB_PER_DOUBLING
+    per doubling of the frame's rays (a render's time follows its rays)."""
+    return gain >= max(RENDER_GAIN_DB, RENDER_DB_PER_DOUBLING * math.log2(max(rays, 1e-9) / cost))
+
+
 def choose_change_step(model, cameras, val_rays, device, per_axis: int, default_psnr: float,
                        default_rays: float) -> tuple:
     """The change step of an edges render of `per_axis` points (nerf.config.RENDER_CHANGE_STEPS):
     down from the default, each smaller step kept while its gain on the val views over the
-    last one kept pays for its rays: at least CHANGE_STEP_GAIN_DB, and at least
-    CHANGE_STEP_DB_PER_DOUBLING dB per doubling of the frame's rays. default_psnr,
+    last one kept pays for its rays (`rays_pay`). default_psnr,
     default_rays: the default step's val PSNR and rays per pixel. Returns (step, its val
     PSNR, the scores as text)."""
     step, best, cost = RENDER_CHANGE_STEPS[0], default_psnr, default_rays
@@ -782,8 +792,7 @@ def choose_change_step(model, cameras, val_rays, device, per_axis: int, default_
         rays = {}
         score = val_psnr(model, cameras, val_rays, device, {"step": (per_axis, True, smaller)}, rays)["step"]
         tried.append(f"{smaller:g} {score:.2f} dB, {rays['step']:.2f}")
-        needed = max(CHANGE_STEP_GAIN_DB, CHANGE_STEP_DB_PER_DOUBLING * math.log2(max(rays["step"], 1e-9) / cost))
-        if score - best < needed:
+        if not rays_pay(score - best, rays["step"], cost):
             break
         step, best, cost = smaller, score, rays["step"]
     return step, best, ", ".join(tried)

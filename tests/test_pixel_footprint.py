@@ -300,7 +300,7 @@ class _FrameModel:
         return self
 
 
-@pytest.mark.parametrize("truth", ["edges", "centre", "edges-3x3"])
+@pytest.mark.parametrize("truth", ["edges", "centre", "edges-3x3", "edges-4x4"])
 def test_an_edges_run_keeps_the_render_filter_that_scores_higher_on_its_val_views(tiny_dataset, truth):
     """Targets made by one of the renders: that render scores exactly and is kept."""
     from nerfgauge.core.dataset import open_dataset
@@ -410,6 +410,39 @@ def test_a_smaller_change_step_must_pay_for_its_rays(monkeypatch, scores, expect
     monkeypatch.setattr(train_module, "val_psnr", scripted)
     step, psnr, tried = train_module.choose_change_step(None, None, None, None, 3, 40.0, 1.5)
     assert step == expected and psnr == (40.0 if expected == 0.04 else scores[expected][0]) and "dB" in tried
+
+
+@pytest.mark.parametrize("scores, expected", [
+    # (val PSNR, rays a pixel) of each filter at the default change step
+    ({"centre": (34.0, 1.0), "edges": (44.7, 1.2), "edges-3x3": (47.05, 1.4), "edges-4x4": (47.38, 2.03)},
+     "edges-3x3"),  # the fresh 600-s model: 4 x 4 gains 0.33 for 1.45x the rays, which needs 0.54
+    ({"centre": (34.0, 1.0), "edges": (44.7, 1.2), "edges-3x3": (47.05, 1.4), "edges-4x4": (47.70, 2.03)},
+     "edges-4x4"),  # 0.65 >= 0.54
+    ({"centre": (58.3, 1.0), "edges": (57.0, 1.1), "edges-3x3": (57.5, 1.2), "edges-4x4": (58.35, 1.3)},
+     "centre"),  # a field that cannot resolve a pixel (bench hard's tiny): 4 x 4's 0.05 dB needs 0.38
+    ({"centre": (40.0, 1.0), "edges": (39.0, 1.1), "edges-3x3": (41.0, 1.3), "edges-4x4": (41.05, 1.3)},
+     "edges-3x3"),  # each against the last kept (centre, then 3 x 3); free rays still need 0.1 dB
+])
+def test_a_costlier_render_filter_must_pay_for_its_rays(monkeypatch, scores, expected):
+    """The filter walk's arithmetic, on scripted val scores: cheapest first, each filter kept
+    when it gains 0.1 dB and 1 dB per doubling of the frame's rays over the last one kept; the
+    change step's walk then starts from the chosen filter's score (scripted to gain nothing)."""
+    import nerfgauge.nerf.train as train_module
+    from nerfgauge.nerf.config import TrainConfig
+
+    def scripted(model, cameras, val_rays, device, filters, rays=None):
+        if set(filters) == {"step"}:  # the change step's walk: no gain
+            rays["step"] = 9.0
+            return {"step": 0.0}
+        rays.update({name: scores[name][1] for name in filters})
+        return {name: scores[name][0] for name in filters}
+
+    monkeypatch.setattr(train_module, "val_psnr", scripted)
+    val = SimpleNamespace(n_views=4)
+    config, reason, psnr = train_module.choose_render_filter(None, TrainConfig(dataset="d", steps=1, pixel_filter="edges"),
+                                                             SimpleNamespace(split="val"), val, None)
+    assert config.render_filter == expected and psnr == scores[expected][0]
+    assert reason.startswith(f"{expected}: on 4 val views") and "rays a pixel" in reason
 
 
 def test_an_edges_run_states_its_render_s_val_psnr_as_the_render_gives_it(tiny_dataset, tmp_path, capsys):
