@@ -52,7 +52,8 @@ class LoopState:
     growing when a finer grid could not be trained); colour_head: the residual colour head's
     decision (TrainConfig.colour_head), made once the final grid has trained MIN_STAGE_STEPS
     steps: 0 not yet, 1 added, -1 not; edge_points: rays per axis through an `edges` run's
-    edge pixels (nerf.schedule.EDGE_POINTS_PER_AXIS, then FINE_, then FINER_EDGE_POINTS_PER_AXIS), and
+    edge pixels (nerf.schedule.EDGE_POINTS_PER_AXIS, then FINE_EDGE_POINTS_PER_AXIS, then
+    FINER_EDGE_POINTS_PER_AXIS), and
     edge_points_step the step the half-budget refinement (those points, and a grid past the
     final one: last_stage + 1) was decided at (0: not yet; schedule.Schedule.refinement_due);
     finer_points_step: the step the rung to FINER_EDGE_POINTS_PER_AXIS was decided at (0: not

@@ -743,12 +743,12 @@ def _finish(run_dir: Path, loop: RunLoop, recipe: dict) -> dict:
 def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) -> tuple[TrainConfig, str, float]:
     """An `edges` run's render filter, by measurement on its val views (whole frames, the
     eval_views of psnr_on_white; nerf.trials.val_psnr): of RENDER_FILTERS (the centre ray
-    alone, 2 x 2, 3 x 3 or 4 x 4 rays on the centre render's edge pixels), cheapest first, each
-    kept when its gain over the last one kept pays for its rays (`rays_pay`). The box render assumes the field resolves what lies
-    inside a pixel; where it cannot (bench hard's tiny: a 3-pixel sphere in a 53-voxel
-    grid), averaging sub-pixel rays blurs the blur again: 56.99 dB against 58.32 through
-    the centres of the same model (BENCHMARKS.md, "Edge pixels"); where it does, 3 x 3
-    integrates a sharp edge better. cameras, val_rays: the val views' cameras and rays
+    alone, 2 x 2, 3 x 3 or 4 x 4 rays on the centre render's edge pixels), cheapest first,
+    each kept when its gain over the last one kept pays for its rays (`rays_pay`). The box
+    render assumes the field resolves what lies inside a pixel; where it cannot (bench
+    hard's tiny: a 3-pixel sphere in a 53-voxel grid), averaging sub-pixel rays blurs the
+    blur again: 56.99 dB against 58.32 through the centres of the same model (BENCHMARKS.md,
+    "Edge pixels"); where it does, 3 x 3 integrates a sharp edge better. cameras, val_rays: the val views' cameras and rays
     (`prepare_run`). Returns (config with render_filter set, the reason, the chosen render's
     val PSNR: what `nerfgauge render` gives on whole val frames, where the log's val PSNR
     goes through pixel centres on a strided subset)."""
