@@ -64,12 +64,12 @@ CHANGE_STEP = 0.04
 # A render's extra rays pay when its gain on the val views is at least RENDER_GAIN_DB and at
 # least RENDER_DB_PER_DOUBLING times log2 of the growth of the frame's rays (a render's time
 # follows its rays: about 1.6 us a ray on 2 threads, at 128 and at 256 px;
-# nerf.train.rays_pay). An edges run's render filter is the costliest of RENDER_FILTERS,
-# cheapest first, whose rays pay over the last one kept (nerf.train.choose_render_filter:
-# the fresh 600-s primitives model, trained through 3 x 3 points, gains 0.33 dB on its val
-# views through 4 x 4 for 44% more rays (needed 0.53); through them its frame takes 74-81 ms
-# against 45). Its render then takes a smaller step where the rays pay: from
-# CHANGE_STEP down these steps, each halving kept while they do
+# nerf.train.rays_pay). An edges run's render filter is found by walking RENDER_FILTERS
+# cheapest first, each kept where its rays pay over the last one kept
+# (nerf.train.choose_render_filter: the fresh 600-s primitives model, trained through 3 x 3
+# points, gains 0.33 dB on its val views through 4 x 4 for 44% more rays (needed 0.53);
+# through them its frame takes 74-81 ms against 45). Its render then takes a smaller step
+# where the rays pay: from CHANGE_STEP down these steps, each halving kept while they do
 # (nerf.train.choose_change_step). Measured
 # (docs/results.md, "The render's change step"): the shipped 600-s primitives model gains
 # 0.36 dB on its val views for 12% more rays at 0.02 (needed 0.16) and 0.18 for 19% more at

@@ -748,10 +748,10 @@ def choose_render_filter(model, config: TrainConfig, cameras, val_rays, device) 
     render assumes the field resolves what lies inside a pixel; where it cannot (bench
     hard's tiny: a 3-pixel sphere in a 53-voxel grid), averaging sub-pixel rays blurs the
     blur again: 56.99 dB against 58.32 through the centres of the same model (BENCHMARKS.md,
-    "Edge pixels"); where it does, 3 x 3 integrates a sharp edge better. cameras, val_rays: the val views' cameras and rays
-    (`prepare_run`). Returns (config with render_filter set, the reason, the chosen render's
-    val PSNR: what `nerfgauge render` gives on whole val frames, where the log's val PSNR
-    goes through pixel centres on a strided subset)."""
+    "Edge pixels"); where it does, 3 x 3 integrates a sharp edge better. cameras, val_rays:
+    the val views' cameras and rays (`prepare_run`). Returns (config with render_filter set,
+    the reason, the chosen render's val PSNR: what `nerfgauge render` gives on whole val
+    frames, where the log's val PSNR goes through pixel centres on a strided subset)."""
     rays = {}
     psnr = val_psnr(model, cameras, val_rays, device,
                     {name: (per_axis, per_axis > 1) for name, per_axis in RENDER_FILTERS.items()}, rays)

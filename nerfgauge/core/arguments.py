@@ -167,7 +167,8 @@ def admits_none(annotation) -> bool:
     union with None (Optional[X], X | None). An unknown one (None) is taken to allow it."""
     if annotation is None or annotation is typing.Any or annotation is type(None):
         return True
-    return typing.get_origin(annotation) in (typing.Union, types.UnionType) and type(None) in typing.get_args(annotation)
+    is_union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
+    return is_union and type(None) in typing.get_args(annotation)
 
 
 def document_ranges(parser: argparse.ArgumentParser) -> None:
