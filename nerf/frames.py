@@ -202,15 +202,14 @@ def interpolate_centres(centre: torch.Tensor, height: int, width: int, pixels: t
                         offsets: np.ndarray) -> torch.Tensor:
     """Values at `offsets` [S, 2] (x, y pixels) from the centres of `pixels` [T] (row-major
     indices), bilinear between the pixel centres around each point (the border pixels
-    repeated beyond the image). centre: [H*W, C]. Returns [S, T, C]."""
-    row, column = pixels // width, pixels % width
-    out = []
-    for x, y in offsets:
-        step_x, step_y = int(np.sign(x)), int(np.sign(y))
-        across = (column + step_x).clamp(0, width - 1)
-        down = (row + step_y).clamp(0, height - 1)
-        ax, ay = abs(float(x)), abs(float(y))
-        value = ((1 - ax) * (1 - ay)) * centre[row * width + column] + (ax * (1 - ay)) * centre[row * width + across]
-        value = value + ((1 - ax) * ay) * centre[down * width + column] + (ax * ay) * centre[down * width + across]
-        out.append(value)
-    return torch.stack(out)
+    repeated beyond the image). centre: [H*W, C]. Returns [S, T, C].
+    Every offset in one batch of gathers: a loop over the offsets cost a 4 x 4 render's
+    128 px frame about 6 ms of host time (15 offsets, a dozen small ops each)."""
+    row, column = (pixels // width)[None], (pixels % width)[None]  # [1, T]
+    along = torch.from_numpy(offsets).to(device=centre.device, dtype=centre.dtype)  # [S, 2]
+    step = torch.sign(along).long()  # [S, 2]: towards the neighbour the point leans to
+    across = (column + step[:, :1]).clamp(0, width - 1)  # [S, T]
+    down = (row + step[:, 1:]).clamp(0, height - 1)  # [S, T]
+    ax, ay = along[:, 0].abs()[:, None, None], along[:, 1].abs()[:, None, None]  # [S, 1, 1]
+    value = ((1 - ax) * (1 - ay)) * centre[row * width + column] + (ax * (1 - ay)) * centre[row * width + across]
+    return value + ((1 - ax) * ay) * centre[down * width + column] + (ax * ay) * centre[down * width + across]

@@ -164,7 +164,7 @@ def _frame_oracle(model, cameras, c2w, intrinsics, per_axis, step=CHANGE_STEP):
     return out.reshape(-1, 4), changes
 
 
-@pytest.mark.parametrize("per_axis", [2, 3])
+@pytest.mark.parametrize("per_axis", [2, 3, 4])  # 4: the rung nerf.schedule.FINER_EDGE_POINTS_PER_AXIS
 def test_a_changes_frame_is_its_points_rays_where_the_centres_differ_and_interpolated_elsewhere(per_axis):
     cameras, c2w, intrinsics = _cameras()
     model = _disc_model(c2w, intrinsics)
