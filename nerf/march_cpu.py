@@ -3,7 +3,9 @@ bounded space (`CompactNeRF._render_front_to_back`) as one numba kernel per batc
 
 The samples are `nerf.marching.march`'s: a ray is cut into 1-voxel segments from its box
 entry, and a segment whose midpoint (of its part inside the box) lies in an occupied voxel
-is cut into `voxel_steps` samples at the centres of its steps. (`march` reaches the same
+is cut into `voxel_steps` samples at the centres of its steps, of which those in a cell
+outside `sampled` (`CompactNeRF.inference_cells`: the occupancy less training's margin) are
+left out, as the torch paths leave them out (`CompactNeRF._inference_samples`). (`march` reaches the same
 segments through its pyramid of coarser grids, each grown by a block so that it never drops
 a segment that passes an occupied voxel.) Empty space is skipped by a distance grid
 (`skip_distances`): from a midpoint whose voxel has no occupied voxel within r - 1 voxels
@@ -126,7 +128,7 @@ def _lane_rays(lane, lanes, order, size):
 
 @numba.njit(cache=True)
 def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of, distance, voxel, lo_box,
-                 segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps,
+                 segment, voxel_steps, step, sampled, index, table, nodes, scale, shift, density_scale, rise_steps,
                  min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
                  out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights):
     """Rays lane, lane + lanes, ... (one thread's share), each front to back: its opacity,
@@ -137,6 +139,7 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
     nx, ny, nz = nodes[0], nodes[1], nodes[2]
     channels = table.shape[1] - 1
     dense = index.shape[0] == 0
+    check_cells = sampled.shape[0] > 0
     rows = np.zeros(8, np.int64)
     weights = np.zeros(8)
     for i in _lane_rays(lane, lanes, order, block):
@@ -185,6 +188,8 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
                 bx = min(math.floor(ux), nx - 2.0)
                 by = min(math.floor(uy), ny - 2.0)
                 bz = min(math.floor(uz), nz - 2.0)
+                if check_cells and sampled[int(bz), int(by), int(bx)] == 0:
+                    continue  # in the margin training keeps round the occupied cells
                 fx, fy, fz = ux - bx, uy - by, uz - bz
                 flat = (int(bz) * ny + int(by)) * nx + int(bx)
                 raw = 0.0
@@ -251,14 +256,14 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
 
 @numba.njit(parallel=True, cache=True)
 def _render_rays(block, order, origins, directions, near, far, distance, voxel, lo_box, segment,
-                 voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps,
+                 voxel_steps, step, sampled, index, table, nodes, scale, shift, density_scale, rise_steps,
                  min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
                  out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights):
     """`_render_lane` of every lane of rays, the lanes spread over numba's threads."""
     lanes = min(-(-origins.shape[0] // block), LANES)
     for lane in numba.prange(lanes):
         _render_lane(lane, lanes, block, order, origins, directions, near, far, distance, voxel, lo_box,
-                     segment, voxel_steps, step, index, table, nodes, scale, shift, density_scale, rise_steps,
+                     segment, voxel_steps, step, sampled, index, table, nodes, scale, shift, density_scale, rise_steps,
                      min_transmittance, colour_min_weight, inline_colour, write_offsets, out_rgb, out_opacity,
                      out_depth, out_evaluated, out_coloured, out_rows, out_features, out_weights)
 
@@ -305,10 +310,12 @@ def _enter_box(origins, directions, lo, hi, cell, out_near, out_far, out_key):
 @dataclass(frozen=True)
 class KernelGrids:
     """What the kernel reads of a field and its occupancy: the skip distances [nz, ny, nx]
-    uint8 (`skip_distances`), and the node index and value table (`node_table`); `key`
+    uint8 (`skip_distances`), the cells whose samples it evaluates ([nz, ny, nx] uint8, or
+    empty: every marched sample), and the node index and value table (`node_table`); `key`
     says which state of the field's tables they hold (`tables_key`)."""
 
     distance: np.ndarray
+    sampled: np.ndarray
     index: np.ndarray
     table: np.ndarray
     key: tuple
@@ -322,9 +329,12 @@ def tables_key(field) -> tuple:
 
 
 @torch.no_grad()
-def kernel_grids(field, occupancy: torch.Tensor) -> KernelGrids:
-    """`KernelGrids` of a field and its occupancy [nz, ny, nx] bool (cells)."""
-    return KernelGrids(skip_distances(occupancy), *node_table(field), tables_key(field))
+def kernel_grids(field, occupancy: torch.Tensor, sampled: torch.Tensor | None = None) -> KernelGrids:
+    """`KernelGrids` of a field and its occupancy [nz, ny, nx] bool (cells), which the march
+    follows; sampled: the cells [nz, ny, nx] bool within it whose samples are evaluated
+    (`CompactNeRF.inference_cells`; None: every marched sample)."""
+    cells = np.zeros((0, 0, 0), np.uint8) if sampled is None else sampled.cpu().numpy().astype(np.uint8)
+    return KernelGrids(skip_distances(occupancy), cells, *node_table(field), tables_key(field))
 
 
 @torch.no_grad()
@@ -355,7 +365,7 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
     # they find those in the thread's cache (at 256 px: 1.4x faster than the image's order)
     order = np.argsort(key, kind="stable")
     arrays = (o, d, near, far)
-    constants = (distance, voxel, lo, float(voxel_steps * step), voxel_steps, float(step),
+    constants = (distance, voxel, lo, float(voxel_steps * step), voxel_steps, float(step), grids.sampled,
                  grids.index, grids.table, np.array([nx, ny, nz], dtype=np.int64), scale, float(field.shift),
                  DENSITY_SCALE / field.voxel_final, float(rise_steps), float(min_transmittance),
                  float(colour_min_weight), inline)

@@ -181,6 +181,13 @@ def march(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, o
     return segment_samples(march_segments(origins, directions, aabb, occupancy, step, jitter, levels))
 
 
+def keep_samples(samples: MarchedSamples, keep: torch.Tensor) -> MarchedSamples:
+    """The samples `keep` [m] (indices, increasing) of `samples`, in their order."""
+    step = samples.step.index_select(0, keep) if isinstance(samples.step, torch.Tensor) else samples.step
+    return MarchedSamples(samples.t_mid.index_select(0, keep), samples.ray_index.index_select(0, keep), step,
+                          samples.near, samples.far)
+
+
 def sample_deltas(samples: MarchedSamples) -> torch.Tensor:
     """Every sample's length [n_samples] (a scalar step broadcast, or the per-sample lengths)."""
     if isinstance(samples.step, torch.Tensor):

@@ -19,6 +19,7 @@ from nerfgauge.nerf.grid_field import VoxelGridField, any_within
 from nerfgauge.nerf.march_cpu import kernel_grids, render_compiled, tables_key
 from nerfgauge.nerf.marching import (
     cell_of,
+    keep_samples,
     march,
     march_segments,
     march_space,
@@ -116,6 +117,7 @@ class CompactNeRF(RadianceModel):
         self._pyramid = None  # coarse-to-fine occupancy for marching, rebuilt when occupancy changes
         self._pyramid_of = None
         self._compiled = None  # (occupancy, march_cpu.KernelGrids: what the compiled renderer reads)
+        self._inference_cells = None  # (occupancy, tables_key, cells): inference_cells' cache
         # Cells some training ray can see (transmittance reaches them); the rest (object
         # interiors, hidden corners) need not be sampled or stored. All, until measured.
         self.register_buffer("visible", torch.ones_like(self.occupancy))
@@ -191,6 +193,36 @@ class CompactNeRF(RadianceModel):
         """Mean number of samples marching keeps per ray [n, 3] (what a pass over them costs)."""
         return self._march(origins, directions).t_mid.numel() / max(1, origins.shape[0])
 
+    @torch.no_grad()
+    def inference_cells(self) -> torch.Tensor:
+        """The cells whose samples inference evaluates, [nz, ny, nx] bool: the occupancy less
+        the margin `update_occupancy` grows round the occupied cells (VoxelGridField.occupancy's
+        dilation). Training needs the margin, so that density can spread into empty
+        neighbours (gradients reach only the samples it takes); a render does not. Every node
+        of a margin cell is below OCCUPANCY_ALPHA a marching step, and so is any sample in it
+        (trilinear weights, a monotone softplus): each sample left out would have added less
+        than that to its ray's opacity, and with surface opacity the next sample's rise
+        takes its share up. On the primitives' 600 / 1200-s models 11-17% fewer
+        samples a frame, test PSNR within 0.01 dB (docs/results.md, "Render time").
+        Cached per occupancy and table state; without occupancy skipping, every cell."""
+        if not self.use_occupancy:
+            return self.occupancy
+        key = tables_key(self.field)
+        cached = self._inference_cells
+        if cached is None or cached[0] is not self.occupancy or cached[1] != key:
+            cells = self.occupancy & self.field.occupancy(dilate=0).to(self.occupancy.device)
+            self._inference_cells = cached = (self.occupancy, key, cells)
+        return cached[2]
+
+    def _inference_samples(self, samples, origins, directions):
+        """`samples` less those outside `inference_cells`."""
+        rays = samples.ray_index
+        positions = torch.addcmul(origins.index_select(0, rays), samples.t_mid[:, None], directions.index_select(0, rays))
+        grid = positions if self.field.space is None else self.field.space.to_grid(positions)
+        cells = self.inference_cells()
+        keep = cells.reshape(-1)[cell_of(grid, self.field.aabb, cells.shape)].nonzero()[:, 0]
+        return keep_samples(samples, keep)
+
     def _march(self, origins, directions, jitter=None):
         if self.field.space is not None:
             return march_space(origins, directions, self.field.space, self.field.aabb, self.occupancy,
@@ -213,6 +245,8 @@ class CompactNeRF(RadianceModel):
         if training:
             jitter = torch.rand(origins.shape[0], generator=generator).to(origins.device)
         samples = self._march(origins, directions, jitter)
+        if inference:
+            samples = self._inference_samples(samples, origins, directions)
         rays = samples.ray_index  # [n_samples]
 
         def field_at(index):  # the field at the samples `index` [m] (a subset or all)
@@ -269,7 +303,7 @@ class CompactNeRF(RadianceModel):
             return self._render_windows(origins, directions)
         if self._compiled is None or self._compiled[0] is not self.occupancy or \
                 self._compiled[1].key != tables_key(self.field):
-            self._compiled = (self.occupancy, kernel_grids(self.field, self.occupancy))
+            self._compiled = (self.occupancy, kernel_grids(self.field, self.occupancy, self.inference_cells()))
         colour, opacity, depth, evaluated = render_compiled(self.field, self._compiled[1], origins, directions,
                                                             rise_steps=self.rise_steps)
         return RayOutput(colour, opacity, depth, evaluated)
@@ -284,7 +318,7 @@ class CompactNeRF(RadianceModel):
                                   levels=self._levels(), keep_levels=1)
 
         def window_samples(chosen):
-            samples = segment_samples(segments, chosen)
+            samples = self._inference_samples(segment_samples(segments, chosen), origins, directions)
             rays, t = samples.ray_index, samples.t_mid
             d = directions.index_select(0, rays)
             sigma, colour_at = self.field.density_then_colour(torch.addcmul(origins.index_select(0, rays),

@@ -9,6 +9,8 @@ change it (the thread count, the order rays are given in)."""
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 import pytest
@@ -17,9 +19,9 @@ import torch.nn.functional as F
 from test_compact_nerf import blob_model
 
 import nerfgauge.nerf.march_cpu as march_cpu
-from nerfgauge.nerf.grid_field import node_mask
+from nerfgauge.nerf.grid_field import DENSITY_SCALE, OCCUPANCY_ALPHA, node_mask
 from nerfgauge.nerf.march_cpu import kernel_grids, kernel_threads, render_compiled, skip_distances
-from nerfgauge.nerf.marching import sample_deltas
+from nerfgauge.nerf.marching import keep_samples, sample_deltas
 from nerfgauge.nerf.packed import packed_render
 from nerfgauge.nerf.rendering import ray_aabb
 
@@ -31,10 +33,26 @@ def _rays(g: torch.Generator, aabb: torch.Tensor, n: int = 2500):
     return origins, F.normalize(targets - origins, dim=-1)
 
 
+def _sampled_cells(model) -> torch.Tensor:
+    """The cells inference samples, worked out here from the field's nodes: the occupied
+    cells with a corner whose opacity over one marching step exceeds OCCUPANCY_ALPHA (the
+    margin training grows round them left out). [nz, ny, nx] bool."""
+    field = model.field
+    alpha = -torch.expm1(-field.density_from_raw(field.to_dense()[0]) * field.marching_step)  # [nodes]
+    return (F.max_pool3d(alpha[None, None], 2, stride=1)[0, 0] > OCCUPANCY_ALPHA) & model.occupancy
+
+
 def _full_pass(model, origins, directions):
-    """Every marched sample composited: `nerf.packed.packed_render`, the torch quadrature,
-    with no early stop and every sample's colour."""
+    """Every marched sample in a sampled cell (`_sampled_cells`) composited:
+    `nerf.packed.packed_render`, the torch quadrature, with no early stop and every
+    sample's colour. Cells found in float64, as the kernel finds them."""
     samples = model._march(origins, directions)
+    cells = _sampled_cells(model)
+    aabb = model.field.aabb.double()
+    size = torch.tensor(cells.shape[::-1], dtype=torch.float64)  # x y z cells
+    at = origins.double()[samples.ray_index] + samples.t_mid.double()[:, None] * directions.double()[samples.ray_index]
+    xyz = torch.minimum(((at - aabb[0]) / (aabb[1] - aabb[0]) * size).floor().clamp_min(0), size - 1).long()
+    samples = keep_samples(samples, cells[xyz[:, 2], xyz[:, 1], xyz[:, 0]].nonzero()[:, 0])
     rays, t, deltas = samples.ray_index, samples.t_mid, sample_deltas(samples)
     d = directions.index_select(0, rays)
     sigma, rgb = model.field(torch.addcmul(origins.index_select(0, rays), t[:, None], d), d)
@@ -43,7 +61,8 @@ def _full_pass(model, origins, directions):
 
 
 def _compiled(model, origins, directions, **kwargs):
-    return render_compiled(model.field, kernel_grids(model.field, model.occupancy), origins, directions, **kwargs)
+    grids = kernel_grids(model.field, model.occupancy, model.inference_cells())
+    return render_compiled(model.field, grids, origins, directions, **kwargs)
 
 
 # --------------------------------------------------------------------------------------
@@ -155,7 +174,7 @@ def test_the_sparse_tables_give_the_dense_tables_values(monkeypatch):
     with torch.no_grad():
         dense = _compiled(model, origins, directions)
         monkeypatch.setattr(march_cpu, "DENSE_RENDER_FLOATS", 0)
-        grids = kernel_grids(model.field, model.occupancy)
+        grids = kernel_grids(model.field, model.occupancy, model.inference_cells())
         assert grids.index.shape[0] == int(np.prod(model.field.shape))
         sparse = render_compiled(model.field, grids, origins, directions)
     for a, b in zip(dense[:3], sparse[:3]):
@@ -164,6 +183,43 @@ def test_the_sparse_tables_give_the_dense_tables_values(monkeypatch):
 
 # --------------------------------------------------------------------------------------
 # which samples
+
+
+def test_inference_leaves_out_only_the_margin_round_the_occupied_cells():
+    """Empty air at 0.9 OCCUPANCY_ALPHA a step: the margin training grows round the blobs is
+    faint, not empty. Inference samples the cells `_sampled_cells` finds (the model's own
+    `inference_cells`), fewer than the occupancy; against every marched sample, a ray's
+    opacity moves by at most OCCUPANCY_ALPHA for each sample left out, and rays through
+    the margin do move (a cell wrongly left out, with a blob's opacity, would break the
+    bound; one wrongly kept would leave the render equal). The torch windows leave out
+    the same samples."""
+    g = torch.Generator().manual_seed(12)
+    model, aabb = blob_model(g)
+    field = model.field
+    grid = field.to_dense()
+    faint = math.log(math.expm1(-math.log(1 - 0.9 * OCCUPANCY_ALPHA) / (DENSITY_SCALE * field.marching_step
+                                                                         / field.voxel_final))) - field.shift
+    grid[0] = torch.where(grid[0] < -20, torch.full_like(grid[0], faint), grid[0])
+    field.load_dense(grid)
+    model.update_occupancy()
+    model.eval()
+    cells = model.inference_cells()
+    assert torch.equal(cells, _sampled_cells(model)) and 0 < cells.sum() < model.occupancy.sum()
+    origins, directions = _rays(g, aabb, 1500)
+    with torch.no_grad():
+        every = render_compiled(field, kernel_grids(field, model.occupancy), origins, directions,
+                                min_transmittance=0.0, colour_min_weight=-1.0)
+        sampled = _compiled(model, origins, directions, min_transmittance=0.0, colour_min_weight=-1.0)
+        windows = model._render_windows(origins, directions)
+        every_grids = kernel_grids(field, model.occupancy)
+        left_out = torch.tensor([  # samples left out, ray by ray (the first 300)
+            render_compiled(field, every_grids, o[None], d[None], min_transmittance=0.0)[3]
+            - _compiled(model, o[None], d[None], min_transmittance=0.0)[3] for o, d in zip(origins[:300], directions[:300])],
+            dtype=torch.float64)
+    moved = (every[1] - sampled[1])[:300].abs()
+    assert (left_out > 0).sum() > 50 and (moved > 1e-4).sum() > 20
+    assert (moved <= left_out * OCCUPANCY_ALPHA + 1e-9).all()
+    assert windows.n_samples <= sampled[3] and (windows.opacity - sampled[1]).abs().max() <= 1e-3 + 1e-5
 
 
 def test_skip_distances_are_the_chebyshev_distance_to_the_nearest_occupied_voxel():
