@@ -20,7 +20,8 @@ quadrature is `nerf.packed`'s:
     C = sum_i w_i c_i,  A = 1 - T_end,  D = sum_i w_i t_i / max(A, DEPTH_EPS) clamped to [near, far]
 
 (with surface opacity, `rise_steps` > 0, alpha_i is `nerf.packed.occupancy_rise_taus`'s, from
-the occupancy the ray reached at its previous sample).
+the occupancy the ray reached at its previous sample, and t_i in the depth lies half a step
+before the sample: `nerf.packed.weight_positions`).
 
 Each ray walks its samples nearest first and stops after the first sample that takes T below
 `min_transmittance`: the colour it leaves out is at most that (the torch path,
@@ -140,6 +141,7 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
     channels = table.shape[1] - 1
     dense = index.shape[0] == 0
     check_cells = sampled.shape[0] > 0
+    depth_shift = 0.5 * step if rise_steps > 0.0 else 0.0  # `nerf.packed.weight_positions`
     rows = np.zeros(8, np.int64)
     weights = np.zeros(8)
     for i in _lane_rays(lane, lanes, order, block):
@@ -240,7 +242,7 @@ def _render_lane(lane, lanes, block, order, origins, directions, near_of, far_of
                                 value += weights[c] * table[rows[c], 1 + channel]
                             out_features[row, channel] = value
                     coloured += 1
-                weighted_t += weight * t
+                weighted_t += weight * (t - depth_shift)
                 transmittance *= 1.0 - alpha
                 if transmittance < min_transmittance:
                     stop = True

@@ -148,14 +148,25 @@ def packed_render(sigmas, rgbs, deltas, t_mid, ray_index, near, far, rise_steps:
 
     sigmas, deltas, t_mid: [n_samples]; rgbs: [n_samples, 3]; ray_index: [n_samples];
     near, far: [n_rays]; rise_steps > 0: surface opacity (`occupancy_rise_taus`). Depth is
-    sum w t / max(A, eps), clamped to [near, far], 0 where A = 0.
+    sum w t / max(A, eps) (t: `weight_positions`), clamped to [near, far], 0 where A = 0.
     Returns rgb [n_rays, 3], opacity [n_rays], depth [n_rays], weights [n_samples].
     """
     n_rays = near.shape[0]
     weights = packed_weights(sigmas, deltas, ray_index, n_rays, rise_steps)  # [n_samples]
     opacity = packed_sum(weights, ray_index, n_rays)  # [n_rays]
     rgb = packed_sum(weights[:, None] * rgbs, ray_index, n_rays)  # [n_rays, 3]
-    return rgb, opacity, _depth(packed_sum(weights * t_mid, ray_index, n_rays), opacity, near, far), weights
+    weighted_t = packed_sum(weights * weight_positions(t_mid, deltas, rise_steps), ray_index, n_rays)
+    return rgb, opacity, _depth(weighted_t, opacity, near, far), weights
+
+
+def weight_positions(t_mid: torch.Tensor, deltas: torch.Tensor, rise_steps: float) -> torch.Tensor:
+    """Where each sample's weight sits along its ray, for the depth [n_samples]: at the
+    sample; with surface opacity, half a step before it. There a sample's opacity is the
+    rise of occupancy since the previous sample, and the rise lies somewhere between the
+    two. On the primitives' 1200-s model the depth's mean error on full-coverage pixels went
+    from +0.0095 to +0.0065, its median absolute error from 0.0066 to 0.0043
+    (docs/results.md, "Surface opacity's reference")."""
+    return t_mid - 0.5 * deltas if rise_steps > 0 else t_mid
 
 
 def _depth(weighted_t, opacity, near, far):
@@ -245,7 +256,7 @@ def render_front_to_back(window_samples, unit_ray_index, near, far, window: int,
             rgb += packed_sum(weights.index_select(0, seen)[:, None] * colour(seen), rays.index_select(0, seen), n_rays)
         else:
             rgb += packed_sum(weights[:, None] * colour, rays, n_rays)
-        weighted_t += packed_sum(weights * t, rays, n_rays)
+        weighted_t += packed_sum(weights * weight_positions(t, deltas, rise_steps), rays, n_rays)
         transmittance.mul_((1 - packed_sum(local, rays, n_rays)).clamp_min(0))
         evaluated += rays.numel()
     opacity = 1 - transmittance
