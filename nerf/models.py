@@ -197,13 +197,16 @@ class CompactNeRF(RadianceModel):
     def inference_cells(self) -> torch.Tensor:
         """The cells whose samples inference evaluates, [nz, ny, nx] bool: the occupancy less
         the margin `update_occupancy` grows round the occupied cells (VoxelGridField.occupancy's
-        dilation). Training needs the margin, so that density can spread into empty
-        neighbours (gradients reach only the samples it takes); a render does not. Every node
-        of a margin cell is below OCCUPANCY_ALPHA a marching step, and so is any sample in it
-        (trilinear weights, a monotone softplus): each sample left out would have added less
-        than that to its ray's opacity, and with surface opacity the next sample's rise
-        takes its share up. On the primitives' 1200-s model half the samples of a frame's
-        centre rays, 0.80-0.84 of the frame's time, the test PSNR within 0.001 dB
+        dilation: the cells below the threshold next to one above it). Training needs the
+        margin, so that density can spread into empty neighbours (gradients reach only the
+        samples it takes); a render does not. Every node of a margin cell is below
+        OCCUPANCY_ALPHA a marching step, and so is any sample in it (trilinear weights, a
+        monotone softplus): each sample left out would have added less than that to its
+        ray's opacity, and with surface opacity the next sample's rise takes its share up.
+        Only the margin: a haze no cell of which reaches the threshold (a model early in
+        training, whose occupancy is still every cell) is rendered whole, since there its
+        faint samples are all there is. On the primitives' 1200-s model half the samples of a
+        frame's centre rays, 0.80-0.84 of the frame's time, the test PSNR within 0.001 dB
         (docs/results.md, "Render time", third round).
         Cached per occupancy and table state; without occupancy skipping, every cell."""
         if not self.use_occupancy:
@@ -211,14 +214,16 @@ class CompactNeRF(RadianceModel):
         key = tables_key(self.field)
         cached = self._inference_cells
         if cached is None or cached[0] is not self.occupancy or cached[1] != key:
-            cells = self.occupancy & self.field.occupancy(dilate=0).to(self.occupancy.device)
-            self._inference_cells = cached = (self.occupancy, key, cells)
+            hot = self.field.occupancy(dilate=0).to(self.occupancy.device)
+            margin = any_within(hot, 1, 1) & ~hot
+            self._inference_cells = cached = (self.occupancy, key, self.occupancy & ~margin)
         return cached[2]
 
     def _inference_samples(self, samples, origins, directions):
         """`samples` less those outside `inference_cells`."""
         rays = samples.ray_index
-        positions = torch.addcmul(origins.index_select(0, rays), samples.t_mid[:, None], directions.index_select(0, rays))
+        positions = torch.addcmul(origins.index_select(0, rays), samples.t_mid[:, None],
+                                  directions.index_select(0, rays))
         grid = positions if self.field.space is None else self.field.space.to_grid(positions)
         cells = self.inference_cells()
         keep = cells.reshape(-1)[cell_of(grid, self.field.aabb, cells.shape)].nonzero()[:, 0]

@@ -35,11 +35,14 @@ def _rays(g: torch.Generator, aabb: torch.Tensor, n: int = 2500):
 
 def _sampled_cells(model) -> torch.Tensor:
     """The cells inference samples, worked out here from the field's nodes: the occupied
-    cells with a corner whose opacity over one marching step exceeds OCCUPANCY_ALPHA (the
-    margin training grows round them left out). [nz, ny, nx] bool."""
+    cells less the margin training grows round the hot ones (a cell is hot when a corner's
+    opacity over one marching step exceeds OCCUPANCY_ALPHA; the margin: the cells that are
+    not, with a hot one among their 26 neighbours). [nz, ny, nx] bool."""
     field = model.field
     alpha = -torch.expm1(-field.density_from_raw(field.to_dense()[0]) * field.marching_step)  # [nodes]
-    return (F.max_pool3d(alpha[None, None], 2, stride=1)[0, 0] > OCCUPANCY_ALPHA) & model.occupancy
+    hot = F.max_pool3d(alpha[None, None], 2, stride=1)[0, 0] > OCCUPANCY_ALPHA
+    near_hot = F.max_pool3d(hot[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+    return model.occupancy & (hot | ~near_hot)
 
 
 def _full_pass(model, origins, directions):
@@ -214,7 +217,8 @@ def test_inference_leaves_out_only_the_margin_round_the_occupied_cells():
         every_grids = kernel_grids(field, model.occupancy)
         left_out = torch.tensor([  # samples left out, ray by ray (the first 300)
             render_compiled(field, every_grids, o[None], d[None], min_transmittance=0.0)[3]
-            - _compiled(model, o[None], d[None], min_transmittance=0.0)[3] for o, d in zip(origins[:300], directions[:300])],
+            - _compiled(model, o[None], d[None], min_transmittance=0.0)[3]
+            for o, d in zip(origins[:300], directions[:300])],
             dtype=torch.float64)
     moved = (every[1] - sampled[1])[:300].abs()
     assert (left_out > 0).sum() > 50 and (moved > 1e-4).sum() > 20
@@ -253,6 +257,29 @@ def test_where_rays_enter_the_box_is_ray_aabb_s():
     np.testing.assert_allclose(near, want_near.double().numpy(), atol=2e-6)
     np.testing.assert_allclose(far, want_far.double().numpy(), atol=2e-6)
     assert (key[~hit.numpy()] > key[hit.numpy()].max()).all()  # misses last
+
+
+def test_a_haze_below_the_threshold_everywhere_is_rendered_whole():
+    """A field early in training: every node at opacity 0.9 OCCUPANCY_ALPHA a step, no cell
+    hot, the occupancy still every cell. There is no margin to leave out, and the faint
+    samples are the whole image (a ray through the 24-voxel box takes about 48 of them, an
+    opacity near 0.2): inference renders every one, as the full pass does."""
+    g = torch.Generator().manual_seed(14)
+    model, aabb = blob_model(g)
+    field = model.field
+    grid = field.to_dense()
+    grid[0] = math.log(math.expm1(-math.log(1 - 0.9 * OCCUPANCY_ALPHA) / (DENSITY_SCALE * field.marching_step
+                                                                         / field.voxel_final))) - field.shift
+    field.load_dense(grid)
+    model.occupancy = torch.ones_like(model.occupancy)
+    model.eval()
+    assert torch.equal(model.inference_cells(), model.occupancy)
+    origins, directions = _rays(g, aabb, 500)
+    with torch.no_grad():
+        got = model.render(origins, directions)
+        every = render_compiled(field, kernel_grids(field, model.occupancy), origins, directions)
+    assert float(got.opacity.max()) > 0.1
+    assert torch.equal(got.opacity, every[1]) and torch.equal(got.rgb, every[0])
 
 
 # --------------------------------------------------------------------------------------
