@@ -220,14 +220,15 @@ class CompactNeRF(RadianceModel):
         return cached[2]
 
     def _inference_samples(self, samples, origins, directions):
-        """`samples` less those outside `inference_cells`."""
+        """`samples` less those outside `inference_cells`, and the kept samples' world
+        positions [m, 3] (found on the way, for the caller's field lookups)."""
         rays = samples.ray_index
         positions = torch.addcmul(origins.index_select(0, rays), samples.t_mid[:, None],
                                   directions.index_select(0, rays))
         grid = positions if self.field.space is None else self.field.space.to_grid(positions)
         cells = self.inference_cells()
         keep = cells.reshape(-1)[cell_of(grid, self.field.aabb, cells.shape)].nonzero()[:, 0]
-        return keep_samples(samples, keep)
+        return keep_samples(samples, keep), positions.index_select(0, keep)
 
     def _march(self, origins, directions, jitter=None):
         if self.field.space is not None:
@@ -252,7 +253,7 @@ class CompactNeRF(RadianceModel):
             jitter = torch.rand(origins.shape[0], generator=generator).to(origins.device)
         samples = self._march(origins, directions, jitter)
         if inference:
-            samples = self._inference_samples(samples, origins, directions)
+            samples, _ = self._inference_samples(samples, origins, directions)
         rays = samples.ray_index  # [n_samples]
 
         def field_at(index):  # the field at the samples `index` [m] (a subset or all)
@@ -324,11 +325,9 @@ class CompactNeRF(RadianceModel):
                                   levels=self._levels(), keep_levels=1)
 
         def window_samples(chosen):
-            samples = self._inference_samples(segment_samples(segments, chosen), origins, directions)
+            samples, positions = self._inference_samples(segment_samples(segments, chosen), origins, directions)
             rays, t = samples.ray_index, samples.t_mid
-            d = directions.index_select(0, rays)
-            sigma, colour_at = self.field.density_then_colour(torch.addcmul(origins.index_select(0, rays),
-                                                                             t[:, None], d), d)
+            sigma, colour_at = self.field.density_then_colour(positions, directions.index_select(0, rays))
             return rays, t, sample_deltas(samples), sigma, colour_at
 
         colour, opacity, depth, evaluated = render_front_to_back(window_samples, segments.ray_index, segments.near,

@@ -210,11 +210,11 @@ def test_inference_leaves_out_only_the_margin_round_the_occupied_cells():
     assert torch.equal(cells, _sampled_cells(model)) and 0 < cells.sum() < model.occupancy.sum()
     origins, directions = _rays(g, aabb, 1500)
     with torch.no_grad():
-        every = render_compiled(field, kernel_grids(field, model.occupancy), origins, directions,
-                                min_transmittance=0.0, colour_min_weight=-1.0)
+        every_grids = kernel_grids(field, model.occupancy)  # every marched sample
+        every = render_compiled(field, every_grids, origins, directions, min_transmittance=0.0,
+                                colour_min_weight=-1.0)
         sampled = _compiled(model, origins, directions, min_transmittance=0.0, colour_min_weight=-1.0)
         windows = model._render_windows(origins, directions)
-        every_grids = kernel_grids(field, model.occupancy)
         left_out = torch.tensor([  # samples left out, ray by ray (the first 300)
             render_compiled(field, every_grids, o[None], d[None], min_transmittance=0.0)[3]
             - _compiled(model, o[None], d[None], min_transmittance=0.0)[3]
