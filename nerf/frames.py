@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from nerfgauge.nerf.config import CHANGE_STEP, SUB_RAYS
 from nerfgauge.nerf.data import jittered_direction, pixel_footprints, split_rays
+from nerfgauge.nerf.frame_assembly import changing_points, sub_directions, touched_box_means
 from nerfgauge.nerf.march_cpu import kernel_threads
 from nerfgauge.nerf.rendering import pixel_mean, render_rays_chunked
 
@@ -125,11 +126,11 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
     rgb, opacity, depth = render_frame(model, centre_o, centre_d, pool, parts)
     if per_axis == 1:
         return rgb, opacity, depth
-    footprint = torch.from_numpy(pixel_footprints(directions, cameras.c2w[index])).to(device)  # [P, 2, 3]
     if edges_only and sub_rays == "changes":
-        rgb, opacity = changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, directions.shape[:2],
-                                             per_axis, pool, parts, change_step)
+        rgb, opacity = changing_points_frame(model, centre_o, directions, cameras.c2w[index], rgb, opacity, per_axis,
+                                             pool, parts, change_step)
         return rgb, opacity, depth
+    footprint = torch.from_numpy(pixel_footprints(directions, cameras.c2w[index])).to(device)  # [P, 2, 3]
     chosen = slice(None)
     if edges_only:
         height, width = directions.shape[:2]
@@ -156,8 +157,14 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
     return rgb, opacity, depth
 
 
-def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, shape: tuple, per_axis: int, pool,
-                          parts: int, step: float = CHANGE_STEP) -> tuple:
+def assembles_compiled(device) -> bool:
+    """Whether an edges frame's host work on `device` runs as `nerf.frame_assembly`'s
+    compiled loops (on the CPU) rather than as torch ops (on a GPU, where the frame is)."""
+    return torch.device(device).type == "cpu"
+
+
+def changing_points_frame(model, centre_o, directions: np.ndarray, c2w: np.ndarray, rgb, opacity, per_axis: int,
+                          pool, parts: int, step: float = CHANGE_STEP) -> tuple:
     """The box mean (in linear light) of per_axis x per_axis points over each pixel, with a
     ray only through the points where the centre render changes
     (`nerfgauge.core.pixel_edges.changes_towards` of its 8-bit RGBA, as the PNG holds it):
@@ -166,18 +173,33 @@ def changing_points_frame(model, centre_o, centre_d, footprint, rgb, opacity, sh
     agree to within `step`; a pixel none of whose points changes keeps its centre ray's
     value.
 
-    centre_o, centre_d: [P, 3] the pixel-centre rays; footprint: [P, 2, 3]
-    (`pixel_footprints`); rgb [P, 3] (premultiplied), opacity [P]: their render; shape (H, W).
-    Returns rgb [P, 3], opacity [P]."""
-    height, width = shape
+    centre_o: [P, 3] the pixel-centre rays' origins; directions: [H, W, 3] float64 their unit
+    directions; c2w: the view's camera-to-world; rgb [P, 3] (premultiplied), opacity [P]:
+    their render. Returns rgb [P, 3], opacity [P]. On the CPU the work around the sub-rays'
+    render is `nerf.frame_assembly`'s loops (`assembles_compiled`), elsewhere torch ops;
+    both compute the same values (to float32 rounding)."""
+    height, width = directions.shape[:2]
     offsets = pixel_offsets(per_axis)
     offsets = offsets[np.any(offsets != 0, axis=1)]  # the centre's ray is rendered already
-    straight = rgba_png(rgb.cpu().numpy(), opacity.cpu().numpy(), height, width).astype(np.float64) / 255
-    changes = changes_towards(straight, offsets, step).reshape(len(offsets), -1)  # [S, P]
+    rgba8 = rgba_png(rgb.cpu().numpy(), opacity.cpu().numpy(), height, width)
+    device = rgb.device
+    if assembles_compiled(device):
+        point, pixel = changing_points(rgba8, offsets, step)
+        if not len(point):
+            return rgb, opacity
+        forward = -np.asarray(c2w, dtype=np.float64)[:3, 2]
+        sub_d = torch.from_numpy(sub_directions(directions, forward, offsets, point, pixel))
+        sub_rgb, sub_opacity, _ = render_frame(model, centre_o.index_select(0, torch.from_numpy(pixel)), sub_d, pool,
+                                               parts)
+        means = touched_box_means(rgb.numpy(), opacity.numpy(), height, width, offsets, per_axis % 2 == 1, point,
+                                  pixel, sub_rgb.numpy(), sub_opacity.numpy())
+        return tuple(torch.from_numpy(part) for part in means)
+    changes = changes_towards(rgba8.astype(np.float64) / 255, offsets, step).reshape(len(offsets), -1)  # [S, P]
     touched = np.flatnonzero(changes.any(axis=0))  # pixels with a ray of their own beyond the centre
     if not len(touched):
         return rgb, opacity
-    device = rgb.device
+    centre_d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
+    footprint = torch.from_numpy(pixel_footprints(directions, c2w)).to(device)  # [P, 2, 3]
     point, pixel = (torch.from_numpy(part).to(device) for part in np.nonzero(changes))  # row-major: by point
     offset_of = torch.from_numpy(offsets.astype(np.float32)).to(device)  # [S, 2]
     sub_d = jittered_direction(centre_d.index_select(0, pixel), footprint.index_select(0, pixel),

@@ -309,6 +309,34 @@ def _enter_box(origins, directions, lo, hi, cell, out_near, out_far, out_key):
             out_key[i] = 1 << 62
 
 
+# The keys of rays that miss the box (1 << 62) sort as this one, past every 30-bit Morton key.
+MISS_KEY = 1 << 30
+
+
+@numba.njit(cache=True)
+def morton_order(key):
+    """np.argsort(key, kind="stable") of `_enter_box`'s keys [n] int64 (30-bit Morton keys,
+    and 1 << 62 for a ray that misses), by a least-significant-digit radix sort of 3 digits
+    of 11 bits: a frame's 16k rays in about a tenth of numpy's comparison sort's time."""
+    n = key.shape[0]
+    order, swap = np.arange(n), np.empty(n, np.int64)
+    counts = np.empty(1 << 11, np.int64)
+    for shift in (0, 11, 22):
+        counts[:] = 0
+        for i in range(n):
+            counts[(min(key[i], MISS_KEY) >> shift) & 0x7FF] += 1
+        total = 0
+        for digit in range(1 << 11):
+            counts[digit], total = total, total + counts[digit]
+        for i in range(n):  # in the order of the digits sorted so far: stable
+            ray = order[i]
+            digit = (min(key[ray], MISS_KEY) >> shift) & 0x7FF
+            swap[counts[digit]] = ray
+            counts[digit] += 1
+        order, swap = swap, order
+    return order
+
+
 @dataclass(frozen=True)
 class KernelGrids:
     """What the kernel reads of a field and its occupancy: the skip distances [nz, ny, nx]
@@ -365,7 +393,7 @@ def render_compiled(field, grids: KernelGrids, origins: torch.Tensor, directions
     _enter_box(o, d, lo, hi, LOCALITY_CELL * field.voxel, near, far, key)
     # rays that begin close together read the same grid nodes: rendered one after another
     # they find those in the thread's cache (at 256 px: 1.4x faster than the image's order)
-    order = np.argsort(key, kind="stable")
+    order = morton_order(key)
     arrays = (o, d, near, far)
     constants = (distance, voxel, lo, float(voxel_steps * step), voxel_steps, float(step), grids.sampled,
                  grids.index, grids.table, np.array([nx, ny, nz], dtype=np.int64), scale, float(field.shift),

@@ -304,6 +304,18 @@ def test_the_thread_count_and_the_rays_order_do_not_change_a_ray():
         assert torch.equal(a, b) and torch.equal(a[shuffled], c)
 
 
+def test_the_morton_order_is_numpy_s_stable_argsort_of_the_keys():
+    """The radix sort against numpy's stable argsort: repeated keys (rays that enter the box
+    in one cell), every bit of a 30-bit key, and the key of a ray that misses."""
+    rng = np.random.default_rng(12)
+    for n in (0, 1, 5000):
+        key = rng.integers(0, 1 << 30, size=n, dtype=np.int64)
+        key[: n // 2] = key[: n // 2] % 97  # many equal keys: their order must stay the rays' own
+        key[::7] = 1 << 62  # misses: after every ray that enters
+        key[1::11] = (1 << 30) - 1  # the largest key a ray that enters can have
+        assert np.array_equal(march_cpu.morton_order(key), np.argsort(key, kind="stable"))
+
+
 def test_the_kernel_s_grids_follow_the_field_s_tables():
     """An Adam step, or any in-place change of a table, is seen by the next render."""
     g = torch.Generator().manual_seed(11)

@@ -16,10 +16,22 @@ import torch
 from nerfgauge.core.camera import Intrinsics, SplitCameras, look_at, pixel_rays
 from nerfgauge.core.pixel_edges import changes_towards
 from nerfgauge.nerf.config import CHANGE_STEP
-from nerfgauge.nerf.frames import box_frame, pixel_offsets, rgba_png
+from nerfgauge.nerf import frames
+from nerfgauge.nerf.data import jittered_direction, pixel_footprints
+from nerfgauge.nerf.frame_assembly import changing_points, sub_directions, touched_box_means
+from nerfgauge.nerf.frames import box_frame, interpolate_centres, pixel_offsets, rgba_png
 from nerfgauge.nerf.rendering import pixel_mean
 
 CPU = torch.device("cpu")
+
+
+@pytest.fixture(params=["compiled", "torch"])
+def assembly(request, monkeypatch):
+    """An edges frame's host work as nerf.frame_assembly's compiled loops (the CPU's) or as
+    the torch ops a GPU runs: every frame test below holds for both."""
+    if request.param == "torch":
+        monkeypatch.setattr(frames, "assembles_compiled", lambda device: False)
+    return request.param
 
 
 def _cameras(seed: int = 5, width: int = 24, height: int = 20):
@@ -127,6 +139,82 @@ def test_a_lone_different_pixel_changes_its_own_points_and_its_neighbours_points
 
 
 # --------------------------------------------------------------------------------------
+# the compiled assembly against the torch and numpy ops
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_compiled_changing_points_are_changes_towards_of_the_8_bit_render(seed):
+    rng = np.random.default_rng(seed)
+    height, width = 13, 17
+    blocks = rng.uniform(size=(5, 6, 3)).astype(np.float32)
+    rgb = np.repeat(np.repeat(blocks, 3, axis=0), 3, axis=1)[:height, :width].reshape(-1, 3)
+    opacity = np.where(rng.uniform(size=height * width) < 0.7, 1.0, rng.uniform(size=height * width))
+    opacity = np.where(rng.uniform(size=height * width) < 0.1, 0.0, opacity).astype(np.float32)
+    rgb = (rgb + rng.uniform(-0.01, 0.01, size=rgb.shape)).astype(np.float32) * opacity[:, None]
+    rgba8 = rgba_png(rgb, opacity, height, width)
+    for per_axis in (2, 3, 4):
+        offsets = pixel_offsets(per_axis)
+        offsets = offsets[np.any(offsets != 0, axis=1)]
+        for step in (0.3, 0.02, 0.004):  # 0.004: one 8-bit level (1 / 255) exceeds it
+            expected = np.nonzero(changes_towards(rgba8 / 255.0, offsets, step).reshape(len(offsets), -1))
+            point, pixel = changing_points(rgba8, offsets, step)
+            assert np.array_equal(point, expected[0]) and np.array_equal(pixel, expected[1])
+            assert 0 < len(point) < len(offsets) * height * width
+
+
+@pytest.mark.parametrize("width, height", [(24, 20), (1, 9), (7, 1)])
+def test_the_compiled_sub_directions_are_the_footprints_jittered_directions(width, height):
+    """Every pixel and point of a frame, the border and axes one pixel long included (a
+    footprint with no step along it): the compiled direction equals jittered_direction of
+    pixel_footprints to float32 rounding."""
+    rng = np.random.default_rng(3)
+    c2w = look_at(rng.normal(size=3) * 3, rng.normal(size=3) * 0.3)
+    intrinsics = Intrinsics(width=width, height=height, fx=20.0, fy=21.0, cx=width / 2 + 0.1, cy=height / 2 - 0.2)
+    _, directions = pixel_rays(c2w, intrinsics)
+    offsets = pixel_offsets(4)
+    point, pixel = (part.ravel() for part in np.meshgrid(np.arange(len(offsets)), np.arange(width * height),
+                                                         indexing="ij"))
+    expected = jittered_direction(torch.from_numpy(directions.reshape(-1, 3).astype(np.float32))[pixel],
+                                  torch.from_numpy(pixel_footprints(directions, c2w))[pixel],
+                                  torch.from_numpy(offsets.astype(np.float32))[point])
+    got = sub_directions(directions, -c2w[:3, 2].copy(), offsets, point, pixel)
+    assert np.abs(got - expected.numpy()).max() < 1e-6  # unit vectors in float32: a few ulps
+    # the points do move: off-centre points differ from the centre's direction along a long axis
+    assert np.abs(got - directions.reshape(-1, 3)[pixel]).max() > 0.2 / max(intrinsics.fx, intrinsics.fy)
+
+
+@pytest.mark.parametrize("per_axis", [2, 3, 4])
+def test_the_compiled_box_means_are_the_interpolated_and_rendered_points_mean_in_linear_light(per_axis):
+    rng = np.random.default_rng(per_axis)
+    height, width = 9, 11
+    opacity = np.where(rng.uniform(size=height * width) < 0.3, rng.uniform(size=height * width), 1.0)
+    opacity = opacity.astype(np.float32)
+    rgb = (rng.uniform(size=(height * width, 3)) * opacity[:, None]).astype(np.float32)
+    offsets = pixel_offsets(per_axis)
+    offsets = offsets[np.any(offsets != 0, axis=1)]
+    changes = rng.uniform(size=(len(offsets), height * width)) < 0.15
+    changes[:, :2 * width] = False  # two untouched rows
+    point, pixel = np.nonzero(changes)
+    sub_opacity = rng.uniform(size=len(point)).astype(np.float32)
+    sub_rgb = (rng.uniform(size=(len(point), 3)) * sub_opacity[:, None]).astype(np.float32)
+    got_rgb, got_opacity = touched_box_means(rgb, opacity, height, width, offsets, per_axis % 2 == 1, point, pixel,
+                                             sub_rgb, sub_opacity)
+    # the oracle: every point interpolated, the rendered ones put in place, pixel_mean
+    centre = torch.from_numpy(np.concatenate([rgb, opacity[:, None]], axis=1))
+    every = torch.arange(height * width)
+    values = interpolate_centres(centre, height, width, every, offsets)  # [S, P, 4]
+    values[point, pixel] = torch.from_numpy(np.concatenate([sub_rgb, sub_opacity[:, None]], axis=1))
+    if per_axis % 2 == 1:
+        values = torch.cat([values, centre[None]])
+    mean_rgb, mean_opacity = pixel_mean(values[..., :3], values[..., 3])
+    touched = changes.any(axis=0)
+    assert 0 < touched.sum() < touched.size
+    assert np.abs(got_rgb[touched] - mean_rgb.numpy()[touched]).max() < 1e-5
+    assert np.abs(got_opacity[touched] - mean_opacity.numpy()[touched]).max() < 1e-6
+    assert np.array_equal(got_rgb[~touched], rgb[~touched]) and np.array_equal(got_opacity[~touched], opacity[~touched])
+
+
+# --------------------------------------------------------------------------------------
 # the frame
 
 
@@ -165,7 +253,7 @@ def _frame_oracle(model, cameras, c2w, intrinsics, per_axis, step=CHANGE_STEP):
 
 
 @pytest.mark.parametrize("per_axis", [2, 3, 4])  # 4: the rung nerf.schedule.FINER_EDGE_POINTS_PER_AXIS
-def test_a_changes_frame_is_its_points_rays_where_the_centres_differ_and_interpolated_elsewhere(per_axis):
+def test_a_changes_frame_is_its_points_rays_where_the_centres_differ_and_interpolated_elsewhere(per_axis, assembly):
     cameras, c2w, intrinsics = _cameras()
     model = _disc_model(c2w, intrinsics)
     rgb, opacity, depth = box_frame(model, cameras, 0, per_axis, None, 1, CPU, edges_only=True)
@@ -182,7 +270,7 @@ def test_a_changes_frame_is_its_points_rays_where_the_centres_differ_and_interpo
 
 
 @pytest.mark.parametrize("per_axis", [2, 3])
-def test_a_straight_edge_renders_as_the_whole_box_with_fewer_rays_than_its_edge_pixels(per_axis):
+def test_a_straight_edge_renders_as_the_whole_box_with_fewer_rays_than_its_edge_pixels(per_axis, assembly):
     """A straight line that crosses the square (or segment) between centres separates some
     of them, so every point it passes gets its ray and every other point lies between equal
     centres: the changes render is the box render of every pixel."""
@@ -197,7 +285,7 @@ def test_a_straight_edge_renders_as_the_whole_box_with_fewer_rays_than_its_edge_
     assert model.rays < edge_pixels.rays
 
 
-def test_a_frame_where_nothing_changes_is_its_centre_render_from_one_pass():
+def test_a_frame_where_nothing_changes_is_its_centre_render_from_one_pass(assembly):
     cameras, _, intrinsics = _cameras()
 
     def smooth(origins, directions):  # a ramp far below the colour step between neighbours
@@ -222,7 +310,7 @@ def gentle_ramp(c2w):
     return render
 
 
-def test_a_smaller_change_step_gives_rays_to_centres_the_default_interpolates():
+def test_a_smaller_change_step_gives_rays_to_centres_the_default_interpolates(assembly):
     """The ramp's neighbouring centres differ by 0.01-0.03 in the 8-bit render: below the
     default step nothing changes (the centre render); at 0.005 every point between them has
     its ray, and the frame is the per-pixel oracle's at that step."""
