@@ -142,10 +142,11 @@ def test_a_lone_different_pixel_changes_its_own_points_and_its_neighbours_points
 # the compiled assembly against the torch and numpy ops
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_the_compiled_changing_points_are_changes_towards_of_the_8_bit_render(seed):
+@pytest.mark.parametrize("seed, height, width", [(0, 13, 17), (1, 13, 17), (2, 1, 17), (3, 13, 1)])
+def test_the_compiled_changing_points_are_changes_towards_of_the_8_bit_render(seed, height, width):
+    """Blocks of colour with partial and zero alpha, 8-bit as the PNG; frames one pixel high
+    or wide included (the border repeated on both sides)."""
     rng = np.random.default_rng(seed)
-    height, width = 13, 17
     blocks = rng.uniform(size=(5, 6, 3)).astype(np.float32)
     rgb = np.repeat(np.repeat(blocks, 3, axis=0), 3, axis=1)[:height, :width].reshape(-1, 3)
     opacity = np.where(rng.uniform(size=height * width) < 0.7, 1.0, rng.uniform(size=height * width))
@@ -159,7 +160,9 @@ def test_the_compiled_changing_points_are_changes_towards_of_the_8_bit_render(se
             expected = np.nonzero(changes_towards(rgba8 / 255.0, offsets, step).reshape(len(offsets), -1))
             point, pixel = changing_points(rgba8, offsets, step)
             assert np.array_equal(point, expected[0]) and np.array_equal(pixel, expected[1])
-            assert 0 < len(point) < len(offsets) * height * width
+            assert len(point) > 0  # the comparison is not of two empty lists
+            if step == 0.3:  # not of two full ones either: the blocks' insides agree at the largest step
+                assert len(point) < len(offsets) * height * width
 
 
 @pytest.mark.parametrize("width, height", [(24, 20), (1, 9), (7, 1)])
