@@ -20,7 +20,7 @@ rows = list(csv.DictReader(open(sys.argv[1])))
 by_design = defaultdict(list)
 for r in rows:
     by_design[r["design"]].append(r)
-fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharex=True)
+fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), sharex=True)
 for design, runs in by_design.items():  # the CSV's order: oldest design first
     budgets = sorted({int(r["budget_s"]) for r in runs})
     for ax, part in zip(axes, ("psnr", "psnr_interior")):
@@ -39,6 +39,6 @@ axes[1].set_title("interior (covered, no edge in the pixel)", fontsize=8)
 for ax in axes:
     ax.set_xscale("log"); ax.minorticks_off(); ax.set_xticks([600, 1200, 2400], ["600", "1200", "2400"])
     ax.set_xlabel("training budget (s)"); ax.set_ylabel("test PSNR (dB)"); ax.grid(alpha=0.3)
-axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(0, 0.92))
+fig.legend(*axes[0].get_legend_handles_labels(), fontsize=7, loc="lower center", ncol=3)
 fig.suptitle("compact NeRF, primitives 128 px, 100 views, one run a point, nothing else running", fontsize=8)
-fig.tight_layout(); fig.savefig(sys.argv[2], dpi=110)
+fig.tight_layout(rect=(0, 0.1, 1, 1)); fig.savefig(sys.argv[2], dpi=110)
