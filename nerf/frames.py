@@ -127,8 +127,8 @@ def box_frame(model, cameras, index: int, per_axis: int, pool, parts: int, devic
     if per_axis == 1:
         return rgb, opacity, depth
     if edges_only and sub_rays == "changes":
-        rgb, opacity = changing_points_frame(model, centre_o, directions, cameras.c2w[index], rgb, opacity, per_axis,
-                                             pool, parts, change_step)
+        rgb, opacity = changing_points_frame(model, centre_o, centre_d, directions, cameras.c2w[index], rgb, opacity,
+                                             per_axis, pool, parts, change_step)
         return rgb, opacity, depth
     footprint = torch.from_numpy(pixel_footprints(directions, cameras.c2w[index])).to(device)  # [P, 2, 3]
     chosen = slice(None)
@@ -163,8 +163,8 @@ def assembles_compiled(device) -> bool:
     return torch.device(device).type == "cpu"
 
 
-def changing_points_frame(model, centre_o, directions: np.ndarray, c2w: np.ndarray, rgb, opacity, per_axis: int,
-                          pool, parts: int, step: float = CHANGE_STEP) -> tuple:
+def changing_points_frame(model, centre_o, centre_d, directions: np.ndarray, c2w: np.ndarray, rgb, opacity,
+                          per_axis: int, pool, parts: int, step: float = CHANGE_STEP) -> tuple:
     """The box mean (in linear light) of per_axis x per_axis points over each pixel, with a
     ray only through the points where the centre render changes
     (`nerfgauge.core.pixel_edges.changes_towards` of its 8-bit RGBA, as the PNG holds it):
@@ -173,8 +173,8 @@ def changing_points_frame(model, centre_o, directions: np.ndarray, c2w: np.ndarr
     agree to within `step`; a pixel none of whose points changes keeps its centre ray's
     value.
 
-    centre_o: [P, 3] the pixel-centre rays' origins; directions: [H, W, 3] float64 their unit
-    directions; c2w: the view's camera-to-world; rgb [P, 3] (premultiplied), opacity [P]:
+    centre_o, centre_d: [P, 3] the pixel-centre rays (on the model's device); directions:
+    [H, W, 3] float64 the same unit directions on the host; c2w: the view's camera-to-world; rgb [P, 3] (premultiplied), opacity [P]:
     their render. Returns rgb [P, 3], opacity [P]. On the CPU the work around the sub-rays'
     render is `nerf.frame_assembly`'s loops (`assembles_compiled`), elsewhere torch ops;
     both compute the same values (to float32 rounding)."""
@@ -198,7 +198,6 @@ def changing_points_frame(model, centre_o, directions: np.ndarray, c2w: np.ndarr
     touched = np.flatnonzero(changes.any(axis=0))  # pixels with a ray of their own beyond the centre
     if not len(touched):
         return rgb, opacity
-    centre_d = torch.from_numpy(directions.reshape(-1, 3).astype(np.float32)).to(device)
     footprint = torch.from_numpy(pixel_footprints(directions, c2w)).to(device)  # [P, 2, 3]
     point, pixel = (torch.from_numpy(part).to(device) for part in np.nonzero(changes))  # row-major: by point
     offset_of = torch.from_numpy(offsets.astype(np.float32)).to(device)  # [S, 2]
